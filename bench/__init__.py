@@ -1,0 +1,1 @@
+"""Benchmarks: ``python -m bench [SECTION …]`` prints figures and ratios."""

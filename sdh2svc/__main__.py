@@ -1,0 +1,5 @@
+import sys
+
+from sdh2svc.cli import main
+
+sys.exit(main())

@@ -1,0 +1,109 @@
+"""The ``sdh2svc`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+
+from sdh2svc import __version__
+from sdh2svc.config import ConfigError, Settings, load_config
+from sdh2svc.model.friction import inside_cone, omega
+from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
+from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="a TOML file overriding config/default.toml")
+    p.add_argument(
+        "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
+        help="override one key, e.g. --set rolling.k=3 (repeatable; beats file and environment)",
+    )  # fmt: skip
+
+
+def _load(args: argparse.Namespace) -> Settings:
+    return load_config(args.config, args.overrides)
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    """Print the effective, validated configuration as JSON."""
+    print(json.dumps(_load(args).model_dump(mode="json"), indent=2, ensure_ascii=False))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """The hand model at one pose: contact points, object segment and friction cones."""
+    cfg = _load(args)
+    pad = cfg.hand.pad
+    s_range = (cfg.tactile.distal.rows - 1) * cfg.tactile.texel_pitch_mm
+    pose = HandPose(*(math.radians(a) for a in (args.phi2, args.phi3, args.phi4, args.phi5)))
+    x3s, vjs = [], []
+    for S in (args.s1, args.s2):
+        L = cfg.calibration.distance.L_from_S(S, s_range, pad)
+        x3, y3 = pad_point_from_L(L, pad)
+        x3s.append(x3)
+        vjs.append(virtual_joint(x3, y3))
+    pts = hand_points(pose, vjs[0], vjs[1], cfg.hand)
+    lam, sigma = segment(pts.A, pts.B)
+    wa = omega(Finger.ONE, pose.phi2 + pose.phi3, x3s[0], pts.A, pts.B, pad)
+    wb = omega(Finger.TWO, pose.phi4 + pose.phi5, x3s[1], pts.B, pts.A, pad)
+    alpha = cfg.rolling.alpha
+    out = {
+        "phi_deg": [args.phi2, args.phi3, args.phi4, args.phi5],
+        "S_mm": [args.s1, args.s2],
+        "A_mm": list(pts.A), "B_mm": list(pts.B), "C_mm": list(pts.C), "D_mm": list(pts.D),
+        "Lambda_mm": lam, "sigma_deg": math.degrees(sigma),
+        "omega_A_deg": math.degrees(wa), "omega_B_deg": math.degrees(wb),
+        "inside_cone": inside_cone(wa, alpha) and inside_cone(wb, alpha),
+    }  # fmt: skip
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"pose φ2…φ5 = {args.phi2}, {args.phi3}, {args.phi4}, {args.phi5} deg;  "
+          f"S1 = {args.s1} mm, S2 = {args.s2} mm")  # fmt: skip
+    for name in "ABCD":
+        p = getattr(pts, name)
+        print(f"  {name} = (y {p.y:8.2f}, z {p.z:8.2f}) mm")
+    print(f"  Λ = {lam:.2f} mm   σ = {math.degrees(sigma):.2f}°")
+    print(f"  ωA = {math.degrees(wa):.2f}°   ωB = {math.degrees(wb):.2f}°   "
+          f"cone 90 ± {cfg.rolling.alpha_deg}°: {'inside' if out['inside_cone'] else 'OUTSIDE'}")  # fmt: skip
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sdh2svc", description="Tactile in-hand rolling on a SCHUNK SDH2 hand."
+    )
+    parser.add_argument("--version", action="version", version=f"sdh2svc {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser(
+        "config", help="print the effective configuration", description=cmd_config.__doc__
+    )
+    _add_config_args(p)
+    p.set_defaults(func=cmd_config)
+
+    p = sub.add_parser("demo", help="the hand model at one pose", description=cmd_demo.__doc__)
+    _add_config_args(p)
+    for name, default in (("phi2", -20.0), ("phi3", 30.0), ("phi4", -20.0), ("phi5", 30.0)):
+        p.add_argument(f"--{name}", type=float, default=default, help=f"deg (default {default})")
+    p.add_argument("--s1", type=float, default=20.0, help="contact height S1 on Finger 1, mm")
+    p.add_argument("--s2", type=float, default=20.0, help="contact height S2 on Finger 2, mm")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except ConfigError as e:
+        print(f"sdh2svc: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

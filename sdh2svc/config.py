@@ -1,0 +1,303 @@
+"""Configuration: ``config/default.toml`` validated into one immutable :class:`Settings` value.
+
+Sources, later ones winning: the packaged defaults, a user TOML file (any subset of keys),
+environment variables (``SDH2SVC_<SECTION>__<KEY>``, e.g. ``SDH2SVC_ROLLING__K=3``), and
+``key.path=value`` overrides (the CLI's ``--set``). A bad value raises :class:`ConfigError`,
+whose message names each offending key, its value and the allowed range.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Iterable, Mapping
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any
+
+import annotated_types as at
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict
+
+from sdh2svc.control.params import RollingParams
+from sdh2svc.model.base import Frozen
+from sdh2svc.model.contact import MatrixLayout, TactileCalibration
+from sdh2svc.model.kinematics import Finger, FingerLimits, HandGeometry
+from sdh2svc.model.observe import ModelContext
+
+AxisIndex = Annotated[int, Field(ge=0, le=6)]
+MatrixIndex = Annotated[int, Field(ge=0, le=5)]
+AngleDeg = Annotated[float, Field(ge=-180.0, le=180.0)]
+NUM_AXES = 7
+
+
+class AxisMap(Frozen):
+    """Thesis joint names → SDH2 wire axes, and finger pads → DSACON32m matrix indices."""
+
+    phi1: AxisIndex
+    phi2: AxisIndex
+    phi3: AxisIndex
+    phi4: AxisIndex
+    phi5: AxisIndex
+    thumb_proximal: AxisIndex
+    thumb_distal: AxisIndex
+    finger1_proximal_matrix: MatrixIndex
+    finger1_distal_matrix: MatrixIndex
+    thumb_proximal_matrix: MatrixIndex
+    thumb_distal_matrix: MatrixIndex
+    finger2_proximal_matrix: MatrixIndex
+    finger2_distal_matrix: MatrixIndex
+
+    @model_validator(mode="after")
+    def _distinct(self) -> AxisMap:
+        axes = [self.phi1, self.phi2, self.phi3, self.phi4, self.phi5]
+        axes += [self.thumb_proximal, self.thumb_distal]
+        if len(set(axes)) != NUM_AXES:
+            raise ValueError(f"each wire axis 0…6 must be named exactly once, got {axes}")
+        mats = [
+            self.finger1_proximal_matrix,
+            self.finger1_distal_matrix,
+            self.thumb_proximal_matrix,
+            self.thumb_distal_matrix,
+            self.finger2_proximal_matrix,
+            self.finger2_distal_matrix,
+        ]
+        if len(set(mats)) != len(mats):
+            raise ValueError(f"each tactile matrix 0…5 must be named exactly once, got {mats}")
+        return self
+
+    def finger_axes(self, finger: Finger) -> tuple[int, int]:
+        """Wire axes (proximal, distal) of a coupled finger."""
+        return (self.phi2, self.phi3) if finger is Finger.ONE else (self.phi4, self.phi5)
+
+    def distal_matrix(self, finger: Finger) -> int:
+        return self.finger1_distal_matrix if finger is Finger.ONE else self.finger2_distal_matrix
+
+
+class JointLimits(Frozen):
+    """Joint limits per wire axis 0…6, degrees."""
+
+    min_deg: tuple[AngleDeg, ...]
+    max_deg: tuple[AngleDeg, ...]
+
+    @field_validator("min_deg", "max_deg")
+    @classmethod
+    def _seven(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if len(v) != NUM_AXES:
+            raise ValueError(f"needs {NUM_AXES} angles, one per wire axis 0…6 (got {len(v)})")
+        return v
+
+    @model_validator(mode="after")
+    def _ordered(self) -> JointLimits:
+        bad = [
+            i for i, (lo, hi) in enumerate(zip(self.min_deg, self.max_deg, strict=True)) if lo >= hi
+        ]
+        if bad:
+            raise ValueError(f"min_deg must be below max_deg for every axis; not so for axes {bad}")
+        return self
+
+    def clamp_deg(self, axis: int, angle_deg: float) -> float:
+        return min(self.max_deg[axis], max(self.min_deg[axis], angle_deg))
+
+
+class TactileConfig(Frozen):
+    """Layouts of the proximal (6 × 14) and distal (6 × 13) matrices and their pitch."""
+
+    texel_pitch_mm: Annotated[float, Field(gt=0.0, le=20.0)]
+    proximal: MatrixLayout
+    distal: MatrixLayout
+
+
+class Settings(BaseSettings):
+    """The whole configuration of sdh2svc; see ``config/default.toml`` for every key and unit."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="SDH2SVC_", env_nested_delimiter="__", frozen=True, extra="forbid"
+    )
+
+    hand: HandGeometry
+    axes: AxisMap
+    limits: JointLimits
+    tactile: TactileConfig
+    calibration: TactileCalibration
+    rolling: RollingParams
+
+    def model_context(self) -> ModelContext:
+        """The pure model's view of this configuration."""
+        return ModelContext(
+            geom=self.hand,
+            distal=self.tactile.distal,
+            pitch_mm=self.tactile.texel_pitch_mm,
+            calib=self.calibration,
+            limits1=self.finger_limits(Finger.ONE),
+            limits2=self.finger_limits(Finger.TWO),
+        )
+
+    def finger_limits(self, finger: Finger) -> FingerLimits:
+        """Joint limits of a coupled finger in radians (for IK and the safety clamp)."""
+        prox, dist = self.axes.finger_axes(finger)
+        lo, hi = self.limits.min_deg, self.limits.max_deg
+        return FingerLimits(
+            math.radians(lo[prox]),
+            math.radians(hi[prox]),
+            math.radians(lo[dist]),
+            math.radians(hi[dist]),
+        )
+
+
+class ConfigError(ValueError):
+    """Invalid configuration: one line per problem, each naming the key, the value and the range."""
+
+    def __init__(self, problems: list[str], source: str = "configuration") -> None:
+        self.problems = problems
+        super().__init__(f"invalid {source}:\n  " + "\n  ".join(problems))
+
+
+def default_config_path() -> Path:
+    """The packaged ``default.toml`` (wheel), or the repository's ``config/default.toml``."""
+    packaged = resources.files("sdh2svc") / "_config" / "default.toml"
+    if packaged.is_file():
+        return Path(str(packaged))
+    return Path(__file__).resolve().parent.parent / "config" / "default.toml"
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError([f"file not found: {path}"]) from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError([f"{path}: not valid TOML: {e}"]) from None
+
+
+def deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``top``'s keys laid over it, tables merged key by key."""
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def parse_override(text: str) -> dict[str, Any]:
+    """``rolling.k=3`` → ``{"rolling": {"k": 3}}``; the value is read as TOML, else as a string."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not key or any(not part for part in key.split(".")):
+        raise ConfigError([f"override {text!r} must look like section.key=value"])
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    out: dict[str, Any] = {}
+    node = out
+    *parents, leaf = key.split(".")
+    for part in parents:
+        node = node.setdefault(part, {})
+    node[leaf] = value
+    return out
+
+
+def load_config(
+    path: str | Path | None = None,
+    overrides: Iterable[str] = (),
+    *,
+    use_env: bool = True,
+) -> Settings:
+    """Load and validate the configuration: defaults ← ``path`` ← environment ← ``overrides``."""
+    data = _read_toml(default_config_path())
+    if path is not None:
+        data = deep_merge(data, _read_toml(Path(path)))
+    if use_env:
+        data = deep_merge(data, EnvSettingsSource(Settings)())
+    for text in overrides:
+        data = deep_merge(data, parse_override(text))
+    try:
+        # model_validate, not Settings(...): the layers above are already merged in order.
+        return Settings.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(format_errors(e, Settings), str(path or "configuration")) from None
+
+
+@lru_cache(maxsize=1)
+def default_config() -> Settings:
+    """The packaged defaults alone (no file, no environment): the thesis's values."""
+    return load_config(use_env=False)
+
+
+# --- readable validation errors -------------------------------------------------------------
+
+
+def format_errors(err: ValidationError, model: type[BaseModel]) -> list[str]:
+    """One line per error, e.g. ``rolling.k = 0.5: Input should be greater than 1 (allowed: …)``."""
+    lines = []
+    for e in err.errors():
+        loc = tuple(e["loc"])
+        key = ".".join(str(p) for p in loc) or "(top level)"
+        value = e.get("input")
+        shown = "" if isinstance(value, Mapping) else f" = {value!r}"
+        allowed = _allowed_range(model, loc)
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (see config/default.toml for the keys there are)"
+        lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
+    return lines
+
+
+def _allowed_range(model: type[BaseModel], loc: tuple[int | str, ...]) -> str:
+    tp: Any = model
+    metadata: list[Any] = []
+    for part in loc:
+        tp, metadata = _descend(tp, part)
+        if tp is None:
+            return ""
+    name = str(next((p for p in reversed(loc) if isinstance(p, str)), "value"))
+    lo = hi = ""
+    for m in metadata:
+        if isinstance(m, at.Gt):
+            lo = f"{m.gt} < "
+        elif isinstance(m, at.Ge):
+            lo = f"{m.ge} ≤ "
+        elif isinstance(m, at.Lt):
+            hi = f" < {m.lt}"
+        elif isinstance(m, at.Le):
+            hi = f" ≤ {m.le}"
+    return f"{lo}{name}{hi}" if lo or hi else ""
+
+
+def _descend(tp: Any, part: int | str) -> tuple[Any, list[Any]]:
+    """Type and constraint metadata one step down ``tp`` along a validation-error location."""
+    tp, _ = _unwrap(tp)
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        field = tp.model_fields.get(str(part))
+        if field is None:
+            return None, []
+        inner, meta = _unwrap(field.annotation)
+        return inner, list(field.metadata) + meta
+    if typing.get_origin(tp) in (tuple, list) and isinstance(part, int):
+        args = typing.get_args(tp)
+        elem = args[0] if len(args) == 2 and args[1] is Ellipsis else args[min(part, len(args) - 1)]
+        return _unwrap(elem)
+    return None, []
+
+
+def _unwrap(tp: Any) -> tuple[Any, list[Any]]:
+    meta: list[Any] = []
+    while True:
+        if typing.get_origin(tp) is Annotated:
+            tp, *extra = typing.get_args(tp)
+            for m in extra:
+                meta.extend(getattr(m, "metadata", [m]))
+            continue
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            if len(args) == 1:
+                tp = args[0]
+                continue
+        return tp, meta

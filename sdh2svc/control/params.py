@@ -1,0 +1,71 @@
+"""Rolling parameters (hand-model §8, thesis Table 8): one validated, immutable value.
+
+A change between iterations replaces the whole value, so the controller always works with one
+consistent set (atomic at the next iteration).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator
+
+from sdh2svc.model.base import Frozen
+
+
+class RollingParams(Frozen):
+    """Parameters of the rolling loop. Angles in degrees (converted by the properties below)."""
+
+    mode: Literal["two-finger", "one-finger"] = Field(
+        description="two-finger: thesis §3.4–3.5; one-finger: §3.3, Finger 2 holds still"
+    )
+    delta_phi_deg: Annotated[float, Field(ge=-5.0, le=5.0)] = Field(
+        description="Δφ, Finger 2's step per iteration; its sign is the first rotation direction"
+    )
+    k: Annotated[float, Field(gt=1.0, le=10.0)] = Field(
+        description="Finger 2's distal joint moves k·Δφ per Δφ of the proximal"
+    )
+    lambda_gain: Annotated[float, Field(ge=0.0, le=50.0)] = Field(
+        description="λ, how strongly Finger 1 reinforces the inclination change of Finger 2"
+    )
+    d_sigma_deg: Annotated[float, Field(ge=-5.0, le=5.0)] = Field(
+        description="dσ per iteration in one-finger mode"
+    )
+    alpha_deg: Annotated[float, Field(gt=0.0, lt=60.0)] = Field(
+        description="α, friction-cone half-angle (atan μ)"
+    )
+    grasp_force: Annotated[float, Field(gt=0.0, le=50.0)] = Field(
+        description="Fd, grasp force threshold, library force units"
+    )
+    contact_force_min: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
+        description="F1, F2 at or below this (library units) count as no contact"
+    )
+    delta_lambda_inc_mm: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
+        description="ΔΛ_inc, widening of the held distance when the force rises"
+    )
+    delta_lambda_dec_mm: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
+        description="ΔΛ_dec, narrowing of the held distance when the force falls"
+    )
+    cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
+        description="back-and-forth strokes before the run ends"
+    )
+
+    @field_validator("delta_phi_deg", "d_sigma_deg")
+    @classmethod
+    def _nonzero(cls, v: float) -> float:
+        if v == 0.0:
+            raise ValueError("must not be 0 (its sign is the rotation direction)")
+        return v
+
+    @property
+    def delta_phi(self) -> float:
+        return math.radians(self.delta_phi_deg)
+
+    @property
+    def d_sigma(self) -> float:
+        return math.radians(self.d_sigma_deg)
+
+    @property
+    def alpha(self) -> float:
+        return math.radians(self.alpha_deg)

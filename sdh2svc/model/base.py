@@ -1,0 +1,11 @@
+"""The immutable value base shared by every configuration and model value."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict
+
+
+class Frozen(BaseModel):
+    """An immutable, validated value: unknown keys are errors, fields never change once made."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")

@@ -1,0 +1,211 @@
+"""Contact estimation from one tactile matrix (hand-model §5, protocols.md §1.9).
+
+Input: the raw 12-bit counts of one pad as a (rows, cols) array, row 0 at the fingertip's end.
+Output: whether there is a contact and, if so, where (S, L, pad point x3/y3, virtual joint r/θ),
+how strong (both force conventions) and how large.
+
+Separate blobs (8-connected groups of cells above the threshold) are all reported; the contact
+point comes from the *stronger* blob (largest pressure sum), so a second, weaker touch elsewhere
+on the pad does not drag the centroid into empty space between the two. The forces and area
+cover the whole matrix, as SDHLibrary's ``GetContactInfo`` does, so they stay library-identical.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+from scipy import ndimage
+
+from sdh2svc.model.base import Frozen
+from sdh2svc.model.calibration import DistanceMap
+from sdh2svc.model.geometry import PadProfile, pad_point_from_L, virtual_joint
+
+_EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
+
+
+class MatrixLayout(Frozen):
+    """Shape of one tactile matrix and which of its positions are real cells.
+
+    ``mask`` is one string per row (row 0 first), one character per column: ``#`` a real cell,
+    ``.`` an absent one (always read as 0). An empty mask means every position is a cell.
+    """
+
+    rows: Annotated[int, Field(ge=1, le=64)]
+    cols: Annotated[int, Field(ge=1, le=64)]
+    mask: tuple[str, ...] = ()
+
+    @field_validator("mask")
+    @classmethod
+    def _mask_chars(cls, rows: tuple[str, ...]) -> tuple[str, ...]:
+        for i, row in enumerate(rows):
+            if set(row) - {"#", "."}:
+                raise ValueError(
+                    f"mask row {i} {row!r} may contain only '#' (cell) and '.' (absent)"
+                )
+        return rows
+
+    @model_validator(mode="after")
+    def _mask_shape(self) -> MatrixLayout:
+        if self.mask and (
+            len(self.mask) != self.rows or any(len(r) != self.cols for r in self.mask)
+        ):
+            raise ValueError(
+                f"mask must have {self.rows} rows of {self.cols} characters "
+                f"(got {len(self.mask)} rows of lengths {sorted({len(r) for r in self.mask})})"
+            )
+        return self
+
+    @property
+    def cells(self) -> int:
+        return self.rows * self.cols
+
+    def valid(self) -> np.ndarray:
+        """Boolean (rows, cols) array, True where a real cell is."""
+        return _mask_array(self.rows, self.cols, self.mask)
+
+
+@lru_cache(maxsize=32)
+def _mask_array(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
+    if not mask:
+        arr = np.ones((rows, cols), dtype=bool)
+    else:
+        arr = np.array([[c == "#" for c in row] for row in mask], dtype=bool)
+    arr.flags.writeable = False
+    return arr
+
+
+class TactileCalibration(Frozen):
+    """Raw counts → pressure, the contact threshold, and the S → distance map."""
+
+    pressure_per_count_n_per_mm2: Annotated[float, Field(gt=0.0, le=1.0)]
+    cell_threshold_counts: Annotated[int, Field(ge=0, le=4095)]
+    edge_margin_rows: Annotated[float, Field(ge=0.0, le=6.0)]
+    distance: DistanceMap
+
+
+@dataclass(frozen=True, slots=True)
+class Blob:
+    """One connected group of loaded cells."""
+
+    S_mm: float  # pressure-centroid height from row 0's centre
+    col_mm: float  # pressure-centroid across the pad from column 0's centre
+    n_cells: int
+    pressure_sum_n_per_mm2: float
+    force_library: float
+    force_physical_n: float
+    first_row: int
+    last_row: int
+
+
+@dataclass(frozen=True, slots=True)
+class ContactEstimate:
+    """Result of :func:`estimate_contact`. Position fields are None when there is no contact.
+
+    ``force_library`` is SDHLibrary's ``GetContactInfo`` force (Σp × total contact area), the
+    convention of the thesis's Fd = 2; ``force_physical_n`` is Σp × cell area (eq 2.20, N).
+    """
+
+    present: bool
+    S_mm: float | None
+    L_mm: float | None
+    x3_mm: float | None
+    y3_mm: float | None
+    r_mm: float | None
+    theta_rad: float | None
+    at_edge: bool
+    force_library: float
+    force_physical_n: float
+    area_mm2: float
+    n_cells: int
+    blobs: tuple[Blob, ...]
+
+    @property
+    def virtual_joint(self) -> tuple[float, float] | None:
+        if self.r_mm is None or self.theta_rad is None:
+            return None
+        return self.r_mm, self.theta_rad
+
+
+NO_CONTACT = ContactEstimate(
+    present=False,
+    S_mm=None,
+    L_mm=None,
+    x3_mm=None,
+    y3_mm=None,
+    r_mm=None,
+    theta_rad=None,
+    at_edge=False,
+    force_library=0.0,
+    force_physical_n=0.0,
+    area_mm2=0.0,
+    n_cells=0,
+    blobs=(),
+)
+
+
+def _blob(values: np.ndarray, cells: np.ndarray, pitch: float, p_per_count: float) -> Blob:
+    rows, cols = np.nonzero(cells)
+    w = values[rows, cols]
+    total = float(w.sum())
+    n = int(rows.size)
+    pressure = total * p_per_count
+    return Blob(
+        S_mm=pitch * (float((rows * w).sum()) / total),
+        col_mm=pitch * (float((cols * w).sum()) / total),
+        n_cells=n,
+        pressure_sum_n_per_mm2=pressure,
+        force_library=pressure * n * pitch * pitch,
+        force_physical_n=pressure * pitch * pitch,
+        first_row=int(rows.min()),
+        last_row=int(rows.max()),
+    )
+
+
+def estimate_contact(
+    counts: np.ndarray,
+    layout: MatrixLayout,
+    pitch_mm: float,
+    calib: TactileCalibration,
+    pad: PadProfile,
+) -> ContactEstimate:
+    """Estimate the contact on one pad from its raw counts, shape (rows, cols), row 0 at the tip."""
+    if counts.shape != (layout.rows, layout.cols):
+        raise ValueError(
+            f"tactile matrix has shape {counts.shape}, layout says {(layout.rows, layout.cols)}"
+        )
+    values = np.where(layout.valid(), counts, 0).astype(np.float64)
+    loaded = values > calib.cell_threshold_counts
+    if not loaded.any():
+        return NO_CONTACT
+    labels, n = ndimage.label(loaded, structure=_EIGHT_CONNECTED)
+    p_per_count = calib.pressure_per_count_n_per_mm2
+    blobs = tuple(_blob(values, labels == i, pitch_mm, p_per_count) for i in range(1, n + 1))
+    main = max(blobs, key=lambda b: b.pressure_sum_n_per_mm2)
+    n_cells = int(loaded.sum())
+    pressure = float(values[loaded].sum()) * p_per_count
+    S = main.S_mm
+    s_range = (layout.rows - 1) * pitch_mm
+    L = calib.distance.L_from_S(S, s_range, pad)
+    x3, y3 = pad_point_from_L(L, pad)
+    r, theta = virtual_joint(x3, y3)
+    row = S / pitch_mm
+    margin = calib.edge_margin_rows
+    return ContactEstimate(
+        present=True,
+        S_mm=S,
+        L_mm=L,
+        x3_mm=x3,
+        y3_mm=y3,
+        r_mm=r,
+        theta_rad=theta,
+        at_edge=row < margin or row > (layout.rows - 1) - margin,
+        force_library=pressure * n_cells * pitch_mm * pitch_mm,
+        force_physical_n=pressure * pitch_mm * pitch_mm,
+        area_mm2=n_cells * pitch_mm * pitch_mm,
+        n_cells=n_cells,
+        blobs=blobs,
+    )

@@ -1,0 +1,131 @@
+"""Configuration: the defaults load, and every kind of bad value is rejected readably."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from sdh2svc.config import ConfigError, default_config_path, load_config
+from sdh2svc.model.kinematics import Finger
+
+
+def test_defaults_are_the_thesis_values() -> None:
+    s = load_config(use_env=False)
+    assert s.hand.proximal_length_mm == 86.5 and s.hand.base_offset_mm == 66.0
+    assert (s.hand.distal_length_mm, s.hand.distal_length_schunk_mm) == (68.0, 68.5)
+    r = s.rolling
+    assert (r.delta_phi_deg, r.k, r.lambda_gain, r.alpha_deg) == (0.25, 2.0, 5.0, 22.0)
+    assert (r.grasp_force, r.delta_lambda_inc_mm, r.delta_lambda_dec_mm, r.cycles) == (2, 0.2, 1, 3)
+    assert (s.axes.phi2, s.axes.phi3, s.axes.phi4, s.axes.phi5) == (1, 2, 5, 6)
+    assert (s.axes.finger1_distal_matrix, s.axes.finger2_distal_matrix) == (1, 5)
+    assert (s.tactile.distal.rows, s.tactile.distal.cols) == (13, 6)
+    assert (s.tactile.proximal.rows, s.tactile.proximal.cols) == (14, 6)
+    assert int(s.tactile.distal.valid().sum()) == 70  # thesis: 9 rows of 6 + 4 rows of 4
+    assert s.calibration.pressure_per_count_n_per_mm2 == pytest.approx(0.000473 / 592.1)
+    lim = s.finger_limits(Finger.TWO)
+    assert (lim.proximal_min, lim.distal_max) == (-math.pi / 2, math.pi / 2)
+    assert s.limits.min_deg[0] == 0.0 and s.limits.max_deg[0] == 90.0
+
+
+def test_default_file_exists_and_every_key_has_a_unit_or_comment() -> None:
+    text = default_config_path().read_text()
+    for line in text.splitlines():
+        line = line.strip()
+        if "=" in line and not line.startswith("#") and not line.startswith('"'):
+            key = line.split("=")[0].strip()
+            assert key.endswith(("_mm", "_deg", "_counts", "_n_per_mm2", "_rows")) or "#" in line, (
+                f"{key!r} has neither a unit suffix nor a comment"
+            )
+
+
+def _problems(*overrides: str) -> str:
+    with pytest.raises(ConfigError) as ei:
+        load_config(overrides=overrides, use_env=False)
+    return str(ei.value)
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("rolling.k=0.5", ["rolling.k = 0.5", "greater than 1", "1.0 < k ≤ 10.0"]),
+        ("rolling.alpha_deg=75", ["rolling.alpha_deg = 75", "0.0 < alpha_deg < 60.0"]),
+        ("rolling.cycles=0", ["rolling.cycles = 0", "1 ≤ cycles ≤ 10000"]),
+        ("rolling.delta_phi_deg=0", ["rolling.delta_phi_deg = 0", "must not be 0"]),
+        ("rolling.k='fast'", ["rolling.k = 'fast'", "valid number"]),
+        ("rolling.mode='three-finger'", ["rolling.mode", "'two-finger' or 'one-finger'"]),
+        ("rolling.speed=3", ["rolling.speed", "unknown key"]),
+        ("limits.max_deg=[90, 90, 90, 90, 90, 90, 200]", ["limits.max_deg.6 = 200", "≤ 180.0"]),
+        ("limits.min_deg=[0, 0]", ["limits.min_deg", "7"]),
+        ("limits.min_deg=[0, 90, -90, -90, -90, -90, -90]", ["limits", "axes [1]"]),
+        ("axes.phi4=1", ["axes", "exactly once"]),
+        ("axes.phi2=9", ["axes.phi2 = 9", "0 ≤ phi2 ≤ 6"]),
+        ("tactile.distal.mask=['######']", ["tactile.distal", "13 rows of 6"]),
+        ("tactile.proximal.mask=" + str(["#x####"] * 14), ["tactile.proximal.mask", "'#'"]),
+        ("calibration.distance.kind='table'", ["calibration.distance", "at least 2"]),
+        ("calibration.cell_threshold_counts=5000", ["cell_threshold_counts = 5000", "≤ 4095"]),
+        ("hand.pad.flat_end_x3_mm=10", ["hand.pad", "ordered"]),
+        (
+            "hand.proximal_length_mm=-1",
+            ["hand.proximal_length_mm = -1", "0.0 < proximal_length_mm"],
+        ),
+    ],
+)
+def test_bad_values_are_named_with_value_and_range(override: str, expected: list[str]) -> None:
+    msg = _problems(override)
+    for fragment in expected:
+        assert fragment in msg, msg
+
+
+def test_several_problems_reported_together() -> None:
+    with pytest.raises(ConfigError) as ei:
+        load_config(overrides=["rolling.k=0", "rolling.alpha_deg=0"], use_env=False)
+    assert len(ei.value.problems) == 2
+
+
+def test_user_file_overrides_subset(tmp_path: Path) -> None:
+    f = tmp_path / "lab.toml"
+    f.write_text("[rolling]\nk = 5.0\ncycles = 7\n")
+    s = load_config(f, use_env=False)
+    assert (s.rolling.k, s.rolling.cycles, s.rolling.lambda_gain) == (5.0, 7, 5.0)
+
+
+def test_user_file_errors_name_the_file(tmp_path: Path) -> None:
+    f = tmp_path / "lab.toml"
+    f.write_text("[rolling]\nk = 0.2\n")
+    with pytest.raises(ConfigError, match=r"lab\.toml") as ei:
+        load_config(f, use_env=False)
+    assert "rolling.k = 0.2" in str(ei.value)
+    f.write_text("[rolling\nk = ")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(f, use_env=False)
+    with pytest.raises(ConfigError, match="file not found"):
+        load_config(tmp_path / "missing.toml", use_env=False)
+
+
+def test_environment_and_override_precedence(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    f = tmp_path / "lab.toml"
+    f.write_text("[rolling]\nk = 5.0\nlambda_gain = 4.0\n")
+    monkeypatch.setenv("SDH2SVC_ROLLING__K", "3")
+    s = load_config(f)
+    assert s.rolling.k == 3.0  # environment beats the file
+    assert s.rolling.lambda_gain == 4.0  # the file beats the defaults
+    s = load_config(f, overrides=["rolling.k=4"])
+    assert s.rolling.k == 4.0  # --set beats the environment
+    monkeypatch.setenv("SDH2SVC_ROLLING__K", "0")
+    with pytest.raises(ConfigError, match=r"rolling\.k = '0'"):
+        load_config()
+
+
+def test_bad_override_syntax() -> None:
+    with pytest.raises(ConfigError, match=r"section\.key=value"):
+        load_config(overrides=["rolling.k"], use_env=False)
+
+
+def test_settings_are_immutable() -> None:
+    s = load_config(use_env=False)
+    with pytest.raises(ValueError, match="frozen"):
+        s.rolling.k = 3.0  # type: ignore[misc]
