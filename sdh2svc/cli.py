@@ -67,8 +67,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         p = getattr(pts, name)
         print(f"  {name} = (y {p.y:8.2f}, z {p.z:8.2f}) mm")
     print(f"  Λ = {lam:.2f} mm   σ = {math.degrees(sigma):.2f}°")
+    verdict = "inside" if out["inside_cone"] else "OUTSIDE"
     print(f"  ωA = {math.degrees(wa):.2f}°   ωB = {math.degrees(wb):.2f}°   "
-          f"cone 90 ± {cfg.rolling.alpha_deg}°: {'inside' if out['inside_cone'] else 'OUTSIDE'}")  # fmt: skip
+          f"cone 90 ± {cfg.rolling.alpha_deg}°: {verdict}")  # fmt: skip
     return 0
 
 
