@@ -27,6 +27,7 @@ from sdh2svc.model.base import Frozen
 from sdh2svc.model.contact import MatrixLayout, TactileCalibration
 from sdh2svc.model.kinematics import Finger, FingerLimits, HandGeometry
 from sdh2svc.model.observe import ModelContext
+from sdh2svc.sim.simconfig import SimConfig
 
 AxisIndex = Annotated[int, Field(ge=0, le=6)]
 MatrixIndex = Annotated[int, Field(ge=0, le=5)]
@@ -124,6 +125,7 @@ class Settings(BaseSettings):
     tactile: TactileConfig
     calibration: TactileCalibration
     rolling: RollingParams
+    sim: SimConfig
 
     def model_context(self) -> ModelContext:
         """The pure model's view of this configuration."""
@@ -156,12 +158,12 @@ class ConfigError(ValueError):
         super().__init__(f"invalid {source}:\n  " + "\n  ".join(problems))
 
 
-def default_config_path() -> Path:
-    """The packaged ``default.toml`` (wheel), or the repository's ``config/default.toml``."""
-    packaged = resources.files("sdh2svc") / "_config" / "default.toml"
+def default_config_path(name: str = "default.toml") -> Path:
+    """A packaged config file (wheel), or the repository's ``config/<name>``."""
+    packaged = resources.files("sdh2svc") / "_config" / name
     if packaged.is_file():
         return Path(str(packaged))
-    return Path(__file__).resolve().parent.parent / "config" / "default.toml"
+    return Path(__file__).resolve().parent.parent / "config" / name
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -212,6 +214,7 @@ def load_config(
 ) -> Settings:
     """Load and validate the configuration: defaults ← ``path`` ← environment ← ``overrides``."""
     data = _read_toml(default_config_path())
+    data["sim"] = _read_toml(default_config_path("sim.toml"))
     if path is not None:
         data = deep_merge(data, _read_toml(Path(path)))
     if use_env:

@@ -1,0 +1,129 @@
+"""The simulated DSA tactile pads: contact pressure → raw 12-bit counts, imperfectly.
+
+* Geometry: each matrix's rows lie along its pad at the cell pitch, centred on the active area
+  (distal pads: rows 0…12 from the fingertip's end, centred at L = 27.5 mm; proximal pads: row 0
+  nearest the distal joint). The columns span the pad's width; the object presses a band of its
+  depth across the middle of the pad.
+* The pad's rubber spreads a load: pressure along the pad is blurred with a Gaussian of
+  ``spread_mm`` before each cell averages what falls on it, so a point contact lights two or
+  three rows and an edge concentrates while a face spreads.
+* Counts: the inverse of the library pressure formula of the configuration (pressure per count),
+  plus seeded Gaussian noise, then the controller's sensitivity, threshold and saturation at 4095.
+* Creep (thesis §2.8, §4.1): each cell keeps a memory m that follows its pressure with a time
+  constant ``creep_rise_s`` while loaded and decays with ``creep_fall_s``; it reads
+  P + creep_gain·min(m, P). Under a constant load the reading rises over seconds; unloaded it
+  reads 0, but a load that comes back soon reads higher than it did the first time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+from scipy.special import ndtr
+
+from sdh2svc.model.base import Frozen
+from sdh2svc.model.contact import MatrixLayout
+from sdh2svc.sim.world import apply_sensor_settings
+
+
+class SensorModelConfig(Frozen):
+    """Imperfections of the simulated tactile sensor (see config/sim.toml)."""
+
+    spread_mm: Annotated[float, Field(gt=0.0, le=10.0)]
+    noise: bool
+    noise_counts: Annotated[float, Field(ge=0.0, le=500.0)]
+    creep: bool
+    creep_gain: Annotated[float, Field(ge=0.0, le=5.0)]
+    creep_rise_s: Annotated[float, Field(gt=0.0, le=3600.0)]
+    creep_fall_s: Annotated[float, Field(gt=0.0, le=3600.0)]
+
+
+class PadRaster:
+    """Maps pressure samples along one surface onto the cells of one matrix."""
+
+    def __init__(
+        self, s: np.ndarray, ds: float, layout: MatrixLayout, pitch: float, centre_s: float,
+        spread: float,
+    ) -> None:  # fmt: skip
+        rows = layout.rows
+        centres = centre_s + ((rows - 1) / 2 - np.arange(rows)) * pitch  # row 0 at high s
+        hi = (centres[:, None] + pitch / 2 - s[None, :]) / spread
+        lo = (centres[:, None] - pitch / 2 - s[None, :]) / spread
+        # share of sample k's load (spread by the rubber) that falls on row j, per mm of row
+        self.weights = (ndtr(hi) - ndtr(lo)) * ds / pitch
+        self.row_centres = centres
+        self.layout = layout
+        self.pitch = pitch
+
+    def cells(self, idx: np.ndarray, pressure: np.ndarray, band_mm: float) -> np.ndarray:
+        """(rows, cols) mean pressure on each cell for pressures at samples ``idx``."""
+        row_p = self.weights[:, idx] @ pressure
+        cols = self.layout.cols
+        left = (np.arange(cols) - cols / 2) * self.pitch
+        right = np.minimum(left + self.pitch, band_mm / 2)
+        overlap = np.clip(right - np.maximum(left, -band_mm / 2), 0.0, self.pitch)
+        return np.outer(row_p, overlap / self.pitch) * self.layout.valid()
+
+
+class TactileSensorModel:
+    """All six matrices: pressure per surface → one flat frame of raw counts in wire order."""
+
+    def __init__(
+        self,
+        cfg: SensorModelConfig,
+        layouts: Sequence[MatrixLayout],
+        rasters: Mapping[int, tuple[int, PadRaster]],
+        pressure_per_count: float,
+        seed: int,
+    ) -> None:
+        self.cfg = cfg
+        self.layouts = tuple(layouts)
+        self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
+        self.rasters = dict(rasters)  # surface index → (matrix index, raster)
+        self.per_count = pressure_per_count
+        self.rng = np.random.default_rng(seed)
+        self.memory = [np.zeros(shape) for shape in self.shapes]
+        self.valid = [lay.valid() for lay in layouts]
+        self._t: float | None = None
+
+    def pressures(
+        self, by_surface: Mapping[int, tuple[np.ndarray, np.ndarray]], band_mm: float
+    ) -> list[np.ndarray]:
+        """True mean pressure (N/mm²) on every cell of the six matrices."""
+        out = [np.zeros(shape) for shape in self.shapes]
+        for surface, (idx, p) in by_surface.items():
+            if surface in self.rasters and len(idx):
+                m, raster = self.rasters[surface]
+                out[m] += raster.cells(idx, p, band_mm)
+        return out
+
+    def frame(
+        self,
+        now: float,
+        by_surface: Mapping[int, tuple[np.ndarray, np.ndarray]],
+        band_mm: float,
+        sensitivity: Sequence[float],
+        threshold: Sequence[int],
+    ) -> np.ndarray:
+        """Raw counts of all six matrices at ``now`` (flat uint16, wire order)."""
+        true_p = self.pressures(by_surface, band_mm)
+        dt = 0.0 if self._t is None else max(0.0, now - self._t)
+        self._t = now
+        cfg = self.cfg
+        counts = []
+        for m, p in enumerate(true_p):
+            reading = p
+            if cfg.creep:
+                mem = self.memory[m]
+                tau = np.where(p > mem, cfg.creep_rise_s, cfg.creep_fall_s)
+                mem += (p - mem) * (1.0 - np.exp(-dt / tau))
+                reading = p + cfg.creep_gain * np.minimum(mem, p)
+            c = reading / self.per_count
+            if cfg.noise and cfg.noise_counts > 0:
+                c = c + self.rng.normal(0.0, cfg.noise_counts, c.shape)
+            counts.append(np.where(self.valid[m], np.maximum(c, 0.0), 0.0).ravel())
+        return apply_sensor_settings(np.concatenate(counts), self.shapes, sensitivity, threshold)
+

@@ -1,0 +1,22 @@
+"""The simulated world's configuration value (config/sim.toml, under the key ``sim``)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field
+
+from sdh2svc.model.base import Frozen
+from sdh2svc.sim.physics import PhysicsConfig
+from sdh2svc.sim.sensor import SensorModelConfig
+
+
+class SimConfig(Frozen):
+    """The object, its placement, the contact physics and the sensor's imperfections."""
+
+    seed: Annotated[int, Field(ge=0)]
+    object: str
+    object_height_mm: Annotated[float, Field(ge=0.0, le=400.0)]
+    object_angle_deg: Annotated[float, Field(ge=-180.0, le=180.0)]
+    physics: PhysicsConfig
+    sensor: SensorModelConfig

@@ -1,0 +1,88 @@
+"""Objects by data: presets, files, validation, and the shared signed-distance function."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from sdh2svc.sim.objects import PRESETS, Outline, get_object, load_object, parse_object
+from sdh2svc.sim.world import ScriptedWorld, apply_sensor_settings
+
+
+def test_thesis_presets_exist_with_their_sizes() -> None:
+    assert get_object("rubber").width_mm == 60.5 and get_object("rubber").height_mm == 22.0
+    assert get_object("rubber").depth_mm == 11.0
+    egg = get_object("egg")
+    assert (egg.axis_a_mm, egg.axis_b_mm, egg.depth_mm) == (53.0, 39.0, 39.0)
+    cyl = get_object("cylinder")
+    assert (cyl.diameter_mm, cyl.depth_mm) == (68.0, 116.0)
+    assert cyl.material.stiffness_n_per_mm3 < get_object("egg").material.stiffness_n_per_mm3
+    lengths = sorted(p.length_mm for p in PRESETS.values() if p.kind == "stick")
+    assert lengths == [62.038, 73.8, 98.46, 119.405]
+    with pytest.raises(KeyError, match="presets"):
+        get_object("banana")
+
+
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_outline_extent_matches_size(name: str) -> None:
+    o = Outline(PRESETS[name])
+    pts = o.perimeter_points
+    assert np.ptp(pts[:, 0]) == pytest.approx(PRESETS[name].size_mm, abs=0.05)
+    assert np.max(np.abs(o.sdf(pts))) < 1e-6
+
+
+def test_sdf_signs_and_rounded_corner() -> None:
+    box = Outline(parse_object({"kind": "box", "width_mm": 20, "height_mm": 10,
+                                "corner_radius_mm": 2, "depth_mm": 5}))  # fmt: skip
+    d = box.sdf(np.array([[0.0, 0.0], [10.0, 0.0], [12.0, 0.0], [11.0, 6.0]]))
+    assert d[0] == pytest.approx(-5.0) and d[1] == pytest.approx(0.0) and d[2] == pytest.approx(2.0)
+    # outside the rounded corner: distance to the arc around (8, 3) minus its radius
+    assert d[3] == pytest.approx(np.hypot(3.0, 3.0) - 2.0)
+
+
+def test_objects_from_toml_and_json(tmp_path: Path) -> None:
+    t = tmp_path / "tri.toml"
+    t.write_text('kind = "polygon"\nvertices_mm = [[0, 0], [30, 0], [0, 20]]\ndepth_mm = 8\n'
+                 '[material]\nfriction = 0.4\n')  # fmt: skip
+    tri = load_object(t)
+    assert tri.kind == "polygon" and tri.material.friction == 0.4
+    j = tmp_path / "c.json"
+    j.write_text(json.dumps({"kind": "circle", "diameter_mm": 30, "depth_mm": 10}))
+    assert load_object(j).diameter_mm == 30
+
+
+@pytest.mark.parametrize(
+    ("data", "fragment"),
+    [
+        ({"kind": "box", "width_mm": 10, "height_mm": 5, "depth_mm": 0}, "depth_mm"),
+        ({"kind": "box", "width_mm": 10, "height_mm": 5, "depth_mm": 5, "corner_radius_mm": 4},
+         "corner_radius_mm"),
+        ({"kind": "polygon", "vertices_mm": [[0, 0], [10, 0], [10, 10], [12, -5]], "depth_mm": 5},
+         "convex"),
+        ({"kind": "blob", "depth_mm": 5}, "kind"),
+        ({"kind": "circle", "diameter_mm": 10, "depth_mm": 5, "colour": "red"}, "colour"),
+    ],
+)  # fmt: skip
+def test_bad_object_definitions_name_the_field(data: dict, fragment: str) -> None:
+    with pytest.raises(ValidationError, match=fragment):
+        parse_object(data)
+
+
+def test_sensor_settings_gain_threshold_saturation() -> None:
+    shapes = [(2, 2), (1, 2)]
+    raw = np.array([100.0, 5.0, 3000.0, 20.0, 50.0, 9000.0])
+    out = apply_sensor_settings(raw, shapes, [0.5, 1.0], [10, 0])
+    assert out.tolist() == [100, 0, 3000, 20, 100, 4095]
+
+
+def test_scripted_world_follows_reference_and_moves_blobs() -> None:
+    w = ScriptedWorld([(14, 6), (13, 6)] * 3)
+    assert w.move_joints(0.0, [10.0] * 7, [True] * 7) == (10.0,) * 7
+    assert w.move_joints(0.1, [20.0] * 7, [False] + [True] * 6)[0] == 10.0  # unpowered: limp
+    a = w.tactile_frame(0.0, [0.5] * 6, [0] * 6)
+    b = w.tactile_frame(1.0, [0.5] * 6, [0] * 6)
+    assert a.shape == (486,) and a.max() > 1000 and not np.array_equal(a, b)
