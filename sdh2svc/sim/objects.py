@@ -46,7 +46,7 @@ class _ShapeBase(Frozen):
 class Stick(_ShapeBase):
     kind: Literal["stick"] = "stick"
     length_mm: Mm
-    diameter_mm: Mm = 1.0  # the thesis's sticks are ideal segments: keep the rounded ends small
+    diameter_mm: Mm = 2.0
 
     def outline(self) -> tuple[np.ndarray, float]:
         half = (self.length_mm - self.diameter_mm) / 2

@@ -43,6 +43,8 @@ class PhysicsConfig(Frozen):
     """Contact mechanics parameters (see config/sim.toml)."""
 
     pad_stiffness_n_per_mm3: Positive
+    pad_thickness_mm: Positive
+    backing_stiffness_n_per_mm3: Positive
     finger_stiffness_n_per_mm: Positive
     tangential_stiffness_n_per_mm: Positive
     gravity_m_per_s2: tuple[float, float, float]  # (x0: out of the plane, y0, z0)
@@ -199,7 +201,10 @@ class ContactPhysics:
         spec = outline.spec
         self.width_mm = min(spec.depth_mm, cfg.pad_width_mm)
         kp, ko = cfg.pad_stiffness_n_per_mm3, spec.material.stiffness_n_per_mm3
-        self.k = kp * ko / (kp + ko)
+        self.k = kp * ko / (kp + ko)  # pad and object in series
+        # once the pad is squeezed to its backing, only the object (and the backing) yield
+        self.knee = cfg.pad_thickness_mm * (1.0 + kp / ko)
+        self.k_bottomed = 1.0 / (1.0 / ko + 1.0 / cfg.backing_stiffness_n_per_mm3)
         self.mu = spec.material.friction
         g = np.asarray(cfg.gravity_m_per_s2, dtype=float)
         self.gravity_n = spec.material.mass_g / 1000.0 * g  # (x0, y0, z0) newtons
@@ -251,10 +256,10 @@ class ContactPhysics:
             overlap = -d[inside]
             max_depth = max(max_depth, float(overlap.max()))
             # the finger yields along the pad normal (structure and servo, in series with the pad)
-            e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, self.k * wds)
+            e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds)
             keep = overlap > e
             idx, overlap = idx[keep], overlap[keep]
-            p = (overlap - e) * self.k  # pressure, N/mm²
+            p = self._pressure(overlap - e)  # N/mm²
             f = (p * wds)[:, None] * n[idx]
             Fn = f.sum(axis=0)
             N = float(np.linalg.norm(Fn))
@@ -286,19 +291,27 @@ class ContactPhysics:
         residual = np.array([force[0], force[1], moment * scale])
         return _Eval(residual, contacts, pressures, max_depth)
 
-    def _yield(self, depth: np.ndarray, c: float) -> float:
-        """How far the finger backs off along the pad normal: e with k_f·e = c·Σ max(0, δ − e).
+    def _pressure(self, compression: np.ndarray) -> np.ndarray:
+        """Contact pressure (N/mm²) for a local compression (mm): pad and object in series up
+        to the knee where the pad bottoms out on its backing, far stiffer beyond."""
+        soft = self.k * np.minimum(compression, self.knee)
+        return soft + self.k_bottomed * np.maximum(compression - self.knee, 0.0)
 
-        The right side falls piecewise linearly in e; with the depths sorted, the segment that
-        holds the solution is found in one vectorised pass.
+    def _yield(self, overlap: np.ndarray, wds: float) -> float:
+        """How far the finger backs off along the pad normal: e with
+        k_f·e = Σ p(δ − e)·w·ds (finger structure and servo in series with the contact).
+
+        The right side falls monotonically in e, the left rises: bisection on [0, max δ].
         """
         kf = self.cfg.finger_stiffness_n_per_mm
-        dsort = np.sort(depth)[::-1]
-        m = np.arange(1, len(dsort) + 1)
-        e = c * np.cumsum(dsort) / (kf + c * m)
-        nxt = np.append(dsort[1:], 0.0)
-        ok = (e <= dsort) & (e >= nxt)
-        return float(e[np.argmax(ok)]) if ok.any() else float(e[-1])
+        lo, hi = 0.0, float(overlap.max())
+        for _ in range(40):
+            e = (lo + hi) / 2
+            if kf * e < wds * float(self._pressure(np.maximum(overlap - e, 0.0)).sum()):
+                lo = e
+            else:
+                hi = e
+        return (lo + hi) / 2
 
     # --- stepping -----------------------------------------------------------------------------
 

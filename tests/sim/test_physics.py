@@ -10,8 +10,8 @@ import pytest
 
 from sdh2svc.config import Settings, load_config
 from sdh2svc.model.friction import omega
-from sdh2svc.model.geometry import pad_point_from_L
-from sdh2svc.model.kinematics import Finger, Point
+from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
+from sdh2svc.model.kinematics import Finger, Point, contact_point, finger_ik, segment
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
 
@@ -77,6 +77,44 @@ def true_AB(rig: Rig) -> tuple[Point, Point]:
     return Point(*rig.contact("distal1").point), Point(*rig.contact("distal2").point)
 
 
+def measured_AB(rig: Rig) -> tuple[Point, Point]:
+    """A and B as the controller sees them: joint angles + where on each pad the contact is."""
+    geom, q = rig.cfg.hand, rig.q
+    vj1 = virtual_joint(*pad_point_from_L(rig.contact("distal1").s_mm, geom.pad))
+    vj2 = virtual_joint(*pad_point_from_L(rig.contact("distal2").s_mm, geom.pad))
+    A = contact_point(Finger.ONE, rad(q[1]), rad(q[2]), *vj1, geom)
+    B = contact_point(Finger.TWO, rad(q[5]), rad(q[6]), *vj2, geom)
+    return A, B
+
+
+def test_stick_finger1_on_circle_around_B() -> None:
+    """Finger 1 turns A around B (thesis §3.3), as the controller would command it from what it
+    measures: the contacts stay put on both pads, Λ stays, σ follows — while ωA stays inside the
+    cone (here ωA grows by ≈1.2° per 0.25° of σ, so 12 steps stay inside 90° ± 31°)."""
+    cfg = quiet()
+    rig = Rig(cfg, "stick98")
+    rig.grasp()
+    geom, lim = cfg.hand, cfg.finger_limits(Finger.ONE)
+    A0, B0 = measured_AB(rig)
+    lam0, sig0 = segment(A0, B0)
+    s1, s2 = rig.contact("distal1").s_mm, rig.contact("distal2").s_mm
+    sig_true0 = segment(*true_AB(rig))[1]
+    for step in range(1, 13):
+        r, theta = virtual_joint(*pad_point_from_L(rig.contact("distal1").s_mm, geom.pad))
+        sigma = sig0 - rad(0.25) * step
+        A = Point(B0.y - lam0 * math.cos(sigma), B0.z - lam0 * math.sin(sigma))
+        sol = finger_ik(Finger.ONE, A, r, theta, (rad(rig.q[1]), rad(rig.q[2])), geom, lim).solution
+        assert sol is not None
+        rig.move([*rig.q[:1], deg(sol.proximal), deg(sol.distal), *rig.q[3:]])
+        t = rig.w.truth()
+        assert t.held and t.slips == 0
+        lam, sig = segment(*true_AB(rig))
+        assert lam == pytest.approx(98.46, abs=0.2)
+        assert deg(sig - sig_true0) == pytest.approx(deg(sigma - sig0), abs=0.3)
+    assert rig.contact("distal1").s_mm == pytest.approx(s1, abs=1.0)
+    assert rig.contact("distal2").s_mm == pytest.approx(s2, abs=1.0)
+
+
 def test_circle_rolls_by_the_arc_length_relation() -> None:
     cfg = quiet(**{"sim.physics.gravity_m_per_s2": "[0.0, 0.0, 0.0]"})
     rig = Rig(cfg, "cylinder")
@@ -112,9 +150,9 @@ def omega_A(rig: Rig) -> float:
 def test_tilting_out_of_the_cone_slips_then_drops() -> None:
     """With two contacts the forces act along AB: the contacts slip when ω leaves 90° ± α."""
     cfg = quiet()
-    rig = Rig(cfg, "stick98")
+    rig = Rig(cfg, "egg")
     rig.grasp()
-    alpha = math.atan(get_object("stick98").material.friction)
+    alpha = math.atan(get_object("egg").material.friction)
     omega_at_slip = None
     for _ in range(600):
         before = omega_A(rig)
@@ -178,6 +216,37 @@ def test_tactile_centroid_matches_true_contact() -> None:
             assert c1.S_mm == pytest.approx(s_true, abs=1.7)
             checked += 1
     assert checked >= 4
+
+
+def test_box_end_face_turns_onto_its_edge() -> None:
+    """Turning the rubber block against pad 1: face–face contact (pressure over the whole end
+    face) changes to face–edge (on a corner), seen on the tactile pad as a jump of S."""
+    cfg = quiet()
+    rig = Rig(cfg, "rubber")
+    rig.grasp()
+    geom, lim = cfg.hand, cfg.finger_limits(Finger.ONE)
+    A0, B0 = measured_AB(rig)
+    lam0, sig0 = segment(A0, B0)
+    # face–face: on the end face, away from its edges (the face overhangs the 16 mm flat part)
+    assert abs(rig.contact("distal1").object_point[1]) < 9.0
+    assert (
+        rig.distal(rig.counts())[0].blobs[0].last_row
+        - rig.distal(rig.counts())[0].blobs[0].first_row
+        >= 3
+    )
+    S = [rig.distal(rig.counts())[0].S_mm]
+    for step in range(1, 8):
+        r, theta = virtual_joint(*pad_point_from_L(rig.contact("distal1").s_mm, geom.pad))
+        sigma = sig0 + rad(0.25) * step
+        A = Point(B0.y - lam0 * math.cos(sigma), B0.z - lam0 * math.sin(sigma))
+        sol = finger_ik(Finger.ONE, A, r, theta, (rad(rig.q[1]), rad(rig.q[2])), geom, lim).solution
+        assert sol is not None
+        rig.move([*rig.q[:1], deg(sol.proximal), deg(sol.distal), *rig.q[3:]])
+        assert rig.w.truth().held
+        S.append(rig.distal(rig.counts())[0].S_mm)
+    corner = rig.contact("distal1").object_point
+    assert abs(corner[1]) > 9.0 and abs(corner[0]) > 29.0  # on the edge (corner radius 1 mm)
+    assert max(abs(b - a) for a, b in itertools.pairwise(S)) > 2 * 3.4  # a jump of ≥ 2 rows
 
 
 def test_same_calls_same_frames() -> None:
