@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-SECTIONS = {"model": "bench.model_step"}
+SECTIONS = {"model": "bench.model_step", "sim": "bench.sim_world"}
 
 
 def main() -> None:

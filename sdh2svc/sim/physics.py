@@ -219,12 +219,14 @@ class ContactPhysics:
     def _world_samples(self, pose: HandPose) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         frames = link_frames(pose, self.geom)
         out = []
+        self._bounds = []
         for surf, fr in zip(self.surfaces, frames, strict=True):
             pts = to_world(fr, surf.local)
             _, ex, ey = fr
             n = surf.normal[:, :1] * ex + surf.normal[:, 1:2] * ey
             t = surf.tangent[:, :1] * ex + surf.tangent[:, 1:2] * ey
             out.append((pts, n, t))
+            self._bounds.append((pts.min(axis=0), pts.max(axis=0)))
         return out
 
     def _evaluate(
@@ -243,7 +245,11 @@ class ContactPhysics:
         max_depth = 0.0
         box = self.outline.half_extent
         wds = self.width_mm * self.cfg.sample_spacing_mm
+        reach = self.outline.bound_radius
         for j, (pts, n, t) in enumerate(world):
+            lo, hi = self._bounds[j]
+            if np.any(c + reach < lo) or np.any(c - reach > hi):
+                continue  # this surface is nowhere near the object
             local = (pts - c) @ R  # object frame
             near = np.nonzero(np.all(np.abs(local) <= box, axis=1))[0]
             if near.size == 0:
@@ -298,20 +304,26 @@ class ContactPhysics:
         return soft + self.k_bottomed * np.maximum(compression - self.knee, 0.0)
 
     def _yield(self, overlap: np.ndarray, wds: float) -> float:
-        """How far the finger backs off along the pad normal: e with
-        k_f·e = Σ p(δ − e)·w·ds (finger structure and servo in series with the contact).
+        """How far the finger backs off along the pad normal: the root e of
+        h(e) = k_f·e − Σ p(δ − e)·w·ds (finger structure and servo in series with the contact).
 
-        The right side falls monotonically in e, the left rises: bisection on [0, max δ].
+        h is piecewise linear, increasing and concave, so Newton's method from e = 0 climbs to
+        the root from below and lands on it exactly once it reaches the root's segment.
         """
-        kf = self.cfg.finger_stiffness_n_per_mm
-        lo, hi = 0.0, float(overlap.max())
-        for _ in range(40):
-            e = (lo + hi) / 2
-            if kf * e < wds * float(self._pressure(np.maximum(overlap - e, 0.0)).sum()):
-                lo = e
-            else:
-                hi = e
-        return (lo + hi) / 2
+        kf, k, kb, knee = self.cfg.finger_stiffness_n_per_mm, self.k, self.k_bottomed, self.knee
+        e = 0.0
+        for _ in range(50):
+            c = overlap - e
+            active = c > 0.0
+            stiff = c > knee
+            force = wds * float(self._pressure(c[active]).sum())
+            slope = kf + wds * (k * float(np.count_nonzero(active & ~stiff))
+                                + kb * float(np.count_nonzero(stiff)))  # fmt: skip
+            step = (force - kf * e) / slope
+            if step <= 1e-12:
+                break
+            e += step
+        return e
 
     # --- stepping -----------------------------------------------------------------------------
 
@@ -393,7 +405,7 @@ class ContactPhysics:
         """Damped Newton on the 3 pose coordinates. The Jacobian (finite differences) is kept
         from step to step and refreshed only when a move fails to lower the residual."""
         ev = self._evaluate(x, world, frames, slip)
-        tol = 1e-7 + 1e-6 * sum(c[2] for c in ev.contacts.values())
+        tol = 1e-6 + 1e-5 * sum(c[2] for c in ev.contacts.values())
         lim = np.array([2.0, 2.0, math.radians(3.0)])  # a Newton move stays physical
         J, fresh = self._jacobian, False
         for _ in range(60):
@@ -431,7 +443,7 @@ class ContactPhysics:
             options={"xtol": 1e-12, "maxfev": 400},
         )  # fmt: skip
         ev = self._evaluate(sol.x, world, frames, slip)
-        tol = 1e-7 + 1e-6 * sum(c[2] for c in ev.contacts.values())
+        tol = 1e-6 + 1e-5 * sum(c[2] for c in ev.contacts.values())
         moved = np.abs(sol.x - x)
         sane = moved[0] < 5.0 and moved[1] < 5.0 and moved[2] < math.radians(10.0)
         return sol.x, ev, bool(np.max(np.abs(ev.residual)) < tol) and sane

@@ -1,0 +1,704 @@
+"""Byte-level transports for the device emulators: a pty, a TCP port, or memory.
+
+An emulator is a sans-I/O :class:`Device`: it is handed bytes and asked for whole packets, always
+with the event loop's time, so it runs unchanged on a virtual clock. An endpoint owns the I/O and
+the timing around it:
+
+* the line is modelled as one UART at ``baud`` (10 bits per byte, 8N1): a packet's bytes are
+  released in small chunks as they fall due, and the device is asked for the next packet only when
+  the line is idle, so packets never interleave and streams are line-limited;
+* faults from :class:`~sdh2svc.sim.faults.FaultConfig` corrupt, drop or cut device→host bytes,
+  keep the device deaf and mute while it "boots", and :meth:`Endpoint.disconnect` pulls the cable;
+* the host reaches it through an ordinary pyserial URL (:attr:`Endpoint.url`): a pty slave path or
+  ``socket://127.0.0.1:PORT``.
+
+Timing uses only ``loop.time()``, ``loop.call_at`` and ``asyncio.sleep``. Host-side behaviour this
+relies on is in ``docs/protocols.md`` PART 4 (transports, items 8, 11, 13).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import socket
+import termios
+from abc import ABC, abstractmethod
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Literal, Protocol, Self, runtime_checkable
+
+from sdh2svc.sim.faults import FaultConfig, FaultedPacket, FaultInjector, FaultKind
+
+__all__ = [
+    "BITS_PER_BYTE",
+    "DEFAULT_BAUD",
+    "Device",
+    "Endpoint",
+    "FaultConfig",
+    "FaultKind",
+    "LinkPacer",
+    "LinkStats",
+    "MemoryEndpoint",
+    "PtyEndpoint",
+    "TcpEndpoint",
+    "make_raw",
+    "serve_device",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_BAUD = 115_200
+BITS_PER_BYTE = 10  # start + 8 data + stop (8N1)
+_READ_SIZE = 65_536
+
+
+@runtime_checkable
+class Device(Protocol):
+    """A byte-level device emulator, driven by an endpoint; ``now`` is the loop clock in s."""
+
+    def connected(self, now: float) -> None:
+        """A host connected (TCP accept; pty: when the endpoint starts), after any boot delay."""
+
+    def disconnected(self, now: float) -> None:
+        """The host went away (TCP close; pty: when the endpoint stops)."""
+
+    def receive(self, data: bytes, now: float) -> None:
+        """Bytes from the host, in whatever pieces they arrived."""
+
+    def next_packet(self, now: float) -> bytes | None:
+        """Called only when the line is idle: the next whole packet to send, or None."""
+
+    def next_wakeup(self, now: float) -> float | None:
+        """When next_packet may have something without new input (None: only after input)."""
+
+
+@dataclass(slots=True)
+class LinkStats:
+    """Counters of one endpoint; ``faults`` is keyed by :class:`FaultKind`."""
+
+    bytes_tx: int = 0  # device→host bytes handed to the host's transport
+    bytes_rx: int = 0  # host→device bytes handed to the device
+    packets_tx: int = 0  # packets taken from the device (including cut or lost ones)
+    connections: int = 0  # times the device was told connected()
+    faults: Counter[str] = field(default_factory=Counter)
+
+
+class LinkPacer:
+    """The transmit clock of one serial line (sans-I/O).
+
+    Byte ``i`` of a packet started at ``t0`` has fully left the UART at ``t0 + (i + 1) *
+    byte_time``. A packet that follows the previous one within ``max_catchup_s`` starts where that
+    one ended, so back-to-back packets keep the exact line rate despite late wake-ups; after a
+    longer idle gap the line starts at ``now`` (never earlier, so bytes never beat the line rate).
+    """
+
+    def __init__(
+        self,
+        baud: int | None = DEFAULT_BAUD,
+        *,
+        tick_s: float = 0.001,
+        max_catchup_s: float = 0.002,
+    ) -> None:
+        if baud is not None and baud <= 0:
+            raise ValueError("baud must be positive or None")
+        self.byte_time = 0.0 if baud is None else BITS_PER_BYTE / baud
+        self.tick_s = tick_s
+        self.max_catchup_s = max_catchup_s
+        self._t0 = -math.inf
+        self._size = 0
+        self.free_at = -math.inf  # when the line went (or goes) idle
+
+    def begin(self, now: float, size: int) -> None:
+        """Start a packet of ``size`` bytes; the line must be idle."""
+        # Never before the line is free; from where the last packet ended if that was recent.
+        back_to_back = now - self.free_at <= self.max_catchup_s
+        self._t0 = self.free_at if back_to_back else now
+        self._size = size
+        self.free_at = self._t0 + size * self.byte_time
+
+    def due(self, now: float) -> int:
+        """How many bytes of the current packet have left the UART by ``now``."""
+        if self.byte_time == 0.0:
+            return self._size
+        done = math.floor((now - self._t0) / self.byte_time + 1e-6)  # 1e-6: float noise only
+        return max(0, min(self._size, done))
+
+    def wake_at(self, now: float, sent: int) -> float:
+        """When to release the next chunk: one tick on, but not before a byte is due and not
+        after the packet's last byte is."""
+        next_byte = self._t0 + (sent + 1) * self.byte_time
+        return min(max(now + self.tick_s, next_byte), self.free_at)
+
+    def abort(self, now: float) -> None:
+        """The rest of the packet is never sent: the line is idle from ``now``."""
+        self.free_at = min(self.free_at, now)
+
+
+class Endpoint(ABC):
+    """Serves one :class:`Device`: pacing, faults, boot silence and connection bookkeeping.
+
+    Subclasses provide the byte pipe (the abstract hooks) and call ``_on_rx`` with host bytes and
+    ``_set_host`` on (dis)connection. An exception raised by the device is logged at once and
+    re-raised by :meth:`stop`, so emulator bugs fail the test that caused them.
+    """
+
+    def __init__(
+        self, device: Device, *, baud: int | None = DEFAULT_BAUD, faults: FaultConfig | None = None
+    ) -> None:
+        self.device = device
+        self.faults = faults or FaultConfig()
+        self.stats = LinkStats()
+        self._injector = FaultInjector(self.faults, self.stats.faults)
+        self._pacer = LinkPacer(baud)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._changed = asyncio.Event()  # any state change the transmitter may be waiting for
+        self._state: Literal["new", "running", "stopped"] = "new"
+        self._booted = False
+        self._boot_end = 0.0
+        self._unplugged_until = -math.inf
+        self._device_connected = False
+        self._link_id = 0  # bumped whenever the host side changes; in-flight packets die with it
+        self._device_error: Exception | None = None  # first exception from device.receive()
+
+    # -- public API --------------------------------------------------------------------------
+
+    @property
+    @abstractmethod
+    def url(self) -> str:
+        """What a pyserial host opens (``serial_for_url``)."""
+
+    @property
+    def running(self) -> bool:
+        return self._state == "running"
+
+    async def start(self) -> None:
+        """Open the transport and start serving (boot silence starts now)."""
+        if self._state != "new":
+            raise RuntimeError("an endpoint can be started once")
+        self._loop = asyncio.get_running_loop()
+        await self._open()
+        self._state = "running"
+        now = self._loop.time()
+        self._boot_end = now + self.faults.boot_delay_s
+        if self.faults.boot_delay_s <= 0.0:
+            self._finish_boot(now)
+        self._task = self._loop.create_task(self._run(), name=f"{type(self).__name__}-tx")
+        self._task.add_done_callback(_log_crash)
+
+    async def stop(self) -> None:
+        """Stop serving and release every fd; idempotent. Re-raises a device exception that
+        ended the transmitter."""
+        if self._state != "running":
+            self._state = "stopped"
+            return
+        self._state = "stopped"
+        task, self._task = self._task, None
+        try:
+            if task is not None:
+                task.cancel()
+                await asyncio.wait([task])
+        finally:
+            await self._close()
+            self._tell_disconnected()
+        crash = None if task is None or task.cancelled() else task.exception()
+        if (crash := crash or self._device_error) is not None:
+            raise crash
+
+    def disconnect(self, duration_s: float) -> None:
+        """Pull the cable for ``duration_s``: nothing gets through in either direction."""
+        if not self.running:
+            raise RuntimeError("endpoint is not running")
+        self.stats.faults[FaultKind.DISCONNECT] += 1
+        self._unplugged_until = max(self._unplugged_until, self._now() + duration_s)
+        self._unplug()
+        self._poke()
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()
+
+    # -- subclass hooks ----------------------------------------------------------------------
+
+    @abstractmethod
+    async def _open(self) -> None: ...
+
+    @abstractmethod
+    async def _close(self) -> None:
+        """Release every fd; when this returns they are closed."""
+
+    @abstractmethod
+    def _host_present(self) -> bool:
+        """Whether anyone could be listening (TCP: a client is connected)."""
+
+    @abstractmethod
+    def _sink_ready(self) -> bool:
+        """Whether the transport takes more bytes now (False applies backpressure)."""
+
+    @abstractmethod
+    def _sink_write(self, data: bytes) -> None: ...
+
+    @abstractmethod
+    def _unplug(self) -> None:
+        """React to :meth:`disconnect`, after which bytes stop flowing both ways by themselves."""
+
+    # -- shared machinery --------------------------------------------------------------------
+
+    def _require_loop(self) -> asyncio.AbstractEventLoop:
+        assert self._loop is not None, "endpoint not started"
+        return self._loop
+
+    def _now(self) -> float:
+        return self._require_loop().time()
+
+    def _unplugged(self, now: float) -> bool:
+        return now < self._unplugged_until
+
+    def _poke(self) -> None:
+        self._changed.set()
+
+    def _finish_boot(self, now: float) -> None:
+        self._booted = True
+        if self._host_present():
+            self._tell_connected(now)
+
+    def _tell_connected(self, now: float) -> None:
+        if self._booted and not self._device_connected:
+            self._device_connected = True
+            self.stats.connections += 1
+            self.device.connected(now)
+
+    def _tell_disconnected(self) -> None:
+        if self._device_connected:
+            self._device_connected = False
+            self.device.disconnected(self._now())
+
+    def _set_host(self, present: bool) -> None:
+        """The host side changed: tell the device and abandon any packet in flight."""
+        self._link_id += 1
+        self._tell_disconnected()
+        if present:
+            self._tell_connected(self._now())
+        self._poke()
+
+    def _on_rx(self, data: bytes) -> None:
+        """Bytes from the host: dropped while deaf, else faulted and handed to the device."""
+        now = self._now()
+        if not self._booted or self._unplugged(now):
+            self.stats.faults[FaultKind.MUTED_RX_BYTE] += len(data)
+            return
+        data = self._injector.apply_rx(data)
+        if not data:
+            return
+        self.stats.bytes_rx += len(data)
+        try:
+            self.device.receive(data, now)
+        except Exception as exc:  # keep serving; the transport callback is no place to raise
+            logger.exception("device.receive() failed")
+            self._device_error = self._device_error or exc
+        self._poke()
+
+    async def _run(self) -> None:
+        """The transmitter: boot, then pull packets whenever the line is idle and pace them."""
+        while not self._booted:
+            await asyncio.sleep(self._boot_end - self._now())
+            if self._now() >= self._boot_end:
+                self._finish_boot(self._now())
+        while True:
+            self._changed.clear()  # before polling, so input arriving later wakes us
+            now = self._now()
+            listening = self._host_present()
+            packet = self.device.next_packet(now) if listening else None
+            if packet is not None:
+                await self._transmit(packet)
+                continue
+            wakeup = self.device.next_wakeup(now) if listening else None
+            if wakeup is not None and wakeup <= now:
+                wakeup = now + self._pacer.tick_s  # "due now" yet nothing to send: don't spin
+            await self._wait_change(wakeup)
+
+    async def _wait_change(self, deadline: float | None) -> None:
+        loop = self._require_loop()
+        timer = None if deadline is None else loop.call_at(deadline, self._changed.set)
+        try:
+            await self._changed.wait()
+        finally:
+            if timer is not None:
+                timer.cancel()
+
+    async def _transmit(self, packet: bytes) -> None:
+        out = self._injector.apply_tx(packet)
+        self.stats.packets_tx += 1
+        link = self._link_id
+        self._pacer.begin(self._now(), len(out))
+        sent = 0
+        while sent < len(out):
+            await self._until_writable(link)
+            now = self._now()
+            if link != self._link_id:
+                self._pacer.abort(now)
+                return
+            due = self._pacer.due(now)
+            if due > sent:
+                self._emit(out, sent, due, now)
+                sent = due
+            if sent < len(out):
+                await asyncio.sleep(self._pacer.wake_at(now, sent) - now)
+        await asyncio.sleep(0)  # let the host run between packets even when nothing waited
+
+    async def _until_writable(self, link: int) -> None:
+        while link == self._link_id and not (self._unplugged(self._now()) or self._sink_ready()):
+            self._changed.clear()
+            await self._changed.wait()
+
+    def _emit(self, out: FaultedPacket, start: int, stop: int, now: float) -> None:
+        data = out.slice(start, stop)
+        if not data:
+            return
+        if self._unplugged(now):
+            self.stats.faults[FaultKind.UNPLUGGED_TX_BYTE] += len(data)
+            return
+        self.stats.bytes_tx += len(data)
+        self._sink_write(data)
+
+
+def _log_crash(task: asyncio.Task[None]) -> None:
+    if not task.cancelled() and (exc := task.exception()) is not None:
+        logger.error("device transmitter crashed", exc_info=exc)
+
+
+# -- pty ---------------------------------------------------------------------------------------
+
+
+def make_raw(fd: int, baud: int | None = DEFAULT_BAUD) -> None:
+    """Raw 8N1 like cfmakeraw(3): no echo, no CR/LF mapping, 8 bits kept (ISTRIP off)."""
+    iflag, oflag, cflag, lflag, ispeed, _ospeed, cc = termios.tcgetattr(fd)
+    iflag &= ~(
+        termios.IGNBRK | termios.BRKINT | termios.PARMRK | termios.ISTRIP
+        | termios.INLCR | termios.IGNCR | termios.ICRNL | termios.IXON | termios.IXOFF
+    )  # fmt: skip
+    oflag &= ~termios.OPOST
+    lflag &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)
+    cflag &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB)
+    cflag |= termios.CS8 | termios.CREAD | termios.CLOCAL
+    speed = getattr(termios, f"B{baud}", ispeed) if baud else ispeed  # cosmetic on a pty
+    cc[termios.VMIN], cc[termios.VTIME] = 1, 0
+    termios.tcsetattr(fd, termios.TCSANOW, [iflag, oflag, cflag, lflag, speed, speed, cc])
+
+
+class PtyEndpoint(Endpoint):
+    """Serves the device on a fresh pty; the host opens :attr:`path`.
+
+    The endpoint keeps its own slave fd open for its whole life, so master reads never fail with
+    EIO between hosts and a host's HUPCL does not hang up the line. A pty cannot tell when a host
+    opens or closes the slave, so the device is "connected" from start to stop; what it sends
+    while nobody reads queues in the pty (stale bytes the next host's open flushes) until the pty
+    is full, after which the line stalls (backpressure) rather than losing bytes.
+    """
+
+    def __init__(
+        self, device: Device, *, baud: int | None = DEFAULT_BAUD, faults: FaultConfig | None = None
+    ) -> None:
+        super().__init__(device, baud=baud, faults=faults)
+        self._baud = baud
+        self._master = -1
+        self._slave = -1
+        self._path = ""
+        self._pending = bytearray()  # written by the line, not yet taken by the pty
+        self._writer_armed = False
+
+    @property
+    def path(self) -> str:
+        """The pty slave device, e.g. ``/dev/pts/5``."""
+        return self._path
+
+    @property
+    def url(self) -> str:
+        return self._path
+
+    async def _open(self) -> None:
+        master, slave = os.openpty()
+        try:
+            make_raw(slave, self._baud)
+            os.set_blocking(master, False)
+            self._path = os.ttyname(slave)
+        except BaseException:
+            os.close(master)
+            os.close(slave)
+            raise
+        self._master, self._slave = master, slave
+        self._require_loop().add_reader(master, self._on_readable)
+
+    async def _close(self) -> None:
+        self._require_loop().remove_reader(self._master)
+        self._arm_writer(False)
+        self._pending.clear()
+        os.close(self._master)
+        os.close(self._slave)
+        self._master = self._slave = -1
+
+    def _host_present(self) -> bool:
+        return True
+
+    def _sink_ready(self) -> bool:
+        return not self._pending
+
+    def _unplug(self) -> None:
+        """Nothing to do: a serial device can't tell its cable was pulled."""
+
+    def _sink_write(self, data: bytes) -> None:
+        self._pending += data
+        self._flush()
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self._master, _READ_SIZE)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:  # EIO would mean no slave fd is open; ours always is
+            logger.debug("pty read failed: %s", exc)
+            return
+        if data:
+            self._on_rx(data)
+
+    def _flush(self) -> None:
+        try:
+            while self._pending:
+                del self._pending[: os.write(self._master, self._pending)]
+        except (BlockingIOError, InterruptedError):
+            self._arm_writer(True)  # the pty is full: resume when it drains
+            return
+        except OSError as exc:  # e.g. EIO: the bytes are gone, as on a dead line
+            logger.debug("pty write failed, %d bytes lost: %s", len(self._pending), exc)
+            self._pending.clear()
+        self._arm_writer(False)
+        self._poke()
+
+    def _arm_writer(self, on: bool) -> None:
+        if on and not self._writer_armed:
+            self._require_loop().add_writer(self._master, self._flush)
+        elif not on and self._writer_armed:
+            self._require_loop().remove_writer(self._master)
+        self._writer_armed = on
+
+
+# -- TCP ---------------------------------------------------------------------------------------
+
+
+class _TcpConnection(asyncio.Protocol):
+    """One accepted host connection; forwards everything to its :class:`TcpEndpoint`."""
+
+    def __init__(self, endpoint: TcpEndpoint) -> None:
+        self.endpoint = endpoint
+        self.transport: asyncio.Transport | None = None
+        self.paused = False
+        self.closed = endpoint._require_loop().create_future()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        self.endpoint._accepted(self)
+
+    def data_received(self, data: bytes) -> None:
+        self.endpoint._received(self, data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.closed.done():
+            self.closed.set_result(None)
+        self.endpoint._lost(self)
+
+    def pause_writing(self) -> None:
+        self.paused = True
+
+    def resume_writing(self) -> None:
+        self.paused = False
+        self.endpoint._poke()
+
+    def setsockopt(self, option: int | None) -> None:
+        """Set a boolean TCP option, if this platform has it."""
+        sock = self.transport.get_extra_info("socket") if self.transport else None
+        if option is not None and sock is not None:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.IPPROTO_TCP, option, 1)
+
+
+class TcpEndpoint(Endpoint):
+    """Serves the device on a TCP port; the host opens :attr:`url` (``socket://host:port``).
+
+    One host at a time, sequentially, device state kept across connections. A new connection
+    while one is open replaces it (the old one is aborted and the device sees disconnected() then
+    connected()): a killed or hung host must not lock the next run out, and a real host never
+    keeps two. During :meth:`disconnect` the client is aborted and new connections are accepted
+    and closed at once, so the host sees the line go dead and cannot get back in.
+    """
+
+    def __init__(
+        self,
+        device: Device,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        baud: int | None = DEFAULT_BAUD,
+        faults: FaultConfig | None = None,
+    ) -> None:
+        super().__init__(device, baud=baud, faults=faults)
+        self.host = host
+        self._port = port
+        self._server: asyncio.Server | None = None
+        self._client: _TcpConnection | None = None
+        self._conns: set[_TcpConnection] = set()
+
+    @property
+    def port(self) -> int:
+        """The bound port (the ephemeral one when created with ``port=0``), after start()."""
+        return self._port
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"socket://{host}:{self._port}"
+
+    async def _open(self) -> None:
+        loop = self._require_loop()
+        self._server = await loop.create_server(lambda: _TcpConnection(self), self.host, self._port)
+        self._port = self._server.sockets[0].getsockname()[1]
+
+    async def _close(self) -> None:
+        assert self._server is not None
+        self._server.close()
+        self._client = None
+        conns = list(self._conns)
+        for conn in conns:
+            if conn.transport is not None:
+                conn.transport.abort()
+        # abort() closes the socket one loop step later; wait so stop() really frees the fds.
+        await asyncio.gather(*(c.closed for c in conns))
+        await self._server.wait_closed()
+
+    def _host_present(self) -> bool:
+        return self._client is not None
+
+    def _sink_ready(self) -> bool:
+        return self._client is not None and not self._client.paused
+
+    def _sink_write(self, data: bytes) -> None:
+        assert self._client is not None and self._client.transport is not None
+        if not self._client.transport.is_closing():
+            self._client.transport.write(data)
+
+    def _unplug(self) -> None:
+        self._drop_client()
+
+    def _drop_client(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            assert client.transport is not None
+            client.transport.abort()
+            self._set_host(False)
+
+    def _accepted(self, conn: _TcpConnection) -> None:
+        self._conns.add(conn)
+        assert conn.transport is not None
+        if not self.running or self._unplugged(self._now()):
+            conn.transport.abort()  # refused: stopping, or the cable is out
+            return
+        self._drop_client()
+        self._client = conn
+        conn.setsockopt(socket.TCP_NODELAY)
+        conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
+        self._set_host(True)
+
+    def _received(self, conn: _TcpConnection, data: bytes) -> None:
+        if conn is not self._client:
+            return
+        # Linux drops out of quick-ACK mode by itself; re-arm it so a host that sends a command
+        # and its "\r\n" in two segments (Nagle on) is not held up by our delayed ACK.
+        conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
+        self._on_rx(data)
+
+    def _lost(self, conn: _TcpConnection) -> None:
+        self._conns.discard(conn)
+        if conn is self._client:
+            self._client = None
+            self._set_host(False)
+
+
+# -- memory ------------------------------------------------------------------------------------
+
+
+class MemoryEndpoint(Endpoint):
+    """An in-process host for emulator tests: :meth:`write` sends host bytes, device output
+    collects in :attr:`output` (and goes to ``on_output(data, now)`` if given). Pacing and faults
+    work as on a pty, so on a virtual-clock loop a test can check exact line timing."""
+
+    def __init__(
+        self,
+        device: Device,
+        *,
+        baud: int | None = DEFAULT_BAUD,
+        faults: FaultConfig | None = None,
+        on_output: Callable[[bytes, float], None] | None = None,
+    ) -> None:
+        super().__init__(device, baud=baud, faults=faults)
+        self.output = bytearray()
+        self._on_output = on_output
+
+    @property
+    def url(self) -> str:
+        return "memory://"
+
+    def write(self, data: bytes) -> None:
+        """Host→device bytes (as if the host wrote them to the line now)."""
+        self._on_rx(data)
+
+    async def _open(self) -> None:
+        pass
+
+    async def _close(self) -> None:
+        pass
+
+    def _host_present(self) -> bool:
+        return True
+
+    def _sink_ready(self) -> bool:
+        return True
+
+    def _unplug(self) -> None:
+        """Nothing to do: like a pty, the device can't tell."""
+
+    def _sink_write(self, data: bytes) -> None:
+        self.output += data
+        if self._on_output is not None:
+            self._on_output(data, self._now())
+
+
+def serve_device(
+    device: Device,
+    kind: Literal["pty", "tcp", "memory"] = "pty",
+    *,
+    baud: int | None = DEFAULT_BAUD,
+    faults: FaultConfig | None = None,
+    host: str = "127.0.0.1",
+    port: int = 0,
+) -> Endpoint:
+    """An unstarted endpoint of the given kind: ``async with serve_device(dev, "tcp") as ep``."""
+    if kind == "pty":
+        return PtyEndpoint(device, baud=baud, faults=faults)
+    if kind == "tcp":
+        return TcpEndpoint(device, host=host, port=port, baud=baud, faults=faults)
+    if kind == "memory":
+        return MemoryEndpoint(device, baud=baud, faults=faults)
+    raise ValueError(f"unknown endpoint kind {kind!r}")
