@@ -636,6 +636,38 @@ class TcpEndpoint(Endpoint):
             self._set_host(False)
 
 
+class UnixEndpoint(TcpEndpoint):
+    """Serves the device on a Unix-domain socket; the host opens :attr:`url` (``unix:///path``,
+    see :mod:`sdh2svc.bus.urlhandlers`). The kernel delivers its bytes synchronously, so it is
+    the transport of fast mode (virtual clock); otherwise it behaves as :class:`TcpEndpoint`."""
+
+    def __init__(
+        self,
+        device: Device,
+        path: str,
+        *,
+        baud: int | None = DEFAULT_BAUD,
+        faults: FaultConfig | None = None,
+    ) -> None:
+        super().__init__(device, baud=baud, faults=faults)
+        self.path = path
+
+    @property
+    def url(self) -> str:
+        return f"unix://{self.path}"
+
+    async def _open(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)  # a stale socket file of an earlier run
+        loop = self._require_loop()
+        self._server = await loop.create_unix_server(lambda: _TcpConnection(self), self.path)
+
+    async def _close(self) -> None:
+        await super()._close()
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)
+
+
 # -- memory ------------------------------------------------------------------------------------
 
 

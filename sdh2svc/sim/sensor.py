@@ -8,7 +8,8 @@
   ``spread_mm`` before each cell averages what falls on it, so a point contact lights two or
   three rows and an edge concentrates while a face spreads.
 * Counts: the inverse of the library pressure formula of the configuration (pressure per count),
-  plus seeded Gaussian noise, then the controller's sensitivity, threshold and saturation at 4095.
+  plus seeded Gaussian noise on loaded cells (an unloaded resistive cell reads a clean 0),
+  then the controller's sensitivity, threshold and saturation at 4095.
 * Creep (thesis §2.8, §4.1): each cell keeps a memory m that follows its pressure with a time
   constant ``creep_rise_s`` while loaded and decays with ``creep_fall_s``; it reads
   P + creep_gain·min(m, P). Under a constant load the reading rises over seconds; unloaded it
@@ -123,7 +124,9 @@ class TactileSensorModel:
                 reading = p + cfg.creep_gain * np.minimum(mem, p)
             c = reading / self.per_count
             if cfg.noise and cfg.noise_counts > 0:
-                c = c + self.rng.normal(0.0, cfg.noise_counts, c.shape)
+                # an unloaded resistive cell reads a clean 0; loaded ones are noisy
+                noise = self.rng.normal(0.0, cfg.noise_counts, c.shape)
+                c = np.where(c > 0.5, c + noise, c)
             counts.append(np.where(self.valid[m], np.maximum(c, 0.0), 0.0).ravel())
         return apply_sensor_settings(np.concatenate(counts), self.shapes, sensitivity, threshold)
 
