@@ -5,7 +5,11 @@ from __future__ import annotations
 import argparse
 import importlib
 
-SECTIONS = {"model": "bench.model_step", "sim": "bench.sim_world"}
+SECTIONS = {
+    "model": "bench.model_step",
+    "protocol": "bench.protocol",
+    "sim": "bench.sim_world",
+}
 
 
 def main() -> None:

@@ -333,6 +333,8 @@ class ContactPhysics:
         delta = max(abs(a - b) for a, b in zip(
             (pose.phi2, pose.phi3, pose.phi4, pose.phi5),
             (cur.phi2, cur.phi3, cur.phi4, cur.phi5), strict=True))  # fmt: skip
+        if delta == 0.0 and not self.state.held_by_fixture:
+            return  # quasi-static: nothing moved, nothing changes
         n = max(1, math.ceil(math.degrees(delta) / self.cfg.max_joint_step_deg))
         for i in range(1, n + 1):
             f = i / n
