@@ -11,6 +11,18 @@ from sdh2svc.sim.physics import PhysicsConfig
 from sdh2svc.sim.sensor import SensorModelConfig
 
 
+class LinksConfig(Frozen):
+    """Where and how the simulated devices are served."""
+
+    host: str
+    dsa_tcp_port: Annotated[int, Field(ge=0, le=65535)]
+    sdh_tcp_port: Annotated[int, Field(ge=0, le=65535)]
+    pty: bool
+    baud: Annotated[int, Field(ge=300, le=4_000_000)]
+    dsa_boot_s: Annotated[float, Field(ge=0.0, le=60.0)]
+    bit_error_rate: Annotated[float, Field(ge=0.0, le=0.1)]
+
+
 class SimConfig(Frozen):
     """The object, its placement, the contact physics and the sensor's imperfections."""
 
@@ -20,3 +32,4 @@ class SimConfig(Frozen):
     object_angle_deg: Annotated[float, Field(ge=-180.0, le=180.0)]
     physics: PhysicsConfig
     sensor: SensorModelConfig
+    links: LinksConfig
