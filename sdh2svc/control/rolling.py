@@ -1,0 +1,171 @@
+"""The rolling iteration (hand-model.md §8; thesis §3.3–3.5) as a pure step function.
+
+``step(state, pose, counts1, counts2, params, ctx)`` takes the previous :class:`RollState`, the
+actual joint angles φ2…φ5 and the raw counts of the two distal pads, and returns a
+:class:`StepResult`: the four joint targets to command, or none and the reason the rotation
+reverses, plus every quantity the thesis plots. No I/O, no clock: the runner feeds it fresh
+frames, and the same inputs always give the same result.
+
+Two-finger mode (default, §3.4–3.5): Finger 2 follows its route (φ4 − Δφ, φ5 + k·Δφ); the
+inclination change it imposes, dσ, is reinforced by λ; Finger 1 puts A on the circle of radius
+Λad around the new B at inclination σd. One-finger mode (§3.3): Finger 2 holds still and Finger 1
+turns A around B by dσ per iteration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from enum import StrEnum
+
+import numpy as np
+
+from sdh2svc.control.params import RollingParams
+from sdh2svc.model.friction import inside_cone, omega
+from sdh2svc.model.kinematics import (
+    Finger,
+    HandPoints,
+    HandPose,
+    IKFailure,
+    Point,
+    contact_point,
+    finger_ik,
+    segment,
+)
+from sdh2svc.model.observe import ModelContext, Observation, observe
+
+
+class Reversal(StrEnum):
+    """Why the rotation direction reverses instead of commanding the next configuration."""
+
+    CONE_A = "cone_A"  # ωA would leave 90° ± α
+    CONE_B = "cone_B"  # ωB would leave 90° ± α
+    WORKSPACE = "workspace"  # Finger 2's next angles (or Finger 1's) outside the joint limits
+    IK_UNREACHABLE = "ik_unreachable"  # Finger 1 cannot reach Ad
+    CONTACT_EDGE = "contact_edge"  # a contact sits on the pad's first or last row
+    CONTACT_LOST = "contact_lost"  # F1 or F2 at or below the contact threshold
+
+
+@dataclass(frozen=True, slots=True)
+class RollState:
+    """What one iteration hands to the next."""
+
+    direction: int = 1  # +1: Δφ as configured; −1: reversed
+    F_prev: float | None = None
+    half_strokes: int = 0
+    iteration: int = 0
+    consecutive_reversals: int = 0
+
+    @property
+    def strokes(self) -> int:
+        """Completed back-and-forth strokes (two reversals each)."""
+        return self.half_strokes // 2
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """The next configuration as far as it was worked out (radians, mm)."""
+
+    Lambda_ad: float
+    sigma_d: float | None = None
+    A_d: Point | None = None
+    B_d: Point | None = None
+    omega_A_d: float | None = None  # at the desired configuration
+    omega_B_d: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class StepResult:
+    """The decision of one iteration and everything it computed (F, ΔF in library units)."""
+
+    state: RollState
+    targets: HandPose | None  # None: command nothing this iteration
+    reversal: Reversal | None
+    obs: Observation
+    F: float
+    dF: float
+    plan: Plan | None
+
+    @property
+    def points(self) -> HandPoints | None:
+        return self.obs.points
+
+
+def _adjusted_lambda(lam: float, dF: float, p: RollingParams) -> float:
+    """Λad: open by ΔΛ_inc when the force rises, close by ΔΛ_dec when it falls (Table 8)."""
+    if dF > 0.0:
+        return lam + p.delta_lambda_inc_mm
+    if dF < 0.0:
+        return lam - p.delta_lambda_dec_mm
+    return lam
+
+
+def _reverse(state: RollState, F: float, reason: Reversal) -> RollState:
+    return RollState(
+        direction=-state.direction,
+        F_prev=F,
+        half_strokes=state.half_strokes + 1,
+        iteration=state.iteration + 1,
+        consecutive_reversals=state.consecutive_reversals + 1,
+    )
+
+
+def step(
+    state: RollState,
+    pose: HandPose,
+    counts1: np.ndarray,
+    counts2: np.ndarray,
+    params: RollingParams,
+    ctx: ModelContext,
+) -> StepResult:
+    """One rolling iteration (hand-model §8, step 2)."""
+    obs = observe(pose, counts1, counts2, ctx)
+    c1, c2 = obs.contact1, obs.contact2
+    F = (c1.force_library + c2.force_library) / 2  # eq 3.16
+    dF = 0.0 if state.F_prev is None else F - state.F_prev
+
+    def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
+        return StepResult(_reverse(state, F, reason), None, reason, obs, F, dF, plan)
+
+    present = min(c1.force_library, c2.force_library) > params.contact_force_min
+    if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
+        return reverse(Reversal.CONTACT_LOST)
+    if c1.at_edge or c2.at_edge:
+        return reverse(Reversal.CONTACT_EDGE)
+    assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
+    assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
+
+    geom = ctx.geom
+    A, B = obs.points.A, obs.points.B
+    lam_ad = _adjusted_lambda(obs.Lambda, dF, params)
+    dphi = state.direction * params.delta_phi
+    if params.mode == "two-finger":
+        phi4d, phi5d = pose.phi4 - dphi, pose.phi5 + params.k * dphi
+        if not ctx.limits2.contains(phi4d, phi5d):
+            return reverse(Reversal.WORKSPACE, Plan(lam_ad))
+        B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
+        d_sigma = segment(A, B_d)[1] - obs.sigma  # eq 3.13 with its sign typo fixed
+        sigma_d = obs.sigma + params.lambda_gain * d_sigma
+    else:
+        phi4d, phi5d = pose.phi4, pose.phi5
+        B_d = B
+        sigma_d = obs.sigma + state.direction * params.d_sigma
+    A_d = Point(B_d.y - lam_ad * math.cos(sigma_d), B_d.z - lam_ad * math.sin(sigma_d))
+    ik = finger_ik(Finger.ONE, A_d, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), geom,
+                   ctx.limits1)  # fmt: skip
+    plan = Plan(lam_ad, sigma_d, A_d, B_d)
+    if ik.solution is None:
+        limits = ik.failure is IKFailure.JOINT_LIMITS
+        return reverse(Reversal.WORKSPACE if limits else Reversal.IK_UNREACHABLE, plan)
+    phi2d, phi3d = ik.solution.proximal, ik.solution.distal
+    pad = geom.pad
+    wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
+    wb = omega(Finger.TWO, phi4d + phi5d, c2.x3_mm, B_d, A_d, pad)
+    plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
+    if not inside_cone(wa, params.alpha):
+        return reverse(Reversal.CONE_A, plan)
+    if not inside_cone(wb, params.alpha):
+        return reverse(Reversal.CONE_B, plan)
+    nxt = replace(state, F_prev=F, iteration=state.iteration + 1, consecutive_reversals=0)
+    targets = HandPose(phi2d, phi3d, phi4d, phi5d)
+    return StepResult(nxt, targets, None, obs, F, dF, plan)

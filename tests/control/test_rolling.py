@@ -1,0 +1,167 @@
+"""The rolling step on hand-built situations (hand-model §8)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sdh2svc.config import Settings
+from sdh2svc.control.params import RollingParams
+from sdh2svc.control.rolling import Reversal, RollState, step
+from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point, segment
+
+rad = math.radians
+MIRROR = HandPose(rad(-20), rad(30), rad(-20), rad(30))
+
+
+def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
+    """A distal frame whose pressure centroid is exactly S (two neighbouring rows)."""
+    m = np.zeros((13, 6), dtype=np.uint16)
+    j = min(int(S // 3.4), 11)
+    w = S / 3.4 - j
+    m[j, 1:5] = round(amplitude * (1 - w))
+    m[j + 1, 1:5] = round(amplitude * w)
+    return m
+
+
+def params(cfg: Settings, **kw: object) -> RollingParams:
+    return cfg.rolling.model_copy(update=kw)
+
+
+TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))  # σ ≠ 0
+
+
+@pytest.mark.parametrize("pose", [MIRROR, TILTED], ids=["mirror", "tilted"])
+def test_normal_step_follows_the_route(cfg: Settings, pose: HandPose) -> None:
+    ctx, p = cfg.model_context(), cfg.rolling
+    r = step(RollState(), pose, frame(20.0), frame(24.0), p, ctx)
+    assert r.reversal is None and r.targets is not None and r.plan is not None
+    t = r.targets
+    # Finger 2's route: φ4 − Δφ, φ5 + k·Δφ
+    assert t.phi4 == pytest.approx(pose.phi4 - rad(0.25))
+    assert t.phi5 == pytest.approx(pose.phi5 + 2 * rad(0.25))
+    c1, c2 = r.obs.contact1, r.obs.contact2
+    A_d = contact_point(Finger.ONE, t.phi2, t.phi3, c1.r_mm, c1.theta_rad, ctx.geom)
+    B_d = contact_point(Finger.TWO, t.phi4, t.phi5, c2.r_mm, c2.theta_rad, ctx.geom)
+    assert A_d == pytest.approx(r.plan.A_d, abs=1e-9)  # IK puts A exactly on Ad
+    assert B_d == pytest.approx(r.plan.B_d, abs=1e-9)
+    lam, sig = segment(A_d, B_d)
+    assert lam == pytest.approx(r.plan.Lambda_ad) and sig == pytest.approx(r.plan.sigma_d)
+    # σd = σc + λ·(σ(Ac→Bd) − σc)
+    sigma_c = r.obs.sigma
+    d_sigma = segment(r.obs.points.A, B_d)[1] - sigma_c
+    assert r.plan.sigma_d == pytest.approx(sigma_c + 5.0 * d_sigma)
+    assert abs(d_sigma) > 1e-4  # Finger 2's move does tilt AB
+    assert r.state.iteration == 1 and r.state.direction == 1 and r.state.F_prev == r.F
+
+
+@pytest.mark.parametrize(("prev_F_delta", "expected"), [(-0.3, 0.2), (0.3, -1.0), (0.0, 0.0)])
+def test_delta_lambda_sign_logic(cfg: Settings, prev_F_delta: float, expected: float) -> None:
+    """Rising force → open by ΔΛ_inc (0.2 mm); falling → close by ΔΛ_dec (1.0 mm)."""
+    ctx, p = cfg.model_context(), cfg.rolling
+    F = step(RollState(), MIRROR, frame(20.0), frame(20.0), p, ctx).F
+    r = step(RollState(F_prev=F + prev_F_delta), MIRROR, frame(20.0), frame(20.0), p, ctx)
+    assert r.dF == pytest.approx(-prev_F_delta)
+    assert r.plan.Lambda_ad == pytest.approx(r.obs.Lambda + expected)
+
+
+def test_contact_lost_reverses(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    r = step(RollState(), MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), cfg.rolling, ctx)
+    assert r.reversal is Reversal.CONTACT_LOST and r.targets is None
+    assert r.state.direction == -1 and r.state.half_strokes == 1
+    weak = frame(20.0, amplitude=15.0)  # present on the pad, but below contact_force_min
+    r = step(RollState(), MIRROR, frame(20.0), weak, cfg.rolling, ctx)
+    assert r.reversal is Reversal.CONTACT_LOST
+
+
+def test_contact_at_pad_edge_reverses(cfg: Settings) -> None:
+    m = np.zeros((13, 6), np.uint16)
+    m[0, 1:5] = 1500  # on the first row, at the fingertip's end
+    r = step(RollState(), MIRROR, m, frame(20.0), cfg.rolling, cfg.model_context())
+    assert r.reversal is Reversal.CONTACT_EDGE
+
+
+def test_cone_a_reverses(cfg: Settings) -> None:
+    """In the mirror pose ωA ≈ 91.4°: a cone of ±1° is left at once, at A first."""
+    r = step(RollState(), MIRROR, frame(20.0), frame(20.0), params(cfg, alpha_deg=1.0),
+             cfg.model_context())  # fmt: skip
+    assert r.reversal is Reversal.CONE_A
+    assert abs(math.degrees(r.plan.omega_A_d) - 90) >= 1.0
+
+
+def test_cone_b_reverses(cfg: Settings) -> None:
+    """Tilting Finger 2's pad alone: ωA stays inside, ωB leaves the cone."""
+    ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
+    found = None
+    for phi5 in range(30, 70):
+        pose = HandPose(rad(-20), rad(30), rad(-20), rad(phi5))
+        r = step(RollState(), pose, frame(20.0), frame(20.0), p, ctx)
+        if r.reversal is Reversal.CONE_B:
+            found = r
+            break
+        assert r.reversal in (None, Reversal.CONE_B)
+    assert found is not None
+    assert abs(math.degrees(found.plan.omega_A_d) - 90) < 10.0
+    assert abs(math.degrees(found.plan.omega_B_d) - 90) >= 10.0
+
+
+def test_workspace_reverses_at_joint_limit(cfg: Settings) -> None:
+    pose = HandPose(rad(-20), rad(30), rad(-89.9), rad(30))  # φ4 − Δφ would pass −90°
+    r = step(RollState(), pose, frame(20.0), frame(20.0), cfg.rolling, cfg.model_context())
+    assert r.reversal is Reversal.WORKSPACE
+    # the other way round the same pose is fine for Finger 2
+    r = step(RollState(direction=-1), pose, frame(20.0), frame(20.0), cfg.rolling,
+             cfg.model_context())  # fmt: skip
+    assert r.reversal is not Reversal.WORKSPACE
+
+
+def test_ik_unreachable_reverses(cfg: Settings) -> None:
+    """A huge reinforcement λ swings Ad out of Finger 1's reach."""
+    ctx = cfg.model_context()
+    p = params(cfg, lambda_gain=50.0, delta_phi_deg=5.0)
+    r = step(RollState(), MIRROR, frame(20.0), frame(20.0), p, ctx)
+    assert r.reversal is Reversal.IK_UNREACHABLE
+    c1 = r.obs.contact1
+    d = math.hypot(r.plan.A_d.y, r.plan.A_d.z)
+    l1 = cfg.hand.proximal_length_mm
+    assert d > l1 + c1.r_mm or d < abs(l1 - c1.r_mm)
+
+
+def test_parameter_change_applies_at_next_iteration(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    r1 = step(RollState(), MIRROR, frame(20.0), frame(20.0), cfg.rolling, ctx)
+    faster = params(cfg, delta_phi_deg=0.5, k=3.0)
+    r2 = step(r1.state, r1.targets, frame(20.0), frame(20.0), faster, ctx)
+    assert r2.targets.phi4 == pytest.approx(r1.targets.phi4 - rad(0.5))
+    assert r2.targets.phi5 == pytest.approx(r1.targets.phi5 + 3 * rad(0.5))
+
+
+def test_reversal_flips_direction_and_counts_strokes(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    empty = np.zeros((13, 6), np.uint16)
+    s = RollState()
+    for _ in range(4):
+        s = step(s, MIRROR, frame(20.0), empty, cfg.rolling, ctx).state
+    assert s.half_strokes == 4 and s.strokes == 2 and s.direction == 1
+    assert s.consecutive_reversals == 4
+    r = step(RollState(direction=-1), MIRROR, frame(20.0), frame(20.0), cfg.rolling, ctx)
+    assert r.targets.phi4 == pytest.approx(MIRROR.phi4 + rad(0.25))  # reversed route
+
+
+def test_one_finger_mode_turns_A_around_B(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    p = params(cfg, mode="one-finger", d_sigma_deg=0.5)
+    r = step(RollState(), MIRROR, frame(20.0), frame(20.0), p, ctx)
+    assert r.reversal is None
+    assert (r.targets.phi4, r.targets.phi5) == (MIRROR.phi4, MIRROR.phi5)  # Finger 2 holds
+    B = r.obs.points.B
+    assert r.plan.B_d == B
+    A_d = contact_point(Finger.ONE, r.targets.phi2, r.targets.phi3, r.obs.contact1.r_mm,
+                        r.obs.contact1.theta_rad, ctx.geom)  # fmt: skip
+    lam, sig = segment(A_d, B)
+    assert sig == pytest.approx(r.obs.sigma + rad(0.5))
+    assert lam == pytest.approx(r.plan.Lambda_ad)
+    assert isinstance(A_d, Point)
