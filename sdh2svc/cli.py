@@ -73,6 +73,61 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sim(args: argparse.Namespace) -> int:
+    """Serve the simulated hand's two controllers (DSACON32m tactile, SDH2 joints) on ptys and
+    TCP ports, for any driver — ours, SCHUNK's SDHLibrary, the ROS node — until Ctrl-C."""
+    import asyncio
+    import signal
+
+    from sdh2svc.sim.objects import get_object, load_object
+    from sdh2svc.sim.serve import start_simulated_hand
+
+    overrides = list(args.overrides)
+    for flag, key in (("host", "host"), ("boot_s", "dsa_boot_s"), ("ber", "bit_error_rate"),
+                      ("baud", "baud")):  # fmt: skip
+        if getattr(args, flag) is not None:
+            overrides.append(f"sim.links.{key}={getattr(args, flag)!r}")
+    if args.seed is not None:
+        overrides.append(f"sim.seed={args.seed}")
+    cfg = load_config(args.config, overrides)
+    try:
+        obj = (
+            load_object(args.object_file)
+            if args.object_file
+            else get_object(args.object or cfg.sim.object)
+        )
+    except (KeyError, OSError, ValueError) as e:
+        print(f"sdh2svc sim: {e}", file=sys.stderr)
+        return 2
+
+    async def main() -> None:
+        hand = await start_simulated_hand(
+            cfg, obj=obj, pty=not args.no_pty and cfg.sim.links.pty, tcp=not args.no_tcp,
+            dsa_port=args.dsa_port, sdh_port=args.sdh_port,
+        )  # fmt: skip
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        info = {"object": obj.name or obj.kind, "dsa": hand.urls("dsa"), "sdh": hand.urls("sdh")}
+        if args.json:
+            print(json.dumps(info), flush=True)
+        else:
+            print(f"sdh2svc sim: a simulated SCHUNK SDH2; object "
+                  f"{info['object']!r} ({obj.kind}, {obj.size_mm:g} mm) waits between the "
+                  f"fingertips")  # fmt: skip
+            print(f"  DSACON32m (tactile): {'   '.join(info['dsa'])}")
+            print(f"  SDH2 (joints):       {'   '.join(info['sdh'])}")
+            print("  Point a driver at one URL of each. Ctrl-C stops.", flush=True)
+        try:
+            await stop.wait()
+        finally:
+            await hand.stop()
+
+    asyncio.run(main())
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sdh2svc", description="Tactile in-hand rolling on a SCHUNK SDH2 hand."
@@ -94,6 +149,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--s2", type=float, default=20.0, help="contact height S2 on Finger 2, mm")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("sim", help="serve the simulated hand's two controllers",
+                       description=cmd_sim.__doc__)  # fmt: skip
+    _add_config_args(p)
+    obj = p.add_mutually_exclusive_group()
+    obj.add_argument("--object", help="a preset: rubber, egg, cylinder, stick62 … stick119")
+    obj.add_argument("--object-file", metavar="FILE", help="an object defined in TOML or JSON")
+    p.add_argument("--host", help="TCP bind address (default from config: 127.0.0.1)")
+    p.add_argument("--dsa-port", type=int, help="DSACON32m TCP port (default 13000; 0 = any)")
+    p.add_argument("--sdh-port", type=int, help="SDH2 TCP port (default 13023; 0 = any)")
+    p.add_argument("--no-pty", action="store_true", help="serve on TCP only")
+    p.add_argument("--no-tcp", action="store_true", help="serve on ptys only")
+    p.add_argument("--baud", type=int, help="line pacing in bits/s (default 115200)")
+    p.add_argument("--boot-s", type=float, help="DSACON32m boot silence (8.0 = the real one)")
+    p.add_argument("--ber", type=float, help="bit-error rate injected on device→host bytes")
+    p.add_argument("--seed", type=int, help="random seed of the simulated world")
+    p.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
+    p.set_defaults(func=cmd_sim)
     return parser
 
 

@@ -1,0 +1,949 @@
+"""SDH2 joint-controller firmware emulator, as a sans-I/O device.
+
+:class:`Sdh2Emulator` implements :class:`~sdh2svc.sim.endpoint.Device`: an endpoint hands it the
+host's bytes and asks for whole replies whenever the line is idle, always with the endpoint's
+``now`` (seconds). It keeps no clock and starts no task, so the same ``now`` values give the same
+bytes and the same calls into the world. Every byte goes through :mod:`sdh2svc.protocol.sdh`
+(ASCII lines and binary frames on one line, detected per message; binary frames with or without
+CRC, answered in the same form). Where the joints really are comes from a
+:class:`~sdh2svc.sim.world.HandWorld` (protocols.md PART 2, PART 3, PART 4).
+
+Servo model. Each axis has a *reference* angle that the firmware's controller computes and the
+world's servo follows; ``pos`` reports what :meth:`HandWorld.move_joints` returns, ``vel`` its
+finite difference. The reference advances on a fixed tick (``tick_s``, 5 ms, anchored at the
+command that started the motion) while anything moves, plus once at every command's ``now`` and
+exactly at the end of a coordinated move; :meth:`Sdh2Emulator.next_wakeup` asks for the next tick.
+
+* Pose controller (``con=0``): ``m`` plans one normalised profile from the *actual* angles to the
+  targets and every axis follows ``start + (goal − start)·s(t)``, so all axes start and arrive
+  together on a straight line in joint space. The ramp time and duration are the smallest for
+  which no axis exceeds its target velocity ``v`` or acceleration ``a`` (:class:`Profile`).
+  ``vp=0`` shapes the ramps as sin² (velocity ∝ sin², peak acceleration π/2 × the mean), ``vp=1``
+  as linear ramps (a trapezoid). ``M=`` and ``GET_DURATION=`` carry that duration.
+* Velocity controllers: ``con=1`` takes each target velocity at once, ``con=2`` ramps the
+  reference velocity towards it at ``a``. A reference that reaches ``p_min``/``p_max`` stops there
+  (state 7, LIMITS_REACHED, while the target velocity pushes outwards).
+* Blocked axis: when a moving axis's actual angle lags its reference by more than
+  ``blocked_margin_deg``, the axis is blocked (state 4/5 by the direction it pushes) and its
+  reference stops there, so the servo keeps pressing as hard as that lag makes it — a finger on a
+  stiff object. In the pose controller the block lasts until the next ``m``/``selgrip``/``grip``,
+  ``con`` or ``power`` change of that axis; in the velocity controllers also until a target
+  velocity points away from the obstacle or the joint catches up to half the margin (the
+  obstacle gave way).
+* Power: an unpowered axis is limp (the world decides where it goes; its reference follows it).
+  ``m``, ``selgrip`` and ``grip`` enable all axes, and a non-zero target velocity named by
+  ``v``/``tvav`` in ``con=1|2`` enables that axis — SDHLibrary never sends ``power=1`` (PART 4
+  item 5). Enabling an axis makes it hold where it is.
+
+State (``state``): 4/5 blocked, else 6 unpowered, else in pose mode 1 while the axis takes part in
+a running move (zero-distance axes read 0), in velocity modes 7 at a limit, 2 while the target or
+reference velocity is non-zero (SDHLibrary's ``WaitAxis`` waits for 2 to clear), else 0. The state
+is updated when the command is processed, so ``STATE`` reads 1 before the ``M=`` reply has even
+left (PART 4 item 6). Device state, motion included, survives host disconnects; only the partial
+input line and unsent replies are dropped.
+
+Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, and the
+:class:`Sdh2Options` field that controls it:
+
+* Identification strings: ``version`` ``0.0.3.3`` (SDHLibrary 0.0.2.10's recommended firmware,
+  §2.1), ``version_date``, ``hand_id``, ``serial_number``, ``soc_version``, ``soc_date``.
+* Number format of replies (§2.3): ``reply_fmt`` (``{:.3f}``); flags and states print as ints.
+  Durations are rounded up to the millisecond, so a host that sleeps T finds the move done.
+* Angle limits: ``min_angle_deg``/``max_angle_deg`` (axis 0: 0…90°, others ±90°, §2.2), the
+  factory range; ``p_min=``/``p_max=`` may narrow it (values outside the factory range, or
+  min > max, are refused) and targets are clipped into the new range. ``p_offset`` is stored and
+  echoed only. Velocity limits ``velocity_limit`` (83, 140, 200, 140, 200, 140, 200 °/s, PY's
+  fake ``VLIM``), acceleration limits ``acceleration_limit`` (5000, 400, 1500, … °/s², CPP's
+  fallback), current limit ``max_current_a`` (1.0 A, the library's range).
+* Refusals (open question 11): anything out of range — targets, velocities (pose mode 0…vlim,
+  velocity modes ±vlim), accelerations (0…alim), currents, flags, ``con``/``vp``/``selgrip``
+  values, ``grip`` arguments, non-finite binary values — answers ``range_error`` (E24
+  RANGE_ERROR) and changes nothing; ``m``/``get_duration`` that would move an axis with zero
+  ``v`` or ``a`` also answer it. ``m``/``selgrip``/``grip`` outside the pose controller answer
+  ``wrong_mode_error`` (E17 CMD_FAILED). Values sent to read-only commands in binary answer
+  NO_PARAMS_EXPECTED; binary codes other than the 11 of §2.6 answer CMD_UNKNOWN. Syntax errors
+  use the codec's codes (E13 unknown, E14 format, E26 axis index, E11/E23 value count/type).
+* Blank line (PART 4 item 4): silence; ``blank_line_error`` True answers E34 NO_COMMAND at once.
+* ``stop`` reply text (open question 8): ``STOP=`` + ``stop_reply`` (empty). ``stop`` freezes the
+  reference of an ``m`` move at once (no deceleration ramp) and, in velocity modes, sets every
+  target and reference velocity to 0; it does not end ``selgrip``/``grip`` moves (§2.4).
+* ``demo``/``user_errors``/``terminal``/``debug`` reply ``KEYWORD=<int>`` like every other
+  command; any integer is stored.
+* After ``con=0``: ``v`` = ``pose_velocity`` (40), ``a`` = ``pose_acceleration`` (100) and, with
+  ``con_resets_targets`` (True, as CPP's ``SetController`` documents), targets 0° (clipped to the
+  limits); after ``con=1|2``: ``v`` = 0, ``a`` kept. Any ``con=`` ends a running move; the
+  references hold where they are. Power-on: controller ``initial_controller`` (0), axes powered
+  if ``initially_powered`` (False), targets 0°, angles wherever the world has the joints.
+* Blocked detection: ``blocked_margin_deg`` (1.0°); ``positive_is_cw`` (True) maps pushing
+  towards positive angles to state 4 (CW), negative to 5 (CCW).
+* Current limits ``ilim_a``/``igrip_a`` (1.0, 0.5, …; what old firmware printed while moving) and
+  ``ihold_a`` (0.1, 0.2, …), ``kv``, ``pid``, ``temperatures_c`` (9 constant values): stored and
+  echoed, no effect on motion.
+* ``selgrip``/``grip`` (§2.4): ``grasps`` holds one open (close 0) and one closed (close 1) pose
+  per grasp id; ``selgrip=<id>`` moves to the open pose at ``grasp_velocity`` (40 °/s, capped at
+  vlim), ``grip=<close>,<velocity>`` to the interpolated pose at that velocity (0 <
+  velocity ≤ ``grip_max_velocity``, 100 °/s). Both use the coordinated profile with the current
+  ``vp`` and ``a``, leave the ``p`` targets alone and reply ``SELGRIP=<T>,<id>`` /
+  ``GRIP=<T>,<close>``. Current-limit juggling is not modelled. ``pos_save=`` and ``ref=`` are
+  checked (0/1, 0/1/2) and echoed at once; no reference move is made.
+* Catching up: a TCP endpoint stops asking for wake-ups while no host is connected; the servo
+  then catches up at the next call in at most ``max_catchup_steps`` (2000) evenly spaced steps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Final, TypeAlias
+
+from sdh2svc.protocol.sdh import (
+    BINARY_COMMANDS,
+    NUM_AXES,
+    AsciiCommand,
+    AxisState,
+    BinaryRequest,
+    BlankLine,
+    HostEvent,
+    HostStreamParser,
+    ProtocolErrorEvent,
+    SdhError,
+    encode_binary_reply,
+    encode_error,
+    encode_reply,
+)
+from sdh2svc.sim.world import HandWorld
+
+__all__ = [
+    "DEFAULT_GRASPS",
+    "POSE",
+    "VELOCITY",
+    "VELOCITY_ACCELERATION",
+    "Grasp",
+    "Profile",
+    "Sdh2Emulator",
+    "Sdh2Options",
+    "Sdh2Stats",
+]
+
+Vec: TypeAlias = tuple[float, ...]
+
+POSE, VELOCITY, VELOCITY_ACCELERATION = 0, 1, 2  # `con` values (§2.4)
+_ALL: Final = tuple(range(NUM_AXES))
+_EPS: Final = 1e-9  # deg: a shorter distance is no motion
+_LIMIT_TOL: Final = 1e-6  # deg: float32 round-off of a value sent exactly at a limit
+_PROPERTIES: Final = ("demo", "user_errors", "terminal", "debug")
+
+
+@dataclass(frozen=True, slots=True)
+class Grasp:
+    """A ``selgrip`` grasp: the pose at close ratio 0 and at close ratio 1 (deg, 7 axes)."""
+
+    open_deg: Vec
+    closed_deg: Vec
+
+    def __post_init__(self) -> None:
+        if len(self.open_deg) != NUM_AXES or len(self.closed_deg) != NUM_AXES:
+            raise ValueError(f"grasp poses need {NUM_AXES} angles")
+
+    def pose(self, close: float) -> Vec:
+        """The pose at close ratio ``close`` (0…1), linear in joint space."""
+        pairs = zip(self.open_deg, self.closed_deg, strict=True)
+        return tuple(o + close * (c - o) for o, c in pairs)
+
+
+def _grasp(axis0: float, open_pd: tuple[float, float], closed_pd: tuple[float, float]) -> Grasp:
+    return Grasp((axis0, *open_pd * 3), (axis0, *closed_pd * 3))
+
+
+# Centrical, parallel, cylindrical, spherical (§2.4). Old firmware printed the grip vector
+# 0, -66.8, 66.8, … for `grip=0.1` after `selgrip=1`, which these parallel poses reproduce.
+DEFAULT_GRASPS: Final = (
+    _grasp(60.0, (-75.0, 75.0), (7.0, -7.0)),
+    _grasp(0.0, (-75.0, 75.0), (7.0, -7.0)),
+    _grasp(0.0, (-60.0, 60.0), (30.0, 30.0)),
+    _grasp(60.0, (-60.0, 60.0), (30.0, 30.0)),
+)
+
+
+def _seven(value: float) -> Vec:
+    return (value,) * NUM_AXES
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Sdh2Options:
+    """Firmware choices where the sources are silent; see the module docstring for each."""
+
+    version: str = "0.0.3.3"
+    version_date: str = "2013-11-28"
+    hand_id: str = "1"
+    serial_number: str = "1"
+    soc_version: str = "0.0.3.3"
+    soc_date: str = "2013-11-28"
+    reply_fmt: str = "{:.3f}"
+    min_angle_deg: Vec = (0.0, -90.0, -90.0, -90.0, -90.0, -90.0, -90.0)
+    max_angle_deg: Vec = (90.0,) * NUM_AXES
+    velocity_limit: Vec = (83.0, 140.0, 200.0, 140.0, 200.0, 140.0, 200.0)
+    acceleration_limit: Vec = (5000.0, 400.0, 1500.0, 400.0, 1500.0, 400.0, 1500.0)
+    max_current_a: float = 1.0
+    ilim_a: Vec = (1.0, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5)
+    igrip_a: Vec = (1.0, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5)
+    ihold_a: Vec = (0.1, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2)
+    kv: Vec = (1.0,) * NUM_AXES
+    pid: tuple[float, float, float] = (0.5, 0.0, 0.0)
+    temperatures_c: tuple[float, ...] = (36.5, 37.0, 36.0, 37.0, 36.0, 37.0, 36.0, 45.0, 40.0)
+    pose_velocity: float = 40.0
+    pose_acceleration: float = 100.0
+    con_resets_targets: bool = True
+    initial_controller: int = POSE
+    initially_powered: bool = False
+    tick_s: float = 0.005
+    blocked_margin_deg: float = 1.0
+    positive_is_cw: bool = True
+    stop_reply: str = ""
+    blank_line_error: bool = False
+    range_error: SdhError = SdhError.RANGE_ERROR
+    wrong_mode_error: SdhError = SdhError.CMD_FAILED
+    grasps: tuple[Grasp, ...] = DEFAULT_GRASPS
+    grasp_velocity: float = 40.0
+    grip_max_velocity: float = 100.0
+    max_catchup_steps: int = 2000
+
+    def __post_init__(self) -> None:
+        for name in ("min_angle_deg", "max_angle_deg", "velocity_limit", "acceleration_limit",
+                     "ilim_a", "igrip_a", "ihold_a", "kv"):  # fmt: skip
+            if len(getattr(self, name)) != NUM_AXES:
+                raise ValueError(f"{name} needs {NUM_AXES} values")
+        if len(self.temperatures_c) != 9:
+            raise ValueError("temperatures_c needs 9 values (7 motors, FPGA, PCB)")
+        if any(lo > hi for lo, hi in zip(self.min_angle_deg, self.max_angle_deg, strict=True)):
+            raise ValueError("min_angle_deg must not exceed max_angle_deg")
+        if min(self.velocity_limit) <= 0.0 or min(self.acceleration_limit) <= 0.0:
+            raise ValueError("velocity and acceleration limits must be > 0")
+        if not self.tick_s > 0.0:
+            raise ValueError(f"tick_s must be > 0, got {self.tick_s!r}")
+        if not self.blocked_margin_deg > 0.0:
+            raise ValueError(f"blocked_margin_deg must be > 0, got {self.blocked_margin_deg!r}")
+        if self.initial_controller not in (POSE, VELOCITY, VELOCITY_ACCELERATION):
+            raise ValueError(f"initial_controller must be 0, 1 or 2, got {self.initial_controller}")
+        if not self.grasps:
+            raise ValueError("at least one grasp is needed")
+        if self.max_catchup_steps < 1:
+            raise ValueError("max_catchup_steps must be >= 1")
+        self.reply_fmt.format(1.0)  # fails early on a bad format
+
+
+@dataclass(slots=True)
+class Sdh2Stats:
+    """Counters since construction."""
+
+    commands: int = 0  # ASCII lines and binary frames that parsed
+    binary: int = 0  # of which binary
+    errors: int = 0  # replies that report an error (E<n> or a non-zero status)
+    blank_lines: int = 0
+    replies: int = 0  # packets handed out
+    bytes: int = 0  # bytes of those packets
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    """Normalised coordinated motion: a fraction going 0 → 1 over ``duration`` seconds.
+
+    The unit velocity shape rises over ``ramp`` s (linear or sin²), stays at 1, and falls over the
+    last ``ramp`` s; an axis covering ``d`` degrees moves at ``d / (duration − ramp)`` in between.
+    """
+
+    duration: float
+    ramp: float
+    sin2: bool
+
+    @classmethod
+    def plan(cls, distances: Sequence[float], velocities: Sequence[float],
+             accelerations: Sequence[float], *, sin2: bool) -> Profile:  # fmt: skip
+        """The fastest profile that keeps every axis within its velocity and acceleration.
+
+        With cruise time ``c = duration − ramp``, axis i needs ``dᵢ/c ≤ vᵢ`` and a peak
+        acceleration ``k·dᵢ/(c·ramp) ≤ aᵢ`` (k = 1 linear, π/2 sin²); ``duration = c + K/c`` with
+        ``K = k·max(dᵢ/aᵢ)`` is smallest at ``c = max(√K, max dᵢ/vᵢ)``. Raises ValueError if an
+        axis must move with zero velocity or acceleration.
+        """
+        moving = [
+            (abs(d), v, a)
+            for d, v, a in zip(distances, velocities, accelerations, strict=True)
+            if abs(d) > _EPS
+        ]
+        if not moving:
+            return cls(0.0, 0.0, sin2)
+        if any(v <= 0.0 or a <= 0.0 for _, v, a in moving):
+            raise ValueError("an axis must move with zero velocity or acceleration")
+        peak = math.pi / 2 if sin2 else 1.0
+        k = peak * max(d / a for d, _, a in moving)
+        cruise = max(math.sqrt(k), max(d / v for d, v, _ in moving))
+        ramp = k / cruise
+        return cls(cruise + ramp, ramp, sin2)
+
+    def fraction(self, t: float) -> float:
+        """Share of the distance covered ``t`` s after the start."""
+        total, ramp = self.duration, self.ramp
+        if t >= total:
+            return 1.0
+        if t <= 0.0:
+            return 0.0
+        cruise = total - ramp
+        if t < ramp:
+            area = self._ramp_area(t)
+        elif t <= cruise:
+            area = ramp / 2 + (t - ramp)
+        else:
+            area = cruise - self._ramp_area(total - t)
+        return area / cruise
+
+    def rate(self, t: float) -> float:
+        """d fraction / dt at ``t`` (1/s)."""
+        total, ramp = self.duration, self.ramp
+        if t <= 0.0 or t >= total:
+            return 0.0
+        if t < ramp:
+            speed = self._ramp_speed(t)
+        elif t <= total - ramp:
+            speed = 1.0
+        else:
+            speed = self._ramp_speed(total - t)
+        return speed / (total - ramp)
+
+    def _ramp_area(self, t: float) -> float:
+        r = self.ramp
+        if self.sin2:
+            return t / 2 - r / (2 * math.pi) * math.sin(math.pi * t / r)
+        return t * t / (2 * r)
+
+    def _ramp_speed(self, t: float) -> float:
+        if self.sin2:
+            return math.sin(math.pi * t / (2 * self.ramp)) ** 2
+        return t / self.ramp
+
+
+@dataclass(frozen=True, slots=True)
+class _Move:
+    start: Vec
+    goal: Vec
+    profile: Profile
+    t0: float
+    stoppable: bool  # `stop` ends `m` moves, not selgrip/grip (§2.4)
+
+    @property
+    def end(self) -> float:
+        return self.t0 + self.profile.duration
+
+
+class _Reject(Exception):
+    """The firmware refuses a command with this error code (E<n> or binary status)."""
+
+    def __init__(self, code: SdhError) -> None:
+        super().__init__(code.name)
+        self.code = code
+
+
+Writer: TypeAlias = Callable[[Vec, Sequence[int]], None]
+
+
+@dataclass(frozen=True, slots=True)
+class _Vector:
+    """A 7-vector command: what it reads, and for settable ones the vector a per-axis set
+    completes and the writer (which validates everything before changing anything)."""
+
+    read: Callable[[], Vec]
+    base: Callable[[], Vec] | None = None
+    write: Writer | None = None
+
+
+@dataclass(slots=True)
+class _Axes:
+    """Per-axis controller state (lists of 7)."""
+
+    target: list[float]
+    velocity: list[float]  # target velocity `v`
+    accel: list[float]
+    ref: list[float]
+    rvel: list[float]
+    actual: list[float]
+    actual_vel: list[float]
+    powered: list[bool]
+    blocked: list[int]  # 0, or the direction (+1/-1) the axis is pushing
+    in_move: list[bool] = field(default_factory=lambda: [False] * NUM_AXES)
+
+
+class Sdh2Emulator:
+    """An SDH2 joint controller moving ``world``'s joints; implements the endpoint's ``Device``."""
+
+    def __init__(self, world: HandWorld, *, options: Sdh2Options | None = None) -> None:
+        self.options = o = options or Sdh2Options()
+        self.stats = Sdh2Stats()
+        self._world = world
+        self._parser = HostStreamParser()
+        self._outbox: deque[bytes] = deque()
+        self._t: float | None = None  # time the servo model has advanced to
+        self._next_tick = -math.inf
+        self._move: _Move | None = None
+        self._con = o.initial_controller
+        self._vp = 0
+        self._grasp = 0
+        self._pmin = list(o.min_angle_deg)
+        self._pmax = list(o.max_angle_deg)
+        self._poffset = [0.0] * NUM_AXES
+        self._currents = {"ilim": list(o.ilim_a), "igrip": list(o.igrip_a),
+                          "ihold": list(o.ihold_a)}  # fmt: skip
+        self._kv = list(o.kv)
+        self._pid = [o.pid] * NUM_AXES
+        self._pos_save = [0] * NUM_AXES
+        self._ref_mode = [0] * NUM_AXES
+        self._props = dict.fromkeys(_PROPERTIES, 0)
+        zeros = [0.0] * NUM_AXES
+        self._ax = _Axes(
+            target=self._clip([0.0] * NUM_AXES),
+            velocity=list(_seven(o.pose_velocity)) if self._con == POSE else list(zeros),
+            accel=list(_seven(o.pose_acceleration)),
+            ref=list(zeros), rvel=list(zeros), actual=list(zeros), actual_vel=list(zeros),
+            powered=[False] * NUM_AXES, blocked=[0] * NUM_AXES,
+        )  # fmt: skip
+        self._vectors = self._vector_table()
+
+    # -- inspection ------------------------------------------------------------------------------
+
+    @property
+    def controller(self) -> int:
+        """Current controller (0 pose, 1 velocity, 2 velocity with acceleration ramp)."""
+        return self._con
+
+    @property
+    def actual_deg(self) -> Vec:
+        """Joint angles as the world last reported them."""
+        return tuple(self._ax.actual)
+
+    @property
+    def reference_deg(self) -> Vec:
+        """The servo references the world was last asked to follow."""
+        return tuple(self._ax.ref)
+
+    @property
+    def target_deg(self) -> Vec:
+        return tuple(self._ax.target)
+
+    @property
+    def powered(self) -> tuple[bool, ...]:
+        return tuple(self._ax.powered)
+
+    @property
+    def axis_states(self) -> tuple[int, ...]:
+        """What ``state`` would report now (without advancing)."""
+        return tuple(self._state(i) for i in _ALL)
+
+    @property
+    def moving(self) -> bool:
+        """Whether the servo model needs ticks (a move runs or a velocity is non-zero)."""
+        return self._active()
+
+    # -- Device protocol -------------------------------------------------------------------------
+
+    def connected(self, now: float) -> None:
+        self._advance(now)
+        self._reset_link()
+
+    def disconnected(self, now: float) -> None:
+        self._advance(now)
+        self._reset_link()
+
+    def receive(self, data: bytes, now: float) -> None:
+        self._advance(now)
+        for event in self._parser.feed(data):
+            reply = self._handle(event)
+            if reply:
+                self._outbox.append(reply)
+
+    def next_packet(self, now: float) -> bytes | None:
+        self._advance(now)
+        if not self._outbox:
+            return None
+        packet = self._outbox.popleft()
+        self.stats.replies += 1
+        self.stats.bytes += len(packet)
+        return packet
+
+    def next_wakeup(self, now: float) -> float | None:
+        self._advance(now)
+        return now if self._outbox else self._due()
+
+    # -- event dispatch --------------------------------------------------------------------------
+
+    def _handle(self, event: HostEvent) -> bytes:
+        match event:
+            case AsciiCommand():
+                self.stats.commands += 1
+                return self._ascii(event)
+            case BinaryRequest():
+                self.stats.commands += 1
+                self.stats.binary += 1
+                return self._binary(event)
+            case BlankLine():
+                self.stats.blank_lines += 1
+                return encode_error(SdhError.NO_COMMAND) if self.options.blank_line_error else b""
+            case ProtocolErrorEvent():
+                self.stats.errors += 1
+                return event.suggested_reply()  # garbage gets none (PART 4 item 11)
+
+    def _ascii(self, cmd: AsciiCommand) -> bytes:
+        try:
+            if cmd.keyword in self._vectors:
+                return self._ascii_vector(cmd)
+            return self._ascii_other(cmd)
+        except _Reject as exc:
+            self.stats.errors += 1
+            return encode_error(exc.code)
+
+    def _ascii_vector(self, cmd: AsciiCommand) -> bytes:
+        vec = self._vectors[cmd.keyword]
+        if cmd.values is not None:
+            if vec.write is None or vec.base is None:  # the codec already refuses these
+                raise _Reject(SdhError.NO_PARAMS_EXPECTED)
+            if cmd.axis is None:
+                vec.write(cmd.values, _ALL)
+            else:
+                values = list(vec.base())
+                values[cmd.axis] = cmd.values[0]
+                vec.write(tuple(values), (cmd.axis,))
+        values = vec.read()
+        if cmd.axis is None:
+            return self._reply(cmd.keyword, values)
+        return self._reply(cmd.keyword, values[cmd.axis], axis=cmd.axis)
+
+    def _ascii_other(self, cmd: AsciiCommand) -> bytes:
+        kw, values, o = cmd.keyword, cmd.values, self.options
+        text = {"ver": o.version, "ver_date": o.version_date, "id": o.hand_id,
+                "sn": o.serial_number, "soc": o.soc_version, "soc_date": o.soc_date}  # fmt: skip
+        if kw in text:
+            return encode_reply(kw, text[kw])
+        match kw:
+            case "m":
+                return self._reply(kw, self._round_up(self._start_m()))
+            case "get_duration":
+                return self._reply(kw, self._round_up(self._plan(self._ax.target).duration))
+            case "stop":
+                self._stop()
+                return encode_reply(kw, o.stop_reply)
+            case "temp":
+                return self._reply(kw, o.temperatures_c)
+            case "numaxis":
+                return self._reply(kw, NUM_AXES)
+            case "vp":
+                if values is not None:
+                    self._set_vp(int(values[0]))
+                return self._reply(kw, self._vp)
+            case "con":
+                if values is not None:
+                    self._set_controller(int(values[0]))
+                return self._reply(kw, self._con)
+            case "selgrip":
+                assert values is not None  # the codec refuses a bare selgrip
+                gid = int(values[0])
+                return self._reply(kw, (self._round_up(self._selgrip(gid)), gid))
+            case "grip":
+                assert values is not None
+                return self._reply(kw, (self._round_up(self._grip(*values)), values[0]))
+            case "kv" | "pid":
+                assert cmd.axis is not None  # axis-only commands (§2.4)
+                return self._reply(kw, self._gains(kw, cmd.axis, values), axis=cmd.axis)
+            case _:  # demo, user_errors, terminal, debug
+                if values is not None:
+                    self._props[kw] = int(values[0])
+                return self._reply(kw, self._props[kw])
+
+    def _binary(self, req: BinaryRequest) -> bytes:
+        kw = req.cmd.keyword
+        try:
+            if kw not in BINARY_COMMANDS:
+                raise _Reject(SdhError.CMD_UNKNOWN)
+            vec = self._vectors[kw]
+            if req.values is not None:
+                if vec.write is None:
+                    raise _Reject(SdhError.NO_PARAMS_EXPECTED)
+                if not all(math.isfinite(v) for v in req.values):
+                    raise _Reject(self.options.range_error)
+                vec.write(req.values, _ALL)
+            return encode_binary_reply(req.cmd, SdhError.SUCCESS, vec.read(),
+                                       with_crc=req.with_crc)  # fmt: skip
+        except _Reject as exc:
+            self.stats.errors += 1
+            return encode_binary_reply(req.cmd, exc.code, with_crc=req.with_crc)
+
+    def _reply(self, kw: str, values: float | Sequence[float], *, axis: int | None = None) -> bytes:
+        return encode_reply(kw, values, axis=axis, fmt=self.options.reply_fmt)
+
+    @staticmethod
+    def _round_up(duration: float) -> float:
+        # Hosts may sleep T instead of polling (PART 4 item 6): never announce less than T.
+        return math.ceil(duration * 1000.0 - 1e-6) / 1000.0
+
+    def _reset_link(self) -> None:
+        self._parser.reset()
+        self._outbox.clear()
+
+    # -- vector commands -------------------------------------------------------------------------
+
+    def _vector_table(self) -> dict[str, _Vector]:
+        ax, o = self._ax, self.options
+
+        def get(values: list[float]) -> Callable[[], Vec]:
+            return lambda: tuple(values)
+
+        def current(name: str) -> _Vector:
+            values = self._currents[name]
+            return _Vector(get(values), get(values), self._current_writer(values))
+
+        def power() -> Vec:
+            return tuple(int(p) for p in ax.powered)
+
+        return {
+            "p": _Vector(get(ax.target), get(ax.target), self._set_targets),
+            "tpap": _Vector(get(ax.actual), get(ax.target), self._set_targets),
+            "pos": _Vector(get(ax.actual)),
+            "v": _Vector(get(ax.velocity), get(ax.velocity), self._set_velocities),
+            "tvav": _Vector(get(ax.actual_vel), get(ax.velocity), self._set_velocities),
+            "vel": _Vector(get(ax.actual_vel)),
+            "rvel": _Vector(get(ax.rvel)),
+            "a": _Vector(get(ax.accel), get(ax.accel), self._set_accelerations),
+            "state": _Vector(lambda: tuple(self._state(i) for i in _ALL)),
+            "power": _Vector(power, power, self._set_power),
+            "vlim": _Vector(lambda: o.velocity_limit),
+            "alim": _Vector(lambda: o.acceleration_limit),
+            "p_min": _Vector(get(self._pmin), get(self._pmin), self._limit_writer(upper=False)),
+            "p_max": _Vector(get(self._pmax), get(self._pmax), self._limit_writer(upper=True)),
+            "p_offset": _Vector(get(self._poffset), get(self._poffset), self._set_offsets),
+            "ilim": current("ilim"),
+            "igrip": current("igrip"),
+            "ihold": current("ihold"),
+            "pos_save": self._flag_vector(self._pos_save, (0, 1)),
+            "ref": self._flag_vector(self._ref_mode, (0, 1, 2)),
+        }
+
+    def _require(self, ok: bool) -> None:
+        if not ok:
+            raise _Reject(self.options.range_error)
+
+    def _set_targets(self, values: Vec, axes: Sequence[int]) -> None:
+        self._require(all(self._pmin[i] - _LIMIT_TOL <= v <= self._pmax[i] + _LIMIT_TOL
+                          for i, v in enumerate(values)))  # fmt: skip
+        self._ax.target[:] = self._clip(values)
+
+    def _set_velocities(self, values: Vec, axes: Sequence[int]) -> None:
+        vlim, ax = self.options.velocity_limit, self._ax
+        low = 0.0 if self._con == POSE else -1.0  # pose: magnitudes (CPP AdjustLimits)
+        self._require(all(low * vlim[i] <= v <= vlim[i] for i, v in enumerate(values)))
+        ax.velocity[:] = values
+        if self._con == POSE:
+            return
+        for i in axes:
+            if values[i] != 0.0:
+                self._enable(i)  # implicit enable (PART 4 item 5)
+            if ax.blocked[i] * values[i] < 0.0:
+                ax.blocked[i] = 0  # pulling away from the obstacle
+        if self._con == VELOCITY:  # no ramp: the reference velocity jumps to the target
+            for i in _ALL:
+                free = ax.powered[i] and not ax.blocked[i] and not self._pinned(i)
+                ax.rvel[i] = values[i] if free else 0.0
+
+    def _set_accelerations(self, values: Vec, axes: Sequence[int]) -> None:
+        alim = self.options.acceleration_limit
+        self._require(all(0.0 <= v <= alim[i] for i, v in enumerate(values)))
+        self._ax.accel[:] = values
+
+    def _set_power(self, values: Vec, axes: Sequence[int]) -> None:
+        self._require(all(v in (0.0, 1.0) for v in values))
+        ax = self._ax
+        for i, flag in enumerate(values):
+            if flag and not ax.powered[i]:
+                self._enable(i)
+            elif not flag and ax.powered[i]:
+                ax.powered[i], ax.blocked[i], ax.rvel[i] = False, 0, 0.0
+                ax.in_move[i] = False
+                ax.ref[i] = ax.actual[i]
+        if self._move is not None and not any(ax.in_move):
+            self._move = None
+
+    def _limit_writer(self, *, upper: bool) -> Writer:
+        def write(values: Vec, axes: Sequence[int]) -> None:
+            o = self.options
+            lo = self._pmin if upper else list(values)
+            hi = list(values) if upper else self._pmax
+            self._require(all(
+                o.min_angle_deg[i] <= lo[i] <= hi[i] <= o.max_angle_deg[i] for i in _ALL
+            ))  # fmt: skip
+            (self._pmax if upper else self._pmin)[:] = values
+            self._ax.target[:] = self._clip(self._ax.target)
+
+        return write
+
+    def _set_offsets(self, values: Vec, axes: Sequence[int]) -> None:
+        self._poffset[:] = values
+
+    def _current_writer(self, store: list[float]) -> Writer:
+        def write(values: Vec, axes: Sequence[int]) -> None:
+            self._require(all(0.0 <= v <= self.options.max_current_a for v in values))
+            store[:] = values
+
+        return write
+
+    def _flag_vector(self, store: list[int], allowed: tuple[int, ...]) -> _Vector:
+        def write(values: Vec, axes: Sequence[int]) -> None:
+            self._require(all(v in allowed for v in values))
+            store[:] = [int(v) for v in values]
+
+        def read() -> Vec:
+            return tuple(store)
+
+        return _Vector(read, read, write)
+
+    def _clip(self, values: Sequence[float]) -> list[float]:
+        bounds = zip(values, self._pmin, self._pmax, strict=True)
+        return [min(max(v, lo), hi) for v, lo, hi in bounds]
+
+    # -- other commands --------------------------------------------------------------------------
+
+    def _set_vp(self, profile: int) -> None:
+        self._require(profile in (0, 1))
+        self._vp = profile
+
+    def _set_controller(self, con: int) -> None:
+        self._require(con in (POSE, VELOCITY, VELOCITY_ACCELERATION))
+        ax, o = self._ax, self.options
+        self._move = None
+        self._con = con
+        ax.in_move[:] = [False] * NUM_AXES
+        ax.rvel[:] = [0.0] * NUM_AXES
+        ax.blocked[:] = [0] * NUM_AXES
+        if con == POSE:
+            ax.velocity[:] = _seven(o.pose_velocity)
+            ax.accel[:] = _seven(o.pose_acceleration)
+            if o.con_resets_targets:
+                ax.target[:] = self._clip([0.0] * NUM_AXES)
+        else:
+            ax.velocity[:] = [0.0] * NUM_AXES
+
+    def _stop(self) -> None:
+        ax = self._ax
+        if self._move is not None and self._move.stoppable:
+            self._move = None
+            ax.in_move[:] = [False] * NUM_AXES
+            ax.rvel[:] = [0.0] * NUM_AXES
+        if self._con != POSE:
+            ax.velocity[:] = [0.0] * NUM_AXES
+            ax.rvel[:] = [0.0] * NUM_AXES
+
+    def _gains(self, kw: str, axis: int, values: Vec | None) -> float | Vec:
+        if values is not None:
+            self._require(all(v >= 0.0 for v in values))
+            if kw == "kv":
+                self._kv[axis] = values[0]
+            else:
+                p, i, d = values
+                self._pid[axis] = (p, i, d)
+        return self._kv[axis] if kw == "kv" else self._pid[axis]
+
+    def _selgrip(self, gid: int) -> float:
+        self._require(0 <= gid < len(self.options.grasps))
+        self._grasp = gid
+        return self._grasp_move(0.0, self.options.grasp_velocity)
+
+    def _grip(self, close: float, velocity: float) -> float:
+        self._require(0.0 <= close <= 1.0 and 0.0 < velocity <= self.options.grip_max_velocity)
+        return self._grasp_move(close, velocity)
+
+    def _grasp_move(self, close: float, velocity: float) -> float:
+        goal = self._clip(self.options.grasps[self._grasp].pose(close))
+        speeds = [min(velocity, lim) for lim in self.options.velocity_limit]
+        return self._start_move(goal, speeds, stoppable=False)
+
+    # -- motion ----------------------------------------------------------------------------------
+
+    def _plan(self, goal: Sequence[float], speeds: Sequence[float] | None = None) -> Profile:
+        ax = self._ax
+        distances = [g - a for g, a in zip(goal, ax.actual, strict=True)]
+        speeds = ax.velocity if speeds is None else speeds
+        try:
+            return Profile.plan(distances, speeds, ax.accel, sin2=self._vp == 0)
+        except ValueError:
+            raise _Reject(self.options.range_error) from None
+
+    def _start_m(self) -> float:
+        return self._start_move(self._ax.target, self._ax.velocity, stoppable=True)
+
+    def _start_move(self, goal: Sequence[float], speeds: Sequence[float], *,
+                    stoppable: bool) -> float:  # fmt: skip
+        """Start a coordinated move from the actual angles; returns its duration."""
+        if self._con != POSE:
+            raise _Reject(self.options.wrong_mode_error)
+        profile = self._plan(goal, speeds)
+        assert self._t is not None
+        ax = self._ax
+        start = tuple(ax.actual)
+        ax.powered[:] = [True] * NUM_AXES  # "Enabling all axis" (§2.4, PART 4 item 5)
+        ax.blocked[:] = [0] * NUM_AXES
+        ax.ref[:] = start
+        ax.rvel[:] = [0.0] * NUM_AXES
+        ax.in_move[:] = [abs(g - s) > _EPS for g, s in zip(goal, start, strict=True)]
+        self._move = None
+        if profile.duration > 0.0:
+            self._move = _Move(start, tuple(goal), profile, self._t, stoppable)
+        return profile.duration
+
+    def _enable(self, i: int) -> None:
+        ax = self._ax
+        if not ax.powered[i]:
+            ax.powered[i], ax.blocked[i], ax.rvel[i] = True, 0, 0.0
+            ax.ref[i] = ax.actual[i]  # hold where it is
+
+    def _pinned(self, i: int) -> bool:
+        """In a velocity controller, the reference sits at a limit the target pushes past."""
+        ax = self._ax
+        v = ax.velocity[i]
+        return (ax.ref[i] >= self._pmax[i] and v > 0.0) or (ax.ref[i] <= self._pmin[i] and v < 0.0)
+
+    def _velocity_active(self, i: int) -> bool:
+        ax = self._ax
+        return (ax.powered[i] and not ax.blocked[i] and not self._pinned(i)
+                and (ax.velocity[i] != 0.0 or ax.rvel[i] != 0.0))  # fmt: skip
+
+    def _active(self) -> bool:
+        if self._move is not None:
+            return True
+        return self._con != POSE and any(self._velocity_active(i) for i in _ALL)
+
+    def _state(self, i: int) -> int:
+        ax = self._ax
+        if ax.blocked[i]:
+            cw = (ax.blocked[i] > 0) == self.options.positive_is_cw
+            return AxisState.CW_BLOCKED if cw else AxisState.CCW_BLOCKED
+        if not ax.powered[i]:
+            return AxisState.DISABLED
+        if self._con == POSE:
+            return AxisState.POSITIONING if self._move and ax.in_move[i] else AxisState.IDLE
+        if self._pinned(i):
+            return AxisState.LIMITS_REACHED
+        moving = ax.velocity[i] != 0.0 or ax.rvel[i] != 0.0
+        return AxisState.SPEED_MODE if moving else AxisState.IDLE
+
+    def _due(self) -> float | None:
+        """When the servo model must next step on its own (None: only at the next command)."""
+        if not self._active():
+            return None
+        assert self._t is not None
+        if self._next_tick <= self._t:  # motion (re)started: the tick grid starts now
+            self._next_tick = self._t + self.options.tick_s
+        due = self._next_tick
+        return due if self._move is None else min(due, self._move.end)
+
+    def _advance(self, now: float) -> None:
+        """Bring the servo model and the world to ``now``: every tick due, then ``now`` itself."""
+        if self._t is None:
+            self._power_on(now)
+            return
+        if now <= self._t:
+            return
+        stride = max(self.options.tick_s, (now - self._t) / self.options.max_catchup_steps)
+        while (due := self._due()) is not None and due <= now:
+            self._step(due)
+            while self._next_tick <= due:
+                self._next_tick += stride
+        if now > self._t:
+            self._step(now)
+
+    def _power_on(self, now: float) -> None:
+        ax = self._ax
+        # Unpowered joints stay where they are: this only asks the world where that is.
+        actual = self._world.move_joints(now, tuple(ax.ref), (False,) * NUM_AXES)
+        ax.actual[:] = [float(a) for a in actual]
+        ax.ref[:] = ax.actual
+        ax.powered[:] = [self.options.initially_powered] * NUM_AXES
+        self._t = now
+
+    def _step(self, t: float) -> None:
+        assert self._t is not None
+        dt = t - self._t
+        if self._move is not None:
+            self._follow(t)
+        elif self._con != POSE:
+            self._integrate(dt)
+        actual = self._world.move_joints(t, tuple(self._ax.ref), tuple(self._ax.powered))
+        self._observe([float(a) for a in actual], dt)
+        if self._move is not None and t >= self._move.end:
+            self._move = None
+            self._ax.in_move[:] = [False] * NUM_AXES
+            self._ax.rvel[:] = [0.0] * NUM_AXES
+        self._t = t
+
+    def _follow(self, t: float) -> None:
+        """Pose controller: references along the coordinated profile."""
+        move, ax = self._move, self._ax
+        assert move is not None
+        tau = t - move.t0
+        done = tau >= move.profile.duration
+        frac, rate = move.profile.fraction(tau), move.profile.rate(tau)
+        for i in _ALL:
+            if ax.in_move[i] and not ax.blocked[i]:
+                span = move.goal[i] - move.start[i]
+                ax.ref[i] = move.goal[i] if done else move.start[i] + span * frac
+                ax.rvel[i] = span * rate
+
+    def _integrate(self, dt: float) -> None:
+        """Velocity controllers: advance each reference by its (ramped) velocity over ``dt``."""
+        ax = self._ax
+        for i in _ALL:
+            if not ax.powered[i] or ax.blocked[i]:
+                ax.rvel[i] = 0.0
+                continue
+            r0, goal = ax.rvel[i], ax.velocity[i]
+            if self._con == VELOCITY:
+                r1, dist = goal, goal * dt
+            else:
+                r1, dist = _ramp(r0, goal, ax.accel[i], dt)
+            new = ax.ref[i] + dist
+            if dist > 0.0 and new >= self._pmax[i]:
+                new, r1 = max(self._pmax[i], ax.ref[i]), 0.0
+            elif dist < 0.0 and new <= self._pmin[i]:
+                new, r1 = min(self._pmin[i], ax.ref[i]), 0.0
+            ax.ref[i], ax.rvel[i] = new, r1
+
+    def _observe(self, actual: list[float], dt: float) -> None:
+        """Take the world's angles; detect blocked axes and release velocity-mode blocks."""
+        ax, margin = self._ax, self.options.blocked_margin_deg
+        for i in _ALL:
+            if dt > 0.0:
+                ax.actual_vel[i] = (actual[i] - ax.actual[i]) / dt
+            ax.actual[i] = actual[i]
+            if not ax.powered[i]:
+                ax.ref[i], ax.rvel[i] = actual[i], 0.0  # limp: the reference follows the joint
+                continue
+            lag = ax.ref[i] - actual[i]
+            if ax.blocked[i]:
+                if self._con != POSE and abs(lag) <= margin / 2:
+                    ax.blocked[i] = 0  # the obstacle gave way
+            elif self._axis_moving(i) and abs(lag) > margin:
+                ax.blocked[i] = 1 if lag > 0.0 else -1
+                ax.rvel[i] = 0.0
+
+    def _axis_moving(self, i: int) -> bool:
+        if self._con == POSE:
+            return self._move is not None and self._ax.in_move[i]
+        return self._ax.rvel[i] != 0.0 or self._ax.velocity[i] != 0.0
+
+
+def _ramp(r0: float, goal: float, accel: float, dt: float) -> tuple[float, float]:
+    """Reference velocity after ``dt`` ramping from ``r0`` towards ``goal`` at ``accel``, and the
+    distance covered meanwhile (exact for the piecewise-linear velocity)."""
+    if accel <= 0.0 or r0 == goal:
+        return r0, r0 * dt
+    reach = abs(goal - r0) / accel
+    if dt <= reach:
+        r1 = r0 + math.copysign(accel * dt, goal - r0)
+        return r1, (r0 + r1) / 2 * dt
+    return goal, (r0 + goal) / 2 * reach + goal * (dt - reach)

@@ -1,0 +1,132 @@
+"""The simulated hand as a lab would plug it in: both controllers served on ptys and TCP ports.
+
+One :class:`~sdh2svc.sim.hand.PhysicsWorld` stands behind a DSACON32m emulator and an SDH2
+joint-controller emulator; each emulator is served on a pty and on a TCP port (or a Unix socket in
+fast mode). A device has one host at a time, so when it is served on several endpoints the one
+whose host spoke last owns its replies (:class:`SharedDevice`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from sdh2svc.config import Settings
+from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
+from sdh2svc.sim.endpoint import Device, Endpoint, PtyEndpoint, TcpEndpoint, UnixEndpoint
+from sdh2svc.sim.faults import FaultConfig
+from sdh2svc.sim.hand import ObjectSpecT, PhysicsWorld
+from sdh2svc.sim.sdh2 import Sdh2Emulator
+
+
+class SharedDevice:
+    """One device behind several endpoints: :meth:`port` gives each endpoint its own view."""
+
+    def __init__(self, device: Device) -> None:
+        self.device = device
+        self.owner: _Port | None = None
+
+    def port(self) -> _Port:
+        return _Port(self)
+
+
+class _Port:
+    """An endpoint's view of a :class:`SharedDevice` (implements Device)."""
+
+    def __init__(self, shared: SharedDevice) -> None:
+        self.shared = shared
+
+    def _claim(self, now: float) -> None:
+        sh = self.shared
+        if sh.owner is not self:
+            if sh.owner is not None:
+                sh.device.disconnected(now)
+            sh.owner = self
+            sh.device.connected(now)
+
+    def connected(self, now: float) -> None:
+        if self.shared.owner is None:
+            self._claim(now)
+
+    def disconnected(self, now: float) -> None:
+        if self.shared.owner is self:
+            self.shared.device.disconnected(now)
+            self.shared.owner = None
+
+    def receive(self, data: bytes, now: float) -> None:
+        self._claim(now)
+        self.shared.device.receive(data, now)
+
+    def next_packet(self, now: float) -> bytes | None:
+        return self.shared.device.next_packet(now) if self.shared.owner is self else None
+
+    def next_wakeup(self, now: float) -> float | None:
+        return self.shared.device.next_wakeup(now) if self.shared.owner is self else None
+
+
+@dataclass
+class SimulatedHand:
+    """The running simulated hand: its world, both emulators and their endpoints."""
+
+    world: PhysicsWorld
+    dsa: DsaconEmulator
+    sdh: Sdh2Emulator
+    endpoints: dict[str, list[Endpoint]] = field(default_factory=dict)
+
+    def urls(self, device: str) -> list[str]:
+        return [ep.url for ep in self.endpoints.get(device, [])]
+
+    async def stop(self) -> None:
+        for eps in self.endpoints.values():
+            for ep in eps:
+                with contextlib.suppress(Exception):
+                    await ep.stop()
+
+
+async def start_simulated_hand(
+    settings: Settings,
+    *,
+    obj: ObjectSpecT | None = None,
+    pty: bool | None = None,
+    tcp: bool = True,
+    unix_dir: Path | None = None,
+    dsa_port: int | None = None,
+    sdh_port: int | None = None,
+) -> SimulatedHand:
+    """Build the world and both emulators and start their endpoints.
+
+    ``unix_dir`` serves each device on a Unix socket in that folder instead of TCP and ptys (fast
+    mode). Ports default to the configuration's ``sim.links``; 0 picks free ones.
+    """
+    links = settings.sim.links
+    world = PhysicsWorld(settings, settings.sim, obj)
+    masks = [layout.valid() for layout in (settings.tactile.proximal, settings.tactile.distal) * 3]
+    dsa = DsaconEmulator(world, options=DsaconOptions(boot_s=links.dsa_boot_s), static_masks=masks)
+    sdh = Sdh2Emulator(world)
+    hand = SimulatedHand(world, dsa, sdh)
+    faults = FaultConfig(bit_error_rate=links.bit_error_rate, seed=settings.sim.seed)
+    ports = {
+        "dsa": links.dsa_tcp_port if dsa_port is None else dsa_port,
+        "sdh": links.sdh_tcp_port if sdh_port is None else sdh_port,
+    }
+    try:
+        for name, device in (("dsa", dsa), ("sdh", sdh)):
+            shared = SharedDevice(device)
+            eps: list[Endpoint] = []
+            if unix_dir is not None:
+                eps.append(UnixEndpoint(shared.port(), str(unix_dir / f"{name}.sock"),
+                                        baud=links.baud, faults=faults))  # fmt: skip
+            else:
+                if pty if pty is not None else links.pty:
+                    eps.append(PtyEndpoint(shared.port(), baud=links.baud, faults=faults))
+                if tcp:
+                    eps.append(TcpEndpoint(shared.port(), host=links.host, port=ports[name],
+                                           baud=links.baud, faults=faults))  # fmt: skip
+            hand.endpoints[name] = eps
+            for ep in eps:
+                await ep.start()
+    except BaseException:
+        await hand.stop()
+        raise
+    return hand
