@@ -9,7 +9,8 @@ unmodified: they only ever use ``loop.time()``, ``asyncio.sleep`` and timeouts.
 I/O still goes through the kernel. The clock may only jump when nothing is in flight, so fast
 mode needs transports that deliver synchronously: Unix-domain sockets (``unix://`` URLs) do —
 a write is readable by the peer before ``send`` returns. (A pty's line discipline delivers
-later, from a kernel worker, so real time is the only safe clock there.)
+later, from a kernel worker, so real time is the only safe clock there.) For the same reason,
+work sent to an executor (``asyncio.to_thread``) runs inline, on the loop's thread.
 """
 
 from __future__ import annotations
@@ -53,6 +54,17 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
 
     def advance(self, seconds: float) -> None:
         self._vtime += max(0.0, seconds)
+
+    def run_in_executor(self, executor: Any, func: Any, *args: Any) -> asyncio.Future[Any]:
+        """Run ``func`` right here, at once: a worker thread would finish at a wall-clock moment
+        the virtual clock cannot wait for, and the run would stop being deterministic. Blocking
+        the loop is harmless when no time is real."""
+        fut: asyncio.Future[Any] = self.create_future()
+        try:
+            fut.set_result(func(*args))
+        except BaseException as e:  # handed to the awaiting coroutine, as an executor would
+            fut.set_exception(e)
+        return fut
 
 
 def run_fast(main: Coroutine[Any, Any, T]) -> T:

@@ -52,3 +52,17 @@ def test_fast_mode_streams_many_seconds_quickly_and_identically(tmp_path: Path) 
     texels = [dsa.decode_frame_payload(f, 486).texels for f in frames_a]
     assert all(t.max() > 500 for t in texels)  # the held egg presses the distal pads
     assert len({t.tobytes() for t in texels}) > len(texels) // 2  # noisy, creeping readings
+
+
+def test_executor_work_runs_inline_without_moving_the_clock() -> None:
+    async def main() -> tuple[float, float, int]:
+        loop = asyncio.get_running_loop()
+        ticker = asyncio.ensure_future(asyncio.sleep(0.001))  # a timer the clock could jump to
+        t0 = loop.time()
+        result = await asyncio.to_thread(sum, range(10))
+        t1 = loop.time()
+        await ticker
+        return t0, t1, result
+
+    t0, t1, result = run_fast(main())
+    assert result == 45 and t1 == t0
