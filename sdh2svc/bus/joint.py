@@ -1,0 +1,935 @@
+"""Asyncio driver of the SDH2 joint-controller line (protocols.md PART 2, PART 4).
+
+:class:`JointLink` owns one line (a device path or any pyserial URL: a pty, ``socket://``, …) and
+speaks to it through the sans-I/O codec :mod:`sdh2svc.protocol.sdh` only. What it adds is the
+I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
+
+* Connect handshake (§2.3, §2.8): ``" \\r\\n"``, discard 100 ms of input, ``ver`` with a 1 s
+  timeout, then ``vlim``, ``alim`` and ``con``.
+* One command in flight at a time, each with a timeout. Replies are correlated by keyword (ASCII)
+  or command code (binary). An ``E<n>`` line or a non-zero binary status raises
+  :class:`FirmwareError`, after up to ``retries`` retries for axis commands (as SDHLibrary does).
+  Garbage, a mismatched reply or a timeout cause a resync (:data:`RESYNC` blank lines, drain until
+  the line is quiet, parser reset) and a retry. :attr:`JointLink.stats` counts all of it.
+* ASCII by default; ``binary=True`` sends the 11 commands SDHLibrary-CPP sends in binary (§2.6),
+  with CRC on serial lines and without over ``socket://`` (PART 4 item 1; ``binary_crc``).
+* Targets outside the joint limits are refused with ``ValueError`` before any byte is written.
+* :meth:`JointLink.emergency_stop` is SCHUNK's e-stop (power off, read actual, write it back as
+  targets, §2.4) with precedence: commands queued behind it fail with :class:`EmergencyStopped`,
+  the one in flight finishes first. Our addition: the stop *latches* — until :meth:`release`,
+  commands that could move the hand (any set form except power-off, and ``m``) are refused with
+  :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5).
+* Reconnect: when the port is lost (exception or EOF) the link reopens it with back-off
+  (0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake; meanwhile commands raise :class:`LinkLost`.
+  :class:`LinkEvent` values go to an optional callback and to :meth:`JointLink.subscribe` queues.
+
+Angles are degrees, velocities deg/s, accelerations deg/s² at this edge (as on the wire).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from enum import IntEnum, StrEnum
+from numbers import Real
+from types import TracebackType
+from typing import Final, Self, TypeAlias
+
+import serial
+
+from sdh2svc.bus.link import close_streams, is_socket_url, open_streams
+from sdh2svc.protocol.sdh import (
+    ASCII_COMMANDS,
+    BINARY_COMMANDS,
+    NUM_AXES,
+    RESYNC,
+    ArgForm,
+    AxisState,
+    BinaryCommand,
+    BinaryReply,
+    DebugLine,
+    ErrorLine,
+    Garbage,
+    Reply,
+    ReplyEvent,
+    ReplyParser,
+    SdhError,
+    encode_ascii,
+    encode_binary_request,
+    encode_blank,
+)
+
+__all__ = [
+    "DEFAULT_LIMITS",
+    "ControllerMode",
+    "EmergencyStopped",
+    "FirmwareError",
+    "JointLink",
+    "JointLinkError",
+    "JointStats",
+    "LinkEvent",
+    "LinkEventKind",
+    "LinkLost",
+]
+
+logger = logging.getLogger(__name__)
+
+Vec: TypeAlias = tuple[float, ...]
+Limits: TypeAlias = Sequence[tuple[float, float]]
+
+DEFAULT_LIMITS: Final[tuple[tuple[float, float], ...]] = ((0.0, 90.0),) + ((-90.0, 90.0),) * 6
+"""Joint ranges in degrees, axis 0 first (§2.2)."""
+
+CONNECT_DRAIN_S: Final = 0.1  # §2.3: discard whatever arrives within 100 ms of the blank line
+VER_TIMEOUT_S: Final = 1.0  # §2.3: no `ver` reply within 1 s means "SDH not connected"
+BACKOFF_S: Final = (0.5, 1.0, 2.0, 4.0, 5.0)  # reconnect delays; the last one repeats
+_NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
+_TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
+
+
+# -- errors, events, statistics -----------------------------------------------------------------
+
+
+class JointLinkError(Exception):
+    """Anything that keeps a joint-controller command from succeeding."""
+
+
+class FirmwareError(JointLinkError):
+    """The firmware answered ``E<n>`` or a binary reply with non-zero status (§2.5)."""
+
+    def __init__(self, code: int, command: str = "") -> None:
+        self.code = code
+        self.error = SdhError(code) if 0 <= code <= max(SdhError) else None
+        self.name = self.error.name if self.error is not None else f"E{code}"
+        self.command = command
+        super().__init__(f"{command or 'command'}: firmware error {code} ({self.name})")
+
+
+class LinkLost(JointLinkError):
+    """The port is gone (or closed); a reconnect may be under way."""
+
+
+class EmergencyStopped(JointLinkError):
+    """Refused or cancelled because of an emergency stop (call ``release()`` to resume)."""
+
+
+class ControllerMode(IntEnum):
+    """Values of ``con`` (§2.4)."""
+
+    POSE = 0
+    VELOCITY = 1
+    VELOCITY_ACCELERATION = 2
+
+
+class LinkEventKind(StrEnum):
+    CONNECTED = "connected"
+    LOST = "lost"
+    RECONNECTED = "reconnected"
+    ERROR = "error"  # a reconnect attempt or a command failed for good
+    EMERGENCY_STOP = "emergency_stop"
+    RELEASED = "released"
+    CLOSED = "closed"
+
+
+@dataclass(frozen=True, slots=True)
+class LinkEvent:
+    kind: LinkEventKind
+    url: str
+    detail: str = ""
+
+
+@dataclass(slots=True)
+class JointStats:
+    """Counters since construction (handshakes included)."""
+
+    commands: int = 0  # transactions started
+    timeouts: int = 0  # attempts without a reply in time
+    errors: int = 0  # firmware errors (E<n>, non-zero binary status)
+    garbled: int = 0  # attempts spoilt by garbage or a reply to something else
+    retries: int = 0
+    resyncs: int = 0
+    failures: int = 0  # commands that raised after their retries
+    link_losses: int = 0
+    reconnects: int = 0
+    rtt_count: int = 0
+    rtt_total_s: float = 0.0
+    rtt_min_s: float = math.inf
+    rtt_max_s: float = 0.0
+    rtt_last_s: float = math.nan
+
+    def record_rtt(self, seconds: float) -> None:
+        self.rtt_count += 1
+        self.rtt_total_s += seconds
+        self.rtt_min_s = min(self.rtt_min_s, seconds)
+        self.rtt_max_s = max(self.rtt_max_s, seconds)
+        self.rtt_last_s = seconds
+
+    @property
+    def rtt_mean_s(self) -> float:
+        return self.rtt_total_s / self.rtt_count if self.rtt_count else math.nan
+
+
+class _Garbled(Exception):
+    """An attempt's reply was unusable; resync and retry."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Lost:
+    """Queue sentinel: the connection died."""
+
+    exc: BaseException
+
+
+# -- one request ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class _Request:
+    keyword: str  # lower case
+    data: bytes  # exactly what goes on the line
+    axis: int | None
+    binary: BinaryCommand | None
+    retry_on_error: bool  # axis commands: SDHLibrary retries after E<n>
+    moves: bool  # refused while an emergency stop is latched
+    n_values: int | None  # reply value count, when known
+    check: Callable[[Vec], bool] | None = None  # plausibility of the reply values
+
+    @property
+    def label(self) -> str:
+        return self.keyword if self.axis is None else f"{self.keyword}({self.axis})"
+
+
+def _as_values(values: float | Sequence[float] | None) -> Vec | None:
+    if values is None:
+        return None
+    if isinstance(values, Real):
+        return (float(values),)
+    return tuple(float(v) for v in values)
+
+
+def _may_move(keyword: str, values: Vec | None) -> bool:
+    if keyword == "m":
+        return True
+    if values is None:
+        return False
+    return not (keyword == "power" and not any(values))  # powering off is always allowed
+
+
+def _is_flags(allowed: frozenset[int]) -> Callable[[Vec], bool]:
+    return lambda vals: all(v in allowed for v in vals)
+
+
+_REPLY_CHECKS: Final[dict[str, Callable[[Vec], bool]]] = {
+    "power": _is_flags(frozenset({0, 1})),
+    "state": _is_flags(frozenset(int(s) for s in AxisState)),
+    "con": _is_flags(frozenset(int(m) for m in ControllerMode)),
+}
+
+
+# -- one open port --------------------------------------------------------------------------------
+
+
+class _Conn:
+    """An open port: a reader task feeding the reply parser into an event queue."""
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        parser: ReplyParser,
+        on_lost: Callable[[_Conn, BaseException], None],
+    ) -> None:
+        self.writer = writer
+        self.parser = parser
+        self.events: asyncio.Queue[ReplyEvent | _Lost] = asyncio.Queue()
+        self.rx_bytes = 0
+        self.dirty = False  # the line may hold leftovers of an unfinished exchange
+        self.lost: BaseException | None = None
+        self._reader = reader
+        self._on_lost = on_lost
+        self._task = asyncio.get_running_loop().create_task(self._pump(), name="sdh-joint-rx")
+
+    async def _pump(self) -> None:
+        try:
+            while True:
+                data = await self._reader.read(4096)
+                if not data:
+                    raise ConnectionResetError("end of stream")
+                self.rx_bytes += len(data)
+                for event in self.parser.feed(data):
+                    self.events.put_nowait(event)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # serial/socket errors end the connection
+            self._die(exc)
+
+    def _die(self, exc: BaseException) -> None:
+        if self.lost is None:
+            self.lost = exc
+            self.events.put_nowait(_Lost(exc))
+            self._on_lost(self, exc)
+
+    async def send(self, data: bytes) -> None:
+        if self.lost is not None:
+            raise LinkLost(f"port lost: {self.lost}")
+        try:
+            self.writer.write(data)
+            await self.writer.drain()
+        except (OSError, serial.SerialException, RuntimeError) as exc:
+            self._die(exc)
+            raise LinkLost(f"write failed: {exc}") from exc
+
+    def discard(self) -> None:
+        """Forget received events and any partial message (keeps a loss visible)."""
+        self.parser.reset()
+        while not self.events.empty():
+            self.events.get_nowait()
+        if self.lost is not None:
+            self.events.put_nowait(_Lost(self.lost))
+
+    async def drain_quiet(self, quiet_s: float, max_s: float) -> None:
+        """Wait until nothing arrived for ``quiet_s`` (at most ``max_s``), then discard."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + max_s
+        while True:
+            seen = self.rx_bytes
+            await asyncio.sleep(quiet_s)
+            if self.rx_bytes == seen or loop.time() >= deadline or self.lost is not None:
+                break
+        self.discard()
+
+    async def close(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+        if self.lost is None:
+            self.lost = LinkLost("closed")
+            self.events.put_nowait(_Lost(self.lost))
+        await close_streams(self.writer)
+
+
+# -- one command at a time, e-stop first ---------------------------------------------------------
+
+
+class _Turnstile:
+    """A FIFO mutex whose urgent waiters jump the queue and can fail the ordinary ones."""
+
+    def __init__(self) -> None:
+        self._held = False
+        self._waiters: deque[tuple[bool, asyncio.Future[None]]] = deque()
+
+    async def acquire(self, *, urgent: bool = False) -> None:
+        if not self._held and not self._waiters:
+            self._held = True
+            return
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        entry = (urgent, fut)
+        if urgent:
+            # Behind earlier urgent waiters, ahead of every ordinary one.
+            pos = sum(1 for u, _ in self._waiters if u)
+            self._waiters.insert(pos, entry)
+        else:
+            self._waiters.append(entry)
+        try:
+            await fut
+        except asyncio.CancelledError:
+            if fut.done() and not fut.cancelled() and fut.exception() is None:
+                self.release()  # granted just as we were cancelled: pass it on
+            elif entry in self._waiters:
+                self._waiters.remove(entry)
+            raise
+
+    def release(self) -> None:
+        while self._waiters:
+            _, fut = self._waiters.popleft()
+            if not fut.done():
+                fut.set_result(None)
+                return
+        self._held = False
+
+    def fail_waiting(self, make_exc: Callable[[], BaseException], *, urgent_too: bool) -> None:
+        """Fail the waiters that have not got their turn yet."""
+        keep: deque[tuple[bool, asyncio.Future[None]]] = deque()
+        for urgent, fut in self._waiters:
+            if urgent and not urgent_too:
+                keep.append((urgent, fut))
+            elif not fut.done():
+                fut.set_exception(make_exc())
+        self._waiters = keep
+
+
+# -- the driver -----------------------------------------------------------------------------------
+
+
+class JointLink:
+    """Driver of the SDH2 joint-controller line; see the module docstring.
+
+    Build with ``await JointLink.open(url, …)`` (or the constructor, then :meth:`connect`);
+    use as an async context manager to close it.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        binary: bool = False,
+        binary_crc: bool | None = None,
+        timeout_s: float = 1.0,
+        retries: int = 3,
+        limits: Limits | None = None,
+        reconnect: bool = True,
+        on_event: Callable[[LinkEvent], None] | None = None,
+        resync_quiet_s: float = 0.02,
+        resync_max_s: float = 0.5,
+    ) -> None:
+        if timeout_s <= 0 or retries < 0:
+            raise ValueError("timeout_s must be > 0 and retries >= 0")
+        self.url = url
+        self.binary = binary
+        self.binary_crc = not is_socket_url(url) if binary_crc is None else binary_crc
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.limits = _check_limits(DEFAULT_LIMITS if limits is None else limits)
+        self.stats = JointStats()
+        self.version = ""
+        self.velocity_limits: Vec = ()
+        self.acceleration_limits: Vec = ()
+        self.controller: ControllerMode | None = None
+        self._reconnect = reconnect
+        self._on_event = on_event
+        self._subscribers: list[asyncio.Queue[LinkEvent]] = []
+        self._quiet_s = resync_quiet_s
+        self._resync_max_s = resync_max_s
+        self._conn: _Conn | None = None
+        self._gate = _Turnstile()
+        self._closed = False
+        self._estopped = False
+        self._estop_pending = 0
+        self._reconnect_task: asyncio.Task[None] | None = None
+        self._background: set[asyncio.Task[None]] = set()
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    @classmethod
+    async def open(
+        cls,
+        url: str,
+        *,
+        binary: bool = False,
+        binary_crc: bool | None = None,
+        timeout_s: float = 1.0,
+        retries: int = 3,
+        limits: Limits | None = None,
+        reconnect: bool = True,
+        on_event: Callable[[LinkEvent], None] | None = None,
+    ) -> Self:
+        """Open ``url`` and run the handshake; raises :class:`JointLinkError` on failure."""
+        link = cls(url, binary=binary, binary_crc=binary_crc, timeout_s=timeout_s,
+                   retries=retries, limits=limits, reconnect=reconnect, on_event=on_event)
+        await link.connect()
+        return link
+
+    async def connect(self) -> None:
+        """Open the port and run the handshake (first connection)."""
+        if self._closed:
+            raise LinkLost("link closed")
+        if self._conn is not None:
+            return
+        self._conn = await self._connect_once()
+        self._emit(LinkEventKind.CONNECTED, f"firmware {self.version}")
+
+    async def close(self, *, power_off: bool = False) -> None:
+        """Optionally power all axes off, then close the port; idempotent."""
+        if self._closed:
+            return
+        if power_off and self._conn is not None:
+            with contextlib.suppress(JointLinkError):
+                await self._call(self._request("power", (0,) * NUM_AXES))
+        self._closed = True
+        self._gate.fail_waiting(lambda: LinkLost("link closed"), urgent_too=True)
+        task, self._reconnect_task = self._reconnect_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            await conn.close()
+        if self._background:
+            await asyncio.gather(*self._background, return_exceptions=True)
+        self._emit(LinkEventKind.CLOSED)
+
+    async def __aenter__(self) -> Self:
+        await self.connect()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None and self._conn.lost is None
+
+    @property
+    def estopped(self) -> bool:
+        """Whether an emergency stop is latched (see :meth:`release`)."""
+        return self._estopped
+
+    # -- events ---------------------------------------------------------------------------------
+
+    def subscribe(self) -> asyncio.Queue[LinkEvent]:
+        """A queue that receives every later :class:`LinkEvent`."""
+        queue: asyncio.Queue[LinkEvent] = asyncio.Queue()
+        self._subscribers.append(queue)
+        return queue
+
+    def unsubscribe(self, queue: asyncio.Queue[LinkEvent]) -> None:
+        with contextlib.suppress(ValueError):
+            self._subscribers.remove(queue)
+
+    def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
+        event = LinkEvent(kind, self.url, detail)
+        logger.log(logging.INFO if kind is not LinkEventKind.ERROR else logging.WARNING,
+                   "%s %s %s", self.url, kind, detail)  # fmt: skip
+        for queue in self._subscribers:
+            queue.put_nowait(event)
+        if self._on_event is not None:
+            try:
+                self._on_event(event)
+            except Exception:  # a faulty observer must not break the link
+                logger.exception("event callback failed")
+
+    # -- low-level command --------------------------------------------------------------------
+
+    async def command(
+        self,
+        keyword: str,
+        values: float | Sequence[float] | None = None,
+        *,
+        axis: int | None = None,
+        timeout_s: float | None = None,
+    ) -> Reply:
+        """Send one command (ASCII, or binary for the 11 of §2.6 when ``binary``) and return
+        its reply; binary replies come back as a :class:`Reply` with ``text=""``.
+
+        Encoding errors and targets (``p``, ``tpap``) outside the joint limits raise
+        ``ValueError`` before anything is written.
+        """
+        if keyword.lower() in _TARGET_COMMANDS and values is not None:
+            self._check_target_form(values, axis)
+        return await self._call(self._request(keyword, values, axis), timeout_s)
+
+    def _check_target_form(self, values: float | Sequence[float], axis: int | None) -> None:
+        vals = _as_values(values) or ()
+        if axis is None:
+            self.check_targets(vals)
+        elif 0 <= axis < NUM_AXES and len(vals) == 1:
+            self._check_angle(axis, vals[0])
+
+    def _request(
+        self, keyword: str, values: float | Sequence[float] | None = None, axis: int | None = None
+    ) -> _Request:
+        kw = keyword.lower()
+        vals = _as_values(values)
+        spec = ASCII_COMMANDS.get(kw)
+        code = BINARY_COMMANDS.get(kw) if self.binary and axis is None else None
+        if code is not None and vals is not None and len(vals) != NUM_AXES:
+            code = None  # binary frames carry exactly 7 values
+        if code is not None:
+            data = encode_binary_request(code, vals, with_crc=self.binary_crc)
+        else:
+            data = encode_ascii(keyword, vals, axis=axis)
+        n_values = None if spec is None else spec.reply_values
+        if spec is not None and axis is not None and spec.form is ArgForm.VECTOR:
+            n_values = 1
+        axis_cmd = spec is not None and spec.form in (ArgForm.VECTOR, ArgForm.AXIS_ONLY)
+        return _Request(kw, data, axis, code, axis_cmd, _may_move(kw, vals), n_values,
+                        _REPLY_CHECKS.get(kw))  # fmt: skip
+
+    async def _call(self, req: _Request, timeout_s: float | None = None) -> Reply:
+        self._check_usable(req)
+        await self._gate.acquire()
+        try:
+            self._check_usable(req)
+            conn = self._require_conn()
+            return await self._transact(conn, req, timeout_s=timeout_s or self.timeout_s,
+                                        retries=self.retries)  # fmt: skip
+        finally:
+            self._gate.release()
+
+    def _check_usable(self, req: _Request) -> None:
+        if self._closed:
+            raise LinkLost("link closed")
+        if self._estopped and req.moves:
+            raise EmergencyStopped(f"{req.label} refused: emergency stop latched")
+
+    def _require_conn(self) -> _Conn:
+        conn = self._conn
+        if conn is None or conn.lost is not None:
+            raise LinkLost(f"no connection to {self.url}")
+        return conn
+
+    async def _transact(
+        self, conn: _Conn, req: _Request, *, timeout_s: float, retries: int, urgent: bool = False
+    ) -> Reply:
+        """One command with SDHLibrary's retry policy; the caller holds the turnstile."""
+        self.stats.commands += 1
+        failure: JointLinkError | None = None
+        for attempt in range(retries + 1):
+            if attempt:
+                if self._estop_pending and not urgent:
+                    raise EmergencyStopped(f"{req.label} abandoned for an emergency stop")
+                self.stats.retries += 1
+            if conn.dirty:
+                await self._resync(conn)
+            try:
+                return await self._attempt(conn, req, timeout_s)
+            except FirmwareError as exc:
+                self.stats.errors += 1
+                if not req.retry_on_error:
+                    raise
+                failure, conn.dirty = exc, True  # SDHLibrary resyncs before retrying
+            except _Garbled as exc:
+                self.stats.garbled += 1
+                failure = JointLinkError(f"{req.label}: bad reply ({exc})")
+            except TimeoutError:
+                self.stats.timeouts += 1
+                failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s")
+        assert failure is not None
+        self.stats.failures += 1
+        self._emit(LinkEventKind.ERROR, str(failure))
+        raise failure
+
+    async def _attempt(self, conn: _Conn, req: _Request, timeout_s: float) -> Reply:
+        conn.discard()  # late replies of earlier exchanges
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        conn.dirty = True  # until the reply is in (also if the caller cancels us)
+        await conn.send(req.data)
+        async with asyncio.timeout(timeout_s):
+            while (reply := self._match(req, await conn.events.get(), conn)) is None:
+                pass
+        conn.dirty = False
+        self.stats.record_rtt(loop.time() - start)
+        return reply
+
+    def _match(self, req: _Request, event: ReplyEvent | _Lost, conn: _Conn) -> Reply | None:
+        """The reply for ``req``, None to keep waiting; raises for anything else."""
+        match event:
+            case _Lost(exc):
+                raise LinkLost(f"{req.label}: port lost: {exc}")
+            case DebugLine():
+                return None  # §2.3: hosts skip '@' lines
+            case Garbage(reason=reason):
+                raise _Garbled(reason)
+            case ErrorLine(code=code):
+                conn.dirty = False  # a clean answer: the line is in step
+                raise FirmwareError(code, req.label)
+            case BinaryReply():
+                return self._match_binary(req, event, conn)
+            case Reply():
+                return self._match_ascii(req, event)
+        raise _Garbled(f"unexpected event {event!r}")
+
+    def _match_binary(self, req: _Request, event: BinaryReply, conn: _Conn) -> Reply:
+        if event.cmd != req.binary:
+            raise _Garbled(f"binary reply {event.cmd.name} to {req.label}")
+        if not event.ok:
+            conn.dirty = False
+            raise FirmwareError(event.status, req.label)
+        return self._checked(req, Reply(req.keyword.upper(), None, event.values, ""))
+
+    def _match_ascii(self, req: _Request, event: Reply) -> Reply:
+        if req.binary is not None:
+            raise _Garbled(f"ASCII reply {event.keyword} to binary {req.label}")
+        free_text = req.n_values is None and event.keyword == ""  # e.g. the [U] `stop` reply
+        if not free_text and (event.keyword != req.keyword.upper() or event.axis != req.axis):
+            raise _Garbled(f"reply {event.keyword or event.text!r} to {req.label}")
+        return self._checked(req, event)
+
+    @staticmethod
+    def _checked(req: _Request, reply: Reply) -> Reply:
+        if req.n_values is not None and len(reply.values) != req.n_values:
+            raise _Garbled(f"{req.label}: {len(reply.values)} values, expected {req.n_values}")
+        if req.check is not None and not req.check(reply.values):
+            raise _Garbled(f"{req.label}: implausible values {reply.values}")
+        return reply
+
+    async def _urgent(self, conn: _Conn, req: _Request) -> Reply:
+        """A transaction that must not give way to an emergency stop (handshake, the stop)."""
+        return await self._transact(conn, req, timeout_s=self.timeout_s, retries=self.retries,
+                                    urgent=True)  # fmt: skip
+
+    async def _resync(self, conn: _Conn) -> None:
+        """Bring both parsers back to a message boundary (:data:`RESYNC`) and drain."""
+        self.stats.resyncs += 1
+        await conn.send(RESYNC)
+        await conn.drain_quiet(self._quiet_s, self._resync_max_s)
+        conn.dirty = False
+
+    # -- connecting -----------------------------------------------------------------------------
+
+    async def _connect_once(self) -> _Conn:
+        try:
+            reader, writer = await open_streams(self.url)
+        except (OSError, serial.SerialException, ValueError) as exc:
+            raise JointLinkError(f"cannot open {self.url}: {exc}") from exc
+        parser = ReplyParser(crc=self.binary_crc, binary=self.binary)
+        conn = _Conn(reader, writer, parser, self._conn_lost)
+        try:
+            await self._handshake(conn)
+        except BaseException:
+            await conn.close()
+            raise
+        return conn
+
+    async def _handshake(self, conn: _Conn) -> None:
+        await conn.send(encode_blank())  # ends any half-received line (§2.3)
+        await asyncio.sleep(CONNECT_DRAIN_S)
+        conn.discard()
+        try:
+            ver = await self._transact(conn, self._request("ver"), timeout_s=VER_TIMEOUT_S,
+                                       retries=0, urgent=True)  # fmt: skip
+        except JointLinkError as exc:
+            raise JointLinkError(f"SDH not connected at {self.url}: {exc}") from exc
+        vlim = await self._urgent(conn, self._request("vlim"))
+        alim = await self._urgent(conn, self._request("alim"))
+        con = await self._urgent(conn, self._request("con"))
+        self.version = ver.text
+        self.velocity_limits, self.acceleration_limits = vlim.values, alim.values
+        self.controller = ControllerMode(int(con.values[0]))
+
+    def _conn_lost(self, conn: _Conn, exc: BaseException) -> None:
+        if conn is not self._conn or self._closed:
+            return  # a handshake's own connection, or closing: the caller sees it
+        self._conn = None
+        self.stats.link_losses += 1
+        self._emit(LinkEventKind.LOST, str(exc))
+        if self._reconnect:
+            self._reconnect_task = asyncio.get_running_loop().create_task(
+                self._reconnect_loop(conn), name="sdh-joint-reconnect"
+            )
+        else:
+            task = asyncio.get_running_loop().create_task(conn.close())
+            self._background.add(task)
+            task.add_done_callback(self._background.discard)
+
+    async def _reconnect_loop(self, old: _Conn) -> None:
+        await old.close()
+        for delay in _backoff():
+            await asyncio.sleep(delay)
+            try:
+                conn = await self._connect_once()
+            except Exception as exc:  # whatever went wrong, keep trying: the hand needs us
+                self._emit(LinkEventKind.ERROR, f"reconnect failed: {exc}")
+                continue
+            if conn.lost is not None:  # died right after the handshake
+                await conn.close()
+                continue
+            self._conn = conn
+            self._reconnect_task = None
+            self.stats.reconnects += 1
+            self._emit(LinkEventKind.RECONNECTED, f"firmware {self.version}")
+            return
+
+    # -- limits ---------------------------------------------------------------------------------
+
+    def check_targets(self, angles: Sequence[float]) -> Vec:
+        """The 7 angles as floats; ``ValueError`` naming the first axis outside its limits."""
+        vals = tuple(float(a) for a in angles)
+        if len(vals) != NUM_AXES:
+            raise ValueError(f"targets: {NUM_AXES} values needed, got {len(vals)}")
+        for axis, angle in enumerate(vals):
+            self._check_angle(axis, angle)
+        return vals
+
+    def _check_angle(self, axis: int, angle: float) -> None:
+        lo, hi = self.limits[axis]
+        if not lo <= angle <= hi:  # also refuses NaN
+            raise ValueError(f"axis {axis}: target {angle}° outside [{lo}, {hi}]°")
+
+    def clip_to_limits(self, angles: Sequence[float]) -> Vec:
+        return tuple(min(max(a, lo), hi) for a, (lo, hi) in zip(angles, self.limits, strict=True))
+
+    def _check_velocities(self, velocities: Sequence[float]) -> Vec:
+        vals = _seven_values(velocities, "velocities")
+        for axis, v in enumerate(vals):
+            vmax = self.velocity_limits[axis] if self.velocity_limits else math.inf
+            if not abs(v) <= vmax:
+                raise ValueError(f"axis {axis}: velocity {v} deg/s beyond ±{vmax}")
+        return vals
+
+    # -- typed commands -------------------------------------------------------------------------
+
+    async def _vector(self, keyword: str, values: Sequence[float] | None = None) -> Vec:
+        return (await self._call(self._request(keyword, values))).values
+
+    async def get_actual(self) -> Vec:
+        """Actual joint angles (``pos``), deg."""
+        return await self._vector("pos")
+
+    async def get_targets(self) -> Vec:
+        """Target angles (``p``), deg."""
+        return await self._vector("p")
+
+    async def set_targets(self, angles: Sequence[float]) -> Vec:
+        """Set target angles (``p=…``) after the limit check; returns the echoed targets."""
+        return await self._vector("p", self.check_targets(angles))
+
+    async def move(self) -> float:
+        """Start the coordinated move to the targets (``m``); returns its duration in s."""
+        return (await self._call(self._request("m"))).values[0]
+
+    async def get_duration(self) -> float:
+        return (await self._call(self._request("get_duration"))).values[0]
+
+    async def stop(self) -> None:
+        """Stop an ``m`` move (``stop``)."""
+        await self._call(self._request("stop"))
+
+    async def get_state(self) -> tuple[AxisState, ...]:
+        return tuple(AxisState(int(v)) for v in await self._vector("state"))
+
+    async def wait_idle(self, poll_s: float = 0.02) -> tuple[AxisState, ...]:
+        """Poll ``state`` until no axis is positioning or in speed mode (SDHLibrary's WaitAxis)."""
+        busy = (AxisState.POSITIONING, AxisState.SPEED_MODE)
+        while True:
+            states = await self.get_state()
+            if not any(s in busy for s in states):
+                return states
+            await asyncio.sleep(poll_s)
+
+    async def set_velocities(self, velocities: Sequence[float]) -> Vec:
+        """Target velocities (``v=…``), deg/s, checked against ``vlim``."""
+        return await self._vector("v", self._check_velocities(velocities))
+
+    async def get_velocities(self) -> Vec:
+        """Target velocities (``v``), deg/s."""
+        return await self._vector("v")
+
+    async def set_accelerations(self, accelerations: Sequence[float]) -> Vec:
+        """Target accelerations (``a=…``), deg/s²."""
+        return await self._vector("a", _seven_values(accelerations, "accelerations"))
+
+    async def set_controller(self, mode: ControllerMode | int) -> ControllerMode:
+        mode = ControllerMode(mode)
+        reply = await self._call(self._request("con", int(mode)))
+        self.controller = ControllerMode(int(reply.values[0]))
+        return self.controller
+
+    async def power(self, on: Sequence[bool]) -> tuple[bool, ...]:
+        """Enable/disable the axis controllers; returns the echoed flags."""
+        if len(on) != NUM_AXES:
+            raise ValueError(f"power needs {NUM_AXES} flags")
+        return _flags(await self._vector("power", [1.0 if f else 0.0 for f in on]))
+
+    async def get_power(self) -> tuple[bool, ...]:
+        return _flags(await self._vector("power"))
+
+    async def tpap(self, targets: Sequence[float]) -> Vec:
+        """Set target angles (limit-checked) and read the actual ones in one round trip."""
+        return await self._vector("tpap", self.check_targets(targets))
+
+    async def tvav(self, velocities: Sequence[float]) -> Vec:
+        """Set target velocities and read the actual velocities in one round trip."""
+        return await self._vector("tvav", self._check_velocities(velocities))
+
+    async def get_velocity(self) -> Vec:
+        """Actual angular velocities (``vel``), deg/s."""
+        return await self._vector("vel")
+
+    async def get_reference_velocity(self) -> Vec:
+        """Reference velocities of the velocity controller (``rvel``), deg/s."""
+        return await self._vector("rvel")
+
+    async def temperatures(self) -> Vec:
+        """9 temperatures (°C): 7 motors, FPGA, PCB."""
+        temps = await self._vector("temp")
+        if len(temps) != _NUM_TEMPS:
+            raise JointLinkError(f"temp: {len(temps)} values")
+        return temps
+
+    # -- emergency stop -------------------------------------------------------------------------
+
+    async def emergency_stop(self) -> Vec:
+        """SCHUNK's e-stop with precedence; returns the angles written as targets.
+
+        Queued commands fail with :class:`EmergencyStopped`; the attempt in flight finishes (or
+        times out) first, and its retries, if it needed any, are abandoned with
+        :class:`EmergencyStopped`. A failed power-off still reads and holds the position, then
+        raises. The stop stays latched until :meth:`release`, also if it raised (e.g.
+        :class:`LinkLost` while reconnecting: the latch then keeps motion commands off the
+        new connection; nothing is sent to it by itself).
+        """
+        if self._closed:
+            raise LinkLost("link closed")
+        self._estopped = True
+        self._estop_pending += 1
+        try:
+            self._gate.fail_waiting(
+                lambda: EmergencyStopped("cancelled by an emergency stop"), urgent_too=False
+            )
+            await self._gate.acquire(urgent=True)
+            try:
+                held = await self._estop_sequence(self._require_conn())
+            finally:
+                self._gate.release()
+        finally:
+            self._estop_pending -= 1
+        self._emit(LinkEventKind.EMERGENCY_STOP, f"holding {held}")
+        return held
+
+    async def _estop_sequence(self, conn: _Conn) -> Vec:
+        first_error: JointLinkError | None = None
+        try:
+            await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
+        except JointLinkError as exc:
+            first_error = exc  # still hold the hand where it is
+        held = self.clip_to_limits((await self._urgent(conn, self._request("pos"))).values)
+        await self._urgent(conn, self._request("p", held))
+        if first_error is not None:
+            raise first_error
+        return held
+
+    async def release(self) -> tuple[bool, ...]:
+        """Clear a latched emergency stop and power all axes on again."""
+        self._estopped = False
+        flags = await self.power([True] * NUM_AXES)
+        self._emit(LinkEventKind.RELEASED)
+        return flags
+
+
+def _backoff() -> Iterator[float]:
+    yield from BACKOFF_S
+    while True:
+        yield BACKOFF_S[-1]
+
+
+def _seven_values(values: Sequence[float], what: str) -> Vec:
+    vals = tuple(float(v) for v in values)
+    if len(vals) != NUM_AXES:
+        raise ValueError(f"{what}: {NUM_AXES} values needed, got {len(vals)}")
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"{what}: non-finite value in {vals}")
+    return vals
+
+
+def _flags(values: Vec) -> tuple[bool, ...]:
+    return tuple(v != 0.0 for v in values)
+
+
+def _check_limits(limits: Limits) -> tuple[tuple[float, float], ...]:
+    out = tuple((float(lo), float(hi)) for lo, hi in limits)
+    if len(out) != NUM_AXES or any(not lo <= hi for lo, hi in out):
+        raise ValueError(f"limits need {NUM_AXES} (low, high) pairs with low <= high")
+    return out

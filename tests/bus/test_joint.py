@@ -1,0 +1,393 @@
+"""JointLink against the SDH2 emulator over a real pty and real TCP (no mocks).
+
+Timing assertions are lower bounds only: bytes cannot beat the emulated 115200-baud line, and a
+move cannot finish before its duration.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import random
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from sdh2svc.bus.joint import (
+    DEFAULT_LIMITS,
+    ControllerMode,
+    EmergencyStopped,
+    FirmwareError,
+    JointLink,
+    JointLinkError,
+    LinkEvent,
+    LinkEventKind,
+    LinkLost,
+)
+from sdh2svc.protocol.sdh import NUM_AXES, AxisState, SdhError
+from sdh2svc.sim.endpoint import Endpoint, FaultConfig, FaultKind, serve_device
+from sdh2svc.sim.sdh2 import Sdh2Emulator
+from sdh2svc.sim.world import ScriptedWorld
+
+SHAPES = [(14, 6), (13, 6)] * 3
+KINDS = ["pty", "tcp"]
+POSE_A = (30.0, -40.0, 20.0, -50.0, 10.0, -40.0, 20.0)
+
+
+@dataclass
+class Rig:
+    """An emulator served on one endpoint; :meth:`open` tracks links for teardown."""
+
+    dev: Sdh2Emulator
+    ep: Endpoint
+    links: list[JointLink] = field(default_factory=list)
+
+    async def open(self, **kwargs: Any) -> JointLink:
+        link = await JointLink.open(self.ep.url, **kwargs)
+        self.links.append(link)
+        return link
+
+
+@contextlib.asynccontextmanager
+async def _rig(kind: str, faults: FaultConfig | None = None) -> AsyncIterator[Rig]:
+    dev = Sdh2Emulator(ScriptedWorld(SHAPES))
+    async with serve_device(dev, kind, faults=faults) as ep:
+        rig = Rig(dev, ep)
+        try:
+            yield rig
+        finally:
+            for link in rig.links:
+                await link.close()
+
+
+@pytest.fixture(params=KINDS)
+async def rig(request: pytest.FixtureRequest) -> AsyncIterator[Rig]:
+    async with _rig(request.param) as r:
+        yield r
+
+
+@pytest.fixture
+async def tcp_rig() -> AsyncIterator[Rig]:
+    async with _rig("tcp") as r:
+        yield r
+
+
+def _close(a: tuple[float, ...], b: tuple[float, ...], tol: float = 2e-3) -> bool:
+    return len(a) == len(b) and all(abs(x - y) <= tol for x, y in zip(a, b, strict=True))
+
+
+async def _next_event(queue: asyncio.Queue[LinkEvent], kind: LinkEventKind) -> LinkEvent:
+    async with asyncio.timeout(15):
+        while (event := await queue.get()).kind is not kind:
+            pass
+    return event
+
+
+# -- handshake --------------------------------------------------------------------------------
+
+
+async def test_open_handshake(rig: Rig) -> None:
+    seen: list[LinkEvent] = []
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    link = await rig.open(on_event=seen.append)
+    assert loop.time() - start >= 0.1  # the 100 ms drain after the blank line
+    opts = rig.dev.options
+    assert link.version == opts.version
+    assert link.velocity_limits == opts.velocity_limit
+    assert link.acceleration_limits == opts.acceleration_limit
+    assert link.controller is ControllerMode.POSE
+    assert link.connected
+    assert rig.dev.stats.blank_lines >= 1
+    assert link.stats.commands == 4  # ver, vlim, alim, con
+    assert link.stats.rtt_count == 4 and link.stats.rtt_min_s > 0.0
+    assert [e.kind for e in seen] == [LinkEventKind.CONNECTED]
+    assert link.binary_crc is (rig.ep.url.startswith("socket://") is False)
+    await link.close()
+    await link.close()  # idempotent
+    assert seen[-1].kind is LinkEventKind.CLOSED
+    with pytest.raises(LinkLost):
+        await link.get_actual()
+
+
+async def test_open_silent_device_fails_clearly() -> None:
+    dev = Sdh2Emulator(ScriptedWorld(SHAPES))
+    async with serve_device(dev, "pty", faults=FaultConfig(boot_delay_s=30.0)) as ep:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        with pytest.raises(JointLinkError, match=f"SDH not connected at {ep.url}"):
+            await JointLink.open(ep.url)
+        assert loop.time() - start >= 1.0  # the 1 s `ver` timeout
+
+
+async def test_open_missing_port() -> None:
+    with pytest.raises(JointLinkError, match="cannot open"):
+        await JointLink.open("/dev/does-not-exist-sdh2")
+
+
+# -- round trips --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
+async def test_round_trips(rig: Rig, binary: bool) -> None:
+    link = await rig.open(binary=binary)
+    dev = rig.dev
+    binary_before = dev.stats.binary
+    assert await link.get_actual() == dev.actual_deg
+    assert await link.set_targets(POSE_A) == POSE_A
+    assert dev.target_deg == POSE_A
+    assert await link.get_targets() == POSE_A
+    assert await link.tpap((0.0,) * NUM_AXES) == dev.actual_deg  # tpap answers actual angles
+    assert dev.target_deg == (0.0,) * NUM_AXES
+    assert await link.get_state() == (AxisState.DISABLED,) * NUM_AXES
+    on = (True, False, True, True, False, True, True)
+    assert await link.power(on) == on
+    assert dev.powered == on
+    assert await link.get_power() == on
+    states = await link.get_state()
+    assert [s is AxisState.IDLE for s in states] == list(on)
+    assert await link.tvav((0.0,) * NUM_AXES) == (0.0,) * NUM_AXES
+    assert await link.get_velocity() == (0.0,) * NUM_AXES
+    assert len(await link.temperatures()) == 9
+    sent_binary = dev.stats.binary - binary_before
+    assert sent_binary == (10 if binary else 0)  # every vector command above but temp
+    assert link.stats.errors == link.stats.retries == link.stats.timeouts == 0
+
+
+async def test_move_until_idle(rig: Rig) -> None:
+    link = await rig.open()
+    loop = asyncio.get_running_loop()
+    assert await link.set_velocities((60.0,) * NUM_AXES) == (60.0,) * NUM_AXES
+    await link.set_targets(POSE_A)
+    duration = await link.move()
+    started = loop.time()
+    assert duration > 0.5  # 50° at ≤ 60 °/s
+    assert AxisState.POSITIONING in await link.get_state()  # PART 4 item 6
+    states = await link.wait_idle(poll_s=0.02)
+    assert loop.time() - started >= duration - 0.05
+    assert states == (AxisState.IDLE,) * NUM_AXES
+    assert _close(await link.get_actual(), POSE_A)
+
+
+async def test_stop_halts_move(rig: Rig) -> None:
+    link = await rig.open()
+    await link.set_targets(POSE_A)
+    await link.move()
+    await asyncio.sleep(0.2)
+    await link.stop()
+    assert AxisState.POSITIONING not in await link.get_state()
+    halted = await link.get_actual()
+    await asyncio.sleep(0.1)
+    assert await link.get_actual() == halted
+    assert not _close(halted, POSE_A)
+
+
+async def test_cancelled_command_leaves_the_line_usable(rig: Rig) -> None:
+    link = await rig.open()
+    task = asyncio.create_task(link.get_actual())
+    await asyncio.sleep(0)  # on the line, reply not yet in
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert await link.get_targets() == (0.0,) * NUM_AXES  # not the late POS reply
+    assert link.stats.resyncs == 1 and link.stats.garbled == 0
+
+
+# -- limits -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("axis", "angle"), [(0, -1.0), (0, 90.5), (3, 91.0), (6, -120.0), (2, math.nan)]
+)
+async def test_out_of_limit_target_rejected_before_writing(
+    rig: Rig, axis: int, angle: float
+) -> None:
+    link = await rig.open()
+    await link.set_targets(POSE_A)
+    rx, commands = rig.ep.stats.bytes_rx, rig.dev.stats.commands
+    bad = list(POSE_A)
+    bad[axis] = angle
+    with pytest.raises(ValueError, match=f"axis {axis}"):
+        await link.set_targets(bad)
+    with pytest.raises(ValueError, match=f"axis {axis}"):
+        await link.tpap(bad)
+    with pytest.raises(ValueError, match=f"axis {axis}"):
+        await link.command("p", bad)  # the low-level path checks too
+    with pytest.raises(ValueError, match=f"axis {axis}"):
+        await link.command("p", angle, axis=axis)
+    await asyncio.sleep(0.02)
+    assert (rig.ep.stats.bytes_rx, rig.dev.stats.commands) == (rx, commands)
+    assert rig.dev.target_deg == POSE_A
+
+
+async def test_custom_limits(rig: Rig) -> None:
+    limits = list(DEFAULT_LIMITS)
+    limits[1] = (-30.0, 30.0)
+    link = await rig.open(limits=limits)
+    with pytest.raises(ValueError, match="axis 1"):
+        await link.set_targets((0.0, 35.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert await link.set_targets((0.0, 30.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+
+# -- firmware errors ------------------------------------------------------------------------
+
+
+async def test_unknown_command_raises_firmware_error(rig: Rig) -> None:
+    link = await rig.open()
+    with pytest.raises(FirmwareError) as info:
+        await link.command("frobnicate")
+    assert info.value.code == SdhError.CMD_UNKNOWN
+    assert info.value.name == "CMD_UNKNOWN"
+    assert (link.stats.errors, link.stats.retries) == (1, 0)  # not an axis command: no retry
+    assert _close(await link.get_actual(), rig.dev.actual_deg)  # the line is still in step
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
+async def test_axis_command_error_is_retried(rig: Rig, binary: bool) -> None:
+    link = await rig.open(binary=binary)
+    with pytest.raises(FirmwareError) as info:
+        await link.set_velocities((-10.0,) * NUM_AXES)  # pose mode takes 0…vlim only
+    assert info.value.code == SdhError.RANGE_ERROR
+    assert link.stats.errors == 1 + link.retries
+    assert link.stats.retries == link.retries
+    assert link.stats.resyncs == link.retries
+    assert await link.get_velocities() == (40.0,) * NUM_AXES
+
+
+# -- emergency stop -------------------------------------------------------------------------
+
+
+async def test_emergency_stop_mid_motion(rig: Rig) -> None:
+    link = await rig.open()
+    events = link.subscribe()
+    await link.set_targets(POSE_A)
+    duration = await link.move()
+    await asyncio.sleep(duration / 3)
+    in_flight = asyncio.create_task(link.get_actual())
+    queued: list[asyncio.Task[Any]] = [
+        asyncio.create_task(link.set_targets((0.0,) * NUM_AXES)),
+        asyncio.create_task(link.get_state()),
+    ]
+    await asyncio.sleep(0)  # the first is on the line, the others wait their turn
+    held = await link.emergency_stop()
+    assert len(await in_flight) == NUM_AXES
+    for task in queued:
+        with pytest.raises(EmergencyStopped):
+            await task
+    assert (await _next_event(events, LinkEventKind.EMERGENCY_STOP)).url == link.url
+    assert not _close(held, POSE_A)  # stopped on the way
+    assert await link.get_state() == (AxisState.DISABLED,) * NUM_AXES
+    first = await link.get_actual()
+    await asyncio.sleep(0.2)
+    assert await link.get_actual() == first  # the axes stay where they stopped
+    assert _close(await link.get_targets(), first)
+    assert _close(rig.dev.target_deg, rig.dev.actual_deg)
+    # Latched: nothing may start motion until release().
+    for attempt in (link.move, lambda: link.set_targets(POSE_A)):
+        with pytest.raises(EmergencyStopped):
+            await attempt()
+    assert link.estopped
+    assert await link.release() == (True,) * NUM_AXES
+    assert not link.estopped
+    await link.set_targets(POSE_A)
+    await link.move()
+    await link.wait_idle()
+    assert _close(await link.get_actual(), POSE_A)
+
+
+async def test_emergency_stop_binary_precedence_over_a_burst(rig: Rig) -> None:
+    link = await rig.open(binary=True)
+    await link.set_targets(POSE_A)
+    await link.move()
+    burst = [asyncio.create_task(link.get_actual()) for _ in range(20)]
+    await asyncio.sleep(0)
+    await link.emergency_stop()
+    results = await asyncio.gather(*burst, return_exceptions=True)
+    assert isinstance(results[0], tuple)  # the one in flight finished
+    assert all(isinstance(r, EmergencyStopped) for r in results[1:])
+    assert rig.dev.powered == (False,) * NUM_AXES
+    assert _close(rig.dev.target_deg, rig.dev.actual_deg)
+
+
+# -- faults ---------------------------------------------------------------------------------
+
+
+async def _hammer(link: JointLink, rng: random.Random, n: int) -> tuple[float, ...]:
+    """n mixed commands; returns the last targets written."""
+    targets = (0.0,) * NUM_AXES
+    ops: list[Callable[[], Awaitable[object]]] = [
+        link.get_actual, link.get_state, link.get_power, link.get_targets
+    ]
+    for i in range(n):
+        if i % 3 == 0:
+            targets = tuple(round(rng.uniform(lo, hi), 1) for lo, hi in DEFAULT_LIMITS)
+            await (link.tpap(targets) if i % 2 else link.set_targets(targets))
+        else:
+            await rng.choice(ops)()
+    return targets
+
+
+@pytest.mark.parametrize(
+    ("kind", "binary"), [("pty", False), ("pty", True), ("tcp", False)],
+    ids=["pty-ascii", "pty-binary", "tcp-ascii"],
+)
+async def test_bit_errors_are_retried(kind: str, binary: bool) -> None:
+    faults = FaultConfig(bit_error_rate=1e-3, seed=7)
+    async with _rig(kind, faults) as rig:
+        link = await rig.open(binary=binary, timeout_s=0.25, retries=8)
+        targets = await _hammer(link, random.Random(1), 240)
+        stats = link.stats
+        assert rig.ep.stats.faults[FaultKind.BIT_ERROR] > 0
+        assert stats.garbled + stats.timeouts > 0
+        assert stats.retries >= stats.garbled + stats.timeouts - stats.failures
+        assert stats.resyncs > 0 and stats.failures == 0
+        assert _close(rig.dev.target_deg, targets, 1e-4)  # host→device is clean
+        assert len(await link.get_actual()) == NUM_AXES
+
+
+async def test_pty_unplugged_times_out_then_recovers() -> None:
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.1, retries=1)
+        rig.ep.disconnect(0.6)
+        with pytest.raises(JointLinkError, match="no reply") as info:
+            await link.get_actual()
+        assert not isinstance(info.value, LinkLost)  # a serial line can't tell
+        assert link.stats.timeouts == 2
+        await asyncio.sleep(0.6)
+        assert len(await link.get_actual()) == NUM_AXES
+
+
+async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
+    seen: list[LinkEvent] = []
+    link = await tcp_rig.open(on_event=seen.append)
+    events = link.subscribe()
+    loop = asyncio.get_running_loop()
+    await link.set_targets(POSE_A)
+    unplugged = loop.time()
+    tcp_rig.ep.disconnect(1.0)
+    with pytest.raises(LinkLost):
+        await link.get_actual()  # in flight when the line drops, or after
+    await _next_event(events, LinkEventKind.LOST)
+    assert not link.connected
+    with pytest.raises(LinkLost):
+        await link.get_state()
+    await _next_event(events, LinkEventKind.RECONNECTED)
+    assert loop.time() - unplugged >= 1.0  # nobody gets in while the cable is out
+    assert link.connected
+    assert await link.get_targets() == POSE_A  # device state survived
+    assert (link.stats.link_losses, link.stats.reconnects) == (1, 1)
+    kinds = [e.kind for e in seen]
+    assert kinds[0] is LinkEventKind.CONNECTED
+    lost, back = kinds.index(LinkEventKind.LOST), kinds.index(LinkEventKind.RECONNECTED)
+    assert LinkEventKind.ERROR in kinds[lost:back]  # the attempt at +0.5 s found no way in
+
+
+@pytest.mark.parametrize("crc", [True, False])
+async def test_binary_crc_override(rig: Rig, crc: bool) -> None:
+    link = await rig.open(binary=True, binary_crc=crc)
+    assert link.binary_crc is crc
+    assert await link.set_targets(POSE_A) == pytest.approx(POSE_A)
+    assert rig.dev.stats.binary == 1
