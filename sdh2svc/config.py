@@ -23,6 +23,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator, model_v
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict
 
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.safety import RunConfig, SafetyConfig
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.contact import MatrixLayout, TactileCalibration
 from sdh2svc.model.kinematics import Finger, FingerLimits, HandGeometry
@@ -112,6 +113,20 @@ class TactileConfig(Frozen):
     distal: MatrixLayout
 
 
+class LinksConfig(Frozen):
+    """The real hand's two serial lines (``--dsa``/``--sdh`` override them)."""
+
+    dsa_url: str
+    sdh_url: str
+    binary: bool
+
+
+class StorageConfig(Frozen):
+    """Where runs are recorded."""
+
+    db_path: str
+
+
 class Settings(BaseSettings):
     """The whole configuration of sdh2svc; see ``config/default.toml`` for every key and unit."""
 
@@ -125,6 +140,10 @@ class Settings(BaseSettings):
     tactile: TactileConfig
     calibration: TactileCalibration
     rolling: RollingParams
+    run: RunConfig
+    safety: SafetyConfig
+    links: LinksConfig
+    storage: StorageConfig
     sim: SimConfig
 
     def model_context(self) -> ModelContext:

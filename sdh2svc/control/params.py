@@ -41,6 +41,9 @@ class RollingParams(Frozen):
     contact_force_min: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
         description="F1, F2 at or below this (library units) count as no contact"
     )
+    force_deadband: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
+        description="|ΔF| at or below this (library units) leaves Λ unchanged (not in the thesis)"
+    )
     delta_lambda_inc_mm: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
         description="ΔΛ_inc, widening of the held distance when the force rises"
     )

@@ -92,10 +92,11 @@ class StepResult:
 
 
 def _adjusted_lambda(lam: float, dF: float, p: RollingParams) -> float:
-    """Λad: open by ΔΛ_inc when the force rises, close by ΔΛ_dec when it falls (Table 8)."""
-    if dF > 0.0:
+    """Λad: open by ΔΛ_inc when the force rises, close by ΔΛ_dec when it falls (Table 8); a
+    change within the deadband is no change."""
+    if dF > p.force_deadband:
         return lam + p.delta_lambda_inc_mm
-    if dF < 0.0:
+    if dF < -p.force_deadband:
         return lam - p.delta_lambda_dec_mm
     return lam
 

@@ -8,6 +8,7 @@
   ``spread_mm`` before each cell averages what falls on it, so a point contact lights two or
   three rows and an edge concentrates while a face spreads.
 * Counts: the inverse of the library pressure formula of the configuration (pressure per count),
+  scaled by ``gain_vs_library`` (1.0: exactly the library's nominal calibration; see sim.toml),
   plus seeded Gaussian noise on loaded cells (an unloaded resistive cell reads a clean 0),
   then the controller's sensitivity, threshold and saturation at 4095.
 * Creep (thesis §2.8, §4.1): each cell keeps a memory m that follows its pressure with a time
@@ -34,6 +35,7 @@ class SensorModelConfig(Frozen):
     """Imperfections of the simulated tactile sensor (see config/sim.toml)."""
 
     spread_mm: Annotated[float, Field(gt=0.0, le=10.0)]
+    gain_vs_library: Annotated[float, Field(gt=0.0, le=10.0)]
     noise: bool
     noise_counts: Annotated[float, Field(ge=0.0, le=500.0)]
     creep: bool
@@ -84,7 +86,7 @@ class TactileSensorModel:
         self.layouts = tuple(layouts)
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
         self.rasters = dict(rasters)  # surface index → (matrix index, raster)
-        self.per_count = pressure_per_count
+        self.per_count = pressure_per_count / cfg.gain_vs_library
         self.rng = np.random.default_rng(seed)
         self.memory = [np.zeros(shape) for shape in self.shapes]
         self.valid = [lay.valid() for lay in layouts]

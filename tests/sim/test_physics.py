@@ -20,8 +20,9 @@ OPEN = [90.0, -30.0, 30.0, 0.0, 0.0, -30.0, 30.0]
 
 
 def quiet(**extra: str) -> Settings:
-    """Defaults with sensor noise and creep off (deterministic readings)."""
-    sets = ["sim.sensor.noise=false", "sim.sensor.creep=false"]
+    """Defaults with sensor noise and creep off (deterministic readings), and the sensor at the
+    library's nominal gain, so the library-unit grasp thresholds below mean small true forces."""
+    sets = ["sim.sensor.noise=false", "sim.sensor.creep=false", "sim.sensor.gain_vs_library=1.0"]
     return load_config(overrides=[*sets, *(f"{k}={v}" for k, v in extra.items())], use_env=False)
 
 
@@ -187,7 +188,9 @@ def test_squeezing_harder_raises_force_and_reading_monotonically() -> None:
 
 
 def test_creep_raises_the_reading_under_constant_load() -> None:
-    cfg = load_config(overrides=["sim.sensor.noise=false"], use_env=False)
+    cfg = load_config(
+        overrides=["sim.sensor.noise=false", "sim.sensor.gain_vs_library=1.0"], use_env=False
+    )
     rig = Rig(cfg, "egg")
     rig.grasp()
     readings = []
@@ -253,7 +256,7 @@ def test_same_calls_same_frames() -> None:
     """The world is deterministic for a seed (noise and creep on)."""
 
     def run() -> list[bytes]:
-        cfg = load_config(use_env=False)
+        cfg = load_config(overrides=["sim.sensor.gain_vs_library=1.0"], use_env=False)
         rig = Rig(cfg, "egg")
         rig.grasp()
         out = []

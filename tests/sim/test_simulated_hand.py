@@ -80,7 +80,7 @@ async def test_fingers_moving_over_bytes_change_the_tactile_frames() -> None:
         r1, r2 = host.contact(rolled[1]), host.contact(rolled[5])
         assert r1.present and r2.present
         d1, d2 = r1.S_mm - c1.S_mm, r2.S_mm - c2.S_mm
-        assert abs(d1) > 0.8 and abs(d2) > 0.8
+        assert abs(d1) > 0.4 and abs(d2) > 0.4
         assert d1 * d2 < 0  # rolling: the contacts move opposite ways along the two pads
         assert not np.array_equal(rolled[5], held[5])
     finally:
