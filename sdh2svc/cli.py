@@ -128,6 +128,108 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    """One rolling run: pre-shape, grasp, roll for N strokes, release — on the simulated hand
+    (--sim) or a real one (--dsa/--sdh or the config's links). Exit status 0 only if completed."""
+    import asyncio
+
+    from sdh2svc.control.runner import Runner
+    from sdh2svc.service.headless import run_once
+    from sdh2svc.sim.objects import get_object, load_object
+
+    overrides = list(args.overrides)
+    if args.cycles is not None:
+        overrides.append(f"rolling.cycles={args.cycles}")
+    cfg = load_config(args.config, overrides)
+    obj = None
+    if args.sim:
+        try:
+            obj = (
+                load_object(args.object_file)
+                if args.object_file
+                else get_object(args.object or cfg.sim.object)
+            )
+        except (KeyError, OSError, ValueError) as e:
+            print(f"sdh2svc run: {e}", file=sys.stderr)
+            return 2
+    elif args.object or args.object_file or args.fast:
+        print("sdh2svc run: --object, --object-file and --fast need --sim", file=sys.stderr)
+        return 2
+
+    def progress(r: Runner) -> None:
+        if args.json or not sys.stderr.isatty():
+            return
+        F = r.result.forces[-1] if r.result.forces else 0.0
+        sig = r.result.sigmas[-1] if r.result.sigmas else 0.0
+        print(f"\r{r.phase.value:10s} stroke {r.state.strokes} of {r.params.cycles}  "
+              f"iteration {r.state.iteration:5d}  F {F:5.2f}  σ {sig:6.2f}°", end="",
+              file=sys.stderr)  # fmt: skip
+
+    if args.fast:
+        from sdh2svc.sim.clock import run_fast
+
+        summary = run_fast(run_once(cfg, sim=True, obj=obj, fast=True, progress=progress))
+    else:
+        summary = asyncio.run(run_once(cfg, sim=args.sim, obj=obj, dsa_url=args.dsa,
+                                       sdh_url=args.sdh, progress=progress))  # fmt: skip
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(file=sys.stderr)
+        f = summary["force"]
+        print(f"run {summary['run_id']}: {summary['status']} {summary['message']}".rstrip())
+        print(
+            f"  strokes {summary['strokes']}, iterations {summary['iterations']}, "
+            f"reversals {len(summary['reversals'])}, Λ at grasp {summary['lambda_initial_mm']}"
+        )
+        if f["mean"] is not None:
+            print(
+                f"  F mean {f['mean']:.2f} (sd {f['sd'] or 0:.2f}, {f['min']:.2f}…{f['max']:.2f})"
+                f", loop {summary['loop_hz'] or 0:.1f} Hz"
+            )
+        if "truth" in summary:
+            print(f"  simulation truth: {summary['truth']}")
+    return 0 if summary["status"] == "completed" else 1
+
+
+def cmd_runs(args: argparse.Namespace) -> int:
+    """Recorded runs: list them, show one, export one as CSV or MCAP."""
+    from sdh2svc.service.store import RunStore
+
+    cfg = load_config(args.config, args.overrides)
+    store = RunStore(cfg.storage.db_path)
+    try:
+        if args.action == "list":
+            for r in store.runs():
+                print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
+                      f"{r['iterations']:6d} iterations")  # fmt: skip
+            return 0
+        if args.id is None:
+            print(f"sdh2svc runs {args.action}: which run? (give its ID)", file=sys.stderr)
+            return 2
+        run = store.run(args.id)
+        if run is None:
+            print(f"sdh2svc runs: no run {args.id} in {cfg.storage.db_path}", file=sys.stderr)
+            return 2
+        if args.action == "show":
+            print(json.dumps(run, indent=2, ensure_ascii=False))
+        elif args.format == "csv":
+            out = open(args.output, "w", newline="") if args.output else sys.stdout  # noqa: SIM115
+            try:
+                store.export_csv(args.id, out)
+            finally:
+                if args.output:
+                    out.close()
+        else:
+            path = args.output or f"run-{args.id}.mcap"
+            with open(path, "wb") as fh:
+                n = store.export_mcap(args.id, fh)
+            print(f"{path}: {n} messages", file=sys.stderr)
+        return 0
+    finally:
+        store.close()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sdh2svc", description="Tactile in-hand rolling on a SCHUNK SDH2 hand."
@@ -167,6 +269,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="random seed of the simulated world")
     p.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
     p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser("run", help="one rolling run (headless)", description=cmd_run.__doc__)
+    _add_config_args(p)
+    p.add_argument("--sim", action="store_true", help="on the embedded simulated hand")
+    obj = p.add_mutually_exclusive_group()
+    obj.add_argument("--object", help="simulated object preset (with --sim)")
+    obj.add_argument("--object-file", metavar="FILE", help="simulated object file (with --sim)")
+    p.add_argument("--cycles", type=int, help="strokes before the run ends (rolling.cycles)")
+    p.add_argument("--dsa", metavar="URL", help="DSACON32m port or pyserial URL (real hand)")
+    p.add_argument("--sdh", metavar="URL", help="SDH2 port or pyserial URL (real hand)")
+    p.add_argument("--fast", action="store_true",
+                   help="virtual clock: as fast as the CPU allows (with --sim)")  # fmt: skip
+    p.add_argument("--json", action="store_true", help="one JSON summary object on stdout")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("runs", help="recorded runs: list, show, export",
+                       description=cmd_runs.__doc__)  # fmt: skip
+    _add_config_args(p)
+    p.add_argument("action", choices=["list", "show", "export"])
+    p.add_argument("id", nargs="?", type=int, help="run ID (show, export)")
+    p.add_argument("--format", choices=["csv", "mcap"], default="csv", help="export format")
+    p.add_argument(
+        "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
+    )
+    p.set_defaults(func=cmd_runs)
     return parser
 
 

@@ -1,0 +1,343 @@
+"""The run as an async state machine around the pure rolling step (hand-model §8, issue flow).
+
+idle → connecting → pre-shape → grasping → rolling → releasing → done, with stopped, faulted and
+e-stopped reachable from every state. One iteration per fresh tactile frame (never twice on the
+same frame, never on a stale one); the joint command of an iteration goes out as soon as it is
+computed. The safety supervisor (:mod:`sdh2svc.control.safety`) checks every proposal.
+
+The runner talks to the two links only through their driver objects — the same whether the URLs
+lead to a real hand or to the simulator.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
+from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
+from sdh2svc.config import Settings
+from sdh2svc.control.params import RollingParams
+from sdh2svc.control.rolling import RollState, StepResult, step
+from sdh2svc.control.safety import Fault, clamp_targets
+from sdh2svc.control.sample import Sample
+from sdh2svc.model.kinematics import HandPose
+
+
+class Phase(StrEnum):
+    IDLE = "idle"
+    CONNECTING = "connecting"
+    PRESHAPE = "pre-shape"
+    GRASPING = "grasping"
+    ROLLING = "rolling"
+    RELEASING = "releasing"
+    DONE = "done"
+    STOPPED = "stopped"
+    FAULTED = "faulted"
+    ESTOPPED = "e-stopped"
+
+
+class RunFault(Exception):
+    def __init__(self, fault: Fault, message: str) -> None:
+        super().__init__(message)
+        self.fault = fault
+
+
+@dataclass
+class RunResult:
+    """What a run did; ``status`` is completed | stopped | faulted | dropped | e-stopped."""
+
+    status: str
+    message: str = ""
+    strokes: int = 0
+    iterations: int = 0
+    reversals: list[dict[str, Any]] = field(default_factory=list)
+    lambda_initial_mm: float | None = None
+    forces: list[float] = field(default_factory=list)
+    sigmas: list[float] = field(default_factory=list)
+    latencies_ms: list[float] = field(default_factory=list)
+    rolling_s: float = 0.0
+
+    def summary(self) -> dict[str, Any]:
+        f, lat = self.forces, sorted(self.latencies_ms)
+
+        def pct(q: float) -> float | None:
+            return lat[min(len(lat) - 1, round(q * (len(lat) - 1)))] if lat else None
+
+        return {
+            "status": self.status, "message": self.message, "strokes": self.strokes,
+            "iterations": self.iterations, "reversals": self.reversals,
+            "lambda_initial_mm": self.lambda_initial_mm,
+            "force": {
+                "mean": statistics.fmean(f) if f else None,
+                "sd": statistics.pstdev(f) if len(f) > 1 else None,
+                "min": min(f, default=None), "max": max(f, default=None),
+            },
+            "sigma_range_deg": (max(self.sigmas) - min(self.sigmas)) if self.sigmas else None,
+            "loop_hz": self.iterations / self.rolling_s if self.rolling_s > 0 else None,
+            "latency_ms": {"p50": pct(0.5), "p99": pct(0.99)},
+        }  # fmt: skip
+
+
+class Runner:
+    """One run on open links. ``on_sample``/``on_event`` receive everything worth recording."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        joints: JointLink,
+        tactile: TactileBus,
+        *,
+        params: RollingParams | None = None,
+        on_sample: Callable[[Sample], None] | None = None,
+        on_event: Callable[[float, int | None, str, dict[str, Any]], None] | None = None,
+        on_frame: Callable[[float, TactileFrame], None] | None = None,
+    ) -> None:
+        self.settings, self.joints, self.tactile = settings, joints, tactile
+        self.ctx = settings.model_context()
+        self.params = params or settings.rolling
+        self._pending: RollingParams | None = None
+        self.phase = Phase.IDLE
+        self.state = RollState()
+        self.result = RunResult(status="running")
+        self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
+        self._stop = asyncio.Event()
+        self._t0 = 0.0
+        self._task: asyncio.Task[RunResult] | None = None
+        a = settings.axes
+        self._axes = (a.phi2, a.phi3, a.phi4, a.phi5)
+        self._m1, self._m2 = a.finger1_distal_matrix, a.finger2_distal_matrix
+
+    # --- control from outside ---------------------------------------------------------------
+
+    def set_params(self, params: RollingParams) -> None:
+        """Takes effect, whole, at the next iteration."""
+        self._pending = params
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    async def emergency_stop(self) -> None:
+        """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase."""
+        if self._task is not None and not self._task.done():
+            self._task.cancel()
+        await self.joints.emergency_stop()
+        self._set_phase(Phase.ESTOPPED)
+        self.result.status = "e-stopped"
+        self._event("estop", {})
+
+    # --- the run ----------------------------------------------------------------------------
+
+    async def run(self) -> RunResult:
+        self._task = asyncio.current_task()  # type: ignore[assignment]
+        loop = asyncio.get_running_loop()
+        self._t0 = loop.time()
+        sub = self.tactile.subscribe({self._m1, self._m2}, self.settings.run.tactile_rate_hz)
+        watch = self.tactile.subscribe(range(6), self.settings.run.watch_rate_hz)
+        try:
+            self._set_phase(Phase.CONNECTING)
+            self._event("start", {"params": self.params.model_dump()})
+            await self._preshape()
+            if not self._stop.is_set():
+                await self._grasp(sub)
+            if not self._stop.is_set():
+                await self._roll(sub)
+            status = "stopped" if self._stop.is_set() else "completed"
+            await self._release()
+            self._finish(Phase.STOPPED if status == "stopped" else Phase.DONE, status)
+        except RunFault as e:
+            await self._halt()
+            status = "dropped" if e.fault is Fault.DROPPED else "faulted"
+            if e.fault is Fault.FORCE_CEILING:
+                with contextlib.suppress(Exception):
+                    await self._release()
+            self._event("fault", {"fault": e.fault.value, "message": str(e)})
+            self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
+        except (JointLinkError, TactileError) as e:
+            await self._halt()
+            fault = Fault.JOINT_ERROR if isinstance(e, JointLinkError) else Fault.SENSOR_ERROR
+            self._event("fault", {"fault": fault.value, "message": str(e)})
+            self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
+        except asyncio.CancelledError:
+            if self.phase is not Phase.ESTOPPED:
+                raise
+        finally:
+            sub.close()
+            watch.close()
+        return self.result
+
+    def _finish(self, phase: Phase, status: str, message: str = "") -> None:
+        self.result.status, self.result.message = status, message
+        self.result.strokes = self.state.strokes
+        self._set_phase(phase)
+        self._event("end", {"status": status, "message": message})
+
+    async def _halt(self) -> None:
+        """Hold where the hand is: targets = actual angles."""
+        with contextlib.suppress(Exception):
+            actual = await self.joints.get_actual()
+            await self.joints.set_controller(ControllerMode.POSE)
+            await self.joints.set_targets(self.joints.clip_to_limits(actual))
+
+    async def _move_to(self, targets: tuple[float, ...], velocity: float) -> None:
+        await self.joints.set_controller(ControllerMode.POSE)
+        await self.joints.set_velocities([velocity] * 7)
+        await self.joints.set_targets(targets)
+        await self.joints.move()
+        await self.joints.wait_idle()
+
+    async def _preshape(self) -> None:
+        self._set_phase(Phase.PRESHAPE)
+        run = self.settings.run
+        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s)
+
+    async def _grasp(self, sub: Subscription) -> None:
+        """Close both coupled fingers in a mirror pose, force-proportionally, until F ≥ Fd."""
+        self._set_phase(Phase.GRASPING)
+        run, fd = self.settings.run, self.params.grasp_force
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + run.grasp_timeout_s
+        await self.joints.set_controller(ControllerMode.VELOCITY_ACCELERATION)
+        await self.joints.set_accelerations([100.0] * 7)
+        p2, p3, p4, p5 = self._axes
+        try:
+            while not self._stop.is_set():
+                frame = await self._fresh(sub)
+                c1, c2 = (
+                    self.ctx.contact(frame.matrices[self._m1]),
+                    self.ctx.contact(frame.matrices[self._m2]),
+                )
+                F = (c1.force_library + c2.force_library) / 2
+                if F >= fd:
+                    self._event("grasped", {"F": F})
+                    return
+                if loop.time() > deadline:
+                    raise RunFault(Fault.NO_CONTACT, f"no grasp (F = {F:.2f} < Fd = {fd}) "
+                                   f"within {run.grasp_timeout_s:g} s")  # fmt: skip
+                actual = await self.joints.get_actual()
+                if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
+                    raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
+                v = [0.0] * 7
+                for prox, dist, f in ((p2, p3, c1.force_library), (p4, p5, c2.force_library)):
+                    speed = min(run.grasp_max_velocity_deg_s, (fd - f) * run.grasp_gain_deg_s)
+                    v[prox], v[dist] = max(speed, 0.0), -max(speed, 0.0)
+                await self.joints.tvav(v)
+        finally:
+            with contextlib.suppress(Exception):
+                await self.joints.tvav([0.0] * 7)
+
+    async def _fresh(self, sub: Subscription) -> TactileFrame:
+        """The next frame, newer than any used before; a silent or stale stream is a fault."""
+        stale = self.settings.safety.stale_frame_ms / 1000
+        try:
+            frame = await sub.next_frame(timeout=stale)
+        except (FrameTimeout, TimeoutError):
+            raise RunFault(
+                Fault.STALE_SENSOR, f"no tactile frame for {stale * 1000:.0f} ms"
+            ) from None
+        if frame.age() > stale:
+            raise RunFault(Fault.STALE_SENSOR, f"tactile frame {frame.age() * 1000:.0f} ms old")
+        return frame
+
+    async def _roll(self, sub: Subscription) -> None:
+        self._set_phase(Phase.ROLLING)
+        await self.joints.set_controller(ControllerMode.POSE)
+        # Each iteration starts a new move from rest: with the firmware's default 100 °/s² a
+        # 0.25° step would not finish within a frame period, so use the axes' own limits.
+        await self.joints.set_velocities([self.settings.run.preshape_velocity_deg_s] * 7)
+        await self.joints.set_accelerations(self.joints.acceleration_limits)
+        loop = asyncio.get_running_loop()
+        t_start = loop.time()
+        try:
+            await self._roll_loop(sub)
+        finally:
+            self.result.rolling_s = loop.time() - t_start
+
+    async def _roll_loop(self, sub: Subscription) -> None:
+        loop = asyncio.get_running_loop()
+        safety, limits = self.settings.safety, self.settings.limits
+        while not self._stop.is_set() and self.state.strokes < self.params.cycles:
+            if self._pending is not None:
+                self.params, self._pending = self._pending, None
+                self._event("params", {"params": self.params.model_dump()})
+            frame = await self._fresh(sub)
+            actual = await self.joints.get_actual()
+            age_ms = (loop.time() - frame.arrival) * 1000
+            pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
+            m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
+            r = step(self.state, pose, m1, m2, self.params, self.ctx)
+            fault = self._supervise(r)
+            if fault is not None:  # record what tripped it, command nothing
+                self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
+                raise fault
+            if r.targets is not None:
+                want = list(actual)
+                for axis, angle in zip(self._axes, (r.targets.phi2, r.targets.phi3, r.targets.phi4,
+                                                    r.targets.phi5), strict=True):  # fmt: skip
+                    want[axis] = math.degrees(angle)
+                cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
+                                    safety.max_step_deg)  # fmt: skip
+                await self.joints.set_targets(cmd)
+                latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
+                await self.joints.move()
+            else:
+                latency_ms = (loop.time() - frame.arrival) * 1000
+            self.state = r.state
+            self._record(r, pose, frame, age_ms, latency_ms)
+
+    def _supervise(self, r: StepResult) -> RunFault | None:
+        s, p = self.settings.safety, self.params
+        c1, c2 = r.obs.contact1, r.obs.contact2
+        if r.F > s.force_ceiling_factor * p.grasp_force:
+            return RunFault(Fault.FORCE_CEILING, f"F = {r.F:.2f} above "
+                            f"{s.force_ceiling_factor:g} × Fd")  # fmt: skip
+        if not c1.present and not c2.present:
+            return RunFault(Fault.DROPPED, "both contacts lost: the object is no longer held")
+        if r.state.consecutive_reversals > s.max_consecutive_reversals:
+            return RunFault(Fault.STUCK, f"{r.state.consecutive_reversals} reversals in a row "
+                            f"(last: {r.reversal})")  # fmt: skip
+        return None
+
+    def _record(
+        self, r: StepResult, pose: HandPose, frame: TactileFrame, age_ms: float, latency_ms: float
+    ) -> None:
+        t = frame.arrival - self._t0
+        res = self.result
+        res.iterations += 1
+        if res.lambda_initial_mm is None and r.obs.Lambda is not None:
+            res.lambda_initial_mm = r.obs.Lambda
+        res.forces.append(r.F)
+        if r.obs.sigma is not None:
+            res.sigmas.append(math.degrees(r.obs.sigma))
+        res.latencies_ms.append(latency_ms)
+        if r.reversal is not None:
+            res.reversals.append({"iteration": r.state.iteration, "reason": r.reversal.value})
+            self._event("reversal", {"reason": r.reversal.value, "stroke": r.state.strokes},
+                        r.state.iteration)  # fmt: skip
+        sample = Sample.from_step(r, pose, t, age_ms, latency_ms)
+        if self._on_sample:
+            self._on_sample(sample)
+        if self._on_frame:
+            self._on_frame(t, frame)
+
+    async def _release(self) -> None:
+        self._set_phase(Phase.RELEASING)
+        run = self.settings.run
+        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s)
+
+    def _set_phase(self, phase: Phase) -> None:
+        if phase is not self.phase:
+            self.phase = phase
+            self._event("phase", {"phase": phase.value})
+
+    def _event(self, kind: str, detail: dict[str, Any], iteration: int | None = None) -> None:
+        if self._on_event:
+            t = asyncio.get_running_loop().time() - self._t0
+            self._on_event(t, iteration if iteration is not None else self.state.iteration, kind,
+                           detail)  # fmt: skip

@@ -1,0 +1,156 @@
+"""The runner on the simulated hand, through the real drivers and bytes, in fast mode (virtual
+clock over Unix sockets): phases, the safety supervisor's reactions, e-stop, recording."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Callable, Coroutine
+from pathlib import Path
+from typing import Any, TypeVar
+
+from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.tactile import TactileBus
+from sdh2svc.config import Settings, load_config
+from sdh2svc.control.runner import Phase, Runner
+from sdh2svc.protocol.sdh import AxisState
+from sdh2svc.sim.clock import run_fast
+from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+
+T = TypeVar("T")
+
+
+def cfg_with(tmp: Path, *extra: str) -> Settings:
+    return load_config(overrides=[f"storage.db_path='{tmp / 'runs.sqlite'}'", *extra],
+                       use_env=False)  # fmt: skip
+
+
+@contextlib.asynccontextmanager
+async def rig(cfg: Settings, tmp: Path) -> AsyncIterator[tuple[SimulatedHand, Runner]]:
+    hand = await start_simulated_hand(cfg, unix_dir=tmp)
+    joints = await JointLink.open(hand.urls("sdh")[0])
+    tactile = await TactileBus.open(hand.urls("dsa")[0])
+    events: list[tuple[str, dict[str, Any]]] = []
+    runner = Runner(cfg, joints, tactile, on_event=lambda t, i, k, d: events.append((k, d)))
+    runner.events = events  # type: ignore[attr-defined]
+    try:
+        yield hand, runner
+    finally:
+        await tactile.close()
+        await joints.close()
+        await hand.stop()
+
+
+def fast(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
+    return run_fast(main())
+
+
+def test_run_goes_through_its_phases_and_the_force_ceiling_stops_it(tmp_path: Path) -> None:
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[Any, list, bool]:
+        async with rig(cfg, tmp_path) as (hand, runner):
+            result = await runner.run()
+            return result, runner.events, hand.world.truth().held  # type: ignore[attr-defined]
+
+    result, events, held_after = fast(main)
+    phases = [d["phase"] for k, d in events if k == "phase"]
+    assert phases[:4] == ["connecting", "pre-shape", "grasping", "rolling"]
+    assert result.iterations > 5 and result.lambda_initial_mm is not None
+    assert min(result.forces) >= cfg.rolling.grasp_force * 0.9  # grasped at F ≈ Fd
+    if result.status == "faulted":  # the supervisor's ceiling: stop, then open the hand
+        assert "force_ceiling" in result.message
+        assert max(result.forces) > 3.0 * cfg.rolling.grasp_force
+        assert phases[-2:] == ["releasing", "faulted"] and not held_after
+    else:
+        assert result.status == "completed" and result.strokes == cfg.rolling.cycles
+
+
+def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:
+    cfg = cfg_with(tmp_path, "sim.object_height_mm=300.0", "run.grasp_timeout_s=5.0")
+
+    async def main() -> Any:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            return await runner.run()
+
+    result = fast(main)
+    assert result.status == "faulted" and result.message.startswith("no_contact")
+    assert result.iterations == 0
+
+
+def test_silent_sensor_stream_faults_and_holds(tmp_path: Path) -> None:
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[Any, tuple[float, ...], tuple[float, ...]]:
+        async with rig(cfg, tmp_path) as (hand, runner):
+
+            async def unplug() -> None:
+                while runner.phase is not Phase.ROLLING:
+                    await asyncio.sleep(0.01)
+                await asyncio.sleep(0.3)
+                hand.endpoints["dsa"][0].disconnect(5.0)
+
+            task = asyncio.create_task(unplug())
+            result = await runner.run()
+            await task
+            emu = hand.sdh
+            return result, emu.target_deg, emu.actual_deg
+
+    result, target, actual = fast(main)
+    assert result.status == "faulted" and result.message.startswith("stale_sensor")
+    assert max(abs(t - a) for t, a in zip(target, actual, strict=True)) < 0.5  # held in place
+
+
+def test_emergency_stop_mid_roll(tmp_path: Path) -> None:
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[
+        Any, Phase, tuple[AxisState, ...], tuple[float, ...], tuple[float, ...]
+    ]:
+        async with rig(cfg, tmp_path) as (hand, runner):
+            run = asyncio.create_task(runner.run())
+            while runner.phase is not Phase.ROLLING:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.2)
+            await runner.emergency_stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await run
+            states = await runner.joints.get_state()
+            return runner.result, runner.phase, states, hand.sdh.target_deg, hand.sdh.actual_deg
+
+    result, phase, states, target, actual = fast(main)
+    assert phase is Phase.ESTOPPED and result.status == "e-stopped"
+    assert all(s is AxisState.DISABLED for s in states)
+    assert max(abs(t - a) for t, a in zip(target, actual, strict=True)) < 0.5
+
+
+def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
+    db = tmp_path / "runs.sqlite"
+    args = [sys.executable, "-m", "sdh2svc", "run", "--sim", "--fast", "--object", "egg",
+            "--cycles", "1", "--json", "--set", f"storage.db_path='{db}'"]  # fmt: skip
+    r = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    out = json.loads(r.stdout)
+    keys = ("status", "strokes", "iterations", "reversals", "lambda_initial_mm", "force",
+            "sigma_range_deg", "loop_hz", "latency_ms", "frames", "run_id", "truth")  # fmt: skip
+    assert set(keys) <= set(out), set(keys) - set(out)
+    assert set(out["force"]) == {"mean", "sd", "min", "max"}
+    assert set(out["truth"]) >= {"object", "size_mm", "dropped", "slips", "rotation_range_deg"}
+    assert out["truth"]["object"] == "egg" and out["frames"]["received"] > 0
+    assert (r.returncode == 0) == (out["status"] == "completed")
+    base = [sys.executable, "-m", "sdh2svc", "runs"]
+    dbset = ["--set", f"storage.db_path='{db}'"]
+    listing = subprocess.run([*base, "list", *dbset], capture_output=True, text=True, timeout=60)
+    assert f"{out['run_id']:5d}" in listing.stdout
+    shown = subprocess.run([*base, "show", str(out["run_id"]), *dbset], capture_output=True,
+                           text=True, timeout=60)  # fmt: skip
+    run = json.loads(shown.stdout)
+    assert run["status"] == out["status"] and run["iterations"] == out["iterations"]
+    csv_out = subprocess.run([*base, "export", str(out["run_id"]), "--format", "csv", *dbset],
+                             capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert len(csv_out.stdout.strip().splitlines()) == out["iterations"] + 1
+    missing = subprocess.run([*base, "show", "999", *dbset], capture_output=True, text=True,
+                             timeout=60)  # fmt: skip
+    assert missing.returncode == 2 and "no run 999" in missing.stderr
