@@ -17,7 +17,9 @@ def test_defaults_are_the_thesis_values() -> None:
     assert (s.hand.distal_length_mm, s.hand.distal_length_schunk_mm) == (68.0, 68.5)
     r = s.rolling
     assert (r.delta_phi_deg, r.k, r.lambda_gain, r.alpha_deg) == (0.25, 2.0, 5.0, 22.0)
-    assert (r.grasp_force, r.delta_lambda_inc_mm, r.delta_lambda_dec_mm, r.cycles) == (2, 0.2, 1, 3)
+    assert (r.grasp_force, r.cycles) == (2, 3)
+    # ΔΛ magnitudes of the thesis's §4.2 text (Table 8 swaps them; see config/default.toml)
+    assert (r.delta_lambda_inc_mm, r.delta_lambda_dec_mm) == (1.0, 0.2)
     assert (s.axes.phi2, s.axes.phi3, s.axes.phi4, s.axes.phi5) == (1, 2, 5, 6)
     assert (s.axes.finger1_distal_matrix, s.axes.finger2_distal_matrix) == (1, 5)
     assert (s.tactile.distal.rows, s.tactile.distal.cols) == (13, 6)

@@ -285,7 +285,11 @@ class Runner:
                                     safety.max_step_deg)  # fmt: skip
                 await self.joints.set_targets(cmd)
                 latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
-                await self.joints.move()
+                duration = await self.joints.move()
+                # Let the move finish before the next iteration looks: every iteration starts
+                # from where the last one's command got the fingers (SDHLibrary's sequential
+                # moves do the same), not from a configuration half-way there.
+                await asyncio.sleep(duration)
             else:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state

@@ -58,12 +58,13 @@ def test_normal_step_follows_the_route(cfg: Settings, pose: HandPose) -> None:
 
 
 @pytest.mark.parametrize(
-    ("prev_F_delta", "expected"), [(-0.3, 0.2), (0.3, -1.0), (0.0, 0.0), (0.1, 0.0), (-0.1, 0.0)]
+    ("prev_F_delta", "expected"), [(-0.3, 0.7), (0.3, -0.3), (0.0, 0.0), (0.1, 0.0), (-0.1, 0.0)]
 )
 def test_delta_lambda_sign_logic(cfg: Settings, prev_F_delta: float, expected: float) -> None:
-    """Rising force → open by ΔΛ_inc (0.2 mm); falling → close by ΔΛ_dec (1.0 mm); a change
-    within the deadband (0.15) → keep Λ."""
-    ctx, p = cfg.model_context(), cfg.rolling
+    """Rising force → open by ΔΛ_inc (0.7 mm here); falling → close by ΔΛ_dec (0.3 mm); a
+    change within the deadband (0.15) → keep Λ."""
+    ctx = cfg.model_context()
+    p = params(cfg, delta_lambda_inc_mm=0.7, delta_lambda_dec_mm=0.3)
     F = step(RollState(), MIRROR, frame(20.0), frame(20.0), p, ctx).F
     r = step(RollState(F_prev=F + prev_F_delta), MIRROR, frame(20.0), frame(20.0), p, ctx)
     assert r.dF == pytest.approx(-prev_F_delta)
