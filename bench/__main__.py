@@ -8,6 +8,7 @@ import importlib
 SECTIONS = {
     "model": "bench.model_step",
     "protocol": "bench.protocol",
+    "links": "bench.links",
     "sim": "bench.sim_world",
 }
 
