@@ -10,6 +10,7 @@ SECTIONS = {
     "protocol": "bench.protocol",
     "links": "bench.links",
     "sim": "bench.sim_world",
+    "control": "bench.control",
 }
 
 
