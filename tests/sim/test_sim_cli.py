@@ -10,6 +10,8 @@ import sys
 
 import serial_asyncio
 
+from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.protocol import dsa, sdh
 
 
@@ -62,6 +64,17 @@ def test_sim_serves_both_devices_on_pty_and_tcp() -> None:
                 assert ci.sw_version >= 0x1000
             for url in info["sdh"]:
                 assert await _sdh_version(url) == "0.0.3.3"
+            # and our own drivers, over the pty and over TCP
+            for dsa_url, sdh_url in zip(info["dsa"], info["sdh"], strict=True):
+                async with await TactileBus.open(dsa_url) as bus:
+                    assert bus.nb_cells == 486
+                    sub = bus.subscribe({1, 5}, 30.0)
+                    first = await sub.next_frame(timeout=5.0)
+                    second = await sub.next_frame(timeout=5.0)
+                    assert second.seq > first.seq
+                async with await JointLink.open(sdh_url) as link:
+                    assert link.version == "0.0.3.3"
+                    assert len(await link.get_actual()) == 7
 
         asyncio.run(check())
     finally:
