@@ -501,7 +501,10 @@ class ContactPhysics:
         return out
 
     def joint_torques_n_mm(self) -> dict[str, float]:
-        """Torque the contacts put on each coupled joint (N·mm), from the last step's pressures."""
+        """Torque the contacts put on each coupled joint (N·mm), from the last step's pressures,
+        in joint coordinates: positive turns the joint towards larger angles (closing, for the
+        proximal joints). Finger 1's joints turn clockwise in the y0z0 plane as their angles
+        grow, Finger 2's (mirrored) counter-clockwise, hence the sign per finger."""
         frames = link_frames(self.hand_pose, self.geom)
         world = self._world_samples(self.hand_pose)
         tau = {"phi2": 0.0, "phi3": 0.0, "phi4": 0.0, "phi5": 0.0}
@@ -519,5 +522,6 @@ class ContactPhysics:
                 if name == dist_name and j not in (DISTAL1, DISTAL2):
                     continue
                 arm = pts[idx] - origin
-                tau[name] += float(np.sum(arm[:, 0] * f[:, 1] - arm[:, 1] * f[:, 0]))
+                moment = float(np.sum(arm[:, 0] * f[:, 1] - arm[:, 1] * f[:, 0]))
+                tau[name] += -moment if finger is Finger.ONE else moment
         return tau

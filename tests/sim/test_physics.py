@@ -268,3 +268,25 @@ def test_same_calls_same_frames() -> None:
         return out
 
     assert run() == run()
+
+
+def test_finger_pressing_a_stiff_object_stalls_at_its_torque_limit() -> None:
+    cfg = quiet()
+    rig = Rig(cfg, "egg")
+    rig.grasp()
+    blocked_seen, lag = False, 0.0
+    for _ in range(40):
+        q = rig.q
+        q[1] += 1.0
+        q[5] += 1.0
+        actual = rig.w.move_joints(rig.t + 0.02, q, [True] * 7)
+        rig.t += 0.02
+        if rig.w.truth().blocked_axes:
+            blocked_seen = True
+        lag = max(lag, q[1] - actual[1], q[5] - actual[5])
+        rig.q = list(actual)  # a stalled servo stays where it is
+    t = rig.w.truth()
+    assert blocked_seen and lag > 0.5
+    tau = rig.w.physics.joint_torques_n_mm()
+    assert abs(tau["phi2"]) >= cfg.sim.physics.torque_limit_proximal_n_mm  # stalled there
+    assert t.held  # pressed hard, but not through the object
