@@ -204,3 +204,42 @@ def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:
     assert a["status"] == "completed" and len(samples_a) > 20
     assert samples_a == samples_b
     assert a["reversals"] == b["reversals"] and a["force"] == b["force"]
+
+
+def test_emergency_stop_mid_grasp(tmp_path: Path) -> None:
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[Any, Phase, tuple[AxisState, ...]]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            run = asyncio.create_task(runner.run())
+            while runner.phase is not Phase.GRASPING:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.3)
+            await runner.emergency_stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await run
+            return runner.result, runner.phase, await runner.joints.get_state()
+
+    result, phase, states = fast(main)
+    assert phase is Phase.ESTOPPED and result.status == "e-stopped"
+    assert all(s is AxisState.DISABLED for s in states)
+
+
+def test_lost_joint_line_faults_the_run(tmp_path: Path) -> None:
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> Any:
+        async with rig(cfg, tmp_path) as (hand, runner):
+            async def unplug() -> None:
+                while runner.phase is not Phase.ROLLING:
+                    await asyncio.sleep(0.01)
+                await asyncio.sleep(0.3)
+                hand.endpoints["sdh"][0].disconnect(3.0)
+
+            task = asyncio.create_task(unplug())
+            result = await runner.run()
+            await task
+            return result
+
+    result = fast(main)
+    assert result.status == "faulted" and result.message.startswith("joint_error")
