@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import re
 import struct
+from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum, IntEnum, StrEnum
@@ -922,7 +923,7 @@ def _printable(raw: bytes) -> str | None:
     return text if text.isascii() and text.isprintable() else None
 
 
-class _Framer(Generic[E]):
+class _Framer(ABC, Generic[E]):
     """Split a byte stream into lines and (optionally) binary frames at message boundaries."""
 
     def __init__(self, *, max_line: int, binary: bool) -> None:
@@ -988,15 +989,15 @@ class _Framer(Generic[E]):
         events.extend(self._line(line))
         return True
 
-    def _line(self, raw: bytes) -> list[E]:
-        raise NotImplementedError
+    @abstractmethod
+    def _line(self, raw: bytes) -> list[E]: ...
 
-    def _overflow(self, prefix: bytes) -> E:
-        raise NotImplementedError
+    @abstractmethod
+    def _overflow(self, prefix: bytes) -> E: ...
 
+    @abstractmethod
     def _frame(self, buf: bytearray) -> tuple[int, E] | None:
         """(bytes consumed, event) for the frame at ``buf[0]``, or None to wait for more."""
-        raise NotImplementedError
 
 
 def _nb_choices(crc: bool | None, sizes: dict[bool, int]) -> frozenset[int]:
