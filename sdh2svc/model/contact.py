@@ -147,19 +147,27 @@ NO_CONTACT = ContactEstimate(
 )
 
 
+def _forces(pressure_sum: float, n_cells: int, pitch: float) -> tuple[float, float]:
+    """(library, physical) force of cells whose pressures sum to ``pressure_sum`` (N/mm²):
+    SDHLibrary's Σp × total contact area, and Σp × cell area (eq 2.20)."""
+    cell_area = pitch * pitch
+    return pressure_sum * n_cells * cell_area, pressure_sum * cell_area
+
+
 def _blob(values: np.ndarray, cells: np.ndarray, pitch: float, p_per_count: float) -> Blob:
     rows, cols = np.nonzero(cells)
     w = values[rows, cols]
     total = float(w.sum())
     n = int(rows.size)
     pressure = total * p_per_count
+    library, physical = _forces(pressure, n, pitch)
     return Blob(
         S_mm=pitch * (float((rows * w).sum()) / total),
         col_mm=pitch * (float((cols * w).sum()) / total),
         n_cells=n,
         pressure_sum_n_per_mm2=pressure,
-        force_library=pressure * n * pitch * pitch,
-        force_physical_n=pressure * pitch * pitch,
+        force_library=library,
+        force_physical_n=physical,
         first_row=int(rows.min()),
         last_row=int(rows.max()),
     )
@@ -185,8 +193,9 @@ def estimate_contact(
     p_per_count = calib.pressure_per_count_n_per_mm2
     blobs = tuple(_blob(values, labels == i, pitch_mm, p_per_count) for i in range(1, n + 1))
     main = max(blobs, key=lambda b: b.pressure_sum_n_per_mm2)
-    n_cells = int(loaded.sum())
-    pressure = float(values[loaded].sum()) * p_per_count
+    # the blobs partition the loaded cells: the whole pad's totals are their sums
+    n_cells = sum(b.n_cells for b in blobs)
+    library, physical = _forces(sum(b.pressure_sum_n_per_mm2 for b in blobs), n_cells, pitch_mm)
     S = main.S_mm
     s_range = (layout.rows - 1) * pitch_mm
     L = calib.distance.L_from_S(S, s_range, pad)
@@ -203,8 +212,8 @@ def estimate_contact(
         r_mm=r,
         theta_rad=theta,
         at_edge=row < margin or row > (layout.rows - 1) - margin,
-        force_library=pressure * n_cells * pitch_mm * pitch_mm,
-        force_physical_n=pressure * pitch_mm * pitch_mm,
+        force_library=library,
+        force_physical_n=physical,
         area_mm2=n_cells * pitch_mm * pitch_mm,
         n_cells=n_cells,
         blobs=blobs,
