@@ -192,6 +192,42 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0 if summary["status"] == "completed" else 1
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    """The service: REST/WebSocket API, dashboard and 3-D view, on the embedded simulated hand
+    (--sim) or a real one (--dsa/--sdh or the config's links). Ctrl-C/SIGTERM stop motion first."""
+    import asyncio
+
+    from sdh2svc.service.serve import ExposureError, serve, setup_logging
+    from sdh2svc.sim.objects import get_object, load_object
+
+    overrides = list(args.overrides)
+    for key, value in (("host", args.host), ("port", args.port), ("viser_port", args.viser_port)):
+        if value is not None:
+            overrides.append(f"service.{key}={json.dumps(value)}")
+    if args.no_viewer:
+        overrides.append("service.viewer=false")
+    cfg = load_config(args.config, overrides)
+    setup_logging(args.log_format, args.log_level)
+    obj = None
+    if args.object or args.object_file:
+        if not args.sim:
+            print("sdh2svc serve: --object and --object-file need --sim", file=sys.stderr)
+            return 2
+        try:
+            obj = load_object(args.object_file) if args.object_file else get_object(args.object)
+        except (KeyError, OSError, ValueError) as e:
+            print(f"sdh2svc serve: {e}", file=sys.stderr)
+            return 2
+    try:
+        return asyncio.run(serve(cfg, sim=args.sim, dsa_url=args.dsa, sdh_url=args.sdh, obj=obj,
+                                 announce_json=args.json))  # fmt: skip
+    except ExposureError as e:
+        print(f"sdh2svc serve: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
 def cmd_runs(args: argparse.Namespace) -> int:
     """Recorded runs: list them, show one, export one as CSV or MCAP."""
     from sdh2svc.service.store import RunStore
@@ -283,6 +319,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="virtual clock: as fast as the CPU allows (with --sim)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="one JSON summary object on stdout")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("serve", help="the service: API, dashboard, 3-D view",
+                       description=cmd_serve.__doc__)  # fmt: skip
+    _add_config_args(p)
+    p.add_argument("--sim", action="store_true", help="on the embedded simulated hand")
+    obj = p.add_mutually_exclusive_group()
+    obj.add_argument("--object", help="simulated object preset (with --sim)")
+    obj.add_argument("--object-file", metavar="FILE", help="simulated object file (with --sim)")
+    p.add_argument("--host", help="bind address (default 127.0.0.1; beyond loopback needs a "
+                   "token: SDH2SVC_SERVICE__TOKEN)")  # fmt: skip
+    p.add_argument("--port", type=int, help="HTTP port (default 8000; 0 = any free one)")
+    p.add_argument("--viser-port", type=int, help="3-D view port (default 8080; 0 = any)")
+    p.add_argument("--no-viewer", action="store_true", help="no viser 3-D view")
+    p.add_argument("--dsa", metavar="URL", help="DSACON32m port or pyserial URL (real hand)")
+    p.add_argument("--sdh", metavar="URL", help="SDH2 port or pyserial URL (real hand)")
+    p.add_argument("--log-format", choices=["text", "json"], default="text",
+                   help="log lines on stderr: text (journald) or json")  # fmt: skip
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    p.add_argument("--json", action="store_true", help="announce the URLs as one JSON line")
+    p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("runs", help="recorded runs: list, show, export",
                        description=cmd_runs.__doc__)  # fmt: skip

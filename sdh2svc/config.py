@@ -127,6 +127,23 @@ class StorageConfig(Frozen):
     db_path: str
 
 
+class ServiceConfig(Frozen):
+    """``sdh2svc serve``: where it listens, who may command it, how telemetry flows."""
+
+    host: str
+    port: Annotated[int, Field(ge=0, le=65535)]
+    viser_port: Annotated[int, Field(ge=0, le=65535)]
+    viewer: bool
+    token: str
+    telemetry_queue: Annotated[int, Field(ge=1, le=100_000)]
+    send_timeout_s: Annotated[float, Field(gt=0.0, le=60.0)]
+    tactile_max_hz: Annotated[float, Field(gt=0.0, le=30.0)]
+    monitor_rate_hz: Annotated[float, Field(ge=0.0, le=30.0)]
+    pose_hz: Annotated[float, Field(gt=0.0, le=30.0)]
+    status_hz: Annotated[float, Field(gt=0.0, le=30.0)]
+    stop_timeout_s: Annotated[float, Field(gt=0.0, le=120.0)]
+
+
 class Settings(BaseSettings):
     """The whole configuration of sdh2svc; see ``config/default.toml`` for every key and unit."""
 
@@ -144,6 +161,7 @@ class Settings(BaseSettings):
     safety: SafetyConfig
     links: LinksConfig
     storage: StorageConfig
+    service: ServiceConfig
     sim: SimConfig
 
     def model_context(self) -> ModelContext:

@@ -410,6 +410,7 @@ class JointLink:
         self._closed = False
         self._estopped = False
         self._estop_pending = 0
+        self.last_actual: Vec | None = None  # the newest `pos` answer, for displays (no line time)
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[None]] = set()
 
@@ -776,7 +777,8 @@ class JointLink:
 
     async def get_actual(self) -> Vec:
         """Actual joint angles (``pos``), deg."""
-        return await self._vector("pos")
+        self.last_actual = await self._vector("pos")
+        return self.last_actual
 
     async def get_targets(self) -> Vec:
         """Target angles (``p``), deg."""

@@ -99,6 +99,17 @@ class RunStore:
                 (status, _now_iso(), json.dumps(summary), run_id),
             )
 
+    def mark_interrupted(self) -> list[int]:
+        """Runs left 'running' by a process that died: mark them so (their data stays)."""
+        with self._lock, self.db:
+            ids = [r[0] for r in self.db.execute("SELECT id FROM runs WHERE status = 'running'")]
+            self.db.execute("UPDATE runs SET status = 'interrupted' WHERE status = 'running'")
+        return ids
+
+    def sample_count(self, run_id: int) -> int:
+        row = self.db.execute("SELECT COUNT(*) FROM samples WHERE run_id = ?", (run_id,)).fetchone()
+        return int(row[0])
+
     def runs(self) -> list[dict[str, Any]]:
         rows = self.db.execute(
             "SELECT r.*, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS iterations "

@@ -1,0 +1,127 @@
+"""One recorded run on open links: the runner, its recorder and its summary, in one place.
+
+Used by ``sdh2svc run`` (:mod:`sdh2svc.service.headless`) and by the service
+(:mod:`sdh2svc.service.station`): both create the run's database row, record every sample, event
+and frame, and finish the row with the summary — the only difference is who opened the links.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable
+from typing import Any
+
+from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.tactile import TactileBus, TactileFrame
+from sdh2svc.config import Settings
+from sdh2svc.control.params import RollingParams
+from sdh2svc.control.runner import Runner
+from sdh2svc.control.sample import Sample
+from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.sim.serve import SimulatedHand
+
+EventSink = Callable[[float, int | None, str, dict[str, Any]], None]
+
+
+async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:
+    """Both of the hand's lines, the joint controller first (its limits from the config)."""
+    lim = cfg.limits
+    limits = list(zip(lim.min_deg, lim.max_deg, strict=True))
+    joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits)
+    try:
+        tactile = await TactileBus.open(dsa_url)
+    except BaseException:
+        await joints.close()
+        raise
+    return joints, tactile
+
+
+class RecordedRun:
+    """A :class:`Runner` whose samples, events and frames go to the database (and listeners)."""
+
+    def __init__(
+        self,
+        cfg: Settings,
+        joints: JointLink,
+        tactile: TactileBus,
+        store: RunStore,
+        *,
+        params: RollingParams | None = None,
+        meta: dict[str, Any] | None = None,
+        hand: SimulatedHand | None = None,
+        on_sample: Callable[[Sample], None] | None = None,
+        on_event: EventSink | None = None,
+        on_frame: Callable[[float, TactileFrame], None] | None = None,
+    ) -> None:
+        self.cfg, self.tactile, self.store, self.hand = cfg, tactile, store, hand
+        params = params or cfg.rolling
+        full_meta = {
+            "params": params.model_dump(),
+            "object": hand.world.obj.model_dump() if hand else None,
+            **(meta or {}),
+        }
+        self.run_id = store.create_run(full_meta)
+        self._rec = Recorder(store.path, self.run_id)
+        self._truth: dict[str, Any] = {}
+        self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
+        self.runner = Runner(
+            cfg, joints, tactile, params=params,
+            on_sample=self._sample, on_event=self._event, on_frame=self._frame,
+        )  # fmt: skip
+        self.summary: dict[str, Any] | None = None
+
+    def _sample(self, s: Sample) -> None:
+        self._rec.sample(s)
+        if self._on_sample:
+            self._on_sample(s)
+
+    def _event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
+        self._rec.event(t, iteration, kind, detail)
+        # the simulation's truth as the run ends, before the fingers let go
+        if self.hand is not None and kind == "phase" and detail["phase"] == "releasing":
+            self._truth.update(sim_truth(self.hand))
+        if self._on_event:
+            self._on_event(t, iteration, kind, detail)
+
+    def _frame(self, t: float, frame: TactileFrame) -> None:
+        self._rec.frame(t, None, frame.timestamp_ms, frame.texels)
+        if self._on_frame:
+            self._on_frame(t, frame)
+
+    async def execute(self) -> dict[str, Any]:
+        """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
+        try:
+            result = await self.runner.run()
+        except asyncio.CancelledError:
+            result = self.runner.result
+            if result.status == "running":
+                result.status, result.message = "stopped", "cancelled"
+            self.summary = self._finish(result.summary())
+            raise
+        finally:
+            with contextlib.suppress(Exception):
+                self._rec.close()
+        self.summary = self._finish(result.summary())
+        return self.summary
+
+    def _finish(self, summary: dict[str, Any]) -> dict[str, Any]:
+        st = self.tactile.stats
+        summary["frames"] = {"received": st.frames, "crc_errors": st.crc_errors,
+                             "resyncs": st.resyncs, "frames_per_s": st.frames_per_s}  # fmt: skip
+        summary["run_id"] = self.run_id
+        if self.hand is not None:
+            summary["truth"] = self._truth or sim_truth(self.hand)
+            if summary["truth"]["dropped"] and summary["status"] == "completed":
+                summary["status"] = "dropped"
+        self.store.finish_run(self.run_id, summary["status"], summary)
+        return summary
+
+
+def sim_truth(hand: SimulatedHand) -> dict[str, Any]:
+    """The simulation's ground truth for a run summary (never shown to the controller)."""
+    t = hand.world.truth()
+    return {
+        "object": t.object, "size_mm": t.size_mm, "dropped": t.dropped, "slips": t.slips,
+        "rotation_range_deg": t.rotation_range_deg,
+    }  # fmt: skip

@@ -1,0 +1,126 @@
+"""``sdh2svc serve``: one asyncio process with uvicorn, the links, the runner, the telemetry hub,
+the recorder and the viser view.
+
+SIGINT/SIGTERM stop motion first (the running run is asked to stop at once, then uvicorn's
+shutdown waits for it to release), then everything closes. Logs go to stderr, one line each —
+plain ``LEVEL logger: message`` for journald, or ``--log-format json``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import json
+import logging
+import sys
+from typing import Any
+
+import uvicorn
+
+from sdh2svc.config import Settings
+from sdh2svc.service.app import Services, create_app
+
+
+class ExposureError(ValueError):
+    """Refusal to listen beyond loopback without a token."""
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: assume it is reachable from elsewhere
+
+
+def check_exposure(cfg: Settings) -> None:
+    if not is_loopback(cfg.service.host) and not cfg.service.token:
+        raise ExposureError(
+            f"refusing to listen on {cfg.service.host} without a token: anyone on the network "
+            "could move the hand. Set SDH2SVC_SERVICE__TOKEN (or service.token), or listen on "
+            "127.0.0.1."
+        )
+
+
+class JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        out: dict[str, Any] = {
+            "ts": round(record.created, 3), "level": record.levelname,
+            "logger": record.name, "msg": record.getMessage(),
+        }  # fmt: skip
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out)
+
+
+def setup_logging(fmt: str = "text", level: str = "INFO") -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    if fmt == "json":
+        handler.setFormatter(JsonFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    for name in ("uvicorn", "uvicorn.error"):
+        logging.getLogger(name).handlers[:] = []
+        logging.getLogger(name).propagate = True
+    logging.getLogger("uvicorn.access").setLevel(logging.WARNING)
+
+
+class _Server(uvicorn.Server):
+    """uvicorn's server whose exit signal first asks the running run to stop."""
+
+    def handle_exit(self, sig: int, frame: Any) -> None:
+        services: Services | None = getattr(self.config.app.state, "services", None)  # type: ignore[attr-defined]
+        st = services.station if services else None
+        if st is not None and st.running and st.run is not None:
+            st.run.runner.request_stop()  # only sets an asyncio.Event: safe in a signal handler
+        super().handle_exit(sig, frame)
+
+
+async def serve(
+    cfg: Settings,
+    *,
+    sim: bool,
+    dsa_url: str | None = None,
+    sdh_url: str | None = None,
+    obj: Any = None,
+    announce_json: bool = False,
+) -> int:
+    """Run the service until a signal; returns the exit status."""
+    check_exposure(cfg)
+    app = create_app(cfg, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
+    config = uvicorn.Config(app, host=cfg.service.host, port=cfg.service.port, log_config=None,
+                            lifespan="on", ws="websockets-sansio")  # fmt: skip
+    server = _Server(config)
+    task = asyncio.create_task(server.serve())
+    while not server.started:
+        if task.done():  # startup failed (port taken, hand unreachable …): uvicorn logged why
+            await task
+            return 1
+        await asyncio.sleep(0.05)
+    _announce(server, app, sim, announce_json)
+    await task
+    return 0
+
+
+def _announce(server: uvicorn.Server, app: Any, sim: bool, as_json: bool) -> None:
+    sock = server.servers[0].sockets[0].getsockname()
+    host = server.config.host
+    url = f"http://{host if ':' not in host else f'[{host}]'}:{sock[1]}"
+    services: Services = app.state.services
+    st = services.station
+    info = {"url": url, "dashboard": f"{url}/", "docs": f"{url}/docs",
+            "viewer_url": services.viewer_url, "sim": sim,
+            "dsa_url": st.dsa_url, "sdh_url": st.sdh_url}  # fmt: skip
+    if as_json:
+        print(json.dumps(info), flush=True)
+        return
+    hand = "the simulated hand" if sim else f"the hand at {st.sdh_url} + {st.dsa_url}"
+    print(f"sdh2svc serving {hand}\n"
+          f"  dashboard  {info['dashboard']}\n"
+          f"  API docs   {info['docs']}\n"
+          f"  3-D view   {info['viewer_url'] or '(off)'}\n"
+          "Ctrl-C stops motion, then the service.", flush=True)  # fmt: skip

@@ -1,0 +1,373 @@
+"""The hand as the service owns it: both links, the current run, the parameters, the e-stop, and
+the telemetry that flows from them to the hub.
+
+Everything a user can ask for (REST, the 3-D view's buttons) is a method here, with one rule per
+conflict: one run at a time, no run while the e-stop is latched, no object change during a run.
+Refusals are :class:`ServiceError` with a sentence a person can act on and an HTTP status.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.tactile import Subscription, TactileBus, TactileFrame
+from sdh2svc.config import Settings, format_errors
+from sdh2svc.control.params import RollingParams
+from sdh2svc.control.sample import Sample
+from sdh2svc.service.hub import TelemetryHub, cancel
+from sdh2svc.service.runs import RecordedRun, open_links
+from sdh2svc.service.store import RunStore
+from sdh2svc.sim.objects import PRESETS, Outline, get_object, parse_object
+from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+
+log = logging.getLogger(__name__)
+
+_OUTLINE_POINTS = 90  # of the true object outline sent to viewers
+
+
+class ServiceError(Exception):
+    """A refused request: ``status`` is the HTTP status, ``details`` one line per problem."""
+
+    def __init__(self, status: int, message: str, details: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.status, self.message, self.details = status, message, details or []
+
+
+def validate_params(current: RollingParams, patch: dict[str, Any]) -> RollingParams:
+    """``current`` with ``patch`` laid over it, validated whole (422 naming each bad field)."""
+    try:
+        return RollingParams.model_validate({**current.model_dump(), **patch})
+    except ValidationError as e:
+        lines = format_errors(e, RollingParams)
+        raise ServiceError(422, "invalid rolling parameters", lines) from None
+
+
+def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Any:
+    """A preset by ``name`` or an object ``spec`` (422 naming the bad field)."""
+    if (name is None) == (spec is None):
+        raise ServiceError(422, "give either an object preset name or an object spec",
+                           [f"presets: {', '.join(PRESETS)}"])  # fmt: skip
+    if name is not None:
+        try:
+            return get_object(name)
+        except KeyError as e:
+            raise ServiceError(422, str(e.args[0])) from None
+    try:
+        return parse_object(spec or {})
+    except ValidationError as e:
+        lines = [f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in e.errors()]
+        raise ServiceError(422, "invalid object spec", lines) from None
+
+
+class Station:
+    """Owns the links (and, with ``sim``, the embedded simulated hand) for the service's life."""
+
+    def __init__(
+        self,
+        cfg: Settings,
+        hub: TelemetryHub,
+        *,
+        sim: bool,
+        dsa_url: str | None = None,
+        sdh_url: str | None = None,
+        obj: Any = None,
+    ) -> None:
+        self.cfg, self.hub, self.sim = cfg, hub, sim
+        self.params = cfg.rolling
+        self.dsa_url = dsa_url or cfg.links.dsa_url
+        self.sdh_url = sdh_url or cfg.links.sdh_url
+        self._initial_object = obj
+        self.hand: SimulatedHand | None = None
+        self.joints: JointLink | None = None
+        self.tactile: TactileBus | None = None
+        self.store: RunStore | None = None
+        self.run: RecordedRun | None = None
+        self._run_task: asyncio.Task[None] | None = None
+        self.last_run: dict[str, Any] | None = None
+        self._monitor: Subscription | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._last_tactile = -math.inf
+        self._outline: Outline | None = None
+        self._last_state: str | None = None
+
+    # --- life -----------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        cfg = self.cfg
+        if self.sim:
+            self.hand = await start_simulated_hand(cfg, obj=self._initial_object, pty=False,
+                                                   tcp=True, dsa_port=0, sdh_port=0)  # fmt: skip
+            self.dsa_url, self.sdh_url = self.hand.urls("dsa")[0], self.hand.urls("sdh")[0]
+            self._outline = Outline(self.hand.world.obj)
+        self.joints, self.tactile = await open_links(cfg, self.dsa_url, self.sdh_url)
+        self.store = RunStore(cfg.storage.db_path)
+        interrupted = self.store.mark_interrupted()
+        if interrupted:
+            log.warning("runs %s were still 'running' in %s: marked interrupted",
+                        interrupted, cfg.storage.db_path)  # fmt: skip
+        self.tactile.add_frame_listener(self._on_frame)
+        if cfg.service.monitor_rate_hz > 0:
+            self._monitor = self.tactile.subscribe(range(6), cfg.service.monitor_rate_hz)
+        self._tasks = [asyncio.create_task(self._status_loop(), name="status"),
+                       asyncio.create_task(self._pose_loop(), name="pose")]  # fmt: skip
+        log.info("hand ready: dsa=%s sdh=%s sim=%s", self.dsa_url, self.sdh_url, self.sim)
+
+    async def close(self) -> None:
+        """Stop motion first (the run stops and releases; e-stop past the timeout), then close."""
+        if self.running and self.run is not None:
+            log.info("shutting down: stopping run %d first", self.run.run_id)
+            self.run.runner.request_stop()
+            try:
+                await asyncio.wait_for(asyncio.shield(self._run_task),  # type: ignore[arg-type]
+                                       self.cfg.service.stop_timeout_s)  # fmt: skip
+            except (TimeoutError, Exception):
+                log.warning("run %d did not stop in time: e-stop", self.run.run_id)
+                with contextlib.suppress(Exception):
+                    await self.run.runner.emergency_stop()
+        await cancel(self._run_task)
+        for task in self._tasks:
+            await cancel(task)
+        if self._monitor is not None:
+            self._monitor.close()
+        for link in (self.tactile, self.joints):
+            if link is not None:
+                with contextlib.suppress(Exception):
+                    await link.close()
+        if self.hand is not None:
+            await self.hand.stop()
+        if self.store is not None:
+            self.store.close()
+        log.info("hand closed")
+
+    # --- what users ask for ---------------------------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self._run_task is not None and not self._run_task.done()
+
+    def start_run(self, params: dict[str, Any] | None = None, obj: Any = None) -> dict[str, Any]:
+        """Start a run (409 while one runs or the e-stop is latched)."""
+        joints, tactile, store = self._links()
+        if self.running and self.run is not None:
+            raise ServiceError(409, f"run {self.run.run_id} is already running "
+                               f"({self.run.runner.phase.value}); stop it first")  # fmt: skip
+        if joints.estopped:
+            raise ServiceError(409, "the e-stop is latched: release it first "
+                               "(POST /api/estop/release)")  # fmt: skip
+        run_params = validate_params(self.params, params) if params else self.params
+        if obj is not None:
+            self.set_object(obj)
+        meta = {"sim": self.sim, "fast": False, "dsa_url": self.dsa_url, "sdh_url": self.sdh_url,
+                "service": True}  # fmt: skip
+        self.run = RecordedRun(
+            self.cfg, joints, tactile, store, params=run_params, meta=meta, hand=self.hand,
+            on_sample=self._on_sample, on_event=self._on_event,
+        )  # fmt: skip
+        self._run_task = asyncio.create_task(self._execute(self.run), name="run")
+        log.info("run %d started (cycles=%d)", self.run.run_id, run_params.cycles)
+        return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
+
+    def stop_run(self) -> dict[str, Any]:
+        if not self.running or self.run is None:
+            raise ServiceError(409, "no run is running")
+        self.run.runner.request_stop()
+        log.info("run %d: stop requested", self.run.run_id)
+        return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
+
+    async def estop(self) -> dict[str, Any]:
+        """Motors off now, from any state; a running run ends e-stopped."""
+        joints, _, _ = self._links()
+        log.warning("E-STOP")
+        if self.running and self.run is not None:
+            await self.run.runner.emergency_stop()
+        else:
+            await joints.emergency_stop()
+            self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
+                              "kind": "estop", "detail": {}})  # fmt: skip
+        self.publish_status()
+        return {"estopped": joints.estopped}
+
+    async def release_estop(self) -> dict[str, Any]:
+        joints, _, _ = self._links()
+        await joints.release()
+        log.info("e-stop released")
+        self.publish_status()
+        return {"estopped": joints.estopped}
+
+    def patch_params(self, patch: dict[str, Any]) -> RollingParams:
+        """Validate and take ``patch``; a running run applies it whole at its next iteration."""
+        self.params = validate_params(self.params, patch)
+        if self.running and self.run is not None:
+            self.run.runner.set_params(self.params)
+        log.info("parameters changed: %s", patch)
+        self.publish_status()
+        return self.params
+
+    def object_info(self) -> dict[str, Any]:
+        hand = self._sim_hand()
+        return {"object": hand.world.obj.model_dump(), "presets": list(PRESETS)}
+
+    def set_object(self, obj: Any) -> dict[str, Any]:
+        """Place another object between the fingertips (simulation only, between runs)."""
+        hand = self._sim_hand()
+        if self.running:
+            raise ServiceError(409, "the object cannot change during a run; stop the run first")
+        hand.world.place(obj)
+        self._outline = Outline(obj)
+        log.info("simulated object: %s", obj.name or obj.kind)
+        self.publish_status()
+        return self.object_info()
+
+    async def command(self, kind: str, args: dict[str, Any]) -> None:
+        """The 3-D view's buttons and sliders (refusals are logged: the view has no error box)."""
+        try:
+            if kind == "start":
+                self.start_run()
+            elif kind == "stop":
+                self.stop_run()
+            elif kind == "estop":
+                await self.estop()
+            elif kind == "release":
+                await self.release_estop()
+            elif kind == "params":
+                self.patch_params(args)
+            else:
+                raise ServiceError(400, f"unknown command {kind!r}")
+        except ServiceError as e:
+            log.warning("3-D view command %s refused: %s %s", kind, e.message, e.details)
+
+    # --- status ---------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        j, t = self.joints, self.tactile
+        run = None
+        if self.run is not None:
+            r = self.run.runner
+            run = {
+                "id": self.run.run_id, "state": r.phase.value, "stroke": r.state.strokes,
+                "strokes_total": r.params.cycles, "iteration": r.state.iteration,
+                "status": r.result.status, "message": r.result.message,
+            }  # fmt: skip
+        connected = {"joints": bool(j and j.connected), "tactile": bool(t and t.connected)}
+        return {
+            "sim": self.sim,
+            "auth_required": bool(self.cfg.service.token),
+            "estopped": bool(j and j.estopped),
+            "hand": {
+                "connected": connected,
+                "angles_deg": list(j.last_actual) if j and j.last_actual else None,
+            },
+            "links": {
+                "dsa_url": self.dsa_url, "sdh_url": self.sdh_url,
+                "tactile": _stats(t) if t else None,
+            },
+            "run": run,
+            "last_run": self.last_run,
+            "params": self.params.model_dump(),
+            "object": self.hand.world.obj.model_dump() if self.hand else None,
+            "telemetry": self.hub.stats(),
+        }
+
+    def publish_status(self) -> None:
+        self.hub.publish({"type": "status", "status": self.status()})
+
+    # --- internals ------------------------------------------------------------------------------
+
+    def _links(self) -> tuple[JointLink, TactileBus, RunStore]:
+        if self.joints is None or self.tactile is None or self.store is None:
+            raise ServiceError(503, "the hand's links are not open yet")
+        return self.joints, self.tactile, self.store
+
+    def _sim_hand(self) -> SimulatedHand:
+        if self.hand is None:
+            raise ServiceError(404, "not in simulation: the object is whatever the real hand holds")
+        return self.hand
+
+    async def _execute(self, run: RecordedRun) -> None:
+        try:
+            summary = await run.execute()
+        except Exception as e:  # a bug must not take the service down; the run row says why
+            log.exception("run %d crashed", run.run_id)
+            summary = {"status": "faulted", "message": f"internal error: {e}"}
+            with contextlib.suppress(Exception):
+                run.store.finish_run(run.run_id, "faulted", summary)
+        self.last_run = {"id": run.run_id, "status": summary.get("status"),
+                         "message": summary.get("message", "")}  # fmt: skip
+        log.info("run %d ended: %s %s", run.run_id, summary.get("status"),
+                 summary.get("message", ""))  # fmt: skip
+        self.publish_status()
+
+    def _on_sample(self, s: Sample) -> None:
+        run_id = self.run.run_id if self.run else None
+        self.hub.publish({"type": "sample", "run_id": run_id,
+                          "sample": dict(zip(Sample.columns(), s.row(), strict=True))})  # fmt: skip
+
+    def _on_event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
+        run_id = self.run.run_id if self.run else None
+        self.hub.publish({"type": "event", "run_id": run_id, "t": t, "iteration": iteration,
+                          "kind": kind, "detail": detail})  # fmt: skip
+        if kind == "phase":
+            self.publish_status()
+
+    def _on_frame(self, frame: TactileFrame) -> None:
+        """Every delivered frame; forwarded at ≤ tactile_max_hz, and only if someone reads."""
+        if frame.arrival - self._last_tactile < 1.0 / self.cfg.service.tactile_max_hz * 0.9:
+            return
+        if not self.hub.clients and not self.hub.has_listeners:
+            return
+        self._last_tactile = frame.arrival
+        self.hub.publish({"type": "tactile", "seq": frame.seq, "t": frame.arrival,
+                          "matrices": [m.tolist() for m in frame.matrices]})  # fmt: skip
+
+    async def _status_loop(self) -> None:
+        period = 1.0 / self.cfg.service.status_hz
+        while True:
+            self.publish_status()
+            await asyncio.sleep(period)
+
+    async def _pose_loop(self) -> None:
+        """Joint angles (polled between runs; during one, the runner's own reads) and sim truth."""
+        period = 1.0 / self.cfg.service.pose_hz
+        while True:
+            await asyncio.sleep(period)
+            j = self.joints
+            if j is None:
+                continue
+            if not self.running and j.connected:
+                with contextlib.suppress(Exception):
+                    await j.get_actual()
+            if j.last_actual is not None:
+                self.hub.publish({"type": "pose", "angles_deg": list(j.last_actual)})
+            if self.hand is not None:
+                self.hub.publish({"type": "sim", "truth": self._truth()})
+
+    def _truth(self) -> dict[str, Any]:
+        assert self.hand is not None and self._outline is not None
+        t = self.hand.world.truth()
+        y, z, psi = t.pose
+        pts = self._outline.perimeter_points[:: max(1, 180 // _OUTLINE_POINTS)]
+        c, s = math.cos(psi), math.sin(psi)
+        world = np.column_stack([y + c * pts[:, 0] - s * pts[:, 1],
+                                 z + s * pts[:, 0] + c * pts[:, 1]])  # fmt: skip
+        return {
+            "object": t.object, "size_mm": t.size_mm, "held": t.held, "dropped": t.dropped,
+            "in_fixture": t.in_fixture, "pose": [y, z, psi], "slips": t.slips,
+            "outline": np.round(world, 2).tolist(),
+            "contacts": [asdict(c) for c in t.contacts],
+        }  # fmt: skip
+
+
+def _stats(t: TactileBus) -> dict[str, Any]:
+    st = asdict(t.stats)
+    st["mode"] = str(st["mode"])
+    return st
+
