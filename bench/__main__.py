@@ -11,6 +11,7 @@ SECTIONS = {
     "links": "bench.links",
     "sim": "bench.sim_world",
     "control": "bench.control",
+    "service": "bench.service",
 }
 
 

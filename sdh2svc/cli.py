@@ -228,6 +228,28 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 130
 
 
+def cmd_health(args: argparse.Namespace) -> int:
+    """Exit 0 if the service answers GET /api/status with both links connected (HEALTHCHECK)."""
+    import urllib.error
+    import urllib.request
+
+    cfg = _load(args)
+    host = cfg.service.host if cfg.service.host not in ("0.0.0.0", "::") else "127.0.0.1"
+    url = args.url or f"http://{host}:{cfg.service.port}/api/status"
+    try:
+        with urllib.request.urlopen(url, timeout=args.timeout) as r:
+            status = json.load(r)
+    except (OSError, ValueError, urllib.error.URLError) as e:
+        print(f"sdh2svc health: {url}: {e}", file=sys.stderr)
+        return 1
+    down = [name for name, up in status["hand"]["connected"].items() if not up]
+    if down:
+        print(f"sdh2svc health: link(s) down: {', '.join(down)}", file=sys.stderr)
+        return 1
+    print(f"ok: {url}")
+    return 0
+
+
 def cmd_runs(args: argparse.Namespace) -> int:
     """Recorded runs: list them, show one, export one as CSV or MCAP."""
     from sdh2svc.service.store import RunStore
@@ -339,6 +361,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.add_argument("--json", action="store_true", help="announce the URLs as one JSON line")
     p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("health", help="is the service up? (exit status)",
+                       description=cmd_health.__doc__)  # fmt: skip
+    _add_config_args(p)
+    p.add_argument("--url", help="status URL (default: from service.host/port)")
+    p.add_argument("--timeout", type=float, default=4.0, help="seconds")
+    p.set_defaults(func=cmd_health)
 
     p = sub.add_parser("runs", help="recorded runs: list, show, export",
                        description=cmd_runs.__doc__)  # fmt: skip

@@ -124,13 +124,18 @@ class Runner:
         self._stop.set()
 
     async def emergency_stop(self) -> None:
-        """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase."""
+        """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase.
+
+        The run is marked e-stopped before its task is cancelled, so however the cancellation
+        reaches it (mid-command, or as the link fails the queued commands), it ends e-stopped.
+        """
+        self._set_phase(Phase.ESTOPPED)
+        self.result.status, self.result.message = "e-stopped", "emergency stop"
+        self.result.strokes = self.state.strokes
+        self._event("estop", {})
         if self._task is not None and not self._task.done():
             self._task.cancel()
         await self.joints.emergency_stop()
-        self._set_phase(Phase.ESTOPPED)
-        self.result.status = "e-stopped"
-        self._event("estop", {})
 
     # --- the run ----------------------------------------------------------------------------
 
@@ -173,6 +178,8 @@ class Runner:
         return self.result
 
     def _finish(self, phase: Phase, status: str, message: str = "") -> None:
+        if self.phase is Phase.ESTOPPED:  # nothing after an e-stop changes how the run ended
+            return
         self.result.status, self.result.message = status, message
         self.result.strokes = self.state.strokes
         self._set_phase(phase)

@@ -176,7 +176,7 @@ def _install_routes(app: FastAPI, cfg: Settings) -> None:
 
     @app.get("/api/params")
     async def get_params(st: St) -> dict[str, Any]:
-        return st.params.model_dump()
+        return st.params_in_force.model_dump()
 
     @app.get("/api/params/schema")
     def params_schema() -> dict[str, Any]:

@@ -12,6 +12,7 @@ import asyncio
 import ipaddress
 import json
 import logging
+import socket
 import sys
 from typing import Any
 
@@ -22,7 +23,7 @@ from sdh2svc.service.app import Services, create_app
 
 
 class ExposureError(ValueError):
-    """Refusal to listen beyond loopback without a token."""
+    """Refusal to listen: beyond loopback without a token, or the address is unusable."""
 
 
 def is_loopback(host: str) -> bool:
@@ -41,6 +42,28 @@ def check_exposure(cfg: Settings) -> None:
             "could move the hand. Set SDH2SVC_SERVICE__TOKEN (or service.token), or listen on "
             "127.0.0.1."
         )
+
+
+def listen_socket(cfg: Settings) -> socket.socket:
+    """The HTTP socket, with a bounded kernel send buffer (inherited by every connection).
+
+    Linux would otherwise let a client that stopped reading hold up to 4 MB of stale telemetry
+    in the kernel — tens of seconds at the tactile stream's rate — before the per-client queue
+    and send timeout (service.telemetry_queue, send_timeout_s) could notice.
+    """
+    host, port = cfg.service.host, cfg.service.port
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, cfg.service.send_buffer_kb * 1024)
+    try:
+        sock.bind((host, port))
+    except OSError as e:
+        sock.close()
+        raise ExposureError(f"cannot listen on {host}:{port}: {e.strerror}") from None
+    sock.listen(128)
+    sock.set_inheritable(True)
+    return sock
 
 
 class JsonFormatter(logging.Formatter):
@@ -78,6 +101,9 @@ class _Server(uvicorn.Server):
         if st is not None and st.running and st.run is not None:
             st.run.runner.request_stop()  # only sets an asyncio.Event: safe in a signal handler
         super().handle_exit(sig, frame)
+        # uvicorn re-raises the signal after its graceful shutdown (the process then dies of
+        # it); ours is complete and clean, so exit 0 instead
+        getattr(self, "_captured_signals", []).clear()
 
 
 async def serve(
@@ -95,7 +121,7 @@ async def serve(
     config = uvicorn.Config(app, host=cfg.service.host, port=cfg.service.port, log_config=None,
                             lifespan="on", ws="websockets-sansio")  # fmt: skip
     server = _Server(config)
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[listen_socket(cfg)]))
     while not server.started:
         if task.done():  # startup failed (port taken, hand unreachable …): uvicorn logged why
             await task

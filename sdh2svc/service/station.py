@@ -91,6 +91,7 @@ class Station:
         self.tactile: TactileBus | None = None
         self.store: RunStore | None = None
         self.run: RecordedRun | None = None
+        self._run_params: RollingParams | None = None
         self._run_task: asyncio.Task[None] | None = None
         self.last_run: dict[str, Any] | None = None
         self._monitor: Subscription | None = None
@@ -168,6 +169,7 @@ class Station:
             self.set_object(obj)
         meta = {"sim": self.sim, "fast": False, "dsa_url": self.dsa_url, "sdh_url": self.sdh_url,
                 "service": True}  # fmt: skip
+        self._run_params = run_params
         self.run = RecordedRun(
             self.cfg, joints, tactile, store, params=run_params, meta=meta, hand=self.hand,
             on_sample=self._on_sample, on_event=self._on_event,
@@ -203,14 +205,22 @@ class Station:
         self.publish_status()
         return {"estopped": joints.estopped}
 
+    @property
+    def params_in_force(self) -> RollingParams:
+        """The running run's parameters, else those the next run starts with."""
+        return self._run_params if self.running and self._run_params else self.params
+
     def patch_params(self, patch: dict[str, Any]) -> RollingParams:
-        """Validate and take ``patch``; a running run applies it whole at its next iteration."""
-        self.params = validate_params(self.params, patch)
-        if self.running and self.run is not None:
-            self.run.runner.set_params(self.params)
+        """Validate and take ``patch`` for later runs and — applied whole at its next iteration —
+        for the running one (laid over its own parameters, e.g. its cycles)."""
+        new = validate_params(self.params, patch)
+        if self.running and self.run is not None and self._run_params is not None:
+            self._run_params = validate_params(self._run_params, patch)
+            self.run.runner.set_params(self._run_params)
+        self.params = new
         log.info("parameters changed: %s", patch)
         self.publish_status()
-        return self.params
+        return self.params_in_force
 
     def object_info(self) -> dict[str, Any]:
         hand = self._sim_hand()
@@ -272,7 +282,7 @@ class Station:
             },
             "run": run,
             "last_run": self.last_run,
-            "params": self.params.model_dump(),
+            "params": self.params_in_force.model_dump(),
             "object": self.hand.world.obj.model_dump() if self.hand else None,
             "telemetry": self.hub.stats(),
         }
@@ -295,6 +305,8 @@ class Station:
     async def _execute(self, run: RecordedRun) -> None:
         try:
             summary = await run.execute()
+        except asyncio.CancelledError:  # an e-stop (or shutdown) cancelled the run's task
+            summary = run.summary or {"status": run.runner.result.status}
         except Exception as e:  # a bug must not take the service down; the run row says why
             log.exception("run %d crashed", run.run_id)
             summary = {"status": "faulted", "message": f"internal error: {e}"}

@@ -1,0 +1,117 @@
+"""Start ``sdh2svc serve`` as a subprocess and wait for its URLs — for tests, benchmarks and
+lab scripts that want a service of their own (free ports, their own database).
+
+It runs the same command a person types and reads the one JSON line ``--json`` announces.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+START_TIMEOUT_S = 90.0
+
+
+@dataclass
+class LiveService:
+    proc: subprocess.Popen[str]
+    url: str
+    viewer_url: str | None
+    token: str | None
+    db_path: Path
+    log: list[str] = field(default_factory=list)
+    readers: list[threading.Thread] = field(default_factory=list)
+
+    @property
+    def ws_url(self) -> str:
+        return self.url.replace("http://", "ws://", 1) + "/ws/telemetry"
+
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
+    def client(self) -> Any:
+        """An ``httpx.AsyncClient`` on the service, with the token (httpx: a dev dependency)."""
+        import httpx
+
+        return httpx.AsyncClient(base_url=self.url, headers=self.headers(), timeout=30.0)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 60.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        for t in self.readers:  # EOF once the process is gone
+            t.join(5.0)
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+        return self.proc.returncode
+
+
+def service_command(db_path: Path, *, viewer: bool, extra: Sequence[str] = ()) -> list[str]:
+    """``sdh2svc serve --sim`` on free ports with the database at ``db_path``."""
+    cmd = [sys.executable, "-m", "sdh2svc", "serve", "--sim", "--json", "--port", "0",
+           "--set", f"storage.db_path={json.dumps(str(db_path))}"]  # fmt: skip
+    cmd += ["--viser-port", "0"] if viewer else ["--no-viewer"]
+    return cmd + list(extra)
+
+
+def start_service(
+    tmp: Path,
+    *,
+    viewer: bool = True,
+    extra: Sequence[str] = (),
+    env: dict[str, str] | None = None,
+    token: str | None = None,
+) -> LiveService:
+    """Start the service and wait for its announcement line (the URLs)."""
+    db = tmp / "runs.sqlite"
+    full_env = {**os.environ, **(env or {})}
+    if token:
+        full_env["SDH2SVC_SERVICE__TOKEN"] = token
+    proc = subprocess.Popen(
+        service_command(db, viewer=viewer, extra=extra), stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, env=full_env, cwd=tmp,
+    )  # fmt: skip
+    log: list[str] = []
+    err = threading.Thread(target=_collect, args=(proc.stderr, log), daemon=True)
+    err.start()
+    line = _read_line(proc, START_TIMEOUT_S)
+    if not line:
+        proc.kill()
+        proc.wait()
+        err.join(5.0)
+        for stream in (proc.stdout, proc.stderr):
+            stream.close()  # type: ignore[union-attr]
+        raise RuntimeError("the service did not start:\n" + "".join(log))
+    info = json.loads(line)
+    out = threading.Thread(target=_collect, args=(proc.stdout, log), daemon=True)
+    out.start()
+    return LiveService(proc, info["url"], info["viewer_url"], token, db, log, [err, out])
+
+
+def _collect(stream: object, out: list[str]) -> None:
+    with contextlib.suppress(ValueError):
+        for line in stream:  # type: ignore[attr-defined]
+            out.append(line)
+
+
+def _read_line(proc: subprocess.Popen[str], timeout: float) -> str:
+    result: list[str] = []
+    reader = threading.Thread(target=lambda: result.append(proc.stdout.readline()),  # type: ignore[union-attr]
+                              daemon=True)  # fmt: skip
+    reader.start()
+    reader.join(timeout)
+    return result[0] if result else ""
