@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import csv
 import io
+import itertools
 import json
 import socket
 import time
@@ -132,7 +133,7 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
 
 
 async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveService) -> None:
-    async with svc.client() as c, telemetry(svc) as tm:
+    async with svc.client() as c, telemetry(svc) as tm, telemetry(svc, "?decimate=3") as tm3:
         await tm.until(lambda: tm.of("hello"))
         r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 50}})
         assert r.status_code == 201, r.text
@@ -199,6 +200,13 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         assert max(n for t, n in topics.items() if "sample" in t) == page["total"]
         r = await c.get(f"/api/runs/{run_id}/export", params={"format": "xls"})
         assert r.status_code == 422
+
+        # a decimating client got every third sample; tactile frames came at ≤ 30 Hz
+        every = [s["iteration"] for s in tm.samples(run_id)]
+        third = [s["iteration"] for s in tm3.samples(run_id)]
+        assert third and third == every[::3][: len(third)]
+        ts = [m["t"] for m in tm.of("tactile")]
+        assert len(ts) > 30 and min(b - a for a, b in itertools.pairwise(ts)) > 0.9 / 30
 
         # the telemetry carried the other kinds too
         assert tm.of("tactile") and len(tm.of("tactile")[-1]["matrices"]) == 6
