@@ -74,7 +74,7 @@ def _error(status: int, message: str, details: list[str] | None = None) -> JSONR
     return JSONResponse({"error": message, "details": details or []}, status_code=status)
 
 
-def create_app(
+async def open_services(
     cfg: Settings,
     *,
     sim: bool,
@@ -82,32 +82,47 @@ def create_app(
     sdh_url: str | None = None,
     obj: Any = None,
     viewer: bool | None = None,
-) -> FastAPI:
-    """The service's app; its lifespan opens the hand (and the 3-D view) and closes them."""
+) -> Services:
+    """Open the hand (both links, or the embedded simulated hand) and the 3-D view."""
+    hub = TelemetryHub(send_timeout_s=cfg.service.send_timeout_s)
+    station = Station(cfg, hub, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
+    services = Services(cfg, hub, station)
+    try:
+        await station.start()
+        if cfg.service.viewer if viewer is None else viewer:
+            services.viewer = await _start_viewer(cfg, station, hub)
+    except BaseException:
+        await close_services(services)
+        raise
+    return services
+
+
+async def close_services(services: Services) -> None:
+    """Motion first (the station stops the run and releases), then the rest; idempotent."""
+    await services.station.close()
+    if services.viewer is not None:
+        with contextlib.suppress(Exception):
+            await services.viewer.stop()
+        services.viewer = None
+
+
+def create_app(services: Services) -> FastAPI:
+    """The service's app on opened services; its shutdown closes them (motion first)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        hub = TelemetryHub(send_timeout_s=cfg.service.send_timeout_s)
-        station = Station(cfg, hub, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
-        await station.start()
-        services = Services(cfg, hub, station)
         try:
-            if cfg.service.viewer if viewer is None else viewer:
-                services.viewer = await _start_viewer(cfg, station, hub)
-            app.state.services = services
             yield
         finally:
-            await station.close()  # motion first
-            if services.viewer is not None:
-                with contextlib.suppress(Exception):
-                    await services.viewer.stop()
+            await close_services(services)
 
     app = FastAPI(
         title="sdh2svc", version=__version__, lifespan=lifespan,
         description="Tactile in-hand rolling on a SCHUNK SDH2 hand (docs/api.md).",
     )  # fmt: skip
+    app.state.services = services
     _install_errors(app)
-    _install_routes(app, cfg)
+    _install_routes(app, services.cfg)
     static = web_dir()
     if static.is_dir():
         app.mount("/web", StaticFiles(directory=static), name="web")

@@ -19,7 +19,9 @@ from typing import Any
 import uvicorn
 
 from sdh2svc.config import Settings
-from sdh2svc.service.app import Services, create_app
+from sdh2svc.service.app import Services, close_services, create_app, open_services
+
+log = logging.getLogger(__name__)
 
 
 class ExposureError(ValueError):
@@ -96,7 +98,7 @@ class _Server(uvicorn.Server):
     """uvicorn's server whose exit signal first asks the running run to stop."""
 
     def handle_exit(self, sig: int, frame: Any) -> None:
-        services: Services | None = getattr(self.config.app.state, "services", None)  # type: ignore[attr-defined]
+        services: Services | None = getattr(self.config.app.state, "services", None)
         st = services.station if services else None
         if st is not None and st.running and st.run is not None:
             st.run.runner.request_stop()  # only sets an asyncio.Event: safe in a signal handler
@@ -117,26 +119,36 @@ async def serve(
 ) -> int:
     """Run the service until a signal; returns the exit status."""
     check_exposure(cfg)
-    app = create_app(cfg, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
-    config = uvicorn.Config(app, host=cfg.service.host, port=cfg.service.port, log_config=None,
-                            lifespan="on", ws="websockets-sansio")  # fmt: skip
-    server = _Server(config)
-    task = asyncio.create_task(server.serve(sockets=[listen_socket(cfg)]))
-    while not server.started:
-        if task.done():  # startup failed (port taken, hand unreachable …): uvicorn logged why
+    sock = listen_socket(cfg)  # before the hand: a taken port fails at once
+    try:
+        services = await open_services(cfg, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
+    except Exception as e:
+        sock.close()
+        log.error("cannot open the hand: %s (check --sdh/--dsa or links.sdh_url/dsa_url)", e)
+        return 1
+    try:
+        app = create_app(services)
+        config = uvicorn.Config(app, host=cfg.service.host, port=cfg.service.port,
+                                log_config=None, lifespan="on", ws="websockets-sansio")  # fmt: skip
+        server = _Server(config)
+        task = asyncio.create_task(server.serve(sockets=[sock]))
+        while not server.started and not task.done():
+            await asyncio.sleep(0.05)
+        if server.started:
+            _announce(server, services, sim, announce_json)
+        try:
             await task
-            return 1
-        await asyncio.sleep(0.05)
-    _announce(server, app, sim, announce_json)
-    await task
-    return 0
+        except SystemExit as e:  # uvicorn's startup failure: it has logged why
+            return int(e.code or 1)
+        return 0
+    finally:
+        await close_services(services)
 
 
-def _announce(server: uvicorn.Server, app: Any, sim: bool, as_json: bool) -> None:
+def _announce(server: uvicorn.Server, services: Services, sim: bool, as_json: bool) -> None:
     sock = server.servers[0].sockets[0].getsockname()
     host = server.config.host
     url = f"http://{host if ':' not in host else f'[{host}]'}:{sock[1]}"
-    services: Services = app.state.services
     st = services.station
     info = {"url": url, "dashboard": f"{url}/", "docs": f"{url}/docs",
             "viewer_url": services.viewer_url, "sim": sim,

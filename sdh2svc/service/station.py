@@ -98,7 +98,7 @@ class Station:
         self._tasks: list[asyncio.Task[None]] = []
         self._last_tactile = -math.inf
         self._outline: Outline | None = None
-        self._last_state: str | None = None
+        self._closed = False
 
     # --- life -----------------------------------------------------------------------------------
 
@@ -124,6 +124,9 @@ class Station:
 
     async def close(self) -> None:
         """Stop motion first (the run stops and releases; e-stop past the timeout), then close."""
+        if self._closed:
+            return
+        self._closed = True
         if self.running and self.run is not None:
             log.info("shutting down: stopping run %d first", self.run.run_id)
             self.run.runner.request_stop()

@@ -362,3 +362,26 @@ async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(tmp_path: Path) -
         assert phases[-2:] == ["releasing", "stopped"]
     finally:
         store.close()
+
+
+def test_unreachable_hand_and_taken_port_fail_with_a_reason(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    base = [sys.executable, "-m", "sdh2svc", "serve", "--no-viewer",
+            "--set", f"storage.db_path={json.dumps(str(tmp_path / 'r.sqlite'))}"]  # fmt: skip
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        dead = free.getsockname()[1]  # nothing listens here once closed
+    r = subprocess.run([*base, "--port", "0", "--sdh", f"socket://127.0.0.1:{dead}",
+                        "--dsa", f"socket://127.0.0.1:{dead}"],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 1 and "cannot open the hand" in r.stderr
+    assert "Traceback" not in r.stderr
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = subprocess.run([*base, "--sim", "--port", str(port)], capture_output=True, text=True,
+                           timeout=60)  # fmt: skip
+    assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in r.stderr
