@@ -709,6 +709,9 @@ class JointLink:
         self.version = ver.text
         self.velocity_limits, self.acceleration_limits = vlim.values, alim.values
         self.controller = ControllerMode(int(con.values[0]))
+        if self._estopped:  # a latched e-stop holds on a new connection too (the controller
+            # may have been reset, or powered on by hand, while the line was down)
+            await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
 
     def _conn_lost(self, conn: _Conn, exc: BaseException) -> None:
         if conn is not self._conn or self._closed:

@@ -391,3 +391,17 @@ async def test_binary_crc_override(rig: Rig, crc: bool) -> None:
     assert link.binary_crc is crc
     assert await link.set_targets(POSE_A) == pytest.approx(POSE_A)
     assert rig.dev.stats.binary == 1
+
+
+async def test_latched_estop_is_reasserted_after_a_reconnect(tcp_rig: Rig) -> None:
+    link = await tcp_rig.open()
+    events = link.subscribe()
+    await link.emergency_stop()
+    assert tcp_rig.dev.powered == (False,) * NUM_AXES
+    tcp_rig.ep.disconnect(0.5)
+    # while the line is down, someone powers the axes at the controller
+    tcp_rig.dev._set_power((1,) * NUM_AXES, range(NUM_AXES))
+    assert tcp_rig.dev.powered == (True,) * NUM_AXES
+    await _next_event(events, LinkEventKind.RECONNECTED)
+    assert link.estopped
+    assert tcp_rig.dev.powered == (False,) * NUM_AXES
