@@ -109,9 +109,16 @@ def _collect(stream: object, out: list[str]) -> None:
 
 
 def _read_line(proc: subprocess.Popen[str], timeout: float) -> str:
+    """The announcement: the first stdout line that is a JSON object ("" if none in time)."""
     result: list[str] = []
-    reader = threading.Thread(target=lambda: result.append(proc.stdout.readline()),  # type: ignore[union-attr]
-                              daemon=True)  # fmt: skip
+
+    def read() -> None:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            if line.startswith("{"):
+                result.append(line)
+                return
+
+    reader = threading.Thread(target=read, daemon=True)
     reader.start()
     reader.join(timeout)
     return result[0] if result else ""

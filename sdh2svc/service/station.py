@@ -241,7 +241,8 @@ class Station:
         return self.object_info()
 
     async def command(self, kind: str, args: dict[str, Any]) -> None:
-        """The 3-D view's buttons and sliders (refusals are logged: the view has no error box)."""
+        """The 3-D view's buttons and sliders; a refusal is logged and raised (the view shows
+        it in its panel)."""
         try:
             if kind == "start":
                 self.start_run()
@@ -257,6 +258,7 @@ class Station:
                 raise ServiceError(400, f"unknown command {kind!r}")
         except ServiceError as e:
             log.warning("3-D view command %s refused: %s %s", kind, e.message, e.details)
+            raise
 
     # --- status ---------------------------------------------------------------------------------
 

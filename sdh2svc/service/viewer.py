@@ -1,0 +1,738 @@
+"""Live viser 3-D view of the hand: pose, tactile pads, contacts A and B, friction cones, object.
+
+The view consumes the telemetry messages of docs/api.md (``sample``, ``tactile``, ``pose``,
+``sim``, ``status``/``hello``). :meth:`Viewer.handle` only stores the latest message of each type;
+a render task on the service's event loop turns the changes into one ``server.atomic()`` batch at
+most ``max_hz`` times a second, and only when something changed, so telemetry at loop rate never
+costs more than a dictionary store.
+
+Geometry. The scene is frame 0 of hand-model.md §2 (origin at Finger 1's proximal joint O, y0
+towards Finger 2, z0 along the straightened finger; x0 completes a right-handed frame and points
+towards the thumb), in metres (the model's millimetres × 1e-3). Fingers 1 and 2 are posed with
+the model's own functions (:func:`distal_joint`, :func:`frame3_axes`, :func:`pad_point`), so at
+φ1 = 90° they lie exactly in the y0z0 plane of the planar model. The thumb, the palm, the link
+bodies and the proximal pads are approximate (see :data:`THUMB_BASE` and :func:`proximal_cells`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import sys
+import threading
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+import viser
+
+from sdh2svc.config import Settings
+from sdh2svc.model.friction import pad_tangent
+from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, pad_y3
+from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
+
+_T = TypeVar("_T")
+log = logging.getLogger(__name__)
+
+Command = Callable[[str, dict[str, Any]], Awaitable[None]]
+
+MM = 1e-3  # scene units are metres, the model's millimetres
+_Z = np.array([0.0, 0.0, 1.0])
+
+# Where the thumb's proximal joint sits, as a fraction of the base offset d = 66 mm. SCHUNK's
+# URDF (ipa320/schunk_modular_robotics, schunk_description/urdf/sdh/sdh.urdf.xacro) puts the
+# knuckles at (19.05, ±33, 74.5) mm and the thumb at (−38.11, 0, 74.5) mm in the palm frame, the
+# proximal joints 16.5 mm above them: an equilateral triangle of side d (SDHLibrary's `d`). In
+# frame 0 the thumb is therefore at x0 = d·√3/2, y0 = d/2, closing towards −x0. Approximate:
+# the view only needs it parked out of the way.
+THUMB_BASE = (math.sqrt(3.0) / 2.0, 0.5)
+KNUCKLE_MM = 16.5  # proximal joint above the palm's top (URDF finger_12_joint origin)
+PALM_HEIGHT_MM = 74.5  # palm base to knuckle (URDF knuckle_joint origin)
+
+# Link bodies (approximate boxes, link-frame mm: x along the link, y towards the pad).
+FINGER_WIDTH_MM = 22.0
+PROX_Y_MM = (-12.0, 12.0)
+DIST_X_MM = (-8.0, 62.0)
+DIST_Y_MM = (-12.0, 3.0)
+PAD_BACK_Y3_MM = 3.0  # the distal pad's back face (its front is the profile of §3)
+PROX_PAD_Y_MM = 14.0  # proximal pad surface (not in the model: approximate)
+PROX_ROW0_FROM_DISTAL_MM = 15.0  # row 0's centre this far below the distal joint (approximate)
+TILE_GAP = 0.9  # a cell tile covers this fraction of the pitch, so the grid stays readable
+CONE_HEIGHT_MM = 20.0
+CONTACT_RADIUS_MM = 2.5
+
+GREEN = (40, 200, 70)
+YELLOW = (230, 190, 40)
+RED = (230, 40, 40)
+OUTLINE_HELD = (255, 150, 40)
+OUTLINE_DROPPED = (230, 40, 40)
+
+# Raw counts → colour: dark (unloaded) → blue → cyan → yellow → red at full scale.
+_CMAP_T = np.array([0.0, 0.05, 0.3, 0.6, 1.0])
+_CMAP_RGB = np.array(
+    [[70, 70, 80], [30, 60, 200], [20, 200, 220], [250, 220, 30], [230, 30, 30]], dtype=float
+)
+FULL_SCALE_COUNTS = 4095.0
+
+GREY, DARK, PAD = (175, 178, 185), (90, 92, 100), (60, 60, 66)
+COLOR_A, COLOR_B = (255, 120, 30), (160, 60, 230)
+
+COMMANDS = ("start", "stop", "estop", "release")
+BUTTONS: dict[str, tuple[str, Any]] = {  # kind: (label, colour)
+    "start": ("Grasp & roll", "green"),
+    "stop": ("Stop", "orange"),
+    "estop": ("E-STOP", "red"),
+    "release": ("Release e-stop", "gray"),
+}
+SLIDERS: dict[str, tuple[str, float, float, float]] = {  # field: (label, min, max, step)
+    "delta_phi_deg": ("Δφ (°)", -5.0, 5.0, 0.05),
+    "k": ("k", 1.05, 10.0, 0.05),
+    "lambda_gain": ("λ", 0.0, 50.0, 0.5),
+    "alpha_deg": ("α (°)", 1.0, 59.5, 0.5),
+}
+_PAYLOAD = {  # message type → the field carrying its payload (docs/api.md)
+    "sample": "sample",
+    "pose": "angles_deg",
+    "tactile": "matrices",
+    "sim": "truth",
+    "status": "status",
+    "hello": "status",
+}
+EDIT_GRACE_S = 1.5  # a slider the user just moved is not reset by a status still in flight
+FINISHED = {"idle", "done", "stopped", "faulted", "e-stopped"}
+
+
+# --- pure geometry, shared by the renderer and the tests --------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class _FingerSpec:
+    """How one finger's planar model (y, z) maps into frame 0: P = base + s·(y − y_O)·d + z·ẑ."""
+
+    model: Finger  # whose planar formulas (mirror or not) the finger follows
+    base: np.ndarray  # proximal joint, frame 0, mm
+    d: np.ndarray  # closing direction (unit, horizontal)
+    s: float  # +1: model y grows along d; −1: Finger 2's mirror
+    y_O: float  # model y of this finger's proximal joint
+
+    def point(self, p: Point) -> np.ndarray:
+        return self.base + self.s * (p.y - self.y_O) * self.d + p.z * _Z
+
+    def vector(self, v: Point) -> np.ndarray:
+        return self.s * v.y * self.d + v.z * _Z
+
+
+def _specs(phi1: float, base_mm: float) -> dict[str, _FingerSpec]:
+    """Fingers 1, 2 rotate with φ1 about the palm normal: at 90° both close within y0z0."""
+    c, s = math.cos(phi1), math.sin(phi1)
+    tx, ty = THUMB_BASE
+    return {
+        "f1": _FingerSpec(Finger.ONE, np.zeros(3), np.array([c, s, 0.0]), 1.0, 0.0),
+        "f2": _FingerSpec(
+            Finger.TWO, np.array([0.0, base_mm, 0.0]), np.array([c, -s, 0.0]), -1.0, base_mm
+        ),
+        "f3": _FingerSpec(
+            Finger.ONE, np.array([tx * base_mm, ty * base_mm, 0.0]), np.array([-1.0, 0, 0]), 1, 0
+        ),
+    }
+
+
+def _transform(origin: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
+    """4×4 pose with x along ``ex``, y along ``ey`` (orthonormal), z = x × y."""
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = ex, ey, np.cross(ex, ey), origin
+    return T
+
+
+def finger_frames(angles_deg: Sequence[float], settings: Settings) -> dict[str, np.ndarray]:
+    """Link frames of the palm and the three fingers, frame 0, mm, for the 7 wire-axis angles.
+
+    Keys ``/palm``, ``/fN/base`` (knuckle, x up), ``/fN/proximal`` (at the proximal joint),
+    ``/fN/distal`` (frame 3 at C/D: x = ex3, y = ey3 towards the pad) and ``/fN/tip`` (the pad's
+    end at the fingertip) for N = 1, 2, 3 (3 = thumb). Each is a 4×4 homogeneous transform.
+    """
+    ax, geom = settings.axes, settings.hand
+    a = [math.radians(v) for v in angles_deg]
+    joints = {
+        "f1": (a[ax.phi2], a[ax.phi3]),
+        "f2": (a[ax.phi4], a[ax.phi5]),
+        "f3": (a[ax.thumb_proximal], a[ax.thumb_distal]),
+    }
+    tip_x3 = geom.pad.tip_end_x3_mm
+    tip_y3 = pad_y3(tip_x3, geom.pad)
+    d = geom.base_offset_mm
+    palm = np.array([d * THUMB_BASE[0] / 3.0, d / 2.0, -KNUCKLE_MM - PALM_HEIGHT_MM / 2.0])
+    out = {"/palm": _transform(palm, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))}
+    for key, spec in _specs(a[ax.phi1], d).items():
+        prox, dist = joints[key]
+        f = spec.model
+        out[f"/{key}/base"] = _transform(spec.base - KNUCKLE_MM * _Z, _Z, spec.d)
+        ex2, ey2 = frame3_axes(f, prox)  # the proximal link: the same axes with ψ = proximal
+        out[f"/{key}/proximal"] = _transform(spec.base, spec.vector(ex2), spec.vector(ey2))
+        ex3, ey3 = frame3_axes(f, prox + dist)
+        C = spec.point(distal_joint(f, prox, geom))
+        out[f"/{key}/distal"] = _transform(C, spec.vector(ex3), spec.vector(ey3))
+        tip = spec.point(pad_point(f, prox, dist, tip_x3, tip_y3, geom))
+        out[f"/{key}/tip"] = _transform(tip, spec.vector(ex3), spec.vector(ey3))
+    return out
+
+
+def pad_vertices(pad: PadProfile, width_mm: float, n: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """The distal pad as a prism in frame 3 (mm): its front is the profile y3(x3) of §3 from the
+    pad's base to its end, its back the plane y3 = PAD_BACK_Y3_MM; z3 spans the pad's width."""
+    xs = np.linspace(pad.flat_start_x3_mm, pad.tip_end_x3_mm, n)
+    ys = np.array([pad_y3(float(x), pad) for x in xs])
+    h = width_mm / 2.0
+    verts = []
+    for x, y in zip(xs, ys, strict=True):  # one ring per profile point: front l/r, back r/l
+        verts += [(x, y, -h), (x, y, h), (x, PAD_BACK_Y3_MM, h), (x, PAD_BACK_Y3_MM, -h)]
+    faces = []
+    for i in range(n - 1):
+        for k in range(4):
+            a0, a1 = 4 * i + k, 4 * i + (k + 1) % 4
+            b0, b1 = a0 + 4, a1 + 4
+            faces += [(a0, b0, b1), (a0, b1, a1)]
+    last = 4 * (n - 1)
+    faces += [(0, 1, 2), (0, 2, 3), (last, last + 2, last + 1), (last, last + 3, last + 2)]
+    return np.array(verts, dtype=float), np.array(faces, dtype=np.uint32)
+
+
+def _rot_z(beta: float) -> tuple[float, float, float, float]:
+    return (math.cos(beta / 2.0), 0.0, 0.0, math.sin(beta / 2.0))
+
+
+def distal_cells(settings: Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centres (frame 3, mm), orientations (wxyz, tile normal +y → pad normal) and the row-major
+    flat indices of the distal pad's real cells (the configured mask).
+
+    Row r's centre lies where the contact estimate would put a centroid at S = r·pitch
+    (calibration.distance: L = 49.5 − S·44/40.8 by default), so a single loaded cell and the
+    contact point A computed from it coincide. Column c runs across the pad along z3.
+    """
+    lay, pitch, pad = settings.tactile.distal, settings.tactile.texel_pitch_mm, settings.hand.pad
+    s_range = pitch * (lay.rows - 1)
+    pos, rot = [], []
+    for r in range(lay.rows):
+        L = settings.calibration.distance.L_from_S(r * pitch, s_range, pad)
+        x3, y3 = pad_point_from_L(L, pad)
+        beta = math.atan(pad_slope(x3, pad))  # the tangent's angle from ex3
+        n = (-math.sin(beta), math.cos(beta))  # outward normal
+        for c in range(lay.cols):
+            z = (c - (lay.cols - 1) / 2.0) * pitch
+            pos.append((x3 + 0.3 * n[0], y3 + 0.3 * n[1], z))  # just above the surface
+            rot.append(_rot_z(beta))
+    idx = np.flatnonzero(lay.valid().ravel())
+    return np.array(pos)[idx], np.array(rot)[idx], idx
+
+
+def proximal_cells(settings: Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """As :func:`distal_cells` for the proximal pad, in the proximal link frame (mm). The model
+    has no proximal pad geometry: a flat pad PROX_PAD_Y_MM from the link axis, row 0 (at the
+    distal joint) PROX_ROW0_FROM_DISTAL_MM below it, rows a pitch apart (approximate)."""
+    lay, pitch = settings.tactile.proximal, settings.tactile.texel_pitch_mm
+    x0 = settings.hand.proximal_length_mm - PROX_ROW0_FROM_DISTAL_MM
+    pos = [
+        (x0 - r * pitch, PROX_PAD_Y_MM + 0.3, (c - (lay.cols - 1) / 2.0) * pitch)
+        for r in range(lay.rows)
+        for c in range(lay.cols)
+    ]
+    idx = np.flatnonzero(lay.valid().ravel())
+    rot = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (len(idx), 1))
+    return np.array(pos)[idx], rot, idx
+
+
+def tactile_colors(counts: np.ndarray) -> np.ndarray:
+    """Raw 12-bit counts → RGB (uint8, shape + (3,)); square-root scale so light touches show."""
+    t = np.sqrt(np.clip(np.asarray(counts, dtype=float) / FULL_SCALE_COUNTS, 0.0, 1.0))
+    rgb = [np.interp(t, _CMAP_T, _CMAP_RGB[:, i]) for i in range(3)]
+    return np.stack(rgb, axis=-1).astype(np.uint8)
+
+
+def cone_color(deviation_deg: float, alpha_deg: float) -> tuple[int, int, int]:
+    """Green when AB lies along the pad normal (deviation 0), through yellow, red at the cone's
+    edge (deviation ≥ α). The deviation is |ω − 90°| for the samples' ω (measured from the
+    pad tangent, hand-model §6)."""
+    r = min(1.0, max(0.0, abs(deviation_deg) / alpha_deg)) if alpha_deg > 0 else 1.0
+    lo, hi, t = (GREEN, YELLOW, 2.0 * r) if r < 0.5 else (YELLOW, RED, 2.0 * r - 1.0)
+    return tuple(round(a + (b - a) * t) for a, b in zip(lo, hi, strict=True))  # type: ignore[return-value]
+
+
+def contact_normal(
+    finger: Finger, proximal: float, distal: float, at: Point, settings: Settings
+) -> Point:
+    """Unit outward pad normal (frame 0) at the contact point ``at`` of a coupled finger (rad):
+    the contact's x3 follows from its position along frame 3, the tangent from the pad profile."""
+    geom = settings.hand
+    C = distal_joint(finger, proximal, geom)
+    ex, ey = frame3_axes(finger, proximal + distal)
+    x3 = (at.y - C.y) * ex.y + (at.z - C.z) * ex.z
+    t = pad_tangent(finger, proximal + distal, x3, geom.pad)
+    n = Point(t.z, -t.y)
+    return n if n.y * ey.y + n.z * ey.z >= 0.0 else Point(-n.y, -n.z)
+
+
+def _cone_mesh(segments: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A unit cone: apex at the origin, axis +z, base circle of radius 1 at z = 1."""
+    ang = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    rim = np.stack([np.cos(ang), np.sin(ang), np.ones(segments)], axis=1)
+    verts = np.vstack([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], rim])
+    faces = [(0, 2 + (i + 1) % segments, 2 + i) for i in range(segments)]
+    faces += [(1, 2 + i, 2 + (i + 1) % segments) for i in range(segments)]
+    return verts, np.array(faces, dtype=np.uint32)
+
+
+def _tile_mesh(size_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square tile in the local x–z plane (normal +y), metres."""
+    h = size_mm * MM / 2.0
+    v = np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]])
+    return v, np.array([[0, 2, 1], [0, 3, 2]], dtype=np.uint32)
+
+
+def _wxyz(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method; viser's SO3 is
+    ~10× slower and this runs a dozen times per frame on the service's event loop)."""
+    m = R.tolist()
+    tr = m[0][0] + m[1][1] + m[2][2]
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = (0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s)
+    elif m[0][0] >= m[1][1] and m[0][0] >= m[2][2]:
+        s = 2.0 * math.sqrt(1.0 + m[0][0] - m[1][1] - m[2][2])
+        q = ((m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s)
+    elif m[1][1] >= m[2][2]:
+        s = 2.0 * math.sqrt(1.0 + m[1][1] - m[0][0] - m[2][2])
+        q = ((m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2][2] - m[0][0] - m[1][1])
+        q = ((m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s)
+    return np.array(q)
+
+
+def _axis_to(n: np.ndarray) -> np.ndarray:
+    """wxyz of a rotation taking +z to the unit vector ``n`` (which lies in the y0z0 plane)."""
+    ex = np.array([1.0, 0.0, 0.0])
+    return _wxyz(np.column_stack([ex, np.cross(n, ex), n]))
+
+
+def _num(d: dict[str, Any] | None, key: str) -> float | None:
+    v = (d or {}).get(key)
+    return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
+
+
+# --- the view ----------------------------------------------------------------------------------
+
+
+class Viewer:
+    """The viser server, its scene and GUI panel, and the render task (see the module doc)."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        on_command: Command | None = None,
+        allow_start: bool = True,
+        max_hz: float = 30.0,
+    ) -> None:
+        self.settings = settings
+        self._host, self._port = host, port
+        self._on_command = on_command
+        self._allow_start = allow_start
+        self._period = 1.0 / max_hz
+        self._latest: dict[str, Any] = {}  # type → latest payload
+        self._seq: dict[str, int] = {}  # type → arrival number (pose vs sample: newer wins)
+        self._n = 0
+        self._dirty: set[str] = set()
+        self._wake = asyncio.Event()
+        self._angles = [float(v) for v in settings.run.preshape_deg]
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self.server: viser.ViserServer | None = None
+        self.frames = 0  # renders done (tests, diagnostics)
+        self.nodes: dict[str, Any] = {}  # scene handles by name
+        self.buttons: dict[str, viser.GuiButtonHandle] = {}
+        self.sliders: dict[str, Any] = {}
+        self._edited: dict[str, float] = {}
+        self._sync_thread: int | None = None
+        self._note = ""
+        self._tactile_idx: dict[str, np.ndarray] = {}
+        self._failures = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Start the viser server (port 0: any free port), build the scene, start rendering."""
+        self._loop = asyncio.get_running_loop()
+        # The server's constructor waits for its thread: keep the event loop free meanwhile.
+        self.server = await asyncio.to_thread(_quietly, viser.ViserServer, host=self._host,
+                                              port=self._port, verbose=False)  # fmt: skip
+        self._build_scene()
+        self._build_gui()
+        self._dirty |= {"pose", "status"}
+        self._wake.set()
+        self._task = asyncio.create_task(self._render_loop(), name="viewer-render")
+
+    @property
+    def url(self) -> str:
+        port = self.server.get_port() if self.server is not None else self._port
+        return f"http://{self._host}:{port}"
+
+    async def stop(self) -> None:
+        """Stop rendering and the viser server."""
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        if self.server is not None:
+            server, self.server = self.server, None
+            await asyncio.to_thread(_quietly, server.stop)
+
+    # -- telemetry in: cheap ----------------------------------------------------------------
+
+    def handle(self, msg: dict[str, Any]) -> None:
+        """Keep the latest message of each type and mark it for the next frame; no rendering."""
+        kind = msg.get("type")
+        key = _PAYLOAD.get(str(kind))
+        if key is None:
+            return
+        kind = "status" if kind == "hello" else kind
+        self._latest[kind] = msg.get(key)
+        self._n += 1
+        self._seq[kind] = self._n
+        self._dirty.add(kind)
+        self._wake.set()
+
+    # -- rendering ---------------------------------------------------------------------------
+
+    async def _render_loop(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            self.render()
+            await asyncio.sleep(self._period)  # ≤ max_hz; changes meanwhile merge into one frame
+
+    def render(self) -> None:
+        """Apply what changed since the last frame, as one atomic batch."""
+        dirty, self._dirty = self._dirty, set()
+        if self.server is None or not dirty:
+            return
+        parts = [
+            ({"pose", "sample"}, self._render_hand),
+            ({"sample", "status"}, self._render_contacts),
+            ({"tactile"}, self._render_pads),
+            ({"sim"}, self._render_truth),
+            ({"status"}, self._render_status),
+        ]
+        with self.server.atomic():
+            for kinds, part in parts:
+                if dirty & kinds:
+                    self._guarded(part)
+        self.frames += 1
+
+    def _guarded(self, part: Callable[[], None]) -> None:
+        """One part of a frame; a malformed message spoils that part only, and logs rarely."""
+        try:
+            part()
+        except Exception:
+            self._failures += 1
+            if self._failures in (1, 10, 100) or self._failures % 1000 == 0:
+                log.exception("3-D view: %s failed (%d times)", part.__name__, self._failures)
+
+    def _update_angles(self) -> None:
+        """φ1 and the thumb from ``pose``; φ2…φ5 from whichever of pose/sample came last."""
+        pose, sample = self._latest.get("pose"), self._latest.get("sample")
+        ax = self.settings.axes
+        from_sample = [(ax.phi2, "phi2"), (ax.phi3, "phi3"), (ax.phi4, "phi4"), (ax.phi5, "phi5")]
+        steps = [("pose", pose), ("sample", sample)]
+        steps.sort(key=lambda s: self._seq.get(s[0], 0))
+        for kind, data in steps:
+            if kind == "pose" and isinstance(data, list) and len(data) == len(self._angles):
+                self._angles = [float(v) for v in data]
+            elif kind == "sample" and isinstance(data, dict):
+                for axis, name in from_sample:
+                    v = _num(data, name)
+                    if v is not None:
+                        self._angles[axis] = v
+
+    def _render_hand(self) -> None:
+        self._update_angles()
+        for name, T in finger_frames(self._angles, self.settings).items():
+            node = self.nodes.get(name)
+            if node is not None:
+                node.position = T[:3, 3] * MM
+                node.wxyz = _wxyz(T[:3, :3])
+
+    def _alpha_deg(self) -> float:
+        params = (self._latest.get("status") or {}).get("params") or {}
+        return _num(params, "alpha_deg") or self.settings.rolling.alpha_deg
+
+    def _contact_sample(self) -> dict[str, Any]:
+        """The latest sample, unless a newer status says no run is rolling: a finished run's
+        contacts would otherwise linger through the release and the next grasp."""
+        run = (self._latest.get("status") or {}).get("run") or {}
+        newer = self._seq.get("status", 0) > self._seq.get("sample", 0)
+        if newer and run.get("state") not in (None, "rolling"):
+            return {}
+        return self._latest.get("sample") or {}
+
+    def _render_contacts(self) -> None:
+        s = self._contact_sample()
+        alpha = self._alpha_deg()
+        pts: dict[str, Point | None] = {}
+        for label, finger, pn, (py, pz), wn in (
+            ("A", Finger.ONE, ("phi2", "phi3"), ("Ay", "Az"), "omega_A"),
+            ("B", Finger.TWO, ("phi4", "phi5"), ("By", "Bz"), "omega_B"),
+        ):
+            y, z = _num(s, py), _num(s, pz)
+            p = Point(y, z) if y is not None and z is not None else None
+            pts[label] = p
+            sphere, cone = self.nodes[f"/contacts/{label}"], self.nodes[f"/contacts/cone_{label}"]
+            sphere.visible = p is not None
+            prox, dist, w = _num(s, pn[0]), _num(s, pn[1]), _num(s, wn)
+            if p is None or prox is None or dist is None:
+                cone.visible = False
+                continue
+            sphere.position = (0.0, p.y * MM, p.z * MM)
+            n = contact_normal(finger, math.radians(prox), math.radians(dist), p, self.settings)
+            r = CONE_HEIGHT_MM * math.tan(math.radians(alpha)) * MM
+            cone.position = (0.0, p.y * MM, p.z * MM)
+            cone.wxyz = _axis_to(np.array([0.0, n.y, n.z]))
+            cone.scale = (r, r, CONE_HEIGHT_MM * MM)
+            cone.color = cone_color(abs(w - 90.0), alpha) if w is not None else (150, 150, 150)
+            cone.visible = True
+        A, B = pts["A"], pts["B"]
+        seg = self.nodes["/contacts/AB"]
+        seg.visible = A is not None and B is not None
+        if A is not None and B is not None:
+            seg.points = np.array([[[0.0, A.y, A.z], [0.0, B.y, B.z]]]) * MM
+
+    def _render_pads(self) -> None:
+        mats = self._latest.get("tactile")
+        if not isinstance(mats, list):
+            return
+        for name, index in self._pad_matrices().items():
+            if index >= len(mats):
+                continue
+            counts = np.asarray(mats[index], dtype=float)
+            flat = self._tactile_idx[name]
+            lay = self._layout(name)
+            if counts.shape != (lay.rows, lay.cols):
+                continue  # a malformed frame: keep the last colours
+            self.nodes[name].batched_colors = tactile_colors(counts.ravel()[flat])
+
+    def _render_truth(self) -> None:
+        truth = self._latest.get("sim") or {}
+        node = self.nodes["/object/outline"]
+        outline = np.asarray(truth.get("outline") or [], dtype=float)
+        if outline.ndim != 2 or outline.shape[0] < 2 or outline.shape[1] != 2:
+            node.visible = False
+            return
+        p3 = np.column_stack([np.zeros(len(outline)), outline]) * MM
+        node.points = np.stack([p3, np.roll(p3, -1, axis=0)], axis=1)
+        color = OUTLINE_DROPPED if truth.get("dropped") else OUTLINE_HELD
+        node.colors = np.array(color, dtype=np.uint8)
+        node.visible = True
+
+    def _render_status(self) -> None:
+        st = self._latest.get("status") or {}
+        run = st.get("run") or {}
+        state = run.get("state", "idle")
+        parts = [f"**{state}**"]
+        if run.get("strokes_total"):
+            parts.append(f"stroke {run.get('stroke', 0)}/{run['strokes_total']}")
+        if run.get("iteration") is not None and state not in FINISHED:
+            parts.append(f"it {run['iteration']}")
+        if st.get("estopped"):
+            parts.append("**E-STOP latched**")
+        text = " · ".join(parts) + (f"\n\n{self._note}" if self._note else "")
+        self.nodes["gui/state"].content = text
+        self._sync_sliders(st.get("params") or {})
+
+    def _sync_sliders(self, params: dict[str, Any]) -> None:
+        """Follow the applied parameters, except a slider the user is moving right now."""
+        now = time.monotonic()
+        self._sync_thread = threading.get_ident()  # our own assignments are not user edits
+        try:
+            for field, slider in self.sliders.items():
+                v = _num(params, field)
+                if v is not None and now - self._edited.get(field, -math.inf) > EDIT_GRACE_S:
+                    slider.value = v
+        finally:
+            self._sync_thread = None
+
+    # -- GUI → commands (viser calls these on its own threads) -------------------------------
+
+    def _submit(self, kind: str, args: dict[str, Any]) -> None:
+        if self._loop is None or self._loop.is_closed():
+            return
+        asyncio.run_coroutine_threadsafe(self._command(kind, args), self._loop)
+
+    async def _command(self, kind: str, args: dict[str, Any]) -> None:
+        """Run one command on the loop; a refusal (409, 422, …) becomes a note in the panel."""
+        if self._on_command is None:
+            return
+        try:
+            await self._on_command(kind, args)
+            note = ""
+        except Exception as e:
+            log.warning("3-D view: %s %s refused: %s", kind, args, e)
+            note = f"{kind}: {e}"
+        if note != self._note:
+            self._note = note
+            self._dirty.add("status")
+            self._wake.set()
+
+    def _button_cb(self, kind: str) -> Callable[[Any], None]:
+        def cb(_event: Any) -> None:
+            self._submit(kind, {})
+
+        return cb
+
+    def _slider_cb(self, field: str) -> Callable[[Any], None]:
+        def cb(event: Any) -> None:
+            if threading.get_ident() == self._sync_thread:
+                return
+            value = float(event.target.value)
+            if field == "delta_phi_deg" and value == 0.0:
+                return  # Δφ's sign is the direction: 0 is not a value
+            self._edited[field] = time.monotonic()
+            self._submit("params", {field: value})
+
+        return cb
+
+    # -- scene and panel, built once ----------------------------------------------------------
+
+    def _pad_matrices(self) -> dict[str, int]:
+        ax = self.settings.axes
+        return {
+            "/f1/proximal/cells": ax.finger1_proximal_matrix,
+            "/f1/distal/cells": ax.finger1_distal_matrix,
+            "/f3/proximal/cells": ax.thumb_proximal_matrix,
+            "/f3/distal/cells": ax.thumb_distal_matrix,
+            "/f2/proximal/cells": ax.finger2_proximal_matrix,
+            "/f2/distal/cells": ax.finger2_distal_matrix,
+        }
+
+    def _layout(self, name: str) -> Any:
+        t = self.settings.tactile
+        return t.distal if "/distal/" in name else t.proximal
+
+    def _build_scene(self) -> None:
+        assert self.server is not None
+        sc, cfg = self.server.scene, self.settings
+        d = cfg.hand.base_offset_mm
+        # from the thumb's side and a little from Finger 1's back: both pads and AB in view
+        self.server.initial_camera.position = (0.27, d / 2 * MM - 0.15, 0.18)
+        self.server.initial_camera.look_at = (0.0, d / 2 * MM, 0.08)
+        self.nodes["/palm"] = sc.add_frame("/palm", show_axes=False)
+        size = (d * 1.7 * MM, d * 1.7 * MM, PALM_HEIGHT_MM * MM)
+        sc.add_box("/palm/body", color=DARK, dimensions=size)
+        for f in ("f1", "f2", "f3"):
+            self._build_finger(f)
+        self._build_contacts()
+        self._render_hand()  # the pre-shape until the first pose arrives
+
+    def _build_finger(self, f: str) -> None:
+        """Link frames (posed every frame) and their constant children: bodies, pad, cells."""
+        assert self.server is not None
+        sc, cfg = self.server.scene, self.settings
+        for link in ("base", "proximal", "distal"):
+            self.nodes[f"/{f}/{link}"] = sc.add_frame(f"/{f}/{link}", show_axes=False)
+        l1, w = cfg.hand.proximal_length_mm, FINGER_WIDTH_MM
+        boxes = {  # name: (centre, size), link-frame mm
+            "base/body": ((KNUCKLE_MM / 2, 0, 0), (KNUCKLE_MM, 24.0, 24.0)),
+            "proximal/body": ((l1 / 2, sum(PROX_Y_MM) / 2, 0), (l1, np.ptp(PROX_Y_MM), w)),
+            "distal/body": (
+                (sum(DIST_X_MM) / 2, sum(DIST_Y_MM) / 2, 0),
+                (np.ptp(DIST_X_MM), np.ptp(DIST_Y_MM), w),
+            ),
+        }
+        for name, (centre, size) in boxes.items():
+            color = DARK if name.startswith("base") else GREY
+            pos, dims = np.array(centre) * MM, np.array(size) * MM
+            sc.add_box(f"/{f}/{name}", color=color, dimensions=dims, position=pos)
+        pad = cfg.hand.pad
+        pad_v, pad_f = pad_vertices(pad, cfg.tactile.texel_pitch_mm * cfg.tactile.distal.cols)
+        sc.add_mesh_simple(f"/{f}/distal/pad", pad_v * MM, pad_f, color=PAD, side="double")
+        tip = np.array([pad.tip_end_x3_mm, pad_y3(pad.tip_end_x3_mm, pad), 0.0]) * MM
+        self.nodes[f"/{f}/distal/tip"] = sc.add_icosphere(
+            f"/{f}/distal/tip", radius=1.5 * MM, color=DARK, position=tip
+        )
+        tile_v, tile_f = _tile_mesh(cfg.tactile.texel_pitch_mm * TILE_GAP)
+        for link, (pos, rot, idx) in (
+            ("distal", distal_cells(cfg)),
+            ("proximal", proximal_cells(cfg)),
+        ):
+            name = f"/{f}/{link}/cells"
+            self._tactile_idx[name] = idx
+            self.nodes[name] = sc.add_batched_meshes_simple(
+                name,
+                tile_v,
+                tile_f,
+                batched_wxyzs=rot,
+                batched_positions=pos * MM,
+                batched_colors=tactile_colors(np.zeros(len(idx))),
+                side="double",
+                lod="off",
+                cast_shadow=False,
+                receive_shadow=False,
+            )
+
+    def _build_contacts(self) -> None:
+        assert self.server is not None
+        sc = self.server.scene
+        cone_v, cone_f = _cone_mesh()
+        for label, color in (("A", COLOR_A), ("B", COLOR_B)):
+            self.nodes[f"/contacts/{label}"] = sc.add_icosphere(
+                f"/contacts/{label}", radius=CONTACT_RADIUS_MM * MM, color=color, visible=False
+            )
+            self.nodes[f"/contacts/cone_{label}"] = sc.add_mesh_simple(
+                f"/contacts/cone_{label}",
+                cone_v,
+                cone_f,
+                color=GREEN,
+                opacity=0.45,
+                side="double",
+                cast_shadow=False,
+                receive_shadow=False,
+                visible=False,
+            )
+        none = np.zeros((1, 2, 3))
+        self.nodes["/contacts/AB"] = sc.add_line_segments(
+            "/contacts/AB", none, (250, 250, 250), thickness=1.2 * MM, visible=False
+        )
+        self.nodes["/object/outline"] = sc.add_line_segments(
+            "/object/outline", none, OUTLINE_HELD, thickness=1.0 * MM, visible=False
+        )
+
+    def _build_gui(self) -> None:
+        assert self.server is not None
+        gui, p = self.server.gui, self.settings.rolling
+        with gui.add_folder("sdh2svc"):
+            self.nodes["gui/state"] = gui.add_markdown("**idle**")
+            for kind in COMMANDS:
+                label, color = BUTTONS[kind]
+                disabled = kind == "start" and not self._allow_start
+                hint = "starting needs the API token: use the dashboard" if disabled else None
+                b = gui.add_button(label, color=color, disabled=disabled, hint=hint)
+                b.on_click(self._button_cb(kind))
+                self.buttons[kind] = b
+        with gui.add_folder("Rolling parameters"):
+            for field, (label, lo, hi, step) in SLIDERS.items():
+                v = getattr(p, field)
+                s = gui.add_slider(label, min=lo, max=hi, step=step, initial_value=v)
+                s.on_update(self._slider_cb(field))
+                self.sliders[field] = s
+
+
+def _quietly(fn: Callable[..., _T], *args: Any, **kwargs: Any) -> _T:
+    """Call ``fn`` with stdout sent to stderr: viser prints a banner and "Server stopped" even
+    with ``verbose=False``, and the service's stdout carries only its announcement."""
+    with contextlib.redirect_stdout(sys.stderr):
+        return fn(*args, **kwargs)

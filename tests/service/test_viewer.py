@@ -1,0 +1,373 @@
+"""The viser 3-D view (sdh2svc.service.viewer): served, posed like the model, cheap to feed."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+import urllib.request
+from collections.abc import AsyncIterator
+from typing import Any
+
+import numpy as np
+import pytest
+import viser.transforms as vtf
+from viser import GuiEvent
+
+from sdh2svc.config import Settings
+from sdh2svc.model.geometry import pad_point_from_L, pad_y3
+from sdh2svc.model.kinematics import Finger, Point, frame3_axes, pad_point
+from sdh2svc.service.viewer import (
+    GREEN,
+    MM,
+    RED,
+    YELLOW,
+    Viewer,
+    cone_color,
+    contact_normal,
+    distal_cells,
+    finger_frames,
+    pad_vertices,
+    tactile_colors,
+)
+
+# The mirror pose of hand-model §6: φ2 = φ4 = −20°, φ3 = φ5 = 30° (wire axes 1, 2, 5, 6).
+POSE = [90.0, -20.0, 30.0, -90.0, 0.0, -20.0, 30.0]
+SAMPLE = {
+    "iteration": 7, "phi2": -20.0, "phi3": 30.0, "phi4": -20.0, "phi5": 30.0,
+    "Ay": -8.0, "Az": 140.0, "By": 74.0, "Bz": 140.0, "omega_A": 90.0, "omega_B": 115.0,
+}  # fmt: skip
+
+
+class Recorder:
+    """An on_command that records what reached it (on the loop), optionally refusing."""
+
+    def __init__(self, refuse: bool = False) -> None:
+        self.calls: list[tuple[str, dict[str, Any]]] = []
+        self.refuse = refuse
+        self.loops: list[asyncio.AbstractEventLoop] = []
+
+    async def __call__(self, kind: str, args: dict[str, Any]) -> None:
+        self.loops.append(asyncio.get_running_loop())
+        self.calls.append((kind, args))
+        if self.refuse:
+            raise RuntimeError("a run is already running")
+
+
+@pytest.fixture
+async def commands() -> Recorder:
+    return Recorder()
+
+
+@pytest.fixture
+async def viewer(cfg: Settings, commands: Recorder) -> AsyncIterator[Viewer]:
+    v = Viewer(cfg, port=0, on_command=commands)
+    await v.start()
+    try:
+        yield v
+    finally:
+        await v.stop()
+
+
+async def next_frame(v: Viewer, after: int, timeout: float = 5.0) -> None:
+    """Wait until the render task has drawn a frame beyond ``after``."""
+    deadline = time.monotonic() + timeout
+    while v.frames <= after:
+        assert time.monotonic() < deadline, "the view did not render"
+        await asyncio.sleep(0.01)
+
+
+def world(v: Viewer, frame: str, local: np.ndarray) -> np.ndarray:
+    """A point given in a posed scene frame, in scene coordinates (m), from the scene's handles."""
+    node = v.nodes[frame]
+    R = vtf.SO3(np.asarray(node.wxyz)).as_matrix()
+    return np.asarray(node.position) + R @ np.asarray(local)
+
+
+async def click(handle: Any) -> None:
+    """Fire a GUI element's callbacks the way viser does: on a worker thread, with a GuiEvent."""
+    for cb in list(handle._impl.update_cb):
+        await asyncio.to_thread(cb, GuiEvent(client=None, client_id=None, target=handle))
+
+
+async def wait_for(pred: Any, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, "condition not reached"
+        await asyncio.sleep(0.01)
+
+
+# --- (a) served --------------------------------------------------------------------------------
+
+
+async def test_serves_the_viser_client_on_a_free_port(viewer: Viewer) -> None:
+    assert viewer.url.startswith("http://127.0.0.1:")
+    assert not viewer.url.endswith(":0")
+
+    def get() -> tuple[int, bytes]:
+        with urllib.request.urlopen(viewer.url, timeout=10) as r:
+            return r.status, r.read()
+
+    status, body = await asyncio.to_thread(get)
+    assert status == 200
+    assert b"<html" in body.lower()
+
+
+# --- (b) posed like the planar model -------------------------------------------------------
+
+
+def test_finger_frames_match_the_planar_model(cfg: Settings) -> None:
+    """Fingers 1 and 2 at φ1 = 90° lie in x0 = 0 and follow hand-model §2 to the micrometre."""
+    frames = finger_frames(POSE, cfg)
+    p2, p3, p4, p5 = (math.radians(v) for v in (-20.0, 30.0, -20.0, 30.0))
+    C = (86.5 * math.sin(p2), 86.5 * math.cos(p2))  # hand-model §2, written out
+    D = (66.0 - 86.5 * math.sin(p4), 86.5 * math.cos(p4))
+    assert np.allclose(frames["/f1/distal"][:3, 3], (0.0, *C), atol=1e-9)
+    assert np.allclose(frames["/f2/distal"][:3, 3], (0.0, *D), atol=1e-9)
+    psi = p2 + p3  # frame 3's axes (§2): ex3 = (sin ψ, cos ψ), ey3 = (cos ψ, −sin ψ)
+    assert np.allclose(frames["/f1/distal"][:3, 0], (0, math.sin(psi), math.cos(psi)))
+    assert np.allclose(frames["/f1/distal"][:3, 1], (0, math.cos(psi), -math.sin(psi)))
+    x3 = cfg.hand.pad.tip_end_x3_mm
+    y3 = pad_y3(x3, cfg.hand.pad)
+    for key, f, (a, b) in (("f1", Finger.ONE, (p2, p3)), ("f2", Finger.TWO, (p4, p5))):
+        tip = pad_point(f, a, b, x3, y3, cfg.hand)
+        assert np.allclose(frames[f"/{key}/tip"][:3, 3], (0.0, tip.y, tip.z), atol=1e-9)
+        for link in ("base", "proximal", "distal", "tip"):
+            T = frames[f"/{key}/{link}"]
+            assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)  # a rotation
+            assert abs(T[0, 3]) < 1e-9  # in the plane of work
+
+
+async def test_scene_fingertips_follow_pose_and_sample(cfg: Settings, viewer: Viewer) -> None:
+    n = viewer.frames
+    viewer.handle({"type": "pose", "angles_deg": POSE})
+    viewer.handle({"type": "sample", "run_id": 1, "sample": SAMPLE})
+    await next_frame(viewer, n)
+    x3 = cfg.hand.pad.tip_end_x3_mm
+    tip_local = np.array([x3, pad_y3(x3, cfg.hand.pad), 0.0]) * MM
+    assert np.allclose(viewer.nodes["/f1/distal/tip"].position, tip_local)
+    for key, f in (("f1", Finger.ONE), ("f2", Finger.TWO)):
+        want = pad_point(f, math.radians(-20), math.radians(30), x3, tip_local[1] / MM, cfg.hand)
+        got = world(viewer, f"/{key}/distal", tip_local)
+        assert np.allclose(got, np.array([0.0, want.y, want.z]) * MM, atol=1e-9)
+    # the contact points and segment AB where the sample puts them (y0z0 plane, mm → m)
+    assert np.allclose(viewer.nodes["/contacts/A"].position, np.array([0, -8.0, 140.0]) * MM)
+    assert viewer.nodes["/contacts/AB"].visible
+    assert np.allclose(viewer.nodes["/contacts/AB"].points[0, 1], np.array([0, 74, 140]) * MM)
+
+    # a later sample moves Finger 1 by φ2, φ3 alone (the pose's other axes stay)
+    n = viewer.frames
+    viewer.handle({"type": "sample", "sample": {**SAMPLE, "phi2": 0.0, "phi3": 0.0}})
+    await next_frame(viewer, n)
+    got = world(viewer, "/f1/distal", tip_local)
+    assert np.allclose(got, np.array([0.0, tip_local[1] / MM, 86.5 + x3]) * MM, atol=1e-9)
+
+
+# --- (c) friction cones ----------------------------------------------------------------------
+
+
+def test_cone_colour_runs_green_to_red(cfg: Settings) -> None:
+    alpha = cfg.rolling.alpha_deg
+    assert cone_color(0.0, alpha) == GREEN
+    assert cone_color(alpha / 2, alpha) == YELLOW
+    assert cone_color(alpha, alpha) == RED
+    assert cone_color(3 * alpha, alpha) == RED
+    assert cone_color(-alpha, alpha) == RED  # |deviation|
+    ramp = [cone_color(alpha * k / 10, alpha) for k in range(11)]
+    reds, greens = [c[0] for c in ramp], [c[1] for c in ramp]
+    assert reds == sorted(reds) and greens == sorted(greens, reverse=True)  # closer → redder
+
+
+def test_contact_normal_is_the_pad_normal(cfg: Settings) -> None:
+    p2, p3 = math.radians(-20.0), math.radians(30.0)
+    ex, ey = frame3_axes(Finger.ONE, p2 + p3)
+    x3, y3 = pad_point_from_L(8.0, cfg.hand.pad)  # on the flat part: the normal is ey3
+    A = pad_point(Finger.ONE, p2, p3, x3, y3, cfg.hand)
+    n = contact_normal(Finger.ONE, p2, p3, A, cfg)
+    assert math.isclose(n.y, ey.y, abs_tol=1e-9) and math.isclose(n.z, ey.z, abs_tol=1e-9)
+    # on the arc it tilts away from ey3 towards −ex3 (the pad curves back), still unit length
+    x3, y3 = pad_point_from_L(40.0, cfg.hand.pad)
+    A = pad_point(Finger.ONE, p2, p3, x3, y3, cfg.hand)
+    n = contact_normal(Finger.ONE, p2, p3, A, cfg)
+    assert math.isclose(math.hypot(n.y, n.z), 1.0)
+    assert n.y * ex.y + n.z * ex.z > 0.2
+    # Finger 2 is the mirror image
+    B = pad_point(Finger.TWO, p2, p3, x3, y3, cfg.hand)
+    m = contact_normal(Finger.TWO, p2, p3, B, cfg)
+    assert math.isclose(m.y, -n.y, abs_tol=1e-9) and math.isclose(m.z, n.z, abs_tol=1e-9)
+
+
+async def test_cones_sit_at_the_contacts_coloured_by_omega(viewer: Viewer) -> None:
+    n = viewer.frames
+    viewer.handle({"type": "status", "status": {"params": {"alpha_deg": 25.0}}})
+    viewer.handle({"type": "sample", "sample": SAMPLE})  # ωA = 90° (on the normal), ωB = 115°
+    await next_frame(viewer, n)
+    cone_a, cone_b = viewer.nodes["/contacts/cone_A"], viewer.nodes["/contacts/cone_B"]
+    assert cone_a.visible and cone_b.visible
+    assert tuple(cone_a.color) == GREEN
+    assert tuple(cone_b.color) == RED  # |115° − 90°| = α
+    assert np.allclose(cone_a.position, np.array([0, -8.0, 140.0]) * MM)
+    r, _, h = cone_a.scale
+    assert math.isclose(math.degrees(math.atan2(r, h)), 25.0)  # half-angle α
+    axis = vtf.SO3(np.asarray(cone_a.wxyz)).as_matrix()[:, 2]
+    p = [math.radians(v) for v in (-20.0, 30.0)]
+    normal = contact_normal(Finger.ONE, p[0], p[1], Point(-8.0, 140.0), viewer.settings)
+    assert np.allclose(axis, (0.0, normal.y, normal.z))
+
+
+async def test_contacts_vanish_when_the_run_ends(viewer: Viewer) -> None:
+    n = viewer.frames
+    viewer.handle({"type": "sample", "sample": SAMPLE})
+    viewer.handle({"type": "status", "status": {"run": {"id": 1, "state": "rolling"}}})
+    await next_frame(viewer, n)
+    assert viewer.nodes["/contacts/A"].visible and viewer.nodes["/contacts/cone_B"].visible
+    n = viewer.frames
+    viewer.handle({"type": "status", "status": {"run": {"id": 1, "state": "releasing"}}})
+    await next_frame(viewer, n)
+    assert not viewer.nodes["/contacts/A"].visible
+    assert not viewer.nodes["/contacts/cone_B"].visible
+    assert not viewer.nodes["/contacts/AB"].visible
+
+
+# --- pads and object -------------------------------------------------------------------------
+
+
+def test_distal_cells_sit_where_the_contact_estimate_puts_them(cfg: Settings) -> None:
+    pos, rot, idx = distal_cells(cfg)
+    assert len(idx) == int(cfg.tactile.distal.valid().sum()) == 70
+    assert len(pos) == len(rot) == 70
+    row0 = pos[0]  # row 0 at the fingertip's end: L = 49.5 (hand-model §5)
+    x3, y3 = pad_point_from_L(49.5, cfg.hand.pad)
+    assert math.isclose(row0[0], x3, abs_tol=0.31) and math.isclose(row0[1], y3, abs_tol=0.31)
+    last = pos[-1]  # row 12 nearest the distal joint: L = 5.5, on the flat part
+    assert math.isclose(last[0], 17.5 + 5.5) and math.isclose(last[1], 15.3)
+    v, f = pad_vertices(cfg.hand.pad, 20.4)
+    front = v[0::4]
+    assert np.allclose(front[:, 1], [pad_y3(x, cfg.hand.pad) for x in front[:, 0]])
+    assert f.max() < len(v)
+
+
+async def test_pads_coloured_from_tactile_frames(cfg: Settings, viewer: Viewer) -> None:
+    distal = np.zeros((13, 6))
+    distal[12, 0] = 4095  # row 12, column 0: a real cell, full scale
+    mats = [np.zeros((14, 6)).tolist()] * 6
+    mats[cfg.axes.finger1_distal_matrix] = distal.tolist()
+    n = viewer.frames
+    viewer.handle({"type": "tactile", "seq": 1, "t": 0.0, "matrices": mats})
+    await next_frame(viewer, n)
+    colors = np.asarray(viewer.nodes["/f1/distal/cells"].batched_colors)
+    assert colors.shape == (70, 3)
+    assert tuple(colors[-6]) == tuple(tactile_colors(np.array([4095]))[0])
+    assert tuple(colors[0]) == tuple(tactile_colors(np.array([0]))[0])
+    others = np.asarray(viewer.nodes["/f2/distal/cells"].batched_colors)
+    assert (others == tactile_colors(np.array([0]))[0]).all()
+
+
+async def test_sim_outline(viewer: Viewer) -> None:
+    outline = [[20.0 + 15 * math.cos(t), 140.0 + 20 * math.sin(t)] for t in np.linspace(0, 6, 24)]
+    n = viewer.frames
+    viewer.handle({"type": "sim", "truth": {"held": True, "dropped": False, "outline": outline}})
+    await next_frame(viewer, n)
+    node = viewer.nodes["/object/outline"]
+    assert node.visible
+    assert node.points.shape == (24, 2, 3)
+    assert np.allclose(node.points[:, 0, 1:], np.array(outline) * MM, atol=1e-6)
+    assert np.allclose(node.points[:, :, 0], 0.0)
+
+
+# --- (d) GUI → on_command --------------------------------------------------------------------
+
+
+async def test_buttons_and_sliders_reach_on_command(viewer: Viewer, commands: Recorder) -> None:
+    for kind in ("start", "stop", "estop", "release"):
+        await click(viewer.buttons[kind])
+    slider = viewer.sliders["k"]
+    slider._impl.value = 3.5  # what viser does with a client's update, then the callbacks
+    await click(slider)
+    await wait_for(lambda: len(commands.calls) == 5)
+    assert commands.calls == [
+        ("start", {}), ("stop", {}), ("estop", {}), ("release", {}), ("params", {"k": 3.5}),
+    ]  # fmt: skip
+    assert set(commands.loops) == {asyncio.get_running_loop()}  # awaited on the service's loop
+
+
+async def test_sliders_follow_status_without_echo(viewer: Viewer, commands: Recorder) -> None:
+    assert viewer.sliders["lambda_gain"].value == viewer.settings.rolling.lambda_gain
+    n = viewer.frames
+    params = {"delta_phi_deg": -0.5, "k": 4.0, "lambda_gain": 3.0, "alpha_deg": 20.0}
+    viewer.handle({"type": "status", "status": {"params": params, "run": None}})
+    await next_frame(viewer, n)
+    assert {f: s.value for f, s in viewer.sliders.items()} == params
+    await asyncio.sleep(0.05)
+    assert commands.calls == []  # following the service is not a user's change
+
+
+async def test_refused_command_shows_in_the_panel(cfg: Settings) -> None:
+    v = Viewer(cfg, port=0, on_command=Recorder(refuse=True), allow_start=False)
+    await v.start()
+    try:
+        assert v.buttons["start"].disabled  # exposed with a token: no start from here
+        assert not v.buttons["stop"].disabled and not v.buttons["estop"].disabled
+        await click(v.buttons["stop"])
+        await wait_for(lambda: "already running" in v.nodes["gui/state"].content)
+    finally:
+        await v.stop()
+
+
+# --- (e) handle() only stores; rendering is rate-limited and on change only ------------------
+
+
+async def test_handle_only_stores(cfg: Settings, monkeypatch: pytest.MonkeyPatch) -> None:
+    v = Viewer(cfg, port=0, max_hz=10.0)
+    await v.start()
+    try:
+        await next_frame(v, 0)  # the initial frame
+        renders: list[float] = []
+        real = v.render
+        monkeypatch.setattr(v, "render", lambda: (renders.append(time.monotonic()), real()))
+        before = np.array(v.nodes["/f1/distal"].position)
+        msgs = [
+            {"type": "sample", "sample": {**SAMPLE, "phi2": -20 + i * 1e-3}} for i in range(5000)
+        ]
+        t0 = time.perf_counter()
+        for m in msgs:
+            v.handle(m)
+        per_call = (time.perf_counter() - t0) / len(msgs)
+        assert per_call < 20e-6, f"handle() took {per_call * 1e6:.1f} µs"
+        assert renders == [] and np.array_equal(v.nodes["/f1/distal"].position, before)
+        assert v._latest["sample"] is msgs[-1]["sample"]  # the latest, stored as is
+
+        await wait_for(lambda: len(renders) == 1)  # 5000 messages → one frame
+        # fed for 0.5 s at 200 Hz: at most 10 frames a second
+        t_end = time.monotonic() + 0.5
+        while time.monotonic() < t_end:
+            v.handle(msgs[0])
+            await asyncio.sleep(0.005)
+        await asyncio.sleep(0.15)
+        gaps = np.diff(renders)
+        assert len(renders) <= 1 + 0.65 * 10 + 1
+        assert gaps.min() >= 0.09
+        idle = len(renders)
+        await asyncio.sleep(0.3)
+        assert len(renders) == idle  # nothing changed: nothing drawn
+    finally:
+        await v.stop()
+
+
+async def test_unknown_and_malformed_messages_are_harmless(viewer: Viewer) -> None:
+    n = viewer.frames
+    viewer.handle({"type": "event", "kind": "reversal"})
+    viewer.handle({"type": "dropped", "count": 3})
+    assert viewer._dirty == set()
+    viewer.handle({"type": "tactile", "matrices": [[[1, 2]]]})  # wrong shape: kept as it was
+    viewer.handle({"type": "sample", "sample": {"Ay": None, "phi2": None}})
+    viewer.handle({"type": "sim", "truth": {"outline": []}})
+    await next_frame(viewer, n)
+    assert not viewer.nodes["/contacts/A"].visible
+    assert not viewer.nodes["/object/outline"].visible
+    # a ragged tactile frame spoils its own part of the frame only: the pose still lands
+    n = viewer.frames
+    viewer.handle({"type": "tactile", "matrices": [[[1, 2], [3]]] * 6})
+    viewer.handle({"type": "pose", "angles_deg": [90.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
+    await next_frame(viewer, n)
+    assert np.allclose(viewer.nodes["/f1/distal"].position, (0.0, 0.0, 86.5 * MM))
