@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from websockets.asyncio.client import connect
+from websockets.typing import Subprotocol
 
 from sdh2svc.service.launch import LiveService, start_service
 
@@ -40,7 +41,10 @@ async def _client(url: str, counts: dict[str, int], stop: asyncio.Event) -> None
 
 async def _viser(url: str, counts: dict[str, int], stop: asyncio.Event) -> None:
     """A 3-D view client: the viser websocket, reading every scene message it is sent."""
-    async with connect(url.replace("http://", "ws://"), max_size=2**26) as ws:
+    import viser
+
+    proto = [Subprotocol(f"viser-v{viser.__version__}")]
+    async with connect(url.replace("http://", "ws://"), max_size=2**26, subprotocols=proto) as ws:
         while not stop.is_set():
             try:
                 await asyncio.wait_for(ws.recv(), 0.5)
