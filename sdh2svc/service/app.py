@@ -276,7 +276,20 @@ def _install_routes(app: FastAPI, cfg: Settings) -> None:
 
     @app.get("/api/viewer")
     async def viewer(request: Request) -> dict[str, Any]:
-        return {"url": _services(request).viewer_url}
+        url = _services(request).viewer_url
+        if url is not None and cfg.service.host in ("0.0.0.0", "::"):
+            # bound to every interface: reachable at whatever host the caller used
+            port = url.rsplit(":", 1)[1]
+            url = f"{request.url.scheme}://{request.url.hostname}:{port}"
+        return {"url": url}
+
+    @app.get("/api/config")
+    async def config() -> dict[str, Any]:
+        """The effective configuration (hand geometry, axis and matrix maps, limits, safety),
+        without the token."""
+        data = cfg.model_dump(mode="json")
+        data["service"]["token"] = "***" if cfg.service.token else ""
+        return data  # type: ignore[no-any-return]
 
     @app.websocket("/ws/telemetry")
     async def telemetry(

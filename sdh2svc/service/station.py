@@ -168,8 +168,8 @@ class Station:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
         run_params = validate_params(self.params, params) if params else self.params
-        if obj is not None:
-            self.set_object(obj)
+        if self.hand is not None:  # as in a lab: the object is put back in the fixture first
+            self.set_object(obj or self.hand.world.obj)
         meta = {"sim": self.sim, "fast": False, "dsa_url": self.dsa_url, "sdh_url": self.sdh_url,
                 "service": True}  # fmt: skip
         self._run_params = run_params

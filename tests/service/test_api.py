@@ -279,6 +279,11 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
                               headers={"Authorization": "Bearer s3cret"})  # fmt: skip
             assert r.status_code == 200 and r.json()["k"] == 3
             assert (await c.get("/api/params")).json()["k"] == 3
+            conf = (await c.get("/api/config")).json()
+            assert conf["service"]["token"] == "***" and "s3cret" not in json.dumps(conf)
+            assert conf["hand"]["pad"]["arc_radius_mm"] == 60.0 and conf["axes"]["phi4"] == 5
+            viewer = await c.get("/api/viewer")
+            assert viewer.json() == {"url": None}
     finally:
         assert await asyncio.to_thread(svc.stop) == 0
 

@@ -1,0 +1,261 @@
+"""The browser dashboard (web/) in Debian's chromium, headless, driven by playwright.
+
+Never downloads a browser: it launches /usr/bin/chromium (`.ci/run` installs it; without it
+these tests fail, they do not skip). Against a live ``sdh2svc serve --sim`` (the ``service``
+fixture): start a run on the egg, see the plots, heat maps and the 3-D view update, e-stop it,
+release; a bad parameter shows the server's 422 message next to its field; a recorded run
+replays and its exports download.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import playwright.async_api as playwright_api
+import pytest
+
+from sdh2svc.service.launch import LiveService, start_service
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+RUN_TIMEOUT_MS = 120_000
+ACTIVE = ("idle", "connecting", "pre-shape", "grasping", "rolling", "releasing")
+
+
+# Pixels of a canvas that differ from a colour (RGB) and are opaque.
+COUNT_PIXELS_NOT = """([sel, rgb]) => {
+  const c = document.querySelector(sel);
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0;
+  for (let i = 0; i < d.length; i += 4) {
+    if (d[i + 3] === 255 && (d[i] !== rgb[0] || d[i + 1] !== rgb[1] || d[i + 2] !== rgb[2])) n++;
+  }
+  return n;
+}"""
+# Strongly coloured pixels of a canvas (plot lines; axes and grid are grey).
+COUNT_COLOURED = """(sel) => {
+  const c = document.querySelector(sel);
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0;
+  for (let i = 0; i < d.length; i += 4) {
+    const hi = Math.max(d[i], d[i + 1], d[i + 2]), lo = Math.min(d[i], d[i + 1], d[i + 2]);
+    if (d[i + 3] > 128 && hi - lo > 80) n++;
+  }
+  return n;
+}"""
+PLOTS = ("joints", "force", "sigma", "s", "omega", "lambda")
+PAD_ZERO_RGB = [24, 27, 38]  # web/pads.js ZERO_COLOR: a taxel reading 0
+
+
+@contextlib.asynccontextmanager
+async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncIterator[Any]:
+    """A headless chromium page on ``svc``'s dashboard (``token`` stored beforehand, as the token
+    field does); fails on any script error in the page."""
+    async with playwright_api.async_playwright() as pw:
+        browser = await pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            context = await browser.new_context(viewport={"width": 1500, "height": 1200})
+            if token:
+                await context.add_init_script(f"localStorage.setItem('sdh2svc.token', {token!r});")
+            pg = await context.new_page()
+            errors: list[str] = []
+            pg.on("pageerror", lambda e: errors.append(str(e)))
+            await pg.goto(svc.url + "/")
+            await pg.wait_for_function(
+                "window.sdh2 && window.sdh2.statusMsgs > 0 && window.sdh2.ws === 'open'",
+                timeout=30_000,
+            )
+            await pg.wait_for_selector("#params-form input[name=k]")
+            yield pg
+            assert errors == [], f"script errors on the dashboard: {errors}"
+        finally:
+            await browser.close()
+
+
+@pytest.fixture
+async def page(service: LiveService) -> AsyncIterator[Any]:
+    async with dashboard(service, token=service.token) as pg:
+        yield pg
+
+
+async def counters(page: Any) -> dict[str, Any]:
+    return await page.evaluate("() => ({...window.sdh2})")  # type: ignore[no-any-return]
+
+
+async def test_layout_and_static_assets(service: LiveService, page: Any) -> None:
+    for sel in ("#start", "#stop", "#estop", "#estop-release", "#run-state", "#stroke",
+                "#iteration", "#params-form", "#object-select", "#sketch", "#runs",
+                "#viewer", "#bus-stats", "#errors"):  # fmt: skip
+        assert await page.locator(sel).count() == 1, sel
+    assert await page.locator("#pads canvas").count() == 6
+    labels = await page.locator("#pads figcaption").all_inner_texts()
+    assert [t.split(" (")[0] for t in labels] == [
+        "F1 prox", "F1 dist", "thumb prox", "thumb dist", "F2 prox", "F2 dist"]  # fmt: skip
+    for name in PLOTS:
+        assert await page.locator(f"#plot-{name} .uplot canvas").count() == 1, name
+    # offline: every script and style sheet comes from this server
+    srcs = await page.evaluate(
+        "() => [...document.querySelectorAll('script[src], link[href]')].map(e => e.src || e.href)"
+    )
+    assert srcs and all(s.startswith(service.url) or s.startswith("data:") for s in srcs), srcs
+    async with httpx.AsyncClient(base_url=service.url) as http:
+        for path in ("/web/vendor/uplot/uPlot.iife.min.js", "/web/vendor/uplot/LICENSE",
+                     "/web/app.js", "/web/style.css"):  # fmt: skip
+            assert (await http.get(path)).status_code == 200, path
+    # the form shows the server's parameters; the object choice lists the presets
+    params = httpx.get(service.url + "/api/params").json()
+    assert float(await page.input_value("#params-form input[name=k]")) == params["k"]
+    options = await page.locator("#object-select option").all_inner_texts()
+    assert "egg" in options
+    # a dropped telemetry socket comes back by itself
+    await page.evaluate("window.sdh2debug.telemetry.ws.close()")
+    await page.wait_for_function(
+        "window.sdh2.connects >= 2 && window.sdh2.ws === 'open'", timeout=15_000
+    )
+    assert await page.inner_text("#ws-state") == "live"
+    assert (await counters(page))["lastError"] is None
+
+
+async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: Any) -> None:
+    await page.select_option("#object-select", "egg")
+    await page.wait_for_function("!document.querySelector('#start').disabled")
+    await page.click("#start")
+    await page.wait_for_function(
+        "window.sdh2.samples > 40 && window.sdh2.tactile > 40", timeout=RUN_TIMEOUT_MS
+    )
+    c = await counters(page)
+    assert c["lastError"] is None, c["lastError"]
+    assert await page.inner_text("#run-state") in ACTIVE
+    assert int(await page.inner_text("#iteration")) > 0
+    assert (await page.inner_text("#stroke")).endswith(" of 3")
+    assert "frames/s" in await page.inner_text("#bus-stats")
+
+    # the plots have lines, the distal pads (matrices 1 and 5) show pressure, the sketch is drawn
+    await page.wait_for_timeout(300)  # one animation frame at least
+    for name in PLOTS:
+        assert await page.evaluate(COUNT_COLOURED, f"#plot-{name} .uplot canvas") > 50, name
+    for i in (1, 5):
+        sel = f"#pads canvas[data-matrix='{i}']"
+        assert await page.evaluate(COUNT_PIXELS_NOT, [sel, PAD_ZERO_RGB]) > 0, f"pad {i} blank"
+    assert await page.evaluate(COUNT_COLOURED, "#sketch") > 100
+
+    # e-stop mid-run: the run ends e-stopped, start is locked until the release
+    await page.click("#estop")
+    await page.wait_for_function(
+        "document.querySelector('#run-state').textContent === 'e-stopped'"
+        " && document.querySelector('#estop').classList.contains('latched')"
+        " && document.querySelector('#start').disabled",
+        timeout=30_000,
+    )
+    assert httpx.get(service.url + "/api/status").json()["estopped"] is True
+    await page.click("#estop-release")
+    await page.wait_for_function("!document.querySelector('#start').disabled", timeout=15_000)
+    assert httpx.get(service.url + "/api/status").json()["estopped"] is False
+
+    # the 3-D view (loaded when scrolled into sight): the iframe shows the viewer, which draws
+    viewer = httpx.get(service.url + "/api/viewer").json()["url"]
+    if viewer is None:
+        assert await page.is_visible("#viewer-note")
+    else:
+        assert httpx.get(viewer, timeout=10.0).status_code == 200
+        await page.locator("#viewer").scroll_into_view_if_needed()
+        await page.wait_for_function(
+            "document.querySelector('#viewer').src.startsWith(document.querySelector('#viewer')"
+            ".dataset.url)", timeout=10_000,
+        )  # fmt: skip
+        frame = page.frame_locator("#viewer")
+        await frame.locator("canvas").first.wait_for(state="attached", timeout=60_000)
+
+    # the run is in the history: replay its plots, download its exports
+    run_id = httpx.get(service.url + "/api/status").json()["run"]["id"]
+    row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
+    await row.wait_for(timeout=15_000)
+    await row.locator("button.replay").click()
+    await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=30_000)
+    assert await page.is_visible("#replay-banner")
+    await page.wait_for_timeout(300)
+    assert await page.evaluate(COUNT_COLOURED, "#plot-lambda .uplot canvas") > 50
+    for fmt in ("csv", "mcap"):
+        href = await row.locator(f"a.export-{fmt}").get_attribute("href")
+        r = httpx.get(service.url + href, timeout=30.0)
+        assert r.status_code == 200 and r.content, fmt
+    await page.click("#back-to-live")
+    assert await page.is_hidden("#replay-banner")
+    assert (await counters(page))["lastError"] is None
+
+
+async def test_bad_parameter_shows_the_422_next_to_the_field(
+    service: LiveService, page: Any
+) -> None:
+    before = httpx.get(service.url + "/api/params").json()
+    # what the server says about k = 0.5 (a rejected patch changes nothing)
+    r = httpx.patch(service.url + "/api/params", json={"k": 0.5}, headers=service.headers())
+    assert r.status_code == 422
+    body = r.json()
+    expected = next(d for d in body["details"] if d.startswith("k"))
+
+    await page.fill("#params-form input[name=k]", "0.5")
+    # the client-side range check speaks at once …
+    await page.wait_for_function(
+        "document.querySelector('[data-error-for=k]').textContent.includes('allowed')"
+    )
+    # … and the server's own message replaces it after Apply
+    await page.click("#params-apply")
+    err = page.locator("#params-form [data-error-for=k]")
+    await page.wait_for_function(
+        "([sel, text]) => document.querySelector(sel).textContent === text",
+        arg=["#params-form [data-error-for=k]", expected],
+        timeout=10_000,
+    )
+    assert await err.is_visible()
+    assert body["error"] in await page.inner_text("#errors")
+    assert body["error"] in (await counters(page))["lastError"]
+    assert httpx.get(service.url + "/api/params").json() == before
+
+    # a valid value is applied and clears the message
+    await page.fill("#params-form input[name=k]", str(before["k"] + 1))
+    await page.click("#params-apply")
+    await page.wait_for_function(
+        "document.querySelector('[data-error-for=k]').textContent === ''", timeout=10_000
+    )
+    assert httpx.get(service.url + "/api/params").json()["k"] == before["k"] + 1
+    r = httpx.patch(service.url + "/api/params", json={"k": before["k"]}, headers=service.headers())
+    assert r.status_code == 200
+
+
+async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
+    token = "dashboard-test-token"
+    svc = start_service(tmp_path, viewer=False, token=token)
+    try:
+        async with dashboard(svc) as page:
+            # the status says a token is needed: the field shows; without it a change is refused
+            assert await page.is_visible("#token-field")
+            before = httpx.get(svc.url + "/api/params").json()
+            await page.fill("#params-form input[name=lambda_gain]", str(before["lambda_gain"] + 1))
+            await page.click("#params-apply")
+            await page.wait_for_function("window.sdh2.lastError !== null", timeout=10_000)
+            assert "token" in (await counters(page))["lastError"]
+            assert "token" in await page.inner_text("#errors")
+            # with the token typed in (kept in localStorage) the same change goes through
+            await page.fill("#token", token)
+            await page.dispatch_event("#token", "change")
+            await page.click("#params-apply")
+            await page.wait_for_function(
+                "!document.querySelector('.field[data-field=lambda_gain]')"
+                ".classList.contains('dirty')",
+                timeout=10_000,
+            )
+            assert httpx.get(svc.url + "/api/params").json()["lambda_gain"] == (
+                before["lambda_gain"] + 1
+            )
+            stored = await page.evaluate("localStorage.getItem('sdh2svc.token')")
+            assert stored == token
+    finally:
+        assert svc.stop() == 0, "".join(svc.log)

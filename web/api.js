@@ -1,0 +1,171 @@
+// REST and WebSocket access to the sdh2svc service (docs/api.md).
+//
+// Every REST error answer is JSON {"error": "...", "details": [...]}; `request` turns it into an
+// ApiError carrying both, so callers can show the sentence and put field details next to fields.
+
+const TOKEN_KEY = "sdh2svc.token";
+
+export class ApiError extends Error {
+  constructor(status, error, details) {
+    super(error);
+    this.status = status;
+    this.error = error;
+    this.details = Array.isArray(details) ? details : [];
+  }
+}
+
+export function getToken() {
+  try {
+    return localStorage.getItem(TOKEN_KEY) || "";
+  } catch {
+    return "";
+  }
+}
+
+export function setToken(token) {
+  try {
+    if (token) localStorage.setItem(TOKEN_KEY, token);
+    else localStorage.removeItem(TOKEN_KEY);
+  } catch {
+    /* private mode: the token lives for this page only */
+  }
+}
+
+/** One REST call; resolves to the parsed JSON (or null), rejects with an ApiError. */
+export async function request(method, path, body) {
+  const headers = {};
+  const token = getToken();
+  if (token) headers["Authorization"] = `Bearer ${token}`;
+  const init = { method, headers };
+  if (body !== undefined) {
+    headers["Content-Type"] = "application/json";
+    init.body = JSON.stringify(body);
+  }
+  let resp;
+  try {
+    resp = await fetch(path, init);
+  } catch (e) {
+    throw new ApiError(0, `${method} ${path}: the service does not answer (${e.message})`, []);
+  }
+  const text = await resp.text();
+  let data = null;
+  if (text) {
+    try {
+      data = JSON.parse(text);
+    } catch {
+      data = null;
+    }
+  }
+  if (!resp.ok) {
+    const msg = (data && data.error) || `${method} ${path}: HTTP ${resp.status} ${text.slice(0, 200)}`;
+    throw new ApiError(resp.status, msg, data && data.details);
+  }
+  return data;
+}
+
+export const api = {
+  status: () => request("GET", "/api/status"),
+  params: () => request("GET", "/api/params"),
+  paramsSchema: () => request("GET", "/api/params/schema"),
+  patchParams: (patch) => request("PATCH", "/api/params", patch),
+  startRun: (body) => request("POST", "/api/runs", body),
+  stopRun: () => request("POST", "/api/runs/stop"),
+  runs: () => request("GET", "/api/runs"),
+  run: (id) => request("GET", `/api/runs/${id}`),
+  samples: (id, offset, limit) =>
+    request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}`),
+  exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,
+  estop: () => request("POST", "/api/estop"),
+  release: () => request("POST", "/api/estop/release"),
+  simObject: () => request("GET", "/api/sim/object"),
+  putSimObject: (name) => request("PUT", "/api/sim/object", { name }),
+  viewer: () => request("GET", "/api/viewer"),
+};
+
+/** All samples of a recorded run, fetched page by page. */
+export async function allSamples(id, onProgress, pageSize = 5000) {
+  const out = [];
+  let offset = 0;
+  for (;;) {
+    const page = await api.samples(id, offset, pageSize);
+    out.push(...page.samples);
+    offset += page.samples.length;
+    if (onProgress) onProgress(offset, page.total);
+    if (page.samples.length === 0 || offset >= page.total) break;
+  }
+  return out;
+}
+
+/**
+ * The telemetry WebSocket with reconnection (exponential backoff, 0.5 s … 10 s).
+ * onMessage(msg) gets every parsed message; onState(state, info) gets
+ * "connecting" | "open" | "closed" (info: seconds until the next try).
+ */
+export class Telemetry {
+  constructor({ onMessage, onState, query = "" }) {
+    this.onMessage = onMessage;
+    this.onState = onState;
+    this.query = query;
+    this.delay = 500;
+    this.ws = null;
+    this.timer = null;
+    this.stopped = false;
+  }
+
+  url() {
+    const proto = location.protocol === "https:" ? "wss:" : "ws:";
+    return `${proto}//${location.host}/ws/telemetry${this.query}`;
+  }
+
+  start() {
+    this.stopped = false;
+    this.connect();
+  }
+
+  stop() {
+    this.stopped = true;
+    clearTimeout(this.timer);
+    if (this.ws) this.ws.close();
+  }
+
+  connect() {
+    this.onState("connecting");
+    let ws;
+    try {
+      ws = new WebSocket(this.url());
+    } catch (e) {
+      this.retry(String(e));
+      return;
+    }
+    this.ws = ws;
+    ws.onopen = () => {
+      this.delay = 500;
+      this.onState("open");
+    };
+    ws.onmessage = (ev) => {
+      let msg;
+      try {
+        msg = JSON.parse(ev.data);
+      } catch {
+        return;
+      }
+      this.onMessage(msg);
+    };
+    ws.onclose = (ev) => {
+      if (this.ws !== ws) return;
+      this.ws = null;
+      if (!this.stopped) this.retry(ev.reason || `code ${ev.code}`);
+    };
+    ws.onerror = () => {
+      /* onclose follows and schedules the retry */
+    };
+  }
+
+  retry(reason) {
+    const wait = this.delay;
+    this.delay = Math.min(this.delay * 2, 10000);
+    this.onState("closed", { retryInS: wait / 1000, reason });
+    clearTimeout(this.timer);
+    this.timer = setTimeout(() => this.connect(), wait);
+  }
+}

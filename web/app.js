@@ -1,0 +1,572 @@
+// The sdh2svc dashboard: wires the REST API, the telemetry WebSocket, the plots, pads and sketch.
+
+import { api, allSamples, ApiError, getToken, setToken, Telemetry } from "/web/api.js";
+import { ParamsForm } from "/web/params.js";
+import { Pads } from "/web/pads.js";
+import { Plots } from "/web/plots.js";
+import { Sketch } from "/web/sketch.js";
+
+const $ = (sel) => document.querySelector(sel);
+const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling", "releasing"]);
+const CONTACT_STALE_MS = 1500;
+
+// Counters for tests and the curious (see the browser test).
+const sdh2 = (window.sdh2 = {
+  samples: 0, tactile: 0, statusMsgs: 0, events: 0, lastError: null,
+  ws: "connecting", connects: 0, dropped: 0, runState: null, replaying: null,
+});
+
+const state = {
+  status: null,
+  params: {}, // RollingParams in force (from status)
+  liveRunId: null,
+  lastSampleAt: 0,
+  runKey: "",
+  sim: null,
+  replayId: null,
+};
+
+// --- errors -----------------------------------------------------------------------------------
+
+function toast(message, { details = [], kind = "error", timeoutMs = 0 } = {}) {
+  const box = document.createElement("div");
+  box.className = `toast ${kind}`;
+  box.setAttribute("role", kind === "error" ? "alert" : "status");
+  const text = document.createElement("div");
+  text.className = "toast-text";
+  text.textContent = message;
+  box.appendChild(text);
+  if (details.length) {
+    const ul = document.createElement("ul");
+    for (const d of details) {
+      const li = document.createElement("li");
+      li.textContent = String(d);
+      ul.appendChild(li);
+    }
+    box.appendChild(ul);
+  }
+  const close = document.createElement("button");
+  close.className = "close";
+  close.type = "button";
+  close.textContent = "×";
+  close.title = "dismiss";
+  close.addEventListener("click", () => box.remove());
+  box.appendChild(close);
+  const host = $("#errors");
+  host.appendChild(box);
+  while (host.children.length > 6) host.firstElementChild.remove();
+  if (timeoutMs) setTimeout(() => box.remove(), timeoutMs);
+  return box;
+}
+
+function showError(e, context = "") {
+  const msg = e instanceof ApiError ? e.error : String((e && e.message) || e);
+  const details = e instanceof ApiError ? e.details : [];
+  const full = context ? `${context}: ${msg}` : msg;
+  sdh2.lastError = details.length ? `${full} — ${details.join("; ")}` : full;
+  console.warn("sdh2svc:", sdh2.lastError);
+  toast(full, { details });
+  if (e instanceof ApiError && e.status === 401) $("#token-field").hidden = false;
+}
+
+/** Run an async UI action; show its error instead of failing silently. */
+async function guard(context, fn) {
+  try {
+    return await fn();
+  } catch (e) {
+    showError(e, context);
+    return undefined;
+  }
+}
+
+window.addEventListener("error", (ev) => showError(ev.message || "script error", "dashboard"));
+window.addEventListener("unhandledrejection", (ev) => showError(ev.reason, "dashboard"));
+
+// --- components -------------------------------------------------------------------------------
+
+const sketch = new Sketch($("#sketch"));
+const pads = new Pads($("#pads"));
+const plots = new Plots({ windowSize: 2000, onCursor: (s) => sketch.setOverride(s) });
+const form = new ParamsForm($("#params-form"), {
+  onSubmit: (patch) => applyParams(patch),
+});
+
+// --- parameters -------------------------------------------------------------------------------
+
+async function applyParams(patch) {
+  form.clearErrors();
+  if (!Object.keys(patch).length) {
+    toast("No parameter changed.", { kind: "info", timeoutMs: 3000 });
+    return;
+  }
+  try {
+    const now = await api.patchParams(patch);
+    form.setValues(now, true);
+    state.params = now;
+    toast(`Parameters applied: ${Object.keys(patch).join(", ")}`, { kind: "info", timeoutMs: 3000 });
+  } catch (e) {
+    if (e instanceof ApiError && e.status === 422) form.showServerErrors(e.details, e.error);
+    showError(e, "parameters");
+  }
+}
+
+// --- run control ------------------------------------------------------------------------------
+
+async function startRun() {
+  const body = {};
+  const { patch, blocked } = form.collect(true);
+  if (blocked) {
+    showError("fix the marked parameter fields first", "start");
+    return;
+  }
+  if (Object.keys(patch).length) body.params = patch;
+  if (state.sim && $("#object-select").value) body.object = $("#object-select").value;
+  form.clearErrors();
+  try {
+    const r = await api.startRun(body);
+    toast(`Run ${r.run_id} started`, { kind: "info", timeoutMs: 3000 });
+    plots.resetLive();
+    state.liveRunId = r.run_id;
+    if (plots.replaying) backToLive();
+  } catch (e) {
+    if (e instanceof ApiError && e.status === 422) form.showServerErrors(e.details, e.error);
+    showError(e, "start");
+  }
+}
+
+$("#start").addEventListener("click", startRun);
+$("#stop").addEventListener("click", () => guard("stop", async () => {
+  const r = await api.stopRun();
+  toast(`Stopping run ${r.run_id} (${r.state})`, { kind: "info", timeoutMs: 3000 });
+}));
+$("#estop").addEventListener("click", () => guard("e-stop", async () => {
+  await api.estop();
+  $("#estop").classList.add("latched");
+  refreshStatus();
+}));
+$("#estop-release").addEventListener("click", () => guard("release e-stop", async () => {
+  await api.release();
+  $("#estop").classList.remove("latched");
+  refreshStatus();
+}));
+
+// --- token ------------------------------------------------------------------------------------
+
+$("#token").value = getToken();
+$("#token").addEventListener("change", () => setToken($("#token").value.trim()));
+
+// --- object (simulation) ----------------------------------------------------------------------
+
+async function loadObject() {
+  const sel = $("#object-select");
+  try {
+    const info = await api.simObject();
+    state.sim = true;
+    sel.innerHTML = "";
+    for (const name of info.presets || []) sel.add(new Option(name, name));
+    const current = info.object && info.object.name;
+    if (current && ![...sel.options].some((o) => o.value === current)) {
+      sel.add(new Option(`${current} (custom)`, current));
+    }
+    if (current) sel.value = current;
+    sel.disabled = false;
+    sel.dataset.current = current || "";
+  } catch (e) {
+    if (e instanceof ApiError && e.status === 404) {
+      state.sim = false; // a real hand: no object choice
+      $("#object-field").hidden = true;
+    } else {
+      showError(e, "object");
+    }
+  }
+}
+
+$("#object-select").addEventListener("change", async (ev) => {
+  const sel = ev.target;
+  try {
+    const r = await api.putSimObject(sel.value);
+    const name = (r && (r.object?.name ?? r.name)) || sel.value;
+    sel.dataset.current = name;
+    toast(`Object: ${name}`, { kind: "info", timeoutMs: 2500 });
+  } catch (e) {
+    showError(e, "object");
+    sel.value = sel.dataset.current || sel.value;
+  }
+});
+
+// --- status -----------------------------------------------------------------------------------
+
+function fmt(v, digits = 1) {
+  if (v === null || v === undefined) return "–";
+  if (typeof v === "number") return Number.isInteger(v) ? String(v) : v.toFixed(digits);
+  return String(v);
+}
+
+function renderBus(st) {
+  const t = st.links && st.links.tactile;
+  const hub = st.telemetry || {};
+  const rows = [];
+  if (t) {
+    rows.push(
+      ["mode", t.mode],
+      ["frames/s", fmt(t.frames_per_s)],
+      ["line utilisation", `${fmt(t.line_utilisation_pct)} %`],
+      ["frame age", `${fmt(t.frame_age_ms)} ms`],
+      ["frames", fmt(t.frames)],
+      ["CRC errors", fmt(t.crc_errors), t.crc_errors > 0],
+      ["resyncs", fmt(t.resyncs), t.resyncs > 0],
+      ["timeouts", fmt(t.timeouts), t.timeouts > 0],
+      ["bad frames", fmt(t.bad_frames), t.bad_frames > 0],
+      ["reconnects", fmt(t.reconnects), t.reconnects > 0],
+      ["tactile link", t.connected ? "connected" : "down", !t.connected],
+    );
+  } else {
+    rows.push(["tactile link", "not open", true]);
+  }
+  const j = st.hand && st.hand.connected;
+  rows.push(["joint link", j && j.joints ? "connected" : "down", !(j && j.joints)]);
+  rows.push(["telemetry clients", fmt(hub.clients)]);
+  if (hub.dropped !== undefined) rows.push(["messages dropped", fmt(hub.dropped)]);
+  const dl = $("#bus-stats");
+  dl.innerHTML = "";
+  for (const [k, v, bad] of rows) {
+    const dt = document.createElement("dt");
+    dt.textContent = k;
+    const dd = document.createElement("dd");
+    dd.textContent = v;
+    if (bad) dd.className = "bad";
+    dl.append(dt, dd);
+  }
+  dl.title = `DSA ${st.links?.dsa_url ?? "?"} · SDH ${st.links?.sdh_url ?? "?"}`;
+}
+
+function renderStatus(st) {
+  state.status = st;
+  const run = st.run;
+  const runState = run ? run.state : "no run";
+  sdh2.runState = run ? run.state : null;
+  const rs = $("#run-state");
+  rs.textContent = runState;
+  rs.dataset.state = run ? run.state : "";
+  $("#run-id").textContent = run ? String(run.id) : "–";
+  $("#stroke").textContent = run ? `${run.stroke} of ${run.strokes_total}` : "–";
+  $("#iteration").textContent = run ? String(run.iteration) : "–";
+  const msg = run && run.message ? run.message : "";
+  $("#run-message").textContent = msg;
+  $("#run-message").title = msg;
+
+  const active = Boolean(run && (run.status === "running" || ACTIVE.has(run.state)));
+  $("#start").disabled = active || st.estopped;
+  $("#stop").disabled = !active;
+  $("#estop").classList.toggle("latched", Boolean(st.estopped));
+  $("#estop-release").disabled = !st.estopped;
+  $("#object-select").disabled = active || state.sim === false;
+
+  $("#mode-badge").textContent = st.sim ? "simulated hand" : "real hand";
+  const conn = st.hand && st.hand.connected;
+  const ok = conn && conn.joints && conn.tactile;
+  const ls = $("#links-state");
+  ls.textContent = ok ? "links up" : "links down";
+  ls.className = `badge ${ok ? "links-ok" : "links-bad"}`;
+  if (st.auth_required) $("#token-field").hidden = false;
+
+  if (st.params) {
+    state.params = st.params;
+    form.setValues(st.params);
+    sketch.setAlpha(st.params.alpha_deg);
+  }
+  if (st.object && st.object.name && document.activeElement !== $("#object-select")) {
+    const sel = $("#object-select");
+    if ([...sel.options].some((o) => o.value === st.object.name)) {
+      sel.value = st.object.name;
+      sel.dataset.current = st.object.name;
+    }
+  }
+  if (st.hand && Array.isArray(st.hand.angles_deg)) setPose(st.hand.angles_deg);
+  if (run && run.state !== "rolling" && Date.now() - state.lastSampleAt > CONTACT_STALE_MS) {
+    sketch.setContact(null);
+  }
+  renderBus(st);
+
+  // refresh the history when a run starts or ends
+  const key = run ? `${run.id}:${ACTIVE.has(run.state)}` : "";
+  if (key !== state.runKey) {
+    state.runKey = key;
+    loadRuns();
+  }
+}
+
+async function refreshStatus() {
+  const st = await guard("status", api.status);
+  if (st) renderStatus(st);
+}
+
+function setPose(angles) {
+  // wire axes: φ2 = 1, φ3 = 2, φ4 = 5, φ5 = 6 (config [axes])
+  if (angles.length >= 7) sketch.setAngles([angles[1], angles[2], angles[5], angles[6]]);
+}
+
+// --- telemetry --------------------------------------------------------------------------------
+
+function addEvent(m) {
+  const li = document.createElement("li");
+  li.className = m.kind;
+  const detail = m.detail && typeof m.detail === "object"
+    ? Object.entries(m.detail).map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`).join(" ")
+    : m.detail ?? "";
+  const text = `run ${m.run_id ?? "–"} · it ${m.iteration ?? "–"} · ${m.kind} ${detail}`;
+  li.textContent = text.length > 160 ? `${text.slice(0, 157)}…` : text;
+  li.title = text;
+  const ol = $("#events");
+  ol.prepend(li);
+  while (ol.children.length > 60) ol.lastElementChild.remove();
+  if (m.kind === "fault") showError(`run ${m.run_id} fault: ${detail}`);
+}
+
+function onMessage(m) {
+  switch (m.type) {
+    case "hello":
+    case "status":
+      sdh2.statusMsgs += 1;
+      renderStatus(m.status);
+      break;
+    case "sample": {
+      sdh2.samples += 1;
+      const s = m.sample;
+      if (m.run_id !== state.liveRunId) {
+        state.liveRunId = m.run_id;
+        plots.resetLive();
+      }
+      plots.push(s, state.params);
+      state.lastSampleAt = Date.now();
+      sketch.setContact(s);
+      break;
+    }
+    case "tactile":
+      sdh2.tactile += 1;
+      pads.update(m.matrices);
+      break;
+    case "pose":
+      setPose(m.angles_deg || []);
+      break;
+    case "sim":
+      sketch.setTruth(m.truth);
+      break;
+    case "event":
+      sdh2.events += 1;
+      addEvent(m);
+      break;
+    case "dropped":
+      sdh2.dropped = m.count;
+      $("#ws-state").textContent = `live (${m.count} dropped)`;
+      $("#ws-state").title = `telemetry WebSocket: ${m.count} messages dropped for this page ` +
+        "(the page could not keep up; the oldest go first)";
+      break;
+    default:
+      break;
+  }
+}
+
+let pollTimer = 0;
+function onWsState(s, info) {
+  sdh2.ws = s;
+  const el = $("#ws-state");
+  el.className = `badge ws-${s}`;
+  if (s === "open") {
+    sdh2.connects += 1;
+    el.textContent = "live";
+    clearInterval(pollTimer);
+    pollTimer = 0;
+  } else if (s === "connecting") {
+    el.textContent = "connecting…";
+  } else {
+    el.textContent = `disconnected — retry in ${info.retryInS.toFixed(1)} s`;
+    el.title = `telemetry WebSocket closed (${info.reason})`;
+    // keep the status fresh over REST while the socket is down
+    if (!pollTimer) pollTimer = setInterval(() => api.status().then(renderStatus).catch(() => {}), 3000);
+  }
+}
+
+// --- run history and replay -------------------------------------------------------------------
+
+function cell(tr, text, cls) {
+  const td = document.createElement("td");
+  td.textContent = text ?? "–";
+  if (cls) td.className = cls;
+  tr.appendChild(td);
+  return td;
+}
+
+function shortTime(s) {
+  if (!s) return "–";
+  const d = new Date(String(s).replace(/\+0000$/, "Z"));
+  return Number.isNaN(d.getTime()) ? String(s) : d.toLocaleString();
+}
+
+let runsLoading = null;
+async function loadRuns() {
+  if (runsLoading) return runsLoading;
+  runsLoading = (async () => {
+    try {
+      const runs = await api.runs();
+      renderRuns(runs || []);
+    } catch (e) {
+      showError(e, "run history");
+    } finally {
+      runsLoading = null;
+    }
+  })();
+  return runsLoading;
+}
+
+function renderRuns(runs) {
+  const tbody = $("#runs tbody");
+  tbody.innerHTML = "";
+  if (!runs.length) {
+    const tr = document.createElement("tr");
+    cell(tr, "no runs recorded yet").colSpan = 9;
+    tbody.appendChild(tr);
+    return;
+  }
+  for (const r of runs) {
+    const tr = document.createElement("tr");
+    tr.dataset.runId = String(r.id);
+    if (r.id === state.replayId) tr.className = "replaying";
+    const sum = r.summary || {};
+    const meta = r.meta || {};
+    cell(tr, String(r.id));
+    cell(tr, shortTime(r.started ?? r.started_at));
+    cell(tr, shortTime(r.finished ?? r.ended_at));
+    cell(tr, r.status, `status-${r.status}`);
+    cell(tr, meta.object ? meta.object.name ?? meta.object.kind : "–");
+    cell(tr, fmt(r.iterations ?? sum.iterations));
+    cell(tr, fmt(sum.strokes));
+    const bits = [];
+    if (sum.message) bits.push(sum.message);
+    if (sum.force && typeof sum.force.mean === "number") {
+      bits.push(`F ${fmt(sum.force.mean, 2)}±${fmt(sum.force.sd, 2)}`);
+    }
+    if (sum.loop_hz) bits.push(`${fmt(sum.loop_hz)} Hz`);
+    if (sum.truth && sum.truth.rotation_range_deg !== undefined) {
+      bits.push(`rot ${fmt(sum.truth.rotation_range_deg)}°`);
+    }
+    cell(tr, bits.join(" · "));
+    const td = cell(tr, "", "actions");
+    const replay = document.createElement("button");
+    replay.className = "btn small secondary replay";
+    replay.type = "button";
+    replay.textContent = "Replay";
+    replay.addEventListener("click", () => replayRun(r));
+    td.appendChild(replay);
+    for (const f of ["csv", "mcap"]) {
+      const a = document.createElement("a");
+      a.href = api.exportUrl(r.id, f);
+      a.textContent = f.toUpperCase();
+      a.setAttribute("download", `run-${r.id}.${f}`);
+      a.className = `export-${f}`;
+      td.appendChild(a);
+    }
+    tbody.appendChild(tr);
+  }
+}
+
+async function replayRun(r) {
+  const banner = $("#replay-banner");
+  banner.hidden = false;
+  $("#replay-text").textContent = `Loading run ${r.id}…`;
+  try {
+    const samples = await allSamples(r.id, (n, total) => {
+      $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} samples…`;
+    });
+    const params = (r.meta && r.meta.params) || state.params;
+    plots.showReplay(samples, params);
+    if (params && params.alpha_deg !== undefined) sketch.setAlpha(params.alpha_deg);
+    state.replayId = r.id;
+    sdh2.replaying = r.id;
+    $("#replay-text").textContent =
+      `Replaying run ${r.id} (${r.status}, ${samples.length} samples) — live data keeps recording.`;
+    for (const tr of document.querySelectorAll("#runs tbody tr")) {
+      tr.classList.toggle("replaying", tr.dataset.runId === String(r.id));
+    }
+  } catch (e) {
+    banner.hidden = true;
+    showError(e, `replay run ${r.id}`);
+  }
+}
+
+function backToLive() {
+  plots.showLive();
+  sketch.setOverride(null);
+  if (state.params.alpha_deg !== undefined) sketch.setAlpha(state.params.alpha_deg);
+  state.replayId = null;
+  sdh2.replaying = null;
+  $("#replay-banner").hidden = true;
+  for (const tr of document.querySelectorAll("#runs tbody tr.replaying")) tr.classList.remove("replaying");
+}
+
+$("#back-to-live").addEventListener("click", backToLive);
+$("#runs-refresh").addEventListener("click", () => loadRuns());
+
+// --- 3-D view ---------------------------------------------------------------------------------
+
+async function loadViewer() {
+  const frame = $("#viewer");
+  const note = $("#viewer-note");
+  try {
+    const v = await api.viewer();
+    if (!v || !v.url) {
+      note.textContent = "The 3-D view is off on this service (started with --no-viewer, or viser " +
+        "is not available).";
+      note.hidden = false;
+      frame.hidden = true;
+      return;
+    }
+    const url = new URL(v.url);
+    // a viewer bound to a wildcard or loopback address: reach it on the host this page came from
+    const local = ["0.0.0.0", "::", "[::]", "127.0.0.1", "localhost"];
+    if (local.includes(url.hostname) && !local.includes(location.hostname)) {
+      url.hostname = location.hostname;
+    }
+    // The WebGL view is heavy (a software renderer can starve a small machine): load it when its
+    // card first scrolls into sight, and keep it from then on.
+    frame.hidden = false;
+    frame.dataset.url = url.toString();
+    const seen = new IntersectionObserver((entries) => {
+      if (!entries.some((e) => e.isIntersecting)) return;
+      seen.disconnect();
+      frame.src = frame.dataset.url;
+    }, { rootMargin: "80px" });
+    seen.observe(frame);
+    const link = $("#viewer-link");
+    link.href = url.toString();
+    link.hidden = false;
+  } catch (e) {
+    note.textContent = "The 3-D view's address is unknown (GET /api/viewer failed).";
+    note.hidden = false;
+    showError(e, "3-D view");
+  }
+}
+
+// --- start ------------------------------------------------------------------------------------
+
+async function init() {
+  const [schema] = await Promise.all([
+    guard("parameter schema", api.paramsSchema),
+    loadObject(),
+  ]);
+  if (schema) form.build(schema);
+  const params = await guard("parameters", api.params);
+  if (params) {
+    state.params = params;
+    form.setValues(params, true);
+    sketch.setAlpha(params.alpha_deg);
+  }
+  await refreshStatus();
+  loadViewer();
+  loadRuns();
+  const telemetry = new Telemetry({ onMessage, onState: onWsState });
+  window.sdh2debug = { telemetry, plots, pads, sketch, form };
+  telemetry.start();
+}
+
+init();

@@ -1,0 +1,221 @@
+// Live and replayed plots of the thesis's figures (uPlot, vendored; global `uPlot`).
+//
+// Samples are appended to column buffers (a rolling window); the charts are redrawn at most once
+// per animation frame, and only those whose data changed.
+
+const C = {
+  phi2: "#1f77b4", phi3: "#ff7f0e", phi4: "#2ca02c", phi5: "#d62728",
+  F: "#222222", dF: "#9467bd", F1: "#8c564b", F2: "#e377c2", limit: "#d62728", ref: "#7f7f7f",
+  a: "#1f77b4", b: "#d62728", d: "#2ca02c",
+};
+const DASH = [6, 4];
+
+const num = (v) => (v === null || v === undefined || Number.isNaN(v) ? null : v);
+const field = (k) => (s) => num(s[k]);
+
+// One entry per chart: container id, title, y unit, and its series (value from sample s and the
+// parameters p in force for it).
+export const PLOTS = [
+  {
+    id: "plot-joints", title: "joint angles φ2…φ5 (dashed: targets)", unit: "deg",
+    series: [
+      { label: "φ2", color: C.phi2, value: field("phi2") },
+      { label: "φ3", color: C.phi3, value: field("phi3") },
+      { label: "φ4", color: C.phi4, value: field("phi4") },
+      { label: "φ5", color: C.phi5, value: field("phi5") },
+      { label: "φ2d", color: C.phi2, dash: DASH, value: field("phi2_d") },
+      { label: "φ3d", color: C.phi3, dash: DASH, value: field("phi3_d") },
+      { label: "φ4d", color: C.phi4, dash: DASH, value: field("phi4_d") },
+      { label: "φ5d", color: C.phi5, dash: DASH, value: field("phi5_d") },
+    ],
+  },
+  {
+    id: "plot-force", title: "force F, ΔF (Fd and the [0.25, 2.5]·Fd band)", unit: "lib. units",
+    series: [
+      { label: "F", color: C.F, width: 2, value: field("F") },
+      { label: "ΔF", color: C.dF, value: field("dF") },
+      { label: "F1", color: C.F1, width: 1, value: field("F1"), show: false },
+      { label: "F2", color: C.F2, width: 1, value: field("F2"), show: false },
+      { label: "Fd", color: C.ref, dash: DASH, value: (s, p) => num(p.grasp_force) },
+      { label: "0.25·Fd", color: C.limit, dash: [2, 4], width: 1,
+        value: (s, p) => (p.grasp_force == null ? null : 0.25 * p.grasp_force) },
+      { label: "2.5·Fd", color: C.limit, dash: [2, 4], width: 1,
+        value: (s, p) => (p.grasp_force == null ? null : 2.5 * p.grasp_force) },
+    ],
+  },
+  {
+    id: "plot-sigma", title: "inclination σ of AB", unit: "deg",
+    series: [
+      { label: "σ", color: C.a, width: 2, value: field("sigma") },
+      { label: "σd", color: C.b, dash: DASH, value: field("sigma_d") },
+    ],
+  },
+  {
+    id: "plot-s", title: "contact positions S1, S2 on the pads", unit: "mm",
+    series: [
+      { label: "S1", color: C.a, width: 2, value: field("S1") },
+      { label: "S2", color: C.b, width: 2, value: field("S2") },
+    ],
+  },
+  {
+    id: "plot-omega", title: "ωA, ωB and the friction cone 90° ± α", unit: "deg",
+    series: [
+      { label: "ωA", color: C.a, width: 2, value: field("omega_A") },
+      { label: "ωB", color: C.b, width: 2, value: field("omega_B") },
+      { label: "90−α", color: C.limit, dash: DASH, width: 1,
+        value: (s, p) => (p.alpha_deg == null ? null : 90 - p.alpha_deg) },
+      { label: "90+α", color: C.limit, dash: DASH, width: 1,
+        value: (s, p) => (p.alpha_deg == null ? null : 90 + p.alpha_deg) },
+    ],
+  },
+  {
+    id: "plot-lambda", title: "held distance Λ = |AB| and Λad", unit: "mm",
+    series: [
+      { label: "Λ", color: C.a, width: 2, value: field("Lambda") },
+      { label: "Λad", color: C.d, dash: DASH, value: field("Lambda_ad") },
+    ],
+  },
+];
+
+/** Column buffers for all charts: x (iteration) plus one column per series. */
+class Buffers {
+  constructor(limit) {
+    this.limit = limit;
+    this.clear();
+  }
+
+  clear() {
+    this.samples = [];
+    this.cols = PLOTS.map((p) => [[], ...p.series.map(() => [])]);
+  }
+
+  push(sample, params) {
+    const x = num(sample.iteration) ?? num(sample.t) ?? this.samples.length;
+    this.samples.push(sample);
+    PLOTS.forEach((p, i) => {
+      const cols = this.cols[i];
+      cols[0].push(x);
+      p.series.forEach((s, j) => cols[j + 1].push(s.value(sample, params)));
+    });
+    if (this.limit && this.samples.length > this.limit) {
+      const n = this.samples.length - this.limit;
+      this.samples.splice(0, n);
+      for (const cols of this.cols) for (const c of cols) c.splice(0, n);
+    }
+  }
+
+  get length() {
+    return this.samples.length;
+  }
+}
+
+export class Plots {
+  /** onCursor(sample|null): the sample under the (synchronised) cursor, for the sketch. */
+  constructor({ windowSize = 2000, onCursor = null } = {}) {
+    this.live = new Buffers(windowSize);
+    this.replay = null; // Buffers while a past run is shown
+    this.onCursor = onCursor;
+    this.dirty = false;
+    this.frame = 0;
+    this.charts = PLOTS.map((p) => this.makeChart(p));
+    const ro = new ResizeObserver(() => this.resize());
+    for (const p of PLOTS) ro.observe(document.getElementById(p.id));
+  }
+
+  makeChart(p) {
+    const el = document.getElementById(p.id);
+    el.innerHTML = "";
+    const title = document.createElement("div");
+    title.className = "plot-title";
+    title.textContent = p.title;
+    el.appendChild(title);
+    const opts = {
+      width: Math.max(200, el.clientWidth - 4),
+      height: 190,
+      legend: { live: true },
+      cursor: { sync: { key: "sdh2" }, drag: { x: true, y: false } },
+      scales: { x: { time: false } },
+      axes: [
+        { label: "iteration", size: 36, labelSize: 14 },
+        { label: p.unit, size: 52, labelSize: 14 },
+      ],
+      series: [
+        { label: "it" },
+        ...p.series.map((s) => ({
+          label: s.label,
+          stroke: s.color,
+          width: s.width ?? 1.5,
+          dash: s.dash,
+          show: s.show ?? true,
+          spanGaps: false,
+          points: { show: false },
+        })),
+      ],
+      hooks: {
+        setCursor: [
+          (u) => {
+            if (!this.onCursor) return;
+            const idx = u.cursor.idx;
+            const buf = this.current();
+            this.onCursor(idx == null ? null : buf.samples[idx] ?? null);
+          },
+        ],
+      },
+    };
+    const chart = new uPlot(opts, [[], ...p.series.map(() => [])], el);
+    chart._container = el;
+    return chart;
+  }
+
+  current() {
+    return this.replay ?? this.live;
+  }
+
+  resize() {
+    for (const c of this.charts) {
+      const w = Math.max(200, c._container.clientWidth - 4);
+      if (Math.abs(w - c.width) > 2) c.setSize({ width: w, height: 190 });
+    }
+  }
+
+  /** Append a live sample (params: the RollingParams in force). */
+  push(sample, params) {
+    this.live.push(sample, params || {});
+    if (!this.replay) this.schedule();
+  }
+
+  /** Start a new live series (a new run). */
+  resetLive() {
+    this.live.clear();
+    if (!this.replay) this.schedule();
+  }
+
+  /** Show a recorded run instead of the live data. */
+  showReplay(samples, params) {
+    const buf = new Buffers(0);
+    for (const s of samples) buf.push(s, params || {});
+    this.replay = buf;
+    this.schedule();
+  }
+
+  showLive() {
+    this.replay = null;
+    this.schedule();
+  }
+
+  get replaying() {
+    return this.replay !== null;
+  }
+
+  schedule() {
+    this.dirty = true;
+    if (this.frame) return;
+    this.frame = requestAnimationFrame(() => {
+      this.frame = 0;
+      if (!this.dirty) return;
+      this.dirty = false;
+      const buf = this.current();
+      this.charts.forEach((c, i) => c.setData(buf.cols[i]));
+    });
+  }
+}
