@@ -89,14 +89,17 @@ def start_service(
     err = threading.Thread(target=_collect, args=(proc.stderr, log), daemon=True)
     err.start()
     line = _read_line(proc, START_TIMEOUT_S)
-    if not line:
+    try:
+        info = json.loads(line) if line else None
+    except ValueError:
+        info = None
+    if info is None:  # never leave a half-started service behind
         proc.kill()
         proc.wait()
         err.join(5.0)
         for stream in (proc.stdout, proc.stderr):
             stream.close()  # type: ignore[union-attr]
-        raise RuntimeError("the service did not start:\n" + "".join(log))
-    info = json.loads(line)
+        raise RuntimeError(f"the service did not start ({line!r}):\n" + "".join(log))
     out = threading.Thread(target=_collect, args=(proc.stdout, log), daemon=True)
     out.start()
     return LiveService(proc, info["url"], info["viewer_url"], token, db, log, [err, out])
