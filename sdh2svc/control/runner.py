@@ -63,6 +63,7 @@ class RunResult:
     sigmas: list[float] = field(default_factory=list)
     latencies_ms: list[float] = field(default_factory=list)
     rolling_s: float = 0.0
+    frames_skipped: int = 0  # fresh frames no rolling iteration ran on
 
     def summary(self) -> dict[str, Any]:
         f, lat = self.forces, sorted(self.latencies_ms)
@@ -82,6 +83,7 @@ class RunResult:
             "sigma_range_deg": (max(self.sigmas) - min(self.sigmas)) if self.sigmas else None,
             "loop_hz": self.iterations / self.rolling_s if self.rolling_s > 0 else None,
             "latency_ms": {"p50": pct(0.5), "p99": pct(0.99)},
+            "frames_skipped": self.frames_skipped,
         }  # fmt: skip
 
 
@@ -113,6 +115,8 @@ class Runner:
         a = settings.axes
         self._axes = (a.phi2, a.phi3, a.phi4, a.phi5)
         self._m1, self._m2 = a.finger1_distal_matrix, a.finger2_distal_matrix
+        self._last_seq: int | None = None
+        self._estopping = False
 
     # --- control from outside ---------------------------------------------------------------
 
@@ -127,15 +131,20 @@ class Runner:
         """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase.
 
         The run is marked e-stopped before its task is cancelled, so however the cancellation
-        reaches it (mid-command, or as the link fails the queued commands), it ends e-stopped.
+        reaches it (mid-command, or as the link fails the queued commands), it ends e-stopped;
+        the phase changes once the link has latched the stop, so no observer sees one without
+        the other.
         """
-        self._set_phase(Phase.ESTOPPED)
+        self._estopping = True
         self.result.status, self.result.message = "e-stopped", "emergency stop"
         self.result.strokes = self.state.strokes
-        self._event("estop", {})
         if self._task is not None and not self._task.done():
             self._task.cancel()
-        await self.joints.emergency_stop()
+        try:
+            await self.joints.emergency_stop()
+        finally:
+            self._set_phase(Phase.ESTOPPED)
+            self._event("estop", {})
 
     # --- the run ----------------------------------------------------------------------------
 
@@ -170,7 +179,7 @@ class Runner:
             self._event("fault", {"fault": fault.value, "message": str(e)})
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
         except asyncio.CancelledError:
-            if self.phase is not Phase.ESTOPPED:
+            if not self._estopping:
                 raise
         finally:
             sub.close()
@@ -178,7 +187,7 @@ class Runner:
         return self.result
 
     def _finish(self, phase: Phase, status: str, message: str = "") -> None:
-        if self.phase is Phase.ESTOPPED:  # nothing after an e-stop changes how the run ended
+        if self._estopping:  # nothing after an e-stop changes how the run ended
             return
         self.result.status, self.result.message = status, message
         self.result.strokes = self.state.strokes
@@ -255,8 +264,9 @@ class Runner:
     async def _roll(self, sub: Subscription) -> None:
         self._set_phase(Phase.ROLLING)
         await self.joints.set_controller(ControllerMode.POSE)
-        # Each iteration starts a new move from rest: with the firmware's default 100 °/s² a
-        # 0.25° step would not finish within a frame period, so use the axes' own limits.
+        # One small move per frame, each replanning the last from its current velocity: with
+        # the firmware's default 100 °/s² the fingers could not follow a step per frame period,
+        # so use the axes' own acceleration limits.
         await self.joints.set_velocities([self.settings.run.preshape_velocity_deg_s] * 7)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
         loop = asyncio.get_running_loop()
@@ -274,6 +284,9 @@ class Runner:
                 self.params, self._pending = self._pending, None
                 self._event("params", {"params": self.params.model_dump()})
             frame = await self._fresh(sub)
+            if self._last_seq is not None:
+                self.result.frames_skipped += max(0, frame.seq - self._last_seq - 1)
+            self._last_seq = frame.seq
             actual = await self.joints.get_actual()
             age_ms = (loop.time() - frame.arrival) * 1000
             pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
@@ -292,11 +305,10 @@ class Runner:
                                     safety.max_step_deg)  # fmt: skip
                 await self.joints.set_targets(cmd)
                 latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
-                duration = await self.joints.move()
-                # Let the move finish before the next iteration looks: every iteration starts
-                # from where the last one's command got the fingers (SDHLibrary's sequential
-                # moves do the same), not from a configuration half-way there.
-                await asyncio.sleep(duration)
+                # Start the move and go on at once: the next iteration runs on the next fresh
+                # frame with the angles the fingers have then. A move still running is replanned
+                # by the firmware from its current velocity, so the fingers move continuously.
+                await self.joints.move()
             else:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state

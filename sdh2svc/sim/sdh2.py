@@ -20,6 +20,15 @@ exactly at the end of a coordinated move; :meth:`Sdh2Emulator.next_wakeup` asks 
   which no axis exceeds its target velocity ``v`` or acceleration ``a`` (:class:`Profile`).
   ``vp=0`` shapes the ramps as sin² (velocity ∝ sin², peak acceleration π/2 × the mean), ``vp=1``
   as linear ramps (a trapezoid). ``M=`` and ``GET_DURATION=`` carry that duration.
+  An ``m`` that arrives while a move still runs replans from where the references are, at the
+  velocity they have ([U] in protocols.md; what a motion controller's ramp generator does, and
+  what a host streaming one target per sensor frame needs): each axis's reference velocity ramps
+  down to 0 within its acceleration (:class:`Carry`, the mirrored ramp shape, over at least the
+  profile's ramp time, so that the two blend) while a coordinated
+  profile, planned as above, covers the rest of the way to the new targets; the two superpose, so
+  the reference velocity is continuous and every axis arrives at the end of the longer of the two.
+  Where the carry would overshoot the new target (a reversal), carry and profile get half the
+  axis's acceleration each. A new move from rest still starts from the actual angles.
 * Velocity controllers: ``con=1`` takes each target velocity at once, ``con=2`` ramps the
   reference velocity towards it at ``a``. A reference that reaches ``p_min``/``p_max`` stops there
   (state 7, LIMITS_REACHED, while the target velocity pushes outwards).
@@ -120,6 +129,7 @@ __all__ = [
     "POSE",
     "VELOCITY",
     "VELOCITY_ACCELERATION",
+    "Carry",
     "Grasp",
     "Profile",
     "Sdh2Emulator",
@@ -325,16 +335,72 @@ class Profile:
 
 
 @dataclass(frozen=True, slots=True)
+class Carry:
+    """An axis's velocity at a replan, ramped down to 0 at the axis's acceleration.
+
+    The velocity falls from ``v0`` to 0 over ``time`` s with the move's ramp shape (linear, or
+    cos² for ``vp=0``, i.e. the mirror of a sin² ramp); ``distance`` = v0·time/2 is how far the
+    axis coasts meanwhile. ``accel`` is the deceleration allowed to this ramp (deg/s²).
+    """
+
+    v0: float
+    time: float
+    sin2: bool
+
+    @classmethod
+    def plan(cls, v0: float, accel: float, *, sin2: bool, at_least: float = 0.0) -> Carry:
+        """Ramp down within ``accel``, and over no less than ``at_least`` s."""
+        if v0 == 0.0 or accel <= 0.0:
+            return cls(0.0, 0.0, sin2)
+        peak = math.pi / 2 if sin2 else 1.0
+        return cls(v0, max(peak * abs(v0) / accel, at_least), sin2)
+
+    @property
+    def distance(self) -> float:
+        return self.v0 * self.time / 2
+
+    def offset(self, t: float) -> float:
+        """Distance coasted ``t`` s after the replan."""
+        if self.time <= 0.0 or t <= 0.0:
+            return 0.0
+        if t >= self.time:
+            return self.distance
+        tau = self.time
+        if self.sin2:
+            return self.v0 * (t / 2 + tau / (2 * math.pi) * math.sin(math.pi * t / tau))
+        return self.v0 * (t - t * t / (2 * tau))
+
+    def velocity(self, t: float) -> float:
+        if self.time <= 0.0 or t < 0.0 or t >= self.time:
+            return 0.0
+        if self.sin2:
+            return self.v0 * math.cos(math.pi * t / (2 * self.time)) ** 2
+        return self.v0 * (1.0 - t / self.time)
+
+
+_NO_CARRY: Final = Carry(0.0, 0.0, False)
+
+
+@dataclass(frozen=True, slots=True)
 class _Move:
     start: Vec
     goal: Vec
     profile: Profile
     t0: float
     stoppable: bool  # `stop` ends `m` moves, not selgrip/grip (§2.4)
+    carry: tuple[Carry, ...] = (_NO_CARRY,) * NUM_AXES  # per axis: a replan's inherited velocity
+
+    @property
+    def duration(self) -> float:
+        return max(self.profile.duration, max(c.time for c in self.carry))
 
     @property
     def end(self) -> float:
-        return self.t0 + self.profile.duration
+        return self.t0 + self.duration
+
+    def span(self, i: int) -> float:
+        """What the coordinated profile covers on axis i (the rest is the carry's)."""
+        return self.goal[i] - self.start[i] - self.carry[i].distance
 
 
 class _Reject(Exception):
@@ -527,7 +593,7 @@ class Sdh2Emulator:
             case "m":
                 return self._reply(kw, self._round_up(self._start_m()))
             case "get_duration":
-                return self._reply(kw, self._round_up(self._plan(self._ax.target).duration))
+                return self._reply(kw, self._round_up(self._duration(self._ax.target)))
             case "stop":
                 self._stop()
                 return encode_reply(kw, o.stop_reply)
@@ -765,36 +831,77 @@ class Sdh2Emulator:
 
     # -- motion ----------------------------------------------------------------------------------
 
-    def _plan(self, goal: Sequence[float], speeds: Sequence[float] | None = None) -> Profile:
-        ax = self._ax
-        distances = [g - a for g, a in zip(goal, ax.actual, strict=True)]
+    def _plan(self, goal: Sequence[float], speeds: Sequence[float] | None = None
+              ) -> tuple[Vec, Profile, tuple[Carry, ...]]:  # fmt: skip
+        """Where a move to ``goal`` starts, its coordinated profile, and each axis's carry.
+
+        From rest: from the actual angles, no carry. Mid-move (any axis's reference still
+        moving): from the references (a blocked axis: from its actual angle), each axis keeping
+        its reference velocity, which ramps down
+        at the axis's acceleration while the coordinated profile covers the rest of the way — so
+        the reference velocity is continuous across the replan. An axis whose carry overshoots
+        its goal (a reversal) shares its acceleration half and half between the two, so the sum
+        stays within ``a``."""
+        ax, sin2 = self._ax, self._vp == 0
         speeds = ax.velocity if speeds is None else speeds
+        accels = list(ax.accel)
+        moving = self._move is not None and any(v != 0.0 for v in ax.rvel)
+        free = [moving and ax.powered[i] and not ax.blocked[i] for i in _ALL]
+        # a blocked axis starts afresh from where it is, as from rest
+        start = tuple(ax.ref[i] if free[i] else ax.actual[i] for i in _ALL)
+        v0 = [ax.rvel[i] if free[i] else 0.0 for i in _ALL]
+        halved = [False] * NUM_AXES
+
+        def carries(at_least: float) -> list[Carry]:
+            out = []
+            for i in _ALL:
+                c = Carry.plan(v0[i], accels[i], sin2=sin2, at_least=at_least)
+                if not halved[i] and (goal[i] - start[i] - c.distance) * v0[i] < 0.0:
+                    halved[i] = True  # a reversal: carry and profile share the acceleration
+                    accels[i] /= 2
+                    c = Carry.plan(v0[i], accels[i], sin2=sin2, at_least=at_least)
+                out.append(c)
+            return out
+
+        carry = carries(0.0)
         try:
-            return Profile.plan(distances, speeds, ax.accel, sin2=self._vp == 0)
+            for _ in range(3):  # the carry ramps down while the profile ramps up: same length
+                dist = [g - s - c.distance for g, s, c in zip(goal, start, carry, strict=True)]
+                profile = Profile.plan(dist, speeds, accels, sin2=sin2)
+                if not moving or all(c.time >= profile.ramp - 1e-9 for c in carry if c.v0):
+                    break
+                carry = carries(profile.ramp)
         except ValueError:
             raise _Reject(self.options.range_error) from None
+        return start, profile, tuple(carry)
+
+    def _duration(self, goal: Sequence[float]) -> float:
+        _, profile, carry = self._plan(goal)
+        return max(profile.duration, max(c.time for c in carry))
 
     def _start_m(self) -> float:
         return self._start_move(self._ax.target, self._ax.velocity, stoppable=True)
 
     def _start_move(self, goal: Sequence[float], speeds: Sequence[float], *,
                     stoppable: bool) -> float:  # fmt: skip
-        """Start a coordinated move from the actual angles; returns its duration."""
+        """Start a coordinated move (from rest: from the actual angles; mid-move: from the
+        references and their velocities, see :meth:`_plan`); returns its duration."""
         if self._con != POSE:
             raise _Reject(self.options.wrong_mode_error)
-        profile = self._plan(goal, speeds)
+        start, profile, carry = self._plan(goal, speeds)
         assert self._t is not None
         ax = self._ax
-        start = tuple(ax.actual)
         ax.powered[:] = [True] * NUM_AXES  # "Enabling all axis" (§2.4, PART 4 item 5)
         ax.blocked[:] = [0] * NUM_AXES
         ax.ref[:] = start
-        ax.rvel[:] = [0.0] * NUM_AXES
-        ax.in_move[:] = [abs(g - s) > _EPS for g, s in zip(goal, start, strict=True)]
-        self._move = None
-        if profile.duration > 0.0:
-            self._move = _Move(start, tuple(goal), profile, self._t, stoppable)
-        return profile.duration
+        ax.rvel[:] = [c.v0 for c in carry]
+        ax.in_move[:] = [abs(g - s) > _EPS or c.v0 != 0.0
+                         for g, s, c in zip(goal, start, carry, strict=True)]  # fmt: skip
+        move = _Move(start, tuple(goal), profile, self._t, stoppable, carry)
+        self._move = move if move.duration > 0.0 else None
+        if self._move is None:
+            ax.in_move[:] = [False] * NUM_AXES
+        return move.duration
 
     def _enable(self, i: int) -> None:
         ax = self._ax
@@ -886,13 +993,13 @@ class Sdh2Emulator:
         move, ax = self._move, self._ax
         assert move is not None
         tau = t - move.t0
-        done = tau >= move.profile.duration
+        done = tau >= move.duration
         frac, rate = move.profile.fraction(tau), move.profile.rate(tau)
         for i in _ALL:
             if ax.in_move[i] and not ax.blocked[i]:
-                span = move.goal[i] - move.start[i]
-                ax.ref[i] = move.goal[i] if done else move.start[i] + span * frac
-                ax.rvel[i] = span * rate
+                span, c = move.span(i), move.carry[i]
+                ax.ref[i] = move.goal[i] if done else move.start[i] + c.offset(tau) + span * frac
+                ax.rvel[i] = 0.0 if done else c.velocity(tau) + span * rate
 
     def _integrate(self, dt: float) -> None:
         """Velocity controllers: advance each reference by its (ramped) velocity over ``dt``."""

@@ -80,6 +80,9 @@ def test_full_run_completes_its_strokes_without_a_drop(
     assert truth.held and not truth.dropped and truth.slips == 0
     assert truth.rotation_range_deg > 5.0  # it really rolled
     assert max(result.forces) < cfg.safety.force_ceiling_factor * cfg.rolling.grasp_force
+    # one iteration per fresh tactile frame: none skipped, none used twice
+    assert result.frames_skipped == 0
+    assert result.iterations == pytest.approx(result.rolling_s * cfg.run.tactile_rate_hz, rel=0.05)
 
 
 def test_force_ceiling_stops_and_opens_the_hand(tmp_path: Path) -> None:

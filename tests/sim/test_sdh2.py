@@ -389,6 +389,64 @@ def test_m_plans_from_the_actual_angles_and_cruises_at_v() -> None:
     assert host.ask("rvel(3)").values == pytest.approx((-40.0,))  # cruising at v
 
 
+def _stream(host: Host, step: float, n: int, period: float, *, vp: int) -> np.ndarray:
+    """A host streaming targets: every ``period`` s a new target ``step`` beyond the actual
+    angle of axis 1, with ``p`` and ``m`` (as the rolling loop does). Returns (t, pos, rvel)."""
+    targets_move(host, host.values("pos"), vp=vp, a=(400.0,) * 7)
+    rows = []
+    for _ in range(n):
+        pos = host.values("pos")
+        goal = list(pos)
+        goal[1] += step
+        host.ask(f"p={vec(goal)}")
+        host.values("m")
+        # the scripted world's joints follow their references exactly
+        rows += [(t, p[1], p[1]) for t, p in host.later(period)]
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("vp", [0, 1])
+def test_m_mid_move_replans_from_the_current_velocity(vp: int) -> None:
+    """One target per 33 ms frame, each 0.25° ahead: the axis keeps moving instead of starting
+    every move from rest (which took ≈63 ms per 0.25° step at 400 °/s²)."""
+    host = Host()
+    period, step, n = 1 / 30, 0.25, 40
+    rows = _stream(host, step, n, period, vp=vp)
+    t, ref = rows[:, 0], rows[:, 2]
+    assert np.all(np.diff(ref) >= -1e-9)  # never backs off
+    vel = np.diff(ref) / np.diff(t)
+    acc = np.diff(vel) / ((t[2:] - t[:-2]) / 2)
+    assert np.abs(acc).max() <= 400.0 * 1.05  # within a (finite differences straddle replans)
+    # steady state: the reference velocity never drops to 0 between commands
+    late = vel[len(vel) // 2:]
+    assert late.min() > 0.3 * late.mean() > 0.0
+    assert late.mean() > 0.5 * step / period  # most of one step per period
+    assert host.values("state")[1] == 1  # still positioning: the last move runs
+    (rest,) = host.values("get_duration")
+    host.later(rest + 0.05)
+    assert host.values("state") == (0,) * 7 and host.values("rvel") == (0,) * 7
+
+
+def test_m_mid_move_reversal_stays_within_the_acceleration() -> None:
+    host = Host()
+    duration = targets_move(host, (0, 20, 0, 0, 0, 0, 0), vp=1, a=(100.0,) * 7)
+    host.later(duration / 2)  # cruising at +40 °/s
+    assert host.ask("rvel(1)").values == pytest.approx((40.0,))
+    here = host.values("pos")[1]
+    host.ask(f"p={vec((0, here - 5, 0, 0, 0, 0, 0))}")
+    (back,) = host.values("m")
+    t0 = host.now
+    t, ref = np.array([(t0, here), *((tt, p[1]) for tt, p in host.later(back + 0.1))]).T
+    keep = np.concatenate([[True], np.diff(t) > 1e-9])
+    t, ref = t[keep], ref[keep]
+    vel = np.diff(ref) / np.diff(t)
+    assert vel[0] == pytest.approx(40.0, rel=0.05)  # continuous across the replan
+    assert np.abs(np.diff(vel) / ((t[2:] - t[:-2]) / 2)).max() <= 100.0 * 1.02
+    assert ref.max() > here + 2.0  # it had to brake first: overshoot, then come back
+    assert ref[-1] == pytest.approx(here - 5.0, abs=1e-6)
+    assert host.values("state") == (0,) * 7
+
+
 def test_stop_halts_the_move_where_it_is() -> None:
     host = Host()
     duration = targets_move(host, (0, 60, 0, 0, 0, 0, 0))

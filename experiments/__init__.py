@@ -1,0 +1,1 @@
+"""Experiments that reproduce the thesis's results in simulation (``python -m experiments.…``)."""
