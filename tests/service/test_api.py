@@ -327,7 +327,7 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
         finally:
             for s in stalled:
                 s.close()
-    assert summary["status"] == baseline["status"] == "completed"
+    assert summary["status"] == baseline["status"] == "completed", (summary, baseline)
     # the stalled clients were cut off after the send timeout …
     assert st["telemetry"]["disconnected_slow"] >= 3
     # … the reading client got every iteration, in order, none dropped
