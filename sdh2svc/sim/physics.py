@@ -19,6 +19,13 @@ The fingers are position-controlled bodies; the object is free. Each step finds 
 Joint torques from the contact forces are checked against the motor limits: a joint whose next
 step would need more torque stalls at its last angle (the firmware's "blocked"), so a finger
 pressing a stiff object stops instead of passing through it.
+
+Speed (fast mode runs thousands of steps per simulated minute) never changes the equations: the
+surfaces are moved into frame 0 once per finger pose (cached on the exact pose), all nearby
+samples are tested against the object in one pass, the per-contact sums come from one product,
+the finger's yield is solved in closed form when no sample bottoms out, and Newton starts from
+the balance extrapolated along the fingers' motion with a Jacobian kept from step to step and
+corrected by Broyden's secant updates. Convergence is checked on the same residual and tolerance.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from scipy import optimize
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope
 from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose, distal_joint, frame3_axes
-from sdh2svc.sim.objects import Outline
+from sdh2svc.sim.objects import Box, Ellipse, Outline, Polygon
 
 Positive = Annotated[float, Field(gt=0.0)]
 
@@ -124,17 +131,61 @@ def link_frames(
     pose: HandPose, geom: HandGeometry
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(origin, ex, ey) of each surface's link frame in frame 0, in surface order."""
-    frames = []
+    arr = np.array(link_frame_rows(pose, geom))  # one array; the tuples hold views of it
+    return [(f[0], f[1], f[2]) for f in arr]
+
+
+def link_frame_rows(pose: HandPose, geom: HandGeometry) -> list[tuple[tuple[float, float], ...]]:
+    """:func:`link_frames` as plain floats."""
+    rows = []
     for finger in (Finger.ONE, Finger.TWO):
         prox, dist = pose.finger(finger)
-        O = np.array([0.0 if finger is Finger.ONE else geom.base_offset_mm, 0.0])
-        C = np.array(distal_joint(finger, prox, geom))
-        ex_d, ey_d = frame3_axes(finger, prox + dist)
-        ex_p, ey_p = frame3_axes(finger, prox)
-        frames.append((C, np.array(ex_d), np.array(ey_d)))
-        frames.append((O, np.array(ex_p), np.array(ey_p)))
-    frames.append((np.zeros(2), np.array([1.0, 0.0]), np.array([0.0, 1.0])))
-    return frames
+        O = (0.0 if finger is Finger.ONE else geom.base_offset_mm, 0.0)
+        C = tuple(distal_joint(finger, prox, geom))
+        rows.append((C, *(tuple(v) for v in frame3_axes(finger, prox + dist))))
+        rows.append((O, *(tuple(v) for v in frame3_axes(finger, prox))))
+    rows.append(((0.0, 0.0), (1.0, 0.0), (0.0, 1.0)))
+    return rows
+
+
+def _local_columns(surf: Surface) -> np.ndarray:
+    """Per sample, in the link frame: normal, point × normal, point, tangent, s and 1."""
+    p, n = surf.local, surf.normal
+    pxn = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
+    return np.column_stack([n, pxn, p, surf.tangent, surf.s, np.ones(len(surf.s))])
+
+
+def _along(dq: tuple[float, ...], ref: tuple[float, ...]) -> float | None:
+    """dq as a multiple of ref when the two joint moves point the same way (else None)."""
+    dd = sum(a * b for a, b in zip(dq, ref, strict=True))
+    nn = sum(a * a for a in ref)
+    mm = sum(a * a for a in dq)
+    if nn <= 0.0 or dd <= 0.0 or dd * dd < 0.81 * nn * mm:
+        return None
+    return dd / nn
+
+
+def _norm3(v: np.ndarray) -> float:
+    a, b, c = v.tolist()
+    return math.sqrt(a * a + b * b + c * c)
+
+
+def _solve3(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The Newton move: J·dx = −r (Cramer's rule, far cheaper than LAPACK for a 3 × 3);
+    a (near-)singular J takes the least-squares move."""
+    (a, b, c), (d, e, f), (g, h, i) = J.tolist()
+    co0, co1, co2 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * co0 + b * co1 + c * co2
+    scale = max(abs(v) for v in (a, b, c, d, e, f, g, h, i))
+    if not abs(det) > 1e-12 * scale**3:
+        return np.linalg.lstsq(J, -r, rcond=None)[0]
+    r0, r1, r2 = (-v for v in r.tolist())
+    inv = (
+        (co0, c * h - b * i, b * f - c * e),
+        (co1, a * i - c * g, c * d - a * f),
+        (co2, b * g - a * h, a * e - b * d),
+    )  # adjugate: inverse × det
+    return np.array([(row[0] * r0 + row[1] * r1 + row[2] * r2) / det for row in inv])
 
 
 def to_world(frame: tuple[np.ndarray, np.ndarray, np.ndarray], local: np.ndarray) -> np.ndarray:
@@ -175,6 +226,8 @@ class _Eval:
     contacts: dict[int, tuple[np.ndarray, np.ndarray, float, float, np.ndarray, float, bool]]
     pressures: dict[int, tuple[np.ndarray, np.ndarray]]  # surface → (sample indices, pressure)
     max_depth: float = 0.0  # deepest geometric overlap of a surface into the object, mm
+    # surface → (Σ p·w·ds·n, Σ p·w·ds·(point × n)) in frame 0: the joint torques' sums
+    sums: dict[int, tuple[float, float, float]] = field(default_factory=dict)
 
 
 @dataclass(slots=True)
@@ -211,23 +264,75 @@ class ContactPhysics:
         self.hand_pose = pose
         self.state = PhysicsState(np.asarray(object_pose, dtype=float))
         self._jacobian: np.ndarray | None = None
+        self._motion: list[tuple[tuple[float, ...], np.ndarray]] = []  # last two (Δq, Δx)
         self._last = _Eval(np.zeros(3), {}, {})
+        self._world_key: tuple[float, ...] | None = None
+        self._world: list = []
+        self._anchor_cache: dict[tuple[int, int], tuple[Anchor, tuple[float, float]]] = {}
+        self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int]]] = {}
+        self._frame_rows: list[tuple[tuple[float, float], ...]] = []
+        self._frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._world_circles: list[tuple[float, float, float]] = []
+        self._circles = []  # each surface's bounding circle in its link frame: (a, b, radius)
+        self._local_cols = [_local_columns(surf) for surf in self.surfaces]
+        self._e_hint: dict[int, float] = {}  # each surface's last finger yield, Newton's start
+        self._prefilter = isinstance(spec, Box | Polygon)
+        self._ellipse = (
+            np.array([2.0 / spec.axis_a_mm, 2.0 / spec.axis_b_mm])
+            if isinstance(spec, Ellipse) else None
+        )  # fmt: skip
+        for surf in self.surfaces:
+            mid = (surf.local.min(axis=0) + surf.local.max(axis=0)) / 2
+            rad = float(np.max(np.linalg.norm(surf.local - mid, axis=1)))
+            self._circles.append((float(mid[0]), float(mid[1]), rad))
+        self._torques: tuple[_Eval, tuple[float, ...] | None, dict[str, float]] | None = None
         self._substep(pose)
 
     # --- geometry of one evaluation -----------------------------------------------------------
 
-    def _world_samples(self, pose: HandPose) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        frames = link_frames(pose, self.geom)
-        out = []
-        self._bounds = []
-        for surf, fr in zip(self.surfaces, frames, strict=True):
-            pts = to_world(fr, surf.local)
-            _, ex, ey = fr
-            n = surf.normal[:, :1] * ex + surf.normal[:, 1:2] * ey
-            t = surf.tangent[:, :1] * ex + surf.tangent[:, 1:2] * ey
-            out.append((pts, n, t))
-            self._bounds.append((pts.min(axis=0), pts.max(axis=0)))
-        return out
+    def _world_samples(self, pose: HandPose) -> list:
+        """Link frames and each surface's bounding circle in frame 0 for ``pose``, cached on the
+        exact pose (the joint emulator asks again and again for the same pose between servo
+        ticks); the samples themselves are moved into frame 0 lazily, by :meth:`_surface`."""
+        key = (pose.phi2, pose.phi3, pose.phi4, pose.phi5)
+        if key == self._world_key:
+            return self._world
+        rows = link_frame_rows(pose, self.geom)
+        arr = np.array(rows)
+        frames = [(f[0], f[1], f[2]) for f in arr]
+        circles = []
+        for (ma, mb, rad), (o, ex, ey) in zip(self._circles, rows, strict=True):
+            circles.append((o[0] + ma * ex[0] + mb * ey[0], o[1] + ma * ex[1] + mb * ey[1], rad))
+        self._frame_rows = rows
+        self._world_key, self._frames, self._world_circles = key, frames, circles
+        self._world = [None] * len(self.surfaces)
+        self._groups = {}
+        self._anchor_cache = {}
+        return self._world
+
+    def _surface(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples and normals of surface j in frame 0 at the current pose, and the columns
+        :meth:`_evaluate` sums per sample: normal, point × normal, point, tangent, s."""
+        got = self._world[j]
+        if got is None:
+            o, ex, ey = self._frame_rows[j]
+            (a, b), (c, d) = ex, ey  # local (u, v) → frame 0: u·ex + v·ey
+            det = a * d - b * c  # −1: a mirrored frame, which flips the sign of p × n
+            M = np.array([  # affine map of the local columns (see _local_columns)
+                [a, b, -a * o[1] + b * o[0], 0, 0, 0, 0, 0],
+                [c, d, -c * o[1] + d * o[0], 0, 0, 0, 0, 0],
+                [0, 0, det, 0, 0, 0, 0, 0],  # o × n is linear in n; p × n is kept or flipped
+                [0, 0, 0, a, b, 0, 0, 0],
+                [0, 0, 0, c, d, 0, 0, 0],
+                [0, 0, 0, 0, 0, a, b, 0],
+                [0, 0, 0, 0, 0, c, d, 0],
+                [0, 0, 0, 0, 0, 0, 0, 1],
+                [0, 0, 0, o[0], o[1], 0, 0, 0],
+            ], dtype=float)  # fmt: skip
+            cols = self._local_cols[j] @ M
+            got = (cols[:, 3:5], cols[:, 0:2], cols)
+            self._world[j] = got
+        return got
 
     def _evaluate(
         self, x: np.ndarray, world: list, frames: list | None = None, slip: dict | None = None
@@ -237,92 +342,170 @@ class ContactPhysics:
         Sticking contacts pull with their tangential spring, uncapped; the contacts in ``slip``
         (surface → sign) slide with the Coulomb force μ·N in that direction.
         """
-        c, R = x[:2], rot(float(x[2]))
-        force = self.gravity_n[1:].copy()
+        cy, cz, psi = float(x[0]), float(x[1]), float(x[2])
+        c, R = x[:2], rot(psi)
+        cos_p, sin_p = math.cos(psi), math.sin(psi)
+        fy, fz = float(self.gravity_n[1]), float(self.gravity_n[2])
         moment = 0.0
         contacts: dict = {}
         pressures: dict = {}
+        sums: dict = {}
         max_depth = 0.0
-        box = self.outline.half_extent
         wds = self.width_mm * self.cfg.sample_spacing_mm
         reach = self.outline.bound_radius
-        for j, (pts, n, t) in enumerate(world):
-            lo, hi = self._bounds[j]
-            if np.any(c + reach < lo) or np.any(c - reach > hi):
-                continue  # this surface is nowhere near the object
-            local = (pts - c) @ R  # object frame
-            near = np.nonzero(np.all(np.abs(local) <= box, axis=1))[0]
-            if near.size == 0:
+        reach2 = reach * reach
+        near_j = tuple(
+            j
+            for j, (my, mz, rad) in enumerate(self._world_circles)
+            if (cy - my) ** 2 + (cz - mz) ** 2 <= (reach + rad) ** 2
+        )  # the others are nowhere near the object
+        # all nearby surfaces' samples at once, then each surface's share of those inside
+        inside, d, starts, cols_all = self._inside(near_j, c, R, reach2)
+        bounds = np.searchsorted(inside, starts).tolist()
+        for k, j in enumerate(near_j):
+            lo, hi = bounds[k], bounds[k + 1]
+            if lo == hi:
                 continue
-            d = self.outline.sdf(local[near])
-            inside = d < 0.0
-            if not inside.any():
-                continue
-            idx = near[inside]
-            overlap = -d[inside]
-            max_depth = max(max_depth, float(overlap.max()))
+            gidx = inside[lo:hi]  # indices into the concatenation
+            overlap = -d[gidx]
+            idx = gidx - starts[k]  # indices into surface j's samples
+            deepest = float(overlap.max())
+            max_depth = max(max_depth, deepest)
             # the finger yields along the pad normal (structure and servo, in series with the pad)
-            e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds)
-            keep = overlap > e
-            idx, overlap = idx[keep], overlap[keep]
-            p = self._pressure(overlap - e)  # N/mm²
-            f = (p * wds)[:, None] * n[idx]
-            Fn = f.sum(axis=0)
-            N = float(np.linalg.norm(Fn))
-            arm = pts[idx] - c
-            moment += float(np.sum(arm[:, 0] * f[:, 1] - arm[:, 1] * f[:, 0]))
-            force += Fn
-            w = p / p.sum()
+            e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds, deepest, j)
+            if e > 0.0:
+                keep = overlap > e
+                idx, gidx, overlap = idx[keep], gidx[keep], overlap[keep]
+            p = self._pressure(overlap - e, deepest - e)  # N/mm²
+            pw = p * wds
+            nj = cols_all[gidx, 0:2]
+            # one product gives Σ p·w·ds·(n, p×n, point, tangent, s) over the contact samples
+            Fy, Fz, pxn, Py, Pz, Ty, Tz, S = (pw @ cols_all[gidx]).tolist()
+            back = ((pw * overlap) @ nj).tolist()
+            total = float(pw.sum())
+            N = math.hypot(Fy, Fz)
+            # Σ arm × f with arm = point − c, f = p·w·ds·n
+            moment += pxn - (cy * Fz - cz * Fy)
+            fy += Fy
+            fz += Fz
             # where pad and object touch: each pad point pushed back by its overlap (finger
             # yield plus pad compression) lies on the object's surface
-            centroid = w @ (pts[idx] - overlap[:, None] * n[idx])
-            tan = w @ t[idx]
-            tan /= np.linalg.norm(tan)
+            cen_y, cen_z = (Py - back[0]) / total, (Pz - back[1]) / total
+            t_norm = math.hypot(Ty, Tz)
+            tan_y, tan_z = Ty / t_norm, Tz / t_norm
             u = 0.0
             anchor = self.state.anchors.get(j)
             if anchor is not None and frames is not None:
-                obj_now = c + R @ anchor.obj_point
-                surf_now = to_world(frames[j], anchor.local_point)
-                u = anchor.u + float((obj_now - surf_now) @ tan)
+                ay, az = anchor.obj_point.tolist()
+                sy, sz = self._anchor_world(j, anchor)
+                u = anchor.u + ((cy + cos_p * ay - sin_p * az - sy) * tan_y
+                                + (cz + sin_p * ay + cos_p * az - sz) * tan_z)  # fmt: skip
             slipping = slip is not None and j in slip
             ft = slip[j] * self.mu * N if slipping else -self.cfg.tangential_stiffness_n_per_mm * u
-            fvec = ft * tan
-            force += fvec
-            arm_c = centroid - c
-            moment += float(arm_c[0] * fvec[1] - arm_c[1] * fvec[0])
-            s_centroid = float(w @ self.surfaces[j].s[idx])
-            contacts[j] = (centroid, tan, N, ft, u, s_centroid, slipping)
+            ty, tz = ft * tan_y, ft * tan_z
+            fy += ty
+            fz += tz
+            moment += (cen_y - cy) * tz - (cen_z - cz) * ty
+            centroid, tan = np.array([cen_y, cen_z]), np.array([tan_y, tan_z])
+            contacts[j] = (centroid, tan, N, ft, u, S / total, slipping)
             pressures[j] = (idx, p)
+            sums[j] = (Fy, Fz, pxn)
         scale = 1.0 / max(self.outline.bound_radius, 1.0)  # moment in force units
-        residual = np.array([force[0], force[1], moment * scale])
-        return _Eval(residual, contacts, pressures, max_depth)
+        residual = np.array([fy, fz, moment * scale])
+        return _Eval(residual, contacts, pressures, max_depth, sums)
 
-    def _pressure(self, compression: np.ndarray) -> np.ndarray:
+    def _inside(
+        self, near_j: tuple[int, ...], c: np.ndarray, R: np.ndarray, reach2: float
+    ) -> tuple[np.ndarray, np.ndarray, list[int], np.ndarray]:
+        """Samples of the surfaces near_j (concatenated) inside the object at (c, R): their
+        indices, the signed distances (indexable by them), each surface's start, the columns."""
+        group = self._groups.get(near_j)
+        if group is None:
+            parts = [self._surface(j)[2] for j in near_j]
+            starts = [0, *np.cumsum([len(p) for p in parts]).tolist()]
+            group = (np.concatenate(parts) if parts else np.zeros((0, 8)), starts)
+            self._groups[near_j] = group
+        cols, starts = group
+        pts = cols[:, 3:5]
+        if self._ellipse is not None:
+            d = self._ellipse_sdf(pts, c, R)
+            return np.nonzero(d < 0.0)[0], d, starts, cols
+        local = pts @ R - c @ R  # object frame
+        if not self._prefilter:
+            d = self.outline.sdf(local)
+            return np.nonzero(d < 0.0)[0], d, starts, cols
+        # a polygon's sdf is dear: only for the samples in its bounding circle
+        d = np.full(len(cols), np.inf)
+        near = np.nonzero(np.einsum("ij,ij->i", local, local) <= reach2)[0]
+        if near.size:
+            d[near] = self.outline.sdf(local[near])
+        return np.nonzero(d < 0.0)[0], d, starts, cols
+
+    def _ellipse_sdf(self, pts: np.ndarray, c: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """:meth:`Outline.sdf` of an ellipse, (g − 1)/|∇g| with g = |(x/a, y/b)|, with the
+        move into the object frame and the scaling by the semi-axes folded into one product."""
+        inv = self._ellipse  # (1/a, 1/b)
+        Rs = R * inv  # object frame, scaled: q = (x/a, y/b)
+        q = pts @ Rs - c @ Rs
+        g = np.sqrt(np.einsum("ij,ij->i", q, q))
+        h = q * inv  # (x/a², y/b²)
+        grad = np.sqrt(np.einsum("ij,ij->i", h, h)) / np.maximum(g, 1e-12)
+        return (g - 1.0) / np.maximum(grad, 1e-12)
+
+    def _anchor_world(self, j: int, anchor: Anchor) -> tuple[float, float]:
+        """Where the anchor's pad point is in frame 0 at the current pose (cached per pose)."""
+        key = (j, id(anchor))
+        got = self._anchor_cache.get(key)
+        if got is None or got[0] is not anchor:
+            o, ex, ey = self._frame_rows[j]
+            a, b = anchor.local_point.tolist()
+            got = (anchor, (o[0] + a * ex[0] + b * ey[0], o[1] + a * ex[1] + b * ey[1]))
+            self._anchor_cache[key] = got
+        return got[1]
+
+    def _pressure(self, compression: np.ndarray, top: float | None = None) -> np.ndarray:
         """Contact pressure (N/mm²) for a local compression (mm): pad and object in series up
-        to the knee where the pad bottoms out on its backing, far stiffer beyond."""
+        to the knee where the pad bottoms out on its backing, far stiffer beyond. ``top``: the
+        largest compression, if known (below the knee the law is linear)."""
+        if top is not None and top <= self.knee:
+            return self.k * compression
         soft = self.k * np.minimum(compression, self.knee)
         return soft + self.k_bottomed * np.maximum(compression - self.knee, 0.0)
 
-    def _yield(self, overlap: np.ndarray, wds: float) -> float:
+    def _yield(self, overlap: np.ndarray, wds: float, deepest: float, j: int = -1) -> float:
         """How far the finger backs off along the pad normal: the root e of
         h(e) = k_f·e − Σ p(δ − e)·w·ds (finger structure and servo in series with the contact).
 
-        h is piecewise linear, increasing and concave, so Newton's method from e = 0 climbs to
-        the root from below and lands on it exactly once it reaches the root's segment.
+        h is piecewise linear, increasing and concave, so Newton's method lands on the root
+        exactly once it reaches the root's segment. From above the root, one step lands at or
+        below it (concavity); from below it climbs. It starts from surface j's last root.
         """
         kf, k, kb, knee = self.cfg.finger_stiffness_n_per_mm, self.k, self.k_bottomed, self.knee
-        e = 0.0
+        if deepest <= knee:
+            # No sample bottoms out: with the m deepest samples in contact the root is
+            # e_m = kw·Σ_m δ / (kf + kw·m); it is the one whose m samples stay in contact.
+            d = np.sort(overlap)[::-1]
+            kw = wds * k
+            e_m = kw * np.cumsum(d) / (kf + kw * np.arange(1, d.size + 1))
+            ok = (d > e_m) & (e_m >= np.append(d[1:], 0.0))
+            m = int(np.argmax(ok))
+            if ok[m]:
+                e = float(e_m[m])
+                return e if e > 1e-12 else 0.0
+        e = min(self._e_hint.get(j, 0.0), deepest)
         for _ in range(50):
-            c = overlap - e
-            active = c > 0.0
-            stiff = c > knee
-            force = wds * float(self._pressure(c[active]).sum())
-            slope = kf + wds * (k * float(np.count_nonzero(active & ~stiff))
-                                + kb * float(np.count_nonzero(stiff)))  # fmt: skip
+            c = overlap - e if e else overlap
+            act = c[c > 0.0]
+            hard = act[act > knee]
+            # Σ p = k·Σ min(c, knee) + kb·Σ max(c − knee, 0), over the active samples
+            beyond = float(hard.sum()) - knee * hard.size if hard.size else 0.0
+            force = wds * (k * (float(act.sum()) - beyond) + kb * beyond)
+            slope = kf + wds * (k * (act.size - hard.size) + kb * hard.size)
             step = (force - kf * e) / slope
-            if step <= 1e-12:
+            if abs(step) <= 1e-12:
                 break
-            e += step
+            e = max(e + step, 0.0)
+        self._e_hint[j] = e
         return e
 
     # --- stepping -----------------------------------------------------------------------------
@@ -344,10 +527,13 @@ class ContactPhysics:
             ))  # fmt: skip
 
     def _substep(self, pose: HandPose) -> None:
+        prev = self.hand_pose
+        dq = (pose.phi2 - prev.phi2, pose.phi3 - prev.phi3, pose.phi4 - prev.phi4,
+              pose.phi5 - prev.phi5)  # fmt: skip
         self.hand_pose = pose
         st = self.state
-        frames = link_frames(pose, self.geom)
         world = self._world_samples(pose)
+        frames = self._frames
         if st.dropped:
             self._last = _Eval(np.zeros(3), {}, {})
             return
@@ -366,18 +552,36 @@ class ContactPhysics:
             if min(n1, n2) > max(self.cfg.release_force_n, 0.0) and min(n1, n2) > 0.0:
                 st.held_by_fixture = False
                 self._anchor(ev, st.pose, carry=False)
-                self._solve(world, frames)
+                self._solve(world, frames, None)
             return
-        self._solve(world, frames)
+        self._solve(world, frames, dq)
 
-    def _solve(self, world: list, frames: list) -> None:
+    def _predict(self, dq: tuple[float, ...] | None) -> np.ndarray:
+        """Newton's start: the last balance, moved on as it moved over the last substeps when
+        the fingers keep moving the same way: linearly, or quadratically (the change of the last
+        move) over steady steps. A warm start saves iterations, never changes the result."""
+        x0 = self.state.pose.copy()
+        if dq is None or not self._motion:
+            return x0
+        a1 = _along(dq, self._motion[-1][0])
+        if a1 is None:
+            return x0
+        dx1 = self._motion[-1][1]
+        if len(self._motion) == 2:
+            a2 = _along(self._motion[-1][0], self._motion[0][0])
+            if a2 is not None and abs(a1 - 1.0) < 0.1 and abs(a2 - 1.0) < 0.1:
+                return x0 + a1 * (2.0 * dx1 - self._motion[0][1])
+        return x0 + a1 * dx1
+
+    def _solve(self, world: list, frames: list, dq: tuple[float, ...] | None) -> None:
         """Find the balancing pose: first with every contact sticking, then with the contacts
         whose friction would exceed μ·N sliding at μ·N (an active set, grown until consistent)."""
         st = self.state
         slip: dict[int, float] = {}
         x, ev, converged = st.pose.copy(), None, False
+        x0 = self._predict(dq)
         for _ in range(len(self.surfaces) + 1):
-            x, ev, converged = self._newton(st.pose.copy(), world, frames, slip)
+            x, ev, converged = self._newton(x0.copy(), world, frames, slip)
             if not converged:  # a kink (contact appearing, friction switching): MINPACK's hybrid
                 x, ev, converged = self._hybrid(st.pose.copy(), world, frames, slip)
             over = {
@@ -396,6 +600,7 @@ class ContactPhysics:
             self._last = _Eval(np.zeros(3), {}, {})
             return
         self._anchor(ev, x, carry=True)
+        self._motion = [*self._motion[-1:], (dq, x - st.pose)] if dq is not None else []
         st.pose = x
         st.psi_min = min(st.psi_min, float(x[2]))
         st.psi_max = max(st.psi_max, float(x[2]))
@@ -405,24 +610,28 @@ class ContactPhysics:
         self, x: np.ndarray, world: list, frames: list, slip: dict[int, float]
     ) -> tuple[np.ndarray, _Eval, bool]:
         """Damped Newton on the 3 pose coordinates. The Jacobian (finite differences) is kept
-        from step to step and refreshed only when a move fails to lower the residual."""
+        from step to step, corrected by Broyden's update after every move, and refreshed only
+        when a move fails to lower the residual or progress is slow."""
         ev = self._evaluate(x, world, frames, slip)
         tol = 1e-6 + 1e-5 * sum(c[2] for c in ev.contacts.values())
-        lim = np.array([2.0, 2.0, math.radians(3.0)])  # a Newton move stays physical
+        lim = (2.0, 2.0, math.radians(3.0))  # a Newton move stays physical
         J, fresh = self._jacobian, False
         for _ in range(60):
             r = ev.residual
-            if np.max(np.abs(r)) < tol:
+            rl = r.tolist()
+            if max(abs(v) for v in rl) < tol:
                 return x, ev, True
             if J is None:
                 J, fresh = self._fd_jacobian(x, r, world, frames, slip), True
-            dx = np.linalg.lstsq(J, -r, rcond=None)[0]
-            dx *= min(1.0, float(np.min(lim / (np.abs(dx) + 1e-300))))
-            base, step = float(np.linalg.norm(r)), 1.0
+            dx = _solve3(J, r)
+            moves = zip(lim, dx.tolist(), strict=True)
+            dx *= min(1.0, *(lo / (abs(v) + 1e-300) for lo, v in moves))
+            base, step = math.sqrt(sum(v * v for v in rl)), 1.0
             while step > 1e-3:
-                ev_c = self._evaluate(x + step * dx, world, frames, slip)
-                if float(np.linalg.norm(ev_c.residual)) < base:
-                    x, ev = x + step * dx, ev_c
+                x_c = x + step * dx
+                ev_c = self._evaluate(x_c, world, frames, slip)
+                if _norm3(ev_c.residual) < base:
+                    x, ev = x_c, ev_c
                     break
                 step /= 2
             else:
@@ -430,9 +639,13 @@ class ContactPhysics:
                     return x, ev, False
                 J = None  # stale Jacobian: refresh and try again
                 continue
-            if fresh:
-                self._jacobian = J
-            elif float(np.linalg.norm(ev.residual)) > 0.25 * base:
+            # Broyden's rank-one update: the secant of this move corrects J for free
+            s = step * dx
+            ss = float(s @ s)
+            if ss > 0.0:
+                J = J + np.outer(ev.residual - r - J @ s, s) / ss
+            self._jacobian = J
+            if not fresh and _norm3(ev.residual) > 0.25 * base:
                 J = None  # slow progress: the kept Jacobian is too far off
         return x, ev, bool(np.max(np.abs(ev.residual)) < tol)
 
@@ -464,7 +677,7 @@ class ContactPhysics:
     def _anchor(self, ev: _Eval, x: np.ndarray, carry: bool) -> None:
         """Re-anchor every contact at its current centroid, keeping the elastic displacement."""
         st = self.state
-        frames = link_frames(self.hand_pose, self.geom)
+        self._world_samples(self.hand_pose)  # the frames of this pose
         c, R = x[:2], rot(float(x[2]))
         anchors = {}
         for j, (centroid, _tan, _n, ft, u, _s, slipping) in ev.contacts.items():
@@ -473,9 +686,9 @@ class ContactPhysics:
                 st.slips += 0 if j in st.slipping else 1  # count slip onsets, not steps
                 st.slip_distance_mm += abs(u - u_el)
                 u = u_el
-            o, ex, ey = frames[j]
-            rel = centroid - o
-            local = np.array([rel @ ex, rel @ ey])
+            (oy, oz), (exy, exz), (eyy, eyz) = self._frame_rows[j]
+            ry, rz = float(centroid[0]) - oy, float(centroid[1]) - oz
+            local = np.array([ry * exy + rz * exz, ry * eyy + rz * eyz])
             anchors[j] = Anchor(R.T @ (centroid - c), local, u if carry else 0.0)
         st.slipping = {j for j, cinfo in ev.contacts.items() if cinfo[6]}
         st.anchors = anchors
@@ -505,23 +718,25 @@ class ContactPhysics:
         in joint coordinates: positive turns the joint towards larger angles (closing, for the
         proximal joints). Finger 1's joints turn clockwise in the y0z0 plane as their angles
         grow, Finger 2's (mirrored) counter-clockwise, hence the sign per finger."""
-        frames = link_frames(self.hand_pose, self.geom)
-        world = self._world_samples(self.hand_pose)
+        self._world_samples(self.hand_pose)
+        frames = self._frames
+        cached = self._torques
+        if cached is not None and cached[0] is self._last and cached[1] == self._world_key:
+            return dict(cached[2])  # same step, same pose: the same torques
         tau = {"phi2": 0.0, "phi3": 0.0, "phi4": 0.0, "phi5": 0.0}
         names = {Finger.ONE: ("phi2", "phi3"), Finger.TWO: ("phi4", "phi5")}
-        wds = self.width_mm * self.cfg.sample_spacing_mm
-        for j, (idx, p) in self._last.pressures.items():
+        for j, (fy, fz, pxn) in self._last.sums.items():
             finger = SURFACE_FINGER[j]
             if finger is None:
                 continue
-            pts, n, _ = world[j]
-            f = -(p * wds)[:, None] * n[idx]  # force on the finger
             prox_name, dist_name = names[finger]
             O = frames[j + 1][0] if j in (DISTAL1, DISTAL2) else frames[j][0]
             for name, origin in ((prox_name, O), (dist_name, frames[j][0])):
                 if name == dist_name and j not in (DISTAL1, DISTAL2):
                     continue
-                arm = pts[idx] - origin
-                moment = float(np.sum(arm[:, 0] * f[:, 1] - arm[:, 1] * f[:, 0]))
+                # moment about the joint of the force on the finger, −p·w·ds·n per sample
+                oy, oz = float(origin[0]), float(origin[1])
+                moment = -(pxn - (oy * fz - oz * fy))
                 tau[name] += -moment if finger is Finger.ONE else moment
+        self._torques = (self._last, self._world_key, dict(tau))
         return tau

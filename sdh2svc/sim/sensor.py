@@ -28,7 +28,7 @@ from scipy.special import ndtr
 
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.contact import MatrixLayout
-from sdh2svc.sim.world import apply_sensor_settings
+from sdh2svc.sim.world import FACTORY_SENSITIVITY, MAX_COUNT
 
 
 class SensorModelConfig(Frozen):
@@ -60,15 +60,24 @@ class PadRaster:
         self.row_centres = centres
         self.layout = layout
         self.pitch = pitch
+        self._valid = layout.valid()
+        self._spread: tuple[float, np.ndarray] | None = None  # (band, column share × valid)
+
+    def _columns(self, band_mm: float) -> np.ndarray:
+        """Share of each cell's width under the object's band, times the valid mask (cached:
+        the band is the object's depth, fixed for a run)."""
+        if self._spread is None or self._spread[0] != band_mm:
+            cols = self.layout.cols
+            left = (np.arange(cols) - cols / 2) * self.pitch
+            right = np.minimum(left + self.pitch, band_mm / 2)
+            overlap = np.clip(right - np.maximum(left, -band_mm / 2), 0.0, self.pitch)
+            self._spread = (band_mm, (overlap / self.pitch)[None, :] * self._valid)
+        return self._spread[1]
 
     def cells(self, idx: np.ndarray, pressure: np.ndarray, band_mm: float) -> np.ndarray:
         """(rows, cols) mean pressure on each cell for pressures at samples ``idx``."""
         row_p = self.weights[:, idx] @ pressure
-        cols = self.layout.cols
-        left = (np.arange(cols) - cols / 2) * self.pitch
-        right = np.minimum(left + self.pitch, band_mm / 2)
-        overlap = np.clip(right - np.maximum(left, -band_mm / 2), 0.0, self.pitch)
-        return np.outer(row_p, overlap / self.pitch) * self.layout.valid()
+        return row_p[:, None] * self._columns(band_mm)
 
 
 class TactileSensorModel:
@@ -88,20 +97,34 @@ class TactileSensorModel:
         self.rasters = dict(rasters)  # surface index → (matrix index, raster)
         self.per_count = pressure_per_count / cfg.gain_vs_library
         self.rng = np.random.default_rng(seed)
-        self.memory = [np.zeros(shape) for shape in self.shapes]
-        self.valid = [lay.valid() for lay in layouts]
+        sizes = [r * c for r, c in self.shapes]
+        self.offsets = [0, *np.cumsum(sizes).tolist()]  # each matrix's start in a frame
+        self.memory = np.zeros(self.offsets[-1])  # creep memory of every cell, wire order
+        self.valid = np.concatenate([lay.valid().ravel() for lay in layouts])
         self._t: float | None = None
+        self._settings: tuple[tuple[float, ...], tuple[int, ...], np.ndarray, np.ndarray] | None
+        self._settings = None
+
+    def _flat_pressures(
+        self, by_surface: Mapping[int, tuple[np.ndarray, np.ndarray]], band_mm: float
+    ) -> np.ndarray:
+        """True mean pressure (N/mm²) on every cell, flat in wire order."""
+        out = np.zeros(self.memory.shape)
+        for surface, (idx, p) in by_surface.items():
+            if surface in self.rasters and len(idx):
+                m, raster = self.rasters[surface]
+                out[self.offsets[m] : self.offsets[m + 1]] += raster.cells(idx, p, band_mm).ravel()
+        return out
 
     def pressures(
         self, by_surface: Mapping[int, tuple[np.ndarray, np.ndarray]], band_mm: float
     ) -> list[np.ndarray]:
         """True mean pressure (N/mm²) on every cell of the six matrices."""
-        out = [np.zeros(shape) for shape in self.shapes]
-        for surface, (idx, p) in by_surface.items():
-            if surface in self.rasters and len(idx):
-                m, raster = self.rasters[surface]
-                out[m] += raster.cells(idx, p, band_mm)
-        return out
+        flat = self._flat_pressures(by_surface, band_mm)
+        return [
+            flat[self.offsets[m] : self.offsets[m + 1]].reshape(shape)
+            for m, shape in enumerate(self.shapes)
+        ]
 
     def frame(
         self,
@@ -112,23 +135,38 @@ class TactileSensorModel:
         threshold: Sequence[int],
     ) -> np.ndarray:
         """Raw counts of all six matrices at ``now`` (flat uint16, wire order)."""
-        true_p = self.pressures(by_surface, band_mm)
+        p = self._flat_pressures(by_surface, band_mm)
         dt = 0.0 if self._t is None else max(0.0, now - self._t)
         self._t = now
         cfg = self.cfg
-        counts = []
-        for m, p in enumerate(true_p):
-            reading = p
-            if cfg.creep:
-                mem = self.memory[m]
-                tau = np.where(p > mem, cfg.creep_rise_s, cfg.creep_fall_s)
-                mem += (p - mem) * (1.0 - np.exp(-dt / tau))
-                reading = p + cfg.creep_gain * np.minimum(mem, p)
-            c = reading / self.per_count
-            if cfg.noise and cfg.noise_counts > 0:
-                # an unloaded resistive cell reads a clean 0; loaded ones are noisy
-                noise = self.rng.normal(0.0, cfg.noise_counts, c.shape)
-                c = np.where(c > 0.5, c + noise, c)
-            counts.append(np.where(self.valid[m], np.maximum(c, 0.0), 0.0).ravel())
-        return apply_sensor_settings(np.concatenate(counts), self.shapes, sensitivity, threshold)
+        reading = p
+        if cfg.creep:  # all cells at once; the rate per cell is one of two
+            mem = self.memory
+            rise, fall = -np.expm1(-dt / cfg.creep_rise_s), -np.expm1(-dt / cfg.creep_fall_s)
+            mem += (p - mem) * np.where(p > mem, rise, fall)
+            reading = p + cfg.creep_gain * np.minimum(mem, p)
+        c = reading / self.per_count
+        if cfg.noise and cfg.noise_counts > 0:
+            # an unloaded resistive cell reads a clean 0; loaded ones are noisy (one draw per
+            # cell, in wire order: the same stream as drawing matrix by matrix)
+            noise = self.rng.normal(0.0, cfg.noise_counts, c.shape)
+            c = np.where(c > 0.5, c + noise, c)
+        counts = np.where(self.valid, np.maximum(c, 0.0), 0.0)
+        return self._apply_settings(counts, sensitivity, threshold)
+
+    def _apply_settings(
+        self, raw: np.ndarray, sensitivity: Sequence[float], threshold: Sequence[int]
+    ) -> np.ndarray:
+        """:func:`~sdh2svc.sim.world.apply_sensor_settings` on all matrices at once (the gain
+        and threshold per cell are cached until the controller changes them)."""
+        key_s, key_t = tuple(float(v) for v in sensitivity), tuple(int(v) for v in threshold)
+        st = self._settings
+        if st is None or st[0] != key_s or st[1] != key_t:
+            sizes = np.diff(self.offsets)
+            gain = np.repeat([v / FACTORY_SENSITIVITY for v in key_s], sizes)
+            st = (key_s, key_t, gain, np.repeat(np.asarray(key_t, dtype=float), sizes))
+            self._settings = st
+        seg = np.clip(np.rint(raw * st[2]), 0, MAX_COUNT)
+        seg[seg < st[3]] = 0
+        return seg.astype(np.uint16)
 

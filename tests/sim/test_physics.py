@@ -290,3 +290,98 @@ def test_finger_pressing_a_stiff_object_stalls_at_its_torque_limit() -> None:
     tau = rig.w.physics.joint_torques_n_mm()
     assert abs(tau["phi2"]) >= cfg.sim.physics.torque_limit_proximal_n_mm  # stalled there
     assert t.held  # pressed hard, but not through the object
+
+
+# --- the fast paths of the solver and the sensor against their plain definitions -------------
+
+
+def _yield_reference(phys, overlap: np.ndarray, wds: float) -> float:
+    """The finger's yield by plain Newton from e = 0 (the definition in ContactPhysics._yield)."""
+    kf, e = phys.cfg.finger_stiffness_n_per_mm, 0.0
+    for _ in range(200):
+        c = overlap - e
+        active, stiff = c > 0.0, c > phys.knee
+        force = wds * float(phys._pressure(c[active]).sum())
+        slope = kf + wds * (phys.k * np.count_nonzero(active & ~stiff)
+                            + phys.k_bottomed * np.count_nonzero(stiff))  # fmt: skip
+        step = (force - kf * e) / slope
+        if step <= 1e-12:
+            break
+        e += step
+    return e
+
+
+@pytest.mark.parametrize("name", ["egg", "rubber", "cylinder"])
+def test_finger_yield_fast_paths_match_newton_from_zero(name: str) -> None:
+    phys = PhysicsWorld(quiet(), quiet().sim, get_object(name)).physics
+    rng = np.random.default_rng(7)
+    wds = phys.width_mm * phys.cfg.sample_spacing_mm
+    for trial in range(300):
+        scale = (0.2, 1.0, 3.0, 8.0)[trial % 4]  # below and well beyond the pad's knee
+        overlap = rng.random(int(rng.integers(1, 120))) * scale
+        want = _yield_reference(phys, overlap, wds)
+        phys._e_hint[0] = float(rng.random() * 2 * scale)  # any warm start, above or below
+        got = phys._yield(overlap, wds, float(overlap.max()), 0)
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-9)
+
+
+def test_newton_move_and_surface_columns_match_their_definitions() -> None:
+    from sdh2svc.sim.physics import _solve3, to_world
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        J, r = rng.normal(size=(3, 3)), rng.normal(size=3)
+        assert np.allclose(_solve3(J, r), np.linalg.solve(J, -r), rtol=1e-9, atol=1e-12)
+    rig = Rig(quiet(), "egg")
+    rig.grasp()
+    phys = rig.w.physics
+    for j, surf in enumerate(phys.surfaces):
+        pts, n, cols = phys._surface(j)
+        _o, ex, ey = phys._frames[j]
+        assert np.allclose(pts, to_world(phys._frames[j], surf.local), atol=1e-9)
+        assert np.allclose(n, surf.normal[:, :1] * ex + surf.normal[:, 1:] * ey, atol=1e-12)
+        assert np.allclose(cols[:, 2], pts[:, 0] * n[:, 1] - pts[:, 1] * n[:, 0], atol=1e-9)
+        assert np.allclose(cols[:, 7], surf.s)
+
+
+def test_ellipse_overlap_matches_the_outline_sdf() -> None:
+    from sdh2svc.sim.physics import rot
+
+    phys = PhysicsWorld(quiet(), quiet().sim, get_object("egg")).physics
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(500, 2)) * 25 + [33.0, 125.0]
+    for psi in (-0.7, 0.0, 0.3):
+        c, R = np.array([33.5, 124.0]), rot(psi)
+        assert np.allclose(phys._ellipse_sdf(pts, c, R), phys.outline.sdf((pts - c) @ R),
+                           atol=1e-9)  # fmt: skip
+
+
+def test_sensor_settings_match_the_emulator_seam_definition() -> None:
+    from sdh2svc.sim.world import apply_sensor_settings
+
+    w = PhysicsWorld(quiet(), quiet().sim, get_object("egg"))
+    rng = np.random.default_rng(9)
+    raw = rng.random(w.sensor.offsets[-1]) * 5000
+    for sens, thr in (([0.5] * 6, [0] * 6), ([0.1, 0.9, 0.5, 1.0, 0.3, 0.7], [0, 5, 100, 0, 7, 3])):
+        want = apply_sensor_settings(raw, w.shapes, sens, thr)
+        assert np.array_equal(w.sensor._apply_settings(raw, sens, thr), want)
+
+
+def test_fast_mode_world_is_bit_for_bit_repeatable() -> None:
+    """Warm starts, caches and the Jacobian kept between steps depend only on the calls made."""
+
+    def run() -> tuple[tuple, bytes]:
+        rig = Rig(load_config(use_env=False), "egg")  # noise and creep on
+        rig.grasp()
+        frames = []
+        for _ in range(30):
+            q = rig.q
+            q[5] -= 0.25
+            q[6] += 0.5
+            q[1] += 0.25
+            q[2] -= 0.5
+            rig.move(q)
+            frames.append(rig.counts().tobytes())
+        return rig.w.truth().pose, b"".join(frames)
+
+    assert run() == run()
