@@ -27,8 +27,10 @@ RUN_TIMEOUT_S = 120.0
 
 
 @pytest.fixture(scope="module")
-def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
-    s = start_service(tmp_path_factory.mktemp("api"), viewer=False)
+def svc(
+    tmp_path_factory: pytest.TempPathFactory, long_runs: tuple[str, ...]
+) -> Iterator[LiveService]:
+    s = start_service(tmp_path_factory.mktemp("api"), viewer=False, extra=long_runs)
     try:
         yield s
     finally:
@@ -346,8 +348,10 @@ async def _one_stroke_run(c: httpx.AsyncClient, svc: LiveService) -> dict[str, A
     return (await c.get(f"/api/runs/{run_id}")).json()["summary"]
 
 
-async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(tmp_path: Path) -> None:
-    svc = await asyncio.to_thread(start_service, tmp_path, viewer=False)
+async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
+    tmp_path: Path, long_runs: tuple[str, ...]
+) -> None:
+    svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, extra=long_runs)
     try:
         async with svc.client() as c, telemetry(svc, "?tactile=0") as tm:
             r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 50}})
