@@ -288,23 +288,13 @@ export class Sketch {
     ctx.fillStyle = "#d7dbe2";
     ctx.strokeStyle = "#6b7280";
     ctx.lineWidth = 1.2 * dpr;
-    ctx.beginPath();
-    DISTAL_OUTLINE.forEach((p, i) => {
-      const q = px(toFrame0(f, p));
-      if (i) ctx.lineTo(...q);
-      else ctx.moveTo(...q);
-    });
+    tracePath(ctx, DISTAL_OUTLINE.map((p) => px(toFrame0(f, p))));
     ctx.closePath();
     ctx.fill();
     ctx.stroke();
     ctx.strokeStyle = "#e2a03f";
     ctx.lineWidth = 3 * dpr;
-    ctx.beginPath();
-    PAD_SURFACE.forEach((p, i) => {
-      const q = px(toFrame0(f, p));
-      if (i) ctx.lineTo(...q);
-      else ctx.moveTo(...q);
-    });
+    tracePath(ctx, PAD_SURFACE.map((p) => px(toFrame0(f, p))));
     ctx.stroke();
 
     const [jx, jy] = px(f.joint);
@@ -370,4 +360,10 @@ export class Sketch {
     ctx.fillStyle = "#333";
     lines.forEach((l, i) => ctx.fillText(l, 8 * dpr, (16 + 15 * i) * dpr));
   }
+}
+
+/** Begin a path through canvas points (no fill or stroke). */
+function tracePath(ctx, points) {
+  ctx.beginPath();
+  points.forEach((q, i) => (i ? ctx.lineTo(...q) : ctx.moveTo(...q)));
 }

@@ -41,6 +41,15 @@ class Rig:
         self.t += dt
         self.w.move_joints(self.t, self.q, [True] * 7)
 
+    def roll_step(self) -> None:
+        """Finger 2 one Δφ = 0.25° along its route (k = 2), Finger 1 mirroring it."""
+        q = self.q
+        q[5] -= 0.25
+        q[6] += 0.5
+        q[1] += 0.25
+        q[2] -= 0.5
+        self.move(q)
+
     def counts(self) -> np.ndarray:
         return self.w.tactile_frame(self.t, [0.5] * 6, [0] * 6)
 
@@ -124,12 +133,7 @@ def test_circle_rolls_by_the_arc_length_relation() -> None:
     c0 = rig.contact("distal2")
     ang0 = math.atan2(c0.object_point[1], c0.object_point[0])
     for _ in range(60):  # Finger 2 follows its route, Finger 1 keeps the grip by the mirror
-        q = rig.q
-        q[5] -= 0.25
-        q[6] += 0.5
-        q[1] += 0.25
-        q[2] -= 0.5
-        rig.move(q)
+        rig.roll_step()
     t = rig.w.truth()
     assert t.held and t.slips == 0
     c1 = rig.contact("distal2")
@@ -375,12 +379,7 @@ def test_fast_mode_world_is_bit_for_bit_repeatable() -> None:
         rig.grasp()
         frames = []
         for _ in range(30):
-            q = rig.q
-            q[5] -= 0.25
-            q[6] += 0.5
-            q[1] += 0.25
-            q[2] -= 0.5
-            rig.move(q)
+            rig.roll_step()
             frames.append(rig.counts().tobytes())
         return rig.w.truth().pose, b"".join(frames)
 
