@@ -80,6 +80,7 @@ export const api = {
   simObject: () => request("GET", "/api/sim/object"),
   putSimObject: (name) => request("PUT", "/api/sim/object", { name }),
   viewer: () => request("GET", "/api/viewer"),
+  config: () => request("GET", "/api/config"),
 };
 
 /** All samples of a recorded run, fetched page by page. */

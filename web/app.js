@@ -4,7 +4,7 @@ import { api, allSamples, ApiError, getToken, setToken, Telemetry } from "/web/a
 import { ParamsForm } from "/web/params.js";
 import { Pads } from "/web/pads.js";
 import { Plots } from "/web/plots.js";
-import { Sketch } from "/web/sketch.js";
+import { configureHand, Sketch } from "/web/sketch.js";
 
 const $ = (sel) => document.querySelector(sel);
 const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling", "releasing"]);
@@ -301,9 +301,11 @@ async function refreshStatus() {
   if (st) renderStatus(st);
 }
 
+// Wire axes of φ2…φ5: SDH2 defaults until GET /api/config gives the service's [axes].
+let poseAxes = [1, 2, 5, 6];
+
 function setPose(angles) {
-  // wire axes: φ2 = 1, φ3 = 2, φ4 = 5, φ5 = 6 (config [axes])
-  if (angles.length >= 7) sketch.setAngles([angles[1], angles[2], angles[5], angles[6]]);
+  if (angles.length >= 7) sketch.setAngles(poseAxes.map((i) => angles[i]));
 }
 
 // --- telemetry --------------------------------------------------------------------------------
@@ -550,10 +552,16 @@ async function loadViewer() {
 // --- start ------------------------------------------------------------------------------------
 
 async function init() {
-  const [schema] = await Promise.all([
+  const [schema, config] = await Promise.all([
     guard("parameter schema", api.paramsSchema),
+    guard("configuration", api.config),
     loadObject(),
   ]);
+  if (config) {
+    configureHand(config.hand);
+    const a = config.axes;
+    poseAxes = [a.phi2, a.phi3, a.phi4, a.phi5];
+  }
   if (schema) form.build(schema);
   const params = await guard("parameters", api.params);
   if (params) {

@@ -3,11 +3,13 @@
 // Frame 0: origin at Finger 1's proximal joint O, z0 along the straightened finger (drawn up),
 // y0 towards Finger 2, whose proximal joint O' is at y0 = 66 mm. Angles arrive in degrees.
 
-const BASE = 66.0; // |OO'| mm
-const PROXIMAL = 86.5; // |OC| mm
+// The hand's geometry: the packaged defaults until configureHand() gets the service's own
+// (GET /api/config: `hand`), so a hand configured differently is drawn as configured.
+let BASE = 66.0; // |OO'| mm
+let PROXIMAL = 86.5; // |OC| mm
 // Fingertip pad profile in frame 3 (§3): flat y3 = 15 for 17.5 < x3 ≤ 33.5, then an arc with
 // centre K = (33.5, −45) and R = 60 up to the fingertip's end at x3 = 66.402.
-const PAD = { flatStart: 17.5, flatEnd: 33.5, flatY: 15.0, R: 60.0, tipEnd: 66.402 };
+let PAD = { flatStart: 17.5, flatEnd: 33.5, flatY: 15.0, R: 60.0, tipEnd: 66.402 };
 const VIEW = { yMin: -95, yMax: 161, zMin: -22, zMax: 190 }; // mm shown
 const CONE_LEN = 38; // mm drawn along each cone edge
 const D2R = Math.PI / 180;
@@ -25,7 +27,7 @@ function padSlope(x3) {
 }
 
 // The distal link's outline in frame 3: a joint hub, the pad (flat, then arc), the back.
-const DISTAL_OUTLINE = (() => {
+function distalOutline() {
   const pts = [[-9, -11], [-9, 11], [PAD.flatStart, PAD.flatY]];
   for (let i = 1; i <= 24; i++) {
     const x3 = PAD.flatStart + ((PAD.tipEnd - PAD.flatStart) * i) / 24;
@@ -33,8 +35,20 @@ const DISTAL_OUTLINE = (() => {
   }
   pts.push([PAD.tipEnd - 2, -4], [PAD.tipEnd - 9, -11]);
   return pts;
-})();
-const PAD_SURFACE = DISTAL_OUTLINE.slice(2, 2 + 25);
+}
+let DISTAL_OUTLINE = distalOutline();
+let PAD_SURFACE = DISTAL_OUTLINE.slice(2, 2 + 25);
+
+/** Take the service's hand geometry (the `hand` section of GET /api/config). */
+export function configureHand(hand) {
+  BASE = hand.base_offset_mm;
+  PROXIMAL = hand.proximal_length_mm;
+  const p = hand.pad;
+  PAD = { flatStart: p.flat_start_x3_mm, flatEnd: p.flat_end_x3_mm, flatY: p.flat_y3_mm,
+          R: p.arc_radius_mm, tipEnd: p.tip_end_x3_mm };
+  DISTAL_OUTLINE = distalOutline();
+  PAD_SURFACE = DISTAL_OUTLINE.slice(2, 2 + 25);
+}
 
 /** Distal joint and frame-3 axes of a finger (1 or 2) at its proximal/distal angles (rad). */
 export function fingerFrame(finger, prox, dist) {
