@@ -63,6 +63,12 @@ class PhysicsWorld:
         self._angles = [0.0] * 7
         self._blocked: set[int] = set()
         self._seed = sim.seed
+        a, phys = self.axes, sim.physics
+        prox, dist = phys.torque_limit_proximal_n_mm, phys.torque_limit_distal_n_mm
+        self._limits = (  # (axis, joint, torque limit), in the order _stall checks them
+            (a.phi2, "phi2", prox), (a.phi4, "phi4", prox),
+            (a.phi3, "phi3", dist), (a.phi5, "phi5", dist),
+        )  # fmt: skip
         self.place(obj or get_object(sim.object))
 
     # --- the seam -----------------------------------------------------------------------------
@@ -139,14 +145,8 @@ class PhysicsWorld:
         if self.physics.state.dropped:
             return
         tau = self.physics.joint_torques_n_mm()
-        a, phys = self.axes, self.sim.physics
-        limits = {
-            a.phi2: phys.torque_limit_proximal_n_mm, a.phi4: phys.torque_limit_proximal_n_mm,
-            a.phi3: phys.torque_limit_distal_n_mm, a.phi5: phys.torque_limit_distal_n_mm,
-        }  # fmt: skip
-        names = {a.phi2: "phi2", a.phi3: "phi3", a.phi4: "phi4", a.phi5: "phi5"}
-        for axis, limit in limits.items():
-            t = tau[names[axis]]
+        for axis, name, limit in self._limits:
+            t = tau[name]
             pushing = (target[axis] - self._angles[axis]) * t < 0  # moving against the load
             if abs(t) >= limit and pushing:
                 target[axis] = self._angles[axis]

@@ -172,6 +172,8 @@ class Outline:
         self.offsets = np.einsum("ij,ij->i", self.normals, self.vertices)
         self.half_extent = np.max(np.abs(self.vertices), axis=0) + self.radius
         self.bound_radius = float(np.max(np.linalg.norm(self.vertices, axis=1))) + self.radius
+        # a box's core is axis-aligned: its distance has a closed form (see sdf)
+        self._box_core = np.max(np.abs(self.vertices), axis=0) if isinstance(spec, Box) else None
         if isinstance(spec, Ellipse):
             self._ab = (spec.axis_a_mm / 2, spec.axis_b_mm / 2)
             self.half_extent = np.array(self._ab)
@@ -202,6 +204,8 @@ class Outline:
             g = np.sqrt(qx * qx + qy * qy)
             grad = np.sqrt((qx / a) ** 2 + (qy / b) ** 2) / np.maximum(g, 1e-12)
             return (g - 1.0) / np.maximum(grad, 1e-12)
+        if self._box_core is not None:
+            return self._box_sdf(p)
         v, e = self.vertices, self.edges
         n = len(v)
         if n == 1:
@@ -219,6 +223,17 @@ class Outline:
             t = np.clip(np.sum(rel * e[None], axis=2) / np.sum(e * e, axis=1)[None], 0.0, 1.0)
             d[out] = np.min(np.linalg.norm(rel - t[..., None] * e[None], axis=2), axis=1)
         return d - self.radius
+
+    def _box_sdf(self, p: np.ndarray) -> np.ndarray:
+        """:meth:`sdf` of a box: the same distances as the polygon's, without projecting every
+        point on every edge (q: how far each coordinate lies beyond the core's half side)."""
+        q = np.abs(p) - self._box_core
+        qx, qy = q[:, 0], q[:, 1]
+        outside = np.maximum(qx, qy)  # inside the core: the distance to its nearest side
+        if self.radius <= 0.0:
+            return outside  # as for any polygon: exact inside, positive outside
+        corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
+        return np.where(outside > 0.0, corner, outside) - self.radius
 
 
 def load_object(path: str | Path) -> Stick | Box | Ellipse | Circle | Polygon:

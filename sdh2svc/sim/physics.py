@@ -22,15 +22,20 @@ pressing a stiff object stops instead of passing through it.
 
 Speed (fast mode runs thousands of steps per simulated minute) never changes the equations: the
 surfaces are moved into frame 0 once per finger pose (cached on the exact pose), all nearby
-samples are tested against the object in one pass, the per-contact sums come from one product,
-the finger's yield is solved in closed form when no sample bottoms out, and Newton starts from
-the balance extrapolated along the fingers' motion with a Jacobian kept from step to step and
-corrected by Broyden's secant updates. Convergence is checked on the same residual and tolerance.
+samples are moved into the object frame by one affine product and tested in one pass (a box's
+distance in closed form, an ellipse's only for the samples inside), the per-contact sums and
+their overlap-weighted twins come from one product, and the finger's yield is found by Newton
+steps on the pad's linear law, exact once the set of samples in contact stops changing (the
+piecewise law only when a sample bottoms out). Newton starts from the balance extrapolated along
+the fingers' motion (a parabola through the last three balances, whatever the substeps'
+lengths), with a Jacobian kept from step to step and corrected by Broyden's secant updates, in
+plain floats. Convergence is checked on the same residual and tolerance.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Annotated
 
@@ -40,10 +45,13 @@ from scipy import optimize
 
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope
-from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose, distal_joint, frame3_axes
-from sdh2svc.sim.objects import Box, Ellipse, Outline, Polygon
+from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose
+from sdh2svc.sim.objects import Ellipse, Outline, Polygon
 
 Positive = Annotated[float, Field(gt=0.0)]
+Pair = tuple[float, float]
+Vec3 = tuple[float, float, float]
+Mat3 = tuple[Vec3, ...]  # 3 rows
 
 
 class PhysicsConfig(Frozen):
@@ -136,56 +144,80 @@ def link_frames(
 
 
 def link_frame_rows(pose: HandPose, geom: HandGeometry) -> list[tuple[tuple[float, float], ...]]:
-    """:func:`link_frames` as plain floats."""
-    rows = []
-    for finger in (Finger.ONE, Finger.TWO):
-        prox, dist = pose.finger(finger)
-        O = (0.0 if finger is Finger.ONE else geom.base_offset_mm, 0.0)
-        C = tuple(distal_joint(finger, prox, geom))
-        rows.append((C, *(tuple(v) for v in frame3_axes(finger, prox + dist))))
-        rows.append((O, *(tuple(v) for v in frame3_axes(finger, prox))))
-    rows.append(((0.0, 0.0), (1.0, 0.0), (0.0, 1.0)))
-    return rows
+    """:func:`link_frames` as plain floats: :func:`distal_joint` and :func:`frame3_axes`
+    written out (this runs at every substep)."""
+    l1, base = geom.proximal_length_mm, geom.base_offset_mm
+    s2, c2 = math.sin(pose.phi2), math.cos(pose.phi2)
+    s23, c23 = math.sin(pose.phi2 + pose.phi3), math.cos(pose.phi2 + pose.phi3)
+    s4, c4 = math.sin(pose.phi4), math.cos(pose.phi4)
+    s45, c45 = math.sin(pose.phi4 + pose.phi5), math.cos(pose.phi4 + pose.phi5)
+    return [
+        ((l1 * s2, l1 * c2), (s23, c23), (c23, -s23)),  # distal 1, at C
+        ((0.0, 0.0), (s2, c2), (c2, -s2)),  # proximal 1, at O
+        ((base - l1 * s4, l1 * c4), (-s45, c45), (-c45, -s45)),  # distal 2 (mirrored), at D
+        ((base, 0.0), (-s4, c4), (-c4, -s4)),  # proximal 2
+        ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0)),  # the palm, in frame 0
+    ]
 
 
 def _local_columns(surf: Surface) -> np.ndarray:
-    """Per sample, in the link frame: normal, point × normal, point, tangent, s and 1."""
+    """Per sample, in the link frame: normal, point × normal, point, 1, tangent and s (the 1
+    right after the point: the affine move of the points into the object frame is a product)."""
     p, n = surf.local, surf.normal
     pxn = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
-    return np.column_stack([n, pxn, p, surf.tangent, surf.s, np.ones(len(surf.s))])
+    return np.column_stack([n, pxn, p, np.ones(len(surf.s)), surf.tangent, surf.s])
+
+
+# where _to_world's entries go in its 9 × 9 map (flat, row by row)
+_MAP_ENTRIES = np.array([0, 1, 2, 9, 10, 11, 20, 30, 31, 39, 40, 48, 49, 50, 60, 61, 69, 70, 80])
 
 
 def _along(dq: tuple[float, ...], ref: tuple[float, ...]) -> float | None:
     """dq as a multiple of ref when the two joint moves point the same way (else None)."""
-    dd = sum(a * b for a, b in zip(dq, ref, strict=True))
-    nn = sum(a * a for a in ref)
-    mm = sum(a * a for a in dq)
+    (a0, a1, a2, a3), (b0, b1, b2, b3) = dq, ref
+    dd = a0 * b0 + a1 * b1 + a2 * b2 + a3 * b3
+    nn = b0 * b0 + b1 * b1 + b2 * b2 + b3 * b3
+    mm = a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3
     if nn <= 0.0 or dd <= 0.0 or dd * dd < 0.81 * nn * mm:
         return None
     return dd / nn
 
 
-def _norm3(v: np.ndarray) -> float:
-    a, b, c = v.tolist()
+def _norm3(v: Sequence[float]) -> float:
+    a, b, c = v
     return math.sqrt(a * a + b * b + c * c)
 
 
-def _solve3(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+def _solve3(J: Mat3, r: Sequence[float]) -> Vec3:
     """The Newton move: J·dx = −r (Cramer's rule, far cheaper than LAPACK for a 3 × 3);
-    a (near-)singular J takes the least-squares move."""
-    (a, b, c), (d, e, f), (g, h, i) = J.tolist()
+    a (near-)singular J takes the least-squares move. Plain floats: the solver's 3-vectors
+    and 3 × 3 matrices are too small for numpy to pay off."""
+    (a, b, c), (d, e, f), (g, h, i) = J
     co0, co1, co2 = e * i - f * h, f * g - d * i, d * h - e * g
     det = a * co0 + b * co1 + c * co2
     scale = max(abs(v) for v in (a, b, c, d, e, f, g, h, i))
     if not abs(det) > 1e-12 * scale**3:
-        return np.linalg.lstsq(J, -r, rcond=None)[0]
-    r0, r1, r2 = (-v for v in r.tolist())
-    inv = (
-        (co0, c * h - b * i, b * f - c * e),
-        (co1, a * i - c * g, c * d - a * f),
-        (co2, b * g - a * h, a * e - b * d),
-    )  # adjugate: inverse × det
-    return np.array([(row[0] * r0 + row[1] * r1 + row[2] * r2) / det for row in inv])
+        x0, x1, x2 = np.linalg.lstsq(np.array(J), -np.array(r), rcond=None)[0].tolist()
+        return x0, x1, x2
+    r0, r1, r2 = -r[0], -r[1], -r[2]
+    return (
+        (co0 * r0 + (c * h - b * i) * r1 + (b * f - c * e) * r2) / det,
+        (co1 * r0 + (a * i - c * g) * r1 + (c * d - a * f) * r2) / det,
+        (co2 * r0 + (b * g - a * h) * r1 + (a * e - b * d) * r2) / det,
+    )  # the adjugate (inverse × det) times −r
+
+
+def _broyden(J: Mat3, s: Vec3, y: Sequence[float]) -> Mat3:
+    """Broyden's rank-one update of J for the move s that changed the residual by y:
+    J + (y − J·s)·sᵀ / (s·s)."""
+    ss = s[0] * s[0] + s[1] * s[1] + s[2] * s[2]
+    if not ss > 0.0:
+        return J
+    rows = []
+    for row, yi in zip(J, y, strict=True):
+        ui = (yi - (row[0] * s[0] + row[1] * s[1] + row[2] * s[2])) / ss
+        rows.append((row[0] + ui * s[0], row[1] + ui * s[1], row[2] + ui * s[2]))
+    return tuple(rows)
 
 
 def to_world(frame: tuple[np.ndarray, np.ndarray, np.ndarray], local: np.ndarray) -> np.ndarray:
@@ -202,8 +234,8 @@ def rot(psi: float) -> np.ndarray:
 class Anchor:
     """Where object and surface stuck together at the end of the previous step."""
 
-    obj_point: np.ndarray  # object frame
-    local_point: np.ndarray  # surface link frame
+    obj_point: Pair  # object frame
+    local_point: Pair  # surface link frame
     u: float  # elastic tangential displacement, mm
 
 
@@ -223,7 +255,8 @@ class ContactTruth:
 @dataclass(slots=True)
 class _Eval:
     residual: np.ndarray
-    contacts: dict[int, tuple[np.ndarray, np.ndarray, float, float, np.ndarray, float, bool]]
+    # surface → (centroid, tangent, N, tangential force, u, s of the centroid, slipping)
+    contacts: dict[int, tuple[Pair, Pair, float, float, float, float, bool]]
     pressures: dict[int, tuple[np.ndarray, np.ndarray]]  # surface → (sample indices, pressure)
     max_depth: float = 0.0  # deepest geometric overlap of a surface into the object, mm
     # surface → (Σ p·w·ds·n, Σ p·w·ds·(point × n)) in frame 0: the joint torques' sums
@@ -263,22 +296,23 @@ class ContactPhysics:
         self.gravity_n = spec.material.mass_g / 1000.0 * g  # (x0, y0, z0) newtons
         self.hand_pose = pose
         self.state = PhysicsState(np.asarray(object_pose, dtype=float))
-        self._jacobian: np.ndarray | None = None
+        self._jacobian: Mat3 | None = None
         self._motion: list[tuple[tuple[float, ...], np.ndarray]] = []  # last two (Δq, Δx)
         self._last = _Eval(np.zeros(3), {}, {})
         self._world_key: tuple[float, ...] | None = None
         self._world: list = []
         self._anchor_cache: dict[tuple[int, int], tuple[Anchor, tuple[float, float]]] = {}
         self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int]]] = {}
+        self._starts: dict[tuple[int, ...], list[int]] = {}  # each group's surface starts
+        self._map = np.zeros((9, 9))  # see _to_world
         self._frame_rows: list[tuple[tuple[float, float], ...]] = []
-        self._frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._world_circles: list[tuple[float, float, float]] = []
         self._circles = []  # each surface's bounding circle in its link frame: (a, b, radius)
         self._local_cols = [_local_columns(surf) for surf in self.surfaces]
         self._e_hint: dict[int, float] = {}  # each surface's last finger yield, Newton's start
-        self._prefilter = isinstance(spec, Box | Polygon)
+        self._prefilter = isinstance(spec, Polygon)  # a box has a cheap closed form
         self._ellipse = (
-            np.array([2.0 / spec.axis_a_mm, 2.0 / spec.axis_b_mm])
+            (2.0 / spec.axis_a_mm, 2.0 / spec.axis_b_mm)
             if isinstance(spec, Ellipse) else None
         )  # fmt: skip
         for surf in self.surfaces:
@@ -298,13 +332,11 @@ class ContactPhysics:
         if key == self._world_key:
             return self._world
         rows = link_frame_rows(pose, self.geom)
-        arr = np.array(rows)
-        frames = [(f[0], f[1], f[2]) for f in arr]
         circles = []
         for (ma, mb, rad), (o, ex, ey) in zip(self._circles, rows, strict=True):
             circles.append((o[0] + ma * ex[0] + mb * ey[0], o[1] + ma * ex[1] + mb * ey[1], rad))
         self._frame_rows = rows
-        self._world_key, self._frames, self._world_circles = key, frames, circles
+        self._world_key, self._world_circles = key, circles
         self._world = [None] * len(self.surfaces)
         self._groups = {}
         self._anchor_cache = {}
@@ -312,27 +344,36 @@ class ContactPhysics:
 
     def _surface(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Samples and normals of surface j in frame 0 at the current pose, and the columns
-        :meth:`_evaluate` sums per sample: normal, point × normal, point, tangent, s."""
+        :meth:`_evaluate` sums per sample: normal, point × normal, point, 1, tangent, s."""
         got = self._world[j]
         if got is None:
-            o, ex, ey = self._frame_rows[j]
-            (a, b), (c, d) = ex, ey  # local (u, v) → frame 0: u·ex + v·ey
-            det = a * d - b * c  # −1: a mirrored frame, which flips the sign of p × n
-            M = np.array([  # affine map of the local columns (see _local_columns)
-                [a, b, -a * o[1] + b * o[0], 0, 0, 0, 0, 0],
-                [c, d, -c * o[1] + d * o[0], 0, 0, 0, 0, 0],
-                [0, 0, det, 0, 0, 0, 0, 0],  # o × n is linear in n; p × n is kept or flipped
-                [0, 0, 0, a, b, 0, 0, 0],
-                [0, 0, 0, c, d, 0, 0, 0],
-                [0, 0, 0, 0, 0, a, b, 0],
-                [0, 0, 0, 0, 0, c, d, 0],
-                [0, 0, 0, 0, 0, 0, 0, 1],
-                [0, 0, 0, o[0], o[1], 0, 0, 0],
-            ], dtype=float)  # fmt: skip
-            cols = self._local_cols[j] @ M
+            cols = self._local_cols[j] @ self._to_world(j)
             got = (cols[:, 3:5], cols[:, 0:2], cols)
             self._world[j] = got
         return got
+
+    def _to_world(self, j: int) -> np.ndarray:
+        """The affine map of surface j's local columns (see _local_columns) into frame 0:
+
+            [a, b, b·o_y − a·o_z, 0, 0, 0, 0, 0, 0]    normal (u, v) → normal, o × normal
+            [c, d, d·o_y − c·o_z, 0, 0, 0, 0, 0, 0]
+            [0, 0, det,  0, 0, 0, 0, 0, 0]             p × n is kept or flipped (mirrored)
+            [0, 0, 0,    a, b, 0, 0, 0, 0]             point (u, v, 1) → point, 1
+            [0, 0, 0,    c, d, 0, 0, 0, 0]
+            [0, 0, 0,  o_y, o_z, 1, 0, 0, 0]
+            [0, 0, 0,    0, 0, 0, a, b, 0]             tangent
+            [0, 0, 0,    0, 0, 0, c, d, 0]
+            [0, 0, 0,    0, 0, 0, 0, 0, 1]             s
+
+        with (a, b) = ex, (c, d) = ey. Written into one array, in place (it is consumed at
+        once): filling 19 entries is cheaper than building a 9 × 9 array."""
+        o, (a, b), (c, d) = self._frame_rows[j]  # local (u, v) → frame 0: u·ex + v·ey
+        det = a * d - b * c  # −1: a mirrored frame, which flips the sign of p × n
+        self._map.put(_MAP_ENTRIES, (
+            a, b, -a * o[1] + b * o[0], c, d, -c * o[1] + d * o[0], det,
+            a, b, c, d, o[0], o[1], 1.0, a, b, c, d, 1.0,
+        ))  # fmt: skip
+        return self._map
 
     def _evaluate(
         self, x: np.ndarray, world: list, frames: list | None = None, slip: dict | None = None
@@ -342,8 +383,7 @@ class ContactPhysics:
         Sticking contacts pull with their tangential spring, uncapped; the contacts in ``slip``
         (surface → sign) slide with the Coulomb force μ·N in that direction.
         """
-        cy, cz, psi = float(x[0]), float(x[1]), float(x[2])
-        c, R = x[:2], rot(psi)
+        cy, cz, psi = x.tolist()
         cos_p, sin_p = math.cos(psi), math.sin(psi)
         fy, fz = float(self.gravity_n[1]), float(self.gravity_n[2])
         moment = 0.0
@@ -360,29 +400,30 @@ class ContactPhysics:
             if (cy - my) ** 2 + (cz - mz) ** 2 <= (reach + rad) ** 2
         )  # the others are nowhere near the object
         # all nearby surfaces' samples at once, then each surface's share of those inside
-        inside, d, starts, cols_all = self._inside(near_j, c, R, reach2)
+        inside, depth, starts, cols_all = self._inside(near_j, cy, cz, cos_p, sin_p, reach2)
         bounds = np.searchsorted(inside, starts).tolist()
         for k, j in enumerate(near_j):
             lo, hi = bounds[k], bounds[k + 1]
             if lo == hi:
                 continue
             gidx = inside[lo:hi]  # indices into the concatenation
-            overlap = -d[gidx]
-            idx = gidx - starts[k]  # indices into surface j's samples
+            overlap = depth[lo:hi]
             deepest = float(overlap.max())
             max_depth = max(max_depth, deepest)
             # the finger yields along the pad normal (structure and servo, in series with the pad)
             e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds, deepest, j)
             if e > 0.0:
                 keep = overlap > e
-                idx, gidx, overlap = idx[keep], gidx[keep], overlap[keep]
+                gidx, overlap = gidx[keep], overlap[keep]
             p = self._pressure(overlap - e, deepest - e)  # N/mm²
             pw = p * wds
-            nj = cols_all[gidx, 0:2]
-            # one product gives Σ p·w·ds·(n, p×n, point, tangent, s) over the contact samples
-            Fy, Fz, pxn, Py, Pz, Ty, Tz, S = (pw @ cols_all[gidx]).tolist()
-            back = ((pw * overlap) @ nj).tolist()
-            total = float(pw.sum())
+            g0, g1 = int(gidx[0]), int(gidx[-1]) + 1
+            # a convex object presses one run of samples: a view instead of a copy
+            sub = cols_all[g0:g1] if g1 - g0 == gidx.size else cols_all[gidx]
+            # one product gives Σ p·w·ds·(n, p×n, point, 1, tangent, s) over the contact samples,
+            # and the same weighted by the overlap (only its normal part is used)
+            sums_pw, back = (np.array((pw, pw * overlap)) @ sub).tolist()
+            Fy, Fz, pxn, Py, Pz, total, Ty, Tz, S = sums_pw
             N = math.hypot(Fy, Fz)
             # Σ arm × f with arm = point − c, f = p·w·ds·n
             moment += pxn - (cy * Fz - cz * Fy)
@@ -396,7 +437,7 @@ class ContactPhysics:
             u = 0.0
             anchor = self.state.anchors.get(j)
             if anchor is not None and frames is not None:
-                ay, az = anchor.obj_point.tolist()
+                ay, az = anchor.obj_point
                 sy, sz = self._anchor_world(j, anchor)
                 u = anchor.u + ((cy + cos_p * ay - sin_p * az - sy) * tan_y
                                 + (cz + sin_p * ay + cos_p * az - sz) * tan_z)  # fmt: skip
@@ -406,50 +447,72 @@ class ContactPhysics:
             fy += ty
             fz += tz
             moment += (cen_y - cy) * tz - (cen_z - cz) * ty
-            centroid, tan = np.array([cen_y, cen_z]), np.array([tan_y, tan_z])
-            contacts[j] = (centroid, tan, N, ft, u, S / total, slipping)
-            pressures[j] = (idx, p)
+            contacts[j] = ((cen_y, cen_z), (tan_y, tan_z), N, ft, u, S / total, slipping)
+            pressures[j] = (gidx - starts[k], p)  # indices into surface j's samples
             sums[j] = (Fy, Fz, pxn)
         scale = 1.0 / max(self.outline.bound_radius, 1.0)  # moment in force units
         residual = np.array([fy, fz, moment * scale])
         return _Eval(residual, contacts, pressures, max_depth, sums)
 
     def _inside(
-        self, near_j: tuple[int, ...], c: np.ndarray, R: np.ndarray, reach2: float
-    ) -> tuple[np.ndarray, np.ndarray, list[int], np.ndarray]:
-        """Samples of the surfaces near_j (concatenated) inside the object at (c, R): their
-        indices, the signed distances (indexable by them), each surface's start, the columns."""
+        self, near_j: tuple[int, ...], cy: float, cz: float, cos_p: float, sin_p: float,
+        reach2: float,
+    ) -> tuple[np.ndarray, np.ndarray, list[int], np.ndarray]:  # fmt: skip
+        """Samples of the surfaces near_j (concatenated) inside the object at (cy, cz) turned
+        by ψ: their indices, their depths (−sdf), each surface's start, the columns."""
         group = self._groups.get(near_j)
-        if group is None:
-            parts = [self._surface(j)[2] for j in near_j]
-            starts = [0, *np.cumsum([len(p) for p in parts]).tolist()]
-            group = (np.concatenate(parts) if parts else np.zeros((0, 8)), starts)
+        if group is None:  # the surfaces' columns in frame 0, moved straight into one array
+            starts = self._starts.get(near_j)
+            if starts is None:
+                starts = [0]
+                for j in near_j:
+                    starts.append(starts[-1] + len(self._local_cols[j]))
+                self._starts[near_j] = starts
+            cols = np.empty((starts[-1], 9))
+            for k, j in enumerate(near_j):
+                out = cols[starts[k] : starts[k + 1]]
+                np.matmul(self._local_cols[j], self._to_world(j), out=out)
+            # the points (y, z, 1) as rows: each evaluation moves them with one product
+            group = (cols, starts, np.ascontiguousarray(cols[:, 3:6].T))
             self._groups[near_j] = group
-        cols, starts = group
-        pts = cols[:, 3:5]
+        cols, starts, points = group
+        # the points in the object frame, Rᵀ·(p − c), as two rows (x, y)
+        ox, oy = cy * cos_p + cz * sin_p, cz * cos_p - cy * sin_p
         if self._ellipse is not None:
-            d = self._ellipse_sdf(pts, c, R)
-            return np.nonzero(d < 0.0)[0], d, starts, cols
-        local = pts @ R - c @ R  # object frame
+            ia, ib = self._ellipse  # scaled by the semi-axes: q = (x/a, y/b)
+            to_q = ((cos_p * ia, sin_p * ia, -ox * ia), (-sin_p * ib, cos_p * ib, -oy * ib))
+            inside, d = self._ellipse_inside(np.array(to_q) @ points)
+            return inside, -d, starts, cols
+        local = (np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points).T
         if not self._prefilter:
             d = self.outline.sdf(local)
-            return np.nonzero(d < 0.0)[0], d, starts, cols
+            inside = np.nonzero(d < 0.0)[0]
+            return inside, -d[inside], starts, cols
         # a polygon's sdf is dear: only for the samples in its bounding circle
-        d = np.full(len(cols), np.inf)
         near = np.nonzero(np.einsum("ij,ij->i", local, local) <= reach2)[0]
-        if near.size:
-            d[near] = self.outline.sdf(local[near])
-        return np.nonzero(d < 0.0)[0], d, starts, cols
+        d = self.outline.sdf(local[near])
+        keep = d < 0.0
+        return near[keep], -d[keep], starts, cols
 
     def _ellipse_sdf(self, pts: np.ndarray, c: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """:meth:`Outline.sdf` of an ellipse, (g − 1)/|∇g| with g = |(x/a, y/b)|, with the
-        move into the object frame and the scaling by the semi-axes folded into one product."""
-        inv = self._ellipse  # (1/a, 1/b)
-        Rs = R * inv  # object frame, scaled: q = (x/a, y/b)
-        q = pts @ Rs - c @ Rs
-        g = np.sqrt(np.einsum("ij,ij->i", q, q))
-        h = q * inv  # (x/a², y/b²)
-        grad = np.sqrt(np.einsum("ij,ij->i", h, h)) / np.maximum(g, 1e-12)
+        """:meth:`Outline.sdf` of an ellipse, (g − 1)/|∇g| with g = |(x/a, y/b)|, of frame-0
+        points for the object at c turned by R (as :meth:`_inside` computes it)."""
+        q = ((pts - c) @ R * self._ellipse).T  # object frame, scaled by (1/a, 1/b)
+        qx2, qy2 = q[0] * q[0], q[1] * q[1]
+        return self._ellipse_d(np.sqrt(qx2 + qy2), qx2, qy2)
+
+    def _ellipse_inside(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points q = (x/a, y/b) (two rows) inside the ellipse (g < 1, i.e. sdf < 0) and
+        their :meth:`_ellipse_sdf`, which only they need."""
+        qx2, qy2 = q[0] * q[0], q[1] * q[1]
+        g2 = qx2 + qy2
+        inside = np.nonzero(g2 < 1.0)[0]  # g < 1 exactly when g² < 1 (sqrt is correctly rounded)
+        return inside, self._ellipse_d(np.sqrt(g2[inside]), qx2[inside], qy2[inside])
+
+    def _ellipse_d(self, g: np.ndarray, qx2: np.ndarray, qy2: np.ndarray) -> np.ndarray:
+        """(g − 1)/|∇g| with ∇g = (x/a², y/b²)/g, from g and the squares of q = (x/a, y/b)."""
+        ia, ib = self._ellipse
+        grad = np.sqrt(qx2 * (ia * ia) + qy2 * (ib * ib)) / np.maximum(g, 1e-12)
         return (g - 1.0) / np.maximum(grad, 1e-12)
 
     def _anchor_world(self, j: int, anchor: Anchor) -> tuple[float, float]:
@@ -458,7 +521,7 @@ class ContactPhysics:
         got = self._anchor_cache.get(key)
         if got is None or got[0] is not anchor:
             o, ex, ey = self._frame_rows[j]
-            a, b = anchor.local_point.tolist()
+            a, b = anchor.local_point
             got = (anchor, (o[0] + a * ex[0] + b * ey[0], o[1] + a * ex[1] + b * ey[1]))
             self._anchor_cache[key] = got
         return got[1]
@@ -481,18 +544,14 @@ class ContactPhysics:
         below it (concavity); from below it climbs. It starts from surface j's last root.
         """
         kf, k, kb, knee = self.cfg.finger_stiffness_n_per_mm, self.k, self.k_bottomed, self.knee
-        if deepest <= knee:
-            # No sample bottoms out: with the m deepest samples in contact the root is
-            # e_m = kw·Σ_m δ / (kf + kw·m); it is the one whose m samples stay in contact.
-            d = np.sort(overlap)[::-1]
-            kw = wds * k
-            e_m = kw * np.cumsum(d) / (kf + kw * np.arange(1, d.size + 1))
-            ok = (d > e_m) & (e_m >= np.append(d[1:], 0.0))
-            m = int(np.argmax(ok))
-            if ok[m]:
-                e = float(e_m[m])
-                return e if e > 1e-12 else 0.0
         e = min(self._e_hint.get(j, 0.0), deepest)
+        # Below the knee the law is linear. Its root is the root of h when no sample bottoms
+        # out there: a stiffer law beyond the knee only pushes the root further up.
+        e_lin = self._yield_linear(overlap, wds * k, kf, e)
+        if deepest - e_lin <= knee:
+            self._e_hint[j] = e_lin
+            return e_lin if e_lin > 1e-12 else 0.0
+        e = max(e, e_lin)
         for _ in range(50):
             c = overlap - e if e else overlap
             act = c[c > 0.0]
@@ -507,6 +566,23 @@ class ContactPhysics:
             e = max(e + step, 0.0)
         self._e_hint[j] = e
         return e
+
+    @staticmethod
+    def _yield_linear(overlap: np.ndarray, kw: float, kf: float, e: float) -> float:
+        """:meth:`_yield` when no sample bottoms out: with the m samples deeper than e in
+        contact the root is e_m = kw·Σ_m δ / (kf + kw·m), the root of h once those m are the
+        ones that stay in contact. Newton's steps are these e_m; a step that keeps the set of
+        samples in contact has landed (the sets are nested, so equal counts mean equal sets)."""
+        act = overlap > e
+        m = int(np.count_nonzero(act))
+        for _ in range(overlap.size + 2):
+            e = kw * float(overlap[act].sum()) / (kf + kw * m)
+            act = overlap > e
+            m_next = int(np.count_nonzero(act))
+            if m_next == m:
+                return e
+            m = m_next
+        return e  # not reached: each step from below the root drops a sample from contact
 
     # --- stepping -----------------------------------------------------------------------------
 
@@ -533,7 +609,7 @@ class ContactPhysics:
         self.hand_pose = pose
         st = self.state
         world = self._world_samples(pose)
-        frames = self._frames
+        frames = self._frame_rows  # also says: the anchors' springs pull
         if st.dropped:
             self._last = _Eval(np.zeros(3), {}, {})
             return
@@ -558,8 +634,9 @@ class ContactPhysics:
 
     def _predict(self, dq: tuple[float, ...] | None) -> np.ndarray:
         """Newton's start: the last balance, moved on as it moved over the last substeps when
-        the fingers keep moving the same way: linearly, or quadratically (the change of the last
-        move) over steady steps. A warm start saves iterations, never changes the result."""
+        the fingers keep moving the same way: linearly, or along the parabola through the last
+        three balances (substeps of any lengths a2 : 1 : a1). A warm start saves iterations;
+        the result is only ever checked against the residual's tolerance."""
         x0 = self.state.pose.copy()
         if dq is None or not self._motion:
             return x0
@@ -569,8 +646,9 @@ class ContactPhysics:
         dx1 = self._motion[-1][1]
         if len(self._motion) == 2:
             a2 = _along(self._motion[-1][0], self._motion[0][0])
-            if a2 is not None and abs(a1 - 1.0) < 0.1 and abs(a2 - 1.0) < 0.1:
-                return x0 + a1 * (2.0 * dx1 - self._motion[0][1])
+            if a2 is not None and 0.5 <= a1 <= 2.0 and 0.5 <= a2 <= 2.0:
+                curve = a1 * (a1 + 1.0) * a2 / (a2 + 1.0)  # Newton's divided differences
+                return x0 + a1 * dx1 + curve * (dx1 - a2 * self._motion[0][1])
         return x0 + a1 * dx1
 
     def _solve(self, world: list, frames: list, dq: tuple[float, ...] | None) -> None:
@@ -617,20 +695,21 @@ class ContactPhysics:
         lim = (2.0, 2.0, math.radians(3.0))  # a Newton move stays physical
         J, fresh = self._jacobian, False
         for _ in range(60):
-            r = ev.residual
-            rl = r.tolist()
-            if max(abs(v) for v in rl) < tol:
+            r = ev.residual.tolist()
+            if max(abs(r[0]), abs(r[1]), abs(r[2])) < tol:
                 return x, ev, True
             if J is None:
-                J, fresh = self._fd_jacobian(x, r, world, frames, slip), True
+                J, fresh = self._fd_jacobian(x, ev.residual, world, frames, slip), True
             dx = _solve3(J, r)
-            moves = zip(lim, dx.tolist(), strict=True)
-            dx *= min(1.0, *(lo / (abs(v) + 1e-300) for lo, v in moves))
-            base, step = math.sqrt(sum(v * v for v in rl)), 1.0
+            scale = min(1.0, *(lo / (abs(v) + 1e-300) for lo, v in zip(lim, dx, strict=True)))
+            dx = (dx[0] * scale, dx[1] * scale, dx[2] * scale)
+            base, step = _norm3(r), 1.0
+            x0, x1, x2 = x.tolist()
             while step > 1e-3:
-                x_c = x + step * dx
+                x_c = np.array((x0 + step * dx[0], x1 + step * dx[1], x2 + step * dx[2]))
                 ev_c = self._evaluate(x_c, world, frames, slip)
-                if _norm3(ev_c.residual) < base:
+                r_c = ev_c.residual.tolist()
+                if _norm3(r_c) < base:
                     x, ev = x_c, ev_c
                     break
                 step /= 2
@@ -640,12 +719,10 @@ class ContactPhysics:
                 J = None  # stale Jacobian: refresh and try again
                 continue
             # Broyden's rank-one update: the secant of this move corrects J for free
-            s = step * dx
-            ss = float(s @ s)
-            if ss > 0.0:
-                J = J + np.outer(ev.residual - r - J @ s, s) / ss
+            s = (step * dx[0], step * dx[1], step * dx[2])
+            J = _broyden(J, s, (r_c[0] - r[0], r_c[1] - r[1], r_c[2] - r[2]))
             self._jacobian = J
-            if not fresh and _norm3(ev.residual) > 0.25 * base:
+            if not fresh and _norm3(r_c) > 0.25 * base:
                 J = None  # slow progress: the kept Jacobian is too far off
         return x, ev, bool(np.max(np.abs(ev.residual)) < tol)
 
@@ -665,20 +742,22 @@ class ContactPhysics:
 
     def _fd_jacobian(
         self, x: np.ndarray, r: np.ndarray, world: list, frames: list, slip: dict[int, float]
-    ) -> np.ndarray:
+    ) -> Mat3:
         h = np.array([1e-4, 1e-4, 1e-5])
         J = np.empty((3, 3))
         for k in range(3):
             xk = x.copy()
             xk[k] += h[k]
             J[:, k] = (self._evaluate(xk, world, frames, slip).residual - r) / h[k]
-        return J
+        (a, b, c), (d, e, f), (g, h_, i) = J.tolist()
+        return (a, b, c), (d, e, f), (g, h_, i)
 
     def _anchor(self, ev: _Eval, x: np.ndarray, carry: bool) -> None:
         """Re-anchor every contact at its current centroid, keeping the elastic displacement."""
         st = self.state
         self._world_samples(self.hand_pose)  # the frames of this pose
-        c, R = x[:2], rot(float(x[2]))
+        cy, cz, psi = x.tolist()
+        cos_p, sin_p = math.cos(psi), math.sin(psi)
         anchors = {}
         for j, (centroid, _tan, _n, ft, u, _s, slipping) in ev.contacts.items():
             if slipping:  # the spring keeps only what the Coulomb force stretches
@@ -687,9 +766,11 @@ class ContactPhysics:
                 st.slip_distance_mm += abs(u - u_el)
                 u = u_el
             (oy, oz), (exy, exz), (eyy, eyz) = self._frame_rows[j]
-            ry, rz = float(centroid[0]) - oy, float(centroid[1]) - oz
-            local = np.array([ry * exy + rz * exz, ry * eyy + rz * eyz])
-            anchors[j] = Anchor(R.T @ (centroid - c), local, u if carry else 0.0)
+            ry, rz = centroid[0] - oy, centroid[1] - oz
+            local = (ry * exy + rz * exz, ry * eyy + rz * eyz)
+            dy, dz = centroid[0] - cy, centroid[1] - cz  # into the object frame: Rᵀ·(p − c)
+            obj = (cos_p * dy + sin_p * dz, cos_p * dz - sin_p * dy)
+            anchors[j] = Anchor(obj, local, u if carry else 0.0)
         st.slipping = {j for j, cinfo in ev.contacts.items() if cinfo[6]}
         st.anchors = anchors
 
@@ -708,8 +789,8 @@ class ContactPhysics:
         c, R = x[:2], rot(float(x[2]))
         out = []
         for j, (centroid, _t, N, ft, _u, s, slipping) in sorted(self._last.contacts.items()):
-            obj = R.T @ (centroid - c)
-            out.append(ContactTruth(SURFACE_NAMES[j], (float(centroid[0]), float(centroid[1])), s,
+            obj = R.T @ (np.array(centroid) - c)
+            out.append(ContactTruth(SURFACE_NAMES[j], centroid, s,
                                     (float(obj[0]), float(obj[1])), N, ft, slipping))  # fmt: skip
         return out
 
@@ -719,7 +800,7 @@ class ContactPhysics:
         proximal joints). Finger 1's joints turn clockwise in the y0z0 plane as their angles
         grow, Finger 2's (mirrored) counter-clockwise, hence the sign per finger."""
         self._world_samples(self.hand_pose)
-        frames = self._frames
+        frames = self._frame_rows
         cached = self._torques
         if cached is not None and cached[0] is self._last and cached[1] == self._world_key:
             return dict(cached[2])  # same step, same pose: the same torques

@@ -389,10 +389,12 @@ class _Move:
     t0: float
     stoppable: bool  # `stop` ends `m` moves, not selgrip/grip (§2.4)
     carry: tuple[Carry, ...] = (_NO_CARRY,) * NUM_AXES  # per axis: a replan's inherited velocity
+    # asked at every servo tick: computed once
+    duration: float = field(init=False, repr=False, compare=False)
 
-    @property
-    def duration(self) -> float:
-        return max(self.profile.duration, max(c.time for c in self.carry))
+    def __post_init__(self) -> None:
+        duration = max(self.profile.duration, max(c.time for c in self.carry))
+        object.__setattr__(self, "duration", duration)
 
     @property
     def end(self) -> float:

@@ -44,6 +44,16 @@ def test_sdf_signs_and_rounded_corner() -> None:
     assert d[3] == pytest.approx(np.hypot(3.0, 3.0) - 2.0)
 
 
+@pytest.mark.parametrize("corner", [0.0, 1.0, 4.0])
+def test_box_closed_form_sdf_matches_the_polygon_one(corner: float) -> None:
+    box = Outline(parse_object({"kind": "box", "width_mm": 20, "height_mm": 10,
+                                "corner_radius_mm": corner, "depth_mm": 5}))  # fmt: skip
+    pts = np.random.default_rng(2).uniform(-15.0, 15.0, (2000, 2))
+    got = box.sdf(pts)
+    box._box_core = None  # the general convex-polygon distance
+    assert np.allclose(got, box.sdf(pts), atol=1e-12)
+
+
 def test_objects_from_toml_and_json(tmp_path: Path) -> None:
     t = tmp_path / "tri.toml"
     t.write_text('kind = "polygon"\nvertices_mm = [[0, 0], [30, 0], [0, 20]]\ndepth_mm = 8\n'
