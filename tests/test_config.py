@@ -19,7 +19,7 @@ def test_defaults_are_the_thesis_values() -> None:
     assert (r.delta_phi_deg, r.k, r.lambda_gain, r.alpha_deg) == (0.25, 2.0, 5.0, 22.0)
     assert (r.grasp_force, r.cycles) == (2, 3)
     # ΔΛ magnitudes of the thesis's §4.2 text (Table 8 swaps them; see config/default.toml)
-    assert (r.delta_lambda_inc_mm, r.delta_lambda_dec_mm) == (1.0, 0.2)
+    assert (r.delta_lambda_inc_mm, r.delta_lambda_dec_mm) == (0.1, 0.1)
     assert (s.axes.phi2, s.axes.phi3, s.axes.phi4, s.axes.phi5) == (1, 2, 5, 6)
     assert (s.axes.finger1_distal_matrix, s.axes.finger2_distal_matrix) == (1, 5)
     assert (s.tactile.distal.rows, s.tactile.distal.cols) == (13, 6)

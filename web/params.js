@@ -14,6 +14,8 @@ const LABELS = {
   grasp_force: "Fd",
   contact_force_min: "contact F min",
   force_deadband: "force deadband",
+  force_band_low: "force band low (× Fd)",
+  force_band_high: "force band high (× Fd)",
   delta_lambda_inc_mm: "ΔΛ_inc (mm)",
   delta_lambda_dec_mm: "ΔΛ_dec (mm)",
   cycles: "cycles (strokes)",

@@ -7,9 +7,9 @@ consistent set (atomic at the next iteration).
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Self
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from sdh2svc.model.base import Frozen
 
@@ -44,6 +44,18 @@ class RollingParams(Frozen):
     force_deadband: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
         description="|ΔF| at or below this (library units) leaves Λ unchanged (not in the thesis)"
     )
+    finger1_max_step_deg: Annotated[float, Field(gt=0.0, le=10.0)] = Field(
+        description="largest change of φ2 or φ3 per iteration: a larger one slows the whole "
+        "iteration (Δφ, or dσ) down so that Finger 1 can follow (not in the thesis)"
+    )
+    force_band_low: Annotated[float, Field(ge=0.0, le=20.0)] = Field(
+        description="× Fd: below this F, Λ closes by ΔΛ_dec unless F is rising (not in the "
+        "thesis; 0: off)"
+    )
+    force_band_high: Annotated[float, Field(ge=0.0, le=20.0)] = Field(
+        description="× Fd: above this F, Λ opens by ΔΛ_inc unless F is falling (not in the "
+        "thesis; 20: off)"
+    )
     delta_lambda_inc_mm: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
         description="ΔΛ_inc, widening of the held distance when the force rises"
     )
@@ -61,6 +73,13 @@ class RollingParams(Frozen):
             raise ValueError("must not be 0 (its sign is the rotation direction)")
         return v
 
+    @model_validator(mode="after")
+    def _band_ordered(self) -> Self:
+        if self.force_band_low > self.force_band_high:
+            raise ValueError(f"force_band_low ({self.force_band_low:g}) must not exceed "
+                             f"force_band_high ({self.force_band_high:g})")  # fmt: skip
+        return self
+
     @property
     def delta_phi(self) -> float:
         return math.radians(self.delta_phi_deg)
@@ -68,6 +87,10 @@ class RollingParams(Frozen):
     @property
     def d_sigma(self) -> float:
         return math.radians(self.d_sigma_deg)
+
+    @property
+    def finger1_max_step(self) -> float:
+        return math.radians(self.finger1_max_step_deg)
 
     @property
     def alpha(self) -> float:

@@ -27,6 +27,7 @@ from sdh2svc.model.kinematics import (
     HandPoints,
     HandPose,
     IKFailure,
+    IKResult,
     Point,
     contact_point,
     finger_ik,
@@ -91,18 +92,73 @@ class StepResult:
         return self.obs.points
 
 
-def _adjusted_lambda(lam: float, dF: float, p: RollingParams) -> float:
-    """Λad: open by ΔΛ_inc when the force rises, close by ΔΛ_dec when it falls (Table 8); a
-    change within the deadband is no change."""
-    if dF > p.force_deadband:
+def _adjusted_lambda(lam: float, F: float, dF: float, p: RollingParams) -> float:
+    """Λad: open by ΔΛ_inc when the force rises, close by ΔΛ_dec when it falls (hand-model §8);
+    a change within the deadband is no change. Outside the force band the level decides (the
+    derivative rule alone lets slow drifts through): below it close, above it open — unless
+    the force is already on its way back, when the derivative rule decides as inside."""
+    rising, falling = dF > p.force_deadband, dF < -p.force_deadband
+    if F < p.force_band_low * p.grasp_force and not rising:
+        return lam - p.delta_lambda_dec_mm
+    if F > p.force_band_high * p.grasp_force and not falling:
         return lam + p.delta_lambda_inc_mm
-    if dF < -p.force_deadband:
+    if rising:
+        return lam + p.delta_lambda_inc_mm
+    if falling:
         return lam - p.delta_lambda_dec_mm
     return lam
 
 
+@dataclass(frozen=True, slots=True)
+class _Config:
+    """One candidate next configuration: Finger 2's angles, the plan and Finger 1's IK."""
+
+    phi4d: float
+    phi5d: float
+    plan: Plan
+    ik: IKResult
+
+
+@dataclass(frozen=True, slots=True)
+class _Route:
+    """Steps 4–7 of hand-model §8 for one iteration, at a fraction of the full step."""
+
+    state: RollState
+    pose: HandPose
+    obs: Observation
+    lam_ad: float
+    params: RollingParams
+    ctx: ModelContext
+
+    def configure(self, scale: float) -> _Config | None:
+        """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
+        Finger 2's next angles leave its joint limits."""
+        p, pose, obs, geom = self.params, self.pose, self.obs, self.ctx.geom
+        c1, c2 = obs.contact1, obs.contact2
+        assert obs.points is not None and obs.sigma is not None
+        assert c1.r_mm is not None and c1.theta_rad is not None
+        assert c2.r_mm is not None and c2.theta_rad is not None
+        if p.mode == "two-finger":
+            dphi = scale * self.state.direction * p.delta_phi
+            phi4d, phi5d = pose.phi4 - dphi, pose.phi5 + p.k * dphi
+            if not self.ctx.limits2.contains(phi4d, phi5d):
+                return None
+            B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
+            d_sigma = segment(obs.points.A, B_d)[1] - obs.sigma  # eq 3.13, sign typo fixed
+            sigma_d = obs.sigma + p.lambda_gain * d_sigma
+        else:
+            phi4d, phi5d, B_d = pose.phi4, pose.phi5, obs.points.B
+            sigma_d = obs.sigma + scale * self.state.direction * p.d_sigma
+        lam = self.lam_ad
+        A_d = Point(B_d.y - lam * math.cos(sigma_d), B_d.z - lam * math.sin(sigma_d))
+        ik = finger_ik(Finger.ONE, A_d, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), geom,
+                       self.ctx.limits1)  # fmt: skip
+        return _Config(phi4d, phi5d, Plan(lam, sigma_d, A_d, B_d), ik)
+
+
 def _reverse(state: RollState, F: float, reason: Reversal) -> RollState:
-    return RollState(
+    return replace(
+        state,
         direction=-state.direction,
         F_prev=F,
         half_strokes=state.half_strokes + 1,
@@ -136,30 +192,26 @@ def step(
     assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
 
-    geom = ctx.geom
-    A, B = obs.points.A, obs.points.B
-    lam_ad = _adjusted_lambda(obs.Lambda, dF, params)
-    dphi = state.direction * params.delta_phi
-    if params.mode == "two-finger":
-        phi4d, phi5d = pose.phi4 - dphi, pose.phi5 + params.k * dphi
-        if not ctx.limits2.contains(phi4d, phi5d):
-            return reverse(Reversal.WORKSPACE, Plan(lam_ad))
-        B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
-        d_sigma = segment(A, B_d)[1] - obs.sigma  # eq 3.13 with its sign typo fixed
-        sigma_d = obs.sigma + params.lambda_gain * d_sigma
-    else:
-        phi4d, phi5d = pose.phi4, pose.phi5
-        B_d = B
-        sigma_d = obs.sigma + state.direction * params.d_sigma
-    A_d = Point(B_d.y - lam_ad * math.cos(sigma_d), B_d.z - lam_ad * math.sin(sigma_d))
-    ik = finger_ik(Finger.ONE, A_d, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), geom,
-                   ctx.limits1)  # fmt: skip
-    plan = Plan(lam_ad, sigma_d, A_d, B_d)
+    lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
+    route = _Route(state, pose, obs, lam_ad, params, ctx)
+    cfg = route.configure(1.0)
+    if cfg is None:
+        return reverse(Reversal.WORKSPACE, Plan(lam_ad))
+    if cfg.ik.solution is not None:  # Finger 1 can follow at most its step per iteration
+        need = max(abs(cfg.ik.solution.proximal - pose.phi2),
+                   abs(cfg.ik.solution.distal - pose.phi3))  # fmt: skip
+        if need > params.finger1_max_step:
+            slower = route.configure(params.finger1_max_step / need)
+            if slower is not None and slower.ik.solution is not None:
+                cfg = slower
+    plan, ik, phi4d, phi5d = cfg.plan, cfg.ik, cfg.phi4d, cfg.phi5d
+    A_d, B_d = plan.A_d, plan.B_d
+    assert A_d is not None and B_d is not None
     if ik.solution is None:
         limits = ik.failure is IKFailure.JOINT_LIMITS
         return reverse(Reversal.WORKSPACE if limits else Reversal.IK_UNREACHABLE, plan)
     phi2d, phi3d = ik.solution.proximal, ik.solution.distal
-    pad = geom.pad
+    pad = ctx.geom.pad
     wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
     wb = omega(Finger.TWO, phi4d + phi5d, c2.x3_mm, B_d, A_d, pad)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)

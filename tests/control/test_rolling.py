@@ -27,7 +27,9 @@ def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
 
 
 def params(cfg: Settings, **kw: object) -> RollingParams:
-    return cfg.rolling.model_copy(update=kw)
+    """The configured parameters with ``kw``; Finger 1's step unlimited unless given, so that
+    each iteration takes the route's full step."""
+    return cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0, **kw})
 
 
 TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))  # σ ≠ 0
@@ -35,7 +37,7 @@ TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))  # σ ≠ 0
 
 @pytest.mark.parametrize("pose", [MIRROR, TILTED], ids=["mirror", "tilted"])
 def test_normal_step_follows_the_route(cfg: Settings, pose: HandPose) -> None:
-    ctx, p = cfg.model_context(), cfg.rolling
+    ctx, p = cfg.model_context(), params(cfg)
     r = step(RollState(), pose, frame(20.0), frame(24.0), p, ctx)
     assert r.reversal is None and r.targets is not None and r.plan is not None
     t = r.targets
@@ -57,34 +59,94 @@ def test_normal_step_follows_the_route(cfg: Settings, pose: HandPose) -> None:
     assert r.state.iteration == 1 and r.state.direction == 1 and r.state.F_prev == r.F
 
 
+def test_finger1_step_limit_slows_the_whole_iteration(cfg: Settings) -> None:
+    """Finger 1 needing more than its largest step: the iteration is taken at the fraction of Δφ
+    that keeps it (about) within the limit, still on the route and with A on the circle."""
+    ctx = cfg.model_context()
+    free = step(RollState(), TILTED, frame(20.0), frame(24.0),
+                params(cfg, finger1_max_step_deg=10.0), ctx)  # fmt: skip
+    assert free.targets is not None
+    need = max(abs(free.targets.phi2 - TILTED.phi2), abs(free.targets.phi3 - TILTED.phi3))
+    assert free.targets.phi4 == pytest.approx(TILTED.phi4 - rad(0.25))  # the full step
+    limit = math.degrees(need) / 4
+    r = step(RollState(), TILTED, frame(20.0), frame(24.0),
+             params(cfg, finger1_max_step_deg=limit), ctx)  # fmt: skip
+    assert r.reversal is None and r.targets is not None and r.plan is not None
+    t = r.targets
+    taken = max(abs(t.phi2 - TILTED.phi2), abs(t.phi3 - TILTED.phi3))
+    assert math.degrees(taken) == pytest.approx(limit, rel=0.1)
+    scale = (TILTED.phi4 - t.phi4) / rad(0.25)
+    assert 0.15 < scale < 0.35  # Finger 2 slowed by the same factor …
+    assert t.phi5 - TILTED.phi5 == pytest.approx(2 * (TILTED.phi4 - t.phi4))  # … on its route
+    c1 = r.obs.contact1
+    A_d = contact_point(Finger.ONE, t.phi2, t.phi3, c1.r_mm, c1.theta_rad, ctx.geom)
+    assert A_d == pytest.approx(r.plan.A_d, abs=1e-9)
+    assert segment(r.plan.A_d, r.plan.B_d)[0] == pytest.approx(r.plan.Lambda_ad)
+
+
 @pytest.mark.parametrize(
     ("prev_F_delta", "expected"), [(-0.3, 0.7), (0.3, -0.3), (0.0, 0.0), (0.1, 0.0), (-0.1, 0.0)]
 )
 def test_delta_lambda_sign_logic(cfg: Settings, prev_F_delta: float, expected: float) -> None:
     """Rising force → open by ΔΛ_inc (0.7 mm here); falling → close by ΔΛ_dec (0.3 mm); a
-    change within the deadband (0.15) → keep Λ."""
+    change within the deadband (0.15) → keep Λ. (The force band off: the thesis's rule alone.)"""
     ctx = cfg.model_context()
-    p = params(cfg, delta_lambda_inc_mm=0.7, delta_lambda_dec_mm=0.3)
+    p = params(cfg, delta_lambda_inc_mm=0.7, delta_lambda_dec_mm=0.3, force_band_low=0.0,
+               force_band_high=20.0)  # fmt: skip
     F = step(RollState(), MIRROR, frame(20.0), frame(20.0), p, ctx).F
     r = step(RollState(F_prev=F + prev_F_delta), MIRROR, frame(20.0), frame(20.0), p, ctx)
     assert r.dF == pytest.approx(-prev_F_delta)
     assert r.plan.Lambda_ad == pytest.approx(r.obs.Lambda + expected)
 
 
+@pytest.mark.parametrize(
+    ("level", "prev_F_delta", "expected"),
+    [
+        (0.5, 0.0, -0.3),  # below the band, steady: close
+        (0.5, 0.3, -0.3),  # below, still falling: close
+        (0.5, -0.3, 0.7),  # below, but rising again: the ΔF rule (opens)
+        (1.5, 0.0, 0.7),  # above, steady: open
+        (1.5, -0.3, 0.7),  # above, still rising: open
+        (1.5, 0.3, -0.3),  # above, but falling again: the ΔF rule (closes)
+        (0.9, 0.0, 0.0),  # inside the band: the ΔF rule alone
+        (0.9, 0.3, -0.3),
+    ],
+)
+def test_force_band_decides_outside(
+    cfg: Settings, level: float, prev_F_delta: float, expected: float
+) -> None:
+    """F at ``level`` × Fd with the band [0.75, 1.0] × Fd: outside it the level decides."""
+    ctx = cfg.model_context()
+    base = params(cfg, delta_lambda_inc_mm=0.7, delta_lambda_dec_mm=0.3, force_band_low=0.75,
+                  force_band_high=1.0)  # fmt: skip
+    F = step(RollState(), MIRROR, frame(20.0), frame(20.0), base, ctx).F
+    p = base.model_copy(update={"grasp_force": F / level})
+    r = step(RollState(F_prev=F + prev_F_delta), MIRROR, frame(20.0), frame(20.0), p, ctx)
+    assert r.F / p.grasp_force == pytest.approx(level)
+    assert r.plan.Lambda_ad == pytest.approx(r.obs.Lambda + expected)
+
+
+def test_force_band_must_be_ordered(cfg: Settings) -> None:
+    with pytest.raises(ValueError, match=r"force_band_low .* must not exceed force_band_high"):
+        RollingParams.model_validate(
+            {**cfg.rolling.model_dump(), "force_band_low": 1.5, "force_band_high": 1.0}
+        )
+
+
 def test_contact_lost_reverses(cfg: Settings) -> None:
     ctx = cfg.model_context()
-    r = step(RollState(), MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), cfg.rolling, ctx)
+    r = step(RollState(), MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), params(cfg), ctx)
     assert r.reversal is Reversal.CONTACT_LOST and r.targets is None
     assert r.state.direction == -1 and r.state.half_strokes == 1
     weak = frame(20.0, amplitude=15.0)  # present on the pad, but below contact_force_min
-    r = step(RollState(), MIRROR, frame(20.0), weak, cfg.rolling, ctx)
+    r = step(RollState(), MIRROR, frame(20.0), weak, params(cfg), ctx)
     assert r.reversal is Reversal.CONTACT_LOST
 
 
 def test_contact_at_pad_edge_reverses(cfg: Settings) -> None:
     m = np.zeros((13, 6), np.uint16)
     m[0, 1:5] = 1500  # on the first row, at the fingertip's end
-    r = step(RollState(), MIRROR, m, frame(20.0), cfg.rolling, cfg.model_context())
+    r = step(RollState(), MIRROR, m, frame(20.0), params(cfg), cfg.model_context())
     assert r.reversal is Reversal.CONTACT_EDGE
 
 
@@ -114,10 +176,10 @@ def test_cone_b_reverses(cfg: Settings) -> None:
 
 def test_workspace_reverses_at_joint_limit(cfg: Settings) -> None:
     pose = HandPose(rad(-20), rad(30), rad(-89.9), rad(30))  # φ4 − Δφ would pass −90°
-    r = step(RollState(), pose, frame(20.0), frame(20.0), cfg.rolling, cfg.model_context())
+    r = step(RollState(), pose, frame(20.0), frame(20.0), params(cfg), cfg.model_context())
     assert r.reversal is Reversal.WORKSPACE
     # the other way round the same pose is fine for Finger 2
-    r = step(RollState(direction=-1), pose, frame(20.0), frame(20.0), cfg.rolling,
+    r = step(RollState(direction=-1), pose, frame(20.0), frame(20.0), params(cfg),
              cfg.model_context())  # fmt: skip
     assert r.reversal is not Reversal.WORKSPACE
 
@@ -136,7 +198,7 @@ def test_ik_unreachable_reverses(cfg: Settings) -> None:
 
 def test_parameter_change_applies_at_next_iteration(cfg: Settings) -> None:
     ctx = cfg.model_context()
-    r1 = step(RollState(), MIRROR, frame(20.0), frame(20.0), cfg.rolling, ctx)
+    r1 = step(RollState(), MIRROR, frame(20.0), frame(20.0), params(cfg), ctx)
     faster = params(cfg, delta_phi_deg=0.5, k=3.0)
     r2 = step(r1.state, r1.targets, frame(20.0), frame(20.0), faster, ctx)
     assert r2.targets.phi4 == pytest.approx(r1.targets.phi4 - rad(0.5))
@@ -148,10 +210,10 @@ def test_reversal_flips_direction_and_counts_strokes(cfg: Settings) -> None:
     empty = np.zeros((13, 6), np.uint16)
     s = RollState()
     for _ in range(4):
-        s = step(s, MIRROR, frame(20.0), empty, cfg.rolling, ctx).state
+        s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
     assert s.half_strokes == 4 and s.strokes == 2 and s.direction == 1
     assert s.consecutive_reversals == 4
-    r = step(RollState(direction=-1), MIRROR, frame(20.0), frame(20.0), cfg.rolling, ctx)
+    r = step(RollState(direction=-1), MIRROR, frame(20.0), frame(20.0), params(cfg), ctx)
     assert r.targets.phi4 == pytest.approx(MIRROR.phi4 + rad(0.25))  # reversed route
 
 

@@ -134,10 +134,18 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         assert (await c.get("/api/viewer")).json() == {"url": None}
 
 
+def assert_steps(samples: list[dict], dphi: float) -> None:
+    """Finger 2's steps |φ4 − φ4d|: never beyond Δφ, and the full Δφ in most iterations."""
+    steps = [abs(s["phi4"] - s["phi4_d"]) for s in samples]
+    assert steps and max(steps) < dphi + 1e-6, steps
+    assert sum(abs(st - dphi) < 1e-6 for st in steps) >= 0.8 * len(steps), steps
+
+
 async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveService) -> None:
     async with svc.client() as c, telemetry(svc) as tm, telemetry(svc, "?decimate=3") as tm3:
         await tm.until(lambda: tm.of("hello"))
-        r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 50}})
+        slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
+        r = await c.post("/api/runs", json={"object": "egg", "params": slow})
         assert r.status_code == 201, r.text
         run_id = r.json()["run_id"]
         r = await c.post("/api/runs", json={})
@@ -145,20 +153,21 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         r = await c.put("/api/sim/object", json={"name": "egg"})
         assert r.status_code == 409
 
-        # rolling: Finger 2 steps Δφ = 0.25° per iteration (φ4 − φ4d)
+        # rolling: Finger 2 steps Δφ = 0.05° per iteration (φ4 − φ4d), less where Finger 1's
+        # step limit slows an iteration down
         await tm.until(lambda: len(tm.samples(run_id)) >= 15)
         before = [s for s in tm.samples(run_id) if s["phi4_d"] is not None]
-        assert before and all(abs(abs(s["phi4"] - s["phi4_d"]) - 0.25) < 1e-6 for s in before)
-        r = await c.patch("/api/params", json={"delta_phi_deg": 0.4})
-        assert r.status_code == 200 and r.json()["delta_phi_deg"] == 0.4
+        assert_steps(before, 0.05)
+        r = await c.patch("/api/params", json={"delta_phi_deg": 0.08})
+        assert r.status_code == 200 and r.json()["delta_phi_deg"] == 0.08
         ev = await tm.until(lambda: tm.events(run_id, "params"))
         changed_at = ev[0]["iteration"]
-        assert ev[0]["detail"]["params"]["delta_phi_deg"] == 0.4
+        assert ev[0]["detail"]["params"]["delta_phi_deg"] == 0.08
         await tm.until(lambda: len([s for s in tm.samples(run_id)
                                     if s["iteration"] > changed_at + 5]))  # fmt: skip
         after = [s for s in tm.samples(run_id)
                  if s["iteration"] > changed_at and s["phi4_d"] is not None]  # fmt: skip
-        assert after and all(abs(abs(s["phi4"] - s["phi4_d"]) - 0.4) < 1e-6 for s in after)
+        assert_steps(after, 0.08)
         # … and Finger 2's route still has slope k
         for s in after:
             assert abs((s["phi5_d"] - s["phi5"]) / (s["phi4"] - s["phi4_d"]) - 2.0) < 1e-6
@@ -221,7 +230,8 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
 
 async def test_estop_mid_run_and_release(svc: LiveService) -> None:
     async with svc.client() as c, telemetry(svc, "?tactile=0") as tm:
-        r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 50}})
+        slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
+        r = await c.post("/api/runs", json={"object": "egg", "params": slow})
         run_id = r.json()["run_id"]
         await tm.until(lambda: tm.samples(run_id))
         t0 = time.monotonic()
