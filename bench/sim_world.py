@@ -5,8 +5,12 @@
    iteration at 30 Hz of simulated time, for a 3-stroke run's worth of iterations.
 2. A whole 3-stroke run of the egg (``sdh2svc run --sim --object egg --fast``) through all the
    bytes: emulators, paced Unix-socket lines, drivers, controller, recorder. Time spent inside the
-   simulated world (contact physics and the tactile sensor model) is measured separately, so the
-   share of the rest shows what bounds the whole run.
+   simulated world (every call into it: contact physics, the tactile sensor model and the lazy
+   stepping's bookkeeping) is measured separately: the simulated seconds over that time are the
+   world's own speed inside the run, and the share of the rest shows what bounds the whole run.
+
+The target (≥ 50× real time in fast mode) is the simulated world's: part 1 and part 2's "world
+alone" figure. The whole run's speed is printed next to it, not held to it.
 """
 
 from __future__ import annotations
@@ -23,10 +27,12 @@ from bench.common import percentile
 from sdh2svc.config import load_config
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
+from sdh2svc.sim.physics import ContactPhysics
+from sdh2svc.sim.sensor import TactileSensorModel
 
 ITERATIONS = 540  # ≈ 3 strokes of 2 × 90 iterations, as in the thesis's runs
 FRAME_PERIOD_S = 1 / 30
-TARGET = 50.0  # × real time (issue 4)
+TARGET = 50.0  # × real time, for the simulated world (issue 4)
 
 
 def run_object(name: str) -> dict[str, float]:
@@ -76,18 +82,21 @@ def run_object(name: str) -> dict[str, float]:
 
 
 class _Stopwatch:
-    """Accumulates the wall time and the calls of the methods it wraps (on the class)."""
+    """Accumulates the wall time and the calls of the methods it wraps (on the class), per
+    label; wrapped methods may nest (a label's time then includes the inner ones')."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
         self.calls: dict[str, int] = {}
-        self.step_us: list[float] = []
+        self.step_us: list[float] = []  # each "physics" call's duration
         self._undo: list[Callable[[], None]] = []
 
     def wrap(self, cls: type, name: str, label: str) -> None:
         orig = getattr(cls, name)
+        method = f"{cls.__name__}.{name}"  # calls are also counted per method
         self.seconds.setdefault(label, 0.0)
         self.calls.setdefault(label, 0)
+        self.calls.setdefault(method, 0)
 
         def timed(*args: Any, **kwargs: Any) -> Any:
             t0 = time.perf_counter_ns()
@@ -97,6 +106,7 @@ class _Stopwatch:
                 dt = (time.perf_counter_ns() - t0) / 1e9
                 self.seconds[label] += dt
                 self.calls[label] += 1
+                self.calls[method] += 1
                 if label == "physics":
                     self.step_us.append(dt * 1e6)
 
@@ -114,8 +124,10 @@ def run_whole(name: str = "egg") -> dict[str, Any]:
     from sdh2svc.sim.clock import run_fast
 
     watch = _Stopwatch()
-    watch.wrap(PhysicsWorld, "move_joints", "physics")
-    watch.wrap(PhysicsWorld, "tactile_frame", "sensor")
+    for method in ("move_joints", "tactile_frame", "truth"):  # the whole world, seam to seam
+        watch.wrap(PhysicsWorld, method, "world")
+    watch.wrap(ContactPhysics, "step", "physics")
+    watch.wrap(TactileSensorModel, "frame", "sensor")
     with tempfile.TemporaryDirectory(prefix="sdh2svc-bench-") as tmp:
         db = Path(tmp) / "runs.sqlite"
         cfg = load_config(overrides=[f"storage.db_path={db}"], use_env=False)
@@ -153,28 +165,32 @@ def run() -> dict[str, float]:
               f"held at the end: {bool(r['held'])}")  # fmt: skip
     w = run_whole("egg")
     out["whole_egg"] = w["speed"]
-    sec, calls, wall = w["seconds"], w["calls"], w["wall_s"]
-    rest = wall - sec["physics"] - sec["sensor"]
+    sec, calls, wall, sim_s = w["seconds"], w["calls"], w["wall_s"], w["sim_s"]
+    world_speed = sim_s / sec["world"]
+    out["world_in_run"] = world_speed
+    rest = wall - sec["world"]
     steps = w["step_us"]
     print(
         f"  2. whole 3-stroke egg run through all the bytes (--fast): {w['status']}, "
-        f"{w['strokes']} strokes, {w['sim_s']:.1f} s simulated in {wall:.2f} s wall"
+        f"{w['strokes']} strokes, {sim_s:.1f} s simulated in {wall:.2f} s wall"
+    )
+    print(f"     whole run    {w['speed']:7.1f}× real time")
+    print(
+        f"     world alone  {world_speed:7.1f}× real time ({world_speed / TARGET:4.2f} of the "
+        f"{TARGET:.0f}× target): {sec['world']:.2f} s wall in its calls, of which physics "
+        f"{sec['physics']:.2f} s, tactile sensor model {sec['sensor']:.2f} s"
+    )
+    ticks, frames = calls["PhysicsWorld.move_joints"], calls["sensor"]
+    print(
+        f"     physics steps: {calls['physics']} for {ticks} servo ticks and {frames} tactile "
+        f"frames ({calls['physics'] / frames:.1f} per frame), "
+        f"median {statistics.median(steps):5.0f} µs p99 {percentile(steps, 99):6.0f} µs"
     )
     print(
-        f"     {w['speed']:7.1f}× real time ({w['speed'] / TARGET:4.2f} of the {TARGET:.0f}× "
-        f"target)"
-    )
-    print(
-        f"     physics steps (joint emulator's servo ticks): {calls['physics']}, median "
-        f"{statistics.median(steps):5.0f} µs p99 {percentile(steps, 99):6.0f} µs"
-    )
-    print(
-        f"     where the wall time went: physics {sec['physics'] / wall:5.1%}, tactile sensor "
-        f"model {sec['sensor'] / wall:5.1%} ({calls['sensor']} frames), everything else "
-        f"(emulators, lines, drivers, controller, recorder) {rest / wall:5.1%}"
+        f"     where the wall time went: simulated world {sec['world'] / wall:5.1%}, everything "
+        f"else (emulators, lines, drivers, controller, recorder) {rest / wall:5.1%}"
     )
     if rest > 0:
-        print(f"     bound without any physics or sensor cost: "
-              f"{w['sim_s'] / rest:5.1f}× real time")  # fmt: skip
-    print(f"  target: ≥ {TARGET:.0f}× real time")
+        print(f"     bound without any world cost: {sim_s / rest:5.1f}× real time")
+    print(f"  target: the simulated world ≥ {TARGET:.0f}× real time (1. and 2.'s world alone)")
     return out

@@ -6,6 +6,16 @@ asks what the six pads read. Ground truth (object pose, true contacts and forces
 is available through :meth:`PhysicsWorld.truth` to tests and to the simulator's own telemetry —
 never to the controller, which sees only the bytes.
 
+The world steps lazily. The joint emulator reports every 5 ms servo tick, which moves a joint
+only a few hundredths of a degree; the contact physics already resolves joint motion in
+substeps of ``max_joint_step_deg`` (0.25°), so one physics step per tick would mostly repeat
+the same balance. :meth:`PhysicsWorld.move_joints` therefore only records the pose and steps the
+physics when the joints would run a whole substep ahead of it, or when something reads the
+physical state (a tactile frame, :meth:`~PhysicsWorld.truth`, :attr:`~PhysicsWorld.physics`, a
+power change, :meth:`~PhysicsWorld.flush`). The torque limit is checked at every tick against the
+last step's contact torques, which are never more than one substep behind: a finger pressing a
+stiff object stops within 0.25° of where its torque reached the limit, as with coarse ticks.
+
 The rolling plane model assumes axis 0 (φ1) at 90°, the fingers facing each other.
 """
 
@@ -53,7 +63,13 @@ class Truth:
 
 
 class PhysicsWorld:
-    """Both coupled fingers, one object, six tactile pads; advances lazily to each ``now``."""
+    """Both coupled fingers, one object, six tactile pads; advances lazily to each ``now``.
+
+    ``_angles`` are the actual joint angles (what :meth:`move_joints` reports): the reference
+    of each powered joint that is not stalled, the held angle of a stalled or limp one. The
+    contact physics stands at ``_stepped``, at most one substep behind (see the module
+    docstring); :meth:`flush` brings it up to ``_angles``.
+    """
 
     def __init__(self, settings: Settings, sim: SimConfig, obj: ObjectSpecT | None = None) -> None:
         self.settings, self.sim = settings, sim
@@ -61,9 +77,14 @@ class PhysicsWorld:
         layouts = [settings.tactile.proximal, settings.tactile.distal] * 3
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
         self._angles = [0.0] * 7
+        self._stepped = list(self._angles)  # the joint angles the physics was last stepped to
+        self._powered: tuple[bool, ...] | None = None  # as of the last move_joints
+        self._tau: dict[str, float] | None = None  # the last step's joint torques, once asked
         self._blocked: set[int] = set()
         self._seed = sim.seed
         a, phys = self.axes, sim.physics
+        self._physical_axes = (a.phi2, a.phi3, a.phi4, a.phi5)  # the joints the physics sees
+        self._max_lead_deg = phys.max_joint_step_deg
         prox, dist = phys.torque_limit_proximal_n_mm, phys.torque_limit_distal_n_mm
         self._limits = (  # (axis, joint, torque limit), in the order _stall checks them
             (a.phi2, "phi2", prox), (a.phi4, "phi4", prox),
@@ -80,21 +101,39 @@ class PhysicsWorld:
     def move_joints(
         self, now: float, reference_deg: Sequence[float], powered: Sequence[bool]
     ) -> tuple[float, ...]:
-        target = [
-            float(r) if on else a
-            for r, on, a in zip(reference_deg, powered, self._angles, strict=True)
-        ]
-        self._stall(target)
+        on = tuple(bool(p) for p in powered)
+        if on != self._powered:
+            self.flush()  # the physics catches up before the servos' pull changes
+            self._powered = on
+        target = self._target(reference_deg, on)
+        if self._lead(target) >= self._max_lead_deg:
+            # Catch up to the pose last reported first, so that the torque limit is checked
+            # against contacts less than one substep behind the joints, never more.
+            self.flush()
+            target = self._target(reference_deg, on)
         self._angles = target
-        self.physics.step(self._pose())
-        return tuple(self._angles)
+        if self._lead(target) >= self._max_lead_deg:
+            self.flush()  # a single tick moved a whole substep
+        return tuple(target)
 
     def tactile_frame(
         self, now: float, sensitivity: Sequence[float], threshold: Sequence[int]
     ) -> np.ndarray:
-        return self.sensor.frame(
-            now, self.physics.pressures(), self.physics.width_mm, sensitivity, threshold
-        )
+        phys = self.physics
+        return self.sensor.frame(now, phys.pressures(), phys.width_mm, sensitivity, threshold)
+
+    def flush(self) -> None:
+        """Step the contact physics to the joints' actual pose (a no-op if it stands there)."""
+        if self._lead(self._angles) > 0.0:
+            self._physics.step(self._pose())
+            self._tau = None
+        self._stepped = list(self._angles)
+
+    @property
+    def physics(self) -> ContactPhysics:
+        """The contact physics, first brought up to the joints' actual pose."""
+        self.flush()
+        return self._physics
 
     # --- the object ---------------------------------------------------------------------------
 
@@ -109,13 +148,15 @@ class PhysicsWorld:
             sim.object_height_mm if height_mm is None else height_mm,
             math.radians(sim.object_angle_deg if angle_deg is None else angle_deg),
         )
-        self.physics = ContactPhysics(s.hand, sim.physics, outline, self._pose(), pose)
+        # a new world at the joints' actual pose: nothing of the old one is left to step
+        self._physics = ContactPhysics(s.hand, sim.physics, outline, self._pose(), pose)
+        self._stepped, self._tau = list(self._angles), None
         pitch = s.tactile.texel_pitch_mm
         pad = s.hand.pad
         distal_centre = pad.pad_base_to_active_mm + pad.sensor_active_length_mm / 2
         phys = sim.physics
         prox_centre = (phys.proximal_pad_start_mm + phys.proximal_pad_end_mm) / 2
-        surf = self.physics.surfaces
+        surf = self._physics.surfaces
         spread = sim.sensor.spread_mm
 
         def raster(j: int, centre: float, proximal: bool) -> PadRaster:
@@ -139,12 +180,35 @@ class PhysicsWorld:
         a, q = self.axes, self._angles
         return HandPose(*(math.radians(q[i]) for i in (a.phi2, a.phi3, a.phi4, a.phi5)))
 
+    def _target(self, reference_deg: Sequence[float], powered: Sequence[bool]) -> list[float]:
+        """Where the joints go: each powered one to its reference unless it stalls, limp ones
+        nowhere."""
+        target = [
+            float(r) if on else a
+            for r, on, a in zip(reference_deg, powered, self._angles, strict=True)
+        ]
+        self._stall(target)
+        return target
+
+    def _lead(self, angles: Sequence[float]) -> float:
+        """How far (deg) ``angles`` are ahead of the physics, the largest over its joints
+        (written out: this runs several times per servo tick)."""
+        i, j, k, m = self._physical_axes
+        s = self._stepped
+        return max(abs(angles[i] - s[i]), abs(angles[j] - s[j]), abs(angles[k] - s[k]),
+                   abs(angles[m] - s[m]))  # fmt: skip
+
     def _stall(self, target: list[float]) -> None:
-        """A joint whose contact torque has reached the motor's limit cannot push further."""
+        """A joint whose contact torque has reached the motor's limit cannot push further.
+
+        The torques are those of the last physics step (deliberately not flushed: this runs at
+        every servo tick); :meth:`move_joints` keeps that step less than a substep behind."""
         self._blocked.clear()
-        if self.physics.state.dropped:
+        if self._physics.state.dropped:
             return
-        tau = self.physics.joint_torques_n_mm()
+        if self._tau is None:
+            self._tau = self._physics.joint_torques_n_mm()
+        tau = self._tau
         for axis, name, limit in self._limits:
             t = tau[name]
             pushing = (target[axis] - self._angles[axis]) * t < 0  # moving against the load
@@ -155,16 +219,18 @@ class PhysicsWorld:
     # --- ground truth -------------------------------------------------------------------------
 
     def truth(self) -> Truth:
-        st = self.physics.state
+        """The state at the joints' actual pose (this steps the physics up to it)."""
+        phys = self.physics
+        st = phys.state
         rng = math.degrees(st.psi_max - st.psi_min) if st.psi_max >= st.psi_min else 0.0
         return Truth(
             object=self.obj.name or self.obj.kind,
             size_mm=float(self.obj.size_mm),
-            held=self.physics.held and not st.held_by_fixture,
+            held=phys.held and not st.held_by_fixture,
             dropped=st.dropped,
             in_fixture=st.held_by_fixture,
             pose=(float(st.pose[0]), float(st.pose[1]), float(st.pose[2])),
-            contacts=tuple(self.physics.contacts()),
+            contacts=tuple(phys.contacts()),
             slips=st.slips,
             slip_distance_mm=st.slip_distance_mm,
             rotation_range_deg=rng,

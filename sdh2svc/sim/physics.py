@@ -18,7 +18,9 @@ The fingers are position-controlled bodies; the object is free. Each step finds 
 
 Joint torques from the contact forces are checked against the motor limits: a joint whose next
 step would need more torque stalls at its last angle (the firmware's "blocked"), so a finger
-pressing a stiff object stops instead of passing through it.
+pressing a stiff object stops instead of passing through it. The world (hand.py) makes that check
+at every servo tick, but steps this physics lazily: only once the joints have moved a whole
+substep (``max_joint_step_deg``) or the state is read, so a stall lands within one substep.
 
 Speed (fast mode runs thousands of steps per simulated minute) never changes the equations: the
 surfaces are moved into frame 0 once per finger pose (cached on the exact pose), all nearby
@@ -75,6 +77,8 @@ class PhysicsConfig(Frozen):
     torque_limit_proximal_n_mm: Positive
     torque_limit_distal_n_mm: Positive
 
+
+MAX_HALVINGS = 3  # a substep without a balance is retried in halves down to 1/8 of its length
 
 # Surfaces, in a fixed order; a surface is a sampled curve in the frame of one link.
 DISTAL1, PROXIMAL1, DISTAL2, PROXIMAL2, PALM = range(5)
@@ -602,7 +606,7 @@ class ContactPhysics:
                 cur.phi4 + f * (pose.phi4 - cur.phi4), cur.phi5 + f * (pose.phi5 - cur.phi5),
             ))  # fmt: skip
 
-    def _substep(self, pose: HandPose) -> None:
+    def _substep(self, pose: HandPose, halvings: int = 0) -> None:
         prev = self.hand_pose
         dq = (pose.phi2 - prev.phi2, pose.phi3 - prev.phi3, pose.phi4 - prev.phi4,
               pose.phi5 - prev.phi5)  # fmt: skip
@@ -628,9 +632,25 @@ class ContactPhysics:
             if min(n1, n2) > max(self.cfg.release_force_n, 0.0) and min(n1, n2) > 0.0:
                 st.held_by_fixture = False
                 self._anchor(ev, st.pose, carry=False)
-                self._solve(world, frames, None)
+                if not self._solve(world, frames, None):
+                    self._drop()
             return
-        self._solve(world, frames, dq)
+        if not self._solve(world, frames, dq):
+            self._halve_or_drop(prev, pose, halvings)
+
+    def _halve_or_drop(self, prev: HandPose, pose: HandPose, halvings: int) -> None:
+        """No balance found at ``pose``: try the way from ``prev`` in halves before calling the
+        object dropped. Newton's reach shrinks with the step (a warm start that lands beyond a
+        kink of a thin object's few contact samples can lose its way), while an object that
+        really slips out has no balance however small the steps."""
+        if halvings >= MAX_HALVINGS:
+            self._drop()
+            return
+        self.hand_pose = prev
+        mid = HandPose((prev.phi2 + pose.phi2) / 2, (prev.phi3 + pose.phi3) / 2,
+                       (prev.phi4 + pose.phi4) / 2, (prev.phi5 + pose.phi5) / 2)  # fmt: skip
+        self._substep(mid, halvings + 1)
+        self._substep(pose, halvings + 1)  # after a drop, this only moves the fingers on
 
     def _predict(self, dq: tuple[float, ...] | None) -> np.ndarray:
         """Newton's start: the last balance, moved on as it moved over the last substeps when
@@ -651,9 +671,11 @@ class ContactPhysics:
                 return x0 + a1 * dx1 + curve * (dx1 - a2 * self._motion[0][1])
         return x0 + a1 * dx1
 
-    def _solve(self, world: list, frames: list, dq: tuple[float, ...] | None) -> None:
+    def _solve(self, world: list, frames: list, dq: tuple[float, ...] | None) -> bool:
         """Find the balancing pose: first with every contact sticking, then with the contacts
-        whose friction would exceed μ·N sliding at μ·N (an active set, grown until consistent)."""
+        whose friction would exceed μ·N sliding at μ·N (an active set, grown until consistent).
+        False (nothing changed but the solver's caches) if there is none with both distal pads
+        pressing."""
         st = self.state
         slip: dict[int, float] = {}
         x, ev, converged = st.pose.copy(), None, False
@@ -673,16 +695,20 @@ class ContactPhysics:
         n1 = ev.contacts[DISTAL1][2] if DISTAL1 in ev.contacts else 0.0
         n2 = ev.contacts[DISTAL2][2] if DISTAL2 in ev.contacts else 0.0
         if not converged or n1 <= 0.0 or n2 <= 0.0:
-            st.dropped = True
-            st.anchors.clear()
-            self._last = _Eval(np.zeros(3), {}, {})
-            return
+            return False
         self._anchor(ev, x, carry=True)
         self._motion = [*self._motion[-1:], (dq, x - st.pose)] if dq is not None else []
         st.pose = x
         st.psi_min = min(st.psi_min, float(x[2]))
         st.psi_max = max(st.psi_max, float(x[2]))
         self._last = ev
+        return True
+
+    def _drop(self) -> None:
+        st = self.state
+        st.dropped = True
+        st.anchors.clear()
+        self._last = _Eval(np.zeros(3), {}, {})
 
     def _newton(
         self, x: np.ndarray, world: list, frames: list, slip: dict[int, float]

@@ -298,6 +298,101 @@ def test_finger_pressing_a_stiff_object_stalls_at_its_torque_limit() -> None:
     assert t.held  # pressed hard, but not through the object
 
 
+# --- lazy stepping: the world steps the physics only every max_joint_step_deg or when read ----
+
+
+def _press(step_deg: float, eager: bool) -> tuple[float, float]:
+    """Drive both proximal joints 3° into the grasped egg in reference steps of ``step_deg``,
+    one per 5 ms servo tick (``eager``: the physics stepped at every tick, as before the world
+    was lazy). Returns how far Finger 1's proximal joint got and the torque on it."""
+    rig = Rig(quiet(), "egg")
+    rig.grasp()
+    q = list(rig.q)
+    start = q[1]
+    actual = tuple(q)
+    for _ in range(round(3.0 / step_deg)):
+        q[1] += step_deg
+        q[5] += step_deg
+        rig.t += 0.005
+        actual = rig.w.move_joints(rig.t, q, [True] * 7)
+        if eager:
+            rig.w.flush()
+    assert rig.w.truth().held and rig.w.truth().blocked_axes
+    return actual[1] - start, rig.w.physics.joint_torques_n_mm()["phi2"]
+
+
+def test_a_lazily_stepped_finger_stalls_within_one_substep_of_an_eager_one() -> None:
+    cfg = quiet()
+    limit, substep = cfg.sim.physics.torque_limit_proximal_n_mm, cfg.sim.physics.max_joint_step_deg
+    eager, _ = _press(0.02, eager=True)
+    assert 0.5 < eager < 2.5  # it stalled on the way, well before the reference's 3°
+    for step in (0.02, 0.05, substep):  # tiny servo ticks and coarse ones
+        got, tau = _press(step, eager=False)
+        assert abs(tau) >= limit  # stopped by the torque limit…
+        assert eager <= got <= eager + substep + 1e-9  # …within one substep past where it bit
+
+
+def test_tiny_moves_give_the_frame_and_truth_of_one_move_to_the_same_pose() -> None:
+    def rig_at_grasp() -> Rig:
+        rig = Rig(quiet(), "egg")
+        rig.grasp()
+        rig.counts()  # the physics stands at the grasp pose
+        return rig
+
+    tiny, once = rig_at_grasp(), rig_at_grasp()
+    q = list(tiny.q)
+    for _ in range(10):  # 0.2° in all, less than one substep: nothing is stepped meanwhile
+        q[1] += 0.02
+        q[6] -= 0.02
+        tiny.t += 0.005
+        assert tiny.w.move_joints(tiny.t, q, [True] * 7) == tuple(q)  # unstalled: the reference
+    once.move(q, dt=tiny.t - once.t)
+    assert np.array_equal(tiny.counts(), once.counts())
+    assert tiny.w.truth() == once.w.truth()
+
+
+def test_the_physics_steps_once_per_substep_of_joint_motion_or_when_read(monkeypatch) -> None:
+    from sdh2svc.sim.physics import ContactPhysics
+
+    rig = Rig(quiet(), "egg")
+    rig.grasp()
+    rig.counts()
+    steps: list[float] = []
+    step = ContactPhysics.step
+    monkeypatch.setattr(ContactPhysics, "step", lambda self, pose: (steps.append(pose.phi2),
+                                                                    step(self, pose)))  # fmt: skip
+    q = list(rig.q)
+    for _ in range(100):  # 2° in servo ticks of 0.02°
+        q[1] += 0.02
+        rig.move(q, dt=0.005)
+    assert 8 <= len(steps) <= 10  # every 0.25° at most, not at every tick
+    rig.counts()  # a tactile frame reads the state at the pose reached
+    assert deg(steps[-1]) == pytest.approx(q[1])
+
+
+def test_a_substep_without_a_balance_is_retried_in_halves(monkeypatch) -> None:
+    """A solver that loses its way once (as a warm start past a kink of a thin object's contact
+    can) does not drop the object: the way is retried in halves."""
+    from sdh2svc.sim.physics import ContactPhysics
+
+    steady, flaky = Rig(quiet(), "egg"), Rig(quiet(), "egg")
+    steady.grasp()
+    flaky.grasp()
+    solve, failures = ContactPhysics._solve, [1]
+
+    def lost_once(self, world, frames, dq):  # type: ignore[no-untyped-def]
+        if dq is not None and failures and failures.pop():
+            return False
+        return solve(self, world, frames, dq)
+
+    steady.roll_step()
+    monkeypatch.setattr(ContactPhysics, "_solve", lost_once)
+    flaky.roll_step()
+    assert not failures and flaky.w.truth().held
+    assert flaky.w.physics.hand_pose == steady.w.physics.hand_pose
+    assert flaky.w.truth().pose == pytest.approx(steady.w.truth().pose, abs=1e-3)
+
+
 # --- the fast paths of the solver and the sensor against their plain definitions -------------
 
 
