@@ -566,7 +566,10 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         "* **Cylinder half strokes.** Both contacts stay on the upper half of their pads (S1, S2 "
         "≈ 22–39 mm; the thesis's moved apart: S1 16–40, S2 4–24), where the pads' arcs open a "
         "wedge. After the first stroke ωA and ωB both stand at 90° + α, every step in either "
-        "direction leaves one of the cones, and the remaining half strokes reverse on the spot.",
+        "direction leaves one of the cones, and the remaining half strokes reverse on the spot. "
+        "The jam depends on where that half stroke ends: placed 4 mm higher "
+        "(`--set sim.object_height_mm=130`; 129–135 alike, 125–128 jam), the same cylinder "
+        "rolls three full strokes (970 iterations, all six half strokes moving, F 1.5–2.3).",
         "",
     ]
     for o in outcomes:
