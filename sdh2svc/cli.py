@@ -89,6 +89,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
             overrides.append(f"sim.links.{key}={getattr(args, flag)!r}")
     if args.seed is not None:
         overrides.append(f"sim.seed={args.seed}")
+    if args.replace_after is not None:
+        overrides.append(f"sim.replace_after_s={args.replace_after!r}")
     cfg = load_config(args.config, overrides)
     try:
         obj = (
@@ -325,6 +327,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--boot-s", type=float, help="DSACON32m boot silence (8.0 = the real one)")
     p.add_argument("--ber", type=float, help="bit-error rate injected on device→host bytes")
     p.add_argument("--seed", type=int, help="random seed of the simulated world")
+    p.add_argument("--replace-after", type=float, metavar="S",
+                   help="put a released or dropped object back after S s untouched "
+                        "(default 1; 0 = never)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
     p.set_defaults(func=cmd_sim)
 

@@ -43,9 +43,10 @@ async def run_once(
     try:
         if sim:
             unix_dir = Path(tmp.name) if tmp else None
-            hand = await start_simulated_hand(
-                cfg, obj=obj, pty=False, tcp=not fast, unix_dir=unix_dir, dsa_port=0, sdh_port=0
-            )
+            # one run: no lab assistant (nobody to put the object back for)
+            hand = await start_simulated_hand(cfg, obj=obj, pty=False, tcp=not fast,
+                                              unix_dir=unix_dir, dsa_port=0, sdh_port=0,
+                                              replace_after_s=0.0)  # fmt: skip
             dsa_url, sdh_url = hand.urls("dsa")[0], hand.urls("sdh")[0]
         dsa_url = dsa_url or cfg.links.dsa_url
         sdh_url = sdh_url or cfg.links.sdh_url

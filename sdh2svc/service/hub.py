@@ -1,7 +1,14 @@
 """The telemetry hub: one publisher (the service), many readers (WebSocket clients, the 3-D view).
 
-``publish`` runs on the control loop's path, so it only encodes once and appends to bounded
-per-client queues; each client has its own sender task with a send timeout. A slow or stalled
+``publish`` runs on the control loop's path (a tactile frame arrives, the runner records its
+iteration), so it only appends the message to a pending list. Everything else — the listeners
+(the 3-D view), encoding each message once, filling the per-client queues and waking the client
+senders — happens in :meth:`TelemetryHub.flush`, scheduled for when the loop has time: right after
+a ``sample`` (the iteration's joint command is out; the next frame is a frame period away), or,
+when no run iteration follows, after a short hold. The runner's next step never queues behind
+telemetry that a frame's arrival set off.
+
+Each client has a bounded queue and its own sender task with a send timeout: a slow or stalled
 client loses its oldest messages (counted) and, past the timeout, its connection — never the
 loop's time or another client's messages.
 """
@@ -22,6 +29,10 @@ log = logging.getLogger(__name__)
 
 Listener = Callable[[dict[str, Any]], None]
 Send = Callable[[str], Awaitable[None]]
+
+HOLD_S = 0.012  # no run iteration under way: deliver this long after the first pending message
+SAMPLE_WAIT_S = 0.030  # samples flowing (rolling): wait this long at most for the iteration's end
+ROLLING_GAP_S = 0.2  # a sample this recently: a run is rolling, the next sample will come
 
 
 def clean_json(obj: Any) -> Any:
@@ -81,11 +92,15 @@ class TelemetryHub:
         self.send_timeout_s = send_timeout_s
         self.clients: set[Client] = set()
         self._listeners: list[Listener] = []
+        self._pending: list[dict[str, Any]] = []
+        self._flush_at: asyncio.Handle | None = None
+        self._last_sample = -math.inf
         self.published = 0
         self.disconnected_slow = 0
 
     def add_listener(self, listener: Listener) -> None:
-        """In-process readers (the 3-D view); called with the dict, must return quickly."""
+        """In-process readers (the 3-D view); called with the dict at flush time, must return
+        quickly."""
         self._listeners.append(listener)
 
     @property
@@ -93,11 +108,46 @@ class TelemetryHub:
         return bool(self._listeners)
 
     def publish(self, msg: dict[str, Any]) -> None:
+        """Queue ``msg`` for delivery: O(1) here, the work is done by :meth:`flush`."""
         self.published += 1
+        self._pending.append(msg)
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no event loop (scripts, tests): deliver at once
+            self.flush()
+            return
+        now = loop.time()
+        if msg["type"] == "sample":  # the end of an iteration: the loop is free now
+            self._last_sample = now
+            self._schedule(loop, None)
+        elif self._flush_at is None:
+            rolling = now - self._last_sample < ROLLING_GAP_S
+            self._schedule(loop, SAMPLE_WAIT_S if rolling else HOLD_S)
+
+    def _schedule(self, loop: asyncio.AbstractEventLoop, delay: float | None) -> None:
+        if delay is None:
+            if isinstance(self._flush_at, asyncio.TimerHandle):
+                self._flush_at.cancel()
+            elif self._flush_at is not None:
+                return  # already due on the next loop turn
+            self._flush_at = loop.call_soon(self.flush)
+        else:
+            self._flush_at = loop.call_later(delay, self.flush)
+
+    def flush(self) -> None:
+        """Deliver the pending messages: listeners, one encoding each, the client queues."""
+        if self._flush_at is not None:
+            self._flush_at.cancel()
+            self._flush_at = None
+        pending, self._pending = self._pending, []
+        for msg in pending:
+            self._deliver(msg)
+
+    def _deliver(self, msg: dict[str, Any]) -> None:
         for listener in self._listeners:
             try:
                 listener(msg)
-            except Exception:  # a broken view must not break the control loop
+            except Exception:  # a broken view must not break the telemetry of others
                 log.exception("telemetry listener failed")
         kind = msg["type"]
         takers = [c for c in self.clients if c.wants(kind)]
@@ -107,34 +157,32 @@ class TelemetryHub:
                 c.put(text)
 
     async def serve(self, client: Client, send: Send) -> None:
-        """Send ``client`` its messages until the connection fails or stalls past the timeout."""
-        self.clients.add(client)
-        try:
-            while True:
-                await client._wake.wait()
-                client._wake.clear()
-                while client.queue:
-                    text = client.queue.popleft()
-                    if client.dropped != client._reported_drops:
-                        client._reported_drops = client.dropped
-                        notice = encode({"type": "dropped", "count": client.dropped})
-                        if not await self._send(client, send, notice):
-                            return
-                    if not await self._send(client, send, text):
-                        return
-        finally:
-            self.clients.discard(client)
+        """Send ``client`` its messages until the connection fails or stalls past the timeout.
 
-    async def _send(self, client: Client, send: Send, text: str) -> bool:
+        One timeout context for the client's life, re-armed per message (``asyncio.wait_for``
+        would create a task for every message: thousands a second with 20 clients)."""
+        self.clients.add(client)
+        loop = asyncio.get_running_loop()
         try:
-            await asyncio.wait_for(send(text), self.send_timeout_s)
+            async with asyncio.timeout(None) as deadline:
+                while True:
+                    await client._wake.wait()
+                    client._wake.clear()
+                    while client.queue:
+                        deadline.reschedule(loop.time() + self.send_timeout_s)
+                        if client.dropped != client._reported_drops:
+                            client._reported_drops = client.dropped
+                            await send(encode({"type": "dropped", "count": client.dropped}))
+                            client.sent += 1
+                        await send(client.queue.popleft())
+                        client.sent += 1
+                    deadline.reschedule(None)  # idle is not stalled
         except TimeoutError:
             self.disconnected_slow += 1
             log.warning("telemetry client stalled for %.1f s: disconnected (dropped %d)",
                         self.send_timeout_s, client.dropped)  # fmt: skip
-            return False
-        client.sent += 1
-        return True
+        finally:
+            self.clients.discard(client)
 
     def stats(self) -> dict[str, Any]:
         return {

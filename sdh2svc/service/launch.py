@@ -60,10 +60,14 @@ class LiveService:
         return self.proc.returncode
 
 
-def service_command(db_path: Path, *, viewer: bool, extra: Sequence[str] = ()) -> list[str]:
-    """``sdh2svc serve --sim`` on free ports with the database at ``db_path``."""
-    cmd = [sys.executable, "-m", "sdh2svc", "serve", "--sim", "--json", "--port", "0",
+def service_command(
+    db_path: Path, *, viewer: bool, extra: Sequence[str] = (), sim: bool = True
+) -> list[str]:
+    """``sdh2svc serve --sim`` on free ports with the database at ``db_path`` (``sim=False``:
+    without ``--sim``; give the hand's ``--dsa``/``--sdh`` in ``extra``)."""
+    cmd = [sys.executable, "-m", "sdh2svc", "serve", "--json", "--port", "0",
            "--set", f"storage.db_path={json.dumps(str(db_path))}"]  # fmt: skip
+    cmd += ["--sim"] if sim else []
     cmd += ["--viser-port", "0"] if viewer else ["--no-viewer"]
     return cmd + list(extra)
 
@@ -75,6 +79,7 @@ def start_service(
     extra: Sequence[str] = (),
     env: dict[str, str] | None = None,
     token: str | None = None,
+    sim: bool = True,
 ) -> LiveService:
     """Start the service and wait for its announcement line (the URLs)."""
     db = tmp / "runs.sqlite"
@@ -82,7 +87,7 @@ def start_service(
     if token:
         full_env["SDH2SVC_SERVICE__TOKEN"] = token
     proc = subprocess.Popen(
-        service_command(db, viewer=viewer, extra=extra), stdout=subprocess.PIPE,
+        service_command(db, viewer=viewer, extra=extra, sim=sim), stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True, env=full_env, cwd=tmp,
     )  # fmt: skip
     log: list[str] = []

@@ -128,8 +128,12 @@ async def serve(
         return 1
     try:
         app = create_app(services)
+        # No permessage-deflate: it would compress every telemetry message once per client
+        # (20 clients: 20 deflates of each tactile frame) on the control loop's thread, to
+        # save bandwidth a lab network does not miss (a tactile frame is ~2.5 kB).
         config = uvicorn.Config(app, host=cfg.service.host, port=cfg.service.port,
-                                log_config=None, lifespan="on", ws="websockets-sansio")  # fmt: skip
+                                log_config=None, lifespan="on", ws="websockets-sansio",
+                                ws_per_message_deflate=False)  # fmt: skip
         server = _Server(config)
         task = asyncio.create_task(server.serve(sockets=[sock]))
         while not server.started and not task.done():

@@ -105,8 +105,10 @@ class Station:
     async def start(self) -> None:
         cfg = self.cfg
         if self.sim:
+            # no lab assistant: the station puts the object back itself before every run
             self.hand = await start_simulated_hand(cfg, obj=self._initial_object, pty=False,
-                                                   tcp=True, dsa_port=0, sdh_port=0)  # fmt: skip
+                                                   tcp=True, dsa_port=0, sdh_port=0,
+                                                   replace_after_s=0.0)  # fmt: skip
             self.dsa_url, self.sdh_url = self.hand.urls("dsa")[0], self.hand.urls("sdh")[0]
             self._outline = Outline(self.hand.world.obj)
         self.joints, self.tactile = await open_links(cfg, self.dsa_url, self.sdh_url)

@@ -4,7 +4,11 @@ The view consumes the telemetry messages of docs/api.md (``sample``, ``tactile``
 ``sim``, ``status``/``hello``). :meth:`Viewer.handle` only stores the latest message of each type;
 a render task on the service's event loop turns the changes into one ``server.atomic()`` batch at
 most ``max_hz`` times a second, and only when something changed, so telemetry at loop rate never
-costs more than a dictionary store.
+costs more than a dictionary store. A frame is cheap because it is incremental: only the fingers
+whose joints moved are posed again, only pads whose counts changed are recoloured, and a scene
+property is sent only when its value differs from the one last sent (every assignment is a
+message that viser's thread encodes and sends, holding the GIL the control loop needs). Nobody
+watching, nothing is drawn: the changes wait, and a browser that connects gets the latest state.
 
 Geometry. The scene is frame 0 of hand-model.md §2 (origin at Finger 1's proximal joint O, y0
 towards Finger 2, z0 along the straightened finger; x0 completes a right-handed frame and points
@@ -148,12 +152,15 @@ def _transform(origin: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray
     return T
 
 
-def finger_frames(angles_deg: Sequence[float], settings: Settings) -> dict[str, np.ndarray]:
+def finger_frames(
+    angles_deg: Sequence[float], settings: Settings, fingers: Sequence[str] = ("f1", "f2", "f3")
+) -> dict[str, np.ndarray]:
     """Link frames of the palm and the three fingers, frame 0, mm, for the 7 wire-axis angles.
 
     Keys ``/palm``, ``/fN/base`` (knuckle, x up), ``/fN/proximal`` (at the proximal joint),
     ``/fN/distal`` (frame 3 at C/D: x = ex3, y = ey3 towards the pad) and ``/fN/tip`` (the pad's
-    end at the fingertip) for N = 1, 2, 3 (3 = thumb). Each is a 4×4 homogeneous transform.
+    end at the fingertip) for N = 1, 2, 3 (3 = thumb) of those in ``fingers``. Each is a 4×4
+    homogeneous transform.
     """
     ax, geom = settings.axes, settings.hand
     a = [math.radians(v) for v in angles_deg]
@@ -168,6 +175,8 @@ def finger_frames(angles_deg: Sequence[float], settings: Settings) -> dict[str, 
     palm = np.array([d * THUMB_BASE[0] / 3.0, d / 2.0, -KNUCKLE_MM - PALM_HEIGHT_MM / 2.0])
     out = {"/palm": _transform(palm, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))}
     for key, spec in _specs(a[ax.phi1], d).items():
+        if key not in fingers:
+            continue
         prox, dist = joints[key]
         f = spec.model
         out[f"/{key}/base"] = _transform(spec.base - KNUCKLE_MM * _Z, _Z, spec.d)
@@ -323,6 +332,19 @@ def _num(d: dict[str, Any] | None, key: str) -> float | None:
     return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
 
 
+def camera_message() -> bytes:
+    """What a browser sends once it shows the scene: its camera (viser counts a client as
+    connected, and the view draws for it, from then on). For scripted clients: tests, bench."""
+    import msgspec.msgpack
+    from viser import _messages
+
+    msg = _messages.ViewerCameraMessage(
+        wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.3, 0.0, 0.2), fov=1.0, near=0.01, far=100.0,
+        image_height=720, image_width=1280, look_at=(0.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0),
+    )  # fmt: skip
+    return msgspec.msgpack.encode(msg.as_serializable_dict())
+
+
 # --- the view ----------------------------------------------------------------------------------
 
 
@@ -362,6 +384,9 @@ class Viewer:
         self._note = ""
         self._tactile_idx: dict[str, np.ndarray] = {}
         self._failures = 0
+        self._sent: dict[tuple[int, str], Any] = {}  # (node id, property) → value last sent
+        self._posed: dict[str, tuple[float, ...]] = {}  # finger → the angles it was posed at
+        self._pad_counts: dict[str, Any] = {}  # pad node → the counts it was coloured for
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -374,8 +399,19 @@ class Viewer:
         self._build_scene()
         self._build_gui()
         self._dirty |= {"pose", "status"}
+        self.server.on_client_connect(self._on_watcher)
         self._wake.set()
         self._task = asyncio.create_task(self._render_loop(), name="viewer-render")
+
+    def _on_watcher(self, _client: Any) -> None:
+        """A browser connected (viser's thread): draw what waited while nobody watched."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._wake.set)
+
+    @property
+    def watched(self) -> bool:
+        return self.server is not None and bool(self.server.get_clients())
 
     @property
     def url(self) -> str:
@@ -411,17 +447,31 @@ class Viewer:
     # -- rendering ---------------------------------------------------------------------------
 
     async def _render_loop(self) -> None:
+        """Draw when telemetry is delivered — the hub delivers in the control loop's quiet
+        time, after an iteration — at most ``max_hz``: a delivery too soon after the last frame
+        is merged into the next one, drawn at the next delivery (or after a period, if none
+        comes), never on a timer of its own that could fall inside an iteration."""
+        loop = asyncio.get_running_loop()
+        last = -math.inf
         while True:
             await self._wake.wait()
+            while (early := last + 0.9 * self._period - loop.time()) > 0:
+                self._wake.clear()
+                try:
+                    async with asyncio.timeout(early + self._period):
+                        await self._wake.wait()
+                except TimeoutError:
+                    break
             self._wake.clear()
             self.render()
-            await asyncio.sleep(self._period)  # ≤ max_hz; changes meanwhile merge into one frame
+            last = loop.time()
 
     def render(self) -> None:
-        """Apply what changed since the last frame, as one atomic batch."""
-        dirty, self._dirty = self._dirty, set()
-        if self.server is None or not dirty:
+        """Apply what changed since the last frame, as one atomic batch (nobody watching: keep
+        the changes for when someone does)."""
+        if self.server is None or not self._dirty or not self.watched:
             return
+        dirty, self._dirty = self._dirty, set()
         parts = [
             ({"pose", "sample"}, self._render_hand),
             ({"sample", "status"}, self._render_contacts),
@@ -460,13 +510,37 @@ class Viewer:
                     if v is not None:
                         self._angles[axis] = v
 
+    def _set(self, node: Any, prop: str, value: Any) -> None:
+        """Assign a scene property only if it differs from what was last sent."""
+        key = (id(node), prop)
+        last = self._sent.get(key)
+        if isinstance(value, np.ndarray):
+            if isinstance(last, np.ndarray) and np.array_equal(last, value):
+                return
+        elif last == value and key in self._sent:
+            return
+        self._sent[key] = value
+        setattr(node, prop, value)
+
     def _render_hand(self) -> None:
+        """Pose the fingers whose joints (or φ1) moved since they were last posed."""
         self._update_angles()
-        for name, T in finger_frames(self._angles, self.settings).items():
+        ax, a = self.settings.axes, self._angles
+        joints = {"f1": (ax.phi2, ax.phi3), "f2": (ax.phi4, ax.phi5),
+                  "f3": (ax.thumb_proximal, ax.thumb_distal)}  # fmt: skip
+        moved = []
+        for f, (p, d) in joints.items():
+            key = (a[ax.phi1], a[p], a[d])
+            if self._posed.get(f) != key:
+                self._posed[f] = key
+                moved.append(f)
+        if not moved:
+            return
+        for name, T in finger_frames(a, self.settings, moved).items():
             node = self.nodes.get(name)
             if node is not None:
-                node.position = T[:3, 3] * MM
-                node.wxyz = _wxyz(T[:3, :3])
+                self._set(node, "position", np.round(T[:3, 3] * MM, 7))
+                self._set(node, "wxyz", np.round(_wxyz(T[:3, :3]), 7))
 
     def _alpha_deg(self) -> float:
         params = (self._latest.get("status") or {}).get("params") or {}
@@ -493,32 +567,35 @@ class Viewer:
             p = Point(y, z) if y is not None and z is not None else None
             pts[label] = p
             sphere, cone = self.nodes[f"/contacts/{label}"], self.nodes[f"/contacts/cone_{label}"]
-            sphere.visible = p is not None
+            self._set(sphere, "visible", p is not None)
             prox, dist, w = _num(s, pn[0]), _num(s, pn[1]), _num(s, wn)
             if p is None or prox is None or dist is None:
-                cone.visible = False
+                self._set(cone, "visible", False)
                 continue
-            sphere.position = (0.0, p.y * MM, p.z * MM)
+            at = (0.0, p.y * MM, p.z * MM)
+            self._set(sphere, "position", at)
             n = contact_normal(finger, math.radians(prox), math.radians(dist), p, self.settings)
             r = CONE_HEIGHT_MM * math.tan(math.radians(alpha)) * MM
-            cone.position = (0.0, p.y * MM, p.z * MM)
-            cone.wxyz = _axis_to(np.array([0.0, n.y, n.z]))
-            cone.scale = (r, r, CONE_HEIGHT_MM * MM)
-            cone.color = cone_color(abs(w - 90.0), alpha) if w is not None else (150, 150, 150)
-            cone.visible = True
+            self._set(cone, "position", at)
+            self._set(cone, "wxyz", _axis_to(np.array([0.0, n.y, n.z])))
+            self._set(cone, "scale", (r, r, CONE_HEIGHT_MM * MM))
+            color = cone_color(abs(w - 90.0), alpha) if w is not None else (150, 150, 150)
+            self._set(cone, "color", color)
+            self._set(cone, "visible", True)
         A, B = pts["A"], pts["B"]
         seg = self.nodes["/contacts/AB"]
-        seg.visible = A is not None and B is not None
+        self._set(seg, "visible", A is not None and B is not None)
         if A is not None and B is not None:
-            seg.points = np.array([[[0.0, A.y, A.z], [0.0, B.y, B.z]]]) * MM
+            self._set(seg, "points", np.array([[[0.0, A.y, A.z], [0.0, B.y, B.z]]]) * MM)
 
     def _render_pads(self) -> None:
         mats = self._latest.get("tactile")
         if not isinstance(mats, list):
             return
         for name, index in self._pad_matrices().items():
-            if index >= len(mats):
-                continue
+            if index >= len(mats) or self._pad_counts.get(name) == mats[index]:
+                continue  # absent, or the same counts as drawn (idle pads: most of them)
+            self._pad_counts[name] = mats[index]
             counts = np.asarray(mats[index], dtype=float)
             flat = self._tactile_idx[name]
             lay = self._layout(name)
@@ -531,13 +608,13 @@ class Viewer:
         node = self.nodes["/object/outline"]
         outline = np.asarray(truth.get("outline") or [], dtype=float)
         if outline.ndim != 2 or outline.shape[0] < 2 or outline.shape[1] != 2:
-            node.visible = False
+            self._set(node, "visible", False)
             return
         p3 = np.column_stack([np.zeros(len(outline)), outline]) * MM
-        node.points = np.stack([p3, np.roll(p3, -1, axis=0)], axis=1)
+        self._set(node, "points", np.stack([p3, np.roll(p3, -1, axis=0)], axis=1))
         color = OUTLINE_DROPPED if truth.get("dropped") else OUTLINE_HELD
-        node.colors = np.array(color, dtype=np.uint8)
-        node.visible = True
+        self._set(node, "colors", np.array(color, dtype=np.uint8))
+        self._set(node, "visible", True)
 
     def _render_status(self) -> None:
         st = self._latest.get("status") or {}
@@ -551,7 +628,7 @@ class Viewer:
         if st.get("estopped"):
             parts.append("**E-STOP latched**")
         text = " · ".join(parts) + (f"\n\n{self._note}" if self._note else "")
-        self.nodes["gui/state"].content = text
+        self._set(self.nodes["gui/state"], "content", text)
         self._sync_sliders(st.get("params") or {})
 
     def _sync_sliders(self, params: dict[str, Any]) -> None:

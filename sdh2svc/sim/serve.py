@@ -4,11 +4,18 @@ One :class:`~sdh2svc.sim.hand.PhysicsWorld` stands behind a DSACON32m emulator a
 joint-controller emulator; each emulator is served on a pty and on a TCP port (or a Unix socket in
 fast mode). A device has one host at a time, so when it is served on several endpoints the one
 whose host spoke last owns its replies (:class:`SharedDevice`).
+
+Between runs a :class:`LabAssistant` puts the object back between the fingertips once it has
+been released or dropped and no pad has touched it for a while — what a person in the lab does
+before the next run — so that a driver can run again and again against one simulated hand.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import logging
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +25,50 @@ from sdh2svc.sim.endpoint import Device, Endpoint, PtyEndpoint, TcpEndpoint, Uni
 from sdh2svc.sim.faults import FaultConfig
 from sdh2svc.sim.hand import ObjectSpecT, PhysicsWorld
 from sdh2svc.sim.sdh2 import Sdh2Emulator
+
+log = logging.getLogger(__name__)
+
+
+class LabAssistant:
+    """Puts the object back between the fingertips (in the fixture, as at the start) once it
+    is neither held nor in the fixture — released or dropped — and no pad has touched it for
+    ``after_s``. Only the world's public ground truth and placement are used."""
+
+    def __init__(self, world: PhysicsWorld, after_s: float, poll_s: float = 0.1) -> None:
+        self.world, self.after_s, self.poll_s = world, after_s, poll_s
+        self.replaced = 0
+        self._loose_since: float | None = None
+
+    def check(self, now: float) -> bool:
+        """One look at the hand at time ``now`` (s); True if the object was put back."""
+        t = self.world.truth()
+        if t.held or t.in_fixture or t.contacts:
+            self._loose_since = None
+            return False
+        if self._loose_since is None:
+            self._loose_since = now
+        if now - self._loose_since < self.after_s:
+            return False
+        self.world.place(self.world.obj)
+        self._loose_since = None
+        self.replaced += 1
+        _say(f"the {t.object} was let go (released or dropped) and untouched for "
+             f"{self.after_s:g} s: put back between the fingertips")  # fmt: skip
+        return True
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(self.poll_s)
+            self.check(loop.time())
+
+
+def _say(message: str) -> None:
+    """To the log when logging is set up (the service), else a line on stderr (`sdh2svc sim`)."""
+    if logging.getLogger().hasHandlers():
+        log.info("%s", message)
+    else:
+        print(f"sdh2svc sim: {message}", file=sys.stderr, flush=True)
 
 
 class SharedDevice:
@@ -73,11 +124,22 @@ class SimulatedHand:
     dsa: DsaconEmulator
     sdh: Sdh2Emulator
     endpoints: dict[str, list[Endpoint]] = field(default_factory=dict)
+    assistant: LabAssistant | None = None
+    _assistant_task: asyncio.Task[None] | None = None
 
     def urls(self, device: str) -> list[str]:
         return [ep.url for ep in self.endpoints.get(device, [])]
 
+    async def stop_assistant(self) -> None:
+        task, self._assistant_task = self._assistant_task, None
+        self.assistant = None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
     async def stop(self) -> None:
+        await self.stop_assistant()
         for eps in self.endpoints.values():
             for ep in eps:
                 with contextlib.suppress(Exception):
@@ -93,11 +155,15 @@ async def start_simulated_hand(
     unix_dir: Path | None = None,
     dsa_port: int | None = None,
     sdh_port: int | None = None,
+    replace_after_s: float | None = None,
 ) -> SimulatedHand:
     """Build the world and both emulators and start their endpoints.
 
     ``unix_dir`` serves each device on a Unix socket in that folder instead of TCP and ptys (fast
     mode). Ports default to the configuration's ``sim.links``; 0 picks free ones.
+    ``replace_after_s`` (default: config ``sim.replace_after_s``; 0: never) starts the
+    :class:`LabAssistant` on the real-time event loop; in fast mode, whose clock is virtual, it
+    is off.
     """
     links = settings.sim.links
     world = PhysicsWorld(settings, settings.sim, obj)
@@ -129,4 +195,8 @@ async def start_simulated_hand(
     except BaseException:
         await hand.stop()
         raise
+    after = settings.sim.replace_after_s if replace_after_s is None else replace_after_s
+    if after > 0 and unix_dir is None:
+        hand.assistant = LabAssistant(world, after)
+        hand._assistant_task = asyncio.create_task(hand.assistant.run(), name="lab-assistant")
     return hand

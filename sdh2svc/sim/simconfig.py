@@ -30,6 +30,7 @@ class SimConfig(Frozen):
     object: str
     object_height_mm: Annotated[float, Field(ge=0.0, le=400.0)]
     object_angle_deg: Annotated[float, Field(ge=-180.0, le=180.0)]
+    replace_after_s: Annotated[float, Field(ge=0.0, le=3600.0)]
     physics: PhysicsConfig
     sensor: SensorModelConfig
     links: LinksConfig

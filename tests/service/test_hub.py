@@ -92,3 +92,26 @@ def test_a_failing_listener_does_not_stop_publishing() -> None:
     hub.add_listener(lambda m: seen.append(int(m["i"])))  # type: ignore[call-overload]
     hub.publish({"type": "event", "i": 1})
     assert seen == [1]
+
+
+async def test_delivery_waits_for_the_end_of_the_iteration() -> None:
+    """A frame's telemetry is delivered (listeners, queues) once the iteration's sample is out —
+    the joint command is written then — and not while the runner works on the frame; without
+    a sample it follows after a short hold. Order is kept."""
+    hub = TelemetryHub()
+    c = Client()
+    hub.clients.add(c)
+    seen: list[str] = []
+    hub.add_listener(lambda m: seen.append(str(m["type"])))
+    hub.publish({"type": "tactile", "seq": 1})
+    assert not c.queue and not seen  # the frame has just arrived: nothing done yet
+    hub.publish({"type": "sample", "iteration": 1})
+    assert not c.queue  # delivered on the next turn of the loop, after the runner's step
+    await asyncio.sleep(0)
+    assert [json.loads(t)["type"] for t in c.queue] == seen == ["tactile", "sample"]
+    hub.publish({"type": "pose", "angles_deg": [0.0] * 7})
+    for _ in range(100):
+        if len(seen) == 3:
+            break
+        await asyncio.sleep(0.01)
+    assert seen[-1] == "pose" and json.loads(c.queue[-1])["type"] == "pose"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import time
 import urllib.request
@@ -11,8 +12,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+import viser
 import viser.transforms as vtf
 from viser import GuiEvent
+from websockets.asyncio.client import connect
+from websockets.typing import Subprotocol
 
 from sdh2svc.config import Settings
 from sdh2svc.model.geometry import pad_point_from_L, pad_y3
@@ -23,6 +27,7 @@ from sdh2svc.service.viewer import (
     RED,
     YELLOW,
     Viewer,
+    camera_message,
     cone_color,
     contact_normal,
     distal_cells,
@@ -59,12 +64,36 @@ async def commands() -> Recorder:
     return Recorder()
 
 
+@contextlib.asynccontextmanager
+async def watching(v: Viewer) -> AsyncIterator[None]:
+    """A browser on the view: a viser websocket client reading all it is sent. The view draws
+    only while someone watches; this waits for the first frame drawn for the watcher."""
+    proto = [Subprotocol(f"viser-v{viser.__version__}")]
+    url = v.url.replace("http://", "ws://")
+    async with connect(url, subprotocols=proto, max_size=2**26) as ws:
+        await ws.send(camera_message())
+
+        async def read() -> None:
+            with contextlib.suppress(Exception):
+                async for _ in ws:
+                    pass
+
+        reader = asyncio.create_task(read())
+        try:
+            await wait_for(lambda: v.watched)
+            await wait_for(lambda: not v._dirty)
+            yield
+        finally:
+            reader.cancel()
+
+
 @pytest.fixture
 async def viewer(cfg: Settings, commands: Recorder) -> AsyncIterator[Viewer]:
     v = Viewer(cfg, port=0, on_command=commands)
     await v.start()
     try:
-        yield v
+        async with watching(v):
+            yield v
     finally:
         await v.stop()
 
@@ -308,8 +337,9 @@ async def test_refused_command_shows_in_the_panel(cfg: Settings) -> None:
     try:
         assert v.buttons["start"].disabled  # exposed with a token: no start from here
         assert not v.buttons["stop"].disabled and not v.buttons["estop"].disabled
-        await click(v.buttons["stop"])
-        await wait_for(lambda: "already running" in v.nodes["gui/state"].content)
+        async with watching(v):
+            await click(v.buttons["stop"])
+            await wait_for(lambda: "already running" in v.nodes["gui/state"].content)
     finally:
         await v.stop()
 
@@ -321,35 +351,59 @@ async def test_handle_only_stores(cfg: Settings, monkeypatch: pytest.MonkeyPatch
     v = Viewer(cfg, port=0, max_hz=10.0)
     await v.start()
     try:
-        await next_frame(v, 0)  # the initial frame
-        renders: list[float] = []
-        real = v.render
-        monkeypatch.setattr(v, "render", lambda: (renders.append(time.monotonic()), real()))
-        before = np.array(v.nodes["/f1/distal"].position)
-        msgs = [
-            {"type": "sample", "sample": {**SAMPLE, "phi2": -20 + i * 1e-3}} for i in range(5000)
-        ]
-        t0 = time.perf_counter()
-        for m in msgs:
-            v.handle(m)
-        per_call = (time.perf_counter() - t0) / len(msgs)
-        assert per_call < 20e-6, f"handle() took {per_call * 1e6:.1f} µs"
-        assert renders == [] and np.array_equal(v.nodes["/f1/distal"].position, before)
-        assert v._latest["sample"] is msgs[-1]["sample"]  # the latest, stored as is
+        async with watching(v):
+            await _rate_limited(v, monkeypatch)
+    finally:
+        await v.stop()
 
-        await wait_for(lambda: len(renders) == 1)  # 5000 messages → one frame
-        # fed for 0.5 s at 200 Hz: at most 10 frames a second
-        t_end = time.monotonic() + 0.5
-        while time.monotonic() < t_end:
-            v.handle(msgs[0])
-            await asyncio.sleep(0.005)
-        await asyncio.sleep(0.15)
-        gaps = np.diff(renders)
-        assert len(renders) <= 1 + 0.65 * 10 + 1
-        assert gaps.min() >= 0.09
-        idle = len(renders)
-        await asyncio.sleep(0.3)
-        assert len(renders) == idle  # nothing changed: nothing drawn
+
+async def _rate_limited(v: Viewer, monkeypatch: pytest.MonkeyPatch) -> None:
+    """5000 messages make one frame; a steady feed at most max_hz; no change, no frame."""
+    await next_frame(v, 0)  # the initial frame
+    renders: list[float] = []
+    real = v.render
+    monkeypatch.setattr(v, "render", lambda: (renders.append(time.monotonic()), real()))
+    before = np.array(v.nodes["/f1/distal"].position)
+    msgs = [{"type": "sample", "sample": {**SAMPLE, "phi2": -20 + i * 1e-3}} for i in range(5000)]
+    t0 = time.perf_counter()
+    for m in msgs:
+        v.handle(m)
+    per_call = (time.perf_counter() - t0) / len(msgs)
+    assert per_call < 20e-6, f"handle() took {per_call * 1e6:.1f} µs"
+    assert renders == [] and np.array_equal(v.nodes["/f1/distal"].position, before)
+    assert v._latest["sample"] is msgs[-1]["sample"]  # the latest, stored as is
+
+    await wait_for(lambda: len(renders) == 1)  # 5000 messages → one frame
+    # fed for 0.5 s at 200 Hz: at most 10 frames a second
+    t_end = time.monotonic() + 0.5
+    while time.monotonic() < t_end:
+        v.handle(msgs[0])
+        await asyncio.sleep(0.005)
+    await asyncio.sleep(0.3)  # the last change is drawn within two periods
+    gaps = np.diff(renders)
+    assert len(renders) <= 1 + 0.65 * 10 + 1
+    assert gaps.min() >= 0.09
+    idle = len(renders)
+    await asyncio.sleep(0.3)
+    assert len(renders) == idle  # nothing changed: nothing drawn
+
+
+async def test_draws_only_while_watched(cfg: Settings) -> None:
+    """Nobody watching: messages are kept, nothing is drawn; a browser that connects is drawn
+    the latest state at once."""
+    v = Viewer(cfg, port=0)
+    await v.start()
+    try:
+        v.handle({"type": "pose", "angles_deg": [90.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
+        v.handle({"type": "sample", "sample": SAMPLE})
+        await asyncio.sleep(0.2)
+        assert v.frames == 0 and not v.watched
+        async with watching(v):
+            assert v.frames == 1
+            assert v.nodes["/contacts/A"].visible
+            got = world(v, "/f1/distal", np.zeros(3))
+            C = pad_point(Finger.ONE, math.radians(-20), math.radians(30), 0.0, 0.0, cfg.hand)
+            assert np.allclose(got[1:], np.array([C.y, C.z]) * MM, atol=1e-6)
     finally:
         await v.stop()
 

@@ -7,6 +7,9 @@ import json
 import signal
 import subprocess
 import sys
+import threading
+import time
+from pathlib import Path
 
 import serial_asyncio
 
@@ -88,3 +91,42 @@ def test_sim_rejects_an_unknown_object() -> None:
     r = subprocess.run([sys.executable, "-m", "sdh2svc", "sim", "--object", "banana"],
                        capture_output=True, text=True, timeout=60)  # fmt: skip
     assert r.returncode == 2 and "presets" in r.stderr
+
+
+def test_sim_puts_the_object_back_between_runs(tmp_path: Path) -> None:
+    """Two real runs, one after the other, against one `sdh2svc sim` over TCP: after the first
+    lets the egg go, the lab assistant puts it back (logged), and the second grasps it again."""
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "sdh2svc", "sim", "--json", "--no-pty", "--dsa-port", "0",
+         "--sdh-port", "0", "--object", "egg", "--replace-after", "0.5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    err: list[str] = []
+    reader = threading.Thread(target=lambda: err.extend(sim.stderr), daemon=True)  # type: ignore[arg-type]
+    reader.start()
+    try:
+        assert sim.stdout is not None
+        info = json.loads(sim.stdout.readline())
+        run = [sys.executable, "-m", "sdh2svc", "run", "--dsa", info["dsa"][0], "--sdh",
+               info["sdh"][0], "--cycles", "1", "--json",
+               # the egg's force peaks may reach the default 3 × Fd in real time (tests/service)
+               "--set", "safety.force_ceiling_factor=4.0",
+               "--set", f"storage.db_path={json.dumps(str(tmp_path / 'runs.sqlite'))}"]  # fmt: skip
+        for n in (1, 2):
+            r = subprocess.run(run, capture_output=True, text=True, timeout=180, cwd=tmp_path)
+            summary = json.loads(r.stdout)
+            assert summary["status"] == "completed", (n, summary, r.stderr)
+            assert summary["iterations"] > 0
+            deadline = time.monotonic() + 20.0
+            while not any("put back" in line for line in err[n - 1 :]):
+                assert time.monotonic() < deadline, f"run {n}: the egg was not put back: {err}"
+                time.sleep(0.05)
+    finally:
+        sim.send_signal(signal.SIGINT)
+        sim.wait(timeout=20)
+        reader.join(5.0)
+        for stream in (sim.stdout, sim.stderr):
+            stream.close()  # type: ignore[union-attr]
+    assert sim.returncode == 0, err
+    assert sum("put back between the fingertips" in line for line in err) == 2, err
+    assert not any("Traceback" in line for line in err)
