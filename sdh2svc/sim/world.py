@@ -37,7 +37,8 @@ class HandWorld(Protocol):
         """Advance to ``now`` with each powered servo pulling towards its reference angle.
 
         Returns the 7 actual angles (deg). Unpowered axes are limp: they stay where they are
-        unless something moves them."""
+        unless something moves them. A world may defer its own work until a tactile frame (or
+        a larger move) needs it, as long as the returned angles are what the hand does."""
         ...
 
     def tactile_frame(
