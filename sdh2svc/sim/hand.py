@@ -79,7 +79,8 @@ class PhysicsWorld:
         self._angles = [0.0] * 7
         self._stepped = list(self._angles)  # the joint angles the physics was last stepped to
         self._powered: tuple[bool, ...] | None = None  # as of the last move_joints
-        self._tau: dict[str, float] | None = None  # the last step's joint torques, once asked
+        # the last step's joints at their torque limit, (axis, torque), once asked
+        self._tau: list[tuple[int, float]] | None = None
         self._blocked: set[int] = set()
         self._seed = sim.seed
         a, phys = self.axes, sim.physics
@@ -101,18 +102,22 @@ class PhysicsWorld:
     def move_joints(
         self, now: float, reference_deg: Sequence[float], powered: Sequence[bool]
     ) -> tuple[float, ...]:
-        on = tuple(bool(p) for p in powered)
-        if on != self._powered:
-            self.flush()  # the physics catches up before the servos' pull changes
-            self._powered = on
+        on = self._powered
+        if type(powered) is not tuple or powered != on:  # (the emulator passes a tuple of bools)
+            on = tuple(bool(p) for p in powered)
+            if on != self._powered:
+                self.flush()  # the physics catches up before the servos' pull changes
+                self._powered = on
         target = self._target(reference_deg, on)
-        if self._lead(target) >= self._max_lead_deg:
+        lead = self._lead(target)
+        if lead >= self._max_lead_deg:
             # Catch up to the pose last reported first, so that the torque limit is checked
             # against contacts less than one substep behind the joints, never more.
             self.flush()
             target = self._target(reference_deg, on)
+            lead = self._lead(target)
         self._angles = target
-        if self._lead(target) >= self._max_lead_deg:
+        if lead >= self._max_lead_deg:
             self.flush()  # a single tick moved a whole substep
         return tuple(target)
 
@@ -183,10 +188,14 @@ class PhysicsWorld:
     def _target(self, reference_deg: Sequence[float], powered: Sequence[bool]) -> list[float]:
         """Where the joints go: each powered one to its reference unless it stalls, limp ones
         nowhere."""
-        target = [
-            float(r) if on else a
-            for r, on, a in zip(reference_deg, powered, self._angles, strict=True)
-        ]
+        n = len(self._angles)
+        if len(reference_deg) != n or len(powered) != n:
+            raise ValueError(f"joint references and power for {n} axes expected")
+        if all(powered):  # the usual case, at every servo tick
+            target = [float(r) for r in reference_deg]
+        else:
+            ahead = zip(reference_deg, powered, self._angles, strict=True)
+            target = [float(r) if on else a for r, on, a in ahead]
         self._stall(target)
         return target
 
@@ -203,16 +212,17 @@ class PhysicsWorld:
 
         The torques are those of the last physics step (deliberately not flushed: this runs at
         every servo tick); :meth:`move_joints` keeps that step less than a substep behind."""
-        self._blocked.clear()
+        if self._blocked:
+            self._blocked.clear()
         if self._physics.state.dropped:
             return
         if self._tau is None:
-            self._tau = self._physics.joint_torques_n_mm()
-        tau = self._tau
-        for axis, name, limit in self._limits:
-            t = tau[name]
-            pushing = (target[axis] - self._angles[axis]) * t < 0  # moving against the load
-            if abs(t) >= limit and pushing:
+            tau = self._physics.joint_torques_n_mm()
+            # only the joints at their torque limit can stall (mostly none: then nothing to do)
+            self._tau = [(axis, tau[name]) for axis, name, limit in self._limits
+                         if abs(tau[name]) >= limit]  # fmt: skip
+        for axis, t in self._tau:
+            if (target[axis] - self._angles[axis]) * t < 0:  # moving against the load
                 target[axis] = self._angles[axis]
                 self._blocked.add(axis)
 

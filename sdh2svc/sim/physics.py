@@ -25,13 +25,17 @@ substep (``max_joint_step_deg``) or the state is read, so a stall lands within o
 Speed (fast mode runs thousands of steps per simulated minute) never changes the equations: the
 surfaces are moved into frame 0 once per finger pose (cached on the exact pose), all nearby
 samples are moved into the object frame by one affine product and tested in one pass (a box's
-distance in closed form, an ellipse's only for the samples inside), the per-contact sums and
-their overlap-weighted twins come from one product, and the finger's yield is found by Newton
-steps on the pad's linear law, exact once the set of samples in contact stops changing (the
-piecewise law only when a sample bottoms out). Newton starts from the balance extrapolated along
-the fingers' motion (a parabola through the last three balances, whatever the substeps'
-lengths), with a Jacobian kept from step to step and corrected by Broyden's secant updates, in
-plain floats. Convergence is checked on the same residual and tolerance.
+distance in closed form; an ellipse's test is a quadratic form of the samples' monomials, also
+one product, and its distance is worked out only for the samples inside), the per-contact sums
+and their overlap-weighted twins come from one product (the samples a yielding finger left weigh
+0 instead of being picked out; the pressures are picked out only when a tactile frame asks for
+them), and the finger's yield is found by Newton steps on the pad's linear law in plain floats,
+exact once the set of samples in contact stops changing (the piecewise law only when a sample
+bottoms out). Newton starts from the balance extrapolated along the fingers' motion (a parabola
+through the last three balances, whatever the substeps' lengths), with a Jacobian kept from step
+to step and corrected by Broyden's secant updates; the solver's pose, residual and Jacobian are
+plain floats, and the anchors' springs are moved into frame 0 once per step. Convergence is
+checked on the same residual and tolerance.
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ Positive = Annotated[float, Field(gt=0.0)]
 Pair = tuple[float, float]
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, ...]  # 3 rows
+_Pull = tuple[float, float, float, float, float]  # an anchor's spring, see ContactPhysics._pulls
 
 
 class PhysicsConfig(Frozen):
@@ -78,6 +83,7 @@ class PhysicsConfig(Frozen):
     torque_limit_distal_n_mm: Positive
 
 
+_ZERO3 = (0.0, 0.0, 0.0)
 MAX_HALVINGS = 3  # a substep without a balance is retried in halves down to 1/8 of its length
 
 # Surfaces, in a fixed order; a surface is a sampled curve in the frame of one link.
@@ -199,7 +205,7 @@ def _solve3(J: Mat3, r: Sequence[float]) -> Vec3:
     (a, b, c), (d, e, f), (g, h, i) = J
     co0, co1, co2 = e * i - f * h, f * g - d * i, d * h - e * g
     det = a * co0 + b * co1 + c * co2
-    scale = max(abs(v) for v in (a, b, c, d, e, f, g, h, i))
+    scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
     if not abs(det) > 1e-12 * scale**3:
         x0, x1, x2 = np.linalg.lstsq(np.array(J), -np.array(r), rcond=None)[0].tolist()
         return x0, x1, x2
@@ -214,14 +220,36 @@ def _solve3(J: Mat3, r: Sequence[float]) -> Vec3:
 def _broyden(J: Mat3, s: Vec3, y: Sequence[float]) -> Mat3:
     """Broyden's rank-one update of J for the move s that changed the residual by y:
     J + (y − J·s)·sᵀ / (s·s)."""
-    ss = s[0] * s[0] + s[1] * s[1] + s[2] * s[2]
+    s0, s1, s2 = s
+    ss = s0 * s0 + s1 * s1 + s2 * s2
     if not ss > 0.0:
         return J
     rows = []
-    for row, yi in zip(J, y, strict=True):
-        ui = (yi - (row[0] * s[0] + row[1] * s[1] + row[2] * s[2])) / ss
-        rows.append((row[0] + ui * s[0], row[1] + ui * s[1], row[2] + ui * s[2]))
+    for (j0, j1, j2), yi in zip(J, y, strict=True):
+        ui = (yi - (j0 * s0 + j1 * s1 + j2 * s2)) / ss
+        rows.append((j0 + ui * s0, j1 + ui * s1, j2 + ui * s2))
     return tuple(rows)
+
+
+def _ellipse_forms(
+    ia: float, ib: float, cos_p: float, sin_p: float, ox: float, oy: float
+) -> np.ndarray:
+    """Two quadratic forms of a frame-0 point (y, z) as coefficients of its monomials
+    (y², yz, z², y, z, 1), for the ellipse at object offset (ox, oy) = Rᵀ·c turned by ψ:
+    g² = |q|² and |q/(a, b)|², with q = (x/a, y/b) the point in the object frame scaled by the
+    semi-axes. One product with the monomials then tests every sample (its ``g²`` is
+    :meth:`Outline.sdf`'s, expanded), and the second gives |∇g|·g for the few inside."""
+    # q = (A1·y + B1·z + C1, A2·y + B2·z + C2)
+    a1, b1, c1 = cos_p * ia, sin_p * ia, -ox * ia
+    a2, b2, c2 = -sin_p * ib, cos_p * ib, -oy * ib
+    rows = []
+    for wa, wb in ((1.0, 1.0), (ia * ia, ib * ib)):  # Σ w·q_k² for q_k = (A, B, C)·(y, z, 1)
+        rows.append((
+            wa * a1 * a1 + wb * a2 * a2, 2.0 * (wa * a1 * b1 + wb * a2 * b2),
+            wa * b1 * b1 + wb * b2 * b2, 2.0 * (wa * a1 * c1 + wb * a2 * c2),
+            2.0 * (wa * b1 * c1 + wb * b2 * c2), wa * c1 * c1 + wb * c2 * c2,
+        ))  # fmt: skip
+    return np.array(rows)
 
 
 def to_world(frame: tuple[np.ndarray, np.ndarray, np.ndarray], local: np.ndarray) -> np.ndarray:
@@ -258,10 +286,13 @@ class ContactTruth:
 
 @dataclass(slots=True)
 class _Eval:
-    residual: np.ndarray
+    residual: Vec3  # net force (y0, z0) and moment (in force units) on the object
     # surface → (centroid, tangent, N, tangential force, u, s of the centroid, slipping)
     contacts: dict[int, tuple[Pair, Pair, float, float, float, float, bool]]
-    pressures: dict[int, tuple[np.ndarray, np.ndarray]]  # surface → (sample indices, pressure)
+    # surface → (the inside samples' indices into the evaluation's concatenation, the surface's
+    # start in it, their compression (0 where the finger yielded off them), the largest one):
+    # what ContactPhysics.pressures turns into pressures, once a frame asks
+    compressions: dict[int, tuple[np.ndarray, int, np.ndarray, float]]
     max_depth: float = 0.0  # deepest geometric overlap of a surface into the object, mm
     # surface → (Σ p·w·ds·n, Σ p·w·ds·(point × n)) in frame 0: the joint torques' sums
     sums: dict[int, tuple[float, float, float]] = field(default_factory=dict)
@@ -298,14 +329,20 @@ class ContactPhysics:
         self.mu = spec.material.friction
         g = np.asarray(cfg.gravity_m_per_s2, dtype=float)
         self.gravity_n = spec.material.mass_g / 1000.0 * g  # (x0, y0, z0) newtons
+        # the evaluation's constants, as plain floats
+        self._gravity_yz = (float(self.gravity_n[1]), float(self.gravity_n[2]))
+        self._wds = self.width_mm * cfg.sample_spacing_mm  # each sample's strip of pad, mm²
+        self._kw = self.k * self._wds  # p·w·ds per mm of compression, below the knee
+        self._kt = cfg.tangential_stiffness_n_per_mm
+        self._moment_scale = 1.0 / max(outline.bound_radius, 1.0)  # moment in force units
+        self._pressures: tuple[_Eval, dict[int, tuple[np.ndarray, np.ndarray]]] | None = None
         self.hand_pose = pose
         self.state = PhysicsState(np.asarray(object_pose, dtype=float))
         self._jacobian: Mat3 | None = None
-        self._motion: list[tuple[tuple[float, ...], np.ndarray]] = []  # last two (Δq, Δx)
-        self._last = _Eval(np.zeros(3), {}, {})
+        self._motion: list[tuple[tuple[float, ...], Vec3]] = []  # last two (Δq, Δx)
+        self._last = _Eval(_ZERO3, {}, {})
         self._world_key: tuple[float, ...] | None = None
         self._world: list = []
-        self._anchor_cache: dict[tuple[int, int], tuple[Anchor, tuple[float, float]]] = {}
         self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int]]] = {}
         self._starts: dict[tuple[int, ...], list[int]] = {}  # each group's surface starts
         self._map = np.zeros((9, 9))  # see _to_world
@@ -343,7 +380,6 @@ class ContactPhysics:
         self._world_key, self._world_circles = key, circles
         self._world = [None] * len(self.surfaces)
         self._groups = {}
-        self._anchor_cache = {}
         return self._world
 
     def _surface(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -380,50 +416,52 @@ class ContactPhysics:
         return self._map
 
     def _evaluate(
-        self, x: np.ndarray, world: list, frames: list | None = None, slip: dict | None = None
-    ) -> _Eval:
+        self, x: Sequence[float], world: list, pulls: dict[int, _Pull] | None = None,
+        slip: dict | None = None,
+    ) -> _Eval:  # fmt: skip
         """Net force and moment on the object at pose x (the residual), and the contacts.
 
-        Sticking contacts pull with their tangential spring, uncapped; the contacts in ``slip``
-        (surface → sign) slide with the Coulomb force μ·N in that direction.
+        Sticking contacts pull with their tangential spring (``pulls``, see :meth:`_pulls`),
+        uncapped; the contacts in ``slip`` (surface → sign) slide with the Coulomb force μ·N in
+        that direction.
         """
-        cy, cz, psi = x.tolist()
+        cy, cz, psi = x
         cos_p, sin_p = math.cos(psi), math.sin(psi)
-        fy, fz = float(self.gravity_n[1]), float(self.gravity_n[2])
+        fy, fz = self._gravity_yz
         moment = 0.0
         contacts: dict = {}
         pressures: dict = {}
         sums: dict = {}
         max_depth = 0.0
-        wds = self.width_mm * self.cfg.sample_spacing_mm
-        reach = self.outline.bound_radius
-        reach2 = reach * reach
-        near_j = tuple(
+        wds, kw, reach = self._wds, self._kw, self.outline.bound_radius
+        near_j = tuple([
             j
             for j, (my, mz, rad) in enumerate(self._world_circles)
             if (cy - my) ** 2 + (cz - mz) ** 2 <= (reach + rad) ** 2
-        )  # the others are nowhere near the object
+        ])  # the others are nowhere near the object  # fmt: skip
         # all nearby surfaces' samples at once, then each surface's share of those inside
-        inside, depth, starts, cols_all = self._inside(near_j, cy, cz, cos_p, sin_p, reach2)
-        bounds = np.searchsorted(inside, starts).tolist()
+        inside, depth, starts, cols_all = self._inside(near_j, cy, cz, cos_p, sin_p, reach * reach)
+        bounds = inside.searchsorted(starts).tolist()
         for k, j in enumerate(near_j):
             lo, hi = bounds[k], bounds[k + 1]
             if lo == hi:
                 continue
-            gidx = inside[lo:hi]  # indices into the concatenation
             overlap = depth[lo:hi]
-            deepest = float(overlap.max())
-            max_depth = max(max_depth, deepest)
+            ov = overlap.tolist()  # plain floats for the finger's yield: a few dozen samples
+            deepest = max(ov)
+            if deepest > max_depth:
+                max_depth = deepest
             # the finger yields along the pad normal (structure and servo, in series with the pad)
-            e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds, deepest, j)
-            if e > 0.0:
-                keep = overlap > e
-                gidx, overlap = gidx[keep], overlap[keep]
-            p = self._pressure(overlap - e, deepest - e)  # N/mm²
-            pw = p * wds
-            g0, g1 = int(gidx[0]), int(gidx[-1]) + 1
+            e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds, deepest, j, ov)
+            # compression; the samples the yielding finger left (overlap ≤ e) weigh 0 rather
+            # than being picked out (the pressures are only picked once a frame asks for them)
+            c = np.maximum(overlap - e, 0.0) if e > 0.0 else overlap
+            top = deepest - e
+            # p·w·ds per sample: the linear law's k·c below the knee
+            pw = c * kw if top <= self.knee else self._pressure(c, top) * wds
             # a convex object presses one run of samples: a view instead of a copy
-            sub = cols_all[g0:g1] if g1 - g0 == gidx.size else cols_all[gidx]
+            g0, g1 = int(inside[lo]), int(inside[hi - 1]) + 1
+            sub = cols_all[g0:g1] if g1 - g0 == hi - lo else cols_all[inside[lo:hi]]
             # one product gives Σ p·w·ds·(n, p×n, point, 1, tangent, s) over the contact samples,
             # and the same weighted by the overlap (only its normal part is used)
             sums_pw, back = (np.array((pw, pw * overlap)) @ sub).tolist()
@@ -439,24 +477,21 @@ class ContactPhysics:
             t_norm = math.hypot(Ty, Tz)
             tan_y, tan_z = Ty / t_norm, Tz / t_norm
             u = 0.0
-            anchor = self.state.anchors.get(j)
-            if anchor is not None and frames is not None:
-                ay, az = anchor.obj_point
-                sy, sz = self._anchor_world(j, anchor)
-                u = anchor.u + ((cy + cos_p * ay - sin_p * az - sy) * tan_y
-                                + (cz + sin_p * ay + cos_p * az - sz) * tan_z)  # fmt: skip
+            pull = None if pulls is None else pulls.get(j)
+            if pull is not None:
+                ay, az, sy, sz, u0 = pull
+                u = u0 + ((cy + cos_p * ay - sin_p * az - sy) * tan_y
+                          + (cz + sin_p * ay + cos_p * az - sz) * tan_z)  # fmt: skip
             slipping = slip is not None and j in slip
-            ft = slip[j] * self.mu * N if slipping else -self.cfg.tangential_stiffness_n_per_mm * u
+            ft = slip[j] * self.mu * N if slipping else -self._kt * u
             ty, tz = ft * tan_y, ft * tan_z
             fy += ty
             fz += tz
             moment += (cen_y - cy) * tz - (cen_z - cz) * ty
             contacts[j] = ((cen_y, cen_z), (tan_y, tan_z), N, ft, u, S / total, slipping)
-            pressures[j] = (gidx - starts[k], p)  # indices into surface j's samples
+            pressures[j] = (inside[lo:hi], starts[k], c, top)
             sums[j] = (Fy, Fz, pxn)
-        scale = 1.0 / max(self.outline.bound_radius, 1.0)  # moment in force units
-        residual = np.array([fy, fz, moment * scale])
-        return _Eval(residual, contacts, pressures, max_depth, sums)
+        return _Eval((fy, fz, moment * self._moment_scale), contacts, pressures, max_depth, sums)
 
     def _inside(
         self, near_j: tuple[int, ...], cy: float, cz: float, cos_p: float, sin_p: float,
@@ -476,17 +511,26 @@ class ContactPhysics:
             for k, j in enumerate(near_j):
                 out = cols[starts[k] : starts[k + 1]]
                 np.matmul(self._local_cols[j], self._to_world(j), out=out)
-            # the points (y, z, 1) as rows: each evaluation moves them with one product
-            group = (cols, starts, np.ascontiguousarray(cols[:, 3:6].T))
+            # the points (y, z, 1) as rows: each evaluation moves them with one product; an
+            # ellipse's tests are quadratic forms in them, so it takes their monomials instead
+            if self._ellipse is None:
+                points = np.ascontiguousarray(cols[:, 3:6].T)
+            else:
+                points = np.empty((6, starts[-1]))
+                points[3:] = cols[:, 3:6].T
+                y, z = points[3], points[4]
+                np.multiply(y, y, out=points[0])
+                np.multiply(y, z, out=points[1])
+                np.multiply(z, z, out=points[2])
+            group = (cols, starts, points)
             self._groups[near_j] = group
         cols, starts, points = group
         # the points in the object frame, Rᵀ·(p − c), as two rows (x, y)
         ox, oy = cy * cos_p + cz * sin_p, cz * cos_p - cy * sin_p
         if self._ellipse is not None:
-            ia, ib = self._ellipse  # scaled by the semi-axes: q = (x/a, y/b)
-            to_q = ((cos_p * ia, sin_p * ia, -ox * ia), (-sin_p * ib, cos_p * ib, -oy * ib))
-            inside, d = self._ellipse_inside(np.array(to_q) @ points)
-            return inside, -d, starts, cols
+            forms = _ellipse_forms(*self._ellipse, cos_p, sin_p, ox, oy)
+            inside, depth = self._ellipse_inside(forms @ points)
+            return inside, depth, starts, cols
         local = (np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points).T
         if not self._prefilter:
             d = self.outline.sdf(local)
@@ -505,13 +549,13 @@ class ContactPhysics:
         qx2, qy2 = q[0] * q[0], q[1] * q[1]
         return self._ellipse_d(np.sqrt(qx2 + qy2), qx2, qy2)
 
-    def _ellipse_inside(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The points q = (x/a, y/b) (two rows) inside the ellipse (g < 1, i.e. sdf < 0) and
-        their :meth:`_ellipse_sdf`, which only they need."""
-        qx2, qy2 = q[0] * q[0], q[1] * q[1]
-        g2 = qx2 + qy2
-        inside = np.nonzero(g2 < 1.0)[0]  # g < 1 exactly when g² < 1 (sqrt is correctly rounded)
-        return inside, self._ellipse_d(np.sqrt(g2[inside]), qx2[inside], qy2[inside])
+    def _ellipse_inside(self, forms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points inside the ellipse (g < 1, i.e. sdf < 0) and their depths (−sdf), from the
+        two rows of :func:`_ellipse_forms` (g² and |q/(a, b)|²) of every point."""
+        inside = (forms[0] < 1.0).nonzero()[0]  # g < 1 exactly when g² < 1 (sqrt rounds right)
+        g, g_grad = np.sqrt(forms[:, inside])  # g and g·|∇g|
+        grad = g_grad / np.maximum(g, 1e-12)
+        return inside, (1.0 - g) / np.maximum(grad, 1e-12)  # −(g − 1)/|∇g|
 
     def _ellipse_d(self, g: np.ndarray, qx2: np.ndarray, qy2: np.ndarray) -> np.ndarray:
         """(g − 1)/|∇g| with ∇g = (x/a², y/b²)/g, from g and the squares of q = (x/a, y/b)."""
@@ -519,16 +563,16 @@ class ContactPhysics:
         grad = np.sqrt(qx2 * (ia * ia) + qy2 * (ib * ib)) / np.maximum(g, 1e-12)
         return (g - 1.0) / np.maximum(grad, 1e-12)
 
-    def _anchor_world(self, j: int, anchor: Anchor) -> tuple[float, float]:
-        """Where the anchor's pad point is in frame 0 at the current pose (cached per pose)."""
-        key = (j, id(anchor))
-        got = self._anchor_cache.get(key)
-        if got is None or got[0] is not anchor:
+    def _pulls(self) -> dict[int, _Pull]:
+        """Each anchored contact's spring at the current pose, for :meth:`_evaluate`: its
+        object point (object frame), its pad point moved into frame 0, its elastic stretch."""
+        pulls = {}
+        for j, anchor in self.state.anchors.items():
             o, ex, ey = self._frame_rows[j]
             a, b = anchor.local_point
-            got = (anchor, (o[0] + a * ex[0] + b * ey[0], o[1] + a * ex[1] + b * ey[1]))
-            self._anchor_cache[key] = got
-        return got[1]
+            sy, sz = o[0] + a * ex[0] + b * ey[0], o[1] + a * ex[1] + b * ey[1]
+            pulls[j] = (*anchor.obj_point, sy, sz, anchor.u)
+        return pulls
 
     def _pressure(self, compression: np.ndarray, top: float | None = None) -> np.ndarray:
         """Contact pressure (N/mm²) for a local compression (mm): pad and object in series up
@@ -539,19 +583,24 @@ class ContactPhysics:
         soft = self.k * np.minimum(compression, self.knee)
         return soft + self.k_bottomed * np.maximum(compression - self.knee, 0.0)
 
-    def _yield(self, overlap: np.ndarray, wds: float, deepest: float, j: int = -1) -> float:
+    def _yield(
+        self, overlap: np.ndarray, wds: float, deepest: float, j: int = -1,
+        values: list[float] | None = None,
+    ) -> float:  # fmt: skip
         """How far the finger backs off along the pad normal: the root e of
-        h(e) = k_f·e − Σ p(δ − e)·w·ds (finger structure and servo in series with the contact).
+        h(e) = k_f·e − Σ p(δ − e)·w·ds (finger structure and servo, in series with the contact).
 
         h is piecewise linear, increasing and concave, so Newton's method lands on the root
         exactly once it reaches the root's segment. From above the root, one step lands at or
         below it (concavity); from below it climbs. It starts from surface j's last root.
+        ``values``: the overlaps as plain floats, if at hand.
         """
         kf, k, kb, knee = self.cfg.finger_stiffness_n_per_mm, self.k, self.k_bottomed, self.knee
         e = min(self._e_hint.get(j, 0.0), deepest)
         # Below the knee the law is linear. Its root is the root of h when no sample bottoms
         # out there: a stiffer law beyond the knee only pushes the root further up.
-        e_lin = self._yield_linear(overlap, wds * k, kf, e)
+        values = overlap.tolist() if values is None else values
+        e_lin = self._yield_linear(values, wds * k, kf, e)
         if deepest - e_lin <= knee:
             self._e_hint[j] = e_lin
             return e_lin if e_lin > 1e-12 else 0.0
@@ -572,20 +621,19 @@ class ContactPhysics:
         return e
 
     @staticmethod
-    def _yield_linear(overlap: np.ndarray, kw: float, kf: float, e: float) -> float:
+    def _yield_linear(overlap: list[float], kw: float, kf: float, e: float) -> float:
         """:meth:`_yield` when no sample bottoms out: with the m samples deeper than e in
         contact the root is e_m = kw·Σ_m δ / (kf + kw·m), the root of h once those m are the
         ones that stay in contact. Newton's steps are these e_m; a step that keeps the set of
-        samples in contact has landed (the sets are nested, so equal counts mean equal sets)."""
-        act = overlap > e
-        m = int(np.count_nonzero(act))
-        for _ in range(overlap.size + 2):
-            e = kw * float(overlap[act].sum()) / (kf + kw * m)
-            act = overlap > e
-            m_next = int(np.count_nonzero(act))
-            if m_next == m:
+        samples in contact has landed (the sets are nested, so equal counts mean equal sets).
+        Plain floats: a contact's few dozen samples are too few for numpy to pay off."""
+        act = [d for d in overlap if d > e]
+        for _ in range(len(overlap) + 2):
+            e = kw * sum(act) / (kf + kw * len(act))
+            nxt = [d for d in overlap if d > e]
+            if len(nxt) == len(act):
                 return e
-            m = m_next
+            act = nxt
         return e  # not reached: each step from below the root drops a sample from contact
 
     # --- stepping -----------------------------------------------------------------------------
@@ -593,9 +641,8 @@ class ContactPhysics:
     def step(self, pose: HandPose) -> None:
         """Move the fingers to ``pose`` (in substeps no larger than max_joint_step_deg)."""
         cur = self.hand_pose
-        delta = max(abs(a - b) for a, b in zip(
-            (pose.phi2, pose.phi3, pose.phi4, pose.phi5),
-            (cur.phi2, cur.phi3, cur.phi4, cur.phi5), strict=True))  # fmt: skip
+        delta = max(abs(pose.phi2 - cur.phi2), abs(pose.phi3 - cur.phi3),
+                    abs(pose.phi4 - cur.phi4), abs(pose.phi5 - cur.phi5))  # fmt: skip
         if delta == 0.0 and not self.state.held_by_fixture:
             return  # quasi-static: nothing moved, nothing changes
         n = max(1, math.ceil(math.degrees(delta) / self.cfg.max_joint_step_deg))
@@ -613,18 +660,17 @@ class ContactPhysics:
         self.hand_pose = pose
         st = self.state
         world = self._world_samples(pose)
-        frames = self._frame_rows  # also says: the anchors' springs pull
         if st.dropped:
-            self._last = _Eval(np.zeros(3), {}, {})
+            self._last = _Eval(_ZERO3, {}, {})
             return
         if st.held_by_fixture:
-            ev = self._evaluate(st.pose, world)
+            ev = self._evaluate(st.pose.tolist(), world)
             # A person places the object only where the fingers leave room for it, and pulls
             # it back if a finger sweeps through it before the grasp.
             limit = self.cfg.fixture_max_overlap_mm if st.present else 0.0
             st.present = ev.max_depth <= limit
             if not st.present:
-                self._last = _Eval(np.zeros(3), {}, {})
+                self._last = _Eval(_ZERO3, {}, {})
                 return
             n1 = ev.contacts.get(DISTAL1, (None, None, 0.0))[2]
             n2 = ev.contacts.get(DISTAL2, (None, None, 0.0))[2]
@@ -632,10 +678,10 @@ class ContactPhysics:
             if min(n1, n2) > max(self.cfg.release_force_n, 0.0) and min(n1, n2) > 0.0:
                 st.held_by_fixture = False
                 self._anchor(ev, st.pose, carry=False)
-                if not self._solve(world, frames, None):
+                if not self._solve(world, None):
                     self._drop()
             return
-        if not self._solve(world, frames, dq):
+        if not self._solve(world, dq):
             self._halve_or_drop(prev, pose, halvings)
 
     def _halve_or_drop(self, prev: HandPose, pose: HandPose, halvings: int) -> None:
@@ -652,26 +698,28 @@ class ContactPhysics:
         self._substep(mid, halvings + 1)
         self._substep(pose, halvings + 1)  # after a drop, this only moves the fingers on
 
-    def _predict(self, dq: tuple[float, ...] | None) -> np.ndarray:
+    def _predict(self, dq: tuple[float, ...] | None) -> Vec3:
         """Newton's start: the last balance, moved on as it moved over the last substeps when
         the fingers keep moving the same way: linearly, or along the parabola through the last
         three balances (substeps of any lengths a2 : 1 : a1). A warm start saves iterations;
         the result is only ever checked against the residual's tolerance."""
-        x0 = self.state.pose.copy()
+        x0 = tuple(self.state.pose.tolist())
         if dq is None or not self._motion:
             return x0
         a1 = _along(dq, self._motion[-1][0])
         if a1 is None:
             return x0
-        dx1 = self._motion[-1][1]
+        (y, z, psi), (dy, dz, dpsi) = x0, self._motion[-1][1]
         if len(self._motion) == 2:
             a2 = _along(self._motion[-1][0], self._motion[0][0])
             if a2 is not None and 0.5 <= a1 <= 2.0 and 0.5 <= a2 <= 2.0:
                 curve = a1 * (a1 + 1.0) * a2 / (a2 + 1.0)  # Newton's divided differences
-                return x0 + a1 * dx1 + curve * (dx1 - a2 * self._motion[0][1])
-        return x0 + a1 * dx1
+                my, mz, mpsi = self._motion[0][1]
+                return (y + a1 * dy + curve * (dy - a2 * my), z + a1 * dz + curve * (dz - a2 * mz),
+                        psi + a1 * dpsi + curve * (dpsi - a2 * mpsi))  # fmt: skip
+        return y + a1 * dy, z + a1 * dz, psi + a1 * dpsi
 
-    def _solve(self, world: list, frames: list, dq: tuple[float, ...] | None) -> bool:
+    def _solve(self, world: list, dq: tuple[float, ...] | None) -> bool:
         """Find the balancing pose: first with every contact sticking, then with the contacts
         whose friction would exceed μ·N sliding at μ·N (an active set, grown until consistent).
         False (nothing changed but the solver's caches) if there is none with both distal pads
@@ -680,10 +728,11 @@ class ContactPhysics:
         slip: dict[int, float] = {}
         x, ev, converged = st.pose.copy(), None, False
         x0 = self._predict(dq)
+        pulls = self._pulls()
         for _ in range(len(self.surfaces) + 1):
-            x, ev, converged = self._newton(x0.copy(), world, frames, slip)
+            x, ev, converged = self._newton(x0, world, pulls, slip)
             if not converged:  # a kink (contact appearing, friction switching): MINPACK's hybrid
-                x, ev, converged = self._hybrid(st.pose.copy(), world, frames, slip)
+                x, ev, converged = self._hybrid(st.pose.copy(), world, pulls, slip)
             over = {
                 j: math.copysign(1.0, c[3])
                 for j, c in ev.contacts.items()
@@ -697,7 +746,10 @@ class ContactPhysics:
         if not converged or n1 <= 0.0 or n2 <= 0.0:
             return False
         self._anchor(ev, x, carry=True)
-        self._motion = [*self._motion[-1:], (dq, x - st.pose)] if dq is not None else []
+        if dq is not None:
+            self._motion = [*self._motion[-1:], (dq, tuple((x - st.pose).tolist()))]
+        else:
+            self._motion = []
         st.pose = x
         st.psi_min = min(st.psi_min, float(x[2]))
         st.psi_max = max(st.psi_max, float(x[2]))
@@ -708,33 +760,35 @@ class ContactPhysics:
         st = self.state
         st.dropped = True
         st.anchors.clear()
-        self._last = _Eval(np.zeros(3), {}, {})
+        self._last = _Eval(_ZERO3, {}, {})
 
     def _newton(
-        self, x: np.ndarray, world: list, frames: list, slip: dict[int, float]
+        self, x0: Vec3, world: list, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> tuple[np.ndarray, _Eval, bool]:
         """Damped Newton on the 3 pose coordinates. The Jacobian (finite differences) is kept
         from step to step, corrected by Broyden's update after every move, and refreshed only
         when a move fails to lower the residual or progress is slow."""
-        ev = self._evaluate(x, world, frames, slip)
+        x = x0  # plain floats inside (see _solve3)
+        ev = self._evaluate(x, world, pulls, slip)
         tol = 1e-6 + 1e-5 * sum(c[2] for c in ev.contacts.values())
-        lim = (2.0, 2.0, math.radians(3.0))  # a Newton move stays physical
+        lim0, lim2 = 2.0, math.radians(3.0)  # a Newton move stays physical (mm, mm, rad)
         J, fresh = self._jacobian, False
         for _ in range(60):
-            r = ev.residual.tolist()
+            r = ev.residual
             if max(abs(r[0]), abs(r[1]), abs(r[2])) < tol:
-                return x, ev, True
+                return np.array(x), ev, True
             if J is None:
-                J, fresh = self._fd_jacobian(x, ev.residual, world, frames, slip), True
+                J, fresh = self._fd_jacobian(x, r, world, pulls, slip), True
             dx = _solve3(J, r)
-            scale = min(1.0, *(lo / (abs(v) + 1e-300) for lo, v in zip(lim, dx, strict=True)))
+            scale = min(1.0, lim0 / (abs(dx[0]) + 1e-300), lim0 / (abs(dx[1]) + 1e-300),
+                        lim2 / (abs(dx[2]) + 1e-300))  # fmt: skip
             dx = (dx[0] * scale, dx[1] * scale, dx[2] * scale)
             base, step = _norm3(r), 1.0
-            x0, x1, x2 = x.tolist()
+            x0, x1, x2 = x
             while step > 1e-3:
-                x_c = np.array((x0 + step * dx[0], x1 + step * dx[1], x2 + step * dx[2]))
-                ev_c = self._evaluate(x_c, world, frames, slip)
-                r_c = ev_c.residual.tolist()
+                x_c = (x0 + step * dx[0], x1 + step * dx[1], x2 + step * dx[2])
+                ev_c = self._evaluate(x_c, world, pulls, slip)
+                r_c = ev_c.residual
                 if _norm3(r_c) < base:
                     x, ev = x_c, ev_c
                     break
@@ -750,33 +804,32 @@ class ContactPhysics:
             self._jacobian = J
             if not fresh and _norm3(r_c) > 0.25 * base:
                 J = None  # slow progress: the kept Jacobian is too far off
-        return x, ev, bool(np.max(np.abs(ev.residual)) < tol)
+        return np.array(x), ev, max(abs(v) for v in ev.residual) < tol
 
     def _hybrid(
-        self, x: np.ndarray, world: list, frames: list, slip: dict[int, float]
+        self, x: np.ndarray, world: list, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> tuple[np.ndarray, _Eval, bool]:
         """Powell's hybrid method (scipy) as the fallback of :meth:`_newton`."""
         sol = optimize.root(
-            lambda v: self._evaluate(v, world, frames, slip).residual, x, method="hybr",
-            options={"xtol": 1e-12, "maxfev": 400},
+            lambda v: np.array(self._evaluate(v.tolist(), world, pulls, slip).residual), x,
+            method="hybr", options={"xtol": 1e-12, "maxfev": 400},
         )  # fmt: skip
-        ev = self._evaluate(sol.x, world, frames, slip)
+        ev = self._evaluate(sol.x.tolist(), world, pulls, slip)
         tol = 1e-6 + 1e-5 * sum(c[2] for c in ev.contacts.values())
         moved = np.abs(sol.x - x)
         sane = moved[0] < 5.0 and moved[1] < 5.0 and moved[2] < math.radians(10.0)
-        return sol.x, ev, bool(np.max(np.abs(ev.residual)) < tol) and sane
+        return sol.x, ev, max(abs(v) for v in ev.residual) < tol and sane
 
     def _fd_jacobian(
-        self, x: np.ndarray, r: np.ndarray, world: list, frames: list, slip: dict[int, float]
+        self, x: Vec3, r: Vec3, world: list, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> Mat3:
-        h = np.array([1e-4, 1e-4, 1e-5])
-        J = np.empty((3, 3))
-        for k in range(3):
-            xk = x.copy()
-            xk[k] += h[k]
-            J[:, k] = (self._evaluate(xk, world, frames, slip).residual - r) / h[k]
-        (a, b, c), (d, e, f), (g, h_, i) = J.tolist()
-        return (a, b, c), (d, e, f), (g, h_, i)
+        cols = []
+        for k, h in enumerate((1e-4, 1e-4, 1e-5)):
+            xk = list(x)
+            xk[k] += h
+            rk = self._evaluate(xk, world, pulls, slip).residual
+            cols.append(((rk[0] - r[0]) / h, (rk[1] - r[1]) / h, (rk[2] - r[2]) / h))
+        return tuple(zip(*cols, strict=True))
 
     def _anchor(self, ev: _Eval, x: np.ndarray, carry: bool) -> None:
         """Re-anchor every contact at its current centroid, keeping the elastic displacement."""
@@ -807,8 +860,16 @@ class ContactPhysics:
         return not self.state.dropped
 
     def pressures(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-        """Surface index → (sample indices, pressure N/mm²) of the last step."""
-        return self._last.pressures
+        """Surface index → (sample indices, pressure N/mm²) of the last step's contact samples
+        (worked out from its compressions once asked, then kept)."""
+        last = self._last
+        if self._pressures is None or self._pressures[0] is not last:
+            out = {}
+            for j, (idx, start, c, top) in last.compressions.items():
+                touching = c > 0.0
+                out[j] = (idx[touching] - start, self._pressure(c[touching], top))
+            self._pressures = (last, out)
+        return self._pressures[1]
 
     def contacts(self) -> list[ContactTruth]:
         x = self.state.pose

@@ -14,6 +14,7 @@ from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import Finger, Point, contact_point, finger_ik, segment
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
+from sdh2svc.sim.physics import DISTAL1, DISTAL2, PALM
 
 rad, deg = math.radians, math.degrees
 OPEN = [90.0, -30.0, 30.0, 0.0, 0.0, -30.0, 30.0]
@@ -380,10 +381,10 @@ def test_a_substep_without_a_balance_is_retried_in_halves(monkeypatch) -> None:
     flaky.grasp()
     solve, failures = ContactPhysics._solve, [1]
 
-    def lost_once(self, world, frames, dq):  # type: ignore[no-untyped-def]
+    def lost_once(self, world, dq):  # type: ignore[no-untyped-def]
         if dq is not None and failures and failures.pop():
             return False
-        return solve(self, world, frames, dq)
+        return solve(self, world, dq)
 
     steady.roll_step()
     monkeypatch.setattr(ContactPhysics, "_solve", lost_once)
@@ -424,6 +425,29 @@ def test_finger_yield_fast_paths_match_newton_from_zero(name: str) -> None:
         phys._e_hint[0] = float(rng.random() * 2 * scale)  # any warm start, above or below
         got = phys._yield(overlap, wds, float(overlap.max()), 0)
         assert got == pytest.approx(want, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("name", ["egg", "rubber", "cylinder"])
+def test_pressures_are_the_contact_samples_under_the_pad_law(name: str) -> None:
+    """The pressures worked out from the last step's compressions are those of the samples still
+    pressed once the finger yielded: the pad's law of (overlap − yield), by the outline's sdf."""
+    rig = Rig(quiet(), name)
+    rig.grasp()
+    phys = rig.w.physics
+    x = phys.state.pose
+    c, s = math.cos(float(x[2])), math.sin(float(x[2]))
+    wds = phys.width_mm * phys.cfg.sample_spacing_mm
+    got = phys.pressures()
+    assert {DISTAL1, DISTAL2} <= set(got)
+    for j, (idx, p) in got.items():
+        pts, _n, _cols = phys._surface(j)
+        overlap = -phys.outline.sdf((pts - x[:2]) @ np.array([[c, -s], [s, c]]))
+        touching = np.nonzero(overlap > 0.0)[0]
+        e = _yield_reference(phys, overlap[touching], wds) if j != PALM else 0.0
+        want = touching[overlap[touching] > e]
+        assert np.array_equal(idx, want)
+        assert np.all(p > 0.0)
+        assert np.allclose(p, phys._pressure(overlap[want] - e), rtol=1e-6, atol=1e-9)
 
 
 def test_newton_move_and_surface_columns_match_their_definitions() -> None:
