@@ -139,6 +139,7 @@ class ServiceConfig(Frozen):
     send_timeout_s: Annotated[float, Field(gt=0.0, le=60.0)]
     send_buffer_kb: Annotated[int, Field(ge=16, le=65536)]
     tactile_max_hz: Annotated[float, Field(gt=0.0, le=30.0)]
+    viewer_max_hz: Annotated[float, Field(gt=0.0, le=30.0)]
     monitor_rate_hz: Annotated[float, Field(ge=0.0, le=30.0)]
     pose_hz: Annotated[float, Field(gt=0.0, le=30.0)]
     status_hz: Annotated[float, Field(gt=0.0, le=30.0)]

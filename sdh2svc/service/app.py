@@ -133,7 +133,8 @@ async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> A
     from sdh2svc.service.viewer import Viewer
 
     v = Viewer(cfg, host=cfg.service.host, port=cfg.service.viser_port,
-               on_command=station.command, allow_start=not cfg.service.token)  # fmt: skip
+               on_command=station.command, allow_start=not cfg.service.token,
+               max_hz=cfg.service.viewer_max_hz)  # fmt: skip
     await v.start()
     hub.add_listener(v.handle)
     log.info("3-D view at %s", v.url)
