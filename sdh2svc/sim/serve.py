@@ -36,7 +36,6 @@ class LabAssistant:
 
     def __init__(self, world: PhysicsWorld, after_s: float, poll_s: float = 0.1) -> None:
         self.world, self.after_s, self.poll_s = world, after_s, poll_s
-        self.replaced = 0
         self._loose_since: float | None = None
 
     def check(self, now: float) -> bool:
@@ -51,7 +50,6 @@ class LabAssistant:
             return False
         self.world.place(self.world.obj)
         self._loose_since = None
-        self.replaced += 1
         _say(f"the {t.object} was let go (released or dropped) and untouched for "
              f"{self.after_s:g} s: put back between the fingertips")  # fmt: skip
         return True
@@ -124,22 +122,17 @@ class SimulatedHand:
     dsa: DsaconEmulator
     sdh: Sdh2Emulator
     endpoints: dict[str, list[Endpoint]] = field(default_factory=dict)
-    assistant: LabAssistant | None = None
-    _assistant_task: asyncio.Task[None] | None = None
+    _assistant: asyncio.Task[None] | None = None  # the LabAssistant's polling task
 
     def urls(self, device: str) -> list[str]:
         return [ep.url for ep in self.endpoints.get(device, [])]
 
-    async def stop_assistant(self) -> None:
-        task, self._assistant_task = self._assistant_task, None
-        self.assistant = None
+    async def stop(self) -> None:
+        task, self._assistant = self._assistant, None
         if task is not None:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-
-    async def stop(self) -> None:
-        await self.stop_assistant()
         for eps in self.endpoints.values():
             for ep in eps:
                 with contextlib.suppress(Exception):
@@ -197,6 +190,6 @@ async def start_simulated_hand(
         raise
     after = settings.sim.replace_after_s if replace_after_s is None else replace_after_s
     if after > 0 and unix_dir is None:
-        hand.assistant = LabAssistant(world, after)
-        hand._assistant_task = asyncio.create_task(hand.assistant.run(), name="lab-assistant")
+        assistant = LabAssistant(world, after)
+        hand._assistant = asyncio.create_task(assistant.run(), name="lab-assistant")
     return hand
