@@ -10,6 +10,10 @@ Two-finger mode (default, §3.4–3.5): Finger 2 follows its route (φ4 − Δφ
 inclination change it imposes, dσ, is reinforced by λ; Finger 1 puts A on the circle of radius
 Λad around the new B at inclination σd. One-finger mode (§3.3): Finger 2 holds still and Finger 1
 turns A around B by dσ per iteration.
+
+Two additions to the thesis's reversal rule: a half stroke counts only when it moved, and when
+the rolling contact has carried ω past a cone's limit, or a contact onto the pad's edge row, the
+way back is not refused for still being there (see :attr:`RollState.out_A`).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from enum import StrEnum
 import numpy as np
 
 from sdh2svc.control.params import RollingParams
-from sdh2svc.model.friction import inside_cone, omega
+from sdh2svc.model.friction import cone_margin, inside_cone, omega
 from sdh2svc.model.kinematics import (
     Finger,
     HandPoints,
@@ -34,6 +38,10 @@ from sdh2svc.model.kinematics import (
     segment,
 )
 from sdh2svc.model.observe import ModelContext, Observation, observe
+
+# How much further out than now a step back may take ω (see RollState.out_A): the step's own
+# effect on ω near a reversal is about 0.01°, the drift of a rolling contact 0.3° per iteration.
+RETREAT_SLACK = math.radians(0.1)
 
 
 class Reversal(StrEnum):
@@ -53,9 +61,19 @@ class RollState:
 
     direction: int = 1  # +1: Δφ as configured; −1: reversed
     F_prev: float | None = None
-    half_strokes: int = 0
+    half_strokes: int = 0  # half strokes that moved: a reversal on the spot is not one
     iteration: int = 0
     consecutive_reversals: int = 0
+    last_move: int = 0  # the direction of the last commanded move (0: none yet)
+    # While the measured ωA (ωB) is outside its cone: the direction of the move that carried it
+    # out, else 0. The plan respects the cone, but the rolling contact does not follow the plan
+    # exactly and can carry ω past the limit; near the end of a stroke the route then barely
+    # changes ω (the pad and AB turn together), so both directions would "leave" the cone and
+    # the thesis's rule reverses on the spot for ever. A step in the other direction passes that
+    # cone's check unless it takes ω further out than now.
+    out_A: int = 0
+    out_B: int = 0
+    out_edge: int = 0  # the same for a contact on its pad's first or last row
 
     @property
     def strokes(self) -> int:
@@ -157,14 +175,34 @@ class _Route:
 
 
 def _reverse(state: RollState, F: float, reason: Reversal) -> RollState:
+    moved = state.consecutive_reversals == 0 and state.iteration > 0
     return replace(
         state,
         direction=-state.direction,
         F_prev=F,
-        half_strokes=state.half_strokes + 1,
+        half_strokes=state.half_strokes + moved,
         iteration=state.iteration + 1,
         consecutive_reversals=state.consecutive_reversals + 1,
     )
+
+
+def _carried_out(was: int, out: bool, state: RollState) -> int:
+    """The new RollState.out_A/out_B/out_edge, given whether the condition holds now."""
+    return (was or state.last_move) if out else 0
+
+
+def _outside(w: float | None, alpha: float) -> bool:
+    return w is not None and not inside_cone(w, alpha)
+
+
+def _cone_refuses(w_d: float, w: float | None, out: int, direction: int, alpha: float) -> bool:
+    """Whether the planned ω ``w_d`` reverses the rotation: it leaves the cone (thesis), and
+    is not a step back from a measured ω already outside by no more than the slack."""
+    if inside_cone(w_d, alpha):
+        return False
+    if w is None or direction != -out:  # out == 0: not carried out by a move
+        return True
+    return cone_margin(w_d, alpha) < cone_margin(w, alpha) - RETREAT_SLACK
 
 
 def step(
@@ -181,14 +219,22 @@ def step(
     F = (c1.force_library + c2.force_library) / 2  # eq 3.16
     dF = 0.0 if state.F_prev is None else F - state.F_prev
 
+    alpha = params.alpha
+    state = replace(
+        state,
+        out_A=_carried_out(state.out_A, _outside(obs.omega_A, alpha), state),
+        out_B=_carried_out(state.out_B, _outside(obs.omega_B, alpha), state),
+        out_edge=_carried_out(state.out_edge, c1.at_edge or c2.at_edge, state),
+    )
+
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
         return StepResult(_reverse(state, F, reason), None, reason, obs, F, dF, plan)
 
     present = min(c1.force_library, c2.force_library) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
         return reverse(Reversal.CONTACT_LOST)
-    if c1.at_edge or c2.at_edge:
-        return reverse(Reversal.CONTACT_EDGE)
+    if (c1.at_edge or c2.at_edge) and state.direction != -state.out_edge:
+        return reverse(Reversal.CONTACT_EDGE)  # unless moving back the way it came
     assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
 
@@ -215,10 +261,11 @@ def step(
     wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
     wb = omega(Finger.TWO, phi4d + phi5d, c2.x3_mm, B_d, A_d, pad)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
-    if not inside_cone(wa, params.alpha):
+    if _cone_refuses(wa, obs.omega_A, state.out_A, state.direction, alpha):
         return reverse(Reversal.CONE_A, plan)
-    if not inside_cone(wb, params.alpha):
+    if _cone_refuses(wb, obs.omega_B, state.out_B, state.direction, alpha):
         return reverse(Reversal.CONE_B, plan)
-    nxt = replace(state, F_prev=F, iteration=state.iteration + 1, consecutive_reversals=0)
+    nxt = replace(state, F_prev=F, iteration=state.iteration + 1, consecutive_reversals=0,
+                  last_move=state.direction)  # fmt: skip
     targets = HandPose(phi2d, phi3d, phi4d, phi5d)
     return StepResult(nxt, targets, None, obs, F, dF, plan)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -137,7 +138,8 @@ def test_contact_lost_reverses(cfg: Settings) -> None:
     ctx = cfg.model_context()
     r = step(RollState(), MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), params(cfg), ctx)
     assert r.reversal is Reversal.CONTACT_LOST and r.targets is None
-    assert r.state.direction == -1 and r.state.half_strokes == 1
+    assert r.state.direction == -1
+    assert r.state.half_strokes == 0  # reversed before it ever moved: no half stroke
     weak = frame(20.0, amplitude=15.0)  # present on the pad, but below contact_force_min
     r = step(RollState(), MIRROR, frame(20.0), weak, params(cfg), ctx)
     assert r.reversal is Reversal.CONTACT_LOST
@@ -172,6 +174,61 @@ def test_cone_b_reverses(cfg: Settings) -> None:
     assert found is not None
     assert abs(math.degrees(found.plan.omega_A_d) - 90) < 10.0
     assert abs(math.degrees(found.plan.omega_B_d) - 90) >= 10.0
+
+
+def _past_cone_b(cfg: Settings, p: RollingParams, beyond_deg: float) -> HandPose:
+    """A pose whose measured ωB is more than ``beyond_deg`` outside the cone."""
+    for tenth in range(300, 900):
+        pose = HandPose(rad(-20), rad(30), rad(-20), rad(tenth / 10))
+        w = step(RollState(), pose, frame(20.0), frame(20.0), p, cfg.model_context()).obs.omega_B
+        if abs(math.degrees(w) - 90) > p.alpha_deg + beyond_deg:
+            return pose
+    raise AssertionError("no pose found")
+
+
+def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> None:
+    """ωB already outside (the rolling contact overshot): the thesis's rule refuses both
+    directions; once a move in one direction carried it out, the other passes unless it takes
+    ωB further out."""
+    ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
+    pose = _past_cone_b(cfg, p, beyond_deg=1.0)
+    m = frame(20.0)
+    for d in (1, -1):  # never moved: the thesis's rule
+        r = step(RollState(direction=d), pose, m, m, p, ctx)
+        assert r.reversal is Reversal.CONE_B and r.state.out_B == 0
+    # which way of the route takes ωB back towards the cone (λ = 0: Finger 2's pad turns ωB)
+    plans = {d: step(RollState(direction=d), pose, m, m, p, ctx).plan.omega_B_d for d in (1, -1)}
+    back = min(plans, key=lambda d: abs(plans[d] - math.pi / 2))
+    # the last move went the other way: the way back passes, still outside, so out_B stays
+    came = RollState(direction=back, iteration=9, last_move=-back, consecutive_reversals=1)
+    r = step(came, pose, m, m, p, ctx)
+    assert r.reversal is None and r.targets is not None
+    assert r.state.out_B == -back and r.state.last_move == back
+    # carried out by a move the same way: reverse, as the thesis does (no half stroke: no move)
+    r = step(replace(came, last_move=back), pose, m, m, p, ctx)
+    assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 0
+    # the way "back" that would take ωB further out than now is refused
+    r = step(replace(came, direction=-back, last_move=back), pose, m, m, p, ctx)
+    assert r.reversal is Reversal.CONE_B
+    # back inside: forgotten
+    r = step(replace(came, out_B=-back), MIRROR, m, m, p, ctx)
+    assert r.reversal is None and r.state.out_B == 0
+
+
+def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
+    """A contact on the edge row reverses the rotation; once a move carried it there, the move
+    back passes (the reversal itself moves nothing, so the thesis's rule would repeat)."""
+    ctx, p = cfg.model_context(), params(cfg)
+    edge = np.zeros((13, 6), np.uint16)
+    edge[12, 1:5] = 1500  # on the last row
+    r = step(RollState(iteration=5, last_move=1), MIRROR, edge, edge, p, ctx)
+    assert r.reversal is Reversal.CONTACT_EDGE and r.state.out_edge == 1
+    assert r.state.half_strokes == 1 and r.state.direction == -1
+    r = step(r.state, MIRROR, edge, edge, p, ctx)
+    assert r.reversal is None and r.targets is not None  # on its way back
+    assert r.state.out_edge == 1 and r.state.last_move == -1
+    r = step(r.state, MIRROR, frame(20.0), frame(20.0), p, ctx)
+    assert r.reversal is None and r.state.out_edge == 0  # off the edge: forgotten
 
 
 def test_workspace_reverses_at_joint_limit(cfg: Settings) -> None:
@@ -209,10 +266,14 @@ def test_reversal_flips_direction_and_counts_strokes(cfg: Settings) -> None:
     ctx = cfg.model_context()
     empty = np.zeros((13, 6), np.uint16)
     s = RollState()
-    for _ in range(4):
+    for _ in range(4):  # move, then reverse: four half strokes
+        s = step(s, MIRROR, frame(20.0), frame(20.0), params(cfg), ctx).state
+        assert s.consecutive_reversals == 0
         s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
     assert s.half_strokes == 4 and s.strokes == 2 and s.direction == 1
-    assert s.consecutive_reversals == 4
+    for _ in range(3):  # reversing on the spot is not a half stroke
+        s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
+    assert s.half_strokes == 4 and s.consecutive_reversals == 4 and s.direction == -1
     r = step(RollState(direction=-1), MIRROR, frame(20.0), frame(20.0), params(cfg), ctx)
     assert r.targets.phi4 == pytest.approx(MIRROR.phi4 + rad(0.25))  # reversed route
 

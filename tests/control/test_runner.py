@@ -77,6 +77,8 @@ def test_full_run_completes_its_strokes_without_a_drop(
     assert phases == ["connecting", "pre-shape", "grasping", "rolling", "releasing", "done"]
     assert result.status == "completed" and result.strokes == cfg.rolling.cycles
     assert len(result.reversals) >= 2 * cfg.rolling.cycles
+    at = [r["iteration"] for r in result.reversals]
+    assert min(b - a for a, b in zip([0, *at], at, strict=False)) >= 5  # every half stroke moved
     assert truth.held and not truth.dropped and truth.slips == 0
     assert truth.rotation_range_deg > 5.0  # it really rolled
     assert max(result.forces) < cfg.safety.force_ceiling_factor * cfg.rolling.grasp_force
