@@ -1,6 +1,7 @@
 """The service under load: real-time simulated runs with no clients, and the same runs with 20
 WebSocket clients and the viser 3-D view connected — loop rate, sense→command latency, messages
-dropped per client, and the service process's CPU use — in two configurations:
+dropped per client, and the CPU use of the service (and of its 3-D view's process) — in two
+configurations:
 
 * embedded (``serve --sim``): the simulated hand's controllers share the service's event loop,
   so the telemetry work delays their replies too — which a real hand's firmware would not
@@ -48,6 +49,15 @@ def _cpu_s(pid: int) -> float:
     """User + system CPU seconds of a process (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (the service's: the 3-D view, multiprocessing's tracker)."""
+    kids: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            kids += [int(k) for k in (task / "children").read_text().split()]
+    return kids
 
 
 def _load() -> str:
@@ -135,7 +145,8 @@ async def _run(
     if viewer and svc.viewer_url:
         tasks.append(asyncio.create_task(_viser(svc.viewer_url, viser_counts, stop)))
     await asyncio.sleep(1.0)
-    pids = [svc.proc.pid, os.getpid()] + ([hand.proc.pid] if hand else [])
+    kids = _children(svc.proc.pid)
+    pids = [svc.proc.pid, os.getpid()] + ([hand.proc.pid] if hand else []) + kids
     cpu0, t0 = [_cpu_s(p) for p in pids], time.monotonic()
     put_backs = hand.put_backs() if hand else 0
     body: dict[str, Any] = {"params": {"cycles": 1}}
@@ -160,7 +171,7 @@ async def _run(
         while hand.put_backs() <= put_backs and time.monotonic() < deadline:
             await asyncio.sleep(0.1)
     return {"summary": summary, "cpu": cpu[0], "clients_cpu": cpu[1],
-            "hand_cpu": cpu[2] if hand else None,
+            "hand_cpu": cpu[2] if hand else None, "view_cpu": sum(cpu[-len(kids):] if kids else []),
             "counts": counts, "viser": viser_counts,
             "disconnected": st["telemetry"]["disconnected_slow"],
             "latencies": [s["latency_ms"] for s in page["samples"]]}  # fmt: skip
@@ -175,6 +186,7 @@ def _pool(runs: list[dict[str, Any]]) -> dict[str, float]:
         "fps": statistics.fmean(r["summary"]["frames"]["frames_per_s"] for r in runs),
         "cpu": 100 * statistics.fmean(r["cpu"] for r in runs),
         "hand_cpu": 100 * statistics.fmean(r["hand_cpu"] or 0.0 for r in runs),
+        "view_cpu": 100 * statistics.fmean(r["view_cpu"] for r in runs),
         "clients_cpu": 100 * statistics.fmean(r["clients_cpu"] for r in runs),
         "skipped": sum(r["summary"].get("frames_skipped") or 0 for r in runs),
     }  # fmt: skip
@@ -203,9 +215,12 @@ def _report(title: str, m: dict[str, Any]) -> dict[str, float]:
             ("service CPU, % of a core", "cpu")]  # fmt: skip
     if b["hand_cpu"] > 0:
         rows.append(("hand process CPU, %", "hand_cpu"))
+    if lo["view_cpu"] > 0:
+        rows.append(("3-D view process CPU, %", "view_cpu"))
     rows.append(("bench (clients) CPU, %", "clients_cpu"))
     for name, key in rows:
-        print(f"  {name:28s} {b[key]:12.1f} {lo[key]:16.1f} {lo[key] / b[key]:7.2f}")
+        ratio = f"{lo[key] / b[key]:7.2f}" if b[key] else f"{'–':>7s}"
+        print(f"  {name:28s} {b[key]:12.1f} {lo[key]:16.1f} {ratio}")
     print(f"  {'frames skipped by the loop':28s} {b['skipped']:12.0f} {lo['skipped']:16.0f}")
     per_run = [(percentile(r["latencies"], 99), percentile(q["latencies"], 99))
                for r, q in zip(base, loaded, strict=True)]  # fmt: skip

@@ -134,6 +134,7 @@ class ServiceConfig(Frozen):
     port: Annotated[int, Field(ge=0, le=65535)]
     viser_port: Annotated[int, Field(ge=0, le=65535)]
     viewer: bool
+    viewer_process: bool
     token: str
     telemetry_queue: Annotated[int, Field(ge=1, le=100_000)]
     send_timeout_s: Annotated[float, Field(gt=0.0, le=60.0)]

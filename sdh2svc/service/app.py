@@ -51,7 +51,7 @@ class Services:
     cfg: Settings
     hub: TelemetryHub
     station: Station
-    viewer: Any = None  # sdh2svc.service.viewer.Viewer, when on
+    viewer: Any = None  # a Viewer or ViewerProcess (sdh2svc.service.viewer*), when on
 
     @property
     def viewer_url(self) -> str | None:
@@ -130,11 +130,15 @@ def create_app(services: Services) -> FastAPI:
 
 
 async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> Any:
-    from sdh2svc.service.viewer import Viewer
+    """The 3-D view, in a process of its own unless ``service.viewer_process`` is off."""
+    if cfg.service.viewer_process:
+        from sdh2svc.service.viewer_proc import ViewerProcess as View
+    else:
+        from sdh2svc.service.viewer import Viewer as View  # type: ignore[assignment]
 
-    v = Viewer(cfg, host=cfg.service.host, port=cfg.service.viser_port,
-               on_command=station.command, allow_start=not cfg.service.token,
-               max_hz=cfg.service.viewer_max_hz)  # fmt: skip
+    v = View(cfg, host=cfg.service.host, port=cfg.service.viser_port,
+             on_command=station.command, allow_start=not cfg.service.token,
+             max_hz=cfg.service.viewer_max_hz)  # fmt: skip
     await v.start()
     hub.add_listener(v.handle)
     log.info("3-D view at %s", v.url)
@@ -341,4 +345,3 @@ def _run_or_404(store: RunStore, run_id: int) -> dict[str, Any]:
     if run is None:
         raise ServiceError(404, f"no run {run_id} (GET /api/runs lists them)")
     return run
-
