@@ -38,6 +38,7 @@ from sdh2svc.config import Settings
 from sdh2svc.model.friction import pad_tangent
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
+from sdh2svc.service.pacing import paced
 
 _T = TypeVar("_T")
 log = logging.getLogger(__name__)
@@ -447,24 +448,12 @@ class Viewer:
     # -- rendering ---------------------------------------------------------------------------
 
     async def _render_loop(self) -> None:
-        """Draw when telemetry is delivered — the hub delivers in the control loop's quiet
-        time, after an iteration — at most ``max_hz``: a delivery too soon after the last frame
-        is merged into the next one, drawn at the next delivery (or after a period, if none
-        comes), never on a timer of its own that could fall inside an iteration."""
-        loop = asyncio.get_running_loop()
-        last = -math.inf
-        while True:
-            await self._wake.wait()
-            while (early := last + 0.9 * self._period - loop.time()) > 0:
-                self._wake.clear()
-                try:
-                    async with asyncio.timeout(early + self._period):
-                        await self._wake.wait()
-                except TimeoutError:
-                    break
-            self._wake.clear()
-            self.render()
-            last = loop.time()
+        """Draw on delivery, at most ``max_hz`` (see :func:`paced`)."""
+        await paced(self._wake, self._period, self._frame)
+
+    async def _frame(self) -> bool:
+        self.render()
+        return True
 
     def render(self) -> None:
         """Apply what changed since the last frame, as one atomic batch (nobody watching: keep

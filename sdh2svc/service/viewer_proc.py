@@ -29,7 +29,6 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import math
 import multiprocessing
 import os
 import pickle
@@ -43,6 +42,7 @@ from multiprocessing.process import BaseProcess
 from typing import Any
 
 from sdh2svc.config import Settings
+from sdh2svc.service.pacing import paced
 
 log = logging.getLogger(__name__)
 
@@ -260,27 +260,17 @@ class ViewerProcess:
         self._wake.set()
 
     async def _forward_loop(self) -> None:
-        """Forward on delivery (the control loop's quiet time), at most ``max_hz``, only while
-        watched; a delivery too soon is merged into the next batch (as Viewer._render_loop)."""
-        loop = asyncio.get_running_loop()
-        last = -math.inf
-        while True:
-            await self._wake.wait()
-            while (early := last + 0.9 * self._period - loop.time()) > 0:
-                self._wake.clear()
-                try:
-                    async with asyncio.timeout(early + self._period):
-                        await self._wake.wait()
-                except TimeoutError:
-                    break
-            self._wake.clear()
-            chan = self._chan
-            if chan is None or chan.closed or not self._watched or not self._changed:
-                continue
-            if chan.busy:  # the child is behind: what arrives meanwhile replaces the stale
-                await chan.drained()
-            self._forward(chan)
-            last = loop.time()
+        """Forward on delivery, at most ``max_hz``, only while watched (see :func:`paced`)."""
+        await paced(self._wake, self._period, self._forward_now)
+
+    async def _forward_now(self) -> bool:
+        chan = self._chan
+        if chan is None or chan.closed or not self._watched or not self._changed:
+            return False
+        if chan.busy:  # the child is behind: what arrives meanwhile replaces the stale
+            await chan.drained()
+        self._forward(chan)
+        return True
 
     def _forward(self, chan: Channel) -> None:
         changed, self._changed = self._changed, set()
