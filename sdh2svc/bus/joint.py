@@ -430,8 +430,16 @@ class JointLink:
         on_event: Callable[[LinkEvent], None] | None = None,
     ) -> Self:
         """Open ``url`` and run the handshake; raises :class:`JointLinkError` on failure."""
-        link = cls(url, binary=binary, binary_crc=binary_crc, timeout_s=timeout_s,
-                   retries=retries, limits=limits, reconnect=reconnect, on_event=on_event)
+        link = cls(
+            url,
+            binary=binary,
+            binary_crc=binary_crc,
+            timeout_s=timeout_s,
+            retries=retries,
+            limits=limits,
+            reconnect=reconnect,
+            on_event=on_event,
+        )
         await link.connect()
         return link
 

@@ -82,4 +82,3 @@ def observe(
     wa = omega(Finger.ONE, pose.phi2 + pose.phi3, c1.x3_mm, pts.A, pts.B, pad)
     wb = omega(Finger.TWO, pose.phi4 + pose.phi5, c2.x3_mm, pts.B, pts.A, pad)
     return Observation(pose, c1, c2, pts, lam, sigma, wa, wb)
-

@@ -327,11 +327,20 @@ def _vector(kw: str, *, settable: bool, integer: bool = False) -> CommandSpec:
     )
 
 
-def _scalar(kw: str, n: int, *, integer: bool, readable: bool = True,
-            reply: int | None = 1) -> CommandSpec:
+def _scalar(
+    kw: str, n: int, *, integer: bool, readable: bool = True, reply: int | None = 1
+) -> CommandSpec:
     # Integer scalars echo their integer, except selgrip whose reply starts with a duration.
-    return CommandSpec(kw, ArgForm.SCALAR, settable=True, n_values=n, readable=readable,
-                       reply_values=reply, integer=integer, reply_integer=integer and reply != 2)
+    return CommandSpec(
+        kw,
+        ArgForm.SCALAR,
+        settable=True,
+        n_values=n,
+        readable=readable,
+        reply_values=reply,
+        integer=integer,
+        reply_integer=integer and reply != 2,
+    )
 
 
 def _bare(kw: str, reply: int | None, *, integer: bool = False) -> CommandSpec:
@@ -390,8 +399,9 @@ ASCII_COMMANDS: Final[Mapping[str, CommandSpec]] = MappingProxyType({s.keyword: 
 """Every ASCII command of §2.4 by lower-case keyword."""
 
 
-def _shape_error(spec: CommandSpec, axis: int | None,
-                 values: tuple[float, ...] | None) -> tuple[SdhError, str] | None:
+def _shape_error(
+    spec: CommandSpec, axis: int | None, values: tuple[float, ...] | None
+) -> tuple[SdhError, str] | None:
     """Check a request form against ``spec``; the error codes are our choice (§2.5 is [U]).
 
     Form not offered → CMD_FORMAT_ERROR; values for a read-only command → NO_PARAMS_EXPECTED;
@@ -453,8 +463,9 @@ def _check_axis(axis: int | None) -> None:
         raise ValueError(f"axis {axis} out of range 0..{NUM_AXES - 1}")
 
 
-def encode_ascii(keyword: str, values: Values = None, *, axis: int | None = None,
-                 fmt: str = DEFAULT_FMT) -> bytes:
+def encode_ascii(
+    keyword: str, values: Values = None, *, axis: int | None = None, fmt: str = DEFAULT_FMT
+) -> bytes:
     """Encode a host command line (§2.3 forms) terminated by ``\\r\\n``.
 
     ``values=None`` is a get (``p``, ``p(3)``); a number or sequence is a set (``p(3)=-45.000``,
@@ -485,8 +496,9 @@ def encode_blank() -> bytes:
     return b" " + EOL
 
 
-def encode_reply(keyword: str, values: Values | str, *, axis: int | None = None,
-                 fmt: str = DEFAULT_FMT) -> bytes:
+def encode_reply(
+    keyword: str, values: Values | str, *, axis: int | None = None, fmt: str = DEFAULT_FMT
+) -> bytes:
     """Encode a controller reply ``KEYWORD=v0,v1,…\\r\\n`` (§2.3, PART 3 item 2).
 
     The keyword is echoed in upper case, with ``(n)`` for single-axis forms. ``values`` may be a
@@ -593,8 +605,12 @@ _COMMAND_RE: Final = re.compile(
 )
 
 
-def parse_command_line(line: str, *, commands: Mapping[str, CommandSpec] | None = ASCII_COMMANDS,
-                       num_axes: int = NUM_AXES) -> AsciiCommand | BlankLine:
+def parse_command_line(
+    line: str,
+    *,
+    commands: Mapping[str, CommandSpec] | None = ASCII_COMMANDS,
+    num_axes: int = NUM_AXES,
+) -> AsciiCommand | BlankLine:
     """Parse one host command line (controller side, §2.3, PART 3 item 1).
 
     Leading/trailing CR, LF and spaces are stripped; spaces around ``=``, ``(``, ``)``, ``,`` and
@@ -772,8 +788,9 @@ def _check_crc(frame: bytes) -> None:
         raise SdhProtocolError(SdhError.CRC_ERROR, f"CRC 0x{got:04x}, expected 0x{want:04x}")
 
 
-def encode_binary_request(cmd: BinaryCommand | int, values: Sequence[float] | None = None, *,
-                          with_crc: bool = True) -> bytes:
+def encode_binary_request(
+    cmd: BinaryCommand | int, values: Sequence[float] | None = None, *, with_crc: bool = True
+) -> bytes:
     """Encode a host request ``cmd | nb_data_bytes | nb_valid | [7×f32] | [CRC16 LE]`` (§2.6).
 
     ``values=None`` is a get (5 bytes serial, 3 TCP); 7 values a set (33 / 31). ``with_crc``
@@ -786,8 +803,13 @@ def encode_binary_request(cmd: BinaryCommand | int, values: Sequence[float] | No
     return _with_crc(bytes((code, nb, nvalid)) + payload, with_crc)
 
 
-def encode_binary_reply(cmd: BinaryCommand | int, status: SdhError | int = SdhError.SUCCESS,
-                        values: Sequence[float] | None = None, *, with_crc: bool = True) -> bytes:
+def encode_binary_reply(
+    cmd: BinaryCommand | int,
+    status: SdhError | int = SdhError.SUCCESS,
+    values: Sequence[float] | None = None,
+    *,
+    with_crc: bool = True,
+) -> bytes:
     """Encode a controller reply ``cmd | nb | 7 | status | 7×f32 | [CRC16 LE]`` (§2.6).
 
     Always 7 values (``None`` sends zeros, e.g. with an error status); ``nb_data_bytes`` is 32
@@ -1016,8 +1038,14 @@ class ReplyParser(_Framer[ReplyEvent]):
     line parser.
     """
 
-    def __init__(self, *, crc: bool | None = None, max_line: int = DEFAULT_MAX_LINE,
-                 report_debug: bool = True, binary: bool = True) -> None:
+    def __init__(
+        self,
+        *,
+        crc: bool | None = None,
+        max_line: int = DEFAULT_MAX_LINE,
+        report_debug: bool = True,
+        binary: bool = True,
+    ) -> None:
         super().__init__(max_line=max_line, binary=binary)
         self._crc = crc
         self._report_debug = report_debug
@@ -1073,9 +1101,15 @@ class HostStreamParser(_Framer[HostEvent]):
     See the module docstring and :data:`RESYNC` for recovery after garbage.
     """
 
-    def __init__(self, *, crc: bool | None = None, max_line: int = DEFAULT_MAX_LINE,
-                 commands: Mapping[str, CommandSpec] | None = ASCII_COMMANDS,
-                 num_axes: int = NUM_AXES, binary: bool = True) -> None:
+    def __init__(
+        self,
+        *,
+        crc: bool | None = None,
+        max_line: int = DEFAULT_MAX_LINE,
+        commands: Mapping[str, CommandSpec] | None = ASCII_COMMANDS,
+        num_axes: int = NUM_AXES,
+        binary: bool = True,
+    ) -> None:
         super().__init__(max_line=max_line, binary=binary)
         self._crc = crc
         self._commands = commands
@@ -1085,36 +1119,45 @@ class HostStreamParser(_Framer[HostEvent]):
     def _line(self, raw: bytes) -> list[HostEvent]:
         text = _printable(raw)
         if text is None:
-            return [ProtocolErrorEvent(SdhError.CMD_FORMAT_ERROR, "non-printable command line",
-                                       raw, ErrorSource.LINE)]
+            return [
+                ProtocolErrorEvent(
+                    SdhError.CMD_FORMAT_ERROR, "non-printable command line", raw, ErrorSource.LINE
+                )
+            ]
         try:
             return [parse_command_line(text, commands=self._commands, num_axes=self._num_axes)]
         except SdhProtocolError as exc:
             return [ProtocolErrorEvent(exc.code, exc.message, raw, ErrorSource.LINE)]
 
     def _overflow(self, prefix: bytes) -> HostEvent:
-        return ProtocolErrorEvent(SdhError.MAX_COMMANDLINE_EXCEEDED,
-                                  f"line longer than {self._max_line} bytes", prefix,
-                                  ErrorSource.LINE)
+        return ProtocolErrorEvent(
+            SdhError.MAX_COMMANDLINE_EXCEEDED,
+            f"line longer than {self._max_line} bytes",
+            prefix,
+            ErrorSource.LINE,
+        )
 
     def _garbage(self, buf: bytearray, code: SdhError, message: str) -> tuple[int, HostEvent]:
         return 1, ProtocolErrorEvent(code, message, bytes(buf[:1]), ErrorSource.GARBAGE)
 
     def _frame(self, buf: bytearray) -> tuple[int, HostEvent] | None:
         if buf[0] not in _CODES:
-            return self._garbage(buf, SdhError.CMD_UNKNOWN,
-                                 f"unknown binary command 0x{buf[0]:02x}")
+            return self._garbage(
+                buf, SdhError.CMD_UNKNOWN, f"unknown binary command 0x{buf[0]:02x}"
+            )
         if len(buf) < 2:
             return None
         if buf[1] not in self._nb:
-            return self._garbage(buf, SdhError.CMD_FORMAT_ERROR,
-                                 f"implausible request nb_data_bytes {buf[1]}")
+            return self._garbage(
+                buf, SdhError.CMD_FORMAT_ERROR, f"implausible request nb_data_bytes {buf[1]}"
+            )
         if len(buf) < 3:
             return None
         form = _request_crc_form(buf[1], buf[2])
         if form is None:
-            return self._garbage(buf, SdhError.CMD_FORMAT_ERROR,
-                                 f"implausible request nb_valid_params {buf[2]}")
+            return self._garbage(
+                buf, SdhError.CMD_FORMAT_ERROR, f"implausible request nb_valid_params {buf[2]}"
+            )
         total = 2 + buf[1]
         if len(buf) < total:
             return None
@@ -1122,8 +1165,9 @@ class HostStreamParser(_Framer[HostEvent]):
         try:
             return total, BinaryRequest.decode(frame, crc=self._crc)
         except SdhProtocolError as exc:
-            return total, ProtocolErrorEvent(exc.code, exc.message, frame, ErrorSource.FRAME,
-                                             BinaryCommand(frame[0]), form)
+            return total, ProtocolErrorEvent(
+                exc.code, exc.message, frame, ErrorSource.FRAME, BinaryCommand(frame[0]), form
+            )
 
 
 class Role(StrEnum):
@@ -1143,8 +1187,9 @@ class LineParser:
     :data:`HostEvent` events as :class:`HostStreamParser` does.
     """
 
-    def __init__(self, *, max_line: int = DEFAULT_MAX_LINE, role: Role = Role.HOST,
-                 report_debug: bool = True) -> None:
+    def __init__(
+        self, *, max_line: int = DEFAULT_MAX_LINE, role: Role = Role.HOST, report_debug: bool = True
+    ) -> None:
         self._impl: ReplyParser | HostStreamParser
         if role is Role.HOST:
             self._impl = ReplyParser(max_line=max_line, report_debug=report_debug, binary=False)

@@ -284,7 +284,8 @@ class Station:
                 "angles_deg": list(j.last_actual) if j and j.last_actual else None,
             },
             "links": {
-                "dsa_url": self.dsa_url, "sdh_url": self.sdh_url,
+                "dsa_url": self.dsa_url,
+                "sdh_url": self.sdh_url,
                 "tactile": _stats(t) if t else None,
             },
             "run": run,
@@ -389,4 +390,3 @@ def _stats(t: TactileBus) -> dict[str, Any]:
     st = asdict(t.stats)
     st["mode"] = str(st["mode"])
     return st
-

@@ -161,8 +161,7 @@ class RunStore:
         w.writerow(SAMPLE_COLUMNS)
         n = 0
         for r in self.db.execute(
-            f"SELECT {_QUOTED} FROM samples "
-            "WHERE run_id = ? ORDER BY rowid",
+            f"SELECT {_QUOTED} FROM samples WHERE run_id = ? ORDER BY rowid",
             (run_id,),
         ):
             w.writerow(["" if v is None else v for v in r])

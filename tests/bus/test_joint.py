@@ -319,7 +319,10 @@ async def _hammer(link: JointLink, rng: random.Random, n: int) -> tuple[float, .
     """n mixed commands; returns the last targets written."""
     targets = (0.0,) * NUM_AXES
     ops: list[Callable[[], Awaitable[object]]] = [
-        link.get_actual, link.get_state, link.get_power, link.get_targets
+        link.get_actual,
+        link.get_state,
+        link.get_power,
+        link.get_targets,
     ]
     for i in range(n):
         if i % 3 == 0:
@@ -331,7 +334,8 @@ async def _hammer(link: JointLink, rng: random.Random, n: int) -> tuple[float, .
 
 
 @pytest.mark.parametrize(
-    ("kind", "binary"), [("pty", False), ("pty", True), ("tcp", False)],
+    ("kind", "binary"),
+    [("pty", False), ("pty", True), ("tcp", False)],
     ids=["pty-ascii", "pty-binary", "tcp-ascii"],
 )
 async def test_bit_errors_are_retried(kind: str, binary: bool) -> None:

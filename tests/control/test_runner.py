@@ -235,6 +235,7 @@ def test_lost_joint_line_faults_the_run(tmp_path: Path) -> None:
 
     async def main() -> Any:
         async with rig(cfg, tmp_path) as (hand, runner):
+
             async def unplug() -> None:
                 while runner.phase is not Phase.ROLLING:
                     await asyncio.sleep(0.01)

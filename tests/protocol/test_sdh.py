@@ -94,7 +94,17 @@ def test_binary_command_codes() -> None:
 
 def test_binary_subset_used_by_sdhlibrary_cpp() -> None:
     assert set(BINARY_COMMANDS) == {
-        "p", "pos", "v", "a", "tpap", "tvav", "vel", "rvel", "state", "ilim", "power"
+        "p",
+        "pos",
+        "v",
+        "a",
+        "tpap",
+        "tvav",
+        "vel",
+        "rvel",
+        "state",
+        "ilim",
+        "power",
     }
     for keyword, code in BINARY_COMMANDS.items():
         assert code.keyword == keyword
@@ -307,8 +317,10 @@ def test_blank_handshake() -> None:
         ("p(3)=     -45.000", AsciiCommand("p", 3, (-45.0,))),
         ("p(3)=-45.000000", AsciiCommand("p", 3, (-45.0,))),
         ("p = 1, 2 ,3,4,5,6, 7", AsciiCommand("p", None, (1, 2, 3, 4, 5, 6, 7))),
-        ("p=0.000000,-45.000000,0.000000,-90.000000,0.000000,-45.000000,0.000000",
-         AsciiCommand("p", None, POSE)),
+        (
+            "p=0.000000,-45.000000,0.000000,-90.000000,0.000000,-45.000000,0.000000",
+            AsciiCommand("p", None, POSE),
+        ),
         ("power=1.000000,1,1,1,1,1,1e0", AsciiCommand("power", None, (1.0,) * 7)),
         ("vp=1", AsciiCommand("vp", None, (1.0,))),
         ("con=2", AsciiCommand("con", None, (2.0,))),
@@ -595,7 +607,10 @@ def test_host_crc_error_reports_and_resyncs_at_once() -> None:
     err = events[0]
     assert isinstance(err, ProtocolErrorEvent)
     assert (err.code, err.source, err.binary_cmd, err.with_crc) == (
-        SdhError.CRC_ERROR, ErrorSource.FRAME, BinaryCommand.P, True
+        SdhError.CRC_ERROR,
+        ErrorSource.FRAME,
+        BinaryCommand.P,
+        True,
     )
     assert err.data == bytes(bad)
     answer = err.suggested_reply()
@@ -657,8 +672,9 @@ def test_reset_drops_partial_frame() -> None:
 def test_suggested_replies() -> None:
     line_err = ProtocolErrorEvent(SdhError.CMD_UNKNOWN, "x", b"x", ErrorSource.LINE)
     assert line_err.suggested_reply() == b"E13\r\n"
-    frame_err = ProtocolErrorEvent(SdhError.CRC_ERROR, "x", b"", ErrorSource.FRAME,
-                                   BinaryCommand.POS, False)
+    frame_err = ProtocolErrorEvent(
+        SdhError.CRC_ERROR, "x", b"", ErrorSource.FRAME, BinaryCommand.POS, False
+    )
     assert frame_err.suggested_reply() == encode_binary_reply(BinaryCommand.POS, 33, with_crc=False)
 
 

@@ -125,8 +125,14 @@ class Host:
         return self.run(self.now + dt)
 
 
-def targets_move(host: Host, targets: Sequence[float], *, vp: int = 0,
-                 v: Sequence[float] | None = None, a: Sequence[float] | None = None) -> float:
+def targets_move(
+    host: Host,
+    targets: Sequence[float],
+    *,
+    vp: int = 0,
+    v: Sequence[float] | None = None,
+    a: Sequence[float] | None = None,
+) -> float:
     """con=0, vp, v, a, p, then m; returns T."""
     assert host.values("con=0") == (0,)
     assert host.values(f"vp={vp}") == (vp,)
@@ -204,8 +210,14 @@ def test_emulator_is_a_device_and_answers_the_basics() -> None:
     assert host.values("state") == (AxisState.DISABLED,) * 7  # nothing powered after power-on
     assert host.send(b"stop\r\n") == b"STOP=\r\n"
     assert host.send(b"power\r\n") == b"POWER=0,0,0,0,0,0,0\r\n"
-    custom = Host(Sdh2Emulator(ScriptedWorld(SHAPES), options=Sdh2Options(
-        version="0.0.2.15", reply_fmt="{:.1f}", stop_reply="OK", initially_powered=True)))
+    custom = Host(
+        Sdh2Emulator(
+            ScriptedWorld(SHAPES),
+            options=Sdh2Options(
+                version="0.0.2.15", reply_fmt="{:.1f}", stop_reply="OK", initially_powered=True
+            ),
+        )
+    )
     assert custom.send(b"ver\r\n") == b"VER=0.0.2.15\r\n"
     assert custom.send(b"p(1)\r\n") == b"P(1)=0.0\r\n"
     assert custom.send(b"stop\r\n") == b"STOP=OK\r\n"
@@ -267,8 +279,23 @@ def test_per_axis_forms() -> None:
 def test_errors_answer_e_n_and_change_nothing(line: str, code: SdhError) -> None:
     host = Host()
     host.ask("p=10,20,30,40,50,60,70")
-    before = {kw: host.ask(kw).text for kw in ("p", "v", "a", "power", "con", "vp", "ilim",
-                                               "ref", "p_min", "p_max", "kv(1)", "state")}
+    before = {
+        kw: host.ask(kw).text
+        for kw in (
+            "p",
+            "v",
+            "a",
+            "power",
+            "con",
+            "vp",
+            "ilim",
+            "ref",
+            "p_min",
+            "p_max",
+            "kv(1)",
+            "state",
+        )
+    }
     assert host.send(line.encode() + b"\r\n") == f"E{int(code)}\r\n".encode()
     after = {kw: host.ask(kw).text for kw in before}
     assert after == before
@@ -418,7 +445,7 @@ def test_m_mid_move_replans_from_the_current_velocity(vp: int) -> None:
     acc = np.diff(vel) / ((t[2:] - t[:-2]) / 2)
     assert np.abs(acc).max() <= 400.0 * 1.05  # within a (finite differences straddle replans)
     # steady state: the reference velocity never drops to 0 between commands
-    late = vel[len(vel) // 2:]
+    late = vel[len(vel) // 2 :]
     assert late.min() > 0.3 * late.mean() > 0.0
     assert late.mean() > 0.5 * step / period  # most of one step per period
     assert host.values("state")[1] == 1  # still positioning: the last move runs
