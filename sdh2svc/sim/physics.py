@@ -645,7 +645,8 @@ class ContactPhysics:
                     abs(pose.phi4 - cur.phi4), abs(pose.phi5 - cur.phi5))  # fmt: skip
         if delta == 0.0 and not self.state.held_by_fixture:
             return  # quasi-static: nothing moved, nothing changes
-        n = max(1, math.ceil(math.degrees(delta) / self.cfg.max_joint_step_deg))
+        # (less a hair: 0.5° in radians and back is 0.5000000000000001°, which is not 3 substeps)
+        n = max(1, math.ceil(math.degrees(delta) / self.cfg.max_joint_step_deg - 1e-9))
         for i in range(1, n + 1):
             f = i / n
             self._substep(HandPose(

@@ -11,7 +11,14 @@ import pytest
 from sdh2svc.config import Settings, load_config
 from sdh2svc.model.friction import omega
 from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
-from sdh2svc.model.kinematics import Finger, Point, contact_point, finger_ik, segment
+from sdh2svc.model.kinematics import (
+    Finger,
+    HandPose,
+    Point,
+    contact_point,
+    finger_ik,
+    segment,
+)
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
 from sdh2svc.sim.physics import DISTAL1, DISTAL2, PALM
@@ -392,6 +399,25 @@ def test_a_substep_without_a_balance_is_retried_in_halves(monkeypatch) -> None:
     assert not failures and flaky.w.truth().held
     assert flaky.w.physics.hand_pose == steady.w.physics.hand_pose
     assert flaky.w.truth().pose == pytest.approx(steady.w.truth().pose, abs=1e-3)
+
+
+@pytest.mark.parametrize("multiple", [1, 2, 3])
+def test_a_move_of_whole_substeps_takes_that_many(monkeypatch, multiple: int) -> None:
+    """0.5° is two 0.25° substeps, not three (radians → degrees gives 0.5000000000000001)."""
+    from sdh2svc.sim.physics import ContactPhysics
+
+    rig = Rig(quiet(), "egg")
+    rig.grasp()
+    phys, calls, substep = rig.w.physics, [], ContactPhysics._substep
+
+    def counted(self, pose, halvings=0):  # type: ignore[no-untyped-def]
+        calls.append(halvings)
+        return substep(self, pose, halvings)
+
+    monkeypatch.setattr(ContactPhysics, "_substep", counted)
+    p, d = phys.hand_pose, math.radians(multiple * phys.cfg.max_joint_step_deg)
+    phys.step(HandPose(p.phi2, p.phi3, p.phi4 - d, p.phi5 + d))
+    assert calls.count(0) == multiple
 
 
 # --- the fast paths of the solver and the sensor against their plain definitions -------------
