@@ -38,6 +38,7 @@ import struct
 import sys
 import traceback
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from multiprocessing.process import BaseProcess
 from typing import Any
 
@@ -175,9 +176,10 @@ class ViewerProcess:
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")
         level = logging.getLogger().getEffectiveLevel()
-        args = (theirs, self.settings.model_dump(), self._host, self._port,
-                self._allow_start, self._max_hz, level)  # fmt: skip
-        self._proc = ctx.Process(target=child_main, args=args, name="sdh2svc-viewer", daemon=True)
+        spec = ChildSpec(self.settings.model_dump(), self._host, self._port, self._allow_start,
+                         self._max_hz, level)  # fmt: skip
+        self._proc = ctx.Process(target=child_main, args=(theirs, spec), name="sdh2svc-viewer",
+                                 daemon=True)  # fmt: skip
         self._ready = loop.create_future()
         try:
             self._proc.start()
@@ -355,23 +357,26 @@ async def _exited(proc: BaseProcess, timeout: float) -> bool:
 # --- the child's side --------------------------------------------------------------------------
 
 
-def child_main(
-    sock: socket.socket,
-    settings: dict[str, Any],
-    host: str,
-    port: int,
-    allow_start: bool,
-    max_hz: float,
-    log_level: int,
-) -> None:
+@dataclass(frozen=True)
+class ChildSpec:
+    """What the child needs (picklable: the settings as ``model_dump()``, validated again)."""
+
+    settings: dict[str, Any]
+    host: str
+    port: int
+    allow_start: bool
+    max_hz: float
+    log_level: int
+
+
+def child_main(sock: socket.socket, spec: ChildSpec) -> None:
     """The child's entry point (spawned): the viewer on an event loop of its own."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the parent, which stops us
     sys.stdout = sys.stderr  # the service's stdout carries only its announcement
     os.dup2(2, 1)
     code = 0
     try:
-        asyncio.run(_child(sock, Settings.model_validate(settings), host, port, allow_start,
-                           max_hz, log_level))  # fmt: skip
+        asyncio.run(_child(sock, spec))
     except Exception:  # our loop is gone, and the log handler with it: straight to stderr
         traceback.print_exc()
         code = 1
@@ -400,16 +405,11 @@ class _ToParent(logging.Handler):
             self._loop.call_soon_threadsafe(self._chan.send, ("log", fields))
 
 
-async def _child(
-    sock: socket.socket,
-    settings: Settings,
-    host: str,
-    port: int,
-    allow_start: bool,
-    max_hz: float,
-    log_level: int,
-) -> None:
+async def _child(sock: socket.socket, spec: ChildSpec) -> None:
     from sdh2svc.service.viewer import Viewer
+
+    settings = Settings.model_validate(spec.settings)
+    host, port, log_level = spec.host, spec.port, spec.log_level
 
     loop = asyncio.get_running_loop()
     done = asyncio.Event()
@@ -450,7 +450,7 @@ async def _child(
             raise CommandRefused(error)
 
     viewer = Viewer(settings, host=host, port=port, on_command=on_command,
-                    allow_start=allow_start, max_hz=max_hz)  # fmt: skip
+                    allow_start=spec.allow_start, max_hz=spec.max_hz)  # fmt: skip
     try:
         _check_port(host, port)
         await viewer.start()
