@@ -145,6 +145,9 @@ class ServiceConfig(Frozen):
     pose_hz: Annotated[float, Field(gt=0.0, le=30.0)]
     status_hz: Annotated[float, Field(gt=0.0, le=30.0)]
     stop_timeout_s: Annotated[float, Field(gt=0.0, le=120.0)]
+    allowed_hosts: tuple[str, ...] = ()
+    allowed_origins: tuple[str, ...] = ()
+    max_body_kb: Annotated[int, Field(ge=1, le=1_048_576)] = 1024
 
 
 class Settings(BaseSettings):

@@ -210,6 +210,16 @@ class Station:
         self.publish_status()
         return {"estopped": joints.estopped}
 
+    async def open_hand(self) -> dict[str, Any]:
+        """Open the coupled fingers to the pre-shape pose (releasing whatever they hold), in
+        short increments from a live loop; answers at once, the move goes on as a task.
+
+        409 while a run is running, while the hand is already opening, or while the e-stop is
+        latched; 503 when the links are not up. Events ``open`` (start) and ``opened`` / a
+        ``fault`` go to the hub; ``status()["hand"]["opening"]`` is true meanwhile.
+        """
+        raise ServiceError(501, "opening the hand is not implemented yet")
+
     @property
     def params_in_force(self) -> RollingParams:
         """The running run's parameters, else those the next run starts with."""
@@ -256,6 +266,8 @@ class Station:
                 await self.release_estop()
             elif kind == "params":
                 self.patch_params(args)
+            elif kind == "open":
+                await self.open_hand()
             else:
                 raise ServiceError(400, f"unknown command {kind!r}")
         except ServiceError as e:
