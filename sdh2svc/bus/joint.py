@@ -928,6 +928,11 @@ class JointLink:
 
     # -- emergency stop -------------------------------------------------------------------------
 
+    def latch(self) -> None:
+        """Latch an emergency stop without a word to the hand (e.g. one found latched on disk
+        while the line is down): motion commands are refused and the next connect powers off."""
+        self._estopped = True
+
     async def emergency_stop(self) -> Vec:
         """SCHUNK's e-stop with precedence; returns the angles written as targets.
 
@@ -971,7 +976,11 @@ class JointLink:
     async def release(self) -> tuple[bool, ...]:
         """Clear a latched emergency stop and power all axes on again."""
         self._estopped = False
-        flags = await self.power([True] * NUM_AXES)
+        try:
+            flags = await self.power([True] * NUM_AXES)
+        except BaseException:
+            self._estopped = True  # not released until the hand took it
+            raise
         self._emit(LinkEventKind.RELEASED)
         return flags
 

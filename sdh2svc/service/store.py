@@ -54,6 +54,11 @@ CREATE TABLE IF NOT EXISTS frames (
     texels BLOB NOT NULL
 );
 CREATE INDEX IF NOT EXISTS frames_run ON frames(run_id, t);
+CREATE TABLE IF NOT EXISTS estop (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    since TEXT NOT NULL,
+    reason TEXT NOT NULL
+);
 """
 
 
@@ -105,6 +110,36 @@ class RunStore:
             ids = [r[0] for r in self.db.execute("SELECT id FROM runs WHERE status = 'running'")]
             self.db.execute("UPDATE runs SET status = 'interrupted' WHERE status = 'running'")
         return ids
+
+    # --- the e-stop latch: durable until an explicit release ------------------------------------
+
+    def estop_latch(self) -> dict[str, str] | None:
+        """The latched e-stop (``since``, ``reason``), or None when released."""
+        row = self.db.execute("SELECT since, reason FROM estop WHERE id = 1").fetchone()
+        return None if row is None else {"since": row["since"], "reason": row["reason"]}
+
+    def latch_estop(self, reason: str) -> None:
+        """Latch the e-stop on disk before anything else happens: fsync'd (synchronous=FULL),
+        so a restart — or the PC losing power — finds it still latched."""
+        with self._lock:
+            self.db.execute("PRAGMA synchronous=FULL")
+            try:
+                with self.db:
+                    self.db.execute(
+                        "INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
+                        (_now_iso(), reason),
+                    )
+            finally:
+                self.db.execute("PRAGMA synchronous=NORMAL")
+
+    def release_estop(self) -> None:
+        with self._lock:
+            self.db.execute("PRAGMA synchronous=FULL")
+            try:
+                with self.db:
+                    self.db.execute("DELETE FROM estop")
+            finally:
+                self.db.execute("PRAGMA synchronous=NORMAL")
 
     def sample_count(self, run_id: int) -> int:
         row = self.db.execute("SELECT COUNT(*) FROM samples WHERE run_id = ?", (run_id,)).fetchone()
