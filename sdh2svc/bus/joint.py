@@ -229,6 +229,21 @@ def _is_flags(allowed: frozenset[int]) -> Callable[[Vec], bool]:
     return lambda vals: all(v in allowed for v in vals)
 
 
+_ECHOED: Final = frozenset({"p", "v", "a", "con", "power", "vp"})  # `kw=x` answers `KW=x`
+_ACTUAL_ANGLES: Final = frozenset({"pos", "tpap"})
+_READ_MARGIN_DEG: Final = 2.0  # plausibility margin of an actual-angle reading
+_ECHO_TOL: Final = 0.01  # the wire carries 3 decimals
+
+
+def _echoes(sent: Vec) -> Callable[[Vec], bool]:
+    """The firmware took what we sent: a set command's echo (a flipped digit on the way to the
+    hand would otherwise set a wrong target, and the next `m` would go there)."""
+    return lambda got: (
+        len(got) == len(sent)
+        and all(abs(g - v) <= _ECHO_TOL for g, v in zip(got, sent, strict=True))
+    )
+
+
 _REPLY_CHECKS: Final[dict[str, Callable[[Vec], bool]]] = {
     "power": _is_flags(frozenset({0, 1})),
     "state": _is_flags(frozenset(int(s) for s in AxisState)),
@@ -417,6 +432,7 @@ class JointLink:
         self._estop_pending = 0
         self.last_actual: Vec | None = None  # the newest `pos` answer, for displays (no line time)
         self._may_be_moving = False  # a command that can start motion went out since the last hold
+        self._actual_at: float | None = None  # loop time of last_actual
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[None]] = set()
 
@@ -568,8 +584,30 @@ class JointLink:
         if spec is not None and axis is not None and spec.form is ArgForm.VECTOR:
             n_values = 1
         axis_cmd = spec is not None and spec.form in (ArgForm.VECTOR, ArgForm.AXIS_ONLY)
+        check = _REPLY_CHECKS.get(kw)
+        if kw in _ECHOED and vals is not None:
+            check = _echoes(vals)
+        elif kw in _ACTUAL_ANGLES:
+            check = self._plausible_actual
         return _Request(kw, data, axis, code, axis_cmd, _may_move(kw, vals), n_values,
-                        _REPLY_CHECKS.get(kw))  # fmt: skip
+                        check)  # fmt: skip
+
+    def _plausible_actual(self, values: Vec) -> bool:
+        """Actual angles a hand can have: within the limits (± a margin) and no further from the
+        last reading than the axes can travel since. ASCII replies carry no checksum, and a
+        flipped digit would make a 12.5° finger read 92.5° — whose ±1° target is 80° away."""
+        if len(values) != NUM_AXES or not all(math.isfinite(v) for v in values):
+            return False
+        if any(not lo - _READ_MARGIN_DEG <= v <= hi + _READ_MARGIN_DEG
+               for v, (lo, hi) in zip(values, self.limits, strict=True)):  # fmt: skip
+            return False
+        last, at = self.last_actual, self._actual_at
+        if last is None or at is None or not self.velocity_limits:
+            return True
+        dt = asyncio.get_running_loop().time() - at
+        vlim = self.velocity_limits
+        return all(abs(v - w) <= vmax * dt + _READ_MARGIN_DEG
+                   for v, w, vmax in zip(values, last, vlim, strict=True))  # fmt: skip
 
     async def _call(self, req: _Request, timeout_s: float | None = None) -> Reply:
         self._check_usable(req)
@@ -720,9 +758,9 @@ class JointLink:
         if self.controller is not ControllerMode.POSE:
             await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
             self.controller = ControllerMode.POSE
-        held = self.clip_to_limits((await self._urgent(conn, self._request("pos"))).values)
+        actual = self._took_actual((await self._urgent(conn, self._request("pos"))).values)
+        held = self.clip_to_limits(actual)
         await self._urgent(conn, self._request("p", held))
-        self.last_actual = held
         self._may_be_moving = False
         return held
 
@@ -831,8 +869,11 @@ class JointLink:
 
     async def get_actual(self) -> Vec:
         """Actual joint angles (``pos``), deg."""
-        self.last_actual = await self._vector("pos")
-        return self.last_actual
+        return self._took_actual(await self._vector("pos"))
+
+    def _took_actual(self, actual: Vec) -> Vec:
+        self.last_actual, self._actual_at = actual, asyncio.get_running_loop().time()
+        return actual
 
     async def get_targets(self) -> Vec:
         """Target angles (``p``), deg."""
@@ -894,7 +935,7 @@ class JointLink:
 
     async def tpap(self, targets: Sequence[float]) -> Vec:
         """Set target angles (limit-checked) and read the actual ones in one round trip."""
-        return await self._vector("tpap", self.check_targets(targets))
+        return self._took_actual(await self._vector("tpap", self.check_targets(targets)))
 
     async def tvav(self, velocities: Sequence[float]) -> Vec:
         """Set target velocities and read the actual velocities in one round trip."""
