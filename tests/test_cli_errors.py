@@ -301,6 +301,19 @@ def test_health_of_a_service_that_does_not_answer(closed_port: int) -> None:
     assert f"http://127.0.0.1:{closed_port}/api/status" in line and "refused" in line
 
 
+def test_health_takes_the_base_url_of_a_live_service(tmp_path: Path) -> None:
+    from sdh2svc.service.launch import start_service
+
+    svc = start_service(tmp_path, viewer=False)
+    try:
+        for url in (svc.url, f"{svc.url}/", f"{svc.url}/api/status"):
+            r = run("health", "--url", url)
+            assert r.returncode == Exit.OK, r.stderr
+            assert r.stdout.strip() == f"ok: {svc.url}/api/status"
+    finally:
+        assert svc.stop() == 0
+
+
 # --- bugs ------------------------------------------------------------------------------------
 
 
