@@ -197,7 +197,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sdh2svc.bus.tactile import TactileError
     from sdh2svc.control.runner import Runner
     from sdh2svc.service.headless import run_once
-    from sdh2svc.service.store import StoreError
+    from sdh2svc.service.store import EstopLatched, StoreError
 
     overrides = list(args.overrides)
     if args.cycles is not None:
@@ -228,6 +228,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                                            sdh_url=args.sdh, progress=progress))  # fmt: skip
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, str(e))
+    except EstopLatched as e:
+        _fail(Exit.FAILED, str(e))
     except (JointLinkError, TactileError, OSError) as e:
         _fail(Exit.UNAVAILABLE, f"cannot reach the hand: {_one_line(e)} "
                                 "(check --sdh/--dsa or links.sdh_url/dsa_url)")  # fmt: skip
@@ -332,6 +334,34 @@ def cmd_health(args: argparse.Namespace) -> int:
     if down:
         _fail(Exit.FAILED, f"link(s) down: {', '.join(down)} ({url})")
     print(f"ok: {url}")
+    return Exit.OK
+
+
+def cmd_estop(args: argparse.Namespace) -> int:
+    """The e-stop latch kept in the run database (what a restarted service re-applies, and what
+    `run` on a real hand refuses to start under): show it, latch it, or release it. A running
+    service keeps its own copy: use its API (POST /api/estop, /api/estop/release) instead."""
+    from sdh2svc.service.store import NoDatabase, RunStore, StoreError
+
+    cfg = load_config(args.config, args.overrides)
+    try:
+        store = RunStore(cfg.storage.db_path, create=args.latch)
+    except NoDatabase:
+        if args.release:
+            _fail(Exit.NOT_FOUND, f"no run database at {cfg.storage.db_path}: nothing latched")
+        print("released (no run database yet)")
+        return Exit.OK
+    except StoreError as e:
+        _fail(Exit.UNAVAILABLE, _one_line(e))
+    try:
+        if args.latch:
+            store.latch_estop("latched from the command line")
+        elif args.release:
+            store.release_estop()
+        latch = store.estop_latch()
+    finally:
+        store.close()
+    print("released" if latch is None else f"latched since {latch['since']}: {latch['reason']}")
     return Exit.OK
 
 
@@ -491,6 +521,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
     )
     p.set_defaults(func=cmd_runs)
+
+    p = sub.add_parser("estop", help="the e-stop latch in the run database: show, latch, release",
+                       description=cmd_estop.__doc__)  # fmt: skip
+    _add_config_args(p)
+    action = p.add_mutually_exclusive_group()
+    action.add_argument("--latch", action="store_true", help="latch it (runs are refused)")
+    action.add_argument("--release", action="store_true", help="release it")
+    p.set_defaults(func=cmd_estop)
     return parser
 
 

@@ -66,6 +66,16 @@ class StoreError(Exception):
     """The run database cannot be opened or read; the message names the path and why."""
 
 
+class EstopLatched(Exception):
+    """A run was refused: the e-stop is latched in the run database."""
+
+    def __init__(self, latch: dict[str, str]) -> None:
+        self.latch = latch
+        super().__init__(f"the e-stop is latched (since {latch['since']}: {latch['reason']}); "
+                         "release it with `sdh2svc estop --release` or, with the service "
+                         "running, POST /api/estop/release")  # fmt: skip
+
+
 class NoDatabase(StoreError):
     """There is no run database at the path (and the caller only reads: none was created)."""
 

@@ -54,8 +54,8 @@ def _moved(a: tuple[float, ...], b: tuple[float, ...]) -> float:
 
 async def _serve(tmp: Path, sim: SimulatedHand, cable: Cable) -> LiveService:
     """The service on the hand in this process (started on a thread: the hand must answer)."""
-    return await asyncio.to_thread(start_service, tmp, viewer=False, sim=False,
-                                   extra=["--dsa", sim.urls("dsa")[0], "--sdh", cable.url])  # fmt: skip
+    extra = ["--dsa", sim.urls("dsa")[0], "--sdh", cable.url]
+    return await asyncio.to_thread(start_service, tmp, viewer=False, sim=False, extra=extra)
 
 
 async def _stop(svc: LiveService, sig: int = signal.SIGTERM) -> int:
