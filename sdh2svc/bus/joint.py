@@ -789,11 +789,11 @@ class JointLink:
                                        retries=0, urgent=True)  # fmt: skip
         except JointLinkError as exc:
             raise JointLinkError(f"SDH not connected at {self.url}: {exc}") from exc
-        vlim = await self._urgent(conn, self._request("vlim"))
-        alim = await self._urgent(conn, self._request("alim"))
+        vlim = await self._agreed(conn, "vlim")
+        alim = await self._agreed(conn, "alim")
         con = await self._urgent(conn, self._request("con"))
         self.version = ver.text
-        self.velocity_limits, self.acceleration_limits = vlim.values, alim.values
+        self.velocity_limits, self.acceleration_limits = vlim, alim
         self.controller = ControllerMode(int(con.values[0]))
         if self._estopped:  # a latched e-stop holds on a new connection too (the controller
             # may have been reset, or powered on by hand, while the line was down)
@@ -801,6 +801,17 @@ class JointLink:
         # Whatever the last host left running (a velocity, a move), it stops now: the firmware
         # keeps its last command forever, and no loop of ours commands it yet.
         await self._hold_on(conn)
+
+    async def _agreed(self, conn: _Conn, keyword: str, tries: int = 4) -> Vec:
+        """Values read twice alike: the limits every later command is checked against must not
+        carry a flipped digit (ASCII replies have no checksum)."""
+        last = (await self._urgent(conn, self._request(keyword))).values
+        for _ in range(tries):
+            again = (await self._urgent(conn, self._request(keyword))).values
+            if again == last:
+                return again
+            last = again
+        raise JointLinkError(f"{keyword}: no two readings agree (a noisy line?)")
 
     def _conn_lost(self, conn: _Conn, exc: BaseException) -> None:
         if conn is not self._conn or self._closed:

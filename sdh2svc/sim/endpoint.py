@@ -210,6 +210,11 @@ class Endpoint(ABC):
         if (crash := crash or self._device_error) is not None:
             raise crash
 
+    def set_faults(self, faults: FaultConfig) -> None:
+        """From now on, inject these faults (e.g. a line that turns bad mid-run)."""
+        self.faults = faults
+        self._injector = FaultInjector(faults, self.stats.faults)
+
     def disconnect(self, duration_s: float) -> None:
         """Pull the cable for ``duration_s``: nothing gets through in either direction."""
         if not self.running:
