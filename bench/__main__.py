@@ -12,6 +12,7 @@ SECTIONS = {
     "sim": "bench.sim_world",
     "control": "bench.control",
     "service": "bench.service",
+    "faults": "bench.faults",
 }
 
 

@@ -156,3 +156,31 @@ async def test_the_estop_latch_survives_a_restart(tmp_path: Path) -> None:
             assert (await client.get("/api/status")).json()["estop"] is None
     finally:
         assert again.stop() == 0, "".join(again.log)
+
+
+async def test_after_a_fault_open_hand_releases_the_object(tmp_path: Path) -> None:
+    """An e-stopped run leaves the object held; once released, Open hand opens the fingers (in
+    increments: the run's own pre-shape pose), and refuses while a run or the e-stop is on."""
+    cfg = load_config()
+    svc = await asyncio.to_thread(start_service, tmp_path, viewer=False)
+    try:
+        async with svc.client() as client:
+            assert (await client.post("/api/runs", json={})).status_code == 201
+            await _wait_phase(client, "rolling")
+            r = await client.post("/api/hand/open", json={})
+            assert r.status_code == 409 and "stop it first" in r.json()["error"]
+            assert (await client.post("/api/estop")).status_code == 200
+            r = await client.post("/api/hand/open", json={})
+            assert r.status_code == 409 and "e-stop" in r.json()["error"]
+            assert (await client.post("/api/estop/release", json={})).status_code == 200
+            held = (await client.get("/api/status")).json()
+            assert held["object"] is not None and held["last_run"]["status"] == "e-stopped"
+            r = await client.post("/api/hand/open", json={})
+            assert r.status_code == 202, r.text
+            async with asyncio.timeout(60):
+                while (st := (await client.get("/api/status")).json())["hand"]["opening"]:
+                    await asyncio.sleep(0.05)
+            angles = st["hand"]["angles_deg"]
+            assert max(abs(a - p) for a, p in zip(angles, cfg.run.preshape_deg, strict=True)) < 0.5
+    finally:
+        assert await _stop(svc) == 0, "".join(svc.log)
