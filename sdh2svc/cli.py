@@ -4,15 +4,64 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
+import os
 import sys
+import traceback
 from collections.abc import Sequence
+from enum import IntEnum
+from typing import Any, NoReturn
 
 from sdh2svc import __version__
 from sdh2svc.config import ConfigError, Settings, load_config
 from sdh2svc.model.friction import inside_cone, omega
 from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
+
+
+class Exit(IntEnum):
+    """The exit statuses of every command (README, *Exit status*; ``sdh2svc --help``)."""
+
+    OK = 0
+    FAILED = 1  # it ran and failed: a run that did not complete, health not OK
+    USAGE = 2  # usage, invalid configuration or input (argparse's own code, too)
+    NOT_FOUND = 3  # no such run, no run database
+    UNAVAILABLE = 4  # I/O: the hand unreachable, a port in use, the database unusable
+    BUG = 70  # an unexpected error (--debug or SDH2SVC_DEBUG=1 shows the traceback)
+    INTERRUPTED = 130  # Ctrl-C
+
+
+EXIT_STATUS_HELP = """\
+exit status:
+  0    success
+  1    the operation ran and failed (a run that did not complete; health not OK)
+  2    usage error, invalid configuration or input
+  3    not found (no such run; no run database)
+  4    cannot reach a device or use a resource (hand unreachable, port in use,
+       database unusable, output file not writable)
+  70   unexpected error, a bug (--debug or SDH2SVC_DEBUG=1 prints the traceback)
+  130  interrupted (Ctrl-C)
+"""
+
+NO_DATABASE_HINT = "set storage.db_path or run from the directory that holds data/"
+
+
+class CliError(Exception):
+    """A failure to report as one line on stderr with an exit status, and no traceback."""
+
+    def __init__(self, status: Exit, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+def _fail(status: Exit, message: str) -> NoReturn:
+    raise CliError(status, message)
+
+
+def _one_line(text: object) -> str:
+    return " ".join(str(text).split())
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -79,7 +128,6 @@ def cmd_sim(args: argparse.Namespace) -> int:
     import asyncio
     import signal
 
-    from sdh2svc.sim.objects import get_object, load_object
     from sdh2svc.sim.serve import start_simulated_hand
 
     overrides = list(args.overrides)
@@ -92,21 +140,17 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.replace_after is not None:
         overrides.append(f"sim.replace_after_s={args.replace_after!r}")
     cfg = load_config(args.config, overrides)
-    try:
-        obj = (
-            load_object(args.object_file)
-            if args.object_file
-            else get_object(args.object or cfg.sim.object)
-        )
-    except (KeyError, OSError, ValueError) as e:
-        print(f"sdh2svc sim: {e}", file=sys.stderr)
-        return 2
+    obj = _object(args, cfg.sim.object)
 
     async def main() -> None:
-        hand = await start_simulated_hand(
-            cfg, obj=obj, pty=not args.no_pty and cfg.sim.links.pty, tcp=not args.no_tcp,
-            dsa_port=args.dsa_port, sdh_port=args.sdh_port,
-        )  # fmt: skip
+        try:
+            hand = await start_simulated_hand(
+                cfg, obj=obj, pty=not args.no_pty and cfg.sim.links.pty, tcp=not args.no_tcp,
+                dsa_port=args.dsa_port, sdh_port=args.sdh_port,
+            )  # fmt: skip
+        except OSError as e:  # a port in use, an unknown --host
+            why = f"{cfg.sim.links.host}: {e.strerror or e}"
+            _fail(Exit.UNAVAILABLE, f"cannot serve the simulated hand on {why}")
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -130,14 +174,30 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _object(args: argparse.Namespace, default: str | None) -> Any:
+    """The simulated object of ``--object``/``--object-file`` (else the preset ``default``)."""
+    from sdh2svc.sim.objects import get_object, load_object
+
+    try:
+        if args.object_file:
+            return load_object(args.object_file)
+        return get_object(args.object or default)
+    except KeyError as e:  # str() of a KeyError is the repr of its argument
+        _fail(Exit.USAGE, _one_line(e.args[0] if e.args else e))
+    except (OSError, ValueError) as e:
+        _fail(Exit.USAGE, _one_line(e))
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """One rolling run: pre-shape, grasp, roll for N strokes, release — on the simulated hand
     (--sim) or a real one (--dsa/--sdh or the config's links). Exit status 0 only if completed."""
     import asyncio
 
+    from sdh2svc.bus.joint import JointLinkError
+    from sdh2svc.bus.tactile import TactileError
     from sdh2svc.control.runner import Runner
     from sdh2svc.service.headless import run_once
-    from sdh2svc.sim.objects import get_object, load_object
+    from sdh2svc.service.store import EstopLatched, StoreError
 
     overrides = list(args.overrides)
     if args.cycles is not None:
@@ -145,18 +205,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     obj = None
     if args.sim:
-        try:
-            obj = (
-                load_object(args.object_file)
-                if args.object_file
-                else get_object(args.object or cfg.sim.object)
-            )
-        except (KeyError, OSError, ValueError) as e:
-            print(f"sdh2svc run: {e}", file=sys.stderr)
-            return 2
+        obj = _object(args, cfg.sim.object)
     elif args.object or args.object_file or args.fast:
-        print("sdh2svc run: --object, --object-file and --fast need --sim", file=sys.stderr)
-        return 2
+        _fail(Exit.USAGE, "--object, --object-file and --fast need --sim")
 
     def progress(r: Runner) -> None:
         if args.json or not sys.stderr.isatty():
@@ -167,13 +218,21 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"iteration {r.state.iteration:5d}  F {F:5.2f}  σ {sig:6.2f}°", end="",
               file=sys.stderr)  # fmt: skip
 
-    if args.fast:
-        from sdh2svc.sim.clock import run_fast
+    try:
+        if args.fast:
+            from sdh2svc.sim.clock import run_fast
 
-        summary = run_fast(run_once(cfg, sim=True, obj=obj, fast=True, progress=progress))
-    else:
-        summary = asyncio.run(run_once(cfg, sim=args.sim, obj=obj, dsa_url=args.dsa,
-                                       sdh_url=args.sdh, progress=progress))  # fmt: skip
+            summary = run_fast(run_once(cfg, sim=True, obj=obj, fast=True, progress=progress))
+        else:
+            summary = asyncio.run(run_once(cfg, sim=args.sim, obj=obj, dsa_url=args.dsa,
+                                           sdh_url=args.sdh, progress=progress))  # fmt: skip
+    except StoreError as e:
+        _fail(Exit.UNAVAILABLE, str(e))
+    except EstopLatched as e:
+        _fail(Exit.FAILED, str(e))
+    except (JointLinkError, TactileError, OSError) as e:
+        _fail(Exit.UNAVAILABLE, f"cannot reach the hand: {_one_line(e)} "
+                                "(check --sdh/--dsa or links.sdh_url/dsa_url)")  # fmt: skip
     if args.json:
         print(json.dumps(summary))
     else:
@@ -191,7 +250,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             )
         if "truth" in summary:
             print(f"  simulation truth: {summary['truth']}")
-    return 0 if summary["status"] == "completed" else 1
+    return Exit.OK if summary["status"] == "completed" else Exit.FAILED
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -199,8 +258,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     (--sim) or a real one (--dsa/--sdh or the config's links). Ctrl-C/SIGTERM stop motion first."""
     import asyncio
 
-    from sdh2svc.service.serve import ExposureError, serve, setup_logging
-    from sdh2svc.sim.objects import get_object, load_object
+    from sdh2svc.service.serve import ExposureError, StartError, serve, setup_logging
 
     overrides = list(args.overrides)
     for key, value in (("host", args.host), ("port", args.port), ("viser_port", args.viser_port)):
@@ -213,88 +271,166 @@ def cmd_serve(args: argparse.Namespace) -> int:
     obj = None
     if args.object or args.object_file:
         if not args.sim:
-            print("sdh2svc serve: --object and --object-file need --sim", file=sys.stderr)
-            return 2
-        try:
-            obj = load_object(args.object_file) if args.object_file else get_object(args.object)
-        except (KeyError, OSError, ValueError) as e:
-            print(f"sdh2svc serve: {e}", file=sys.stderr)
-            return 2
+            _fail(Exit.USAGE, "--object and --object-file need --sim")
+        obj = _object(args, None)
     try:
         return asyncio.run(serve(cfg, sim=args.sim, dsa_url=args.dsa, sdh_url=args.sdh, obj=obj,
                                  announce_json=args.json))  # fmt: skip
     except ExposureError as e:
-        print(f"sdh2svc serve: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+        _fail(Exit.USAGE, str(e))
+    except StartError as e:
+        _fail(Exit.UNAVAILABLE, _one_line(e))
+
+
+def status_url(url: str) -> str:
+    """The service's status URL from what ``health --url`` was given: its base URL
+    (``http://127.0.0.1:8000``, with or without a trailing slash, or a path prefix behind a
+    proxy) or the full ``…/api/status``; ``http://`` when no scheme is given."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    text = url.strip()
+    if "://" not in text:
+        text = f"http://{text}"
+    try:
+        parts = urlsplit(text)
+        _ = parts.port  # a ValueError if the port is not a number in range
+    except ValueError as e:
+        _fail(Exit.USAGE, f"--url {url!r}: {e}")
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        _fail(Exit.USAGE, f"--url {url!r}: give the service's http://HOST:PORT (or …/api/status)")
+    path = parts.path.rstrip("/")
+    if not path.endswith("/api/status"):
+        path += "/api/status"
+    return urlunsplit((parts.scheme, parts.netloc, path, "", ""))
 
 
 def cmd_health(args: argparse.Namespace) -> int:
-    """Exit 0 if the service answers GET /api/status with both links connected (HEALTHCHECK)."""
+    """Exit 0 if the service answers GET /api/status with both links connected (HEALTHCHECK);
+    1 if it does not answer, answers something else, or reports a link down."""
     import urllib.error
     import urllib.request
 
     cfg = _load(args)
-    host = cfg.service.host if cfg.service.host not in ("0.0.0.0", "::") else "127.0.0.1"
-    url = args.url or f"http://{host}:{cfg.service.port}/api/status"
+    if args.url:
+        url = status_url(args.url)
+    else:
+        host = cfg.service.host if cfg.service.host not in ("0.0.0.0", "::") else "127.0.0.1"
+        host = f"[{host}]" if ":" in host else host
+        url = f"http://{host}:{cfg.service.port}/api/status"
     try:
         with urllib.request.urlopen(url, timeout=args.timeout) as r:
             status = json.load(r)
-    except (OSError, ValueError, urllib.error.URLError) as e:
-        print(f"sdh2svc health: {url}: {e}", file=sys.stderr)
-        return 1
-    down = [name for name, up in status["hand"]["connected"].items() if not up]
+    except urllib.error.HTTPError as e:
+        _fail(Exit.FAILED, f"{url} answered HTTP {e.code} {e.reason}")
+    except urllib.error.URLError as e:
+        why = getattr(e.reason, "strerror", None) or e.reason
+        _fail(Exit.FAILED, f"no answer from {url}: {why}")
+    except (OSError, ValueError) as e:  # a timeout, a reset; not JSON
+        _fail(Exit.FAILED, f"no usable answer from {url}: {_one_line(e) or type(e).__name__}")
+    try:
+        down = [name for name, up in status["hand"]["connected"].items() if not up]
+    except (KeyError, TypeError, AttributeError):
+        _fail(Exit.FAILED, f"{url} did not answer like sdh2svc's /api/status")
     if down:
-        print(f"sdh2svc health: link(s) down: {', '.join(down)}", file=sys.stderr)
-        return 1
+        _fail(Exit.FAILED, f"link(s) down: {', '.join(down)} ({url})")
     print(f"ok: {url}")
-    return 0
+    return Exit.OK
+
+
+def cmd_estop(args: argparse.Namespace) -> int:
+    """The e-stop latch kept in the run database (what a restarted service re-applies, and what
+    `run` on a real hand refuses to start under): show it, latch it, or release it. A running
+    service keeps its own copy: use its API (POST /api/estop, /api/estop/release) instead."""
+    from sdh2svc.service.store import NoDatabase, RunStore, StoreError
+
+    cfg = load_config(args.config, args.overrides)
+    try:
+        store = RunStore(cfg.storage.db_path, create=args.latch)
+    except NoDatabase:
+        if args.release:
+            _fail(Exit.NOT_FOUND, f"no run database at {cfg.storage.db_path}: nothing latched")
+        print("released (no run database yet)")
+        return Exit.OK
+    except StoreError as e:
+        _fail(Exit.UNAVAILABLE, _one_line(e))
+    try:
+        if args.latch:
+            store.latch_estop("latched from the command line")
+        elif args.release:
+            store.release_estop()
+        latch = store.estop_latch()
+    finally:
+        store.close()
+    print("released" if latch is None else f"latched since {latch['since']}: {latch['reason']}")
+    return Exit.OK
+
+
+RUN_IDS = range(-(2**63), 2**63)  # SQLite's integers: any other ID names no run
 
 
 def cmd_runs(args: argparse.Namespace) -> int:
-    """Recorded runs: list them, show one, export one as CSV or MCAP."""
-    from sdh2svc.service.store import RunStore
+    """Recorded runs: list them, show one, export one as CSV or MCAP. Never creates a database."""
+    import sqlite3
+
+    from sdh2svc.service.store import NoDatabase, RunStore, StoreError
 
     cfg = load_config(args.config, args.overrides)
-    store = RunStore(cfg.storage.db_path)
+    if args.action != "list" and args.id is None:
+        _fail(Exit.USAGE, f"{args.action}: which run? (give its ID)")
     try:
-        if args.action == "list":
-            for r in store.runs():
-                print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
-                      f"{r['iterations']:6d} iterations")  # fmt: skip
-            return 0
-        if args.id is None:
-            print(f"sdh2svc runs {args.action}: which run? (give its ID)", file=sys.stderr)
-            return 2
-        run = store.run(args.id)
-        if run is None:
-            print(f"sdh2svc runs: no run {args.id} in {cfg.storage.db_path}", file=sys.stderr)
-            return 2
-        if args.action == "show":
-            print(json.dumps(run, indent=2, ensure_ascii=False))
-        elif args.format == "csv":
-            out = open(args.output, "w", newline="") if args.output else sys.stdout  # noqa: SIM115
-            try:
-                store.export_csv(args.id, out)
-            finally:
-                if args.output:
-                    out.close()
-        else:
-            path = args.output or f"run-{args.id}.mcap"
-            with open(path, "wb") as fh:
-                n = store.export_mcap(args.id, fh)
-            print(f"{path}: {n} messages", file=sys.stderr)
-        return 0
+        store = RunStore(cfg.storage.db_path, create=False)
+    except NoDatabase as e:
+        _fail(Exit.NOT_FOUND, f"{e} ({NO_DATABASE_HINT})")
+    except StoreError as e:
+        _fail(Exit.UNAVAILABLE, _one_line(e))
+    try:
+        return _runs(args, store)
+    except sqlite3.Error as e:
+        _fail(Exit.UNAVAILABLE, f"run database {store.path}: {_one_line(e)}")
     finally:
         store.close()
 
 
+def _runs(args: argparse.Namespace, store: Any) -> int:
+    if args.action == "list":
+        for r in store.runs():
+            print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
+                  f"{r['iterations']:6d} iterations")  # fmt: skip
+        return Exit.OK
+    run = store.run(args.id) if args.id in RUN_IDS else None
+    if run is None:
+        _fail(Exit.NOT_FOUND, f"no run {args.id} in {store.path}")
+    if args.action == "show":
+        print(json.dumps(run, indent=2, ensure_ascii=False))
+        return Exit.OK
+    path = args.output or (None if args.format == "csv" else f"run-{args.id}.mcap")
+    try:
+        if args.format == "csv":
+            out = open(path, "w", newline="") if path else sys.stdout  # noqa: SIM115
+            try:
+                store.export_csv(args.id, out)
+            finally:
+                if path:
+                    out.close()
+        else:
+            with open(path, "wb") as fh:
+                n = store.export_mcap(args.id, fh)
+            print(f"{path}: {n} messages", file=sys.stderr)
+    except OSError as e:
+        _fail(Exit.UNAVAILABLE, f"cannot write {path or 'stdout'}: {e.strerror or e}")
+    return Exit.OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="sdh2svc", description="Tactile in-hand rolling on a SCHUNK SDH2 hand."
-    )
+        prog="sdh2svc", description="Tactile in-hand rolling on a SCHUNK SDH2 hand.",
+        epilog=EXIT_STATUS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
     parser.add_argument("--version", action="version", version=f"sdh2svc {__version__}")
+    parser.add_argument(
+        "--debug", action="store_true",
+        help="print the traceback of an unexpected error (or SDH2SVC_DEBUG=1)",
+    )  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser(
@@ -370,7 +506,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("health", help="is the service up? (exit status)",
                        description=cmd_health.__doc__)  # fmt: skip
     _add_config_args(p)
-    p.add_argument("--url", help="status URL (default: from service.host/port)")
+    p.add_argument("--url", help="the service's base URL http://HOST:PORT, or its /api/status "
+                   "URL (default: from service.host/port)")  # fmt: skip
     p.add_argument("--timeout", type=float, default=4.0, help="seconds")
     p.set_defaults(func=cmd_health)
 
@@ -384,16 +521,45 @@ def build_parser() -> argparse.ArgumentParser:
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
     )
     p.set_defaults(func=cmd_runs)
+
+    p = sub.add_parser("estop", help="the e-stop latch in the run database: show, latch, release",
+                       description=cmd_estop.__doc__)  # fmt: skip
+    _add_config_args(p)
+    action = p.add_mutually_exclusive_group()
+    action.add_argument("--latch", action="store_true", help="latch it (runs are refused)")
+    action.add_argument("--release", action="store_true", help="release it")
+    p.set_defaults(func=cmd_estop)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    debug = args.debug or os.environ.get("SDH2SVC_DEBUG", "") not in ("", "0")
     try:
         return int(args.func(args))
+    except CliError as e:
+        _report(args, e.message)
+        return e.status
     except ConfigError as e:
-        print(f"sdh2svc: {e}", file=sys.stderr)
-        return 2
+        _report(args, str(e))
+        return Exit.USAGE
+    except KeyboardInterrupt:
+        return Exit.INTERRUPTED
+    except Exception as e:
+        if debug:
+            traceback.print_exc()
+        _report(args, f"unexpected error (a bug): {type(e).__name__}: {_one_line(e)}"
+                + ("" if debug else " (--debug prints the traceback)"))  # fmt: skip
+        return Exit.BUG
+
+
+def _report(args: argparse.Namespace, message: str) -> None:
+    """The failure on stderr, ``sdh2svc COMMAND: message`` (a log record under ``serve
+    --log-format json``, so that the service's log stays one JSON object per line)."""
+    if getattr(args, "log_format", None) == "json" and logging.getLogger().handlers:
+        logging.getLogger("sdh2svc").error("%s", message)
+    else:
+        print(f"sdh2svc {args.command}: {message}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from typing import Annotated, Any
 
 import annotated_types as at
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict
+from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.safety import RunConfig, SafetyConfig
@@ -198,7 +198,10 @@ class ConfigError(ValueError):
 
     def __init__(self, problems: list[str], source: str = "configuration") -> None:
         self.problems = problems
-        super().__init__(f"invalid {source}:\n  " + "\n  ".join(problems))
+        if len(problems) == 1:  # one problem, one line
+            super().__init__(f"invalid {source}: {problems[0]}")
+        else:
+            super().__init__(f"invalid {source}:\n  " + "\n  ".join(problems))
 
 
 def default_config_path(name: str = "default.toml") -> Path:
@@ -210,13 +213,21 @@ def default_config_path(name: str = "default.toml") -> Path:
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
+    """A TOML file's table; anything unreadable is a :class:`ConfigError` naming the file."""
     try:
         with path.open("rb") as f:
             return tomllib.load(f)
     except FileNotFoundError:
         raise ConfigError([f"file not found: {path}"]) from None
+    except IsADirectoryError:
+        raise ConfigError([f"{path} is a directory, not a TOML file"]) from None
+    except UnicodeDecodeError:
+        raise ConfigError([f"{path}: not valid TOML: not UTF-8 text (a binary file?)"]) from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError([f"{path}: not valid TOML: {e}"]) from None
+    except (OSError, ValueError) as e:  # permissions, a NUL in the name, …
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+        raise ConfigError([f"cannot read {path}: {why}"]) from None
 
 
 def deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
@@ -261,7 +272,11 @@ def load_config(
     if path is not None:
         data = deep_merge(data, _read_toml(Path(path)))
     if use_env:
-        data = deep_merge(data, EnvSettingsSource(Settings)())
+        try:
+            env = EnvSettingsSource(Settings)()
+        except SettingsError as e:  # e.g. SDH2SVC_LIMITS__MIN_DEG=[1, 2 (not JSON)
+            raise ConfigError([f"environment (SDH2SVC_…): {e}"]) from None
+        data = deep_merge(data, env)
     for text in overrides:
         data = deep_merge(data, parse_override(text))
     try:

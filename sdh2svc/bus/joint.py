@@ -5,12 +5,16 @@ speaks to it through the sans-I/O codec :mod:`sdh2svc.protocol.sdh` only. What i
 I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
 
 * Connect handshake (§2.3, §2.8): ``" \\r\\n"``, discard 100 ms of input, ``ver`` with a 1 s
-  timeout, then ``vlim``, ``alim`` and ``con``.
+  timeout, then ``vlim``, ``alim`` and ``con`` — and then, our addition, :meth:`JointLink.hold`'s
+  sequence: the firmware keeps its last velocity or move forever (§2.4), so on every connect and
+  reconnect the link first stops whatever the previous host (or a dead process) left running.
 * One command in flight at a time, each with a timeout. Replies are correlated by keyword (ASCII)
   or command code (binary). An ``E<n>`` line or a non-zero binary status raises
   :class:`FirmwareError`, after up to ``retries`` retries for axis commands (as SDHLibrary does).
   Garbage, a mismatched reply or a timeout cause a resync (:data:`RESYNC` blank lines, drain until
-  the line is quiet, parser reset) and a retry. :attr:`JointLink.stats` counts all of it.
+  the line is quiet, parser reset) and a retry — but first, if anything since the last hold could
+  have started motion, a ``stop`` (our addition: a bad line must not let the hand move on while
+  the retries take their time). :attr:`JointLink.stats` counts all of it.
 * ASCII by default; ``binary=True`` sends the 11 commands SDHLibrary-CPP sends in binary (§2.6),
   with CRC on serial lines and without over ``socket://`` (PART 4 item 1; ``binary_crc``).
 * Targets outside the joint limits are refused with ``ValueError`` before any byte is written.
@@ -156,6 +160,7 @@ class JointStats:
     failures: int = 0  # commands that raised after their retries
     link_losses: int = 0
     reconnects: int = 0
+    motion_stops: int = 0  # `stop`s sent before a retry because the hand might be moving
     rtt_count: int = 0
     rtt_total_s: float = 0.0
     rtt_min_s: float = math.inf
@@ -222,6 +227,21 @@ def _may_move(keyword: str, values: Vec | None) -> bool:
 
 def _is_flags(allowed: frozenset[int]) -> Callable[[Vec], bool]:
     return lambda vals: all(v in allowed for v in vals)
+
+
+_ECHOED: Final = frozenset({"p", "v", "a", "con", "power", "vp"})  # `kw=x` answers `KW=x`
+_ACTUAL_ANGLES: Final = frozenset({"pos", "tpap"})
+_READ_MARGIN_DEG: Final = 2.0  # plausibility margin of an actual-angle reading
+_ECHO_TOL: Final = 0.01  # the wire carries 3 decimals
+
+
+def _echoes(sent: Vec) -> Callable[[Vec], bool]:
+    """The firmware took what we sent: a set command's echo (a flipped digit on the way to the
+    hand would otherwise set a wrong target, and the next `m` would go there)."""
+    return lambda got: (
+        len(got) == len(sent)
+        and all(abs(g - v) <= _ECHO_TOL for g, v in zip(got, sent, strict=True))
+    )
 
 
 _REPLY_CHECKS: Final[dict[str, Callable[[Vec], bool]]] = {
@@ -411,6 +431,8 @@ class JointLink:
         self._estopped = False
         self._estop_pending = 0
         self.last_actual: Vec | None = None  # the newest `pos` answer, for displays (no line time)
+        self._may_be_moving = False  # a command that can start motion went out since the last hold
+        self._actual_at: float | None = None  # loop time of last_actual
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[None]] = set()
 
@@ -562,8 +584,30 @@ class JointLink:
         if spec is not None and axis is not None and spec.form is ArgForm.VECTOR:
             n_values = 1
         axis_cmd = spec is not None and spec.form in (ArgForm.VECTOR, ArgForm.AXIS_ONLY)
+        check = _REPLY_CHECKS.get(kw)
+        if kw in _ECHOED and vals is not None:
+            check = _echoes(vals)
+        elif kw in _ACTUAL_ANGLES:
+            check = self._plausible_actual
         return _Request(kw, data, axis, code, axis_cmd, _may_move(kw, vals), n_values,
-                        _REPLY_CHECKS.get(kw))  # fmt: skip
+                        check)  # fmt: skip
+
+    def _plausible_actual(self, values: Vec) -> bool:
+        """Actual angles a hand can have: within the limits (± a margin) and no further from the
+        last reading than the axes can travel since. ASCII replies carry no checksum, and a
+        flipped digit would make a 12.5° finger read 92.5° — whose ±1° target is 80° away."""
+        if len(values) != NUM_AXES or not all(math.isfinite(v) for v in values):
+            return False
+        if any(not lo - _READ_MARGIN_DEG <= v <= hi + _READ_MARGIN_DEG
+               for v, (lo, hi) in zip(values, self.limits, strict=True)):  # fmt: skip
+            return False
+        last, at = self.last_actual, self._actual_at
+        if last is None or at is None or not self.velocity_limits:
+            return True
+        dt = asyncio.get_running_loop().time() - at
+        vlim = self.velocity_limits
+        return all(abs(v - w) <= vmax * dt + _READ_MARGIN_DEG
+                   for v, w, vmax in zip(values, last, vlim, strict=True))  # fmt: skip
 
     async def _call(self, req: _Request, timeout_s: float | None = None) -> Reply:
         self._check_usable(req)
@@ -601,8 +645,10 @@ class JointLink:
                 self.stats.retries += 1
             if conn.dirty:
                 await self._resync(conn)
+            if attempt and self._may_be_moving:
+                await self._stop_motion(conn, timeout_s)
             try:
-                return await self._attempt(conn, req, timeout_s)
+                reply = await self._attempt(conn, req, timeout_s)
             except FirmwareError as exc:
                 self.stats.errors += 1
                 if not req.retry_on_error:
@@ -614,6 +660,9 @@ class JointLink:
             except TimeoutError:
                 self.stats.timeouts += 1
                 failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s")
+            else:
+                self._may_be_moving = self._may_be_moving or req.moves
+                return reply
         assert failure is not None
         self.stats.failures += 1
         self._emit(LinkEventKind.ERROR, str(failure))
@@ -686,6 +735,35 @@ class JointLink:
         await conn.drain_quiet(self._quiet_s, self._resync_max_s)
         conn.dirty = False
 
+    async def _stop_motion(self, conn: _Conn, timeout_s: float) -> None:
+        """Before retrying a failed exchange: `stop` (and zero velocities in a velocity
+        controller), one attempt each, errors ignored — the hand must not move on while the
+        line is bad, and a stop that got through works even if its reply did not."""
+        self.stats.motion_stops += 1
+        stops = [self._request("stop")]
+        if self.controller is not ControllerMode.POSE:
+            stops.insert(0, self._request("v", (0.0,) * NUM_AXES))
+        for req in stops:
+            try:
+                await self._attempt(conn, req, timeout_s)
+            except (JointLinkError, _Garbled, TimeoutError):
+                await self._resync(conn)
+
+    async def _hold_on(self, conn: _Conn) -> Vec:
+        """Stop every axis where it is: zero velocities (velocity controllers), `stop` (an `m`
+        move), pose controller, actual angles as targets (so a later `m` does not jump)."""
+        if self.controller is not ControllerMode.POSE:
+            await self._urgent(conn, self._request("v", (0.0,) * NUM_AXES))
+        await self._urgent(conn, self._request("stop"))
+        if self.controller is not ControllerMode.POSE:
+            await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
+            self.controller = ControllerMode.POSE
+        actual = self._took_actual((await self._urgent(conn, self._request("pos"))).values)
+        held = self.clip_to_limits(actual)
+        await self._urgent(conn, self._request("p", held))
+        self._may_be_moving = False
+        return held
+
     # -- connecting -----------------------------------------------------------------------------
 
     async def _connect_once(self) -> _Conn:
@@ -720,6 +798,9 @@ class JointLink:
         if self._estopped:  # a latched e-stop holds on a new connection too (the controller
             # may have been reset, or powered on by hand, while the line was down)
             await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
+        # Whatever the last host left running (a velocity, a move), it stops now: the firmware
+        # keeps its last command forever, and no loop of ours commands it yet.
+        await self._hold_on(conn)
 
     def _conn_lost(self, conn: _Conn, exc: BaseException) -> None:
         if conn is not self._conn or self._closed:
@@ -788,8 +869,11 @@ class JointLink:
 
     async def get_actual(self) -> Vec:
         """Actual joint angles (``pos``), deg."""
-        self.last_actual = await self._vector("pos")
-        return self.last_actual
+        return self._took_actual(await self._vector("pos"))
+
+    def _took_actual(self, actual: Vec) -> Vec:
+        self.last_actual, self._actual_at = actual, asyncio.get_running_loop().time()
+        return actual
 
     async def get_targets(self) -> Vec:
         """Target angles (``p``), deg."""
@@ -851,7 +935,7 @@ class JointLink:
 
     async def tpap(self, targets: Sequence[float]) -> Vec:
         """Set target angles (limit-checked) and read the actual ones in one round trip."""
-        return await self._vector("tpap", self.check_targets(targets))
+        return self._took_actual(await self._vector("tpap", self.check_targets(targets)))
 
     async def tvav(self, velocities: Sequence[float]) -> Vec:
         """Set target velocities and read the actual velocities in one round trip."""
@@ -872,7 +956,23 @@ class JointLink:
             raise JointLinkError(f"temp: {len(temps)} values")
         return temps
 
+    async def hold(self) -> Vec:
+        """Stop every axis where it is and switch to the pose controller; returns the held
+        angles. Allowed while an emergency stop is latched (it only stops)."""
+        await self._gate.acquire()
+        try:
+            if self._closed:
+                raise LinkLost("link closed")
+            return await self._hold_on(self._require_conn())
+        finally:
+            self._gate.release()
+
     # -- emergency stop -------------------------------------------------------------------------
+
+    def latch(self) -> None:
+        """Latch an emergency stop without a word to the hand (e.g. one found latched on disk
+        while the line is down): motion commands are refused and the next connect powers off."""
+        self._estopped = True
 
     async def emergency_stop(self) -> Vec:
         """SCHUNK's e-stop with precedence; returns the angles written as targets.
@@ -917,7 +1017,11 @@ class JointLink:
     async def release(self) -> tuple[bool, ...]:
         """Clear a latched emergency stop and power all axes on again."""
         self._estopped = False
-        flags = await self.power([True] * NUM_AXES)
+        try:
+            flags = await self.power([True] * NUM_AXES)
+        except BaseException:
+            self._estopped = True  # not released until the hand took it
+            raise
         self._emit(LinkEventKind.RELEASED)
         return flags
 

@@ -23,6 +23,7 @@ from typing import Any
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
 from sdh2svc.config import Settings
+from sdh2svc.control.motion import move_in_increments
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
@@ -157,7 +158,7 @@ class Runner:
         try:
             self._set_phase(Phase.CONNECTING)
             self._event("start", {"params": self.params.model_dump()})
-            await self._preshape()
+            await self._preshape(sub)
             if not self._stop.is_set():
                 await self._grasp(sub)
             if not self._stop.is_set():
@@ -195,58 +196,95 @@ class Runner:
         self._event("end", {"status": status, "message": message})
 
     async def _halt(self) -> None:
-        """Hold where the hand is: targets = actual angles."""
+        """Hold where the hand is: stop every axis, targets = actual angles."""
         with contextlib.suppress(Exception):
-            actual = await self.joints.get_actual()
-            await self.joints.set_controller(ControllerMode.POSE)
-            await self.joints.set_targets(self.joints.clip_to_limits(actual))
+            await self.joints.hold()
 
-    async def _move_to(self, targets: tuple[float, ...], velocity: float) -> None:
-        await self.joints.set_controller(ControllerMode.POSE)
-        await self.joints.set_velocities([velocity] * 7)
-        await self.joints.set_targets(targets)
-        await self.joints.move()
-        await self.joints.wait_idle()
+    def _force(self, frame: TactileFrame) -> float:
+        """F of the two distal contacts (library units, as Fd)."""
+        c1 = self.ctx.contact(frame.matrices[self._m1])
+        c2 = self.ctx.contact(frame.matrices[self._m2])
+        return (c1.force_library + c2.force_library) / 2
 
-    async def _preshape(self) -> None:
+    def _ceiling_fault(self, F: float) -> RunFault | None:
+        s = self.settings.safety
+        if F > s.force_ceiling_factor * self.params.grasp_force:
+            return RunFault(Fault.FORCE_CEILING, f"F = {F:.2f} above "
+                            f"{s.force_ceiling_factor:g} × Fd")  # fmt: skip
+        return None
+
+    def _watch_ceiling(self, sub: Subscription) -> Callable[[], None]:
+        """A move's check: the newest fresh frame's F must stay under the ceiling."""
+
+        def check() -> None:
+            frame = sub.latest
+            stale = self.settings.safety.stale_frame_ms / 1000
+            if frame is not None and frame.age() <= stale:
+                fault = self._ceiling_fault(self._force(frame))
+                if fault is not None:
+                    raise fault
+
+        return check
+
+    async def _move_to(
+        self, targets: tuple[float, ...], velocity: float, check: Callable[[], None] | None
+    ) -> None:
+        lim = self.settings.limits
+        await move_in_increments(self.joints, targets, velocity_deg_s=velocity,
+                                 lo=lim.min_deg, hi=lim.max_deg,
+                                 max_step_deg=self.settings.safety.max_step_deg,
+                                 check=check)  # fmt: skip
+
+    async def _preshape(self, sub: Subscription) -> None:
         self._set_phase(Phase.PRESHAPE)
         run = self.settings.run
-        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s)
+        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s,
+                            self._watch_ceiling(sub))  # fmt: skip
 
     async def _grasp(self, sub: Subscription) -> None:
-        """Close both coupled fingers in a mirror pose, force-proportionally, until F ≥ Fd."""
+        """Close both coupled fingers in a mirror pose, force-proportionally, until F ≥ Fd.
+
+        The thesis (and SCHUNK's demo) close with a velocity command; the firmware would keep
+        that velocity if this loop died. So every frame commands a pose increment instead — the
+        closing speed × one frame period, at most ``safety.max_step_deg`` — and a lost loop
+        leaves the fingers at most one increment further.
+        """
         self._set_phase(Phase.GRASPING)
-        run, fd = self.settings.run, self.params.grasp_force
+        run, fd, lim = self.settings.run, self.params.grasp_force, self.settings.limits
+        max_step = self.settings.safety.max_step_deg
+        period = 1.0 / run.tactile_rate_hz
         loop = asyncio.get_running_loop()
         deadline = loop.time() + run.grasp_timeout_s
-        await self.joints.set_controller(ControllerMode.VELOCITY_ACCELERATION)
-        await self.joints.set_accelerations([100.0] * 7)
+        await self.joints.set_controller(ControllerMode.POSE)
+        await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * 7)
+        await self.joints.set_accelerations(self.joints.acceleration_limits)
         p2, p3, p4, p5 = self._axes
-        try:
-            while not self._stop.is_set():
-                frame = await self._fresh(sub)
-                c1, c2 = (
-                    self.ctx.contact(frame.matrices[self._m1]),
-                    self.ctx.contact(frame.matrices[self._m2]),
-                )
-                F = (c1.force_library + c2.force_library) / 2
-                if F >= fd:
-                    self._event("grasped", {"F": F})
-                    return
-                if loop.time() > deadline:
-                    raise RunFault(Fault.NO_CONTACT, f"no grasp (F = {F:.2f} < Fd = {fd}) "
-                                   f"within {run.grasp_timeout_s:g} s")  # fmt: skip
-                actual = await self.joints.get_actual()
-                if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
-                    raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
-                v = [0.0] * 7
-                for prox, dist, f in ((p2, p3, c1.force_library), (p4, p5, c2.force_library)):
-                    speed = min(run.grasp_max_velocity_deg_s, (fd - f) * run.grasp_gain_deg_s)
-                    v[prox], v[dist] = max(speed, 0.0), -max(speed, 0.0)
-                await self.joints.tvav(v)
-        finally:
-            with contextlib.suppress(Exception):
-                await self.joints.tvav([0.0] * 7)
+        while not self._stop.is_set():
+            frame = await self._fresh(sub)
+            c1, c2 = (
+                self.ctx.contact(frame.matrices[self._m1]),
+                self.ctx.contact(frame.matrices[self._m2]),
+            )
+            F = (c1.force_library + c2.force_library) / 2
+            if (fault := self._ceiling_fault(F)) is not None:
+                raise fault
+            if F >= fd:
+                self._event("grasped", {"F": F})
+                return
+            if loop.time() > deadline:
+                raise RunFault(Fault.NO_CONTACT, f"no grasp (F = {F:.2f} < Fd = {fd}) "
+                               f"within {run.grasp_timeout_s:g} s")  # fmt: skip
+            actual = await self.joints.get_actual()
+            if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
+                raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
+            want = list(actual)
+            for prox, dist, f in ((p2, p3, c1.force_library), (p4, p5, c2.force_library)):
+                speed = min(run.grasp_max_velocity_deg_s, (fd - f) * run.grasp_gain_deg_s)
+                step = min(max(speed, 0.0) * period, max_step)
+                want[prox], want[dist] = actual[prox] + step, actual[dist] - step
+            await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
+                                                        max_step))  # fmt: skip
+            await self.joints.move()
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""
@@ -315,11 +353,10 @@ class Runner:
             self._record(r, pose, frame, age_ms, latency_ms)
 
     def _supervise(self, r: StepResult) -> RunFault | None:
-        s, p = self.settings.safety, self.params
+        s = self.settings.safety
         c1, c2 = r.obs.contact1, r.obs.contact2
-        if r.F > s.force_ceiling_factor * p.grasp_force:
-            return RunFault(Fault.FORCE_CEILING, f"F = {r.F:.2f} above "
-                            f"{s.force_ceiling_factor:g} × Fd")  # fmt: skip
+        if (fault := self._ceiling_fault(r.F)) is not None:
+            return fault
         if not c1.present and not c2.present:
             return RunFault(Fault.DROPPED, "both contacts lost: the object is no longer held")
         if r.state.consecutive_reversals > s.max_consecutive_reversals:
@@ -350,9 +387,10 @@ class Runner:
             self._on_frame(t, frame)
 
     async def _release(self) -> None:
+        """Open to the pre-shape pose; no force check: opening is the remedy for a high F."""
         self._set_phase(Phase.RELEASING)
         run = self.settings.run
-        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s)
+        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s, None)
 
     def _set_phase(self, phase: Phase) -> None:
         if phase is not self.phase:

@@ -19,7 +19,7 @@ from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import Settings
 from sdh2svc.control.runner import Runner
 from sdh2svc.service.runs import RecordedRun, open_links
-from sdh2svc.service.store import RunStore
+from sdh2svc.service.store import EstopLatched, RunStore
 from sdh2svc.sim.hand import ObjectSpecT
 from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
 
@@ -41,6 +41,8 @@ async def run_once(
     tactile: TactileBus | None = None
     store = RunStore(cfg.storage.db_path)
     try:
+        if not sim and (latch := store.estop_latch()) is not None:
+            raise EstopLatched(latch)  # the latch belongs to the real hand, not a simulated one
         if sim:
             unix_dir = Path(tmp.name) if tmp else None
             # one run: no lab assistant (nobody to put the object back for)

@@ -9,6 +9,7 @@ plain ``LEVEL logger: message`` for journald, or ``--log-format json``.
 from __future__ import annotations
 
 import asyncio
+import errno
 import ipaddress
 import json
 import logging
@@ -18,14 +19,30 @@ from typing import Any
 
 import uvicorn
 
+from sdh2svc.bus.joint import JointLinkError
+from sdh2svc.bus.tactile import TactileError
 from sdh2svc.config import Settings
 from sdh2svc.service.app import Services, close_services, create_app, open_services
+from sdh2svc.service.store import RunStore, StoreError
 
 log = logging.getLogger(__name__)
 
 
 class ExposureError(ValueError):
-    """Refusal to listen: beyond loopback without a token, or the address is unusable."""
+    """Refusal to listen beyond loopback without a token (a configuration error)."""
+
+
+class StartError(RuntimeError):
+    """The service cannot start for a reason outside it: a port is taken, the hand does not
+    answer, the run database is unusable. The message names the port, device or path."""
+
+
+class PortBusy(StartError):
+    """A port the service must listen on is taken."""
+
+
+class HandUnreachable(StartError):
+    """One of the hand's two lines cannot be opened or does not answer."""
 
 
 def is_loopback(host: str) -> bool:
@@ -62,10 +79,36 @@ def listen_socket(cfg: Settings) -> socket.socket:
         sock.bind((host, port))
     except OSError as e:
         sock.close()
-        raise ExposureError(f"cannot listen on {host}:{port}: {e.strerror}") from None
+        if e.errno == errno.EADDRINUSE:
+            raise PortBusy(
+                f"cannot listen on {host}:{port}: port {port} is already in use (stop "
+                "whatever uses it, or choose --port; 0 = any free port)"
+            ) from None
+        raise StartError(f"cannot listen on {host}:{port}: {e.strerror or e}") from None
     sock.listen(128)
     sock.set_inheritable(True)
     return sock
+
+
+def check_viser_port(cfg: Settings) -> None:
+    """Fail at once, before the hand is opened, if the 3-D view's port is taken (in a process of
+    its own the view would report it late; in this one, viser would quietly move elsewhere)."""
+    host, port = cfg.service.host, cfg.service.viser_port
+    if not cfg.service.viewer or port == 0:
+        return
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        with socket.create_server((host, port), family=family):
+            pass
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            raise PortBusy(_viser_busy(port)) from None
+        raise StartError(f"cannot serve the 3-D view on {host}:{port}: {e.strerror or e}") from None
+
+
+def _viser_busy(port: int) -> str:
+    return (f"viser port {port} is already in use (stop whatever uses it, or set --viser-port / "
+            "service.viser_port; 0 = any free port, --no-viewer = none)")  # fmt: skip
 
 
 class JsonFormatter(logging.Formatter):
@@ -117,15 +160,23 @@ async def serve(
     obj: Any = None,
     announce_json: bool = False,
 ) -> int:
-    """Run the service until a signal; returns the exit status."""
+    """Run the service until a signal; returns the exit status.
+
+    Raises :class:`ExposureError` (refusal: configuration) or a :class:`StartError` (a port is
+    taken, the hand or the database cannot be opened) before anything is served.
+    """
     check_exposure(cfg)
     sock = listen_socket(cfg)  # before the hand: a taken port fails at once
     try:
+        check_viser_port(cfg)
+        RunStore(cfg.storage.db_path).close()  # an unusable database fails before the hand moves
         services = await open_services(cfg, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
-    except Exception as e:
+    except BaseException as e:
         sock.close()
-        log.error("cannot open the hand: %s (check --sdh/--dsa or links.sdh_url/dsa_url)", e)
-        return 1
+        err = _start_error(e, cfg)
+        if err is None:  # a bug, or Ctrl-C: as it is
+            raise
+        raise err from None
     try:
         app = create_app(services)
         # No permessage-deflate: it would compress every telemetry message once per client
@@ -147,6 +198,25 @@ async def serve(
         return 0
     finally:
         await close_services(services)
+
+
+def _start_error(e: BaseException, cfg: Settings) -> StartError | None:
+    """What an exception while opening the hand and the view means to whoever started us."""
+    from sdh2svc.service.viewer_proc import ViewerError
+
+    if isinstance(e, StartError):
+        return e
+    if isinstance(e, StoreError):
+        return StartError(str(e))
+    if isinstance(e, ViewerError):
+        if "in use" in str(e):  # the port was taken between our check and viser's bind
+            return PortBusy(_viser_busy(cfg.service.viser_port))
+        return StartError(f"cannot start the 3-D view: {e}")
+    if isinstance(e, JointLinkError | TactileError | OSError):
+        return HandUnreachable(
+            f"cannot open the hand: {e} (check --sdh/--dsa or links.sdh_url/dsa_url)"
+        )
+    return None
 
 
 def _announce(server: uvicorn.Server, services: Services, sim: bool, as_json: bool) -> None:

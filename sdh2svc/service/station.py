@@ -18,9 +18,10 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.joint import JointLink, JointLinkError
 from sdh2svc.bus.tactile import Subscription, TactileBus, TactileFrame
 from sdh2svc.config import Settings, format_errors
+from sdh2svc.control.motion import move_in_increments
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
@@ -97,6 +98,8 @@ class Station:
         self._tasks: list[asyncio.Task[None]] = []
         self._last_tactile = -math.inf
         self._outline: Outline | None = None
+        self._opening: asyncio.Task[None] | None = None
+        self._latch: dict[str, str] | None = None  # the e-stop latch as on disk
         self._closed = False
 
     # --- life -----------------------------------------------------------------------------------
@@ -116,6 +119,13 @@ class Station:
         if interrupted:
             log.warning("runs %s were still 'running' in %s: marked interrupted",
                         interrupted, cfg.storage.db_path)  # fmt: skip
+        self._latch = latch = self.store.estop_latch()
+        if latch is not None:
+            log.warning("the e-stop is latched (since %s: %s): motors off until released",
+                        latch["since"], latch["reason"])  # fmt: skip
+            self.joints.latch()
+            with contextlib.suppress(JointLinkError):
+                await self.joints.emergency_stop()
         self.tactile.add_frame_listener(self._on_frame)
         if cfg.service.monitor_rate_hz > 0:
             self._monitor = self.tactile.subscribe(range(6), cfg.service.monitor_rate_hz)
@@ -139,6 +149,7 @@ class Station:
                 with contextlib.suppress(Exception):
                     await self.run.runner.emergency_stop()
         await cancel(self._run_task)
+        await self._cancel_opening()
         for task in self._tasks:
             await cancel(task)
         if self._monitor is not None:
@@ -159,12 +170,18 @@ class Station:
     def running(self) -> bool:
         return self._run_task is not None and not self._run_task.done()
 
+    @property
+    def opening(self) -> bool:
+        return self._opening is not None and not self._opening.done()
+
     def start_run(self, params: dict[str, Any] | None = None, obj: Any = None) -> dict[str, Any]:
-        """Start a run (409 while one runs or the e-stop is latched)."""
+        """Start a run (409 while one runs, while the hand opens, or the e-stop is latched)."""
         joints, tactile, store = self._links()
         if self.running and self.run is not None:
             raise ServiceError(409, f"run {self.run.run_id} is already running "
                                f"({self.run.runner.phase.value}); stop it first")  # fmt: skip
+        if self.opening:
+            raise ServiceError(409, "the hand is opening; start the run when it is open")
         if joints.estopped:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
@@ -183,6 +200,10 @@ class Station:
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
 
     def stop_run(self) -> dict[str, Any]:
+        """Stop the run (it releases the object), or an opening hand where it is."""
+        if self.opening and self._opening is not None:
+            self._opening.cancel()  # its task holds the hand where it is
+            return {"run_id": None, "state": "stopping"}
         if not self.running or self.run is None:
             raise ServiceError(409, "no run is running")
         self.run.runner.request_stop()
@@ -190,21 +211,44 @@ class Station:
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
 
     async def estop(self) -> dict[str, Any]:
-        """Motors off now, from any state; a running run ends e-stopped."""
-        joints, _, _ = self._links()
+        """Motors off now, from any state; latched on disk first (a restart keeps it), then
+        sent to the hand. A run ends e-stopped; an opening hand stops. Never refused: if the
+        line is down, the latch is sent as soon as it is back."""
+        joints, _, store = self._links()
         log.warning("E-STOP")
-        if self.running and self.run is not None:
-            await self.run.runner.emergency_stop()
-        else:
-            await joints.emergency_stop()
-            self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
-                              "kind": "estop", "detail": {}})  # fmt: skip
+        store.latch_estop("e-stop requested")
+        self._latch = store.estop_latch()
+        joints.latch()
+        reached, problem = True, ""
+        try:
+            if self.running and self.run is not None:
+                await self.run.runner.emergency_stop()
+            else:
+                await self._cancel_opening()
+                await joints.emergency_stop()
+                self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
+                                  "kind": "estop", "detail": {}})  # fmt: skip
+        except JointLinkError as e:
+            reached, problem = False, str(e)
+            log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
         self.publish_status()
-        return {"estopped": joints.estopped}
+        out: dict[str, Any] = {"estopped": True, "hand_reached": reached}
+        if problem:
+            out["detail"] = (
+                f"the hand was not reached ({problem}); the stop is sent when the line is back"
+            )
+        return out
 
     async def release_estop(self) -> dict[str, Any]:
-        joints, _, _ = self._links()
-        await joints.release()
+        """Release the latch: the hand first (motors on), then the record on disk."""
+        joints, _, store = self._links()
+        try:
+            await joints.release()
+        except JointLinkError as e:
+            raise ServiceError(503, f"the hand did not take the release: {e}; the e-stop "
+                               "stays latched") from None  # fmt: skip
+        store.release_estop()
+        self._latch = None
         log.info("e-stop released")
         self.publish_status()
         return {"estopped": joints.estopped}
@@ -217,7 +261,52 @@ class Station:
         latched; 503 when the links are not up. Events ``open`` (start) and ``opened`` / a
         ``fault`` go to the hub; ``status()["hand"]["opening"]`` is true meanwhile.
         """
-        raise ServiceError(501, "opening the hand is not implemented yet")
+        joints, _, _ = self._links()
+        if self.running and self.run is not None:
+            raise ServiceError(409, f"run {self.run.run_id} is running; stop it first (a stopped "
+                               "run opens the hand itself)")  # fmt: skip
+        if self.opening:
+            raise ServiceError(409, "the hand is already opening")
+        if joints.estopped:
+            raise ServiceError(409, "the e-stop is latched: release it first "
+                               "(POST /api/estop/release)")  # fmt: skip
+        if not joints.connected:
+            raise ServiceError(503, f"the joint line ({self.sdh_url}) is down")
+        self._opening = asyncio.create_task(self._open(joints), name="open-hand")
+        self.publish_status()
+        return {"state": "opening"}
+
+    async def _open(self, joints: JointLink) -> None:
+        run, lim = self.cfg.run, self.cfg.limits
+        self._hand_event("open", {})
+        try:
+            await move_in_increments(joints, run.preshape_deg,
+                                     velocity_deg_s=run.preshape_velocity_deg_s,
+                                     lo=lim.min_deg, hi=lim.max_deg,
+                                     max_step_deg=self.cfg.safety.max_step_deg)  # fmt: skip
+        except asyncio.CancelledError:
+            with contextlib.suppress(Exception):
+                await joints.hold()
+            self._hand_event("opened", {"completed": False, "message": "stopped"})
+            raise
+        except Exception as e:  # the line failed, the fingers are blocked, an e-stop came
+            with contextlib.suppress(Exception):
+                await joints.hold()
+            log.warning("opening the hand failed: %s", e)
+            self._hand_event("fault", {"fault": "open_failed", "message": str(e)})
+        else:
+            self._hand_event("opened", {"completed": True})
+        finally:
+            self.publish_status()
+
+    async def _cancel_opening(self) -> None:
+        task, self._opening = self._opening, None
+        if task is not None:
+            await cancel(task)
+
+    def _hand_event(self, kind: str, detail: dict[str, Any]) -> None:
+        self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
+                          "kind": kind, "detail": detail})  # fmt: skip
 
     @property
     def params_in_force(self) -> RollingParams:
@@ -253,8 +342,11 @@ class Station:
 
     async def command(self, kind: str, args: dict[str, Any]) -> None:
         """The 3-D view's buttons and sliders; a refusal is logged and raised (the view shows
-        it in its panel)."""
+        it in its panel). The view cannot authenticate: with a token set, only the e-stop."""
         try:
+            if self.cfg.service.token and kind != "estop":
+                raise ServiceError(403, f"{kind!r} from the 3-D view refused: the service "
+                                   "needs its token; use the dashboard or the API")  # fmt: skip
             if kind == "start":
                 self.start_run()
             elif kind == "stop":
@@ -290,8 +382,10 @@ class Station:
             "sim": self.sim,
             "auth_required": bool(self.cfg.service.token),
             "estopped": bool(j and j.estopped),
+            "estop": self._latch,
             "hand": {
                 "connected": connected,
+                "opening": self.opening,
                 "angles_deg": list(j.last_actual) if j and j.last_actual else None,
             },
             "links": {

@@ -54,18 +54,82 @@ CREATE TABLE IF NOT EXISTS frames (
     texels BLOB NOT NULL
 );
 CREATE INDEX IF NOT EXISTS frames_run ON frames(run_id, t);
+CREATE TABLE IF NOT EXISTS estop (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    since TEXT NOT NULL,
+    reason TEXT NOT NULL
+);
 """
 
 
-def connect(path: str | Path) -> sqlite3.Connection:
-    """Open (and create) the run database; WAL so a reader never blocks the recorder."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    db = sqlite3.connect(str(path), check_same_thread=False, timeout=10.0)
-    db.execute("PRAGMA journal_mode=WAL")
-    db.execute("PRAGMA synchronous=NORMAL")
-    db.executescript(SCHEMA)
+class StoreError(Exception):
+    """The run database cannot be opened or read; the message names the path and why."""
+
+
+class EstopLatched(Exception):
+    """A run was refused: the e-stop is latched in the run database."""
+
+    def __init__(self, latch: dict[str, str]) -> None:
+        self.latch = latch
+        super().__init__(f"the e-stop is latched (since {latch['since']}: {latch['reason']}); "
+                         "release it with `sdh2svc estop --release` or, with the service "
+                         "running, POST /api/estop/release")  # fmt: skip
+
+
+class NoDatabase(StoreError):
+    """There is no run database at the path (and the caller only reads: none was created)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        super().__init__(f"no run database at {path}")
+
+
+def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
+    """Open the run database; WAL so a reader never blocks the recorder.
+
+    ``create=True`` (the recorder, the service, ``sdh2svc run``) creates the file, its directory
+    and the tables as needed. ``create=False`` (reading commands) never creates anything: a
+    missing file raises :class:`NoDatabase`, a file without the ``runs`` table
+    :class:`StoreError`. Anything unusable — a directory, an unwritable place, a file that is not
+    SQLite — raises :class:`StoreError` naming the path and the reason.
+    """
+    p = Path(path)
+    if not create and not p.exists():
+        raise NoDatabase(p)
+    if p.is_dir():
+        raise StoreError(f"cannot open the run database {p}: it is a directory")
+    for parent in p.parents:  # the nearest existing ancestor must be a directory
+        if parent.exists():
+            if not parent.is_dir():
+                raise StoreError(f"cannot open the run database {p}: {parent} is not a directory")
+            break
+    db: sqlite3.Connection | None = None
+    try:
+        if create:
+            p.parent.mkdir(parents=True, exist_ok=True)
+        uri = f"{p.absolute().as_uri()}?mode={'rwc' if create else 'rw'}"
+        db = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=10.0)
+        db.execute("PRAGMA journal_mode=WAL")
+        db.execute("PRAGMA synchronous=NORMAL")
+        if not create and not _has_runs_table(db):
+            raise StoreError(f"{p} is not a run database (it has no runs table)")
+        db.executescript(SCHEMA)
+    except (OSError, sqlite3.Error) as e:
+        if db is not None:
+            db.close()
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+        raise StoreError(f"cannot open the run database {p}: {why}") from None
+    except BaseException:
+        if db is not None:
+            db.close()
+        raise
     db.row_factory = sqlite3.Row
     return db
+
+
+def _has_runs_table(db: sqlite3.Connection) -> bool:
+    row = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'runs'")
+    return row.fetchone() is not None
 
 
 def _now_iso() -> str:
@@ -75,9 +139,11 @@ def _now_iso() -> str:
 class RunStore:
     """Reads and the occasional write (run creation, finish) of the run database."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, create: bool = True) -> None:
+        """Open the database at ``path``; ``create=False``: only an existing one (see
+        :func:`connect`)."""
         self.path = Path(path)
-        self.db = connect(path)
+        self.db = connect(path, create=create)
         self._lock = threading.Lock()
 
     def close(self) -> None:
@@ -105,6 +171,36 @@ class RunStore:
             ids = [r[0] for r in self.db.execute("SELECT id FROM runs WHERE status = 'running'")]
             self.db.execute("UPDATE runs SET status = 'interrupted' WHERE status = 'running'")
         return ids
+
+    # --- the e-stop latch: durable until an explicit release ------------------------------------
+
+    def estop_latch(self) -> dict[str, str] | None:
+        """The latched e-stop (``since``, ``reason``), or None when released."""
+        row = self.db.execute("SELECT since, reason FROM estop WHERE id = 1").fetchone()
+        return None if row is None else {"since": row["since"], "reason": row["reason"]}
+
+    def latch_estop(self, reason: str) -> None:
+        """Latch the e-stop on disk before anything else happens: fsync'd (synchronous=FULL),
+        so a restart — or the PC losing power — finds it still latched."""
+        with self._lock:
+            self.db.execute("PRAGMA synchronous=FULL")
+            try:
+                with self.db:
+                    self.db.execute(
+                        "INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
+                        (_now_iso(), reason),
+                    )
+            finally:
+                self.db.execute("PRAGMA synchronous=NORMAL")
+
+    def release_estop(self) -> None:
+        with self._lock:
+            self.db.execute("PRAGMA synchronous=FULL")
+            try:
+                with self.db:
+                    self.db.execute("DELETE FROM estop")
+            finally:
+                self.db.execute("PRAGMA synchronous=NORMAL")
 
     def sample_count(self, run_id: int) -> int:
         row = self.db.execute("SELECT COUNT(*) FROM samples WHERE run_id = ?", (run_id,)).fetchone()

@@ -102,8 +102,9 @@ async def test_open_handshake(rig: Rig) -> None:
     assert link.controller is ControllerMode.POSE
     assert link.connected
     assert rig.dev.stats.blank_lines >= 1
-    assert link.stats.commands == 4  # ver, vlim, alim, con
-    assert link.stats.rtt_count == 4 and link.stats.rtt_min_s > 0.0
+    # ver, vlim, alim, con, then the hold: stop, pos, p (the controller is in pose mode)
+    assert link.stats.commands == 7
+    assert link.stats.rtt_count == 7 and link.stats.rtt_min_s > 0.0
     assert [e.kind for e in seen] == [LinkEventKind.CONNECTED]
     assert link.binary_crc is (rig.ep.url.startswith("socket://") is False)
     await link.close()
@@ -369,6 +370,8 @@ async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
     link = await tcp_rig.open(on_event=seen.append)
     events = link.subscribe()
     loop = asyncio.get_running_loop()
+    speeds = (50.0, 30.0, 60.0, 30.0, 60.0, 30.0, 60.0)
+    await link.set_velocities(speeds)
     await link.set_targets(POSE_A)
     unplugged = loop.time()
     tcp_rig.ep.disconnect(1.0)
@@ -381,7 +384,9 @@ async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
     await _next_event(events, LinkEventKind.RECONNECTED)
     assert loop.time() - unplugged >= 1.0  # nobody gets in while the cable is out
     assert link.connected
-    assert await link.get_targets() == POSE_A  # device state survived
+    assert await link.get_velocities() == speeds  # device state survived
+    # …but not a target nobody commands any more: the reconnect held the axes where they are
+    assert await link.get_targets() == pytest.approx(await link.get_actual())
     assert (link.stats.link_losses, link.stats.reconnects) == (1, 1)
     kinds = [e.kind for e in seen]
     assert kinds[0] is LinkEventKind.CONNECTED
@@ -393,8 +398,9 @@ async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
 async def test_binary_crc_override(rig: Rig, crc: bool) -> None:
     link = await rig.open(binary=True, binary_crc=crc)
     assert link.binary_crc is crc
+    before = rig.dev.stats.binary  # the connect's hold sent `pos` and `p` in binary
     assert await link.set_targets(POSE_A) == pytest.approx(POSE_A)
-    assert rig.dev.stats.binary == 1
+    assert rig.dev.stats.binary == before + 1
 
 
 async def test_latched_estop_is_reasserted_after_a_reconnect(tcp_rig: Rig) -> None:

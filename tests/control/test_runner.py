@@ -186,7 +186,7 @@ def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
     assert len(csv_out.stdout.strip().splitlines()) == out["iterations"] + 1
     missing = subprocess.run([*base, "show", "999", *dbset], capture_output=True, text=True,
                              timeout=60)  # fmt: skip
-    assert missing.returncode == 2 and "no run 999" in missing.stderr
+    assert missing.returncode == 3 and "no run 999" in missing.stderr
 
 
 def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:

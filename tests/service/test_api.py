@@ -415,7 +415,7 @@ def test_unreachable_hand_and_taken_port_fail_with_a_reason(tmp_path: Path) -> N
     r = subprocess.run([*base, "--port", "0", "--sdh", f"socket://127.0.0.1:{dead}",
                         "--dsa", f"socket://127.0.0.1:{dead}"],
                        capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert r.returncode == 1 and "cannot open the hand" in r.stderr
+    assert r.returncode == 4 and "cannot open the hand" in r.stderr
     assert "Traceback" not in r.stderr
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
@@ -423,4 +423,4 @@ def test_unreachable_hand_and_taken_port_fail_with_a_reason(tmp_path: Path) -> N
         port = taken.getsockname()[1]
         r = subprocess.run([*base, "--sim", "--port", str(port)], capture_output=True, text=True,
                            timeout=60)  # fmt: skip
-    assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in r.stderr
+    assert r.returncode == 4 and f"cannot listen on 127.0.0.1:{port}" in r.stderr

@@ -1,0 +1,69 @@
+"""Moves that stop when their loop stops: every command leaves the hand at most one increment.
+
+The SDH2 firmware has no watchdog: a velocity or a move, once commanded, goes on until it ends
+or another command arrives, whether or not the host that sent it still lives (protocols.md §2.4).
+So a long move is never commanded at once. :func:`move_in_increments` re-targets the fingers at
+most ``max_step_deg`` ahead of where they actually are, round trip after round trip; if the loop
+stops — its process killed, its line cut, its task cancelled — the fingers stop within that one
+increment (≤ 1°, :class:`~sdh2svc.control.safety.SafetyConfig`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Sequence
+
+from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
+from sdh2svc.control.safety import clamp_targets
+
+MOVE_PERIOD_S = 0.01  # pause between increments: the line stays free for others (≈ 40 Hz loop)
+PROGRESS_DEG = 0.05  # the largest gap to the goal shrank by this: progress
+STALL_S = 2.0  # no progress for this long: blocked (an obstacle, an axis that does not move)
+
+Check = Callable[[], None]  # raises to abort the move (e.g. a force above the ceiling)
+
+
+class MoveBlocked(JointLinkError):
+    """The fingers stopped short of the goal (something in the way, or an axis not moving)."""
+
+
+async def move_in_increments(
+    joints: JointLink,
+    goal: Sequence[float],
+    *,
+    velocity_deg_s: float,
+    lo: Sequence[float],
+    hi: Sequence[float],
+    max_step_deg: float,
+    check: Check | None = None,
+) -> tuple[float, ...]:
+    """Move to ``goal`` (7 wire-axis angles, deg, clamped to [lo, hi]) in increments of at most
+    ``max_step_deg`` ahead of the actual angles; returns the final actual angles.
+
+    ``check`` runs before every increment and aborts the move by raising (the hand is then held
+    where it is by the caller). Raises :class:`MoveBlocked` when the fingers stop making
+    progress for :data:`STALL_S`.
+    """
+    goal = tuple(min(b, max(a, g)) for g, a, b in zip(goal, lo, hi, strict=True))
+    await joints.set_controller(ControllerMode.POSE)
+    await joints.set_velocities([velocity_deg_s] * len(goal))
+    if joints.acceleration_limits:
+        await joints.set_accelerations(joints.acceleration_limits)
+    loop = asyncio.get_running_loop()
+    best, last_progress = float("inf"), loop.time()
+    while True:
+        actual = await joints.get_actual()
+        if check is not None:
+            check()
+        targets = clamp_targets(goal, actual, lo, hi, max_step_deg)
+        await joints.set_targets(targets)
+        await joints.move()
+        if targets == goal:  # the last increment: let the firmware finish it
+            await joints.wait_idle()
+            return await joints.get_actual()
+        gap = max(abs(g - a) for g, a in zip(goal, actual, strict=True))
+        if gap < best - PROGRESS_DEG:
+            best, last_progress = gap, loop.time()
+        elif loop.time() - last_progress > STALL_S:
+            raise MoveBlocked(f"the fingers stopped {gap:.1f}° short of the pose")
+        await asyncio.sleep(MOVE_PERIOD_S)

@@ -1,0 +1,79 @@
+"""A TCP cable between a host and a device that can be cut and plugged back in (fault tests).
+
+Every connection the host opens to :attr:`Cable.url` is forwarded, byte for byte, to the
+device's TCP port. :meth:`Cable.cut` drops every connection on both sides at once and refuses
+new ones until :meth:`Cable.plug` — what pulling the RS-232 plug looks like through a
+serial-to-TCP adapter.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+
+class Cable:
+    def __init__(self, device_host: str, device_port: int, *, host: str = "127.0.0.1") -> None:
+        self.device_host, self.device_port, self.host = device_host, device_port, host
+        self.port = 0
+        self.cuts = 0
+        self._server: asyncio.Server | None = None
+        self._pipes: set[asyncio.Task[None]] = set()
+        self._writers: set[asyncio.StreamWriter] = set()
+
+    @property
+    def url(self) -> str:
+        return f"socket://{self.host}:{self.port}"
+
+    @property
+    def plugged(self) -> bool:
+        return self._server is not None
+
+    async def plug(self) -> None:
+        """Listen (again, on the same port once it had one)."""
+        if self._server is None:
+            self._server = await asyncio.start_server(self._connection, self.host, self.port)
+            self.port = self._server.sockets[0].getsockname()[1]
+
+    async def cut(self) -> None:
+        """Drop every connection now and refuse new ones until :meth:`plug`."""
+        self.cuts += 1
+        server, self._server = self._server, None
+        if server is not None:
+            server.close()
+        for w in list(self._writers):
+            w.transport.abort()
+        for task in list(self._pipes):
+            task.cancel()
+        if server is not None:
+            with contextlib.suppress(Exception):
+                await server.wait_closed()
+
+    async def close(self) -> None:
+        await self.cut()
+
+    async def _connection(self, r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        try:
+            dr, dw = await asyncio.open_connection(self.device_host, self.device_port)
+        except OSError:
+            w.transport.abort()
+            return
+        self._writers |= {w, dw}
+        pipes = [asyncio.create_task(self._pump(r, dw)), asyncio.create_task(self._pump(dr, w))]
+        self._pipes.update(pipes)
+        try:
+            await asyncio.wait(pipes, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in pipes:
+                task.cancel()
+                self._pipes.discard(task)
+            for writer in (w, dw):
+                writer.transport.abort()
+                self._writers.discard(writer)
+
+    @staticmethod
+    async def _pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(OSError, asyncio.IncompleteReadError):
+            while data := await src.read(65536):
+                dst.write(data)
+                await dst.drain()

@@ -1,0 +1,158 @@
+"""A real service next to a hand that keeps its last command, as the SDH2 firmware does.
+
+The simulated hand runs in this test's process (its emulators keep a velocity or a move going
+whoever is connected); ``sdh2svc serve`` runs as its own process and reaches the joint line
+through a :class:`~sdh2svc.sim.cable.Cable` that the test cuts. The pass condition never depends
+on how long something took: the fingers must not have moved more than one increment (≤ 1°)
+however long the test waited — the old velocity grasp moved 3 °/s for as long as one looked.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from sdh2svc.config import load_config
+from sdh2svc.service.launch import LiveService, start_service
+from sdh2svc.sim.cable import Cable
+from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+
+STEP_DEG = 1.0  # safety.max_step_deg: the furthest a finger may go without a fresh command
+WATCH_S = 2.0  # how long the test watches a hand nobody commands (longer only makes it stricter)
+FINGER_AXES = (1, 2, 3, 4, 5, 6)  # the coupled fingers and the thumb
+
+
+@pytest.fixture
+async def hand() -> AsyncIterator[tuple[SimulatedHand, Cable]]:
+    cfg = load_config()
+    sim = await start_simulated_hand(cfg, pty=False, tcp=True, dsa_port=0, sdh_port=0,
+                                     replace_after_s=0.0)  # fmt: skip
+    host, port = sim.urls("sdh")[0].removeprefix("socket://").rsplit(":", 1)
+    cable = Cable(host, int(port))
+    await cable.plug()
+    try:
+        yield sim, cable
+    finally:
+        await cable.close()
+        await sim.stop()
+
+
+def _angles(sim: SimulatedHand) -> tuple[float, ...]:
+    """Where the joints are now: the emulator brought up to the present, as its line would."""
+    sim.sdh.next_wakeup(asyncio.get_running_loop().time())
+    return sim.sdh.actual_deg
+
+
+def _moved(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    return max(abs(a[i] - b[i]) for i in FINGER_AXES)
+
+
+async def _serve(tmp: Path, sim: SimulatedHand, cable: Cable) -> LiveService:
+    """The service on the hand in this process (started on a thread: the hand must answer)."""
+    extra = ["--dsa", sim.urls("dsa")[0], "--sdh", cable.url]
+    return await asyncio.to_thread(start_service, tmp, viewer=False, sim=False, extra=extra)
+
+
+async def _stop(svc: LiveService, sig: int = signal.SIGTERM) -> int:
+    return await asyncio.to_thread(svc.stop, sig)
+
+
+async def _wait_phase(client: httpx.AsyncClient, phase: str, timeout_s: float = 60.0) -> dict:
+    async with asyncio.timeout(timeout_s):
+        while True:
+            st = (await client.get("/api/status")).json()
+            if st["run"] and st["run"]["state"] == phase:
+                return st
+            await asyncio.sleep(0.05)
+
+
+async def _start_grasp(svc: LiveService, sim: SimulatedHand) -> None:
+    async with svc.client() as client:
+        r = await client.post("/api/runs", json={})
+        assert r.status_code == 201, r.text
+        await _wait_phase(client, "grasping")
+    # let the fingers close for a while: they are moving when the fault comes
+    start = _angles(sim)
+    async with asyncio.timeout(30):
+        while _moved(_angles(sim), start) < 0.3:
+            await asyncio.sleep(0.02)
+
+
+async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
+    hand: tuple[SimulatedHand, Cable], tmp_path: Path
+) -> None:
+    sim, cable = hand
+    svc = await _serve(tmp_path, sim, cable)
+    try:
+        await _start_grasp(svc, sim)
+        await cable.cut()
+        at_cut = _angles(sim)
+        await asyncio.sleep(WATCH_S)
+        assert _moved(_angles(sim), at_cut) <= STEP_DEG
+        await cable.plug()  # the link comes back: the service stops all axes, nothing moves
+        async with svc.client() as client, asyncio.timeout(30):
+            while not (await client.get("/api/status")).json()["hand"]["connected"]["joints"]:
+                await asyncio.sleep(0.05)
+            st = (await client.get("/api/status")).json()
+        assert st["last_run"]["status"] == "faulted", st["last_run"]
+        await asyncio.sleep(WATCH_S / 2)
+        assert _moved(_angles(sim), at_cut) <= STEP_DEG
+    finally:
+        assert await _stop(svc) == 0, "".join(svc.log)
+
+
+async def test_kill_during_the_grasp_then_restart_leaves_the_fingers_still(
+    hand: tuple[SimulatedHand, Cable], tmp_path: Path
+) -> None:
+    sim, cable = hand
+    svc = await _serve(tmp_path, sim, cable)
+    try:
+        await _start_grasp(svc, sim)
+    finally:
+        await _stop(svc, signal.SIGKILL)
+    at_kill = _angles(sim)
+    await asyncio.sleep(WATCH_S)
+    assert _moved(_angles(sim), at_kill) <= STEP_DEG
+    again = await _serve(tmp_path, sim, cable)
+    try:
+        async with again.client() as client:
+            st = (await client.get("/api/status")).json()
+            assert st["hand"]["connected"]["joints"]
+            runs = (await client.get("/api/runs")).json()
+        assert runs[0]["status"] == "interrupted"
+        await asyncio.sleep(WATCH_S / 2)
+        assert _moved(_angles(sim), at_kill) <= STEP_DEG
+    finally:
+        assert await _stop(again) == 0, "".join(again.log)
+
+
+async def test_the_estop_latch_survives_a_restart(tmp_path: Path) -> None:
+    svc = start_service(tmp_path, viewer=False, token="secret")
+    try:
+        async with httpx.AsyncClient(base_url=svc.url) as anon:  # no token: stopping is allowed
+            r = await anon.post("/api/estop")
+            assert r.status_code == 200, r.text
+    finally:
+        svc.stop(signal.SIGKILL)  # the PC loses power, say
+    again = start_service(tmp_path, viewer=False, token="secret")
+    try:
+        async with again.client() as client:
+            st = (await client.get("/api/status")).json()
+            assert st["estopped"] and st["estop"]["since"]
+            r = await client.post("/api/runs", json={})
+            assert r.status_code == 409 and "e-stop" in r.json()["error"]
+            r = await client.post("/api/hand/open", json={})
+            assert r.status_code == 409
+            async with httpx.AsyncClient(base_url=again.url) as anon:
+                r = await anon.post("/api/estop/release", json={})
+                assert r.status_code == 401  # releasing needs the token
+            r = await client.post("/api/estop/release", json={})
+            assert r.status_code == 200 and r.json()["estopped"] is False
+            assert (await client.get("/api/status")).json()["estop"] is None
+    finally:
+        assert again.stop() == 0, "".join(again.log)

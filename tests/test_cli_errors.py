@@ -1,0 +1,335 @@
+"""What the command line does with bad input and an unusable world: one line on stderr that
+names the problem, a documented exit status (README, *Exit status*), never a traceback.
+
+The cases run as a user runs them (a subprocess) where a process is the point — the devices,
+the ports, the start-up of the service; the rest through :func:`sdh2svc.cli.main`.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from sdh2svc import cli
+from sdh2svc.cli import Exit, main, status_url
+from sdh2svc.service.store import RunStore
+
+FOUND_NOTHING = "no run database at data/runs.sqlite (set storage.db_path or run from the directory"
+
+
+def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "sdh2svc", *args],
+        capture_output=True, text=True, timeout=60, cwd=cwd,
+    )  # fmt: skip
+
+
+def one_line(stderr: str, command: str) -> str:
+    """The failure's message: the last line on stderr, ``sdh2svc COMMAND: …``."""
+    assert "Traceback" not in stderr, stderr
+    line = stderr.strip().splitlines()[-1]
+    assert line.startswith(f"sdh2svc {command}: "), stderr
+    return line
+
+
+def call(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    status = main(list(args))
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return status, out, err
+
+
+def db_set(path: Path | str) -> list[str]:
+    return ["--set", f"storage.db_path={json.dumps(str(path))}"]
+
+
+@pytest.fixture
+def closed_port() -> int:
+    """A localhost port nothing listens on (bound, then closed)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def taken_port() -> Iterator[int]:
+    """A localhost port that is bound (and listened on) for the test's duration."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield int(s.getsockname()[1])
+
+
+@pytest.fixture
+def one_run(tmp_path: Path) -> Path:
+    """A run database holding run 1."""
+    db = tmp_path / "runs.sqlite"
+    store = RunStore(db)
+    try:
+        assert store.create_run({"test": True}) == 1
+    finally:
+        store.close()
+    return db
+
+
+# --- the exit statuses are documented -------------------------------------------------------
+
+
+def test_help_lists_the_exit_statuses(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as ei:
+        main(["--help"])
+    assert ei.value.code == 0
+    out = capsys.readouterr().out
+    assert "exit status:" in out
+    for status in Exit:
+        assert f"\n  {int(status):<4d} " in out, status
+
+
+def test_readme_table_matches_the_codes() -> None:
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    section = readme.split("### Exit status", 1)[1].split("\n#", 1)[0]
+    for status in Exit:
+        assert f"| {int(status)} |" in section, status
+
+
+# --- configuration ---------------------------------------------------------------------------
+
+
+def test_binary_config_file_is_invalid_configuration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    binary = tmp_path / "lab.toml"
+    binary.write_bytes(bytes(range(256)))
+    status, _, err = call(capsys, "config", "--config", str(binary))
+    assert status == Exit.USAGE == 2
+    line = one_line(err, "config")
+    assert str(binary) in line and "not UTF-8" in line
+
+
+def test_directory_as_config_is_invalid_configuration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    status, _, err = call(capsys, "config", "--config", str(tmp_path))
+    assert status == Exit.USAGE
+    assert f"{tmp_path} is a directory" in one_line(err, "config")
+
+
+def test_bad_environment_value_is_invalid_configuration(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("SDH2SVC_LIMITS__MIN_DEG", "[1, 2")
+    status, _, err = call(capsys, "config")
+    assert status == Exit.USAGE
+    assert "environment" in one_line(err, "config")
+
+
+# --- the run database ------------------------------------------------------------------------
+
+
+def test_reading_commands_never_create_a_database(tmp_path: Path) -> None:
+    """From a directory without data/: "no run database", and still no data/ afterwards."""
+    for args in (["list"], ["show", "1"], ["export", "1", "--format", "csv"]):
+        r = run("runs", *args, cwd=tmp_path)
+        assert r.returncode == Exit.NOT_FOUND == 3, r.stderr
+        assert FOUND_NOTHING in one_line(r.stderr, "runs")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_database_path_that_is_a_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    status, _, err = call(capsys, "runs", "list", *db_set(tmp_path))
+    assert status == Exit.UNAVAILABLE == 4
+    assert f"{tmp_path}: it is a directory" in one_line(err, "runs")
+
+
+def test_database_that_is_not_sqlite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a database, just notes\n" * 100)
+    status, _, err = call(capsys, "runs", "list", *db_set(notes))
+    assert status == Exit.UNAVAILABLE
+    line = one_line(err, "runs")
+    assert str(notes) in line and "not a database" in line
+    assert notes.read_text().startswith("not a database")  # left as it was
+
+
+def test_sqlite_file_that_is_not_a_run_database(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sqlite3
+
+    other = tmp_path / "other.sqlite"
+    with sqlite3.connect(other) as db:
+        db.execute("CREATE TABLE t (x)")
+    db.close()
+    status, _, err = call(capsys, "runs", "list", *db_set(other))
+    assert status == Exit.UNAVAILABLE
+    assert f"{other} is not a run database" in one_line(err, "runs")
+
+
+def test_database_in_an_unwritable_place(tmp_path: Path, closed_port: int) -> None:
+    """A writing command (run) whose database would live under a regular file."""
+    blocker = tmp_path / "data"
+    blocker.write_text("a file where a directory should be")
+    url = f"socket://127.0.0.1:{closed_port}"
+    r = run("run", "--dsa", url, "--sdh", url, *db_set(blocker / "runs.sqlite"))
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    assert f"{blocker} is not a directory" in one_line(r.stderr, "run")
+
+
+def test_no_such_run_is_not_found(one_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status, _, err = call(capsys, "runs", "show", "999", *db_set(one_run))
+    assert status == Exit.NOT_FOUND
+    assert f"no run 999 in {one_run}" in one_line(err, "runs")
+
+
+def test_run_id_beyond_sqlite_integers_is_not_found(
+    one_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    huge = str(10**30)
+    for action in ("show", "export"):
+        status, out, err = call(capsys, "runs", action, huge, *db_set(one_run))
+        assert status == Exit.NOT_FOUND and out == ""
+        assert f"no run {huge} in" in one_line(err, "runs")
+
+
+def test_existing_run_still_shows(one_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status, out, _ = call(capsys, "runs", "show", "1", *db_set(one_run))
+    assert status == Exit.OK and json.loads(out)["meta"] == {"test": True}
+
+
+def test_export_to_an_unwritable_file(
+    one_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    target = tmp_path / "missing-dir" / "run.csv"
+    status, _, err = call(capsys, "runs", "export", "1", "-o", str(target), *db_set(one_run))
+    assert status == Exit.UNAVAILABLE
+    assert f"cannot write {target}" in one_line(err, "runs")
+
+
+def test_which_run_is_a_usage_error(one_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status, _, err = call(capsys, "runs", "show", *db_set(one_run))
+    assert status == Exit.USAGE
+    assert "which run?" in one_line(err, "runs")
+
+
+# --- devices and ports -----------------------------------------------------------------------
+
+
+def test_run_against_a_nonexistent_device(tmp_path: Path) -> None:
+    missing = tmp_path / "ttyUSB9"
+    r = run("run", "--dsa", str(missing), "--sdh", str(missing), *db_set(tmp_path / "r.sqlite"))
+    assert r.returncode == Exit.UNAVAILABLE == 4, r.stderr
+    line = one_line(r.stderr, "run")
+    assert "cannot reach the hand" in line and str(missing) in line
+
+
+def test_run_against_a_refused_socket(tmp_path: Path, closed_port: int) -> None:
+    url = f"socket://127.0.0.1:{closed_port}"
+    r = run("run", "--dsa", url, "--sdh", url, *db_set(tmp_path / "r.sqlite"))
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    line = one_line(r.stderr, "run")
+    assert url in line and "refused" in line
+
+
+def test_serve_with_the_viser_port_in_use(tmp_path: Path, taken_port: int) -> None:
+    r = run("serve", "--sim", "--port", "0", "--viser-port", str(taken_port),
+            *db_set(tmp_path / "r.sqlite"), cwd=tmp_path)  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    line = one_line(r.stderr, "serve")
+    assert f"viser port {taken_port} is already in use" in line
+    assert "cannot open the hand" not in r.stderr
+
+
+def test_a_viewer_that_lost_the_race_for_its_port_says_so_too() -> None:
+    """The child's late report (the port taken between the check and viser's bind)."""
+    from sdh2svc.config import default_config
+    from sdh2svc.service.serve import PortBusy, _start_error
+    from sdh2svc.service.viewer_proc import ViewerError
+
+    cfg = default_config()
+    err = _start_error(ViewerError("cannot serve the 3-D view on 127.0.0.1:8080: in use"), cfg)
+    assert isinstance(err, PortBusy)
+    assert f"viser port {cfg.service.viser_port} is already in use" in str(err)
+    assert _start_error(KeyError("a bug"), cfg) is None  # not dressed up as a start-up failure
+
+
+def test_sim_with_its_port_in_use(taken_port: int) -> None:
+    r = run("sim", "--no-pty", "--dsa-port", str(taken_port), "--sdh-port", "0", "--boot-s", "0")
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    assert str(taken_port) in one_line(r.stderr, "sim")
+
+
+# --- health ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ("http://127.0.0.1:8000", "http://127.0.0.1:8000/api/status"),
+        ("http://127.0.0.1:8000/", "http://127.0.0.1:8000/api/status"),
+        ("http://127.0.0.1:8000/api/status", "http://127.0.0.1:8000/api/status"),
+        ("http://127.0.0.1:8000/api/status/", "http://127.0.0.1:8000/api/status"),
+        ("127.0.0.1:8000", "http://127.0.0.1:8000/api/status"),
+        ("https://lab.example/hand/", "https://lab.example/hand/api/status"),
+        ("http://[::1]:8000", "http://[::1]:8000/api/status"),
+    ],
+)
+def test_health_url_accepts_the_base_url(given: str, expected: str) -> None:
+    assert status_url(given) == expected
+
+
+@pytest.mark.parametrize("bad", ["ftp://127.0.0.1/", "http://127.0.0.1:99999", "http://"])
+def test_health_url_that_cannot_be_is_a_usage_error(
+    bad: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    status, _, err = call(capsys, "health", "--url", bad)
+    assert status == Exit.USAGE
+    assert repr(bad) in one_line(err, "health")
+
+
+def test_health_of_a_service_that_does_not_answer(closed_port: int) -> None:
+    r = run("health", "--url", f"http://127.0.0.1:{closed_port}", "--timeout", "2")
+    assert r.returncode == Exit.FAILED == 1, r.stderr
+    line = one_line(r.stderr, "health")
+    assert f"http://127.0.0.1:{closed_port}/api/status" in line and "refused" in line
+
+
+def test_health_takes_the_base_url_of_a_live_service(tmp_path: Path) -> None:
+    from sdh2svc.service.launch import start_service
+
+    svc = start_service(tmp_path, viewer=False)
+    try:
+        for url in (svc.url, f"{svc.url}/", f"{svc.url}/api/status"):
+            r = run("health", "--url", url)
+            assert r.returncode == Exit.OK, r.stderr
+            assert r.stdout.strip() == f"ok: {svc.url}/api/status"
+    finally:
+        assert svc.stop() == 0
+
+
+# --- bugs ------------------------------------------------------------------------------------
+
+
+def test_a_bug_is_one_line_unless_debugging(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def broken(_args: object) -> int:
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(cli, "cmd_demo", broken)
+    monkeypatch.delenv("SDH2SVC_DEBUG", raising=False)
+    status, _, err = call(capsys, "demo")
+    assert status == Exit.BUG == 70
+    assert "unexpected error (a bug): ZeroDivisionError" in one_line(err, "demo")
+    assert main(["--debug", "demo"]) == Exit.BUG
+    assert "Traceback" in capsys.readouterr().err
+    monkeypatch.setenv("SDH2SVC_DEBUG", "1")
+    assert main(["demo"]) == Exit.BUG
+    assert "Traceback" in capsys.readouterr().err
