@@ -2,7 +2,9 @@
 
 Reads of the run database happen on worker threads with their own connection, so a large export
 never takes time from the control loop; everything that touches the hand goes through the
-:class:`~sdh2svc.service.station.Station` on the event loop.
+:class:`~sdh2svc.service.station.Station` on the event loop. Before any route, the
+:class:`~sdh2svc.service.guard.Guard` decides which requests get in at all (Host, Origin, content
+type, body size); the token is checked per route (``Auth``), and not for the e-stop.
 """
 
 from __future__ import annotations
@@ -100,7 +102,8 @@ _WHY = {
     401: "missing or wrong bearer token (when service.token is set)",
     403: "cross-origin request from a web page (without a token: service.allowed_origins)",
     404: "no such run, or not in simulation",
-    409: "conflicts with the hand's state (a run is running, none is, the e-stop is latched)",
+    409: "conflicts with the hand's state (a run is running, none is, the hand is opening, the "
+    "e-stop is latched)",
     413: "request body larger than service.max_body_kb",
     415: "a request that changes something must say Content-Type: application/json",
     422: "invalid values: one line per bad field, naming the field and its allowed range",
