@@ -295,23 +295,50 @@ def default_config() -> Settings:
 # --- readable validation errors -------------------------------------------------------------
 
 
-def format_errors(err: ValidationError, model: type[BaseModel]) -> list[str]:
-    """One line per error, e.g. ``rolling.k = 0.5: Input should be greater than 1 (allowed: …)``."""
+CLIP_CHARS = 80  # of a value (or a key) quoted back in an error message
+
+
+def clip(text: str, n: int = CLIP_CHARS) -> str:
+    """``text``, or its first ``n`` characters and "…": an error never echoes a long value back."""
+    return text if len(text) <= n else text[:n] + "…"
+
+
+def error_message(e: Any) -> str:
+    """A pydantic error's message, with any long value it quotes (its input, its context) clipped
+    (e.g. a discriminator's tag: "Input tag '…' found using 'kind' does not match …")."""
+    msg = str(e["msg"])
+    for v in (e.get("input"), *(e.get("ctx") or {}).values()):
+        if isinstance(v, str) and len(v) > CLIP_CHARS:
+            msg = msg.replace(v, clip(v))
+    return clip(msg, 4 * CLIP_CHARS)
+
+
+def error_key(loc: Iterable[int | str]) -> str:
+    """A pydantic error's location as ``a.b.0.c``, each part clipped (a key may be user input)."""
+    return ".".join(clip(str(p)) for p in loc) or "(top level)"
+
+
+def format_errors(err: ValidationError, model: Any) -> list[str]:
+    """One line per error, e.g. ``rolling.k = 0.5: Input should be greater than 1 (allowed: …)``.
+
+    ``model`` is a model class, or an annotated union of them with a ``kind`` discriminator (the
+    error's location then starts with the kind). Long values are clipped (:func:`clip`).
+    """
     lines = []
     for e in err.errors():
         loc = tuple(e["loc"])
-        key = ".".join(str(p) for p in loc) or "(top level)"
+        key = error_key(loc)
         value = e.get("input")
-        shown = "" if isinstance(value, Mapping) else f" = {value!r}"
+        shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"
         allowed = _allowed_range(model, loc)
-        msg = e["msg"].removeprefix("Value error, ")
+        msg = error_message(e).removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = "unknown key (see config/default.toml for the keys there are)"
         lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
     return lines
 
 
-def _allowed_range(model: type[BaseModel], loc: tuple[int | str, ...]) -> str:
+def _allowed_range(model: Any, loc: tuple[int | str, ...]) -> str:
     tp: Any = model
     metadata: list[Any] = []
     for part in loc:
@@ -341,6 +368,12 @@ def _descend(tp: Any, part: int | str) -> tuple[Any, list[Any]]:
             return None, []
         inner, meta = _unwrap(field.annotation)
         return inner, list(field.metadata) + meta
+    if typing.get_origin(tp) in (typing.Union, types.UnionType) and isinstance(part, str):
+        for member in typing.get_args(tp):  # a discriminated union: the member of that kind
+            kind = getattr(member, "model_fields", {}).get("kind")
+            if kind is not None and kind.default == part:
+                return member, []
+        return None, []
     if typing.get_origin(tp) in (tuple, list) and isinstance(part, int):
         args = typing.get_args(tp)
         elem = args[0] if len(args) == 2 and args[1] is Ellipsis else args[min(part, len(args) - 1)]

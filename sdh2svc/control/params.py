@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Self
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from sdh2svc.model.base import Frozen
 
@@ -65,6 +65,14 @@ class RollingParams(Frozen):
     cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
         description="back-and-forth strokes before the run ends"
     )
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool(cls, v: object, info: ValidationInfo) -> object:
+        # pydantic would take true as 1 (cycles) or 1.0: a mistake, never meant
+        if isinstance(v, bool) and info.field_name != "mode":
+            raise ValueError("must be a number, not true/false")
+        return v
 
     @field_validator("delta_phi_deg", "d_sigma_deg")
     @classmethod

@@ -27,7 +27,7 @@ from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.runs import RecordedRun, open_links
 from sdh2svc.service.store import RunStore
-from sdh2svc.sim.objects import PRESETS, Outline, get_object, parse_object
+from sdh2svc.sim.objects import PRESETS, ObjectSpec, Outline, get_object, parse_object
 from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
 
 log = logging.getLogger(__name__)
@@ -65,8 +65,7 @@ def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Any:
     try:
         return parse_object(spec or {})
     except ValidationError as e:
-        lines = [f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in e.errors()]
-        raise ServiceError(422, "invalid object spec", lines) from None
+        raise ServiceError(422, "invalid object spec", format_errors(e, ObjectSpec)) from None
 
 
 class Station:

@@ -16,41 +16,77 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, TypeAdapter, model_validator
+from pydantic import Field, Strict, TypeAdapter, model_validator
 
 from sdh2svc.model.base import Frozen
 
-Mm = Annotated[float, Field(gt=0.0, le=1000.0)]
+# What the two fingertips can hold. Their proximal joints are 66 mm apart (hand.base_offset_mm)
+# and each finger is 86.5 + 68 mm long, with a 44 mm sensing pad near its tip: an object much
+# wider than ≈ 150 mm across cannot be reached by both pads at once (the presets span 22 mm, the
+# rubber's thickness, to 119.4 mm, stick119). Below ≈ 5 mm across, the pads (20.4 mm wide, 2 mm
+# of rubber each) would meet before they press the object. Any other dimension (a stick's
+# diameter, a box's thinner side, the depth across the pad) may be as small as 1 mm: the
+# simulation samples the pads' surface every 0.25 mm, so a thinner object would fall between
+# its samples. Strict: a number, never true/false or a string; finite.
+MIN_SIZE_MM, MAX_SIZE_MM = 5.0, 150.0  # the object's largest extent: the width between the pads
+MIN_DIM_MM = 1.0  # any other dimension
+MAX_VERTICES = 64  # of a polygon: a fine enough outline, and a bounded cost per physics step
+Mm = Annotated[float, Strict(), Field(ge=MIN_DIM_MM, le=MAX_SIZE_MM, allow_inf_nan=False)]
+SizeMm = Annotated[float, Strict(), Field(ge=MIN_SIZE_MM, le=MAX_SIZE_MM, allow_inf_nan=False)]
+Coord = Annotated[float, Strict(), Field(ge=-MAX_SIZE_MM, le=MAX_SIZE_MM, allow_inf_nan=False)]
 ELLIPSE_VERTICES = 96
+_MIN_TURN_RAD = 1e-3  # a polygon's vertex that turns less is collinear with its neighbours
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)  # cached and shared: nobody may change it in place
+    return a
 
 
 class Material(Frozen):
     """Mass, friction with the pads and contact stiffness of an object."""
 
-    mass_g: Annotated[float, Field(gt=0.0, le=5000.0)] = 20.0
-    friction: Annotated[float, Field(gt=0.0, le=3.0)] = 0.6
-    stiffness_n_per_mm3: Annotated[float, Field(gt=0.0, le=100.0)] = Field(
+    mass_g: Annotated[float, Strict(), Field(gt=0.0, le=5000.0)] = 20.0
+    friction: Annotated[float, Strict(), Field(gt=0.0, le=3.0)] = 0.6
+    stiffness_n_per_mm3: Annotated[float, Strict(), Field(gt=0.0, le=100.0)] = Field(
         default=1.0, description="foundation stiffness: pressure per mm of local compression"
     )
 
 
 class _ShapeBase(Frozen):
-    name: str = ""
+    name: str = Field("", max_length=64)
     depth_mm: Mm = Field(description="extent across the pad (how many texel columns it presses)")
     material: Material = Material()
 
-    def outline(self) -> tuple[np.ndarray, float]:  # pragma: no cover - overridden
+    def outline(self) -> tuple[np.ndarray, float]:
+        """The convex core polygon (object frame) and the rounding radius; computed once."""
+        return self._outline
+
+    @cached_property
+    def _outline(self) -> tuple[np.ndarray, float]:  # pragma: no cover - overridden
         raise TypeError("abstract")
+
+    def _check_size(self, size: float, what: str) -> None:
+        if not MIN_SIZE_MM <= size <= MAX_SIZE_MM:
+            raise ValueError(f"{what} is {size:.6g} mm: the fingertips hold objects "
+                             f"{MIN_SIZE_MM:g} … {MAX_SIZE_MM:g} mm across")  # fmt: skip
 
 
 class Stick(_ShapeBase):
     kind: Literal["stick"] = "stick"
-    length_mm: Mm
+    length_mm: SizeMm
     diameter_mm: Mm = 2.0
 
-    def outline(self) -> tuple[np.ndarray, float]:
+    @model_validator(mode="after")
+    def _thinner_than_long(self) -> Stick:
+        if self.diameter_mm > self.length_mm:
+            raise ValueError("diameter_mm must be at most length_mm")
+        return self
+
+    @cached_property
+    def _outline(self) -> tuple[np.ndarray, float]:
         half = (self.length_mm - self.diameter_mm) / 2
-        return np.array([[-half, 0.0], [half, 0.0]]), self.diameter_mm / 2
+        return _frozen(np.array([[-half, 0.0], [half, 0.0]])), self.diameter_mm / 2
 
     @property
     def size_mm(self) -> float:
@@ -61,18 +97,20 @@ class Box(_ShapeBase):
     kind: Literal["box"] = "box"
     width_mm: Mm
     height_mm: Mm
-    corner_radius_mm: Annotated[float, Field(ge=0.0, le=500.0)] = 0.0
+    corner_radius_mm: Annotated[float, Strict(), Field(ge=0.0, le=MAX_SIZE_MM / 2)] = 0.0
 
     @model_validator(mode="after")
     def _corner_fits(self) -> Box:
         if 2 * self.corner_radius_mm > min(self.width_mm, self.height_mm):
             raise ValueError("corner_radius_mm must be at most half the smaller side")
+        self._check_size(max(self.width_mm, self.height_mm), "the larger side")
         return self
 
-    def outline(self) -> tuple[np.ndarray, float]:
+    @cached_property
+    def _outline(self) -> tuple[np.ndarray, float]:
         r = self.corner_radius_mm
         w, h = self.width_mm / 2 - r, self.height_mm / 2 - r
-        return np.array([[-w, -h], [w, -h], [w, h], [-w, h]]), r
+        return _frozen(np.array([[-w, -h], [w, -h], [w, h], [-w, h]])), r
 
     @property
     def size_mm(self) -> float:
@@ -84,12 +122,19 @@ class Ellipse(_ShapeBase):
     axis_a_mm: Mm = Field(description="full length along the object's x axis")
     axis_b_mm: Mm = Field(description="full length along the object's y axis")
 
-    def outline(self) -> tuple[np.ndarray, float]:
+    @model_validator(mode="after")
+    def _big_enough(self) -> Ellipse:
+        self._check_size(max(self.axis_a_mm, self.axis_b_mm), "the longer axis")
+        return self
+
+    @cached_property
+    def _outline(self) -> tuple[np.ndarray, float]:
         t = np.linspace(0.0, 2 * math.pi, ELLIPSE_VERTICES, endpoint=False)
         # vertices on a slightly larger ellipse so the polygon's area-mean radius matches
         k = 1.0 / math.cos(math.pi / ELLIPSE_VERTICES)
         a, b = self.axis_a_mm / 2, self.axis_b_mm / 2
-        return np.stack([a * np.cos(t), b * np.sin(t)], axis=1) * (1 + (k - 1) / 2), 0.0
+        v = np.stack([a * np.cos(t), b * np.sin(t)], axis=1) * (1 + (k - 1) / 2)
+        return _frozen(v), 0.0
 
     @property
     def size_mm(self) -> float:
@@ -98,10 +143,11 @@ class Ellipse(_ShapeBase):
 
 class Circle(_ShapeBase):
     kind: Literal["circle"] = "circle"
-    diameter_mm: Mm
+    diameter_mm: SizeMm
 
-    def outline(self) -> tuple[np.ndarray, float]:
-        return np.zeros((1, 2)), self.diameter_mm / 2
+    @cached_property
+    def _outline(self) -> tuple[np.ndarray, float]:
+        return _frozen(np.zeros((1, 2))), self.diameter_mm / 2
 
     @property
     def size_mm(self) -> float:
@@ -110,29 +156,58 @@ class Circle(_ShapeBase):
 
 class Polygon(_ShapeBase):
     kind: Literal["polygon"] = "polygon"
-    vertices_mm: tuple[tuple[float, float], ...] = Field(min_length=3)
+    vertices_mm: tuple[tuple[Coord, Coord], ...] = Field(
+        min_length=3, max_length=MAX_VERTICES,
+        description=f"3 … {MAX_VERTICES} corners of a convex polygon, in order (either way "
+        f"round), each coordinate within ±{MAX_SIZE_MM:g} mm",
+    )  # fmt: skip
 
     @model_validator(mode="after")
-    def _convex_ccw(self) -> Polygon:
+    def _convex_simple(self) -> Polygon:
+        """Convex and simple: every corner turns the same way, by a clear angle, and the turns
+        add up to one full turn (a star's add up to two or more: its edges cross)."""
         v = np.asarray(self.vertices_mm, dtype=float)
         e = np.roll(v, -1, axis=0) - v
-        cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
-        if not (np.all(cross > 0) or np.all(cross < 0)):
-            raise ValueError("polygon vertices must form a convex polygon (no repeated points)")
+        if np.any(np.hypot(e[:, 0], e[:, 1]) < 1e-3):
+            raise ValueError("polygon vertices must differ (a repeated corner)")
+        nxt = np.roll(e, -1, axis=0)
+        turn = np.arctan2(e[:, 0] * nxt[:, 1] - e[:, 1] * nxt[:, 0], np.sum(e * nxt, axis=1))
+        turn = turn * (1.0 if turn.sum() >= 0 else -1.0)
+        if np.any(turn < _MIN_TURN_RAD):
+            raise ValueError("polygon vertices must form a convex polygon: every corner turning "
+                             "the same way, none in line with its neighbours")  # fmt: skip
+        if abs(turn.sum() - 2 * math.pi) > 1e-6:
+            raise ValueError("polygon edges must not cross (the outline must go round once)")
+        self._check_size(self.size_mm, "its largest extent")
+        if self._width_mm < MIN_DIM_MM:
+            raise ValueError(f"the polygon is {self._width_mm:.3g} mm thin: at least "
+                             f"{MIN_DIM_MM:g} mm")  # fmt: skip
         return self
 
-    def outline(self) -> tuple[np.ndarray, float]:
+    @cached_property
+    def _outline(self) -> tuple[np.ndarray, float]:
         v = np.asarray(self.vertices_mm, dtype=float)
         v = v - v.mean(axis=0)
         nxt = np.roll(v, -1, axis=0)
         if float(np.sum(v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1])) < 0:
             v = v[::-1]  # counter-clockwise, so edge normals point outwards
-        return v, 0.0
+        return _frozen(np.ascontiguousarray(v)), 0.0
 
-    @property
+    @cached_property
     def size_mm(self) -> float:
+        """The largest distance between two corners (once: N ≤ 64 corners, N² pairs)."""
         v = np.asarray(self.vertices_mm)
         return float(np.max(np.linalg.norm(v[:, None] - v[None], axis=2)))
+
+    @cached_property
+    def _width_mm(self) -> float:
+        """The smallest width (convex: the least, over edges, of the farthest corner's distance
+        from that edge's line)."""
+        v = np.asarray(self.vertices_mm, dtype=float)
+        e = np.roll(v, -1, axis=0) - v
+        n = np.stack([e[:, 1], -e[:, 0]], axis=1) / np.hypot(e[:, 0], e[:, 1])[:, None]
+        dist = np.abs((v[None, :, :] - v[:, None, :]) @ n[..., None])[..., 0]  # (edge, corner)
+        return float(np.min(np.max(dist, axis=1)))
 
 
 ObjectSpec = Annotated[Stick | Box | Ellipse | Circle | Polygon, Field(discriminator="kind")]
@@ -254,4 +329,5 @@ def get_object(name: str) -> Stick | Box | Ellipse | Circle | Polygon:
     try:
         return PRESETS[name]
     except KeyError:
-        raise KeyError(f"unknown object {name!r}; presets: {', '.join(PRESETS)}") from None
+        shown = name if len(name) <= 80 else name[:80] + "…"
+        raise KeyError(f"unknown object {shown!r}; presets: {', '.join(PRESETS)}") from None

@@ -110,7 +110,7 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         assert r.status_code == 422 and "no_such" in r.json()["details"][0]
         assert (await c.get("/api/params")).json()["k"] == 2.0  # nothing half-applied
 
-        r = await c.post("/api/runs/stop")
+        r = await c.post("/api/runs/stop", json={})
         assert r.status_code == 409 and r.json()["error"] == "no run is running"
         r = await c.get("/api/runs/9999")
         assert r.status_code == 404 and "no run 9999" in r.json()["error"]
@@ -176,7 +176,7 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         assert st["run"]["id"] == run_id and st["run"]["state"] == "rolling"
         assert st["run"]["strokes_total"] == 50
         assert st["links"]["tactile"]["frames_per_s"] > 5
-        r = await c.post("/api/runs/stop")
+        r = await c.post("/api/runs/stop", json={})
         assert r.status_code == 202
         st = await wait_run_end(c, run_id)
         assert st["last_run"]["status"] == "stopped"
@@ -236,7 +236,7 @@ async def test_estop_mid_run_and_release(svc: LiveService) -> None:
         await tm.until(lambda: tm.samples(run_id))
         t0 = time.monotonic()
         r = await c.post("/api/estop")
-        assert r.status_code == 200 and r.json() == {"estopped": True}
+        assert r.status_code == 200 and r.json()["estopped"] is True
         assert time.monotonic() - t0 < 5.0  # generous: answered, not hung behind the run
         st = await wait_run_end(c, run_id)
         assert st["estopped"] is True and st["run"]["state"] == "e-stopped"
@@ -253,7 +253,7 @@ async def test_estop_mid_run_and_release(svc: LiveService) -> None:
         a2 = (await run_state(c))["hand"]["angles_deg"]
         assert a1 == a2
         assert len(tm.samples(run_id)) == n  # no iteration after the e-stop
-        r = await c.post("/api/estop/release")
+        r = await c.post("/api/estop/release", json={})
         assert r.status_code == 200 and r.json() == {"estopped": False}
         assert (await run_state(c))["estopped"] is False
         run = (await c.get(f"/api/runs/{run_id}")).json()
@@ -279,7 +279,9 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
         async with httpx.AsyncClient(base_url=url, timeout=30) as c:
             assert (await c.get("/api/status")).json()["auth_required"] is True
             for method, path, body in (("PATCH", "/api/params", {"k": 3}),
-                                       ("POST", "/api/runs", {}), ("POST", "/api/estop", None),
+                                       ("POST", "/api/runs", {}), ("POST", "/api/runs/stop", {}),
+                                       ("POST", "/api/estop/release", {}),
+                                       ("POST", "/api/hand/open", {}),
                                        ("PUT", "/api/sim/object", {"name": "egg"})):  # fmt: skip
                 r = await c.request(method, path, json=body)
                 assert r.status_code == 401, (method, path)
@@ -287,6 +289,24 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
                 r = await c.request(method, path, json=body,
                                     headers={"Authorization": "Bearer wrong"})  # fmt: skip
                 assert r.status_code == 401
+            # stopping needs no token (nor JSON, nor an Origin of its own); releasing does
+            r = await c.post("/api/estop", headers={"Origin": "http://evil.example"})
+            assert r.status_code == 200 and r.json()["estopped"] is True
+            r = await c.post("/api/estop/release", json={},
+                             headers={"Authorization": "Bearer s3cret"})  # fmt: skip
+            assert r.status_code == 200 and r.json() == {"estopped": False}
+            # with the token too, a command must be JSON; and a huge body is refused before the
+            # token is even looked at
+            r = await c.post("/api/runs/stop", headers={"Authorization": "Bearer s3cret",
+                                                        "Content-Type": "text/plain"})  # fmt: skip
+            assert r.status_code == 415
+            head = (
+                f"PATCH /api/params HTTP/1.1\r\nHost: 127.0.0.1:{host.port}\r\n"
+                f"Content-Type: application/json\r\nContent-Length: {300 * 2**20}\r\n\r\n"
+            )
+            with socket.create_connection(("127.0.0.1", host.port), timeout=10) as sock:
+                sock.sendall(head.encode())  # and no body: it is refused before it is read
+                assert sock.recv(64).startswith(b"HTTP/1.1 413")
             r = await c.patch("/api/params", json={"k": 3},
                               headers={"Authorization": "Bearer s3cret"})  # fmt: skip
             assert r.status_code == 200 and r.json()["k"] == 3

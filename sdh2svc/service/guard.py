@@ -1,0 +1,249 @@
+"""The service's gate: which requests reach the app at all (docs/api.md, *Who may command it*).
+
+A pure ASGI middleware, so that it sees WebSocket handshakes as well as HTTP requests, and refuses
+before the app reads a byte of a body:
+
+* **Host** (only without a token): the ``Host`` header must name this service — a loopback name
+  (``localhost``, ``127.0.0.1``, ``[::1]``, any port), ``service.host``, or one of
+  ``service.allowed_hosts`` — else 400. A page of another site that makes its own name resolve
+  to 127.0.0.1 (DNS rebinding) still sends its own name here.
+* **Body size**, whatever the token: more than ``service.max_body_kb`` is refused with 413, from
+  ``Content-Length`` at once, or by counting the chunks of a body sent without one.
+* **Origin** (only without a token), on mutating requests and the WebSocket handshake: when a
+  browser sends one, it must be the service's own (same scheme, host and port as the request's
+  ``Host``) or one of ``service.allowed_origins``, else 403. Scripts and curl send none.
+* **Content type**, whatever the token: a mutating request (POST, PUT, PATCH, DELETE) must say
+  ``Content-Type: application/json`` (its body may be empty), else 415. A web page can send
+  ``text/plain`` anywhere without asking; JSON it cannot without the browser's CORS preflight,
+  which this service never grants.
+
+``POST /api/estop`` is exempt from the Origin and content-type rules (and, in the app, from the
+token): stopping the hand must always work, from anything. The Host and size rules still apply.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+from sdh2svc.config import clip
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+ESTOP_PATH = "/api/estop"
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "[::1]")
+
+
+def split_host(value: str) -> tuple[str, int | None]:
+    """``"Example.org:8000"`` → ``("example.org", 8000)``; IPv6 in brackets: ``"[::1]"``.
+
+    A bare IPv6 address (as in ``service.host = "::1"``) comes back bracketed; a malformed
+    port gives ``("", None)``, which matches nothing.
+    """
+    value = value.strip().lower()
+    if value.startswith("["):
+        name, _, rest = value.partition("]")
+        name += "]"
+        if not rest:
+            return name, None
+        port_text = rest[1:] if rest.startswith(":") else "x"
+    elif value.count(":") > 1:  # a bare IPv6 address
+        try:
+            return f"[{ipaddress.IPv6Address(value).compressed}]", None
+        except ValueError:
+            return "", None
+    else:
+        name, sep, port_text = value.partition(":")
+        if not sep:
+            return name, None
+    if not port_text.isdigit() or len(port_text) > 5:
+        return "", None
+    return name, int(port_text)
+
+
+def _origin_key(origin: str) -> str:
+    """An origin lower-cased, without its scheme's default port: ``http://a:80`` = ``http://a``."""
+    scheme, sep, rest = origin.strip().lower().partition("://")
+    if not sep:
+        return origin.strip().lower()
+    name, port = split_host(rest.rstrip("/"))
+    default = {"http": 80, "https": 443}.get(scheme)
+    return f"{scheme}://{name}" + ("" if port is None or port == default else f":{port}")
+
+
+class Guard:
+    """The middleware: ``Guard(app, token=…, host=…, allowed_hosts=…, allowed_origins=…,
+    max_body_kb=…)`` (``app.add_middleware(Guard, …)``)."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        token: str,
+        host: str,
+        allowed_hosts: tuple[str, ...] = (),
+        allowed_origins: tuple[str, ...] = (),
+        max_body_kb: int = 1024,
+    ) -> None:
+        self.app = app
+        self.token = token
+        self.max_body = max_body_kb * 1024
+        self.max_body_kb = max_body_kb
+        # names allowed with any port; "name:port" entries allow that port only
+        self.host_names: set[str] = set(LOOPBACK_NAMES)
+        self.host_exact: set[tuple[str, int]] = set()
+        for entry in (host, *allowed_hosts):
+            name, port = split_host(entry)
+            if not name:
+                continue
+            if port is None:
+                self.host_names.add(name)
+            else:
+                self.host_exact.add((name, port))
+        self.origins = {_origin_key(o) for o in allowed_origins}
+        self._allowed_text = ", ".join(dict.fromkeys([*LOOPBACK_NAMES, host, *allowed_hosts]))
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        kind = scope["type"]
+        if kind == "http":
+            await self._http(scope, receive, send)
+        elif kind == "websocket":
+            await self._websocket(scope, receive, send)
+        else:
+            await self.app(scope, receive, send)
+
+    # --- the rules --------------------------------------------------------------------------------
+
+    def _host_refusal(self, headers: dict[str, list[str]]) -> tuple[int, str, list[str]] | None:
+        if self.token:
+            return None
+        hosts = headers.get("host", [])
+        if len(hosts) != 1:
+            return 400, "send exactly one Host header", []
+        name, port = split_host(hosts[0])
+        if name in self.host_names or (name, port) in self.host_exact:
+            return None
+        return (400, f"this service does not answer to the host name {clip(hosts[0])!r}",
+                [f"allowed (any port): {self._allowed_text}; add a name to "
+                 "service.allowed_hosts, or set service.token"])  # fmt: skip
+
+    def _origin_refusal(
+        self, scope: Scope, headers: dict[str, list[str]]
+    ) -> tuple[int, str, list[str]] | None:
+        if self.token or "origin" not in headers:
+            return None
+        origins = headers["origin"]
+        scheme = "https" if scope.get("scheme") in ("https", "wss") else "http"
+        own = _origin_key(f"{scheme}://{headers['host'][0]}") if "host" in headers else None
+        if len(origins) == 1:
+            key = _origin_key(origins[0])
+            if key == own or key in self.origins:
+                return None
+        return (403, f"cross-origin request refused: Origin {clip(origins[0])!r} is not this "
+                "service's", [f"allowed: {own} and service.allowed_origins "
+                              f"({', '.join(sorted(self.origins)) or 'none'})"])  # fmt: skip
+
+    def _type_refusal(self, headers: dict[str, list[str]]) -> tuple[int, str, list[str]] | None:
+        types = headers.get("content-type", [])
+        media = types[0].split(";", 1)[0].strip().lower() if len(types) == 1 else ""
+        if media == "application/json":
+            return None
+        got = clip(types[0]) if len(types) == 1 else ("none" if not types else "several")
+        return (415, "send requests that change something as JSON: "
+                "'Content-Type: application/json' (the body may be empty)",
+                [f"Content-Type: {got}"])  # fmt: skip
+
+    def _too_large(self) -> tuple[int, str, list[str]]:
+        return (413, f"request body too large: at most {self.max_body_kb} kB "
+                "(service.max_body_kb)", [])  # fmt: skip
+
+    # --- HTTP -------------------------------------------------------------------------------------
+
+    async def _http(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = _headers(scope)
+        method = scope.get("method", "GET")
+        estop = method == "POST" and scope.get("path") == ESTOP_PATH
+        refusal = self._host_refusal(headers)
+        if refusal is None:
+            lengths = headers.get("content-length", [])
+            if len(lengths) > 1 or (lengths and not lengths[0].strip().isdigit()):
+                refusal = 400, "send one valid Content-Length", []
+            elif lengths and int(lengths[0]) > self.max_body:
+                refusal = self._too_large()
+        if refusal is None and method in MUTATING and not estop:
+            refusal = self._origin_refusal(scope, headers) or self._type_refusal(headers)
+        if refusal is not None:
+            await _send_error(send, *refusal)
+            return
+        # the body, counted as it comes: a body without Content-Length (chunked) never grows
+        # past the limit in memory
+        chunks: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":  # the client went away
+                return
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.max_body:
+                await _send_error(send, *self._too_large())
+                return
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        body = b"".join(chunks)
+        del chunks
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    # --- WebSocket --------------------------------------------------------------------------------
+
+    async def _websocket(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = _headers(scope)
+        refusal = self._host_refusal(headers) or self._origin_refusal(scope, headers)
+        if refusal is None:
+            await self.app(scope, receive, send)
+            return
+        message = await receive()  # websocket.connect
+        if message["type"] != "websocket.connect":
+            return
+        if "websocket.http.response" in scope.get("extensions", {}):
+            status, text, details = refusal
+            body = json.dumps({"error": text, "details": details}).encode()
+            await send({"type": "websocket.http.response.start", "status": status,
+                        "headers": [(b"content-type", b"application/json"),
+                                    (b"content-length", str(len(body)).encode())]})  # fmt: skip
+            await send({"type": "websocket.http.response.body", "body": body})
+        else:
+            await send({"type": "websocket.close", "code": 1008})
+
+
+def _headers(scope: Scope) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for key, value in scope.get("headers", []):
+        out.setdefault(key.decode("latin-1").lower(), []).append(value.decode("latin-1"))
+    return out
+
+
+async def _send_error(send: Send, status: int, message: str, details: list[str]) -> None:
+    body = json.dumps({"error": message, "details": details}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"),
+                            (b"content-length", str(len(body)).encode()),
+                            (b"connection", b"close")]})  # fmt: skip
+    await send({"type": "http.response.body", "body": body})

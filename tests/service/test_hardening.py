@@ -1,0 +1,288 @@
+"""Safe next to a real hand: what a web page, a bad client or a typo could do to a live
+``sdh2svc serve --sim`` without a token, and what the service answers instead."""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlparse
+
+import httpx
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
+from sdh2svc.service.launch import LiveService, start_service
+
+EVIL = "http://evil.example"
+ALLOWED_ORIGIN = "http://dash.example:9000"
+MAX_BODY_KB = 512
+
+
+@pytest.fixture(scope="module")
+def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
+    s = start_service(tmp_path_factory.mktemp("hardening"), viewer=False, extra=[
+        "--set", 'service.allowed_hosts=["lab-pc.local"]',
+        "--set", f'service.allowed_origins=["{ALLOWED_ORIGIN}"]',
+        "--set", f"service.max_body_kb={MAX_BODY_KB}",
+    ])  # fmt: skip
+    try:
+        yield s
+    finally:
+        assert s.stop() == 0, "".join(s.log)
+
+
+def plain(svc: LiveService) -> httpx.AsyncClient:
+    """A client that sends what a browser's 'simple' request does: no JSON content type."""
+    return httpx.AsyncClient(base_url=svc.url, timeout=30.0)
+
+
+async def test_other_web_pages_cannot_drive_the_hand(svc: LiveService) -> None:
+    async with plain(svc) as c:
+        text = {"Content-Type": "text/plain"}
+        # a page elsewhere: fetch(…/api/runs, {method: "POST", mode: "no-cors"})
+        r = await c.post("/api/runs", headers={**text, "Origin": EVIL})
+        assert r.status_code == 403 and r.json()["error"].startswith("cross-origin")
+        r = await c.post("/api/runs", headers=text)  # and without the Origin: still no JSON
+        assert r.status_code == 415 and "application/json" in r.json()["error"]
+        r = await c.post("/api/runs", content=b'{"object": "egg"}', headers=text)
+        assert r.status_code == 415
+        assert (await c.get("/api/status")).json()["run"] is None  # nothing started
+        r = await c.post("/api/runs/stop", headers={**text, "Origin": EVIL})
+        assert r.status_code == 403
+        r = await c.patch("/api/params", json={"k": 3}, headers={"Origin": EVIL})
+        assert r.status_code == 403
+        assert (await c.get("/api/params")).json()["k"] == 2.0
+
+        # anyone may stop the hand; releasing it takes a request of this service's own page
+        r = await c.post("/api/estop", headers={**text, "Origin": EVIL})
+        assert r.status_code == 200 and r.json()["estopped"] is True
+        r = await c.post("/api/estop/release", headers={**text, "Origin": EVIL})
+        assert r.status_code == 403
+        r = await c.post("/api/estop/release", json={}, headers={"Origin": EVIL})
+        assert r.status_code == 403
+        r = await c.post("/api/estop/release", json={}, headers={"Origin": svc.url})
+        assert r.status_code == 200 and r.json() == {"estopped": False}
+        # … or of a configured one
+        r = await c.patch("/api/params", json={"k": 2.0}, headers={"Origin": ALLOWED_ORIGIN})
+        assert r.status_code == 200
+
+        # DNS rebinding: evil.example resolves to 127.0.0.1, the browser still says its name
+        port = urlparse(svc.url).port
+        r = await c.get("/api/status", headers={"Host": f"evil.example:{port}"})
+        assert r.status_code == 400 and "host name" in r.json()["error"]
+        r = await c.post("/api/estop", headers={"Host": "evil.example"})
+        assert r.status_code == 400
+        for host in (f"lab-pc.local:{port}", f"localhost:{port}", "[::1]"):
+            assert (await c.get("/api/status", headers={"Host": host})).status_code == 200
+
+
+async def test_websocket_handshake_of_other_pages_refused(svc: LiveService) -> None:
+    with pytest.raises(InvalidStatus) as refused:
+        async with connect(svc.ws_url, origin=EVIL):  # type: ignore[arg-type]
+            pass
+    assert refused.value.response.status_code == 403
+    async with connect(svc.ws_url, origin=svc.url) as ws:  # type: ignore[arg-type]
+        assert json.loads(await ws.recv())["type"] == "hello"
+    async with connect(svc.ws_url) as ws:  # no Origin: a script
+        assert json.loads(await ws.recv())["type"] == "hello"
+    # rebinding: a foreign Host in the handshake
+    u = urlparse(svc.ws_url)
+    with socket.create_connection((u.hostname, u.port), timeout=10) as sock:
+        sock.sendall(
+            f"GET {u.path} HTTP/1.1\r\nHost: evil.example:{u.port}\r\nUpgrade: websocket\r\n"
+            "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n".encode()
+        )
+        assert sock.recv(64).startswith(b"HTTP/1.1 400")
+
+
+def _raw_request(url: str, head: str) -> bytes:
+    """Send a request's head (no body), read the whole answer."""
+    u = urlparse(url)
+    with socket.create_connection((u.hostname, u.port), timeout=10) as sock:
+        sock.sendall(head.encode())
+        out = b""
+        while chunk := sock.recv(65536):
+            out += chunk
+    return out
+
+
+def test_huge_body_refused_before_it_is_read(svc: LiveService) -> None:
+    u = urlparse(svc.url)
+    answer = _raw_request(svc.url, f"PATCH /api/params HTTP/1.1\r\nHost: {u.netloc}\r\n"
+                          "Content-Type: application/json\r\n"
+                          f"Content-Length: {300 * 2**20}\r\n\r\n")  # fmt: skip
+    head, _, body = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 413")
+    assert f"at most {MAX_BODY_KB} kB".encode() in body
+
+
+async def test_errors_never_echo_a_long_value(svc: LiveService) -> None:
+    long = "x" * 300_000  # under the body limit, so that it reaches validation
+    async with svc.client() as c:
+        for method, path, body in (
+            ("PATCH", "/api/params", {"k": long}),
+            ("PATCH", "/api/params", {long: 1}),
+            ("POST", "/api/runs", {"params": {"cycles": long}}),
+            ("POST", "/api/runs", {"object": long}),
+            ("POST", "/api/runs", {long: 1}),
+            ("PUT", "/api/sim/object", {"name": long}),
+            ("PUT", "/api/sim/object", {"spec": {"kind": long, "depth_mm": 5}}),
+            ("PUT", "/api/sim/object", {"spec": {"kind": "circle", "depth_mm": 5,
+                                                 "diameter_mm": 30, "name": long}}),
+            ("PUT", "/api/sim/object", {"spec": {"kind": "polygon", "depth_mm": 5,
+                                                 "vertices_mm": [[0, 0]] * 20_000}}),
+        ):  # fmt: skip
+            r = await c.request(
+                method, path, json=body, headers={"Content-Type": "application/json"}
+            )
+            assert r.status_code == 422, (method, path, r.text[:300])
+            assert len(r.content) < 2000, (method, path, r.text[:300])
+            assert "x" * 81 not in r.text
+        r = await c.get("/api/runs/" + "9" * 5000)
+        assert r.status_code == 422 and len(r.content) < 2000
+
+
+async def test_ids_and_offsets_beyond_range_are_422_not_500(svc: LiveService) -> None:
+    async with svc.client() as c:
+        for path in ("/api/runs/9223372036854775808", "/api/runs/18446744073709551616",
+                     "/api/runs/0", "/api/runs/-1", "/api/runs/9223372036854775808/samples",
+                     "/api/runs/9223372036854775808/export"):  # fmt: skip
+            r = await c.get(path)
+            assert r.status_code == 422, (path, r.text)
+            assert "run_id" in r.json()["details"][0]
+        r = await c.get("/api/runs/9223372036854775807")
+        assert r.status_code == 404 and "no run" in r.json()["error"]
+        for offset in (2**63, 2**64, -1):
+            r = await c.get("/api/runs/1/samples", params={"offset": offset})
+            assert r.status_code == 422 and "offset" in r.json()["details"][0]
+
+
+async def test_booleans_are_no_numbers(svc: LiveService) -> None:
+    async with svc.client() as c:
+        r = await c.post("/api/runs", json={"params": {"cycles": True}})
+        assert r.status_code == 422 and "cycles = True" in r.json()["details"][0]
+        r = await c.patch("/api/params", json={"k": True})
+        assert r.status_code == 422 and "k = True" in r.json()["details"][0]
+        spec = {"kind": "circle", "diameter_mm": True, "depth_mm": 10}
+        r = await c.put("/api/sim/object", json={"spec": spec})
+        assert r.status_code == 422 and "diameter_mm" in r.json()["details"][0]
+        r = await c.post("/api/runs", json={"params": {}, "paramz": {"cycles": 1}})
+        assert r.status_code == 422 and "paramz" in r.json()["details"][0]
+        assert (await c.get("/api/status")).json()["run"] is None
+
+
+STAR = [[40.0 * c, 40.0 * s] for c, s in ((1, 0), (-0.809, 0.588), (0.309, -0.951),
+                                          (0.309, 0.951), (-0.809, -0.588))]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("spec", "fragment"),
+    [
+        ({"kind": "polygon", "vertices_mm": STAR, "depth_mm": 10}, "must not cross"),
+        ({"kind": "polygon", "vertices_mm": [[0, 0], [1e200, 0], [0, 30]], "depth_mm": 10},
+         "vertices_mm.1.0 = 1e+200"),
+        ({"kind": "polygon", "vertices_mm": [[0, 0], [1e-9, 0], [0, 1e-9]], "depth_mm": 10},
+         "polygon"),
+        ({"kind": "polygon", "vertices_mm": [[0, 0], [30, 0], [60, 0], [0, 30]], "depth_mm": 10},
+         "convex"),
+        ({"kind": "polygon", "vertices_mm": [[40 * __import__("math").cos(k / 500),
+                                              40 * __import__("math").sin(k / 500)]
+                                             for k in range(3000)], "depth_mm": 10},
+         "at most 64"),
+        ({"kind": "circle", "diameter_mm": 1e200, "depth_mm": 10}, "5.0 ≤ diameter_mm ≤ 150.0"),
+        ({"kind": "box", "width_mm": 1e-9, "height_mm": 30, "depth_mm": 10}, "width_mm"),
+        ({"kind": "ellipse", "axis_a_mm": 3, "axis_b_mm": 2, "depth_mm": 10}, "5 … 150 mm"),
+        ({"kind": "stick", "length_mm": 500, "depth_mm": 10}, "length_mm ≤ 150.0"),
+        ({"kind": "circle", "diameter_mm": 30, "depth_mm": 1e200}, "depth_mm"),
+    ],
+)  # fmt: skip
+async def test_object_specs_the_hand_cannot_hold_are_422(
+    svc: LiveService, spec: dict[str, Any], fragment: str
+) -> None:
+    async with svc.client() as c:
+        r = await c.put("/api/sim/object", json={"spec": spec})
+        assert r.status_code == 422, r.text
+        assert r.json()["error"] == "invalid object spec"
+        assert any(fragment in d for d in r.json()["details"]), r.json()
+        r = await c.post("/api/runs", json={"object": spec})
+        assert r.status_code == 422 and (await c.get("/api/status")).json()["run"] is None
+
+
+async def test_a_fine_polygon_is_taken(svc: LiveService) -> None:
+    import math
+
+    ring = [[30 * math.cos(2 * math.pi * k / 64), 20 * math.sin(2 * math.pi * k / 64)]
+            for k in range(64)]  # fmt: skip
+    async with svc.client() as c:
+        spec = {"kind": "polygon", "vertices_mm": ring, "depth_mm": 20, "name": "oval"}
+        r = await c.put("/api/sim/object", json={"spec": spec})
+        assert r.status_code == 200, r.text
+        assert r.json()["object"]["name"] == "oval"
+        truth = (await c.get("/api/status")).json()["object"]
+        assert truth["kind"] == "polygon" and len(truth["vertices_mm"]) == 64
+        assert (await c.put("/api/sim/object", json={"name": "egg"})).status_code == 200
+
+
+async def test_open_hand_route(svc: LiveService) -> None:
+    async with svc.client() as c:
+        r = await c.post("/api/hand/open", json={})
+        assert r.status_code not in (404, 405, 415), r.text
+        assert "error" in r.json() or r.status_code == 202
+        assert (await c.post("/api/hand/open")).status_code == 415  # JSON, as every command
+
+
+async def test_docs_are_served_from_the_package(svc: LiveService) -> None:
+    async with svc.client() as c:
+        for page in ("/docs", "/redoc"):
+            r = await c.get(page)
+            assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+            urls = re.findall(r'(?:src|href)="([^"]+)"', r.text)
+            assert urls and all(u.startswith("/") and not u.startswith("//") for u in urls), urls
+            assert "http://" not in r.text and "https://" not in r.text, page
+            for u in urls:
+                got = await c.get(u)
+                assert got.status_code == 200 and len(got.content) > 1000, u
+        assert (await c.get("/openapi.json")).status_code == 200
+
+
+async def test_openapi_lists_every_status_and_content_type(svc: LiveService) -> None:
+    async with svc.client() as c:
+        paths = (await c.get("/openapi.json")).json()["paths"]
+    error_schema = {"$ref": "#/components/schemas/ErrorBody"}
+    expect = {
+        ("get", "/api/status"): {200, 400},
+        ("patch", "/api/params"): {200, 400, 401, 403, 413, 415, 422},
+        ("post", "/api/runs"): {201, 400, 401, 403, 409, 413, 415, 422, 503},
+        ("post", "/api/runs/stop"): {202, 400, 401, 403, 409, 413, 415},
+        ("get", "/api/runs/{run_id}"): {200, 400, 404, 422},
+        ("get", "/api/runs/{run_id}/samples"): {200, 400, 404, 422},
+        ("get", "/api/runs/{run_id}/export"): {200, 400, 404, 422},
+        ("post", "/api/estop"): {200, 400, 413, 503},
+        ("post", "/api/estop/release"): {200, 400, 401, 403, 413, 415, 503},
+        ("post", "/api/hand/open"): {202, 400, 401, 403, 409, 413, 415, 503},
+        ("get", "/api/sim/object"): {200, 400, 404},
+        ("put", "/api/sim/object"): {200, 400, 401, 403, 404, 409, 413, 415, 422},
+    }
+    for (method, path), codes in expect.items():
+        responses = paths[path][method]["responses"]
+        assert {int(k) for k in responses} == codes, (method, path)
+        for code, resp in responses.items():
+            if int(code) >= 400:
+                assert resp["content"]["application/json"]["schema"] == error_schema
+    export = paths["/api/runs/{run_id}/export"]["get"]["responses"]["200"]["content"]
+    assert set(export) == {"text/csv", "application/octet-stream"}
+    run_id = paths["/api/runs/{run_id}"]["get"]["parameters"][0]["schema"]
+    assert (run_id["minimum"], run_id["maximum"]) == (1, 2**63 - 1)
+
+
+def test_docs_assets_are_in_the_installed_package() -> None:
+    from sdh2svc.service.app import docs_assets_dir
+
+    names = {p.name for p in Path(docs_assets_dir()).iterdir()}
+    assert {"swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js"} <= names
