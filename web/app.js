@@ -406,7 +406,7 @@ function plainMessage(message) {
 
 function sentence(text) {
   const t = text.trim();
-  return !t || /[.!?…)]$/.test(t) ? t : `${t}.`;
+  return !t || /[.!?…]$/.test(t) ? t : `${t}.`;
 }
 
 function noticeFromStatus(st) {
@@ -477,7 +477,7 @@ function renderNotice() {
   } else if (estopped) {
     next = `${next} Release the e-stop when it is safe, then open the hand.`.trim();
   } else if (n.status !== "stopped") {
-    next = `${next} Open the hand to release it, or start the next run.`.trim();
+    next = `${next} Open the hand to let go of whatever it holds, or start the next run.`.trim();
   }
   $("#run-notice-title").textContent = title;
   $("#run-notice-body").textContent = body;
@@ -488,7 +488,8 @@ function renderNotice() {
   const box = $("#run-notice");
   box.dataset.status = n.status;
   box.classList.toggle("resolved", Boolean(n.opened) || n.status === "stopped");
-  $("#notice-open-hand").hidden = Boolean(n.opened);
+  // after a stop the run itself opened the fingers; Open hand stays in the control bar
+  $("#notice-open-hand").hidden = Boolean(n.opened) || n.status === "stopped";
   box.hidden = false;
   sdh2.notice = `${title} ${body} ${next}`;
 }

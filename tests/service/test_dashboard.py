@@ -187,9 +187,18 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         timeout=30_000,
     )
     assert httpx.get(service.url + "/api/status").json()["estopped"] is True
+    # the notice says what happened and what comes next
+    run_id = httpx.get(service.url + "/api/status").json()["run"]["id"]
+    notice = page.locator("#run-notice")
+    await expect(notice).to_contain_text(f"Run {run_id} was e-stopped")
+    await expect(notice).to_contain_text("Release the e-stop when it is safe, then open the hand.")
+    await expect(page.locator("#notice-open-hand")).to_be_disabled()
+    await screenshot(page, "estop-notice")
     await page.click("#estop-release")
     await page.wait_for_function("!document.querySelector('#start').disabled", timeout=15_000)
     assert httpx.get(service.url + "/api/status").json()["estopped"] is False
+    await expect(notice).to_contain_text("Open the hand to let go of whatever it holds")
+    await expect(page.locator("#notice-open-hand")).to_be_enabled()
 
     # the 3-D view (loaded when scrolled into sight): the iframe shows the viewer, which draws
     viewer = httpx.get(service.url + "/api/viewer").json()["url"]
@@ -206,7 +215,6 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         await frame.locator("canvas").first.wait_for(state="attached", timeout=60_000)
 
     # the run is in the history: replay its plots, download its exports
-    run_id = httpx.get(service.url + "/api/status").json()["run"]["id"]
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
     await row.wait_for(timeout=15_000)
     await row.locator("button.replay").click()
