@@ -5,8 +5,9 @@ these tests fail, they do not skip). Against a live ``sdh2svc serve --sim`` (the
 fixture): start a run on the egg, see the plots, heat maps and the 3-D view update, e-stop it,
 release; a bad parameter shows the server's 422 message next to its field; a recorded run
 replays and its exports download. A faulted run leaves a notice saying what happened and offering
-Open hand; a service that dies greys the dashboard out under a banner, and one that comes back
-restores it. Every mutating request the page makes carries a JSON body and its content type.
+Open hand; a service that dies (or freezes) greys the dashboard out under a banner, and one that
+comes back restores it. Every mutating request the page makes carries a JSON body and its
+content type.
 """
 
 from __future__ import annotations
@@ -443,6 +444,20 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
             await expect(page.locator("body")).not_to_have_class(re.compile("service-dead"))
             await expect(page.locator("#start")).to_be_enabled()
             await expect(page.locator("#estop")).to_be_enabled()
+
+            # a frozen service: the socket stays open but goes silent, the status poll gets no
+            # answer; the same banner, and the same recovery when it runs again
+            second.proc.send_signal(signal.SIGSTOP)
+            try:
+                await expect(banner).to_be_visible(timeout=30_000)
+                await expect(page.locator("#links-state")).to_have_text("links unknown")
+            finally:
+                second.proc.send_signal(signal.SIGCONT)
+            await expect(banner).to_be_hidden(timeout=60_000)
+            await page.wait_for_function(
+                "window.sdh2.ws === 'open' && window.sdh2.serviceAlive", timeout=30_000
+            )
+            await expect(page.locator("#links-state")).to_have_text("links up")
             assert (await counters(page))["lastError"] is None
     finally:
         svc.stop()
