@@ -31,23 +31,34 @@ export function setToken(token) {
   }
 }
 
-/** One REST call; resolves to the parsed JSON (or null), rejects with an ApiError. */
-export async function request(method, path, body) {
+const MUTATING = new Set(["POST", "PUT", "PATCH"]);
+
+/**
+ * One REST call; resolves to the parsed JSON (or null), rejects with an ApiError.
+ *
+ * Every mutating request carries a JSON body (`{}` when there is nothing to say) and
+ * `Content-Type: application/json`: the service answers 415 otherwise. Options: `timeoutMs`
+ * (the call fails as "does not answer" after it), `auth` (false: no Authorization header).
+ */
+export async function request(method, path, body, { timeoutMs = 0, auth = true } = {}) {
   const headers = {};
-  const token = getToken();
+  const token = auth ? getToken() : "";
   if (token) headers["Authorization"] = `Bearer ${token}`;
-  const init = { method, headers };
-  if (body !== undefined) {
+  const init = { method, headers, cache: "no-store" };
+  if (body !== undefined || MUTATING.has(method)) {
     headers["Content-Type"] = "application/json";
-    init.body = JSON.stringify(body);
+    init.body = JSON.stringify(body === undefined ? {} : body);
   }
+  if (timeoutMs > 0) init.signal = AbortSignal.timeout(timeoutMs);
   let resp;
+  let text;
   try {
     resp = await fetch(path, init);
+    text = await resp.text();
   } catch (e) {
-    throw new ApiError(0, `${method} ${path}: the service does not answer (${e.message})`, []);
+    const why = e && e.name === "TimeoutError" ? `no answer within ${timeoutMs / 1000} s` : e.message;
+    throw new ApiError(0, `${method} ${path}: the service does not answer (${why})`, []);
   }
-  const text = await resp.text();
   let data = null;
   if (text) {
     try {
@@ -63,20 +74,36 @@ export async function request(method, path, body) {
   return data;
 }
 
+/**
+ * The e-stop needs no token (stopping is always allowed): it goes with the stored token if
+ * there is one (older services want it), and once more without it if that token is refused.
+ */
+async function estop() {
+  try {
+    return await request("POST", "/api/estop", {}, { timeoutMs: 5000 });
+  } catch (e) {
+    if (e instanceof ApiError && e.status === 401 && getToken()) {
+      return request("POST", "/api/estop", {}, { timeoutMs: 5000, auth: false });
+    }
+    throw e;
+  }
+}
+
 export const api = {
-  status: () => request("GET", "/api/status"),
+  status: (timeoutMs = 0) => request("GET", "/api/status", undefined, { timeoutMs }),
   params: () => request("GET", "/api/params"),
   paramsSchema: () => request("GET", "/api/params/schema"),
   patchParams: (patch) => request("PATCH", "/api/params", patch),
   startRun: (body) => request("POST", "/api/runs", body),
-  stopRun: () => request("POST", "/api/runs/stop"),
+  stopRun: () => request("POST", "/api/runs/stop", {}),
   runs: () => request("GET", "/api/runs"),
   run: (id) => request("GET", `/api/runs/${id}`),
   samples: (id, offset, limit) =>
     request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}`),
   exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,
-  estop: () => request("POST", "/api/estop"),
-  release: () => request("POST", "/api/estop/release"),
+  estop,
+  release: () => request("POST", "/api/estop/release", {}),
+  openHand: () => request("POST", "/api/hand/open", {}),
   simObject: () => request("GET", "/api/sim/object"),
   putSimObject: (name) => request("PUT", "/api/sim/object", { name }),
   viewer: () => request("GET", "/api/viewer"),
@@ -129,6 +156,24 @@ export class Telemetry {
     if (this.ws) this.ws.close();
   }
 
+  /** The service answers again: try now instead of at the end of the backoff. */
+  kick() {
+    if (this.stopped || this.ws) return;
+    clearTimeout(this.timer);
+    this.delay = 500;
+    this.connect();
+  }
+
+  /** Give up on a socket that went silent (the next try follows the backoff). */
+  drop(reason) {
+    const ws = this.ws;
+    if (!ws) return;
+    this.ws = null;
+    ws.onclose = null;
+    ws.close();
+    if (!this.stopped) this.retry(reason);
+  }
+
   connect() {
     this.onState("connecting");
     let ws;
@@ -144,6 +189,7 @@ export class Telemetry {
       this.onState("open");
     };
     ws.onmessage = (ev) => {
+      if (this.ws !== ws) return;
       let msg;
       try {
         msg = JSON.parse(ev.data);

@@ -9,11 +9,26 @@ import { configureHand, Sketch } from "/web/sketch.js";
 const $ = (sel) => document.querySelector(sel);
 const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling", "releasing"]);
 const CONTACT_STALE_MS = 1500;
+// How a run can end that needs a person to look (status.last_run.status, the `end` event).
+const NOTICE_STATUSES = new Set(["faulted", "dropped", "e-stopped", "stopped"]);
+// A fault's key (the part of a run's message before ": ") in plain words.
+const FAULT_WORDS = {
+  no_contact: "the grasp found nothing between the fingertips",
+  force_ceiling: "the grip force went too high",
+  stale_sensor: "the tactile frames stopped coming",
+  dropped: "both contacts were lost; the object is no longer held",
+  stuck: "the rolling reversed on every iteration (stuck)",
+  joint_error: "the joint controller failed",
+  sensor_error: "the tactile sensor's controller failed",
+};
+const STATUS_PROBE_TIMEOUT_MS = 3000; // a status poll without an answer by then: no service
+const SILENT_SOCKET_MS = 5000; // status messages come at 2 Hz: a socket this quiet is suspect
 
 // Counters for tests and the curious (see the browser test).
 const sdh2 = (window.sdh2 = {
   samples: 0, tactile: 0, statusMsgs: 0, events: 0, lastError: null,
   ws: "connecting", connects: 0, dropped: 0, runState: null, replaying: null,
+  serviceAlive: true, deadSince: null, notice: null, openRequests: 0,
 });
 
 const state = {
@@ -24,7 +39,17 @@ const state = {
   runKey: "",
   sim: null,
   replayId: null,
+  openPending: false, // an Open hand request in flight, or answered and not yet in a status
+  openAnsweredAt: 0,
+  notice: null, // {id, status, message, released, opened, error}
+  dismissedRun: null,
+  releasedRuns: new Set(), // runs seen in their releasing phase (the fingers opened)
 };
+
+// The service's liveness: every message or answer is a sign of life; a closed socket plus a
+// status poll that fails means the service is gone (see goDead / revive).
+const live = { dead: false, lastHeard: Date.now(), since: 0, timer: 0, delay: 1000, probing: null };
+let telemetry = null;
 
 // --- errors -----------------------------------------------------------------------------------
 
@@ -140,10 +165,35 @@ $("#stop").addEventListener("click", () => guard("stop", async () => {
   toast(`Stopping run ${r.run_id} (${r.state})`, { kind: "info", timeoutMs: 3000 });
 }));
 $("#estop").addEventListener("click", () => guard("e-stop", async () => {
-  await api.estop();
+  await api.estop(); // no token needed: stopping is always allowed
   $("#estop").classList.add("latched");
   refreshStatus();
 }));
+$("#open-hand").addEventListener("click", openHand);
+$("#notice-open-hand").addEventListener("click", openHand);
+$("#notice-dismiss").addEventListener("click", () => {
+  if (state.notice) state.dismissedRun = state.notice.id;
+  hideNotice();
+});
+
+async function openHand() {
+  state.openPending = true;
+  state.openAnsweredAt = 0;
+  sdh2.openRequests += 1;
+  setNoticeError("");
+  updateControls();
+  try {
+    await api.openHand();
+    state.openAnsweredAt = Date.now();
+    toast("Opening the hand…", { kind: "info", timeoutMs: 3000 });
+  } catch (e) {
+    state.openPending = false;
+    showError(e, "open hand");
+    const msg = e instanceof ApiError ? e.error : String(e);
+    setNoticeError(`Open hand was refused: ${msg}`);
+  }
+  updateControls();
+}
 $("#estop-release").addEventListener("click", () => guard("release e-stop", async () => {
   await api.release();
   $("#estop").classList.remove("latched");
@@ -255,12 +305,12 @@ function renderStatus(st) {
   $("#run-message").textContent = msg;
   $("#run-message").title = msg;
 
-  const active = Boolean(run && (run.status === "running" || ACTIVE.has(run.state)));
-  $("#start").disabled = active || st.estopped;
-  $("#stop").disabled = !active;
   $("#estop").classList.toggle("latched", Boolean(st.estopped));
-  $("#estop-release").disabled = !st.estopped;
-  $("#object-select").disabled = active || state.sim === false;
+  // an Open hand answered 202 is pending until a status produced after the answer says so
+  if (state.openPending && state.openAnsweredAt && Date.now() - state.openAnsweredAt > 600) {
+    state.openPending = false;
+  }
+  updateControls();
 
   $("#mode-badge").textContent = st.sim ? "simulated hand" : "real hand";
   const conn = st.hand && st.hand.connected;
@@ -283,6 +333,7 @@ function renderStatus(st) {
     }
   }
   if (st.hand && Array.isArray(st.hand.angles_deg)) setPose(st.hand.angles_deg);
+  noticeFromStatus(st);
   if (run && run.state !== "rolling" && Date.now() - state.lastSampleAt > CONTACT_STALE_MS) {
     sketch.setContact(null);
   }
@@ -297,9 +348,244 @@ function renderStatus(st) {
 }
 
 async function refreshStatus() {
-  const st = await guard("status", api.status);
-  if (st) renderStatus(st);
+  const st = await guard("status", () => api.status(STATUS_PROBE_TIMEOUT_MS));
+  if (st) {
+    heard();
+    renderStatus(st);
+  }
 }
+
+function runActive(st) {
+  const run = st && st.run;
+  return Boolean(run && (run.status === "running" || ACTIVE.has(run.state)));
+}
+
+function setButton(sel, disabled, why = "") {
+  const b = $(sel);
+  b.disabled = disabled;
+  if (!b.dataset.title) b.dataset.title = b.title;
+  b.title = disabled && why ? why : b.dataset.title;
+}
+
+/** Every control's enabled state, from the last status, the liveness and pending requests. */
+function updateControls() {
+  const st = state.status || {};
+  const dead = live.dead;
+  const active = runActive(st);
+  const estopped = Boolean(st.estopped);
+  const opening = Boolean(st.hand && st.hand.opening) || state.openPending;
+  const gone = "the service is not answering";
+  setButton("#start", dead || active || estopped || opening,
+    dead ? gone : estopped ? "release the e-stop first" : active ? "a run is active" : "the hand is opening");
+  setButton("#stop", dead || !active, dead ? gone : "no run is active");
+  setButton("#estop", dead, `${gone}: use the hand's own emergency stop switch`);
+  setButton("#estop-release", dead || !estopped, dead ? gone : "the e-stop is not latched");
+  let why = "";
+  if (dead) why = gone;
+  else if (estopped) why = "Release the e-stop first: the motors are off.";
+  else if (active) why = "A run is active: stop it first.";
+  else if (opening) why = "The hand is opening…";
+  for (const sel of ["#open-hand", "#notice-open-hand"]) setButton(sel, Boolean(why), why);
+  const hint = $("#open-hand-hint");
+  hint.textContent = !dead && estopped ? "release the e-stop first to open the hand"
+    : !dead && opening ? "opening…" : "";
+  $("#object-select").disabled = dead || active || state.sim === false;
+  $("#params-apply").disabled = dead;
+  $("#runs-refresh").disabled = dead;
+  if (state.notice) renderNotice();
+}
+
+// --- what happened to the last run, and what to do next ---------------------------------------
+
+function plainMessage(message) {
+  const m = String(message || "").trim();
+  const i = m.indexOf(": ");
+  if (i > 0 && FAULT_WORDS[m.slice(0, i)]) return `${FAULT_WORDS[m.slice(0, i)]} (${m.slice(i + 2)})`;
+  return FAULT_WORDS[m] || m;
+}
+
+function sentence(text) {
+  const t = text.trim();
+  return !t || /[.!?…]$/.test(t) ? t : `${t}.`;
+}
+
+function noticeFromStatus(st) {
+  if (runActive(st)) {
+    // a new run: what happened before is history
+    if (state.notice && st.run && st.run.id !== state.notice.id) hideNotice();
+    return;
+  }
+  const last = st.last_run;
+  if (!last || !NOTICE_STATUSES.has(last.status) || last.id === state.dismissedRun) return;
+  if (state.notice && state.notice.id === last.id && state.notice.status === last.status) return;
+  showNotice({ id: last.id, status: last.status, message: last.message || "" });
+}
+
+function showNotice(n) {
+  const prev = state.notice && state.notice.id === n.id ? state.notice : {};
+  state.notice = { opened: false, error: "", ...prev, ...n };
+  renderNotice();
+}
+
+function hideNotice() {
+  state.notice = null;
+  sdh2.notice = null;
+  $("#run-notice").hidden = true;
+}
+
+function setNoticeError(text) {
+  if (!state.notice) return;
+  state.notice.error = text;
+  renderNotice();
+}
+
+function renderNotice() {
+  const n = state.notice;
+  if (!n) return;
+  const st = state.status || {};
+  const estopped = Boolean(st.estopped);
+  const released = state.releasedRuns.has(n.id);
+  let title;
+  let body;
+  let next;
+  switch (n.status) {
+    case "faulted":
+      title = `Run ${n.id} faulted:`;
+      body = sentence(plainMessage(n.message) || "the safety supervisor stopped it");
+      if (released) next = "The fingers moved back to the open pre-shape pose; check the object.";
+      else if (String(n.message).startsWith("no_contact")) {
+        next = "The fingers are holding still where the grasp gave up.";
+      } else next = "The fingers are holding still; the object may still be held.";
+      break;
+    case "dropped":
+      title = `Run ${n.id} lost the object:`;
+      body = sentence(plainMessage(n.message) || "both contacts were lost");
+      next = "The fingers are holding still; check where the object is before the next run.";
+      break;
+    case "e-stopped":
+      title = `Run ${n.id} was e-stopped:`;
+      body = "the motors were switched off at once.";
+      next = "The fingers are not driven; the object may still be held.";
+      break;
+    default: // stopped
+      title = `Run ${n.id} was stopped`;
+      body = "on request; the fingers released the object.";
+      next = "";
+  }
+  if (n.opened) {
+    next = "The hand is open now.";
+  } else if (estopped) {
+    next = `${next} Release the e-stop when it is safe, then open the hand.`.trim();
+  } else if (n.status !== "stopped") {
+    next = `${next} Open the hand to let go of whatever it holds, or start the next run.`.trim();
+  }
+  $("#run-notice-title").textContent = title;
+  $("#run-notice-body").textContent = body;
+  $("#run-notice-next").textContent = next;
+  const err = $("#run-notice-error");
+  err.textContent = n.error || "";
+  err.hidden = !n.error;
+  const box = $("#run-notice");
+  box.dataset.status = n.status;
+  box.classList.toggle("resolved", Boolean(n.opened) || n.status === "stopped");
+  // after a stop the run itself opened the fingers; Open hand stays in the control bar
+  $("#notice-open-hand").hidden = Boolean(n.opened) || n.status === "stopped";
+  box.hidden = false;
+  sdh2.notice = `${title} ${body} ${next}`;
+}
+
+// --- is the service there? --------------------------------------------------------------------
+
+function hhmmss(ms) {
+  const d = new Date(ms);
+  return [d.getHours(), d.getMinutes(), d.getSeconds()].map((x) => String(x).padStart(2, "0")).join(":");
+}
+
+/** A sign of life from the service (a message, an answer). */
+function heard() {
+  live.lastHeard = Date.now();
+  if (live.dead) revive();
+}
+
+function goDead() {
+  if (live.dead) return;
+  live.dead = true;
+  live.since = live.lastHeard;
+  sdh2.serviceAlive = false;
+  sdh2.deadSince = hhmmss(live.since);
+  document.body.classList.add("service-dead");
+  $("#dead-text").textContent =
+    `The service is not answering (since ${hhmmss(live.since)}) — the hand's state is unknown.`;
+  $("#dead-banner").hidden = false;
+  if (sdh2.ws !== "open") $("#ws-state").textContent = "no service";
+  const ls = $("#links-state");
+  ls.textContent = "links unknown";
+  ls.className = "badge links-unknown";
+  ls.title = "the service does not answer: nothing is known about the hand's links";
+  const rs = $("#run-state");
+  const lastSeen = rs.textContent;
+  rs.textContent = "unknown";
+  rs.dataset.state = "unknown";
+  rs.title = `last seen: ${lastSeen}`;
+  sketch.setContact(null);
+  updateControls();
+  console.warn(`sdh2svc: the service is not answering (since ${sdh2.deadSince})`);
+}
+
+function revive() {
+  live.dead = false;
+  sdh2.serviceAlive = true;
+  sdh2.deadSince = null;
+  document.body.classList.remove("service-dead");
+  $("#dead-banner").hidden = true;
+  $("#run-state").title = "";
+  toast(`The service answers again (it was gone since ${hhmmss(live.since)}).`,
+    { kind: "info", timeoutMs: 5000 });
+  updateControls();
+  loadRuns();
+}
+
+/** Ask for the status once: true if the service answered (even with an error). */
+function probe() {
+  if (live.probing) return live.probing;
+  live.probing = (async () => {
+    try {
+      const st = await api.status(STATUS_PROBE_TIMEOUT_MS);
+      heard();
+      renderStatus(st);
+      if (telemetry) telemetry.kick();
+      return true;
+    } catch (e) {
+      if (e instanceof ApiError && e.status !== 0) {
+        heard(); // it answered, with an error
+        return true;
+      }
+      goDead();
+      return false;
+    } finally {
+      live.probing = null;
+    }
+  })();
+  return live.probing;
+}
+
+/** While the socket is down: poll the status (every 3 s; with backoff up to 10 s when gone). */
+function pollWhileClosed(now = false) {
+  clearTimeout(live.timer);
+  live.timer = setTimeout(async () => {
+    const ok = await probe();
+    live.delay = ok ? 1000 : Math.min(live.delay * 2, 10000);
+    if (sdh2.ws !== "open") pollWhileClosed();
+  }, now ? 0 : live.dead ? live.delay : 3000);
+}
+
+// A socket that stays open but goes silent (a frozen service) is checked over REST too.
+setInterval(() => {
+  if (sdh2.ws !== "open" || live.probing || Date.now() - live.lastHeard < SILENT_SOCKET_MS) return;
+  probe().then((ok) => {
+    if (!ok && telemetry) telemetry.drop(`no message for ${SILENT_SOCKET_MS / 1000} s`);
+  });
+}, 1000);
 
 // Wire axes of φ2…φ5: SDH2 defaults until GET /api/config gives the service's [axes].
 let poseAxes = [1, 2, 5, 6];
@@ -322,10 +608,37 @@ function addEvent(m) {
   const ol = $("#events");
   ol.prepend(li);
   while (ol.children.length > 60) ol.lastElementChild.remove();
-  if (m.kind === "fault") showError(`run ${m.run_id} fault: ${detail}`);
+  eventNotice(m);
+}
+
+/** Events that change what the notice says (`fault` comes before the run's `end`). */
+function eventNotice(m) {
+  const d = (m.detail && typeof m.detail === "object") ? m.detail : {};
+  if (m.kind === "phase" && d.phase === "releasing" && m.run_id != null) {
+    state.releasedRuns.add(m.run_id);
+  } else if (m.kind === "fault" && m.run_id != null) {
+    const status = d.fault === "dropped" ? "dropped" : "faulted";
+    const message = d.fault ? `${d.fault}: ${d.message ?? ""}` : String(d.message ?? "");
+    if (m.run_id !== state.dismissedRun) showNotice({ id: m.run_id, status, message });
+  } else if (m.kind === "end" && m.run_id != null && NOTICE_STATUSES.has(d.status)) {
+    if (m.run_id !== state.dismissedRun) {
+      showNotice({ id: m.run_id, status: d.status, message: d.message ?? "" });
+    }
+  } else if (m.kind === "estop" && m.run_id != null && m.run_id !== state.dismissedRun) {
+    showNotice({ id: m.run_id, status: "e-stopped", message: "emergency stop" });
+  } else if (m.kind === "opened" && state.notice) {
+    state.notice.opened = true;
+    state.notice.error = "";
+    renderNotice();
+  }
+  if (m.kind === "opened" || m.kind === "fault") {
+    state.openPending = false;
+    updateControls();
+  }
 }
 
 function onMessage(m) {
+  heard();
   switch (m.type) {
     case "hello":
     case "status":
@@ -369,23 +682,28 @@ function onMessage(m) {
   }
 }
 
-let pollTimer = 0;
 function onWsState(s, info) {
+  const was = sdh2.ws;
   sdh2.ws = s;
   const el = $("#ws-state");
   el.className = `badge ws-${s}`;
   if (s === "open") {
     sdh2.connects += 1;
     el.textContent = "live";
-    clearInterval(pollTimer);
-    pollTimer = 0;
+    el.title = "telemetry WebSocket";
+    heard();
+    clearTimeout(live.timer);
+    live.delay = 1000;
   } else if (s === "connecting") {
-    el.textContent = "connecting…";
+    el.textContent = live.dead ? "no service — trying…" : "connecting…";
   } else {
-    el.textContent = `disconnected — retry in ${info.retryInS.toFixed(1)} s`;
+    el.textContent = live.dead
+      ? `no service — retry in ${info.retryInS.toFixed(1)} s`
+      : `disconnected — retry in ${info.retryInS.toFixed(1)} s`;
     el.title = `telemetry WebSocket closed (${info.reason})`;
-    // keep the status fresh over REST while the socket is down
-    if (!pollTimer) pollTimer = setInterval(() => api.status().then(renderStatus).catch(() => {}), 3000);
+    // is the service still there? ask at once when the socket has just closed, then keep the
+    // status fresh over REST while the socket is down
+    if (was === "open" || !live.timer) pollWhileClosed(was === "open");
   }
 }
 
@@ -572,8 +890,10 @@ async function init() {
   await refreshStatus();
   loadViewer();
   loadRuns();
-  const telemetry = new Telemetry({ onMessage, onState: onWsState });
-  window.sdh2debug = { telemetry, plots, pads, sketch, form };
+  telemetry = new Telemetry({ onMessage, onState: onWsState });
+  // onMessage: feed a telemetry message as if it came from the socket (tests);
+  // status(): the last status rendered
+  window.sdh2debug = { telemetry, plots, pads, sketch, form, onMessage, status: () => state.status };
   telemetry.start();
 }
 

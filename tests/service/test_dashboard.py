@@ -4,12 +4,19 @@ Never downloads a browser: it launches /usr/bin/chromium (`.ci/run` installs it;
 these tests fail, they do not skip). Against a live ``sdh2svc serve --sim`` (the ``service``
 fixture): start a run on the egg, see the plots, heat maps and the 3-D view update, e-stop it,
 release; a bad parameter shows the server's 422 message next to its field; a recorded run
-replays and its exports download.
+replays and its exports download. A faulted run leaves a notice saying what happened and offering
+Open hand; a service that dies (or freezes) greys the dashboard out under a banner, and one that
+comes back restores it. Every mutating request the page makes carries a JSON body and its
+content type.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
+import os
+import re
+import signal
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -17,6 +24,7 @@ from typing import Any
 import httpx
 import playwright.async_api as playwright_api
 import pytest
+from playwright.async_api import expect
 
 from sdh2svc.service.launch import LiveService, start_service
 
@@ -52,6 +60,8 @@ COUNT_COLOURED = """(sel) => {
 }"""
 PLOTS = ("joints", "force", "sigma", "s", "omega", "lambda")
 PAD_ZERO_RGB = [24, 27, 38]  # web/pads.js ZERO_COLOR: a taxel reading 0
+MUTATING = ("POST", "PUT", "PATCH")
+SCREENSHOTS = os.environ.get("SDH2SVC_SCREENSHOTS")  # a directory: the tests leave PNGs there
 
 
 @contextlib.asynccontextmanager
@@ -67,6 +77,7 @@ async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncItera
             pg = await context.new_page()
             errors: list[str] = []
             pg.on("pageerror", lambda e: errors.append(str(e)))
+            pg.on("request", lambda req: errors.extend(bad_request(req)))
             await pg.goto(svc.url + "/")
             await pg.wait_for_function(
                 "window.sdh2 && window.sdh2.statusMsgs > 0 && window.sdh2.ws === 'open'",
@@ -77,6 +88,26 @@ async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncItera
             assert errors == [], f"script errors on the dashboard: {errors}"
         finally:
             await browser.close()
+
+
+def bad_request(req: Any) -> list[str]:
+    """What is wrong with a request the page made: the service answers 415 to a mutating request
+    without a JSON body and ``Content-Type: application/json``."""
+    if req.method not in MUTATING:
+        return []
+    ctype = (req.headers.get("content-type") or "").split(";")[0].strip()
+    try:
+        json.loads(req.post_data or "")
+    except ValueError:
+        return [f"{req.method} {req.url}: body {req.post_data!r} is not JSON"]
+    if ctype != "application/json":
+        return [f"{req.method} {req.url}: content type {ctype!r}"]
+    return []
+
+
+async def screenshot(page: Any, name: str) -> None:
+    if SCREENSHOTS:
+        await page.screenshot(path=str(Path(SCREENSHOTS) / f"{name}.png"), full_page=False)
 
 
 @pytest.fixture
@@ -127,6 +158,8 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     await page.select_option("#object-select", "egg")
     await page.wait_for_function("!document.querySelector('#start').disabled")
     await page.click("#start")
+    # while a run is active the hand cannot be opened from here
+    await expect(page.locator("#open-hand")).to_be_disabled(timeout=30_000)
     await page.wait_for_function(
         "window.sdh2.samples > 40 && window.sdh2.tactile > 40", timeout=RUN_TIMEOUT_MS
     )
@@ -155,9 +188,18 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         timeout=30_000,
     )
     assert httpx.get(service.url + "/api/status").json()["estopped"] is True
+    # the notice says what happened and what comes next
+    run_id = httpx.get(service.url + "/api/status").json()["run"]["id"]
+    notice = page.locator("#run-notice")
+    await expect(notice).to_contain_text(f"Run {run_id} was e-stopped")
+    await expect(notice).to_contain_text("Release the e-stop when it is safe, then open the hand.")
+    await expect(page.locator("#notice-open-hand")).to_be_disabled()
+    await screenshot(page, "estop-notice")
     await page.click("#estop-release")
     await page.wait_for_function("!document.querySelector('#start').disabled", timeout=15_000)
     assert httpx.get(service.url + "/api/status").json()["estopped"] is False
+    await expect(notice).to_contain_text("Open the hand to let go of whatever it holds")
+    await expect(page.locator("#notice-open-hand")).to_be_enabled()
 
     # the 3-D view (loaded when scrolled into sight): the iframe shows the viewer, which draws
     viewer = httpx.get(service.url + "/api/viewer").json()["url"]
@@ -174,7 +216,6 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         await frame.locator("canvas").first.wait_for(state="attached", timeout=60_000)
 
     # the run is in the history: replay its plots, download its exports
-    run_id = httpx.get(service.url + "/api/status").json()["run"]["id"]
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
     await row.wait_for(timeout=15_000)
     await row.locator("button.replay").click()
@@ -235,6 +276,25 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
     svc = start_service(tmp_path, viewer=False, token=token)
     try:
         async with dashboard(svc) as page:
+            # stopping needs no token: E-STOP with the token field empty sends none (as JSON)
+            async with page.expect_response(lambda r: r.url.endswith("/api/estop")) as answer:
+                await page.click("#estop")
+            resp = await answer.value
+            assert resp.request.method == "POST" and resp.request.post_data == "{}"
+            assert "authorization" not in resp.request.headers
+            if resp.status == 200:
+                await expect(page.locator("#estop")).to_have_class(re.compile("latched"))
+                await expect(page.locator("#open-hand")).to_be_disabled()
+                await expect(page.locator("#open-hand-hint")).to_contain_text(
+                    "release the e-stop first"
+                )
+                r = httpx.post(svc.url + "/api/estop/release", json={}, headers=svc.headers())
+                assert r.status_code == 200
+                await expect(page.locator("#estop-release")).to_be_disabled()
+            else:  # a service from before POST /api/estop was open to all
+                assert resp.status == 401
+                await page.wait_for_function("window.sdh2.lastError !== null")
+                await page.evaluate("window.sdh2.lastError = null")
             # the status says a token is needed: the field shows; without it a change is refused
             assert await page.is_visible("#token-field")
             before = httpx.get(svc.url + "/api/params").json()
@@ -259,3 +319,147 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
             assert stored == token
     finally:
         assert svc.stop() == 0, "".join(svc.log)
+
+
+async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: Path) -> None:
+    # a grasp that gives up at once: the run faults with no_contact and the fingers hold still
+    svc = start_service(tmp_path, viewer=False, extra=("--set", "run.grasp_timeout_s=0.3"))
+    try:
+        async with dashboard(svc) as page:
+            notice = page.locator("#run-notice")
+            assert await notice.is_hidden()
+            await expect(page.locator("#open-hand")).to_be_enabled()  # idle, no e-stop
+            await page.click("#start")
+            await expect(notice).to_be_visible(timeout=RUN_TIMEOUT_MS)
+            st = httpx.get(svc.url + "/api/status").json()
+            run_id = st["run"]["id"]
+            await expect(notice).to_contain_text(f"Run {run_id} faulted:")
+            await expect(notice).to_contain_text("the grasp found nothing between the fingertips")
+            await expect(notice).to_contain_text(
+                "The fingers are holding still where the grasp gave up."
+            )
+            open_in_notice = page.locator("#notice-open-hand")
+            await expect(open_in_notice).to_be_enabled(timeout=15_000)  # the run is over
+            await expect(page.locator("#open-hand")).to_be_enabled()
+            assert httpx.get(svc.url + "/api/status").json()["last_run"]["status"] == "faulted"
+            await screenshot(page, "fault-notice")
+
+            # Open hand sends POST /api/hand/open (JSON); a refusal is shown in the notice
+            route = "**/api/hand/open"
+            refusal = {"error": "run 9 is running: stop it first", "details": []}
+            await page.route(route, lambda r: r.fulfill(status=409, json=refusal))
+            async with page.expect_request(lambda r: r.url.endswith("/api/hand/open")) as sent:
+                await open_in_notice.click()
+            req = await sent.value
+            assert req.method == "POST" and req.post_data == "{}"
+            assert req.headers["content-type"] == "application/json"
+            await expect(page.locator("#run-notice-error")).to_have_text(
+                f"Open hand was refused: {refusal['error']}"
+            )
+            assert refusal["error"] in (await counters(page))["lastError"]
+            await expect(open_in_notice).to_be_enabled()  # may be tried again
+            await page.evaluate("window.sdh2.lastError = null")
+
+            # accepted (202): the error goes; the `opened` event says the hand is open
+            await page.unroute(route)
+            await page.route(route, lambda r: r.fulfill(status=202, json={"opening": True}))
+            async with page.expect_request(lambda r: r.url.endswith("/api/hand/open")):
+                await page.click("#open-hand")
+            await expect(page.locator("#run-notice-error")).to_be_hidden()
+            # while the status says the hand is opening, Open hand waits
+            opening = await page.evaluate("""() => {
+                const st = structuredClone(window.sdh2debug.status());
+                st.hand.opening = true;
+                window.sdh2debug.onMessage({type: 'status', status: st});
+                return [document.querySelector('#open-hand').disabled,
+                        document.querySelector('#start').disabled,
+                        document.querySelector('#open-hand-hint').textContent];
+            }""")
+            assert opening == [True, True, "opening…"]
+            await page.evaluate(
+                f"window.sdh2debug.onMessage({{type: 'event', run_id: {run_id}, t: null,"
+                " iteration: null, kind: 'opened', detail: {}})"
+            )
+            await expect(notice).to_contain_text("The hand is open now.")
+            await expect(notice).to_have_class(re.compile("resolved"))
+            await expect(open_in_notice).to_be_hidden()
+            await page.unroute(route)
+
+            # with the e-stop latched Open hand waits for the release, and says so
+            assert httpx.post(svc.url + "/api/estop", json={}).status_code == 200
+            await expect(page.locator("#open-hand")).to_be_disabled()
+            await expect(page.locator("#open-hand-hint")).to_have_text(
+                "release the e-stop first to open the hand"
+            )
+            assert httpx.post(svc.url + "/api/estop/release", json={}).status_code == 200
+            await expect(page.locator("#open-hand")).to_be_enabled()
+            await page.click("#notice-dismiss")
+            await expect(notice).to_be_hidden()
+            assert (await counters(page))["lastError"] is None
+    finally:
+        assert svc.stop() == 0, "".join(svc.log)
+
+
+async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path: Path) -> None:
+    for name in ("first", "second"):
+        (tmp_path / name).mkdir()
+    svc = start_service(tmp_path / "first", viewer=False)
+    port = svc.url.rsplit(":", 1)[1]
+    second: LiveService | None = None
+    try:
+        async with dashboard(svc) as page:
+            await expect(page.locator("#links-state")).to_have_text("links up")
+            svc.stop(signal.SIGKILL)  # no goodbye: the socket just closes
+
+            banner = page.locator("#dead-banner")
+            await expect(banner).to_be_visible(timeout=30_000)
+            await expect(banner).to_contain_text(re.compile(
+                r"The service is not answering \(since \d\d:\d\d:\d\d\) — "
+                "the hand's state is unknown"
+            ))  # fmt: skip
+            await expect(page.locator("#links-state")).not_to_contain_text("up")
+            await expect(page.locator("#ws-state")).not_to_have_text("live")
+            await expect(page.locator("#run-state")).to_have_text("unknown")
+            await expect(page.locator("body")).to_have_class(re.compile("service-dead"))
+            for sel in ("#start", "#stop", "#estop", "#estop-release", "#open-hand",
+                        "#object-select", "#params-apply"):  # fmt: skip
+                await expect(page.locator(sel)).to_be_disabled()
+            # the live widgets are greyed out and take no clicks
+            style = await page.evaluate(
+                "() => { const s = getComputedStyle(document.querySelector('main'));"
+                " return [s.filter, s.pointerEvents]; }"
+            )
+            assert "grayscale" in style[0] and style[1] == "none", style
+            assert not (await counters(page))["serviceAlive"]
+            await screenshot(page, "dead-service")
+
+            # a service on the same port again: everything comes back by itself
+            second = start_service(tmp_path / "second", viewer=False, extra=("--port", port))
+            assert second.url == svc.url
+            await expect(banner).to_be_hidden(timeout=60_000)
+            await page.wait_for_function(
+                "window.sdh2.ws === 'open' && window.sdh2.serviceAlive", timeout=30_000
+            )
+            await expect(page.locator("#links-state")).to_have_text("links up")
+            await expect(page.locator("body")).not_to_have_class(re.compile("service-dead"))
+            await expect(page.locator("#start")).to_be_enabled()
+            await expect(page.locator("#estop")).to_be_enabled()
+
+            # a frozen service: the socket stays open but goes silent, the status poll gets no
+            # answer; the same banner, and the same recovery when it runs again
+            second.proc.send_signal(signal.SIGSTOP)
+            try:
+                await expect(banner).to_be_visible(timeout=30_000)
+                await expect(page.locator("#links-state")).to_have_text("links unknown")
+            finally:
+                second.proc.send_signal(signal.SIGCONT)
+            await expect(banner).to_be_hidden(timeout=60_000)
+            await page.wait_for_function(
+                "window.sdh2.ws === 'open' && window.sdh2.serviceAlive", timeout=30_000
+            )
+            await expect(page.locator("#links-state")).to_have_text("links up")
+            assert (await counters(page))["lastError"] is None
+    finally:
+        svc.stop()
+        if second is not None:
+            assert second.stop() == 0, "".join(second.log)
