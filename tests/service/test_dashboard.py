@@ -282,19 +282,15 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
             resp = await answer.value
             assert resp.request.method == "POST" and resp.request.post_data == "{}"
             assert "authorization" not in resp.request.headers
-            if resp.status == 200:
-                await expect(page.locator("#estop")).to_have_class(re.compile("latched"))
-                await expect(page.locator("#open-hand")).to_be_disabled()
-                await expect(page.locator("#open-hand-hint")).to_contain_text(
-                    "release the e-stop first"
-                )
-                r = httpx.post(svc.url + "/api/estop/release", json={}, headers=svc.headers())
-                assert r.status_code == 200
-                await expect(page.locator("#estop-release")).to_be_disabled()
-            else:  # a service from before POST /api/estop was open to all
-                assert resp.status == 401
-                await page.wait_for_function("window.sdh2.lastError !== null")
-                await page.evaluate("window.sdh2.lastError = null")
+            assert resp.status == 200
+            await expect(page.locator("#estop")).to_have_class(re.compile("latched"))
+            await expect(page.locator("#open-hand")).to_be_disabled()
+            await expect(page.locator("#open-hand-hint")).to_contain_text(
+                "release the e-stop first"
+            )
+            r = httpx.post(svc.url + "/api/estop/release", json={}, headers=svc.headers())
+            assert r.status_code == 200
+            await expect(page.locator("#estop-release")).to_be_disabled()
             # the status says a token is needed: the field shows; without it a change is refused
             assert await page.is_visible("#token-field")
             before = httpx.get(svc.url + "/api/params").json()
