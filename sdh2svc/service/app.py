@@ -188,14 +188,21 @@ def create_app(services: Services) -> FastAPI:
 
 
 async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> Any:
-    """The 3-D view, in a process of its own unless ``service.viewer_process`` is off."""
+    """The 3-D view, in a process of its own unless ``service.viewer_process`` is off.
+
+    The view cannot authenticate a browser. Without a token it is a control panel for whoever
+    sits at this machine: bound to loopback only (and its WebSocket refuses other sites'
+    pages: viewer.start_viser). With a token it listens where the service does, read-only:
+    only its E-STOP acts (stopping is always allowed); the rest is the dashboard's, with the
+    token."""
     if cfg.service.viewer_process:
         from sdh2svc.service.viewer_proc import ViewerProcess as View
     else:
         from sdh2svc.service.viewer import Viewer as View  # type: ignore[assignment]
 
-    v = View(cfg, host=cfg.service.host, port=cfg.service.viser_port,
-             on_command=station.command, allow_start=not cfg.service.token,
+    token = bool(cfg.service.token)
+    v = View(cfg, host=cfg.service.host if token else "127.0.0.1", port=cfg.service.viser_port,
+             on_command=station.command, read_only=token,
              max_hz=cfg.service.viewer_max_hz)  # fmt: skip
     await v.start()
     hub.add_listener(v.handle)

@@ -16,6 +16,14 @@ towards the thumb), in metres (the model's millimetres × 1e-3). Fingers 1 and 2
 the model's own functions (:func:`distal_joint`, :func:`frame3_axes`, :func:`pad_point`), so at
 φ1 = 90° they lie exactly in the y0z0 plane of the planar model. The thumb, the palm, the link
 bodies and the proximal pads are approximate (see :data:`THUMB_BASE` and :func:`proximal_cells`).
+
+Authority. The panel cannot authenticate anyone. ``read_only`` (the service has a token): every
+control but E-STOP is disabled, its hint pointing to the dashboard. Open hand is enabled only
+while the latest status shows no run, no e-stop latched and no opening under way. viser does not
+enforce ``disabled`` (a client can send a disabled button's click), so every callback checks,
+in our code, the kind's permission now and its control's state before anything reaches
+``on_command`` (:meth:`Viewer._gate`); a refusal is logged and shown in the panel. And the
+WebSocket refuses pages of other sites (:func:`start_viser`).
 """
 
 from __future__ import annotations
@@ -29,10 +37,15 @@ import threading
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
+from http import HTTPStatus
 from typing import Any, TypeVar
+from urllib.parse import urlsplit
 
 import numpy as np
 import viser
+import websockets.asyncio.server
+from websockets.asyncio.server import ServerConnection
+from websockets.http11 import Request
 
 from sdh2svc.config import Settings
 from sdh2svc.model.friction import pad_tangent
@@ -86,13 +99,17 @@ FULL_SCALE_COUNTS = 4095.0
 GREY, DARK, PAD = (175, 178, 185), (90, 92, 100), (60, 60, 66)
 COLOR_A, COLOR_B = (255, 120, 30), (160, 60, 230)
 
-COMMANDS = ("start", "stop", "estop", "release")
-BUTTONS: dict[str, tuple[str, Any]] = {  # kind: (label, colour)
-    "start": ("Grasp & roll", "green"),
-    "stop": ("Stop", "orange"),
-    "estop": ("E-STOP", "red"),
-    "release": ("Release e-stop", "gray"),
+COMMANDS = ("start", "stop", "open", "estop", "release")
+BUTTONS: dict[str, tuple[str, Any, str | None]] = {  # kind: (label, colour, hint when enabled)
+    "start": ("Grasp & roll", "green", None),
+    "stop": ("Stop", "orange", None),
+    "open": ("Open hand", "blue", "open the fingers to the pre-shape, releasing what they hold"),
+    "estop": ("E-STOP", "red", None),
+    "release": ("Release e-stop", "gray", None),
 }
+KINDS = frozenset({*COMMANDS, "params"})  # what the panel may ask of on_command
+ALWAYS_ALLOWED = frozenset({"estop"})  # stopping is always allowed, token or not
+NEEDS_TOKEN = "needs the API token: use the dashboard"
 SLIDERS: dict[str, tuple[str, float, float, float]] = {  # field: (label, min, max, step)
     "delta_phi_deg": ("Δφ (°)", -5.0, 5.0, 0.05),
     "k": ("k", 1.05, 10.0, 0.05),
@@ -346,6 +363,128 @@ def camera_message() -> bytes:
     return msgspec.msgpack.encode(msg.as_serializable_dict())
 
 
+# --- who may open the view's WebSocket ------------------------------------------------------------
+
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+class ViewerSecurityError(RuntimeError):
+    """The view's WebSocket could not be guarded: the view is not served."""
+
+
+def _origin_key(origin: str) -> tuple[str, str, int] | None:
+    """``scheme://host[:port]`` → (scheme, host, port), lower case, the scheme's default port
+    filled in and IPv6 brackets removed; None for anything else (``null``, paths, userinfo)."""
+    try:
+        u = urlsplit(origin.strip())
+        port = u.port
+    except ValueError:
+        return None
+    if u.scheme not in ("http", "https") or not u.hostname or u.username or u.password:
+        return None
+    if u.path not in ("", "/") or u.query or u.fragment:
+        return None
+    return u.scheme, u.hostname.lower(), port or (443 if u.scheme == "https" else 80)
+
+
+def _host_name(host: str) -> str:
+    """A configured host (``[::1]``, ``::1``, ``Lab-PC``) as :func:`_origin_key` spells it."""
+    return host.strip().strip("[]").lower()
+
+
+def origin_allowed(origin: str, settings: Settings, view_port: int) -> bool:
+    """Whether a browser page of ``origin`` may open the view's WebSocket on ``view_port``.
+
+    Allowed: http(s) on a loopback name, ``service.host`` or a ``service.allowed_hosts`` entry,
+    at the view's own port or the dashboard's (``service.port``, unless 0: unknown), and every
+    ``service.allowed_origins`` entry. Everything else is a page of some other site."""
+    key = _origin_key(origin)
+    if key is None:
+        return False
+    svc = settings.service
+    if key in {_origin_key(o) for o in svc.allowed_origins}:
+        return True
+    hosts = {*LOOPBACK_NAMES, _host_name(svc.host), *(_host_name(h) for h in svc.allowed_hosts)}
+    ports = {view_port, svc.port} - {0}
+    return key[1] in hosts and key[2] in ports
+
+
+OriginCheck = Callable[[str, int], bool]  # (Origin header, the port it reached) → allowed?
+
+
+def _checking_origin(inner: Any, allowed: OriginCheck) -> Callable[..., Any]:
+    """viser's ``process_request`` behind an Origin check of WebSocket handshakes (403)."""
+
+    def process_request(connection: ServerConnection, request: Request) -> Any:
+        if "websocket" in request.headers.get("Upgrade", "").lower():
+            origins = request.headers.get_all("Origin")
+            port = int(connection.local_address[1])
+            if origins and (len(origins) > 1 or not allowed(origins[0], port)):
+                log.warning("3-D view: WebSocket from origin %r refused (service.allowed_hosts, "
+                            "service.allowed_origins)", ", ".join(origins))  # fmt: skip
+                return connection.respond(HTTPStatus.FORBIDDEN, "Origin not allowed\n")
+        return inner(connection, request) if inner is not None else None
+
+    return process_request
+
+
+class _GuardedServe(websockets.asyncio.server.serve):
+    """``websockets.asyncio.server.serve`` that puts :func:`_checking_origin` in front of viser's
+    ``process_request``; other servers pass through unchanged. See :func:`start_viser`."""
+
+    check: OriginCheck | None = None  # set, under _SERVE_LOCK, while a ViserServer starts
+    installed = False
+
+    def __init__(self, handler: Any, *args: Any, **kwargs: Any) -> None:
+        check = _GuardedServe.check
+        if check is not None and getattr(handler, "__module__", None) == "viser.infra._infra":
+            kwargs["process_request"] = _checking_origin(kwargs.get("process_request"), check)
+            _GuardedServe.installed = True
+        super().__init__(handler, *args, **kwargs)
+
+
+_SERVE_LOCK = threading.Lock()
+
+
+def start_viser(host: str, port: int, allowed: OriginCheck) -> viser.ViserServer:
+    """``viser.ViserServer(host, port)`` whose WebSocket refuses a handshake carrying a foreign
+    ``Origin`` with 403 (blocking: call it on a worker thread).
+
+    Why: WebSockets are not covered by the same-origin policy or CORS, so without this any web
+    page a person on the lab PC opens could connect to ws://127.0.0.1:8080 and click the panel's
+    buttons (cross-site WebSocket hijacking, and DNS rebinding onto the view's port). A missing
+    Origin (a script, not a browser) is let through: browsers always send one.
+
+    How, tied to viser 1.1.1: viser has no hook for its handshake. Its server thread calls
+    ``websockets.asyncio.server.serve(ws_handler, …, process_request=viser_http_server)``
+    (viser/infra/_infra.py, ``start_server()``), looked up on the module at call time, and
+    ``ViserServer()`` returns only once that server listens. So, while one is constructed (one
+    at a time), that name is :class:`_GuardedServe`, which wraps viser's ``process_request``
+    (recognised by its handler's module) in the check; restored right after. Should another viser
+    version serve differently, the check is not installed and the view is refused here, not
+    served unguarded (the tests say so at once).
+    """
+    ws_server = websockets.asyncio.server
+    with _SERVE_LOCK:
+        original = ws_server.serve
+        ws_server.serve = _GuardedServe  # type: ignore[misc]
+        _GuardedServe.check, _GuardedServe.installed = allowed, False
+        try:
+            server = _quietly(viser.ViserServer, host=host, port=port, verbose=False)
+        finally:
+            ws_server.serve = original  # type: ignore[misc]
+            _GuardedServe.check = None
+        installed = _GuardedServe.installed
+    if not installed:
+        _quietly(server.stop)
+        raise ViewerSecurityError(
+            f"viser {viser.__version__} does not serve its WebSocket as viser 1.1.1 does: the "
+            "3-D view's Origin check could not be installed, so the view is not served "
+            "(sdh2svc.service.viewer.start_viser)"
+        )
+    return server
+
+
 # --- the view ----------------------------------------------------------------------------------
 
 
@@ -359,13 +498,13 @@ class Viewer:
         host: str = "127.0.0.1",
         port: int = 8080,
         on_command: Command | None = None,
-        allow_start: bool = True,
+        read_only: bool = False,
         max_hz: float = 30.0,
     ) -> None:
         self.settings = settings
         self._host, self._port = host, port
         self._on_command = on_command
-        self._allow_start = allow_start
+        self._read_only = read_only  # a token is set: the panel only stops (see _refusal)
         self._period = 1.0 / max_hz
         self._latest: dict[str, Any] = {}  # type → latest payload
         self._seq: dict[str, int] = {}  # type → arrival number (pose vs sample: newer wins)
@@ -381,6 +520,7 @@ class Viewer:
         self.buttons: dict[str, viser.GuiButtonHandle] = {}
         self.sliders: dict[str, Any] = {}
         self._edited: dict[str, float] = {}
+        self._applied = {f: float(getattr(settings.rolling, f)) for f in SLIDERS}  # last known
         self._sync_thread: int | None = None
         self._note = ""
         self._tactile_idx: dict[str, np.ndarray] = {}
@@ -395,8 +535,12 @@ class Viewer:
         """Start the viser server (port 0: any free port), build the scene, start rendering."""
         self._loop = asyncio.get_running_loop()
         # The server's constructor waits for its thread: keep the event loop free meanwhile.
-        self.server = await asyncio.to_thread(_quietly, viser.ViserServer, host=self._host,
-                                              port=self._port, verbose=False)  # fmt: skip
+        settings = self.settings
+
+        def allowed(origin: str, port: int) -> bool:
+            return origin_allowed(origin, settings, port)
+
+        self.server = await asyncio.to_thread(start_viser, self._host, self._port, allowed)
         self._build_scene()
         self._build_gui()
         self._dirty |= {"pose", "status"}
@@ -619,20 +763,95 @@ class Viewer:
         text = " · ".join(parts) + (f"\n\n{self._note}" if self._note else "")
         self._set(self.nodes["gui/state"], "content", text)
         self._sync_sliders(st.get("params") or {})
+        self._sync_controls()
+
+    def _sync_controls(self) -> None:
+        """Disable what the panel may not do now, the hint saying why (the callbacks check it
+        again: viser does not enforce ``disabled``)."""
+        for kind, button in self.buttons.items():
+            why = self._refusal(kind)
+            self._set(button, "disabled", why is not None)
+            self._set(button, "hint", why if why is not None else BUTTONS[kind][2])
+        why = self._refusal("params")
+        for slider in self.sliders.values():
+            self._set(slider, "disabled", why is not None)
+            self._set(slider, "hint", why)
 
     def _sync_sliders(self, params: dict[str, Any]) -> None:
-        """Follow the applied parameters, except a slider the user is moving right now."""
+        """Follow the applied parameters, except a slider the user is moving right now (a
+        refused move is no edit: that slider goes back)."""
         now = time.monotonic()
         self._sync_thread = threading.get_ident()  # our own assignments are not user edits
         try:
             for field, slider in self.sliders.items():
                 v = _num(params, field)
+                if v is not None:
+                    self._applied[field] = v
+                v = self._applied.get(field)
                 if v is not None and now - self._edited.get(field, -math.inf) > EDIT_GRACE_S:
                     slider.value = v
         finally:
             self._sync_thread = None
 
     # -- GUI → commands (viser calls these on its own threads) -------------------------------
+
+    def _refusal(self, kind: str) -> str | None:
+        """Why the panel may not do ``kind`` now; None: it may. With a token (ours, or the
+        service's status says one is set) only the e-stop: the view cannot authenticate. Open
+        hand also needs a known status with no run, no e-stop latched and no opening under way.
+        Read on viser's threads too (a dictionary read)."""
+        if kind not in KINDS:
+            return "not a control of this panel"
+        if kind in ALWAYS_ALLOWED:
+            return None
+        st = self._latest.get("status")
+        st = st if isinstance(st, dict) else None
+        if self._read_only or (st is not None and st.get("auth_required")):
+            return NEEDS_TOKEN
+        if kind != "open":
+            return None
+        if st is None:
+            return "waiting for the service's status"
+        if st.get("estopped"):
+            return "the e-stop is latched: release it first"
+        run = st.get("run") or {}
+        if not isinstance(run, dict) or (run and run.get("state") not in FINISHED):
+            return "a run is running: stop it first"
+        hand = st.get("hand") or {}
+        if not isinstance(hand, dict) or hand.get("opening"):
+            return "the hand is opening"
+        return None
+
+    def _gate(self, kind: str, handle: Any) -> bool:
+        """Whether a click or a slider's move may become a command (viser's threads).
+
+        viser does not enforce ``disabled`` server-side: a client can send the update of a
+        disabled control, and it reaches the callbacks. So every callback asks here first: the
+        kind's permission now (:meth:`_refusal`) and the control's own state as we last set it
+        (anything but ``disabled == False``, e.g. props a client's update replaced: refused).
+        A refusal is logged and shown in the panel; nothing goes to ``on_command``."""
+        why = self._refusal(kind)
+        if why is None:
+            try:
+                disabled = handle.disabled is not False
+            except Exception:
+                disabled = True
+            why = "disabled in this panel" if disabled else None
+        if why is None:
+            return True
+        log.warning("3-D view: %s refused in the panel (%s): not sent", kind, why)
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # closed meanwhile: nobody to show it to
+                loop.call_soon_threadsafe(self._show_note, f"{kind}: {why}")
+        return False
+
+    def _show_note(self, note: str) -> None:
+        """A short line under the state (the last refusal; empty after a command succeeds);
+        redrawing the status also puts a refused slider back to the parameter in force."""
+        self._note = note
+        self._dirty.add("status")
+        self._wake.set()
 
     def _submit(self, kind: str, args: dict[str, Any]) -> None:
         if self._loop is None or self._loop.is_closed():
@@ -650,19 +869,20 @@ class Viewer:
             log.warning("3-D view: %s %s refused: %s", kind, args, e)
             note = f"{kind}: {e}"
         if note != self._note:
-            self._note = note
-            self._dirty.add("status")
-            self._wake.set()
+            self._show_note(note)
 
     def _button_cb(self, kind: str) -> Callable[[Any], None]:
         def cb(_event: Any) -> None:
-            self._submit(kind, {})
+            if self._gate(kind, self.buttons[kind]):
+                self._submit(kind, {})
 
         return cb
 
     def _slider_cb(self, field: str) -> Callable[[Any], None]:
         def cb(event: Any) -> None:
             if threading.get_ident() == self._sync_thread:
+                return
+            if not self._gate("params", self.sliders[field]):
                 return
             value = float(event.target.value)
             if field == "delta_phi_deg" and value == 0.0:
@@ -783,16 +1003,17 @@ class Viewer:
         with gui.add_folder("sdh2svc"):
             self.nodes["gui/state"] = gui.add_markdown("**idle**")
             for kind in COMMANDS:
-                label, color = BUTTONS[kind]
-                disabled = kind == "start" and not self._allow_start
-                hint = "starting needs the API token: use the dashboard" if disabled else None
-                b = gui.add_button(label, color=color, disabled=disabled, hint=hint)
+                label, color, hint = BUTTONS[kind]
+                why = self._refusal(kind)
+                b = gui.add_button(label, color=color, disabled=why is not None, hint=why or hint)
                 b.on_click(self._button_cb(kind))
                 self.buttons[kind] = b
         with gui.add_folder("Rolling parameters"):
+            why = self._refusal("params")
             for field, (label, lo, hi, step) in SLIDERS.items():
                 v = getattr(p, field)
-                s = gui.add_slider(label, min=lo, max=hi, step=step, initial_value=v)
+                s = gui.add_slider(label, min=lo, max=hi, step=step, initial_value=v,
+                                   disabled=why is not None, hint=why)  # fmt: skip
                 s.on_update(self._slider_cb(field))
                 self.sliders[field] = s
 

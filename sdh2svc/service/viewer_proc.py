@@ -14,9 +14,10 @@ loop (no threads, never a blocking write). On it:
   ``("result", id, error | None)`` a GUI command's outcome; ``("stop",)``.
 * child → parent: ``("ready", url)`` or ``("error", text)`` once at start-up;
   ``("watched", bool)`` as browsers come and go; ``("command", id, kind, args)`` from the GUI
-  panel, run through ``on_command`` on the parent's loop; ``("log", fields)``, so the child's
-  log records go through the service's own handlers (JSON or text); ``("bye", reason)``
-  before it exits on SIGTERM (e.g. sent to the whole process group: not a death to warn of).
+  panel, run through ``on_command`` on the parent's loop (read-only: the e-stop only, whatever
+  the child says); ``("log", fields)``, so the child's log records go through the service's
+  own handlers (JSON or text); ``("bye", reason)`` before it exits on SIGTERM (e.g. sent to
+  the whole process group: not a death to warn of).
 
 While the child is slow to read, telemetry waits in the parent as latest-per-type (stale
 frames are merged, never queued). The view is not safety-critical: a child that dies is logged
@@ -46,6 +47,10 @@ from sdh2svc.config import Settings
 from sdh2svc.service.pacing import paced
 
 log = logging.getLogger(__name__)
+
+# The panel's authority, as the child's Viewer applies it (viewer.py imports viser: not here).
+ALWAYS_ALLOWED = frozenset({"estop"})
+NEEDS_TOKEN = "needs the API token: use the dashboard"
 
 Command = Callable[[str, dict[str, Any]], Awaitable[None]]
 
@@ -145,13 +150,13 @@ class ViewerProcess:
         host: str = "127.0.0.1",
         port: int = 8080,
         on_command: Command | None = None,
-        allow_start: bool = True,
+        read_only: bool = False,
         max_hz: float = 30.0,
     ) -> None:
         self.settings = settings
         self._host, self._port = host, port
         self._on_command = on_command
-        self._allow_start = allow_start
+        self._read_only = read_only
         self._max_hz = max_hz
         self._period = 1.0 / max_hz
         self._latest: dict[str, dict[str, Any]] = {}  # kind → latest message, arrival order
@@ -176,7 +181,7 @@ class ViewerProcess:
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")
         level = logging.getLogger().getEffectiveLevel()
-        spec = ChildSpec(self.settings.model_dump(), self._host, self._port, self._allow_start,
+        spec = ChildSpec(self.settings.model_dump(), self._host, self._port, self._read_only,
                          self._max_hz, level)  # fmt: skip
         self._proc = ctx.Process(target=child_main, args=(theirs, spec), name="sdh2svc-viewer",
                                  daemon=True)  # fmt: skip
@@ -308,10 +313,16 @@ class ViewerProcess:
                 self._ready.set_exception(ViewerError(msg[1]))
 
     async def _command(self, ident: int, kind: str, args: dict[str, Any]) -> None:
-        """A GUI command on the parent's loop; the outcome goes back for the panel's note."""
+        """A GUI command on the parent's loop; the outcome goes back for the panel's note.
+
+        The child faces the network and its panel refuses what it may not do; read-only, the
+        parent does not take its word for it either: only the e-stop is run."""
         error: str | None = None
         try:
-            if self._on_command is not None:
+            if self._read_only and kind not in ALWAYS_ALLOWED:
+                log.warning("3-D view: %s refused: %s (read-only view)", kind, NEEDS_TOKEN)
+                error = NEEDS_TOKEN
+            elif self._on_command is not None:
                 await self._on_command(kind, args)
         except Exception as e:
             error = str(e) or type(e).__name__
@@ -364,7 +375,7 @@ class ChildSpec:
     settings: dict[str, Any]
     host: str
     port: int
-    allow_start: bool
+    read_only: bool
     max_hz: float
     log_level: int
 
@@ -450,7 +461,7 @@ async def _child(sock: socket.socket, spec: ChildSpec) -> None:
             raise CommandRefused(error)
 
     viewer = Viewer(settings, host=host, port=port, on_command=on_command,
-                    allow_start=spec.allow_start, max_hz=spec.max_hz)  # fmt: skip
+                    read_only=spec.read_only, max_hz=spec.max_hz)  # fmt: skip
     try:
         _check_port(host, port)
         await viewer.start()

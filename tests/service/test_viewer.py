@@ -8,31 +8,44 @@ import math
 import time
 import urllib.request
 from collections.abc import AsyncIterator
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
 import viser
 import viser.transforms as vtf
+import websockets.asyncio.server
 from viser import GuiEvent
+from viser_client import PROTOCOL, browser, ws_url
 from websockets.asyncio.client import connect
-from websockets.typing import Subprotocol
+from websockets.exceptions import InvalidStatus
+from websockets.typing import Origin, Subprotocol
 
 from sdh2svc.config import Settings
 from sdh2svc.model.geometry import pad_point_from_L, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, frame3_axes, pad_point
+from sdh2svc.service import viewer as viewer_module
+from sdh2svc.service import viewer_proc
+from sdh2svc.service.app import _start_viewer
 from sdh2svc.service.viewer import (
+    BUTTONS,
+    COMMANDS,
     GREEN,
     MM,
+    NEEDS_TOKEN,
     RED,
     YELLOW,
     Viewer,
+    ViewerSecurityError,
     camera_message,
     cone_color,
     contact_normal,
     distal_cells,
     finger_frames,
+    origin_allowed,
     pad_vertices,
+    start_viser,
     tactile_colors,
 )
 
@@ -308,14 +321,18 @@ async def test_sim_outline(viewer: Viewer) -> None:
 
 
 async def test_buttons_and_sliders_reach_on_command(viewer: Viewer, commands: Recorder) -> None:
-    for kind in ("start", "stop", "estop", "release"):
+    n = viewer.frames
+    viewer.handle({"type": "status", "status": IDLE})  # Open hand waits for a status
+    await next_frame(viewer, n)
+    for kind in ("start", "stop", "open", "estop", "release"):
         await click(viewer.buttons[kind])
     slider = viewer.sliders["k"]
     slider._impl.value = 3.5  # what viser does with a client's update, then the callbacks
     await click(slider)
-    await wait_for(lambda: len(commands.calls) == 5)
+    await wait_for(lambda: len(commands.calls) == 6)
     assert commands.calls == [
-        ("start", {}), ("stop", {}), ("estop", {}), ("release", {}), ("params", {"k": 3.5}),
+        ("start", {}), ("stop", {}), ("open", {}), ("estop", {}), ("release", {}),
+        ("params", {"k": 3.5}),
     ]  # fmt: skip
     assert set(commands.loops) == {asyncio.get_running_loop()}  # awaited on the service's loop
 
@@ -332,16 +349,183 @@ async def test_sliders_follow_status_without_echo(viewer: Viewer, commands: Reco
 
 
 async def test_refused_command_shows_in_the_panel(cfg: Settings) -> None:
-    v = Viewer(cfg, port=0, on_command=Recorder(refuse=True), allow_start=False)
+    v = Viewer(cfg, port=0, on_command=Recorder(refuse=True))
     await v.start()
     try:
-        assert v.buttons["start"].disabled  # exposed with a token: no start from here
-        assert not v.buttons["stop"].disabled and not v.buttons["estop"].disabled
         async with watching(v):
             await click(v.buttons["stop"])
             await wait_for(lambda: "already running" in v.nodes["gui/state"].content)
     finally:
         await v.stop()
+
+
+# --- (f) authority: read-only with a token, every control checked server-side -------------------
+
+IDLE = {"auth_required": False, "estopped": False, "run": None, "hand": {"opening": False}}
+ROLLING = {**IDLE, "run": {"id": 1, "state": "rolling"}}
+
+
+def enabled(v: Viewer) -> set[str]:
+    """The controls the panel shows enabled (buttons by kind, sliders by field)."""
+    controls = {**v.buttons, **v.sliders}
+    return {name for name, handle in controls.items() if not handle.disabled}
+
+
+async def test_read_only_view_only_stops(cfg: Settings) -> None:
+    """With a token every control but E-STOP is disabled with a hint, and a click on one that
+    arrives anyway — over viser's websocket, as a hostile page's script sends it — is refused by
+    our callback: nothing reaches on_command, the panel says why. E-STOP works."""
+    commands = Recorder()
+    v = Viewer(cfg, port=0, on_command=commands, read_only=True)
+    await v.start()
+    try:
+        assert enabled(v) == {"estop"}
+        assert v.buttons["start"].hint == v.sliders["k"].hint == NEEDS_TOKEN
+        async with browser(v.url) as b:
+            await wait_for(lambda: v.watched)
+            n = v.frames
+            v.handle({"type": "status", "status": IDLE})  # a status cannot enable them
+            await next_frame(v, n)
+            assert enabled(v) == {"estop"}
+            note = lambda: v.nodes["gui/state"].content  # noqa: E731
+            for kind in ("start", "stop", "open", "release"):
+                await b.send_gui(v.buttons[kind]._impl.uuid, True)
+                await wait_for(lambda k=kind: f"{k}: {NEEDS_TOKEN}" in note())
+            # a hostile update may also overwrite the handle's state: still refused
+            await b.send_gui(v.buttons["start"]._impl.uuid, True, props={"disabled": False})
+            await wait_for(lambda: f"start: {NEEDS_TOKEN}" in note())
+            await b.send_gui(v.sliders["k"]._impl.uuid, 3.5)
+            await wait_for(lambda: f"params: {NEEDS_TOKEN}" in note())
+            await wait_for(lambda: v.sliders["k"].value == cfg.rolling.k)  # put back
+            assert commands.calls == []
+            await b.send_gui(v.buttons["estop"]._impl.uuid, True)
+            await wait_for(lambda: len(commands.calls) == 1)
+            assert commands.calls == [("estop", {})]
+    finally:
+        await v.stop()
+
+
+async def test_controls_follow_token_estop_and_run(viewer: Viewer, commands: Recorder) -> None:
+    """Open hand is enabled only with no run, no e-stop latched and a known status; a token
+    reported by the status disables all but E-STOP; every state change redraws the panel, and
+    a click on a control disabled at that moment is refused, not sent."""
+    everything = {*COMMANDS, *viewer.sliders}
+    assert enabled(viewer) == everything - {"open"}  # no status yet: Open waits for one
+    assert viewer.buttons["open"].hint == "waiting for the service's status"
+    states = [
+        (IDLE, everything, None),
+        ({**IDLE, "estopped": True}, everything - {"open"}, "the e-stop is latched"),
+        (ROLLING, everything - {"open"}, "a run is running"),
+        ({**IDLE, "hand": {"opening": True}}, everything - {"open"}, "the hand is opening"),
+        ({**IDLE, "run": {"id": 1, "state": "done"}}, everything, None),
+        ({**IDLE, "auth_required": True}, {"estop"}, NEEDS_TOKEN),
+        (IDLE, everything, None),
+    ]
+    async with browser(viewer.url) as b:
+        await wait_for(lambda: viewer.watched)
+        for status, want, why in states:
+            n = viewer.frames
+            viewer.handle({"type": "status", "status": status})
+            await next_frame(viewer, n)
+            assert enabled(viewer) == want, status
+            hint = viewer.buttons["open"].hint
+            assert (why is None and hint == BUTTONS["open"][2]) or (why and why in hint), hint
+            if why is not None:
+                await b.send_gui(viewer.buttons["open"]._impl.uuid, True)
+                await wait_for(lambda w=why: f"open: {w}" in viewer.nodes["gui/state"].content)
+        assert commands.calls == []
+        await b.send_gui(viewer.buttons["open"]._impl.uuid, True)
+        await wait_for(lambda: commands.calls == [("open", {})])
+
+
+async def test_websocket_refuses_other_sites(cfg: Settings) -> None:
+    """In the service's process too (service.viewer_process = false): a page of another site
+    cannot open the view's websocket (403); the view's own, a script's (no Origin) can."""
+    v = Viewer(cfg, port=0)
+    await v.start()
+    try:
+        port = int(v.url.rsplit(":", 1)[1])
+        for origin in ("http://evil.example", f"http://evil.example:{port}"):
+            with pytest.raises(InvalidStatus) as refused:
+                async with connect(ws_url(v.url), subprotocols=PROTOCOL, origin=Origin(origin)):
+                    pass
+            assert refused.value.response.status_code == 403
+        for origin in (f"http://localhost:{port}", f"http://127.0.0.1:{port}", None):
+            async with browser(v.url, origin=origin):
+                await wait_for(lambda: v.watched)
+            await wait_for(lambda: not v.watched)
+    finally:
+        await v.stop()
+
+
+def test_origin_policy(cfg: Settings) -> None:
+    """Loopback, service.host and service.allowed_hosts at the view's or the dashboard's port,
+    plus service.allowed_origins; nothing else."""
+    svc = cfg.service.model_copy(update={
+        "host": "192.168.1.42", "port": 8000, "allowed_hosts": ("Lab-PC.local",),
+        "allowed_origins": ("https://ops.example:9443",),
+    })  # fmt: skip
+    s = cfg.model_copy(update={"service": svc})
+    for origin in (
+        "http://127.0.0.1:8080", "http://localhost:8080", "http://[::1]:8080",
+        "https://localhost:8080", "http://127.0.0.1:8000", "http://192.168.1.42:8080",
+        "http://lab-pc.local:8080", "http://LAB-PC.local:8000", "https://ops.example:9443",
+    ):  # fmt: skip
+        assert origin_allowed(origin, s, 8080), origin
+    for origin in (
+        "http://evil.example:8080", "http://127.0.0.1:9999", "http://localhost", "null", "",
+        "file://", "http://127.0.0.1:8080/path", "http://user@localhost:8080",
+        "https://ops.example", "ws://localhost:8080", "http://localhost:bad",
+    ):  # fmt: skip
+        assert not origin_allowed(origin, s, 8080), origin
+    assert origin_allowed("http://localhost", s, 80)  # the scheme's default port
+    unknown = cfg.model_copy(update={"service": svc.model_copy(update={"port": 0})})
+    assert not origin_allowed("http://localhost:0", unknown, 8080)
+
+
+async def test_unguarded_viser_is_not_served(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Should viser serve its websocket otherwise than 1.1.1 does, the Origin check would not be
+    installed: the view refuses to start rather than serve unguarded."""
+
+    def as_is(self: Any, handler: Any, *args: Any, **kwargs: Any) -> None:
+        super(viewer_module._GuardedServe, self).__init__(handler, *args, **kwargs)
+
+    monkeypatch.setattr(viewer_module._GuardedServe, "__init__", as_is)
+    with pytest.raises(ViewerSecurityError, match="Origin check"):
+        await asyncio.to_thread(start_viser, "127.0.0.1", 0, lambda _o, _p: True)
+    assert websockets.asyncio.server.serve is not viewer_module._GuardedServe  # restored
+
+
+@pytest.mark.parametrize("token", ["", "s3cret"])
+async def test_the_view_binds_loopback_without_a_token(
+    cfg: Settings, monkeypatch: pytest.MonkeyPatch, token: str
+) -> None:
+    """No token: the view listens on loopback, whatever service.host says; with one it listens
+    where the service does, read-only."""
+    made: list[dict[str, Any]] = []
+
+    class Made:
+        url = "http://example:1"
+
+        def __init__(self, _cfg: Settings, **kwargs: Any) -> None:
+            made.append(kwargs)
+
+        async def start(self) -> None:
+            pass
+
+        def handle(self, _msg: dict[str, Any]) -> None:
+            pass
+
+    svc = cfg.service.model_copy(update={"host": "0.0.0.0", "token": token})
+    for process in (True, False):
+        s = cfg.model_copy(update={"service": svc.model_copy(update={"viewer_process": process})})
+        monkeypatch.setattr(viewer_module, "Viewer", Made)
+        monkeypatch.setattr(viewer_proc, "ViewerProcess", Made)
+        station = SimpleNamespace(command=Recorder())
+        hub = SimpleNamespace(add_listener=lambda _fn: None)
+        await _start_viewer(s, station, hub)  # type: ignore[arg-type]
+    want = ("0.0.0.0", True) if token else ("127.0.0.1", False)
+    assert [(m["host"], m["read_only"]) for m in made] == [want, want]
 
 
 # --- (e) handle() only stores; rendering is rate-limited and on change only ------------------

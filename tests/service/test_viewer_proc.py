@@ -16,19 +16,17 @@ import time
 import urllib.request
 from collections.abc import AsyncIterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
-import msgspec.msgpack
 import pytest
-import viser
-import zstandard
-from viser import _messages
-from websockets.asyncio.client import ClientConnection, connect
-from websockets.typing import Subprotocol
+from viser_client import PROTOCOL, browser, ws_url
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+from websockets.typing import Origin
 
 from sdh2svc.config import Settings
-from sdh2svc.service import viewer
-from sdh2svc.service.viewer import camera_message
+from sdh2svc.service import viewer, viewer_proc
 from sdh2svc.service.viewer_proc import KINDS, ViewerError, ViewerProcess
 
 POSE = [90.0, -20.0, 30.0, -90.0, 0.0, -20.0, 30.0]
@@ -52,55 +50,6 @@ class Recorder:
         self.calls.append((kind, args))
         if kind in self.refuse:
             raise RuntimeError("a run is already running")
-
-
-class Browser:
-    """A viser websocket client: what a browser showing the view receives, decoded."""
-
-    def __init__(self, ws: ClientConnection) -> None:
-        self.ws = ws
-        self.messages: list[dict[str, Any]] = []
-
-    async def read(self) -> None:
-        with contextlib.suppress(Exception):
-            async for frame in self.ws:
-                assert isinstance(frame, bytes)
-                self.messages += decode(frame)
-
-    def sent(self, kind: str, name: str) -> list[dict[str, Any]]:
-        """The messages of one type (e.g. SetPositionMessage) sent for a scene node, in order."""
-        return [m for m in self.messages if m["type"] == kind and m.get("name") == name]
-
-    def gui_uuid(self, kind: str, label: str) -> str:
-        return next(
-            m["uuid"] for m in self.messages if m["type"] == kind and m["props"]["label"] == label
-        )
-
-    async def send_gui(self, uuid: str, value: Any) -> None:
-        """What the viser client sends when a button is clicked or a slider moved."""
-        msg = _messages.GuiUpdateMessage(uuid, {"value": value})
-        await self.ws.send(msgspec.msgpack.encode(msg.as_serializable_dict()))
-
-
-def decode(frame: bytes) -> list[dict[str, Any]]:
-    """viser's wire format: sizes, zstd-compressed msgpack, then raw buffers (not needed)."""
-    size, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
-    inner = zstandard.ZstdDecompressor().decompress(frame[16 : 16 + packed], max_output_size=size)
-    return list(msgspec.msgpack.decode(inner)["messages"])
-
-
-@contextlib.asynccontextmanager
-async def browser(url: str) -> AsyncIterator[Browser]:
-    proto = [Subprotocol(f"viser-v{viser.__version__}")]
-    async with connect(url.replace("http://", "ws://"), subprotocols=proto,
-                       max_size=2**26) as ws:  # fmt: skip
-        await ws.send(camera_message())
-        b = Browser(ws)
-        reader = asyncio.create_task(b.read())
-        try:
-            yield b
-        finally:
-            reader.cancel()
 
 
 @contextlib.asynccontextmanager
@@ -202,15 +151,74 @@ async def test_gui_commands_reach_on_command_and_refusals_show(cfg: Settings) ->
         stop = b.gui_uuid("GuiButtonMessage", "Stop")
         k = b.gui_uuid("GuiSliderMessage", "k")
 
-        def panel() -> list[str]:  # the markdown's content travels as "_markdown"
-            return [str(m["updates"]) for m in b.messages if m["type"] == "GuiUpdateMessage"]
-
         await b.send_gui(stop, True)  # refused by the parent: the note shows in the child's panel
-        await wait_for(lambda: any("stop: a run is already running" in t for t in panel()))
+        await wait_for(lambda: any("stop: a run is already running" in t for t in b.panel()))
         await b.send_gui(k, 3.5)
         await wait_for(lambda: len(commands.calls) == 2)
         assert commands.calls == [("stop", {}), ("params", {"k": 3.5})]
         assert commands.loops == {asyncio.get_running_loop()}  # run on the parent's loop
+
+
+def test_the_panels_authority_is_the_viewers() -> None:
+    assert viewer_proc.ALWAYS_ALLOWED == viewer.ALWAYS_ALLOWED
+    assert viewer_proc.NEEDS_TOKEN == viewer.NEEDS_TOKEN
+
+
+async def test_read_only_view_only_stops(cfg: Settings, caplog: pytest.LogCaptureFixture) -> None:
+    """With a token: the controls are disabled but E-STOP; clicks on them, sent over viser's
+    websocket as a hostile page's script would (viser does not check ``disabled``), are refused
+    in the child's panel (not even sent to the parent) and nothing reaches on_command; E-STOP
+    does."""
+    caplog.set_level(logging.WARNING, logger="sdh2svc.service")
+    commands = Recorder()
+    async with running(cfg, on_command=commands, read_only=True) as v, browser(v.url or "") as b:
+        await wait_for(lambda: v.watched)
+        await wait_for(lambda: any(m["type"] == "GuiSliderMessage" for m in b.messages))
+        shown = {m["props"]["label"]: m["props"] for m in b.messages
+                 if m["type"] in ("GuiButtonMessage", "GuiSliderMessage")}  # fmt: skip
+        assert {label for label, p in shown.items() if not p["disabled"]} == {"E-STOP"}
+        assert shown["Open hand"]["hint"] == shown["k"]["hint"] == viewer.NEEDS_TOKEN
+
+        await b.send_gui(b.gui_uuid("GuiButtonMessage", "Grasp & roll"), True)
+        await wait_for(lambda: any("start: needs the API token" in t for t in b.panel()))
+        await b.send_gui(b.gui_uuid("GuiButtonMessage", "Open hand"), True)
+        await wait_for(lambda: any("open: needs the API token" in t for t in b.panel()))
+        await b.send_gui(b.gui_uuid("GuiSliderMessage", "k"), 3.5)
+        await wait_for(lambda: any("params: needs the API token" in t for t in b.panel()))
+        assert commands.calls == []
+        await b.send_gui(b.gui_uuid("GuiButtonMessage", "E-STOP"), True)
+        await wait_for(lambda: len(commands.calls) == 1)
+        assert commands.calls == [("estop", {})]
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("refused in the panel" in m for m in said) == 3  # the child's log, through ours
+    assert not any("(read-only view)" in m for m in said)  # the parent had nothing to refuse
+
+
+async def test_read_only_parent_runs_only_the_estop(cfg: Settings) -> None:
+    """The parent does not take the child's word for it: read-only, a command other than the
+    e-stop from the child (say, one whose panel check failed) is answered refused, not run."""
+    commands = Recorder()
+    v = ViewerProcess(cfg, on_command=commands, read_only=True)
+    replies: list[tuple[Any, ...]] = []
+    v._chan = SimpleNamespace(send=replies.append)  # type: ignore[assignment]
+    for ident, kind in enumerate(("start", "stop", "release", "open", "params", "estop")):
+        await v._command(ident, kind, {"k": 3.5} if kind == "params" else {})
+    assert commands.calls == [("estop", {})]
+    assert replies == [("result", i, viewer.NEEDS_TOKEN) for i in range(5)] + [("result", 5, None)]
+
+
+async def test_websocket_refuses_other_sites(cfg: Settings) -> None:
+    """A page of another site cannot open the view's websocket (403); the view's own can."""
+    async with running(cfg) as v:
+        assert v.url is not None
+        port = int(v.url.rsplit(":", 1)[1])
+        for origin in ("http://evil.example", f"http://evil.example:{port}", "null"):
+            with pytest.raises(InvalidStatus) as refused:
+                async with connect(ws_url(v.url), subprotocols=PROTOCOL, origin=Origin(origin)):
+                    pass
+            assert refused.value.response.status_code == 403
+        async with browser(v.url, origin=f"http://127.0.0.1:{port}"):
+            await wait_for(lambda: v.watched)
 
 
 async def test_port_in_use_is_a_clear_error(cfg: Settings) -> None:
