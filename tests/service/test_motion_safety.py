@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import signal
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import httpx
@@ -184,3 +184,40 @@ async def test_after_a_fault_open_hand_releases_the_object(tmp_path: Path) -> No
             assert max(abs(a - p) for a, p in zip(angles, cfg.run.preshape_deg, strict=True)) < 0.5
     finally:
         assert await _stop(svc) == 0, "".join(svc.log)
+
+
+async def test_a_huge_body_during_a_run_does_not_disturb_it(tmp_path: Path) -> None:
+    """300 MB sent in chunks (no Content-Length) by a client without the token, mid-run: refused
+    after the first `service.max_body_kb` — the run goes on as if nothing happened."""
+    svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, token="secret",
+                                  extra=["--set", "safety.force_ceiling_factor=4.0"])  # fmt: skip
+
+    def chunks() -> Iterator[bytes]:
+        block = b"[" + b"1," * (512 * 1024) + b"1]"
+        for _ in range(300):
+            yield block
+
+    try:
+        async with svc.client() as client:
+            assert (await client.post("/api/runs", json={})).status_code == 201
+            before = (await _wait_phase(client, "rolling"))["run"]["iteration"]
+            refused = await asyncio.to_thread(_send_huge, svc.url, chunks())
+            assert refused in (413, "reset")
+            async with asyncio.timeout(30):
+                while (st := (await client.get("/api/status")).json())["run"]["iteration"] < (
+                    before + 60
+                ):
+                    assert st["run"]["state"] == "rolling", st["run"]
+                    await asyncio.sleep(0.1)
+            assert (await client.post("/api/runs/stop", json={})).status_code == 202
+    finally:
+        assert await _stop(svc) == 0, "".join(svc.log)
+
+
+def _send_huge(url: str, body: Iterator[bytes]) -> int | str:
+    try:
+        r = httpx.patch(url + "/api/params", content=body, timeout=60,
+                        headers={"Content-Type": "application/json"})  # fmt: skip
+    except (httpx.WriteError, httpx.RemoteProtocolError, httpx.ReadError):
+        return "reset"  # the service answered 413 and closed while we were still sending
+    return r.status_code
