@@ -187,6 +187,11 @@ def create_app(services: Services) -> FastAPI:
     return app
 
 
+def viewer_host(cfg: Settings) -> str:
+    """Where the 3-D view listens: loopback unless a token is set (see _start_viewer)."""
+    return cfg.service.host if cfg.service.token else "127.0.0.1"
+
+
 async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> Any:
     """The 3-D view, in a process of its own unless ``service.viewer_process`` is off.
 
@@ -200,9 +205,8 @@ async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> A
     else:
         from sdh2svc.service.viewer import Viewer as View  # type: ignore[assignment]
 
-    token = bool(cfg.service.token)
-    v = View(cfg, host=cfg.service.host if token else "127.0.0.1", port=cfg.service.viser_port,
-             on_command=station.command, read_only=token,
+    v = View(cfg, host=viewer_host(cfg), port=cfg.service.viser_port,
+             on_command=station.command, read_only=bool(cfg.service.token),
              max_hz=cfg.service.viewer_max_hz)  # fmt: skip
     await v.start()
     hub.add_listener(v.handle)

@@ -22,8 +22,9 @@ import uvicorn
 from sdh2svc.bus.joint import JointLinkError
 from sdh2svc.bus.tactile import TactileError
 from sdh2svc.config import Settings
-from sdh2svc.service.app import Services, close_services, create_app, open_services
+from sdh2svc.service.app import Services, close_services, create_app, open_services, viewer_host
 from sdh2svc.service.store import RunStore, StoreError
+from sdh2svc.service.viewer_proc import bind_error
 
 log = logging.getLogger(__name__)
 
@@ -93,17 +94,12 @@ def listen_socket(cfg: Settings) -> socket.socket:
 def check_viser_port(cfg: Settings) -> None:
     """Fail at once, before the hand is opened, if the 3-D view's port is taken (in a process of
     its own the view would report it late; in this one, viser would quietly move elsewhere)."""
-    host, port = cfg.service.host, cfg.service.viser_port
-    if not cfg.service.viewer or port == 0:
+    host, port = viewer_host(cfg), cfg.service.viser_port
+    if not cfg.service.viewer or (e := bind_error(host, port)) is None:
         return
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    try:
-        with socket.create_server((host, port), family=family):
-            pass
-    except OSError as e:
-        if e.errno == errno.EADDRINUSE:
-            raise PortBusy(_viser_busy(port)) from None
-        raise StartError(f"cannot serve the 3-D view on {host}:{port}: {e.strerror or e}") from None
+    if e.errno == errno.EADDRINUSE:
+        raise PortBusy(_viser_busy(port))
+    raise StartError(f"cannot serve the 3-D view on {host}:{port}: {e.strerror or e}")
 
 
 def _viser_busy(port: int) -> str:

@@ -508,16 +508,22 @@ def _unavailable(host: str, port: int, why: str) -> ViewerError:
                        "it, or set service.viser_port (0 = any free port)")  # fmt: skip
 
 
-def _check_port(host: str, port: int) -> None:
-    """Fail with the system's reason rather than let viser move to the next free port."""
+def bind_error(host: str, port: int) -> OSError | None:
+    """Why ``host:port`` cannot be listened on now (None: it can; port 0 always can)."""
     if port == 0:
-        return
+        return None
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     try:
         with socket.create_server((host, port), family=family):
-            pass
+            return None
     except OSError as e:
-        raise _unavailable(host, port, e.strerror or str(e)) from None
+        return e
+
+
+def _check_port(host: str, port: int) -> None:
+    """Fail with the system's reason rather than let viser move to the next free port."""
+    if (e := bind_error(host, port)) is not None:
+        raise _unavailable(host, port, e.strerror or str(e))
 
 
 def _check_moved(viewer: Any, host: str, port: int) -> None:
