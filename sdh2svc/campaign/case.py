@@ -1,0 +1,96 @@
+"""One campaign case and a suite of them: an object, where it is placed, how the sensor differs.
+
+A case is data (a suite is a JSON file of them, readable and versioned). What it changes in a
+run is said in one place, :meth:`Case.overrides` (configuration keys) and :attr:`Case.object`
+(the object placed between the fingertips); everything else is the default configuration —
+one configuration for every object.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import Field
+
+from sdh2svc.model.base import Frozen
+from sdh2svc.sim.objects import ObjectSpec
+
+Family = Literal["box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis"]
+FAMILIES: tuple[str, ...] = ("box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis")
+
+# The sensor's variation per run (thesis §5.1: real pads drift with use and temperature).
+GAIN_FACTOR = (0.5, 1.5)  # × sim.sensor.gain_vs_library
+
+
+class Texel(Frozen):
+    """One cell of one of the six matrices (wire order), e.g. a dead texel."""
+
+    matrix: Annotated[int, Field(ge=0, le=5)]
+    row: Annotated[int, Field(ge=0, le=13)]
+    col: Annotated[int, Field(ge=0, le=5)]
+
+
+class SensorVariation(Frozen):
+    """How this run's pads differ from the nominal sensor (None: the configuration's value)."""
+
+    gain_factor: Annotated[float, Field(ge=GAIN_FACTOR[0], le=GAIN_FACTOR[1])] = 1.0
+    creep_gain: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
+    creep_rise_s: Annotated[float, Field(gt=0.0, le=100.0)] | None = None
+    noise_counts: Annotated[float, Field(ge=0.0, le=100.0)] | None = None
+    dead_texels: tuple[Texel, ...] = ()
+
+
+class Case(Frozen):
+    """One run of a campaign."""
+
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    family: Family
+    object: ObjectSpec
+    height_mm: Annotated[float, Field(ge=60.0, le=200.0)] = Field(
+        description="z0 of the object's centre between the fingertips (sim.object_height_mm)"
+    )
+    angle_deg: Annotated[float, Field(ge=-180.0, le=180.0)] = 0.0
+    seed: Annotated[int, Field(ge=0)] = 1
+    sensor: SensorVariation = SensorVariation()
+    true_width_mm: Annotated[float, Field(gt=0.0, le=200.0)] = Field(
+        description="the object's width along y0 at its placement: where the fingertips touch"
+    )
+
+    def overrides(self, base_gain: float) -> list[str]:
+        """The configuration keys this case sets (``--set`` syntax), given the nominal
+        ``sim.sensor.gain_vs_library``."""
+        out = [f"sim.seed={self.seed}", f"sim.object_height_mm={self.height_mm!r}",
+               f"sim.object_angle_deg={self.angle_deg!r}",
+               f"sim.sensor.gain_vs_library={base_gain * self.sensor.gain_factor!r}"]  # fmt: skip
+        s = self.sensor
+        for key in ("creep_gain", "creep_rise_s", "noise_counts"):
+            if (value := getattr(s, key)) is not None:
+                out.append(f"sim.sensor.{key}={value!r}")
+        if s.dead_texels:
+            cells = [[t.matrix, t.row, t.col] for t in s.dead_texels]
+            out.append(f"sim.sensor.dead_texels={json.dumps(cells)}")
+        return out
+
+
+class Suite(Frozen):
+    """A named, versioned list of cases, and the generator seed that made it (None: by hand)."""
+
+    name: str
+    version: int = 1
+    generator_seed: int | None = None
+    description: str = ""
+    cases: tuple[Case, ...]
+
+    @classmethod
+    def load(cls, path: str | Path) -> Suite:
+        return cls.model_validate_json(Path(path).read_text())
+
+    def dump(self, path: str | Path) -> None:
+        Path(path).write_text(self.to_json())
+
+    def to_json(self) -> str:
+        """Stable text: the same suite always gives the same bytes (reproducible, diffable)."""
+        data: Any = self.model_dump(mode="json")
+        return json.dumps(data, indent=1, ensure_ascii=False) + "\n"
