@@ -180,7 +180,13 @@ class Guard:
         if refusal is None and method in MUTATING and not estop:
             refusal = self._origin_refusal(scope, headers) or self._type_refusal(headers)
         if refusal is not None:
-            await _send_error(send, *refusal)
+            too_large = refusal[0] == 413
+            if not too_large:
+                # Read (and drop) a body within the limit before answering: a server that closes
+                # with unread input makes the kernel reset the connection, and the client may
+                # lose the answer itself.
+                await _drain(receive, self.max_body)
+            await _send_error(send, *refusal, close=too_large)
             return
         # the body, counted as it comes: a body without Content-Length (chunked) never grows
         # past the limit in memory
@@ -240,10 +246,23 @@ def _headers(scope: Scope) -> dict[str, list[str]]:
     return out
 
 
-async def _send_error(send: Send, status: int, message: str, details: list[str]) -> None:
+async def _drain(receive: Receive, limit: int) -> None:
+    """Receive a request's body and drop it, up to ``limit`` bytes."""
+    size = 0
+    while size <= limit:
+        message = await receive()
+        if message["type"] != "http.request" or not message.get("more_body", False):
+            return
+        size += len(message.get("body", b""))
+
+
+async def _send_error(
+    send: Send, status: int, message: str, details: list[str], *, close: bool = True
+) -> None:
+    """The JSON error; ``close``: the connection ends after it (a body too large to read)."""
     body = json.dumps({"error": message, "details": details}).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"),
-                            (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")]})  # fmt: skip
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    if close:
+        headers.append((b"connection", b"close"))
+    await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})

@@ -218,3 +218,29 @@ async def test_websocket_handshake_checks_host_and_origin() -> None:
     assert (await websocket(tok, {"origin": "http://evil.example"}, extension=True))[0] == {
         "type": "websocket.accept"
     }
+
+
+async def test_a_refused_small_body_is_read_first_and_the_connection_kept() -> None:
+    """Closing with unread input makes the kernel reset the connection, and the client may lose
+    the answer: a refused body within the limit is read (and dropped) before the answer, which
+    keeps the connection; only a body over the limit ends it."""
+    app = Recorder()
+    g = guard(app)
+    chunks = [{"type": "http.request", "body": b'{"a":', "more_body": True},
+              {"type": "http.request", "body": b"1}", "more_body": False}]  # fmt: skip
+    sent: list[dict[str, Any]] = []
+
+    async def receive() -> dict[str, Any]:
+        return chunks.pop(0) if chunks else {"type": "http.disconnect"}
+
+    async def send(m: dict[str, Any]) -> None:
+        sent.append(m)
+
+    headers = [(b"host", b"127.0.0.1:8000"), (b"content-type", b"text/plain")]
+    scope = {"type": "http", "method": "POST", "path": "/api/estop/release", "scheme": "http",
+             "headers": headers}  # fmt: skip
+    await g(scope, receive, send)
+    assert sent[0]["status"] == 415 and not chunks and not app.calls
+    assert (b"connection", b"close") not in sent[0]["headers"]
+    status, _, _ = await call(g, "POST", "/api/runs", JSON, chunks=(b"x" * 2048,))
+    assert status == 413
