@@ -96,12 +96,20 @@ def suite_digest(suite: Suite) -> str:
 _WORKDIR: Path | None = None
 
 
-def _workdir() -> Path:
-    """This process's scratch directory for run databases (removed when the process exits)."""
+def _workdir(root: str | None) -> Path:
+    """This process's scratch directory for run databases: under ``root`` (which the campaign
+    removes at its end), else a temporary one removed when the process exits."""
     global _WORKDIR
+    if root is not None:
+        path = Path(root) / f"worker-{os.getpid()}"
+        path.mkdir(parents=True, exist_ok=True)
+        return path
     if _WORKDIR is None:
+        from multiprocessing import util
+
         _WORKDIR = Path(tempfile.mkdtemp(prefix="sdh2svc-campaign-"))
         atexit.register(shutil.rmtree, _WORKDIR, True)
+        util.Finalize(None, shutil.rmtree, args=(_WORKDIR, True), exitpriority=10)
     return _WORKDIR
 
 
@@ -176,16 +184,17 @@ def case_columns(case: Case) -> dict[str, Any]:
 
 
 def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | None = None,
-             ) -> dict[str, Any]:  # fmt: skip
+             workdir: str | None = None) -> dict[str, Any]:  # fmt: skip
     """Run one case and return its judged row; never raises for the case's own failure: an
-    exception becomes a row with status ``crashed`` and its traceback."""
+    exception becomes a row with status ``crashed`` and its traceback. The run database goes
+    to a per-process scratch directory (under ``workdir`` if given) and is deleted after."""
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
 
     t0 = time.perf_counter()
     case = Case.model_validate_json(case_json)
     row = case_columns(case)
-    db = _workdir() / f"case-{os.getpid()}-{case.id}.sqlite"
+    db = _workdir(workdir) / f"case-{case.id}.sqlite"
     try:
         cfg = case_settings(case, overrides, config_path, db)
         probe = TruthProbe()
@@ -461,18 +470,21 @@ def run_campaign(
         crashed += row.get("status") == "crashed"
         bar.update(bool(row.get("success")))
 
+    work = str(out / ".work")
     try:
         if ray_address is not None:
             _run_ray(todo, overrides, config_path, ray_address, record)
         elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1 or case_fn is not None:
             fn = case_fn or run_case
             for case in todo:
-                record(fn(case.model_dump_json(), overrides, config_path))
+                record(fn(case.model_dump_json(), overrides, config_path, work))
         else:
-            _run_pool(todo, overrides, config_path, workers or os.cpu_count() or 1, record)
+            args = (overrides, config_path, work)
+            _run_pool(todo, args, workers or os.cpu_count() or 1, record)
     finally:
         appender.close()
         bar.close()
+        shutil.rmtree(work, ignore_errors=True)
     results = write_results(out, suite=suite, info=info)
     return Outcome(total=len(suite.cases), skipped=len(done), ran=len(todo),
                    succeeded=succeeded, crashed=crashed, wall_s=time.perf_counter() - t0,
@@ -516,8 +528,8 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _run_pool(todo: Sequence[Case], overrides: Sequence[str], config_path: str | None,
-              workers: int, record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
+def _run_pool(todo: Sequence[Case], args: tuple[Any, ...], workers: int,
+              record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
     ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
     pool = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx,
                                initializer=_ignore_sigint)  # fmt: skip
@@ -527,7 +539,7 @@ def _run_pool(todo: Sequence[Case], overrides: Sequence[str], config_path: str |
     try:
         # keep each worker busy with one case and one queued: Ctrl-C then cancels the rest
         for case in _take(queue, 2 * min(workers, len(todo))):
-            pending[pool.submit(run_case, case.model_dump_json(), overrides, config_path)] = case
+            pending[pool.submit(run_case, case.model_dump_json(), *args)] = case
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
@@ -542,8 +554,7 @@ def _run_pool(todo: Sequence[Case], overrides: Sequence[str], config_path: str |
                 record(row)
                 if not lost:
                     for nxt in _take(queue, 1):
-                        pending[pool.submit(run_case, nxt.model_dump_json(), overrides,
-                                            config_path)] = nxt  # fmt: skip
+                        pending[pool.submit(run_case, nxt.model_dump_json(), *args)] = nxt
     except BaseException:
         _stop_pool(pool)
         raise
