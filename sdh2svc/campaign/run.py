@@ -139,7 +139,18 @@ class TruthProbe:
         return self.event
 
     def _psi(self) -> float:
-        return float(self.hand.world.truth().pose[2])
+        """ψ as the physics last stepped (at most one substep behind the joints' actual pose).
+
+        ``world.truth()`` would first step the physics up to that pose (``flush``), one extra,
+        shorter step the run would not have taken unobserved: the run would change (e.g. the
+        egg's 954 iterations become 955). Reading the state as it stands keeps a campaign's
+        runs bit-for-bit those of ``sdh2svc run --fast``.
+        """
+        world = self.hand.world
+        physics = getattr(world, "_physics", None)  # PhysicsWorld has no public peek (yet)
+        if physics is None:
+            return float(world.truth().pose[2])
+        return float(physics.state.pose[2])
 
     def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
         if kind == "grasped" and self.hand is not None:

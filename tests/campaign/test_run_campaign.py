@@ -246,3 +246,18 @@ def test_on_a_local_ray_the_results_are_those_of_the_process_pool(
     got = {r["id"]: r for r in pq.read_table(out / camp.RESULTS_FILE).to_pylist()}
     for i in one:
         assert {k: one[i][k] for k in JUDGED} == {k: got[i][k] for k in JUDGED}, i
+
+
+def test_watching_the_truth_leaves_the_run_as_it_is_unwatched(one_worker: Path,
+                                                              tmp_path: Path) -> None:  # fmt: skip
+    """The probe reads ψ without stepping the physics: a case's run is the plain run's."""
+    from sdh2svc.sim.clock import run_fast
+
+    row = next(r for r in lines(one_worker) if r["id"] == "egg-1")
+    case = Case.model_validate_json(row["spec"])
+    cfg = camp.case_settings(case, ONE_STROKE, None, tmp_path / "runs.sqlite")
+    plain = run_fast(headless.run_once(cfg, sim=True, obj=case.object, fast=True))
+    assert (plain["iterations"], plain["force"]["max"], plain["lambda_initial_mm"],
+            plain["truth"]["slips"]) == (row["iterations"], row["f_max"],
+                                          row["lambda_at_grasp_mm"], row["slips"])  # fmt: skip
+    assert plain["truth"]["rotation_range_deg"] == row["rotation_range_deg"]
