@@ -455,7 +455,6 @@ def cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def _campaign_run(args: argparse.Namespace) -> int:
-    import time
     from pathlib import Path
 
     from sdh2svc.campaign.run import load_suite, run_campaign
@@ -465,7 +464,7 @@ def _campaign_run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         _fail(Exit.USAGE, f"--workers {args.workers}: at least 1")
     suite = load_suite(args.dir)
-    out = Path(args.out or f"campaigns/{suite.name}-{time.strftime('%Y%m%d')}")
+    out = Path(args.out or f"campaigns/{suite.name}")
     outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
                            overrides=args.overrides, config_path=args.config,
                            progress=not args.quiet)  # fmt: skip
@@ -597,10 +596,10 @@ def build_parser() -> argparse.ArgumentParser:
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, help="local worker processes (default: all CPUs)")
     where.add_argument("--ray", metavar="ADDRESS",
-                       help="run on a Ray cluster: auto or ray://HOST:PORT "
+                       help="run on a Ray cluster: auto, ray://HOST:PORT, or local "
                             "(pip install 'sdh2svc[cluster]')")  # fmt: skip
-    p.add_argument("--out", metavar="DIR", help="run: campaign directory "
-                   "(default campaigns/SUITE-DATE)")  # fmt: skip
+    p.add_argument("--out", metavar="DIR", help="run: campaign directory (default "
+                   "campaigns/SUITE_NAME); the same command again resumes there")  # fmt: skip
     p.add_argument("-o", "--output", metavar="FILE",
                    help="compare: markdown file (default DIR_B/compare.md)")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="run: no progress line")

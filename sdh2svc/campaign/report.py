@@ -92,8 +92,11 @@ def write_report(out: Path) -> Path:
     crashed = [r for r in rows if r["status"] == "crashed"]
     if crashed:
         lines += ["", "Crashed cases (last line of the traceback):", ""]
-        lines += [f"* `{r['id']}`: {(r['traceback'] or '').strip().splitlines()[-1:]}"
-                  for r in crashed[:20]]  # fmt: skip
+        for r in crashed[:20]:
+            last = (r["traceback"] or "").strip().splitlines()[-1:] or ["(no traceback)"]
+            lines.append(f"* `{r['id']}`: `{last[0]}`")
+        if len(crashed) > 20:
+            lines.append(f"* … and {len(crashed) - 20} more (see `results.parquet`)")
     lines += ["", "## Distributions", ""]
     lam = [r["lambda_error_mm"] for r in rows if r["lambda_error_mm"] is not None]
     fmin = [r["f_min"] / r["fd"] for r in rows if r["f_min"] is not None and r["fd"]]

@@ -428,9 +428,10 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
 
 def validate_cases(suite: Suite, overrides: Sequence[str], config_path: str | None) -> None:
     """Every case's configuration, validated before anything runs (ConfigError naming it)."""
+    gain = load_config(config_path, overrides).sim.sensor.gain_vs_library
     for case in suite.cases:
         try:
-            case_settings(case, overrides, config_path)
+            load_config(config_path, [*overrides, *case.overrides(gain)])
         except ConfigError as e:
             raise ConfigError(e.problems, f"case {case.id}") from None
 
@@ -449,7 +450,8 @@ def run_campaign(
     """Run every case of ``suite`` not yet in ``OUT/cases.jsonl``; write ``results.parquet``.
 
     ``workers=1`` runs the cases in this process, more in a process pool (forkserver);
-    ``ray_address`` (``auto`` or ``ray://…``; ignored once Ray is initialised) on a Ray cluster.
+    ``ray_address`` on a Ray cluster: ``auto`` (the one this machine belongs to), ``ray://…``,
+    or ``local`` (start one here); ignored once Ray is initialised in this process.
     ``case_fn`` replaces :func:`run_case` in this process (tests; ``workers=1`` only).
     """
     from sdh2svc.campaign.results import write_results
@@ -606,7 +608,11 @@ def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | 
     except ImportError:
         raise CampaignError(2, f"--ray needs Ray: {CLUSTER_HINT}") from None
     if not ray.is_initialized():
-        ray.init(address=address, log_to_driver=False)
+        try:  # "local": a Ray of its own on this machine
+            ray.init(address=None if address == "local" else address, log_to_driver=False)
+        except Exception as e:  # no cluster there (ConnectionError), a bad address …
+            raise CampaignError(4, f"cannot reach the Ray cluster at {address}: "
+                                f"{type(e).__name__}: {e}") from None  # fmt: skip
     remote = ray.remote(num_cpus=1, max_retries=0)(run_case)
     refs = {remote.remote(c.model_dump_json(), list(overrides), config_path): c for c in todo}
     try:

@@ -261,3 +261,24 @@ def test_watching_the_truth_leaves_the_run_as_it_is_unwatched(one_worker: Path,
             plain["truth"]["slips"]) == (row["iterations"], row["f_max"],
                                           row["lambda_at_grasp_mm"], row["slips"])  # fmt: skip
     assert plain["truth"]["rotation_range_deg"] == row["rotation_range_deg"]
+
+
+def test_no_ray_cluster_at_the_address_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'sdh2svc[cluster]'"
+                              "): the --ray path is not tested here")  # fmt: skip
+    assert not ray.is_initialized()
+    path = tmp_path / "s.json"
+    tiny_suite(("rubber", 1)).dump(path)
+    args = ["campaign", "run", str(path), "--out", str(tmp_path / "o"), "--quiet"]
+    env_before = os.environ.pop("RAY_ADDRESS", None)
+    try:
+        assert main([*args, "--ray", "auto"]) == 4
+    finally:
+        if env_before is not None:
+            os.environ["RAY_ADDRESS"] = env_before
+    err = capsys.readouterr().err
+    assert err.startswith("sdh2svc campaign: cannot reach the Ray cluster at auto: ")
+    assert err.count("\n") == 1
+    assert camp.read_rows(tmp_path / "o") == []
