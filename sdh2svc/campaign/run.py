@@ -494,6 +494,11 @@ def run_campaign(
         else:
             args = (overrides, config_path, work)
             _run_pool(todo, args, workers or os.cpu_count() or 1, record)
+    except KeyboardInterrupt:
+        appender.close()
+        with contextlib.suppress(Exception):  # what has finished, in Parquet too
+            write_results(out, suite=suite, info=info)
+        raise
     finally:
         appender.close()
         bar.close()

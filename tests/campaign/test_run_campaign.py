@@ -163,6 +163,7 @@ def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(tmp_path: Path,
         proc.stderr.close()  # type: ignore[union-attr]
     done = [r["id"] for r in lines(out)]
     assert 1 <= len(done) < 4 and len(set(done)) == len(done)
+    assert sorted(pq.read_table(out / camp.RESULTS_FILE).column("id").to_pylist()) == sorted(done)
     assert all(r["status"] == "completed" for r in lines(out))
     calls: list[str] = []
     res = camp.run_campaign(suite, out, workers=1, overrides=ONE_STROKE, progress=False,
