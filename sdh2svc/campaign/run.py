@@ -452,7 +452,7 @@ def run_campaign(
     ``workers=1`` runs the cases in this process, more in a process pool (forkserver);
     ``ray_address`` on a Ray cluster: ``auto`` (the one this machine belongs to), ``ray://…``,
     or ``local`` (start one here); ignored once Ray is initialised in this process.
-    ``case_fn`` replaces :func:`run_case` in this process (tests; ``workers=1`` only).
+    ``case_fn`` replaces :func:`run_case` (tests; in a pool it must be picklable by name).
     """
     from sdh2svc.campaign.results import write_results
 
@@ -487,13 +487,13 @@ def run_campaign(
     try:
         if ray_address is not None:
             _run_ray(todo, overrides, config_path, ray_address, record)
-        elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1 or case_fn is not None:
+        elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1:
             fn = case_fn or run_case
             for case in todo:
                 record(fn(case.model_dump_json(), overrides, config_path, work))
         else:
             args = (overrides, config_path, work)
-            _run_pool(todo, args, workers or os.cpu_count() or 1, record)
+            _run_pool(todo, args, workers or os.cpu_count() or 1, record, case_fn or run_case)
     except KeyboardInterrupt:
         appender.close()
         with contextlib.suppress(Exception):  # what has finished, in Parquet too
@@ -547,17 +547,34 @@ def _ignore_sigint() -> None:
 
 
 def _run_pool(todo: Sequence[Case], args: tuple[Any, ...], workers: int,
-              record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
-    ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx,
-                               initializer=_ignore_sigint)  # fmt: skip
-    pending: dict[Future[dict[str, Any]], Case] = {}
+              record: Callable[[dict[str, Any]], None],
+              fn: Callable[..., dict[str, Any]] = run_case) -> None:  # fmt: skip
+    """The cases on a pool of ``workers`` processes. A worker that dies (killed, out of memory,
+    a crash in C) breaks the pool: the cases it was running are then run again one at a time,
+    each in a pool of its own, and a case that kills its worker alone is recorded as crashed."""
     queue: Iterator[Case] = iter(todo)
-    lost: list[str] = []
+    while True:
+        lost = _pool_round(queue, args, min(workers, len(todo)), record, fn)
+        if not lost:
+            return
+        for case in lost:  # each alone: only the guilty one breaks its pool
+            if _pool_round(iter([case]), args, 1, record, fn):
+                why = "(killed, out of memory, or a crash outside Python)"
+                record(crashed_row(case, f"the worker process running case {case.id} died {why}"))
+
+
+def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
+                record: Callable[[dict[str, Any]], None],
+                fn: Callable[..., dict[str, Any]]) -> list[Case]:  # fmt: skip
+    """Run cases from ``queue`` until it is empty or the pool breaks; the cases lost then."""
+    ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
+    pending: dict[Future[dict[str, Any]], Case] = {}
+    lost: list[Case] = []
     try:
         # keep each worker busy with one case and one queued: Ctrl-C then cancels the rest
-        for case in _take(queue, 2 * min(workers, len(todo))):
-            pending[pool.submit(run_case, case.model_dump_json(), *args)] = case
+        for case in _take(queue, 2 * workers):
+            pending[pool.submit(fn, case.model_dump_json(), *args)] = case
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
@@ -565,23 +582,19 @@ def _run_pool(todo: Sequence[Case], args: tuple[Any, ...], workers: int,
                 try:
                     row = fut.result()
                 except BrokenProcessPool:
-                    lost.append(case.id)
+                    lost.append(case)
                     continue
                 except Exception:
                     row = crashed_row(case, traceback.format_exc())
                 record(row)
                 if not lost:
                     for nxt in _take(queue, 1):
-                        pending[pool.submit(run_case, nxt.model_dump_json(), *args)] = nxt
+                        pending[pool.submit(fn, nxt.model_dump_json(), *args)] = nxt
     except BaseException:
         _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
-    if lost:
-        raise CampaignError(
-            1, f"a worker process died (cases {', '.join(lost)} not recorded); every finished "
-            "case is kept: run the same command to go on",
-        )  # fmt: skip
+    return lost
 
 
 def _take(it: Iterator[Case], n: int) -> list[Case]:

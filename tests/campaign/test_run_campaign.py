@@ -283,3 +283,29 @@ def test_no_ray_cluster_at_the_address_is_one_line(
     assert err.startswith("sdh2svc campaign: cannot reach the Ray cluster at auto: ")
     assert err.count("\n") == 1
     assert camp.read_rows(tmp_path / "o") == []
+
+
+def fake_case(case_json: str, *args: Any) -> dict[str, Any]:
+    """A stand-in for run_case in pool workers: dies or raises for some cases."""
+    case = Case.model_validate_json(case_json)
+    if case.seed == 3:
+        os._exit(9)  # the worker dies as if killed
+    if case.seed == 4:
+        raise ValueError("not caught in the worker")
+    return camp.finish_row({**camp.case_columns(case), "status": "stopped"})
+
+
+def test_a_dead_worker_or_an_exception_in_it_is_a_crashed_case_and_the_rest_run(
+    tmp_path: Path,
+) -> None:
+    suite = tiny_suite(*(("rubber", seed) for seed in range(1, 7)))
+    out = tmp_path / "out"
+    res = camp.run_campaign(suite, out, workers=2, overrides=ONE_STROKE, progress=False,
+                            case_fn=fake_case)  # fmt: skip
+    rows = {r["id"]: r for r in lines(out)}
+    assert len(lines(out)) == 6 and res.ran == 6 and res.crashed == 2
+    assert rows["rubber-3"]["status"] == "crashed"
+    assert "worker process running case rubber-3 died" in rows["rubber-3"]["traceback"]
+    assert rows["rubber-4"]["status"] == "crashed"
+    assert "ValueError: not caught in the worker" in rows["rubber-4"]["traceback"]
+    assert all(rows[f"rubber-{i}"]["status"] == "stopped" for i in (1, 2, 5, 6))
