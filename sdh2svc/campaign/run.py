@@ -14,7 +14,6 @@ written from that file at the end (:mod:`sdh2svc.campaign.results`).
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import hashlib
 import json
@@ -93,24 +92,12 @@ def suite_digest(suite: Suite) -> str:
 
 # --- one case -------------------------------------------------------------------------------
 
-_WORKDIR: Path | None = None
 
-
-def _workdir(root: str | None) -> Path:
-    """This process's scratch directory for run databases: under ``root`` (which the campaign
-    removes at its end), else a temporary one removed when the process exits."""
-    global _WORKDIR
-    if root is not None:
-        path = Path(root) / f"worker-{os.getpid()}"
-        path.mkdir(parents=True, exist_ok=True)
-        return path
-    if _WORKDIR is None:
-        from multiprocessing import util
-
-        _WORKDIR = Path(tempfile.mkdtemp(prefix="sdh2svc-campaign-"))
-        atexit.register(shutil.rmtree, _WORKDIR, True)
-        util.Finalize(None, shutil.rmtree, args=(_WORKDIR, True), exitpriority=10)
-    return _WORKDIR
+def _workdir(root: str) -> Path:
+    """This process's scratch directory for run databases under ``root``."""
+    path = Path(root) / f"worker-{os.getpid()}"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
@@ -198,25 +185,29 @@ def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | N
              workdir: str | None = None) -> dict[str, Any]:  # fmt: skip
     """Run one case and return its judged row; never raises for the case's own failure: an
     exception becomes a row with status ``crashed`` and its traceback. The run database goes
-    to a per-process scratch directory (under ``workdir`` if given) and is deleted after."""
+    to a per-process directory under ``workdir`` (else a temporary one) and is deleted after."""
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
 
     t0 = time.perf_counter()
     case = Case.model_validate_json(case_json)
     row = case_columns(case)
-    db = _workdir(workdir) / f"case-{case.id}.sqlite"
-    try:
-        cfg = case_settings(case, overrides, config_path, db)
-        probe = TruthProbe()
-        summary = run_fast(run_once(cfg, sim=True, obj=case.object, fast=True, observer=probe))
-        row.update(measure(summary, probe, cfg, case))
-    except Exception:
-        row.update(status="crashed", traceback=traceback.format_exc())
-    finally:
-        for suffix in ("", "-wal", "-shm", "-journal"):
-            with contextlib.suppress(OSError):
-                os.unlink(f"{db}{suffix}")
+    with contextlib.ExitStack() as stack:
+        if workdir is None:  # e.g. on a Ray node: a directory of the case's own
+            workdir = stack.enter_context(tempfile.TemporaryDirectory(prefix="sdh2svc-case-"))
+        db = _workdir(workdir) / f"case-{case.id}.sqlite"
+        try:
+            cfg = case_settings(case, overrides, config_path, db)
+            probe = TruthProbe()
+            summary = run_fast(run_once(cfg, sim=True, obj=case.object, fast=True,
+                                        observer=probe))  # fmt: skip
+            row.update(measure(summary, probe, cfg, case))
+        except Exception:
+            row.update(status="crashed", traceback=traceback.format_exc())
+        finally:
+            for suffix in ("", "-wal", "-shm", "-journal"):
+                with contextlib.suppress(OSError):
+                    os.unlink(f"{db}{suffix}")
     row["wall_s"] = time.perf_counter() - t0
     return finish_row(row)
 
