@@ -146,8 +146,12 @@ def _plots(rows: Sequence[Row], plots: Path) -> list[str]:
         if not pts:
             return
         x, y, s = (np.asarray(v, dtype=float) for v in zip(*pts, strict=True))
-        xb = np.linspace(x.min(), x.max() + 1e-9, min(8, len(set(x))) + 1)
-        yb = np.linspace(y.min(), y.max() + 1e-9, min(8, len(set(y))) + 1)
+
+        def edges(v: Any) -> Any:  # bins around every point, a point alone included
+            pad = max(0.05 * (v.max() - v.min()), 0.02 * (abs(v.max()) + 1e-6))
+            return np.linspace(v.min() - pad, v.max() + pad, min(8, len(set(v))) + 1)
+
+        xb, yb = edges(x), edges(y)
         n, _, _ = np.histogram2d(x, y, bins=(xb, yb))
         k, _, _ = np.histogram2d(x, y, bins=(xb, yb), weights=s)
         with np.errstate(invalid="ignore", divide="ignore"):
