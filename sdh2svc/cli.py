@@ -421,6 +421,61 @@ def _runs(args: argparse.Namespace, store: Any) -> int:
     return Exit.OK
 
 
+def cmd_campaign(args: argparse.Namespace) -> int:
+    """Campaigns: run every case of a suite (one fast simulated run each, judged from the
+    simulation's truth) into OUT/results.parquet; report on one; compare two. `run` is
+    resumable: the same command on the same --out runs only the cases not yet recorded."""
+    from pathlib import Path
+
+    from sdh2svc.campaign.run import CampaignError
+
+    try:
+        if args.action == "run":
+            return _campaign_run(args)
+        if args.action == "report":
+            from sdh2svc.campaign.report import write_report
+
+            path = write_report(Path(args.dir))
+            print(path)
+            return Exit.OK
+        from sdh2svc.campaign.report import compare
+
+        text = compare(Path(args.dir), Path(args.dir_b))
+        out = Path(args.output) if args.output else Path(args.dir_b) / "compare.md"
+        print(text, end="")
+        try:
+            out.write_text(text)
+        except OSError as e:
+            _fail(Exit.UNAVAILABLE, f"cannot write {out}: {e.strerror or e}")
+        return Exit.OK
+    except CampaignError as e:
+        _fail(Exit(e.status), _one_line(e))
+    except FileNotFoundError as e:
+        _fail(Exit.NOT_FOUND, _one_line(e))
+
+
+def _campaign_run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from sdh2svc.campaign.run import load_suite, run_campaign
+
+    if args.dir_b is not None:
+        _fail(Exit.USAGE, f"run takes one suite, not {args.dir_b!r} too")
+    if args.workers is not None and args.workers < 1:
+        _fail(Exit.USAGE, f"--workers {args.workers}: at least 1")
+    suite = load_suite(args.dir)
+    out = Path(args.out or f"campaigns/{suite.name}")
+    outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
+                           overrides=args.overrides, config_path=args.config,
+                           progress=not args.quiet)  # fmt: skip
+    n = outcome.total
+    print(f"{out}: {n} cases ({outcome.skipped} already there, {outcome.ran} run in "
+          f"{outcome.wall_s:.1f} s), success {outcome.succeeded}/{n}"
+          + (f", {outcome.crashed} crashed" if outcome.crashed else "")
+          + f"; {outcome.results}")  # fmt: skip
+    return Exit.FAILED if outcome.crashed else Exit.OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sdh2svc", description="Tactile in-hand rolling on a SCHUNK SDH2 hand.",
@@ -529,6 +584,26 @@ def build_parser() -> argparse.ArgumentParser:
     action.add_argument("--latch", action="store_true", help="latch it (runs are refused)")
     action.add_argument("--release", action="store_true", help="release it")
     p.set_defaults(func=cmd_estop)
+
+    p = sub.add_parser("campaign", help="campaigns: run a suite, report, compare",
+                       description=cmd_campaign.__doc__)  # fmt: skip
+    _add_config_args(p)
+    p.add_argument("action", choices=["run", "report", "compare"])
+    p.add_argument("dir", metavar="SUITE|DIR",
+                   help="run: a suite name (smoke, bench-v1, thesis) or a suite JSON file; "
+                        "report: a campaign directory; compare: campaign A")  # fmt: skip
+    p.add_argument("dir_b", nargs="?", metavar="DIR_B", help="compare: campaign B")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, help="local worker processes (default: all CPUs)")
+    where.add_argument("--ray", metavar="ADDRESS",
+                       help="run on a Ray cluster: auto, ray://HOST:PORT, or local "
+                            "(pip install 'sdh2svc[cluster]')")  # fmt: skip
+    p.add_argument("--out", metavar="DIR", help="run: campaign directory (default "
+                   "campaigns/SUITE_NAME); the same command again resumes there")  # fmt: skip
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="compare: markdown file (default DIR_B/compare.md)")  # fmt: skip
+    p.add_argument("--quiet", action="store_true", help="run: no progress line")
+    p.set_defaults(func=cmd_campaign)
     return parser
 
 

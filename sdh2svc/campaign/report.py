@@ -1,0 +1,249 @@
+"""A campaign's report (``report.md`` and PNG plots) and the comparison of two campaigns."""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from sdh2svc.campaign.case import FAMILIES
+
+Row = Mapping[str, Any]
+
+
+def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """A campaign's rows and metadata: ``results.parquet`` rewritten from ``cases.jsonl``."""
+    from sdh2svc.campaign.results import read_results, write_results
+    from sdh2svc.campaign.run import CASES_FILE, RESULTS_FILE
+
+    if (out / CASES_FILE).exists():
+        write_results(out)
+    elif not (out / RESULTS_FILE).exists():
+        raise FileNotFoundError(f"no campaign in {out} (no {CASES_FILE} or {RESULTS_FILE})")
+    return read_results(out)
+
+
+def rate(rows: Sequence[Row]) -> str:
+    n = len(rows)
+    ok = sum(1 for r in rows if r["success"])
+    return f"{ok}/{n} ({100 * ok / n:.0f} %)" if n else "–"
+
+
+def by(rows: Iterable[Row], key: Callable[[Row], Any]) -> dict[Any, list[Row]]:
+    groups: dict[Any, list[Row]] = defaultdict(list)
+    for r in rows:
+        groups[key(r)].append(r)
+    return groups
+
+
+def _family_order(fams: Iterable[str]) -> list[str]:
+    fams = set(fams)
+    return [f for f in FAMILIES if f in fams] + sorted(fams - set(FAMILIES))
+
+
+def _fmt(x: Any, digits: int = 2) -> str:
+    return "–" if x is None else f"{x:.{digits}f}"
+
+
+def _stats(values: Sequence[float]) -> str:
+    import numpy as np
+
+    if not values:
+        return "–"
+    a = np.asarray(values, dtype=float)
+    return (f"median {np.median(a):.2f}, 5–95 % {np.percentile(a, 5):.2f} … "
+            f"{np.percentile(a, 95):.2f} (n = {len(a)})")  # fmt: skip
+
+
+def write_report(out: Path) -> Path:
+    """``OUT/report.md`` and its plots (``OUT/plots/*.png``)."""
+    rows, info = load(out)
+    plots = out / "plots"
+    plots.mkdir(exist_ok=True)
+    lines = [f"# Campaign {info.get('suite', out.name)}", ""]
+    code = info.get("code") or {}
+    lines += [
+        f"Suite `{info.get('suite')}` v{info.get('suite_version')} "
+        f"(digest {info.get('suite_digest')}), {len(rows)} of {info.get('cases', len(rows))} "
+        f"cases recorded; sdh2svc {code.get('version')} ({code.get('git_describe') or 'no git'})"
+        f"; `--set` {' '.join(info.get('overrides') or []) or 'none'}.",
+        "",
+        "Success (`sdh2svc.campaign.run.judge`): completed every stroke, every half stroke "
+        "turned the object ≥ 1° (true ψ at the grasp and at every reversal), no drop, every F "
+        "after the grasp within [0.25, 2.5] × Fd.",
+        "",
+        f"**Success overall: {rate(rows)}**",
+        "",
+        "| family | cases | success | Λ error mm (median) | wall s per case (mean) |",
+        "|---|---|---|---|---|",
+    ]
+    fams = by(rows, lambda r: r["family"])
+    for fam in _family_order(fams):
+        rs = fams[fam]
+        errs = sorted(r["lambda_error_mm"] for r in rs if r["lambda_error_mm"] is not None)
+        walls = [r["wall_s"] for r in rs if r["wall_s"] is not None]
+        med = errs[len(errs) // 2] if errs else None
+        lines.append(f"| {fam} | {len(rs)} | {rate(rs)} | {_fmt(med)} | "
+                     f"{_fmt(sum(walls) / len(walls) if walls else None, 1)} |")  # fmt: skip
+    lines += ["", "## Failure reasons", "", "| reason | cases |", "|---|---|"]
+    reasons = Counter(r["failure"] for r in rows if not r["success"])
+    lines += [f"| {k} | {v} |" for k, v in reasons.most_common()] or ["| – | 0 |"]
+    crashed = [r for r in rows if r["status"] == "crashed"]
+    if crashed:
+        lines += ["", "Crashed cases (last line of the traceback):", ""]
+        for r in crashed[:20]:
+            last = (r["traceback"] or "").strip().splitlines()[-1:] or ["(no traceback)"]
+            lines.append(f"* `{r['id']}`: `{last[0]}`")
+        if len(crashed) > 20:
+            lines.append(f"* … and {len(crashed) - 20} more (see `results.parquet`)")
+    lines += ["", "## Distributions", ""]
+    lam = [r["lambda_error_mm"] for r in rows if r["lambda_error_mm"] is not None]
+    fmin = [r["f_min"] / r["fd"] for r in rows if r["f_min"] is not None and r["fd"]]
+    fmax = [r["f_max"] / r["fd"] for r in rows if r["f_max"] is not None and r["fd"]]
+    rot = [h for r in rows for h in (r["half_stroke_rotation_deg"] or [])]
+    lines += [
+        f"* Λ at grasp − true width (mm): {_stats(lam)}",
+        f"* lowest F after the grasp (× Fd): {_stats(fmin)}",
+        f"* highest F after the grasp (× Fd): {_stats(fmax)}",
+        f"* true rotation per half stroke (°): {_stats(rot)}",
+        "",
+    ]
+    figs = _plots(rows, plots)
+    lines += ["## Plots", ""] + [f"![{name}](plots/{name}.png)" for name in figs]
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _plots(rows: Sequence[Row], plots: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    made = []
+
+    def save(fig: Any, name: str) -> None:
+        fig.tight_layout()
+        fig.savefig(plots / f"{name}.png", dpi=90)
+        plt.close(fig)
+        made.append(name)
+
+    fams = by(rows, lambda r: r["family"])
+    order = _family_order(fams)
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    vals = [sum(r["success"] for r in fams[f]) / len(fams[f]) for f in order]
+    ax.bar(["all", *order], [sum(r["success"] for r in rows) / max(1, len(rows)), *vals])
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("success rate")
+    save(fig, "success_by_family")
+
+    def success_map(xkey: str, ykey: str, xlabel: str, ylabel: str, name: str) -> None:
+        pts = [(r[xkey], r[ykey], r["success"]) for r in rows
+               if r[xkey] is not None and r[ykey] is not None]  # fmt: skip
+        if not pts:
+            return
+        x, y, s = (np.asarray(v, dtype=float) for v in zip(*pts, strict=True))
+
+        def edges(v: Any) -> Any:  # bins around every point, a point alone included
+            pad = max(0.05 * (v.max() - v.min()), 0.02 * (abs(v.max()) + 1e-6))
+            return np.linspace(v.min() - pad, v.max() + pad, min(8, len(set(v))) + 1)
+
+        xb, yb = edges(x), edges(y)
+        n, _, _ = np.histogram2d(x, y, bins=(xb, yb))
+        k, _, _ = np.histogram2d(x, y, bins=(xb, yb), weights=s)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            grid = np.where(n > 0, k / n, np.nan)
+        fig, ax = plt.subplots(figsize=(5.5, 4))
+        im = ax.pcolormesh(xb, yb, grid.T, vmin=0, vmax=1, cmap="RdYlGn")
+        fig.colorbar(im, ax=ax, label="success rate")
+        ax.scatter(x, y, c=["g" if v else "r" for v in s], s=8, edgecolors="k", linewidths=0.3)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        save(fig, name)
+
+    success_map("true_width_mm", "friction", "contact width (mm)", "friction μ",
+                "map_width_friction")  # fmt: skip
+    success_map("height_mm", "size_mm", "placement height (mm)", "object size (mm)",
+                "map_height_size")  # fmt: skip
+
+    gains = sorted({r["gain_factor"] for r in rows if r["gain_factor"] is not None})
+    if gains and order:
+        gb = np.linspace(min(gains), max(gains) + 1e-9, min(6, len(gains)) + 1)
+        grid = np.full((len(order), len(gb) - 1), np.nan)
+        for i, f in enumerate(order):
+            g = np.asarray([r["gain_factor"] for r in fams[f]], dtype=float)
+            s = np.asarray([r["success"] for r in fams[f]], dtype=float)
+            idx = np.clip(np.digitize(g, gb) - 1, 0, len(gb) - 2)
+            for j in range(len(gb) - 1):
+                if (idx == j).any():
+                    grid[i, j] = s[idx == j].mean()
+        fig, ax = plt.subplots(figsize=(6, 0.5 * len(order) + 2))
+        im = ax.pcolormesh(gb, np.arange(len(order) + 1), grid, vmin=0, vmax=1, cmap="RdYlGn")
+        ax.set_yticks(np.arange(len(order)) + 0.5, order)
+        ax.set_xlabel("sensor gain factor (× nominal)")
+        fig.colorbar(im, ax=ax, label="success rate")
+        save(fig, "map_gain_family")
+
+    reasons = Counter(r["failure"] for r in rows if not r["success"])
+    if reasons:
+        fig, ax = plt.subplots(figsize=(7, 0.4 * len(reasons) + 1.5))
+        names, counts = zip(*reasons.most_common(), strict=True)
+        ax.barh(names, counts)
+        ax.invert_yaxis()
+        ax.set_xlabel("cases")
+        save(fig, "failure_reasons")
+
+    for key, label, name in (
+        ("lambda_error_mm", "Λ at grasp − true width (mm)", "dist_lambda_error"),
+        ("f_mean", "mean F after the grasp", "dist_force"),
+        ("mean_stroke_rotation_deg", "true rotation per stroke (°)", "dist_rotation"),
+    ):
+        vals = [r[key] for r in rows if r[key] is not None]
+        if not vals:
+            continue
+        fig, ax = plt.subplots(figsize=(5.5, 3.2))
+        ax.hist(vals, bins=min(30, max(5, len(vals) // 3)))
+        ax.set_xlabel(label)
+        ax.set_ylabel("cases")
+        save(fig, name)
+    return made
+
+
+def compare(a: Path, b: Path) -> str:
+    """Markdown: the two campaigns' success rates side by side, and case by case what changed."""
+    ra, ia = load(a)
+    rb, ib = load(b)
+    lines = [f"# {a} vs {b}", "",
+             f"A: `{a}` suite {ia.get('suite')} (sdh2svc {(ia.get('code') or {}).get('version')}"
+             f", {(ia.get('code') or {}).get('git_describe')}), `--set` "
+             f"{' '.join(ia.get('overrides') or []) or 'none'}",
+             f"B: `{b}` suite {ib.get('suite')} (sdh2svc {(ib.get('code') or {}).get('version')}"
+             f", {(ib.get('code') or {}).get('git_describe')}), `--set` "
+             f"{' '.join(ib.get('overrides') or []) or 'none'}",
+             "", "| family | A | B |", "|---|---|---|",
+             f"| **all** | {rate(ra)} | {rate(rb)} |"]  # fmt: skip
+    fa, fb = by(ra, lambda r: r["family"]), by(rb, lambda r: r["family"])
+    for fam in _family_order(set(fa) | set(fb)):
+        lines.append(f"| {fam} | {rate(fa.get(fam, []))} | {rate(fb.get(fam, []))} |")
+    da, db = {r["id"]: r for r in ra}, {r["id"]: r for r in rb}
+    common = [i for i in da if i in db]
+    better = [i for i in common if not da[i]["success"] and db[i]["success"]]
+    worse = [i for i in common if da[i]["success"] and not db[i]["success"]]
+    changed = [i for i in common if not da[i]["success"] and not db[i]["success"]
+               and da[i]["failure"] != db[i]["failure"]]  # fmt: skip
+    lines += ["", f"{len(common)} cases in both; only in A: {len(set(da) - set(db))}, "
+              f"only in B: {len(set(db) - set(da))}.", ""]  # fmt: skip
+    for title, ids in (("Better in B (failed in A, succeeded in B)", better),
+                       ("Worse in B (succeeded in A, failed in B)", worse),
+                       ("Failed in both, for another reason", changed)):  # fmt: skip
+        lines += [f"## {title}: {len(ids)}", ""]
+        if ids:
+            lines += ["| case | family | A | B |", "|---|---|---|---|"]
+            for i in ids:
+                lines.append(f"| {i} | {da[i]['family']} | {da[i]['failure'] or 'success'} | "
+                             f"{db[i]['failure'] or 'success'} |")  # fmt: skip
+            lines.append("")
+    return "\n".join(lines) + "\n"

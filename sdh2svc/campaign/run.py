@@ -1,0 +1,648 @@
+"""Run a campaign: every case of a suite, one fast simulated run each, judged from the truth.
+
+Each case is one independent run through the full byte path — :func:`run_once` in fast mode on
+a virtual clock, the emulators, drivers, controller and recorder a real hand uses — with the
+case's object and configuration keys (:meth:`Case.overrides`). What the controller believed is
+compared with what the simulated world did (:func:`judge`).
+
+Cases run in a local process pool (``workers``), in this process (``workers=1``) or on a Ray
+cluster (``ray_address``), always through the same function, :func:`run_case`. Every finished
+case is appended at once to ``OUT/cases.jsonl`` (flushed and fsync'd): running the same
+campaign on the same ``OUT`` again skips every case already there. ``OUT/results.parquet`` is
+written from that file at the end (:mod:`sdh2svc.campaign.results`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+import shutil
+import signal
+import sys
+import tempfile
+import time
+import traceback
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from sdh2svc.campaign.case import Case, Suite
+from sdh2svc.config import ConfigError, format_errors, load_config
+
+SUITES_DIR = Path(__file__).parent / "suites"
+CASES_FILE = "cases.jsonl"
+CAMPAIGN_FILE = "campaign.json"
+RESULTS_FILE = "results.parquet"
+
+# What success means (judge()): thesis §4's targets, as the reproduction report checks them.
+MIN_HALF_STROKE_DEG = 1.0  # true rotation of the object in every half stroke
+F_BAND = (0.25, 2.5)  # × Fd: every rolling iteration's F after the grasp
+CLUSTER_HINT = "pip install 'sdh2svc[cluster]'"
+
+
+class CampaignError(Exception):
+    """A campaign that cannot run or go on; ``status`` is the CLI's exit status for it."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+# --- suites ---------------------------------------------------------------------------------
+
+
+def load_suite(name_or_path: str | Path) -> Suite:
+    """A suite by name (``smoke``, ``bench-v1``, ``thesis``: ``campaign/suites/NAME.json``) or
+    from a JSON file. An invalid one raises :class:`ConfigError` naming every bad field and its
+    allowed range; a missing one :class:`FileNotFoundError`."""
+    text = str(name_or_path)
+    path = Path(text)
+    if not (path.suffix.lower() == ".json" or os.sep in text or path.exists()):
+        path = SUITES_DIR / f"{text}.json"
+        if not path.is_file():
+            known = sorted(p.stem for p in SUITES_DIR.glob("*.json"))
+            raise FileNotFoundError(
+                f"no suite {text!r} (suites: {', '.join(known) or 'none yet'}; or give a file)"
+            )
+    try:
+        suite = Suite.load(path)
+    except ValidationError as e:
+        raise ConfigError(format_errors(e, Suite), f"suite {path}") from None
+    counts = Counter(c.id for c in suite.cases)
+    dups = sorted(i for i, n in counts.items() if n > 1)
+    if dups:
+        raise ConfigError([f"cases: the id {d!r} is used more than once" for d in dups],
+                          f"suite {path}")  # fmt: skip
+    return suite
+
+
+def suite_digest(suite: Suite) -> str:
+    return hashlib.sha256(suite.to_json().encode()).hexdigest()[:16]
+
+
+# --- one case -------------------------------------------------------------------------------
+
+
+def _workdir(root: str) -> Path:
+    """This process's scratch directory for run databases under ``root``."""
+    path = Path(root) / f"worker-{os.getpid()}"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
+                  db_path: Path | None = None) -> Any:  # fmt: skip
+    """The configuration of one case: the campaign's ``--set`` values, then the case's keys."""
+    base = load_config(config_path, overrides)
+    keys = [*overrides, *case.overrides(base.sim.sensor.gain_vs_library)]
+    if db_path is not None:
+        keys.append(f"storage.db_path={json.dumps(str(db_path))}")
+    return load_config(config_path, keys)
+
+
+class TruthProbe:
+    """Samples the simulated object's true angle ψ at the grasp and at every reversal."""
+
+    def __init__(self) -> None:
+        self.hand: Any = None
+        self.psi_grasp: float | None = None
+        self.reversals: list[tuple[int | None, float]] = []  # (iteration, ψ rad)
+        self.grasp_F: float | None = None
+        self.fault: str = ""
+        self.end_t: float | None = None
+
+    def __call__(self, hand: Any) -> Callable[[float, int | None, str, dict[str, Any]], None]:
+        self.hand = hand
+        return self.event
+
+    def _psi(self) -> float:
+        """ψ as the physics last stepped (at most one substep behind the joints' actual pose).
+
+        ``world.truth()`` would first step the physics up to that pose (``flush``), one extra,
+        shorter step the run would not have taken unobserved: the run would change (e.g. the
+        egg's 954 iterations become 955). Reading the state as it stands keeps a campaign's
+        runs bit-for-bit those of ``sdh2svc run --fast``.
+        """
+        world = self.hand.world
+        physics = getattr(world, "_physics", None)  # PhysicsWorld has no public peek (yet)
+        if physics is None:
+            return float(world.truth().pose[2])
+        return float(physics.state.pose[2])
+
+    def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
+        if kind == "grasped" and self.hand is not None:
+            self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
+        elif kind == "reversal" and self.hand is not None:
+            self.reversals.append((iteration, self._psi()))
+        elif kind == "fault":
+            self.fault = str(detail.get("fault", ""))
+        elif kind == "end":
+            self.end_t = t
+
+    def half_strokes_deg(self) -> list[float]:
+        """The object's true rotation (|Δψ|, degrees) in every half stroke: from the grasp or
+        the last reversal to the next reversal that ended a move. A reversal right after
+        another (on the spot, the very next iteration) ends no half stroke, as in the runner."""
+        if self.psi_grasp is None:
+            return []
+        out: list[float] = []
+        start, prev_it = self.psi_grasp, None
+        for it, psi in self.reversals:
+            on_the_spot = prev_it is not None and it is not None and it == prev_it + 1
+            if not on_the_spot:
+                d = math.degrees(psi - start)
+                out.append(abs((d + 180.0) % 360.0 - 180.0))
+            start, prev_it = psi, it
+        return out
+
+
+def case_columns(case: Case) -> dict[str, Any]:
+    """The case's own parameters, as columns to group results by."""
+    obj = case.object
+    return {
+        "id": case.id, "family": case.family, "object_kind": obj.kind,
+        "object_name": obj.name, "size_mm": float(obj.size_mm), "depth_mm": float(obj.depth_mm),
+        "friction": float(obj.material.friction), "mass_g": float(obj.material.mass_g),
+        "true_width_mm": case.true_width_mm, "height_mm": case.height_mm,
+        "angle_deg": case.angle_deg, "seed": case.seed,
+        "gain_factor": case.sensor.gain_factor,
+        "dead_texels": len(case.sensor.dead_texels),
+        "spec": case.model_dump_json(),
+    }  # fmt: skip
+
+
+def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | None = None,
+             workdir: str | None = None) -> dict[str, Any]:  # fmt: skip
+    """Run one case and return its judged row; never raises for the case's own failure: an
+    exception becomes a row with status ``crashed`` and its traceback. The run database goes
+    to a per-process directory under ``workdir`` (else a temporary one) and is deleted after."""
+    from sdh2svc.service.headless import run_once
+    from sdh2svc.sim.clock import run_fast
+
+    t0 = time.perf_counter()
+    case = Case.model_validate_json(case_json)
+    row = case_columns(case)
+    with contextlib.ExitStack() as stack:
+        if workdir is None:  # e.g. on a Ray node: a directory of the case's own
+            workdir = stack.enter_context(tempfile.TemporaryDirectory(prefix="sdh2svc-case-"))
+        db = _workdir(workdir) / f"case-{case.id}.sqlite"
+        try:
+            cfg = case_settings(case, overrides, config_path, db)
+            probe = TruthProbe()
+            summary = run_fast(run_once(cfg, sim=True, obj=case.object, fast=True,
+                                        observer=probe))  # fmt: skip
+            row.update(measure(summary, probe, cfg, case))
+        except Exception:
+            row.update(status="crashed", traceback=traceback.format_exc())
+        finally:
+            for suffix in ("", "-wal", "-shm", "-journal"):
+                with contextlib.suppress(OSError):
+                    os.unlink(f"{db}{suffix}")
+    row["wall_s"] = time.perf_counter() - t0
+    return finish_row(row)
+
+
+def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case) -> dict[str, Any]:
+    """What a run did, from its summary and the truth sampled along the way."""
+    truth = summary.get("truth") or {}
+    force = summary.get("force") or {}
+    halves = probe.half_strokes_deg()
+    lam = summary.get("lambda_initial_mm")
+    cycles = cfg.rolling.cycles
+    strokes_deg = [halves[i] + halves[i + 1] for i in range(0, len(halves) - 1, 2)]
+    peaks = [f for f in (force.get("max"), probe.grasp_F) if f is not None]
+    return {
+        "status": summary["status"], "message": summary.get("message", ""),
+        "fault": probe.fault, "strokes": summary.get("strokes", 0), "cycles": cycles,
+        "iterations": summary.get("iterations", 0),
+        "half_strokes": len(halves),
+        "half_strokes_turned": sum(h >= MIN_HALF_STROKE_DEG for h in halves),
+        "half_stroke_rotation_deg": halves,
+        "min_half_stroke_deg": min(halves) if halves else None,
+        "mean_stroke_rotation_deg": sum(strokes_deg) / len(strokes_deg) if strokes_deg else None,
+        "dropped": bool(truth.get("dropped", False)), "slips": int(truth.get("slips", 0)),
+        "rotation_range_deg": truth.get("rotation_range_deg"),
+        "lambda_at_grasp_mm": lam,
+        "lambda_error_mm": lam - case.true_width_mm if lam is not None else None,
+        "fd": cfg.rolling.grasp_force, "f_min": force.get("min"), "f_max": force.get("max"),
+        "f_mean": force.get("mean"), "peak_force": max(peaks) if peaks else None,
+        "sensor_gain": cfg.sim.sensor.gain_vs_library,
+        "sim_s": probe.end_t,
+    }  # fmt: skip
+
+
+COLUMNS_DEFAULTS: dict[str, Any] = {
+    "status": "crashed", "message": "", "fault": "", "strokes": 0, "cycles": None,
+    "iterations": 0, "half_strokes": 0, "half_strokes_turned": 0,
+    "half_stroke_rotation_deg": [], "min_half_stroke_deg": None,
+    "mean_stroke_rotation_deg": None, "dropped": False, "slips": 0,
+    "rotation_range_deg": None, "lambda_at_grasp_mm": None, "lambda_error_mm": None,
+    "fd": None, "f_min": None, "f_max": None, "f_mean": None, "peak_force": None,
+    "sensor_gain": None, "sim_s": None, "wall_s": None, "traceback": "",
+}  # fmt: skip
+
+
+def finish_row(row: dict[str, Any]) -> dict[str, Any]:
+    """Every column present, then the verdict."""
+    for key, value in COLUMNS_DEFAULTS.items():
+        row.setdefault(key, list(value) if isinstance(value, list) else value)
+    row["f_in_band"] = f_in_band(row)
+    row["success"], row["failure"] = judge(row)
+    return row
+
+
+def f_in_band(row: Mapping[str, Any]) -> bool | None:
+    """Every rolling iteration's F within [0.25, 2.5] × Fd (None: no rolling iteration)."""
+    lo, hi, fd = row.get("f_min"), row.get("f_max"), row.get("fd")
+    if lo is None or hi is None or fd is None:
+        return None
+    return bool(F_BAND[0] * fd <= lo and hi <= F_BAND[1] * fd)
+
+
+def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
+    """Success, or the first reason it failed — the one definition of a successful case.
+
+    A case succeeds when, by the simulation's ground truth:
+
+    1. the run did not crash and completed (``status == "completed"``) all its strokes
+       (``strokes >= cycles``, 3 by default);
+    2. the object was never dropped;
+    3. every half stroke (grasp or reversal to the next reversal that ended a move) turned the
+       object by at least ``MIN_HALF_STROKE_DEG`` (1°) of true rotation, and there were
+       ``2 × cycles`` of them;
+    4. every rolling iteration's F after the grasp lay within ``F_BAND`` (0.25…2.5) × Fd.
+
+    The failure reason is the first of: ``crashed``, ``dropped``, ``faulted: FAULT``, the
+    status (``stopped`` …), ``too few strokes``, ``half stroke < 1°``, ``F below band``,
+    ``F above band``.
+    """
+    status = row.get("status")
+    if status == "crashed":
+        return False, "crashed"
+    if row.get("dropped") or status == "dropped":
+        return False, "dropped"
+    if status == "faulted":
+        return False, f"faulted: {row.get('fault') or 'unknown'}"
+    if status != "completed":
+        return False, str(status)
+    cycles = row.get("cycles") or 0
+    if (row.get("strokes") or 0) < cycles:
+        return False, "too few strokes"
+    halves = row.get("half_stroke_rotation_deg") or []
+    if len(halves) < 2 * cycles or any(h < MIN_HALF_STROKE_DEG for h in halves):
+        return False, f"half stroke < {MIN_HALF_STROKE_DEG:g}°"
+    fd, lo, hi = row.get("fd"), row.get("f_min"), row.get("f_max")
+    if fd is None or lo is None or hi is None:
+        return False, "no force recorded"
+    if lo < F_BAND[0] * fd:
+        return False, "F below band"
+    if hi > F_BAND[1] * fd:
+        return False, "F above band"
+    return True, ""
+
+
+def crashed_row(case: Case, tb: str) -> dict[str, Any]:
+    """The row of a case whose worker failed outside :func:`run_case` (e.g. it died)."""
+    row = case_columns(case)
+    row.update(status="crashed", traceback=tb)
+    return finish_row(row)
+
+
+# --- the campaign ---------------------------------------------------------------------------
+
+
+@dataclass
+class Outcome:
+    total: int
+    skipped: int  # already in cases.jsonl
+    ran: int
+    succeeded: int  # of every case recorded
+    crashed: int
+    wall_s: float
+    results: Path | None
+
+
+def read_rows(out: Path) -> list[dict[str, Any]]:
+    """Every row of ``OUT/cases.jsonl``; a torn last line (a crash mid-write) is dropped."""
+    path = out / CASES_FILE
+    if not path.exists():
+        return []
+    rows = []
+    with path.open("rb") as fh:
+        for line in fh:
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                continue
+    return rows
+
+
+def _repair_tail(path: Path) -> None:
+    """Cut a torn last line, so that the next append starts on a line of its own."""
+    if not path.exists():
+        return
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        cut = data.rfind(b"\n") + 1
+        with path.open("r+b") as fh:
+            fh.truncate(cut)
+
+
+class Appender:
+    """Appends one row per line to ``cases.jsonl``, on disk before it returns."""
+
+    def __init__(self, path: Path) -> None:
+        _repair_tail(path)
+        self.fh = path.open("a", encoding="utf-8")
+
+    def __call__(self, row: Mapping[str, Any]) -> None:
+        self.fh.write(json.dumps(row, ensure_ascii=False, allow_nan=True) + "\n")
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+def code_version() -> dict[str, Any]:
+    """sdh2svc's version and, from a git checkout, ``git describe``."""
+    import subprocess
+
+    from sdh2svc import __version__
+
+    describe = None
+    with contextlib.suppress(OSError, subprocess.SubprocessError):
+        r = subprocess.run(["git", "describe", "--always", "--dirty", "--tags"],
+                           cwd=Path(__file__).resolve().parent, capture_output=True,
+                           text=True, timeout=10, check=False)  # fmt: skip
+        if r.returncode == 0:
+            describe = r.stdout.strip() or None
+    return {"version": __version__, "git_describe": describe}
+
+
+def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | None,
+                  ) -> dict[str, Any]:  # fmt: skip
+    cfg = load_config(config_path, overrides)
+    return {
+        "suite": suite.name, "suite_version": suite.version, "suite_digest": suite_digest(suite),
+        "generator_seed": suite.generator_seed, "cases": len(suite.cases),
+        "overrides": list(overrides), "config_file": config_path,
+        "code": code_version(), "config": cfg.model_dump(mode="json"),
+        "judge": {"min_half_stroke_deg": MIN_HALF_STROKE_DEG, "f_band_x_fd": list(F_BAND)},
+    }  # fmt: skip
+
+
+def _check_same(out: Path, info: Mapping[str, Any]) -> None:
+    path = out / CAMPAIGN_FILE
+    if not path.exists() or not (out / CASES_FILE).exists():
+        return
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    for key in ("suite_digest", "overrides"):
+        if old.get(key) != info[key]:
+            raise CampaignError(2, f"{out} holds another campaign ({key} differs: "
+                                f"{old.get(key)!r} there, {info[key]!r} now); "
+                                "use another --out")  # fmt: skip
+
+
+def validate_cases(suite: Suite, overrides: Sequence[str], config_path: str | None) -> None:
+    """Every case's configuration, validated before anything runs (ConfigError naming it)."""
+    gain = load_config(config_path, overrides).sim.sensor.gain_vs_library
+    for case in suite.cases:
+        try:
+            load_config(config_path, [*overrides, *case.overrides(gain)])
+        except ConfigError as e:
+            raise ConfigError(e.problems, f"case {case.id}") from None
+
+
+def run_campaign(
+    suite: Suite,
+    out: str | Path,
+    *,
+    workers: int | None = None,
+    ray_address: str | None = None,
+    overrides: Sequence[str] = (),
+    config_path: str | None = None,
+    progress: bool = True,
+    case_fn: Callable[..., dict[str, Any]] | None = None,
+) -> Outcome:
+    """Run every case of ``suite`` not yet in ``OUT/cases.jsonl``; write ``results.parquet``.
+
+    ``workers=1`` runs the cases in this process, more in a process pool (forkserver);
+    ``ray_address`` on a Ray cluster: ``auto`` (the one this machine belongs to), ``ray://…``,
+    or ``local`` (start one here); ignored once Ray is initialised in this process.
+    ``case_fn`` replaces :func:`run_case` (tests; in a pool it must be picklable by name).
+    """
+    from sdh2svc.campaign.results import write_results
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    overrides = list(overrides)
+    info = campaign_info(suite, overrides, config_path)  # --set values are checked here
+    validate_cases(suite, overrides, config_path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        _check_same(out, info)
+        (out / CAMPAIGN_FILE).write_text(json.dumps(info, indent=1, ensure_ascii=False) + "\n")
+        appender = Appender(out / CASES_FILE)
+    except OSError as e:
+        raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
+    rows = read_rows(out)
+    ids = {c.id for c in suite.cases}
+    done = {r.get("id") for r in rows} & ids
+    todo = [c for c in suite.cases if c.id not in done]
+    succeeded = sum(1 for r in rows if r.get("id") in ids and r.get("success"))
+    crashed = 0
+    bar = _progress(len(suite.cases), len(done), succeeded, enabled=progress)
+
+    def record(row: dict[str, Any]) -> None:
+        nonlocal succeeded, crashed
+        appender(row)
+        succeeded += bool(row.get("success"))
+        crashed += row.get("status") == "crashed"
+        bar.update(bool(row.get("success")))
+
+    work = str(out / ".work")
+    try:
+        if ray_address is not None:
+            _run_ray(todo, overrides, config_path, ray_address, record)
+        elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1:
+            fn = case_fn or run_case
+            for case in todo:
+                record(fn(case.model_dump_json(), overrides, config_path, work))
+        else:
+            args = (overrides, config_path, work)
+            _run_pool(todo, args, workers or os.cpu_count() or 1, record, case_fn or run_case)
+    except KeyboardInterrupt:
+        appender.close()
+        with contextlib.suppress(Exception):  # what has finished, in Parquet too
+            write_results(out, suite=suite, info=info)
+        raise
+    finally:
+        appender.close()
+        bar.close()
+        shutil.rmtree(work, ignore_errors=True)
+    results = write_results(out, suite=suite, info=info)
+    return Outcome(total=len(suite.cases), skipped=len(done), ran=len(todo),
+                   succeeded=succeeded, crashed=crashed, wall_s=time.perf_counter() - t0,
+                   results=results)  # fmt: skip
+
+
+class _Progress:
+    """A progress line on stderr: cases done, ETA (tqdm) and the running success rate."""
+
+    def __init__(self, total: int, done: int, succeeded: int, enabled: bool) -> None:
+        self.done, self.succeeded, self.bar = done, succeeded, None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=done, file=sys.stderr, unit="case",
+                            dynamic_ncols=True, smoothing=0.1)  # fmt: skip
+            self._postfix()
+
+    def _postfix(self) -> None:
+        if self.bar is not None and self.done:
+            self.bar.set_postfix_str(f"success {100 * self.succeeded / self.done:.0f}%")
+
+    def update(self, success: bool) -> None:
+        self.done += 1
+        self.succeeded += success
+        if self.bar is not None:
+            self.bar.update(1)
+            self._postfix()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _progress(total: int, done: int, succeeded: int, *, enabled: bool) -> _Progress:
+    return _Progress(total, done, succeeded, enabled)
+
+
+def _ignore_sigint() -> None:
+    """Pool workers leave Ctrl-C to the parent, which keeps every finished case and stops them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_pool(todo: Sequence[Case], args: tuple[Any, ...], workers: int,
+              record: Callable[[dict[str, Any]], None],
+              fn: Callable[..., dict[str, Any]] = run_case) -> None:  # fmt: skip
+    """The cases on a pool of ``workers`` processes. A worker that dies (killed, out of memory,
+    a crash in C) breaks the pool: the cases it was running are then run again one at a time,
+    each in a pool of its own, and a case that kills its worker alone is recorded as crashed."""
+    queue: Iterator[Case] = iter(todo)
+    while True:
+        lost = _pool_round(queue, args, min(workers, len(todo)), record, fn)
+        if not lost:
+            return
+        for case in lost:  # each alone: only the guilty one breaks its pool
+            if _pool_round(iter([case]), args, 1, record, fn):
+                why = "(killed, out of memory, or a crash outside Python)"
+                record(crashed_row(case, f"the worker process running case {case.id} died {why}"))
+
+
+def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
+                record: Callable[[dict[str, Any]], None],
+                fn: Callable[..., dict[str, Any]]) -> list[Case]:  # fmt: skip
+    """Run cases from ``queue`` until it is empty or the pool breaks; the cases lost then."""
+    ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
+    pending: dict[Future[dict[str, Any]], Case] = {}
+    lost: list[Case] = []
+    try:
+        # keep each worker busy with one case and one queued: Ctrl-C then cancels the rest
+        for case in _take(queue, 2 * workers):
+            pending[pool.submit(fn, case.model_dump_json(), *args)] = case
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                case = pending.pop(fut)
+                try:
+                    row = fut.result()
+                except BrokenProcessPool:
+                    lost.append(case)
+                    continue
+                except Exception:
+                    row = crashed_row(case, traceback.format_exc())
+                record(row)
+                if not lost:
+                    for nxt in _take(queue, 1):
+                        pending[pool.submit(fn, nxt.model_dump_json(), *args)] = nxt
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
+    return lost
+
+
+def _take(it: Iterator[Case], n: int) -> list[Case]:
+    out = []
+    for _ in range(n):
+        try:
+            out.append(next(it))
+        except StopIteration:
+            break
+    return out
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what has not started and end the workers now (their cases are not recorded)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(timeout=5)
+
+
+def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | None,
+             address: str, record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
+    try:
+        import ray
+    except ImportError:
+        raise CampaignError(2, f"--ray needs Ray: {CLUSTER_HINT}") from None
+    if not ray.is_initialized():
+        try:  # "local": a Ray of its own on this machine
+            ray.init(address=None if address == "local" else address, log_to_driver=False)
+        except Exception as e:  # no cluster there (ConnectionError), a bad address …
+            raise CampaignError(4, f"cannot reach the Ray cluster at {address}: "
+                                f"{type(e).__name__}: {e}") from None  # fmt: skip
+    remote = ray.remote(num_cpus=1, max_retries=0)(run_case)
+    refs = {remote.remote(c.model_dump_json(), list(overrides), config_path): c for c in todo}
+    try:
+        while refs:
+            ready, _ = ray.wait(list(refs), num_returns=1)
+            for ref in ready:
+                case = refs.pop(ref)
+                try:
+                    row = ray.get(ref)
+                except Exception:
+                    row = crashed_row(case, traceback.format_exc())
+                record(row)
+    except BaseException:
+        for ref in refs:
+            with contextlib.suppress(Exception):
+                ray.cancel(ref, force=True)
+        raise
+
+
+def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
+    rows = list(rows)
+    n = len(rows)
+    ok = sum(1 for r in rows if r.get("success"))
+    return {"cases": n, "succeeded": ok, "success_rate": ok / n if n else None}

@@ -1,0 +1,123 @@
+"""Campaign reports and comparisons, from recorded rows (no runs), and judge()."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+import pytest
+
+from sdh2svc.campaign import run as camp
+from sdh2svc.campaign.case import Case
+from sdh2svc.campaign.results import write_results
+from sdh2svc.cli import main
+from sdh2svc.sim.objects import Box, Circle, Material
+
+
+def case(i: int, family: str) -> Case:
+    mat = Material(friction=0.3 + 0.1 * (i % 5))
+    size = 40.0 + i
+    obj: Box | Circle = Circle(diameter_mm=size, depth_mm=10.0, material=mat)
+    if family == "box":
+        obj = Box(width_mm=size, height_mm=20.0, depth_mm=10.0, material=mat)
+    return Case.model_validate({
+        "id": f"{family}-{i}", "family": family, "object": obj.model_dump(),
+        "height_mm": 100.0 + 3 * i, "seed": i, "true_width_mm": size,
+        "sensor": {"gain_factor": 0.6 + 0.05 * i},
+    })  # fmt: skip
+
+
+def good(c: Case, **kw: Any) -> dict[str, Any]:
+    row = camp.case_columns(c)
+    row.update(status="completed", strokes=3, cycles=3, iterations=900, fd=2.0, f_min=0.9,
+               f_max=3.0, f_mean=2.0, half_stroke_rotation_deg=[5.0, 4.0, 5.0, 4.0, 5.0, 4.0],
+               lambda_at_grasp_mm=c.true_width_mm - 1.0, lambda_error_mm=-1.0,
+               mean_stroke_rotation_deg=9.0, wall_s=12.0, sim_s=50.0)  # fmt: skip
+    row.update(kw)
+    return camp.finish_row(row)
+
+
+def write(out: Path, rows: list[dict[str, Any]]) -> None:
+    out.mkdir(parents=True)
+    with (out / camp.CASES_FILE).open("w") as fh:
+        for r in rows:
+            fh.write(json.dumps(r) + "\n")
+    info = {"suite": "synthetic", "overrides": [], "code": {"version": "0.1.0"}}
+    (out / camp.CAMPAIGN_FILE).write_text(json.dumps(info))
+
+
+def test_judge_names_the_first_failure() -> None:
+    c = case(1, "box")
+    assert camp.judge(good(c)) == (True, "")
+    assert good(c, status="crashed")["failure"] == "crashed"
+    assert good(c, status="dropped", dropped=True)["failure"] == "dropped"
+    assert good(c, status="faulted", fault="stuck")["failure"] == "faulted: stuck"
+    assert good(c, status="stopped")["failure"] == "stopped"
+    assert good(c, strokes=2)["failure"] == "too few strokes"
+    assert good(c, half_stroke_rotation_deg=[5.0] * 5 + [0.9])["failure"] == "half stroke < 1°"
+    assert good(c, half_stroke_rotation_deg=[5.0] * 5)["failure"] == "half stroke < 1°"
+    assert good(c, f_min=0.49)["failure"] == "F below band"
+    low = good(c, f_min=0.5)
+    assert low["success"] and low["f_in_band"]
+    assert good(c, f_max=5.01)["failure"] == "F above band"
+    assert good(c, f_max=5.0)["success"]
+
+
+def test_results_parquet_keeps_one_row_per_case_in_the_suite_order(tmp_path: Path) -> None:
+    cases = [case(i, "box") for i in range(3)]
+    rows = [good(cases[2]), good(cases[0], status="stopped"), good(cases[0])]  # re-run: last wins
+    write(tmp_path / "a", rows)
+    from sdh2svc.campaign.case import Suite
+
+    write_results(tmp_path / "a", suite=Suite(name="s", cases=tuple(cases)))
+    table = pq.read_table(tmp_path / "a" / camp.RESULTS_FILE)
+    assert table.column("id").to_pylist() == ["box-0", "box-2"]
+    assert table.column("success").to_pylist() == [True, True]
+
+
+def test_report_writes_markdown_and_plots(tmp_path: Path) -> None:
+    rows = [good(case(i, "box")) for i in range(6)]
+    rows += [good(case(i, "circle"), status="faulted", fault="stuck") for i in range(4)]
+    rows += [good(case(9, "circle"), status="crashed", traceback="Traceback …\nValueError: x")]
+    write(tmp_path / "a", rows)
+    assert main(["campaign", "report", str(tmp_path / "a")]) == 0
+    md = (tmp_path / "a" / "report.md").read_text()
+    assert "**Success overall: 6/11 (55 %)**" in md
+    assert "| box | 6 | 6/6 (100 %) |" in md and "| circle | 5 | 0/5 (0 %) |" in md
+    assert "| faulted: stuck | 4 |" in md and "| crashed | 1 |" in md
+    assert "ValueError: x" in md
+    for name in ("success_by_family", "map_width_friction", "map_height_size",
+                 "map_gain_family", "failure_reasons", "dist_lambda_error", "dist_force",
+                 "dist_rotation"):  # fmt: skip
+        assert (tmp_path / "a" / "plots" / f"{name}.png").stat().st_size > 1000
+        assert f"plots/{name}.png" in md
+    assert pq.read_table(tmp_path / "a" / camp.RESULTS_FILE).num_rows == 11
+
+
+def test_compare_shows_what_got_better_and_worse(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cs = [case(i, "box") for i in range(4)]
+    write(tmp_path / "a", [good(cs[0]), good(cs[1], f_min=0.1), good(cs[2]),
+                           good(cs[3], strokes=1)])  # fmt: skip
+    write(tmp_path / "b", [good(cs[0]), good(cs[1]), good(cs[2], status="dropped",
+                                                          dropped=True),
+                           good(cs[3], f_max=9.0)])  # fmt: skip
+    assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    text = capsys.readouterr().out
+    assert "| **all** | 2/4 (50 %) | 2/4 (50 %) |" in text
+    assert "## Better in B (failed in A, succeeded in B): 1" in text
+    assert "| box-1 | box | F below band | success |" in text
+    assert "## Worse in B (succeeded in A, failed in B): 1" in text
+    assert "| box-2 | box | success | dropped |" in text
+    assert "| box-3 | box | too few strokes | F above band |" in text
+    assert (tmp_path / "b" / "compare.md").read_text() == text
+
+
+def test_report_on_a_directory_without_a_campaign_is_not_found(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["campaign", "report", str(tmp_path)]) == 3
+    assert "no campaign in" in capsys.readouterr().err
