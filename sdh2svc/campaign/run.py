@@ -111,59 +111,67 @@ def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
 
 
 class TruthProbe:
-    """Samples the simulated object's true angle ψ at the grasp and at every reversal."""
+    """Watches a run beside it (:class:`~sdh2svc.service.runs.RunObserver`): the simulated
+    object's true angle ψ at the grasp and at every iteration, and where the half strokes end."""
 
     def __init__(self) -> None:
         self.hand: Any = None
         self.psi_grasp: float | None = None
-        self.reversals: list[tuple[int | None, float]] = []  # (iteration, ψ rad)
+        self.psi: list[tuple[int, float]] = []  # (iteration, ψ rad) of every rolling iteration
+        self.reversals: list[int | None] = []  # the iterations that reversed
         self.grasp_F: float | None = None
         self.fault: str = ""
         self.end_t: float | None = None
 
-    def __call__(self, hand: Any) -> Callable[[float, int | None, str, dict[str, Any]], None]:
+    def __call__(self, hand: Any) -> TruthProbe:
         self.hand = hand
-        return self.event
+        return self
 
     def _psi(self) -> float:
-        """ψ as the physics last stepped (at most one substep behind the joints' actual pose).
-
-        ``world.truth()`` would first step the physics up to that pose (``flush``), one extra,
-        shorter step the run would not have taken unobserved: the run would change (e.g. the
-        egg's 954 iterations become 955). Reading the state as it stands keeps a campaign's
-        runs bit-for-bit those of ``sdh2svc run --fast``.
-        """
-        world = self.hand.world
-        physics = getattr(world, "_physics", None)  # PhysicsWorld has no public peek (yet)
-        if physics is None:
-            return float(world.truth().pose[2])
-        return float(physics.state.pose[2])
+        """ψ as the physics last stepped: reading it steps nothing (``world.object_pose``), so
+        a campaign's runs stay bit for bit those of ``sdh2svc run --fast``."""
+        return self.hand.world.object_pose()[2]
 
     def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
         if kind == "grasped" and self.hand is not None:
             self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
-        elif kind == "reversal" and self.hand is not None:
-            self.reversals.append((iteration, self._psi()))
+        elif kind == "reversal":
+            self.reversals.append(iteration)
         elif kind == "fault":
             self.fault = str(detail.get("fault", ""))
         elif kind == "end":
             self.end_t = t
 
+    def sample(self, sample: Any) -> None:
+        if self.hand is not None:
+            self.psi.append((sample.iteration, self._psi()))
+
     def half_strokes_deg(self) -> list[float]:
-        """The object's true rotation (|Δψ|, degrees) in every half stroke: from the grasp or
-        the last reversal to the next reversal that ended a move. A reversal right after
-        another (on the spot, the very next iteration) ends no half stroke, as in the runner."""
+        """How far the object truly turned in every half stroke (degrees): the largest
+        excursion of ψ from its angle where the half stroke began (the grasp, or the reversal
+        before), up to the reversal that ends it. The largest, not the net: an object may turn
+        and come part of the way back within one half stroke (the egg does, ≈ 15° and back) —
+        it did turn. A reversal right after another (on the spot) ends no half stroke, as in
+        the runner; the unfinished last half stroke (the run ended) is not counted."""
         if self.psi_grasp is None:
             return []
         out: list[float] = []
-        start, prev_it = self.psi_grasp, None
-        for it, psi in self.reversals:
-            on_the_spot = prev_it is not None and it is not None and it == prev_it + 1
+        start, prev, k = self.psi_grasp, None, 0
+        peak = 0.0
+        for end in self.reversals:
+            while k < len(self.psi) and (end is None or self.psi[k][0] <= end):
+                peak = max(peak, abs(_wrap_deg(math.degrees(self.psi[k][1] - start))))
+                k += 1
+            on_the_spot = prev is not None and end is not None and end == prev + 1
             if not on_the_spot:
-                d = math.degrees(psi - start)
-                out.append(abs((d + 180.0) % 360.0 - 180.0))
-            start, prev_it = psi, it
+                out.append(peak)
+            start = self.psi[k - 1][1] if k else start
+            prev, peak = end, 0.0
         return out
+
+
+def _wrap_deg(d: float) -> float:
+    return (d + 180.0) % 360.0 - 180.0
 
 
 def case_columns(case: Case) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import Settings
 from sdh2svc.control.runner import Runner
-from sdh2svc.service.runs import EventSink, RecordedRun, open_links
+from sdh2svc.service.runs import RecordedRun, RunObserver, open_links
 from sdh2svc.service.store import EstopLatched, RunStore
 from sdh2svc.sim.hand import ObjectSpecT
 from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
@@ -33,13 +33,13 @@ async def run_once(
     sdh_url: str | None = None,
     fast: bool = False,
     progress: Callable[[Runner], None] | None = None,
-    observer: Callable[[SimulatedHand | None], EventSink | None] | None = None,
+    observer: Callable[[SimulatedHand | None], RunObserver] | None = None,
 ) -> dict[str, Any]:
     """Run once and return the summary (the ``--json`` object of ``sdh2svc run``).
 
     ``observer``, if given, is called once the links are up with the simulated hand (None on a
-    real one) and returns a sink for the run's events (or None), e.g. to sample the
-    simulation's truth at the grasp and at every reversal (:mod:`sdh2svc.campaign.run`).
+    real one) and returns what watches the run's events and samples, e.g. to sample the
+    simulation's truth along the run (:mod:`sdh2svc.campaign.run`).
     """
     hand: SimulatedHand | None = None
     tmp = tempfile.TemporaryDirectory(prefix="sdh2svc-") if fast else None
@@ -60,8 +60,10 @@ async def run_once(
         sdh_url = sdh_url or cfg.links.sdh_url
         joints, tactile = await open_links(cfg, dsa_url, sdh_url)
         meta = {"sim": sim, "fast": fast, "dsa_url": dsa_url, "sdh_url": sdh_url}
-        on_event = observer(hand) if observer else None
-        run = RecordedRun(cfg, joints, tactile, store, meta=meta, hand=hand, on_event=on_event)
+        obs = observer(hand) if observer else None
+        run = RecordedRun(cfg, joints, tactile, store, meta=meta, hand=hand,
+                          on_event=obs.event if obs else None,
+                          on_sample=obs.sample if obs else None)  # fmt: skip
         ticker = asyncio.create_task(_tick(run.runner, progress)) if progress else None
         try:
             return await run.execute()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus, TactileFrame
@@ -22,6 +22,16 @@ from sdh2svc.service.store import Recorder, RunStore
 from sdh2svc.sim.serve import SimulatedHand
 
 EventSink = Callable[[float, int | None, str, dict[str, Any]], None]
+
+
+class RunObserver(Protocol):
+    """What watches a run from beside it (e.g. a campaign sampling the simulation's truth)."""
+
+    def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
+        """Every event of the run (phase, grasped, reversal, fault, end, …)."""
+
+    def sample(self, sample: Sample) -> None:
+        """Every iteration's record."""
 
 
 async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:

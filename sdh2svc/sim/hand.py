@@ -228,6 +228,13 @@ class PhysicsWorld:
 
     # --- ground truth -------------------------------------------------------------------------
 
+    def object_pose(self) -> tuple[float, float, float]:
+        """The object's pose (y, z mm; ψ rad) as the physics last stepped — at most one substep
+        behind the joints. Unlike :meth:`truth` it steps nothing, so an observer that reads it
+        mid-run leaves the run exactly as it would have been unobserved."""
+        pose = self._physics.state.pose
+        return float(pose[0]), float(pose[1]), float(pose[2])
+
     def truth(self) -> Truth:
         """The state at the joints' actual pose (this steps the physics up to it)."""
         phys = self.physics

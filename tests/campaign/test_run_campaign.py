@@ -67,10 +67,10 @@ def test_a_campaign_writes_parquet_with_every_case_judged(one_worker: Path) -> N
         assert abs(r["lambda_error_mm"]) < 3.0
         assert Case.model_validate_json(r["spec"]).id == r["id"]
         assert (r["success"], r["failure"]) == camp.judge(r)
-    # the rubber turns ≥ 1° every half stroke; the egg's true angle comes back almost to where
-    # it was at each reversal (it turns and turns back within a half stroke)
-    assert rows["rubber-1"]["success"] and rows["rubber-2"]["success"]
-    assert rows["egg-1"]["failure"] == "half stroke < 1°"
+    # every one turns ≥ 1° every half stroke — the egg ≈ 15° and most of the way back within
+    # one (its largest excursion counts, not the net: see TruthProbe.half_strokes_deg)
+    assert all(r["success"] for r in rows.values()), rows
+    assert max(rows["egg-1"]["half_stroke_rotation_deg"]) > 10.0
     info = json.loads(table.schema.metadata[METADATA_KEY])
     assert info["suite"] == "tiny" and info["overrides"] == ONE_STROKE
     assert info["code"]["version"] and info["config"]["rolling"]["cycles"] == 1
