@@ -111,7 +111,9 @@ ANGLE_DEG = {"box": 25.0, "rounded": 25.0, "stick": 20.0, "ellipse": 90.0, "circ
 BOX_ASPECT = (1 / 5, 5.0)  # height / width (the side across y0 / the side along it)
 ELLIPSE_ASPECT = (1 / 3, 3.0)
 STICK_DIAMETER_MM = (1.5, 12.0)
-POLYGON_SIDES = (3, 12)
+POLYGON_SIDES = (3, 12)  # a polygon's corners (kept when its shape is drawn again)
+REGULAR_SHARE = 0.4  # of the polygons: regular ones
+KEEP_SIDES_TRIES = 100  # draws with a polygon's corners and regularity before others are drawn
 
 # checks on every case
 CLEARANCE_MM = 2.0  # between the object and any surface of the open hand (pre-shape)
@@ -333,7 +335,8 @@ def _wrap_deg(a: float) -> float:
 
 
 def _shape(family: str, width: float, angle_u: float, depth: float, material: Material,
-           rng: np.random.Generator, name: str) -> tuple[ObjectT, float] | None:  # fmt: skip
+           rng: np.random.Generator, name: str, sides: int = 3, regular: bool = False,
+           ) -> tuple[ObjectT, float] | None:  # fmt: skip
     """One object of the family, scaled so that its contact width at its angle is ``width``,
     and its angle; None if this draw gives no valid object."""
     span = ANGLE_DEG[family]
@@ -366,8 +369,7 @@ def _shape(family: str, width: float, angle_u: float, depth: float, material: Ma
         length = (width - d) / ca + d
         return Stick(length_mm=_r(length), diameter_mm=_r(d), **common), angle
     if family == "polygon":
-        n = int(rng.integers(POLYGON_SIDES[0], POLYGON_SIDES[1] + 1))
-        unit_v = _regular(n, rng) if rng.random() < 0.4 else _irregular(n, rng)
+        unit_v = _regular(sides, rng) if regular else _irregular(sides, rng)
         unit = Polygon(vertices_mm=[(float(x), float(y)) for x, y in unit_v * 50.0], **common)
         centred = _centred_angle(unit, angle)
         if centred is None:
@@ -399,9 +401,12 @@ def generate_cases(seed: int, n: int, *, prefix: str = "") -> list[Case]:
     """``n`` cases from ``seed`` (bit for bit the same every time), families taking turns."""
     rng = np.random.default_rng(seed)
     names = ("width", "height", "angle", "friction", "stiffness", "mass", "depth", "gain",
-             "creep_gain", "creep_rise", "noise")  # fmt: skip
+             "creep_gain", "creep_rise", "noise", "sides")  # fmt: skip
     u = {k: _strata(rng, n) for k in names}
     dead = rng.random(n) < DEAD_TEXEL_SHARE
+    regular = rng.random(n) < REGULAR_SHARE
+    lo_n, hi_n = POLYGON_SIDES
+    sides = [lo_n + min(int(x * (hi_n - lo_n + 1)), hi_n - lo_n) for x in u["sides"]]
     s = _hand()[0]
     cells = _dead_cells(s)
     cases: list[Case] = []
@@ -427,10 +432,14 @@ def generate_cases(seed: int, n: int, *, prefix: str = "") -> list[Case]:
             noise_counts=_r(_lin(u["noise"][i], *NOISE_COUNTS)),
             dead_texels=texels,
         )
-        angle_u = u["angle"][i]
-        for _ in range(MAX_TRIES):
+        angle_u, n_sides, is_regular = u["angle"][i], sides[i], bool(regular[i])
+        for attempt in range(MAX_TRIES):
+            if attempt and attempt % KEEP_SIDES_TRIES == 0:  # e.g. no regular triangle this
+                n_sides = int(rng.integers(lo_n, hi_n + 1))  # wide fits at this height
+                is_regular = bool(rng.random() < REGULAR_SHARE)
             try:
-                got = _shape(family, width, angle_u, depth, material, rng, case_id)
+                got = _shape(family, width, angle_u, depth, material, rng, case_id,
+                             n_sides, is_regular)  # fmt: skip
             except ValueError:  # pydantic's ValidationError is one: a draw out of bounds
                 got = None
             if got is not None:
