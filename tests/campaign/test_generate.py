@@ -21,6 +21,7 @@ from sdh2svc.campaign.case import (
     suite_names,
 )
 from sdh2svc.config import default_config, load_config
+from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import Box, Circle, Ellipse, Outline, Polygon, Stick, parse_object
 
 TAN_ALPHA = math.tan(math.radians(22.0))  # μ at the controller's friction angle α = 22°
@@ -220,3 +221,37 @@ def test_every_smoke_case_overrides_a_valid_configuration() -> None:
         assert cfg.sim.sensor.gain_vs_library == pytest.approx(base * case.sensor.gain_factor)
         cells = tuple((t.matrix, t.row, t.col) for t in case.sensor.dead_texels)
         assert cfg.sim.sensor.dead_texels == cells
+
+
+def fixture_lets_go(case: Case) -> bool:
+    """Close both coupled fingers from the pre-shape as the grasp does (proximal +δ, distal −δ)
+    on the simulated world of this case: does the placing fixture let go, i.e. do both distal
+    pads press the object before one finger has pushed it out of the fixture? (Whether the
+    fingers then hold it is the run's result, not the placement's.)"""
+    cfg = load_config(overrides=case.overrides(default_config().sim.sensor.gain_vs_library),
+                      use_env=False)  # fmt: skip
+    world = PhysicsWorld(cfg, cfg.sim, case.object)
+    a = cfg.axes
+    q = list(cfg.run.preshape_deg)
+    t = 0.0
+    world.move_joints(t, q, [True] * 7)
+    while q[a.phi2] < cfg.run.grasp_max_close_deg:
+        t += 0.02
+        for prox, dist in ((a.phi2, a.phi3), (a.phi4, a.phi5)):
+            q[prox] += 0.1
+            q[dist] -= 0.1
+        world.move_joints(t, q, [True] * 7)
+        if not world.physics.state.held_by_fixture:  # only when both distal pads press
+            return True
+    return False
+
+
+@pytest.mark.parametrize("name", ["smoke", "thesis"])
+def test_the_simulated_fixture_lets_go_of_every_case(name: str) -> None:
+    """The generator's geometric checks against the physics: in every case both fingertips
+    reach the object together, on their pads (whether the run then holds it is the result)."""
+    assert [c.id for c in load_suite(name).cases if not fixture_lets_go(c)] == []
+
+
+def test_the_simulated_fixture_lets_go_of_every_bench_case() -> None:
+    assert [c.id for c in load_suite("bench-v1").cases if not fixture_lets_go(c)] == []
