@@ -123,6 +123,7 @@ MIN_TURN_DEG = 3.0  # a polygon's least turn at a corner (none nearly in line)
 MAX_OFFSET_MM = 0.05  # extent along y0 centred on the object's centre within this
 MAX_TOUCH_LAG_DEG = 0.4  # both fingertips touch it within this much closing of each other
 DECIMALS = 3  # every generated number is rounded (mm, g, …): readable, and exact in JSON
+WIDTH_DECIMALS = 6  # the true contact width, computed from them
 MAX_TRIES = 500
 SWEEP_CHUNK = 16  # grasp steps checked per distance evaluation
 
@@ -250,6 +251,12 @@ def _first_touch(outline: Outline, centre: tuple[float, float], angle: float, di
 
 def _r(x: float) -> float:
     return round(float(x), DECIMALS)
+
+
+def _true_width(obj: ObjectT, angle_deg: float) -> float:
+    """:func:`contact_width_mm` to a nanometre: the suite's text then never depends on the last
+    bit of the platform's sine and cosine."""
+    return round(contact_width_mm(obj, angle_deg), WIDTH_DECIMALS)
 
 
 def _log_uniform(u: float, lo: float, hi: float) -> float:
@@ -451,7 +458,7 @@ def generate_cases(seed: int, n: int, *, prefix: str = "") -> list[Case]:
             raise RuntimeError(f"no graspable {family} {width:.1f} mm wide after {MAX_TRIES}")
         cases.append(Case(id=case_id, family=family, object=obj, height_mm=height,
                           angle_deg=angle, seed=i + 1, sensor=sensor,
-                          true_width_mm=contact_width_mm(obj, angle)))  # fmt: skip
+                          true_width_mm=_true_width(obj, angle)))  # fmt: skip
     return cases
 
 
@@ -461,7 +468,7 @@ def thesis_suite() -> Suite:
     cases = [
         Case(id=name, family="thesis", object=PRESETS[name], height_mm=s.sim.object_height_mm,
              angle_deg=s.sim.object_angle_deg, seed=s.sim.seed,
-             true_width_mm=contact_width_mm(PRESETS[name], s.sim.object_angle_deg))
+             true_width_mm=_true_width(PRESETS[name], s.sim.object_angle_deg))
         for name in THESIS
     ]  # fmt: skip
     return Suite(name="thesis", generator_seed=None, cases=tuple(cases),
