@@ -9,16 +9,20 @@ one configuration for every object.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field
 
 from sdh2svc.model.base import Frozen
-from sdh2svc.sim.objects import ObjectSpec
+from sdh2svc.sim.objects import Box, Circle, Ellipse, ObjectSpec, Polygon, Stick
 
 Family = Literal["box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis"]
 FAMILIES: tuple[str, ...] = ("box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis")
+
+SUITES_DIR = Path(__file__).parent / "suites"  # the named suites, packaged with the wheel
 
 # The sensor's variation per run (thesis §5.1: real pads drift with use and temperature).
 GAIN_FACTOR = (0.5, 1.5)  # × sim.sensor.gain_vs_library
@@ -94,3 +98,46 @@ class Suite(Frozen):
         """Stable text: the same suite always gives the same bytes (reproducible, diffable)."""
         data: Any = self.model_dump(mode="json")
         return json.dumps(data, indent=1, ensure_ascii=False) + "\n"
+
+
+def extent_along_y0(obj: Stick | Box | Ellipse | Circle | Polygon, angle_deg: float
+                    ) -> tuple[float, float]:  # fmt: skip
+    """(min, max) of the object's outline along y0, relative to its centre, when it is turned by
+    ``angle_deg`` (as sim.object_angle_deg turns it: object x along y0 at 0°).
+
+    The outline is the convex core grown by the rounding radius, so the extent is the core's
+    projection ± the radius; an ellipse is exact (the physics uses the exact ellipse, not its
+    96-gon)."""
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
+    if isinstance(obj, Ellipse):
+        half = math.hypot(obj.axis_a_mm / 2 * c, obj.axis_b_mm / 2 * s)
+        return -half, half
+    core, radius = obj.outline()
+    y = np.asarray(core, dtype=float) @ np.array([c, -s])  # y0 of R(angle)·v
+    return float(y.min()) - radius, float(y.max()) + radius
+
+
+def contact_width_mm(obj: Stick | Box | Ellipse | Circle | Polygon, angle_deg: float) -> float:
+    """The object's true contact width at its placement: its width along y0 (the line between
+    the fingertips) when turned by ``angle_deg`` — not its width across corners."""
+    lo, hi = extent_along_y0(obj, angle_deg)
+    return hi - lo
+
+
+def load_suite(name_or_path: str | Path) -> Suite:
+    """A packaged suite by name (``smoke``, ``bench-v1``, ``thesis``) or a suite file's path."""
+    text = str(name_or_path)
+    packaged = SUITES_DIR / f"{text}.json"
+    if "/" not in text and "\\" not in text and not text.endswith(".json"):
+        if not packaged.is_file():
+            names = ", ".join(suite_names())
+            shown = text if len(text) <= 80 else text[:80] + "…"
+            raise KeyError(f"unknown suite {shown!r}; packaged suites: {names}")
+        return Suite.load(packaged)
+    return Suite.load(Path(name_or_path))
+
+
+def suite_names() -> list[str]:
+    """The packaged suites' names."""
+    return sorted(p.stem for p in SUITES_DIR.glob("*.json"))

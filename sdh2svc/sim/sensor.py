@@ -11,6 +11,8 @@
   scaled by ``gain_vs_library`` (1.0: exactly the library's nominal calibration; see sim.toml),
   plus seeded Gaussian noise on loaded cells (an unloaded resistive cell reads a clean 0),
   then the controller's sensitivity, threshold and saturation at 4095.
+* Dead texels (``dead_texels``, [matrix, row, col] each) read 0 whatever presses them, as a
+  broken cell of a worn pad does.
 * Creep (thesis §2.8, §4.1): each cell keeps a memory m that follows its pressure with a time
   constant ``creep_rise_s`` while loaded and decays with ``creep_fall_s``; it reads
   P + creep_gain·min(m, P). Under a constant load the reading rises over seconds; unloaded it
@@ -23,12 +25,15 @@ from collections.abc import Mapping, Sequence
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, Strict, field_validator
 from scipy.special import ndtr
 
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.contact import MatrixLayout
 from sdh2svc.sim.world import FACTORY_SENSITIVITY, MAX_COUNT
+
+MATRICES, MAX_ROWS, MAX_COLS = 6, 14, 6  # the DSA's six matrices; the largest (proximal) 14 × 6
+DeadIndex = Annotated[int, Strict(), Field(ge=0)]
 
 
 class SensorModelConfig(Frozen):
@@ -42,6 +47,19 @@ class SensorModelConfig(Frozen):
     creep_gain: Annotated[float, Field(ge=0.0, le=5.0)]
     creep_rise_s: Annotated[float, Field(gt=0.0, le=3600.0)]
     creep_fall_s: Annotated[float, Field(gt=0.0, le=3600.0)]
+    # cells that never report pressure, [matrix, row, col] each (wire order of the six matrices)
+    dead_texels: tuple[tuple[DeadIndex, DeadIndex, DeadIndex], ...] = ()
+
+    @field_validator("dead_texels")
+    @classmethod
+    def _cells_exist(
+        cls, cells: tuple[tuple[int, int, int], ...]
+    ) -> tuple[tuple[int, int, int], ...]:
+        for m, r, c in cells:
+            if not (m < MATRICES and r < MAX_ROWS and c < MAX_COLS):
+                bounds = f"matrix 0…{MATRICES - 1}, row 0…{MAX_ROWS - 1}, col 0…{MAX_COLS - 1}"
+                raise ValueError(f"dead texel [{m}, {r}, {c}]: no such cell ({bounds})")
+        return cells
 
 
 class PadRaster:
@@ -105,6 +123,10 @@ class TactileSensorModel:
         self.offsets = [0, *np.cumsum(sizes).tolist()]  # each matrix's start in a frame
         self.memory = np.zeros(self.offsets[-1])  # creep memory of every cell, wire order
         self.valid = np.concatenate([lay.valid().ravel() for lay in layouts])
+        for m, r, c in cfg.dead_texels:  # a dead cell reads 0 whatever presses it
+            if m >= len(self.shapes) or r >= self.shapes[m][0] or c >= self.shapes[m][1]:
+                raise ValueError(f"dead texel [{m}, {r}, {c}]: matrix {m} has no such cell")
+            self.valid[self.offsets[m] + r * self.shapes[m][1] + c] = False
         self._t: float | None = None
         self._settings: tuple[tuple[float, ...], tuple[int, ...], np.ndarray, np.ndarray] | None
         self._settings = None
