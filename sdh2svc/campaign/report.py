@@ -70,8 +70,8 @@ def write_report(out: Path) -> Path:
         f"; `--set` {' '.join(info.get('overrides') or []) or 'none'}.",
         "",
         "Success (`sdh2svc.campaign.run.judge`): completed every stroke, every half stroke "
-        "turned the object ≥ 1° (true ψ at the grasp and at every reversal), no drop, every F "
-        "after the grasp within [0.25, 2.5] × Fd.",
+        "turned the object ≥ 1° (the largest excursion of its true angle ψ within the half "
+        "stroke), no drop, every F after the grasp within [0.25, 2.5] × Fd.",
         "",
         f"**Success overall: {rate(rows)}**",
         "",

@@ -286,8 +286,9 @@ def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
        (``strokes >= cycles``, 3 by default);
     2. the object was never dropped;
     3. every half stroke (grasp or reversal to the next reversal that ended a move) turned the
-       object by at least ``MIN_HALF_STROKE_DEG`` (1°) of true rotation, and there were
-       ``2 × cycles`` of them;
+       object by at least ``MIN_HALF_STROKE_DEG`` (1°) of true rotation — the largest
+       excursion of its true angle ψ from where the half stroke began
+       (:meth:`TruthProbe.half_strokes_deg`) — and there were ``2 × cycles`` of them;
     4. every rolling iteration's F after the grasp lay within ``F_BAND`` (0.25…2.5) × Fd.
 
     The failure reason is the first of: ``crashed``, ``dropped``, ``faulted: FAULT``, the
