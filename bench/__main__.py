@@ -13,6 +13,7 @@ SECTIONS = {
     "control": "bench.control",
     "service": "bench.service",
     "faults": "bench.faults",
+    "campaign": "bench.campaign",
 }
 
 
