@@ -580,6 +580,8 @@ class TcpEndpoint(Endpoint):
     and closed at once, so the host sees the line go dead and cannot get back in.
     """
 
+    _tcp = True  # TCP options apply (not on a Unix socket, where setting them only fails)
+
     def __init__(
         self,
         device: Device,
@@ -653,8 +655,9 @@ class TcpEndpoint(Endpoint):
             return
         self._drop_client()
         self._client = conn
-        conn.setsockopt(socket.TCP_NODELAY)
-        conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
+        if self._tcp:
+            conn.setsockopt(socket.TCP_NODELAY)
+            conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
         self._set_host(True)
 
     def _received(self, conn: _TcpConnection, data: bytes) -> None:
@@ -662,7 +665,8 @@ class TcpEndpoint(Endpoint):
             return
         # Linux drops out of quick-ACK mode by itself; re-arm it so a host that sends a command
         # and its "\r\n" in two segments (Nagle on) is not held up by our delayed ACK.
-        conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
+        if self._tcp:
+            conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
         self._on_rx(data)
 
     def _lost(self, conn: _TcpConnection) -> None:
@@ -676,6 +680,8 @@ class UnixEndpoint(TcpEndpoint):
     """Serves the device on a Unix-domain socket; the host opens :attr:`url` (``unix:///path``,
     see :mod:`sdh2svc.bus.urlhandlers`). The kernel delivers its bytes synchronously, so it is
     the transport of fast mode (virtual clock); otherwise it behaves as :class:`TcpEndpoint`."""
+
+    _tcp = False
 
     def __init__(
         self,
