@@ -46,7 +46,7 @@ from typing import Final, Self, TypeAlias
 
 import serial
 
-from sdh2svc.bus.link import close_streams, is_socket_url, open_streams
+from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
@@ -270,9 +270,28 @@ class _Conn:
         self.rx_bytes = 0
         self.dirty = False  # the line may hold leftovers of an unfinished exchange
         self.lost: BaseException | None = None
+        self._closing = False
         self._reader = reader
         self._on_lost = on_lost
-        self._task = asyncio.get_running_loop().create_task(self._pump(), name="sdh-joint-rx")
+        self._task: asyncio.Task[None] | None = None
+        if isinstance(reader, PushReader):  # replies parsed as they arrive, no task between
+            reader.push_to(self._received, self._ended)
+        else:
+            self._task = asyncio.get_running_loop().create_task(self._pump(), name="sdh-joint-rx")
+
+    def _received(self, data: bytes) -> None:
+        if self._closing:
+            return
+        try:
+            self.rx_bytes += len(data)
+            for event in self.parser.feed(data):
+                self.events.put_nowait(event)
+        except Exception as exc:  # as the reading task would: the connection ends
+            self._die(exc)
+
+    def _ended(self, exc: BaseException | None) -> None:
+        if not self._closing:
+            self._die(exc if exc is not None else ConnectionResetError("end of stream"))
 
     async def _pump(self) -> None:
         try:
@@ -324,9 +343,11 @@ class _Conn:
         self.discard()
 
     async def close(self) -> None:
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
+        self._closing = True  # nothing received from now on counts (as a cancelled reader)
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
         if self.lost is None:
             self.lost = LinkLost("closed")
             self.events.put_nowait(_Lost(self.lost))

@@ -5,6 +5,10 @@ Shared by the bus drivers (joint controller, tactile controller). pyserial-async
 long as a ``socket://`` connect takes; here the blocking ``serial_for_url`` runs in a worker
 thread and only the transport is built on the loop. pyserial's ``socket://`` close() is patched
 (see :func:`_tune_socket`).
+
+``unix:///path`` (the simulated hand in fast mode) is opened with asyncio's own Unix-socket
+transport: the same bytes on the same socket, without pyserial's ``select()`` before every read
+and write (two system calls per piece received, on a clock that never waits).
 """
 
 from __future__ import annotations
@@ -12,14 +16,58 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import urllib.parse
+from collections.abc import Callable
 from typing import Any, Final
 
 import serial
 import serial_asyncio
 
-__all__ = ["DEFAULT_BAUD", "close_streams", "is_socket_url", "open_streams"]
+__all__ = ["DEFAULT_BAUD", "PushReader", "close_streams", "is_socket_url", "open_streams"]
 
 DEFAULT_BAUD: Final = 115_200
+
+
+class PushReader(asyncio.StreamReader):
+    """A stream reader that can hand every piece received straight to a consumer instead
+    (:meth:`push_to`), from the transport's callback: a task awaiting :meth:`read` would see it
+    one event-loop round later, for nothing but a hop."""
+
+    _on_data: Callable[[bytes], None] | None = None
+    _on_end: Callable[[BaseException | None], None] | None = None
+
+    def push_to(
+        self, on_data: Callable[[bytes], None], on_end: Callable[[BaseException | None], None]
+    ) -> None:
+        """From now on, ``on_data(piece)`` for every piece and ``on_end(exc)`` once at the end
+        (``exc`` None: end of stream). Whatever is buffered already goes first."""
+        self._on_data, self._on_end = on_data, on_end
+        if self._buffer:
+            data = bytes(self._buffer)
+            self._buffer.clear()
+            self._maybe_resume_transport()
+            on_data(data)
+        if (exc := self.exception()) is not None or self.at_eof():
+            self._end(exc)
+
+    def feed_data(self, data: bytes) -> None:
+        if self._on_data is None:
+            super().feed_data(data)
+        elif data:
+            self._on_data(bytes(data))
+
+    def feed_eof(self) -> None:
+        super().feed_eof()
+        self._end(None)
+
+    def set_exception(self, exc: BaseException) -> None:
+        super().set_exception(exc)
+        self._end(exc)
+
+    def _end(self, exc: BaseException | None) -> None:
+        on_end, self._on_data, self._on_end = self._on_end, None, None
+        if on_end is not None:
+            on_end(exc)
 
 
 def is_socket_url(url: str) -> bool:
@@ -35,6 +83,8 @@ async def open_streams(
     Raises ``serial.SerialException`` (or ``OSError``) when the port cannot be opened. A lost
     port later shows as an exception (or EOF) from the reader.
     """
+    if url.strip().lower().startswith("unix://"):
+        return await _open_unix(url, limit)
     loop = asyncio.get_running_loop()
     opening = asyncio.ensure_future(asyncio.to_thread(
         serial.serial_for_url, url, baudrate=baudrate, rtscts=False, xonxoff=False,
@@ -47,12 +97,26 @@ async def open_streams(
         raise
     _tune_socket(port)
     try:
-        reader = asyncio.StreamReader(limit=limit, loop=loop)
+        reader = PushReader(limit=limit, loop=loop)
         protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
         transport, _ = await serial_asyncio.connection_for_serial(loop, lambda: protocol, port)
     except BaseException:
         port.close()
         raise
+    return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
+
+
+async def _open_unix(url: str, limit: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    path = urllib.parse.urlsplit(url.strip()).path
+    if not path:
+        raise serial.SerialException(f"expected a URL like unix:///path/to/socket, got {url!r}")
+    loop = asyncio.get_running_loop()
+    reader = PushReader(limit=limit, loop=loop)
+    protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
+    try:
+        transport, _ = await loop.create_unix_connection(lambda: protocol, path)
+    except OSError as e:
+        raise serial.SerialException(f"Could not open port {url}: {e}") from None
     return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
 
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import csv
 import json
-import queue
 import sqlite3
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -23,6 +23,7 @@ import numpy as np
 from sdh2svc.control.sample import Sample
 
 SAMPLE_COLUMNS = Sample.columns()
+_ROWS_PER_INSERT = 200  # rows in one multi-row INSERT (within SQLite's variable limit)
 _QUOTED = ", ".join(f'"{c}"' for c in SAMPLE_COLUMNS)
 
 SCHEMA = f"""
@@ -310,61 +311,80 @@ def _epoch_ns(iso: str) -> int:
 class Recorder:
     """Writes one run's samples, events and frames from a background thread, in small batches.
 
-    ``sample``/``event``/``frame`` never block the control loop: they only enqueue. The thread
-    commits at least every ``flush_s``; :meth:`close` flushes the rest.
+    ``sample``/``event``/``frame`` never block the control loop: they only append to a buffer
+    (a deque: no lock, no wake-up of the thread). The thread takes whatever is buffered at least
+    every ``flush_s`` and commits it, a table's consecutive rows in one multi-row ``INSERT``;
+    :meth:`close` flushes the rest. Waking the thread per row, or stepping SQLite per row, would
+    hand the interpreter lock over per row: in fast mode, where the loop never idles, that cost
+    the loop ≈ 20 % of its speed.
     """
 
     def __init__(self, path: str | Path, run_id: int, flush_s: float = 0.05) -> None:
         self.path, self.run_id, self.flush_s = Path(path), run_id, flush_s
-        self._q: queue.Queue[tuple[str, tuple[Any, ...]] | None] = queue.Queue()
+        self._buf: deque[tuple[str, tuple[Any, ...]]] = deque()
+        self._closing = threading.Event()
         self.committed = 0  # items on disk
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name=f"recorder-{run_id}", daemon=True)
         self._thread.start()
 
     def sample(self, s: Sample) -> None:
-        self._q.put(("s", (self.run_id, *s.row())))
+        self._buf.append(("s", (self.run_id, *s.row())))
 
     def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        self._q.put(("e", (self.run_id, t, iteration, kind, json.dumps(detail))))
+        self._buf.append(("e", (self.run_id, t, iteration, kind, json.dumps(detail))))
 
     def frame(self, t: float, iteration: int | None, timestamp_ms: int, texels: np.ndarray) -> None:
         blob = np.ascontiguousarray(texels, dtype="<u2").tobytes()
-        self._q.put(("f", (self.run_id, t, iteration, timestamp_ms, blob)))
+        self._buf.append(("f", (self.run_id, t, iteration, timestamp_ms, blob)))
 
     def close(self) -> None:
-        self._q.put(None)
+        self._closing.set()
         self._thread.join()
 
     def _run(self) -> None:
         db = connect(self.path)
-        cols = f'"run_id", {_QUOTED}'
-        marks = ", ".join("?" * (len(SAMPLE_COLUMNS) + 1))
-        sql = {
-            "s": f"INSERT INTO samples ({cols}) VALUES ({marks})",
-            "e": "INSERT INTO events (run_id, t, iteration, kind, detail) VALUES (?, ?, ?, ?, ?)",
-            "f": "INSERT INTO frames (run_id, t, iteration, timestamp_ms, texels) "
-                 "VALUES (?, ?, ?, ?, ?)",
-        }  # fmt: skip
-        done = False
+        tables = {
+            "s": ("samples", f'"run_id", {_QUOTED}', len(SAMPLE_COLUMNS) + 1),
+            "e": ("events", "run_id, t, iteration, kind, detail", 5),
+            "f": ("frames", "run_id, t, iteration, timestamp_ms, texels", 5),
+        }
+        max_vars = db.getlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER)
+        per_stmt = {
+            k: max(1, min(_ROWS_PER_INSERT, max_vars // n)) for k, (_, _, n) in tables.items()
+        }
+        sql: dict[tuple[str, int], str] = {}
+
+        def insert(kind: str, rows: list[tuple[Any, ...]]) -> None:
+            table, cols, n = tables[kind]
+            step = per_stmt[kind]
+            for i in range(0, len(rows), step):
+                part = rows[i : i + step]
+                key = (kind, len(part))
+                if key not in sql:
+                    one = "(" + ", ".join("?" * n) + ")"
+                    sql[key] = f"INSERT INTO {table} ({cols}) VALUES " + ", ".join(
+                        [one] * len(part)
+                    )
+                db.execute(sql[key], [v for row in part for v in row])
+
+        buf = self._buf
         try:
-            while not done:
-                batch: list[tuple[str, tuple[Any, ...]]] = []
-                deadline = time.monotonic() + self.flush_s
-                while True:
-                    try:
-                        item = self._q.get(timeout=max(0.0, deadline - time.monotonic()))
-                    except queue.Empty:
-                        break
-                    if item is None:
-                        done = True
-                        break
-                    batch.append(item)
+            while True:
+                done = self._closing.wait(self.flush_s)
+                batch = []
+                while buf:
+                    batch.append(buf.popleft())
                 if batch:
-                    with db:
-                        for kind, row in batch:
-                            db.execute(sql[kind], row)
+                    with db:  # one transaction; each run of one table's rows in few statements
+                        start = 0
+                        for i in range(1, len(batch) + 1):
+                            if i == len(batch) or batch[i][0] != batch[start][0]:
+                                insert(batch[start][0], [row for _, row in batch[start:i]])
+                                start = i
                     self.committed += len(batch)
+                if done and not buf:
+                    break
         except BaseException as e:
             self.error = e
         finally:

@@ -6,7 +6,10 @@ the timing around it:
 
 * the line is modelled as one UART at ``baud`` (10 bits per byte, 8N1): a packet's bytes are
   released in small chunks as they fall due, and the device is asked for the next packet only when
-  the line is idle, so packets never interleave and streams are line-limited;
+  the line is idle, so packets never interleave and streams are line-limited. With
+  ``whole_packets=True`` (fast mode) each packet is released in one piece at the moment its last
+  byte has left the UART: the same line time and rate, only its first bytes do not reach the host
+  early (a cable pulled mid-packet still delivers the bytes already sent);
 * faults from :class:`~sdh2svc.sim.faults.FaultConfig` corrupt, drop or cut device→host bytes,
   keep the device deaf and mute while it "boots", and :meth:`Endpoint.disconnect` pulls the cable;
 * the host reaches it through an ordinary pyserial URL (:attr:`Endpoint.url`): a pty slave path or
@@ -95,6 +98,9 @@ class LinkPacer:
     byte_time``. A packet that follows the previous one within ``max_catchup_s`` starts where that
     one ended, so back-to-back packets keep the exact line rate despite late wake-ups; after a
     longer idle gap the line starts at ``now`` (never earlier, so bytes never beat the line rate).
+
+    Chunks are released every ``tick_s``; with ``whole_packets`` a packet is one chunk, released
+    when its last byte is due.
     """
 
     def __init__(
@@ -103,11 +109,13 @@ class LinkPacer:
         *,
         tick_s: float = 0.001,
         max_catchup_s: float = 0.002,
+        whole_packets: bool = False,
     ) -> None:
         if baud is not None and baud <= 0:
             raise ValueError("baud must be positive or None")
         self.byte_time = 0.0 if baud is None else BITS_PER_BYTE / baud
         self.tick_s = tick_s
+        self.whole_packets = whole_packets
         self.max_catchup_s = max_catchup_s
         self._t0 = -math.inf
         self._size = 0
@@ -130,7 +138,9 @@ class LinkPacer:
 
     def wake_at(self, now: float, sent: int) -> float:
         """When to release the next chunk: one tick on, but not before a byte is due and not
-        after the packet's last byte is."""
+        after the packet's last byte is (with ``whole_packets``: when the last byte is)."""
+        if self.whole_packets:
+            return self.free_at
         next_byte = self._t0 + (sent + 1) * self.byte_time
         return min(max(now + self.tick_s, next_byte), self.free_at)
 
@@ -148,13 +158,21 @@ class Endpoint(ABC):
     """
 
     def __init__(
-        self, device: Device, *, baud: int | None = DEFAULT_BAUD, faults: FaultConfig | None = None
+        self,
+        device: Device,
+        *,
+        baud: int | None = DEFAULT_BAUD,
+        faults: FaultConfig | None = None,
+        whole_packets: bool = False,
     ) -> None:
         self.device = device
         self.faults = faults or FaultConfig()
         self.stats = LinkStats()
         self._injector = FaultInjector(self.faults, self.stats.faults)
-        self._pacer = LinkPacer(baud)
+        self._pacer = LinkPacer(baud, whole_packets=whole_packets)
+        self._tx: FaultedPacket | None = None  # the packet on the line, if any
+        self._tx_sent = 0  # how many of its bytes have been released
+        self._tx_link = -1  # the host connection it is for
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._changed = asyncio.Event()  # any state change the transmitter may be waiting for
@@ -220,6 +238,8 @@ class Endpoint(ABC):
         if not self.running:
             raise RuntimeError("endpoint is not running")
         self.stats.faults[FaultKind.DISCONNECT] += 1
+        if self._pacer.whole_packets and self._tx_link == self._link_id and self._sink_ready():
+            self._release_due(self._now())  # what left the UART before the cable came out
         self._unplugged_until = max(self._unplugged_until, self._now() + duration_s)
         self._unplug()
         self._poke()
@@ -349,20 +369,30 @@ class Endpoint(ABC):
         self.stats.packets_tx += 1
         link = self._link_id
         self._pacer.begin(self._now(), len(out))
-        sent = 0
-        while sent < len(out):
-            await self._until_writable(link)
-            now = self._now()
-            if link != self._link_id:
-                self._pacer.abort(now)
-                return
-            due = self._pacer.due(now)
-            if due > sent:
-                self._emit(out, sent, due, now)
-                sent = due
-            if sent < len(out):
-                await asyncio.sleep(self._pacer.wake_at(now, sent) - now)
+        self._tx, self._tx_sent, self._tx_link = out, 0, link
+        try:
+            while self._tx_sent < len(out):
+                await self._until_writable(link)
+                now = self._now()
+                if link != self._link_id:
+                    self._pacer.abort(now)
+                    return
+                self._release_due(now)
+                if self._tx_sent < len(out):
+                    await asyncio.sleep(self._pacer.wake_at(now, self._tx_sent) - now)
+        finally:
+            self._tx = None
         await asyncio.sleep(0)  # let the host run between packets even when nothing waited
+
+    def _release_due(self, now: float) -> None:
+        """Hand the host the bytes of the packet on the line that have left the UART by now."""
+        out, sent = self._tx, self._tx_sent
+        if out is None:
+            return
+        due = self._pacer.due(now)
+        if due > sent:
+            self._tx_sent = due
+            self._emit(out, sent, due, now)
 
     async def _until_writable(self, link: int) -> None:
         while link == self._link_id and not (self._unplugged(self._now()) or self._sink_ready()):
@@ -550,6 +580,8 @@ class TcpEndpoint(Endpoint):
     and closed at once, so the host sees the line go dead and cannot get back in.
     """
 
+    _tcp = True  # TCP options apply (not on a Unix socket, where setting them only fails)
+
     def __init__(
         self,
         device: Device,
@@ -558,8 +590,9 @@ class TcpEndpoint(Endpoint):
         port: int = 0,
         baud: int | None = DEFAULT_BAUD,
         faults: FaultConfig | None = None,
+        whole_packets: bool = False,
     ) -> None:
-        super().__init__(device, baud=baud, faults=faults)
+        super().__init__(device, baud=baud, faults=faults, whole_packets=whole_packets)
         self.host = host
         self._port = port
         self._server: asyncio.Server | None = None
@@ -622,8 +655,9 @@ class TcpEndpoint(Endpoint):
             return
         self._drop_client()
         self._client = conn
-        conn.setsockopt(socket.TCP_NODELAY)
-        conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
+        if self._tcp:
+            conn.setsockopt(socket.TCP_NODELAY)
+            conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
         self._set_host(True)
 
     def _received(self, conn: _TcpConnection, data: bytes) -> None:
@@ -631,7 +665,8 @@ class TcpEndpoint(Endpoint):
             return
         # Linux drops out of quick-ACK mode by itself; re-arm it so a host that sends a command
         # and its "\r\n" in two segments (Nagle on) is not held up by our delayed ACK.
-        conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
+        if self._tcp:
+            conn.setsockopt(getattr(socket, "TCP_QUICKACK", None))
         self._on_rx(data)
 
     def _lost(self, conn: _TcpConnection) -> None:
@@ -646,6 +681,8 @@ class UnixEndpoint(TcpEndpoint):
     see :mod:`sdh2svc.bus.urlhandlers`). The kernel delivers its bytes synchronously, so it is
     the transport of fast mode (virtual clock); otherwise it behaves as :class:`TcpEndpoint`."""
 
+    _tcp = False
+
     def __init__(
         self,
         device: Device,
@@ -653,8 +690,9 @@ class UnixEndpoint(TcpEndpoint):
         *,
         baud: int | None = DEFAULT_BAUD,
         faults: FaultConfig | None = None,
+        whole_packets: bool = False,
     ) -> None:
-        super().__init__(device, baud=baud, faults=faults)
+        super().__init__(device, baud=baud, faults=faults, whole_packets=whole_packets)
         self.path = path
 
     @property
@@ -688,8 +726,9 @@ class MemoryEndpoint(Endpoint):
         baud: int | None = DEFAULT_BAUD,
         faults: FaultConfig | None = None,
         on_output: Callable[[bytes, float], None] | None = None,
+        whole_packets: bool = False,
     ) -> None:
-        super().__init__(device, baud=baud, faults=faults)
+        super().__init__(device, baud=baud, faults=faults, whole_packets=whole_packets)
         self.output = bytearray()
         self._on_output = on_output
 

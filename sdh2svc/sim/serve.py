@@ -174,8 +174,10 @@ async def start_simulated_hand(
             shared = SharedDevice(device)
             eps: list[Endpoint] = []
             if unix_dir is not None:
+                # fast mode: whole packets as their last byte is due (see endpoint.py)
                 eps.append(UnixEndpoint(shared.port(), str(unix_dir / f"{name}.sock"),
-                                        baud=links.baud, faults=faults))  # fmt: skip
+                                        baud=links.baud, faults=faults,
+                                        whole_packets=True))  # fmt: skip
             else:
                 if pty if pty is not None else links.pty:
                     eps.append(PtyEndpoint(shared.port(), baud=links.baud, faults=faults))
