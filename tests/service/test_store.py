@@ -10,7 +10,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -118,19 +117,14 @@ def test_durable_through_sigkill(tmp_path: Path) -> None:
         stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )  # fmt: skip
     assert proc.stdout is not None
-    reports: list[tuple[float, int]] = []
-    start = time.monotonic()
-    while time.monotonic() - start < 1.5:
+    durable = 0  # the writer prints what its recorder has committed: on disk from then on
+    while durable <= 100:  # it really was writing for a while (an event, not a time window)
         line = proc.stdout.readline()
-        if not line:
-            break
-        reports.append((time.monotonic(), int(line)))
-    killed_at = time.monotonic()
+        assert line, "the writer died"
+        durable = int(line)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     proc.stdout.close()
-    durable = max(n for t, n in reports if t <= killed_at - 0.1)
-    assert durable > 50  # it really was writing for a while
     store = RunStore(db)
     (run,) = store.runs()
     assert run["iterations"] >= durable
