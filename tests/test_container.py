@@ -59,10 +59,17 @@ def parse_dockerfile(text: str) -> Dockerfile:
     return d
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def _free_ports(n: int) -> list[int]:
+    """``n`` distinct free ports (held open together while chosen: one at a time, the system
+    may hand out the same port twice)."""
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def test_dockerfile_steps_match_the_readme() -> None:
@@ -95,9 +102,10 @@ def test_dockerfile_command_starts_the_service_from_a_fresh_venv(tmp_path: Path)
                               text=True, timeout=800)  # fmt: skip
         assert proc.returncode == 0, f"RUN {run}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
 
+    http_port, viser_port = _free_ports(2)
     run_env = {**env, **d.env, "SDH2SVC_STORAGE__DB_PATH": str(tmp_path / "data" / "runs.sqlite"),
-               "SDH2SVC_SERVICE__PORT": str(_free_port()),
-               "SDH2SVC_SERVICE__VISER_PORT": str(_free_port())}  # fmt: skip
+               "SDH2SVC_SERVICE__PORT": str(http_port),
+               "SDH2SVC_SERVICE__VISER_PORT": str(viser_port)}  # fmt: skip
 
     # without a token the exposed service refuses to start, and says why
     refused = subprocess.run(d.cmd, cwd=app, env=run_env, capture_output=True, text=True,
