@@ -140,7 +140,7 @@ def _wait_for_line(path: Path, proc: subprocess.Popen[bytes], deadline_s: float)
     pytest.fail("no case finished in time")
 
 
-@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("workers", [2])  # the pool: a single process is the simpler case
 def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(tmp_path: Path,
                                                                 workers: int) -> None:  # fmt: skip
     suite = tiny_suite(("rubber", 1), ("rubber", 2), ("rubber", 3), ("rubber", 4))
