@@ -571,10 +571,17 @@ def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
     pending: dict[Future[dict[str, Any]], Case] = {}
     lost: list[Case] = []
+
+    def submit(case: Case) -> None:
+        try:
+            pending[pool.submit(fn, case.model_dump_json(), *args)] = case
+        except BrokenProcessPool:  # a worker died since the last look: not this case's doing
+            lost.append(case)
+
     try:
         # keep each worker busy with one case and one queued: Ctrl-C then cancels the rest
         for case in _take(queue, 2 * workers):
-            pending[pool.submit(fn, case.model_dump_json(), *args)] = case
+            submit(case)
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
@@ -589,7 +596,7 @@ def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
                 record(row)
                 if not lost:
                     for nxt in _take(queue, 1):
-                        pending[pool.submit(fn, nxt.model_dump_json(), *args)] = nxt
+                        submit(nxt)
     except BaseException:
         _stop_pool(pool)
         raise

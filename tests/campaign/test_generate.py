@@ -139,7 +139,9 @@ def test_generation_is_bit_for_bit_reproducible() -> None:
     assert c.to_json() != a.to_json()
 
 
-@pytest.mark.parametrize("name", ["smoke", "thesis", "bench-v1"])
+# bench-v1 (360 cases, ≈ 15 s to regenerate) is checked by `python -m sdh2svc.campaign.generate
+# --check`; the same generator makes smoke, so a change that moves one moves the other
+@pytest.mark.parametrize("name", ["smoke", "thesis"])
 def test_committed_suites_are_what_their_seeds_make(name: str) -> None:
     assert gen.check_suites(names=[name]) == []
 

@@ -20,6 +20,7 @@ import pytest
 from mcap.reader import make_reader
 from websockets.asyncio.client import ClientConnection, connect
 
+from sdh2svc.config import load_config
 from sdh2svc.service.launch import LiveService, service_command, start_service
 from sdh2svc.service.store import RunStore
 
@@ -348,7 +349,6 @@ def _stalled_client(url: str) -> socket.socket:
 async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
     """One client never reads: it is dropped; the loop and a normal client lose nothing."""
     async with svc.client() as c:
-        baseline = await _one_stroke_run(c, svc)
         stalled = [_stalled_client(svc.ws_url) for _ in range(3)]
         try:
             async with telemetry(svc) as tm:
@@ -359,15 +359,17 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
         finally:
             for s in stalled:
                 s.close()
-    assert summary["status"] == baseline["status"] == "completed", (summary, baseline)
+    assert summary["status"] == "completed", summary
     # the stalled clients were cut off after the send timeout …
     assert st["telemetry"]["disconnected_slow"] >= 3
     # … the reading client got every iteration, in order, none dropped
     assert [s["iteration"] for s in samples] == list(range(1, summary["iterations"] + 1))
     assert not tm.of("dropped")
-    # … and the loop kept its pace, as without clients (the tactile frame rate, not the CPU,
-    # sets it; 0.7 leaves room for a shared machine — bench/service.py measures it properly)
-    assert summary["loop_hz"] >= 0.7 * baseline["loop_hz"], (summary, baseline)
+    # … and the loop kept its pace: the tactile frame rate, not the CPU, sets it (one iteration
+    # per fresh frame at run.tactile_rate_hz = 30; 0.7 leaves room for a shared machine —
+    # bench/service.py measures the latency with and without clients properly)
+    rate = load_config(use_env=False).run.tactile_rate_hz
+    assert summary["loop_hz"] >= 0.7 * rate, summary
 
 
 async def _one_stroke_run(c: httpx.AsyncClient, svc: LiveService) -> dict[str, Any]:
