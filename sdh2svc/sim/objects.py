@@ -86,6 +86,8 @@ class Stick(_ShapeBase):
     @cached_property
     def _outline(self) -> tuple[np.ndarray, float]:
         half = (self.length_mm - self.diameter_mm) / 2
+        if half <= 0.0:  # as thick as long: a disk (a zero-length segment has no direction)
+            return _frozen(np.zeros((1, 2))), self.diameter_mm / 2
         return _frozen(np.array([[-half, 0.0], [half, 0.0]])), self.diameter_mm / 2
 
     @property

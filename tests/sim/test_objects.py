@@ -96,3 +96,13 @@ def test_scripted_world_follows_reference_and_moves_blobs() -> None:
     a = w.tactile_frame(0.0, [0.5] * 6, [0] * 6)
     b = w.tactile_frame(1.0, [0.5] * 6, [0] * 6)
     assert a.shape == (486,) and a.max() > 1000 and not np.array_equal(a, b)
+
+
+def test_a_stick_as_thick_as_long_is_a_disk() -> None:
+    """A zero-length core segment has no direction: its distances would be 0/0 (NaN)."""
+    stick = Outline(parse_object({"kind": "stick", "length_mm": 20.0, "diameter_mm": 20.0,
+                                  "depth_mm": 5.0}))  # fmt: skip
+    disk = Outline(parse_object({"kind": "circle", "diameter_mm": 20.0, "depth_mm": 5.0}))
+    p = np.array([[0.0, 0.0], [10.0, 0.0], [3.0, 12.0], [-20.0, 5.0]])
+    assert np.all(np.isfinite(stick.sdf(p)))
+    assert np.allclose(stick.sdf(p), disk.sdf(p))
