@@ -761,21 +761,25 @@ class JointLink:
         controller), one attempt each, errors ignored — the hand must not move on while the
         line is bad, and a stop that got through works even if its reply did not."""
         self.stats.motion_stops += 1
-        stops = [self._request("stop")]
-        if self.controller is not ControllerMode.POSE:
-            stops.insert(0, self._request("v", (0.0,) * NUM_AXES))
-        for req in stops:
+        for req in self._stop_requests():
             try:
                 await self._attempt(conn, req, timeout_s)
             except (JointLinkError, _Garbled, TimeoutError):
                 await self._resync(conn)
 
+    def _stop_requests(self) -> list[_Request]:
+        """What stops every axis in the current controller: zero target velocities (a velocity
+        controller), then `stop` (an `m` move)."""
+        stop = [self._request("stop")]
+        if self.controller is ControllerMode.POSE:
+            return stop
+        return [self._request("v", (0.0,) * NUM_AXES), *stop]
+
     async def _hold_on(self, conn: _Conn) -> Vec:
-        """Stop every axis where it is: zero velocities (velocity controllers), `stop` (an `m`
-        move), pose controller, actual angles as targets (so a later `m` does not jump)."""
-        if self.controller is not ControllerMode.POSE:
-            await self._urgent(conn, self._request("v", (0.0,) * NUM_AXES))
-        await self._urgent(conn, self._request("stop"))
+        """Stop every axis where it is (:meth:`_stop_requests`), pose controller, actual angles
+        as targets (so a later `m` does not jump)."""
+        for req in self._stop_requests():
+            await self._urgent(conn, req)
         if self.controller is not ControllerMode.POSE:
             await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
             self.controller = ControllerMode.POSE

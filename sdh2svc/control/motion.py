@@ -14,7 +14,7 @@ import asyncio
 from collections.abc import Callable, Sequence
 
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
-from sdh2svc.control.safety import clamp_targets
+from sdh2svc.control.safety import RunConfig, SafetyConfig, clamp_targets
 
 MOVE_PERIOD_S = 0.01  # pause between increments: the line stays free for others (≈ 40 Hz loop)
 PROGRESS_DEG = 0.05  # the largest gap to the goal shrank by this: progress
@@ -67,3 +67,18 @@ async def move_in_increments(
         elif loop.time() - last_progress > STALL_S:
             raise MoveBlocked(f"the fingers stopped {gap:.1f}° short of the pose")
         await asyncio.sleep(MOVE_PERIOD_S)
+
+
+async def move_to_preshape(
+    joints: JointLink,
+    run: RunConfig,
+    limits: tuple[Sequence[float], Sequence[float]],
+    safety: SafetyConfig,
+    check: Check | None = None,
+) -> tuple[float, ...]:
+    """Open the coupled fingers to ``run.preshape_deg`` at the pre-shape speed (a run's
+    pre-shape and release, the service's Open hand); ``limits`` are (min_deg, max_deg)."""
+    lo, hi = limits
+    return await move_in_increments(joints, run.preshape_deg,
+                                    velocity_deg_s=run.preshape_velocity_deg_s, lo=lo, hi=hi,
+                                    max_step_deg=safety.max_step_deg, check=check)  # fmt: skip

@@ -23,11 +23,12 @@ from typing import Any
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
 from sdh2svc.config import Settings
-from sdh2svc.control.motion import move_in_increments
+from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
+from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.kinematics import HandPose
 
 
@@ -200,11 +201,10 @@ class Runner:
         with contextlib.suppress(Exception):
             await self.joints.hold()
 
-    def _force(self, frame: TactileFrame) -> float:
-        """F of the two distal contacts (library units, as Fd)."""
-        c1 = self.ctx.contact(frame.matrices[self._m1])
-        c2 = self.ctx.contact(frame.matrices[self._m2])
-        return (c1.force_library + c2.force_library) / 2
+    def _contacts(self, frame: TactileFrame) -> tuple[ContactEstimate, ContactEstimate]:
+        """The two distal contacts (Finger 1's, Finger 2's) of a frame."""
+        m = frame.matrices
+        return self.ctx.contact(m[self._m1]), self.ctx.contact(m[self._m2])
 
     def _ceiling_fault(self, F: float) -> RunFault | None:
         s = self.settings.safety
@@ -220,26 +220,20 @@ class Runner:
             frame = sub.latest
             stale = self.settings.safety.stale_frame_ms / 1000
             if frame is not None and frame.age() <= stale:
-                fault = self._ceiling_fault(self._force(frame))
+                fault = self._ceiling_fault(_force(*self._contacts(frame)))
                 if fault is not None:
                     raise fault
 
         return check
 
-    async def _move_to(
-        self, targets: tuple[float, ...], velocity: float, check: Callable[[], None] | None
-    ) -> None:
+    async def _to_preshape(self, check: Callable[[], None] | None) -> None:
         lim = self.settings.limits
-        await move_in_increments(self.joints, targets, velocity_deg_s=velocity,
-                                 lo=lim.min_deg, hi=lim.max_deg,
-                                 max_step_deg=self.settings.safety.max_step_deg,
-                                 check=check)  # fmt: skip
+        await move_to_preshape(self.joints, self.settings.run, (lim.min_deg, lim.max_deg),
+                               self.settings.safety, check)  # fmt: skip
 
     async def _preshape(self, sub: Subscription) -> None:
         self._set_phase(Phase.PRESHAPE)
-        run = self.settings.run
-        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s,
-                            self._watch_ceiling(sub))  # fmt: skip
+        await self._to_preshape(self._watch_ceiling(sub))
 
     async def _grasp(self, sub: Subscription) -> None:
         """Close both coupled fingers in a mirror pose, force-proportionally, until F ≥ Fd.
@@ -261,11 +255,8 @@ class Runner:
         p2, p3, p4, p5 = self._axes
         while not self._stop.is_set():
             frame = await self._fresh(sub)
-            c1, c2 = (
-                self.ctx.contact(frame.matrices[self._m1]),
-                self.ctx.contact(frame.matrices[self._m2]),
-            )
-            F = (c1.force_library + c2.force_library) / 2
+            c1, c2 = self._contacts(frame)
+            F = _force(c1, c2)
             if (fault := self._ceiling_fault(F)) is not None:
                 raise fault
             if F >= fd:
@@ -389,8 +380,7 @@ class Runner:
     async def _release(self) -> None:
         """Open to the pre-shape pose; no force check: opening is the remedy for a high F."""
         self._set_phase(Phase.RELEASING)
-        run = self.settings.run
-        await self._move_to(tuple(run.preshape_deg), run.preshape_velocity_deg_s, None)
+        await self._to_preshape(None)
 
     def _set_phase(self, phase: Phase) -> None:
         if phase is not self.phase:
@@ -402,3 +392,8 @@ class Runner:
             t = asyncio.get_running_loop().time() - self._t0
             self._on_event(t, iteration if iteration is not None else self.state.iteration, kind,
                            detail)  # fmt: skip
+
+
+def _force(c1: ContactEstimate, c2: ContactEstimate) -> float:
+    """F of the two distal contacts (library units, as Fd)."""
+    return (c1.force_library + c2.force_library) / 2

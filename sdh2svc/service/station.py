@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from sdh2svc.bus.joint import JointLink, JointLinkError
 from sdh2svc.bus.tactile import Subscription, TactileBus, TactileFrame
 from sdh2svc.config import Settings, format_errors
-from sdh2svc.control.motion import move_in_increments
+from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
@@ -123,8 +123,7 @@ class Station:
         if latch is not None:
             log.warning("the e-stop is latched (since %s: %s): motors off until released",
                         latch["since"], latch["reason"])  # fmt: skip
-            self.joints.latch()
-            with contextlib.suppress(JointLinkError):
+            with contextlib.suppress(JointLinkError):  # latches the link even if it fails
                 await self.joints.emergency_stop()
         self.tactile.add_frame_listener(self._on_frame)
         if cfg.service.monitor_rate_hz > 0:
@@ -216,8 +215,7 @@ class Station:
         line is down, the latch is sent as soon as it is back."""
         joints, _, store = self._links()
         log.warning("E-STOP")
-        store.latch_estop("e-stop requested")
-        self._latch = store.estop_latch()
+        self._latch = store.latch_estop("e-stop requested")
         joints.latch()
         reached, problem = True, ""
         try:
@@ -226,8 +224,7 @@ class Station:
             else:
                 await self._cancel_opening()
                 await joints.emergency_stop()
-                self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
-                                  "kind": "estop", "detail": {}})  # fmt: skip
+                self._hand_event("estop", {})
         except JointLinkError as e:
             reached, problem = False, str(e)
             log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
@@ -277,13 +274,11 @@ class Station:
         return {"state": "opening"}
 
     async def _open(self, joints: JointLink) -> None:
-        run, lim = self.cfg.run, self.cfg.limits
+        lim = self.cfg.limits
         self._hand_event("open", {})
         try:
-            await move_in_increments(joints, run.preshape_deg,
-                                     velocity_deg_s=run.preshape_velocity_deg_s,
-                                     lo=lim.min_deg, hi=lim.max_deg,
-                                     max_step_deg=self.cfg.safety.max_step_deg)  # fmt: skip
+            await move_to_preshape(joints, self.cfg.run, (lim.min_deg, lim.max_deg),
+                                   self.cfg.safety)  # fmt: skip
         except asyncio.CancelledError:
             with contextlib.suppress(Exception):
                 await joints.hold()

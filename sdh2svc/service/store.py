@@ -180,26 +180,26 @@ class RunStore:
         row = self.db.execute("SELECT since, reason FROM estop WHERE id = 1").fetchone()
         return None if row is None else {"since": row["since"], "reason": row["reason"]}
 
-    def latch_estop(self, reason: str) -> None:
+    def latch_estop(self, reason: str) -> dict[str, str]:
         """Latch the e-stop on disk before anything else happens: fsync'd (synchronous=FULL),
-        so a restart — or the PC losing power — finds it still latched."""
-        with self._lock:
-            self.db.execute("PRAGMA synchronous=FULL")
-            try:
-                with self.db:
-                    self.db.execute(
-                        "INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
-                        (_now_iso(), reason),
-                    )
-            finally:
-                self.db.execute("PRAGMA synchronous=NORMAL")
+        so a restart — or the PC losing power — finds it still latched. Returns the latch (the
+        first one's time and reason, if it was latched already)."""
+        self._durably("INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
+                      (_now_iso(), reason))  # fmt: skip
+        latch = self.estop_latch()
+        assert latch is not None
+        return latch
 
     def release_estop(self) -> None:
+        self._durably("DELETE FROM estop")
+
+    def _durably(self, sql: str, params: tuple[Any, ...] = ()) -> None:
+        """One write, fsync'd before it returns (synchronous=FULL for this transaction)."""
         with self._lock:
             self.db.execute("PRAGMA synchronous=FULL")
             try:
                 with self.db:
-                    self.db.execute("DELETE FROM estop")
+                    self.db.execute(sql, params)
             finally:
                 self.db.execute("PRAGMA synchronous=NORMAL")
 
