@@ -216,7 +216,7 @@ def step(
     """One rolling iteration (hand-model §8, step 2)."""
     obs = observe(pose, counts1, counts2, ctx)
     c1, c2 = obs.contact1, obs.contact2
-    F = (c1.force_library + c2.force_library) / 2  # eq 3.16
+    F = (c1.force + c2.force) / 2  # eq 3.16 (ContactEstimate.force: which force)
     dF = 0.0 if state.F_prev is None else F - state.F_prev
 
     alpha = params.alpha
@@ -230,7 +230,7 @@ def step(
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
         return StepResult(_reverse(state, F, reason), None, reason, obs, F, dF, plan)
 
-    present = min(c1.force_library, c2.force_library) > params.contact_force_min
+    present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
         return reverse(Reversal.CONTACT_LOST)
     if (c1.at_edge or c2.at_edge) and state.direction != -state.out_edge:

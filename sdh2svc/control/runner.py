@@ -269,7 +269,7 @@ class Runner:
             if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
                 raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
             want = list(actual)
-            for prox, dist, f in ((p2, p3, c1.force_library), (p4, p5, c2.force_library)):
+            for prox, dist, f in ((p2, p3, c1.force), (p4, p5, c2.force)):
                 speed = min(run.grasp_max_velocity_deg_s, (fd - f) * run.grasp_gain_deg_s)
                 step = min(max(speed, 0.0) * period, max_step)
                 want[prox], want[dist] = actual[prox] + step, actual[dist] - step
@@ -396,4 +396,4 @@ class Runner:
 
 def _force(c1: ContactEstimate, c2: ContactEstimate) -> float:
     """F of the two distal contacts (library units, as Fd)."""
-    return (c1.force_library + c2.force_library) / 2
+    return (c1.force + c2.force) / 2

@@ -86,7 +86,7 @@ class Sample:
             phi2_d=_deg(tg.phi2) if tg else None, phi3_d=_deg(tg.phi3) if tg else None,
             phi4_d=_deg(tg.phi4) if tg else None, phi5_d=_deg(tg.phi5) if tg else None,
             S1=obs.contact1.S_mm, S2=obs.contact2.S_mm,
-            F1=obs.contact1.force_library, F2=obs.contact2.force_library, F=r.F, dF=r.dF,
+            F1=obs.contact1.force, F2=obs.contact2.force, F=r.F, dF=r.dF,
             Lambda=obs.Lambda, Lambda_ad=plan.Lambda_ad if plan else None,
             sigma=_deg(obs.sigma), sigma_d=_deg(plan.sigma_d) if plan else None,
             omega_A=_deg(plan.omega_A_d) if plan else _deg(obs.omega_A),

@@ -85,6 +85,8 @@ class TactileCalibration(Frozen):
     cell_threshold_counts: Annotated[int, Field(ge=0, le=4095)]
     edge_margin_rows: Annotated[float, Field(ge=0.0, le=6.0)]
     distance: DistanceMap
+    # The controller's force: Σp × this area (see ContactEstimate.force); 0: the library's force.
+    force_reference_area_mm2: Annotated[float, Field(ge=0.0, le=2000.0)] = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,6 +109,12 @@ class ContactEstimate:
 
     ``force_library`` is SDHLibrary's ``GetContactInfo`` force (Σp × total contact area), the
     convention of the thesis's Fd = 2; ``force_physical_n`` is Σp × cell area (eq 2.20, N).
+    ``force`` is the one the controller uses: Σp × a fixed reference area
+    (``TactileCalibration.force_reference_area_mm2``), or the library's force when that is 0.
+    The library's force grows with the square of the contact's area (Σp already sums over the
+    cells), so the same squeeze reads 10× less on a stick's end than on a box's face; Σp × a
+    fixed area is proportional to the normal force whatever the contact's size, and equals the
+    library's force for a contact of that area.
     """
 
     present: bool
@@ -119,6 +127,7 @@ class ContactEstimate:
     at_edge: bool
     force_library: float
     force_physical_n: float
+    force: float
     area_mm2: float
     n_cells: int
     blobs: tuple[Blob, ...]
@@ -141,6 +150,7 @@ NO_CONTACT = ContactEstimate(
     at_edge=False,
     force_library=0.0,
     force_physical_n=0.0,
+    force=0.0,
     area_mm2=0.0,
     n_cells=0,
     blobs=(),
@@ -195,7 +205,9 @@ def estimate_contact(
     main = max(blobs, key=lambda b: b.pressure_sum_n_per_mm2)
     # the blobs partition the loaded cells: the whole pad's totals are their sums
     n_cells = sum(b.n_cells for b in blobs)
-    library, physical = _forces(sum(b.pressure_sum_n_per_mm2 for b in blobs), n_cells, pitch_mm)
+    pressure = sum(b.pressure_sum_n_per_mm2 for b in blobs)
+    library, physical = _forces(pressure, n_cells, pitch_mm)
+    ref = calib.force_reference_area_mm2
     S = main.S_mm
     s_range = (layout.rows - 1) * pitch_mm
     L = calib.distance.L_from_S(S, s_range, pad)
@@ -214,6 +226,7 @@ def estimate_contact(
         at_edge=row < margin or row > (layout.rows - 1) - margin,
         force_library=library,
         force_physical_n=physical,
+        force=pressure * ref if ref > 0 else library,
         area_mm2=n_cells * pitch_mm * pitch_mm,
         n_cells=n_cells,
         blobs=blobs,
