@@ -464,10 +464,28 @@ def route_rate(it: Iteration, g: Grasp, p: Params, ctx: ModelContext) -> float:
 
 
 @dataclass(frozen=True, slots=True)
+class FlaggedGrasp:
+    """A scanned grasp with an unintended reversal or a stall (mm, degrees)."""
+
+    S1: float
+    S2: float
+    psi1: float  # φ2 + φ3
+    sigma0: float
+    phi4: float
+    omega_A0: float
+    omega_B0: float
+    sigma_span: float  # σ's whole range over the run
+    backward: bool
+    stall: bool
+    at_sigma: float  # σ where the first flagged stretch begins
+
+
+@dataclass(frozen=True, slots=True)
 class ScanResult:
     length: float
     k: float
-    grasps: int  # admissible mirror grasps tried (within joint limits, both ω inside the cone)
+    kind: str  # "mirror" or "any"
+    grasps: int  # admissible grasps run (within joint limits, both ω inside the cone)
     with_backward: int
     with_stall: int
     backward_steps: int  # over all of them
@@ -475,61 +493,96 @@ class ScanResult:
     flagged: list[FlaggedGrasp] = field(default_factory=list)
 
 
-@dataclass(frozen=True, slots=True)
-class FlaggedGrasp:
-    """A scanned grasp with an unintended reversal or a stall (angles in degrees)."""
-
-    x3: float
-    psi: float
-    phi4: float
-    omega0: float  # ωA = ωB at the start
-    sigma_span: float  # σ's whole range over the run
-    backward: bool
-    stall: bool
-
-
-def scan_grasps(
-    length: float, k: float, ctx: ModelContext, n_x3: int = 12, n_psi: int = 21
-) -> ScanResult:
-    """Every mirror grasp (σ = 0) on a grid of contact points x3 over the pad and Finger 1's ψ in
-    [−30°, 60°] that is within the joint limits and inside both cones: how many show the
-    unintended reversal or a stall, with the same detectors."""
-    pad, alpha = ctx.geom.pad, math.radians(ALPHA_DEG)
+def _pad_grid(ctx: ModelContext, n: int) -> list[float]:
+    """n contact points x3 spread over the pad, 0.5 mm from its ends."""
+    pad = ctx.geom.pad
     lo, hi = pad.flat_start_x3_mm + 0.5, pad.tip_end_x3_mm - 0.5
+    return [lo + (hi - lo) * i / (n - 1) for i in range(n)]
+
+
+MIRROR_GRID = (12, 21)  # contact points over the pad, values of ψ
+ANY_N_X3 = 7  # contact points over each pad
+ANY_OFFSETS = (-15.0, -7.5, 0.0, 7.5, 15.0)  # the stick's centre from midway, mm
+ANY_HEIGHTS = (100.0, 115.0, 130.0, 145.0)  # z0 of its centre, mm
+ANY_SIGMAS_DEG = (-15.0, -10.0, -5.0, 0.0, 5.0, 10.0, 15.0)
+
+
+def mirror_grasps(
+    length: float, ctx: ModelContext, n_x3: int = MIRROR_GRID[0], n_psi: int = MIRROR_GRID[1]
+) -> list[Grasp]:
+    """Mirror grasps (σ = 0): contact points x3 over the pad × Finger 1's ψ in [−30°, 60°]."""
+    out = []
+    for x3 in _pad_grid(ctx, n_x3):
+        for j in range(n_psi):
+            g = mirror_grasp(length, ctx, x3, math.radians(-30.0 + 90.0 * j / (n_psi - 1)))
+            if g is not None:
+                out.append(g)
+    return out
+
+
+def any_grasps(
+    length: float,
+    ctx: ModelContext,
+    n_x3: int = ANY_N_X3,
+    offsets: Sequence[float] = ANY_OFFSETS,
+    heights: Sequence[float] = ANY_HEIGHTS,
+    sigmas_deg: Sequence[float] = ANY_SIGMAS_DEG,
+) -> list[Grasp]:
+    """Grasps that need not be mirror images: the stick's centre moved sideways by ``offsets``
+    from midway between the proximal joints, at ``heights``, inclined by ``sigmas_deg``, with its
+    ends at any two contact points of a grid on the two pads (S1 ≠ S2); each finger's angles by
+    IK, the branch nearest to a half-closed pose."""
+    geom, lim1, lim2 = ctx.geom, ctx.limits1, ctx.limits2
+    near = (math.radians(-20.0), math.radians(20.0))
+    grid = [pad_contact(x3, ctx) for x3 in _pad_grid(ctx, n_x3)]
+    out = []
+    for dy in offsets:
+        for z in heights:
+            for sd in sigmas_deg:
+                s0 = math.radians(sd)
+                cy, h = geom.base_offset_mm / 2 + dy, length / 2
+                A = Point(cy - h * math.cos(s0), z - h * math.sin(s0))
+                B = Point(cy + h * math.cos(s0), z + h * math.sin(s0))
+                for c1 in grid:
+                    ik1 = finger_ik(Finger.ONE, A, c1.r, c1.theta, near, geom, lim1).solution
+                    if ik1 is None:
+                        continue
+                    for c2 in grid:
+                        ik2 = finger_ik(Finger.TWO, B, c2.r, c2.theta, near, geom, lim2).solution
+                        if ik2 is None:
+                            continue
+                        pose = HandPose(ik1.proximal, ik1.distal, ik2.proximal, ik2.distal)
+                        out.append(Grasp(length, z, pose, c1, c2))
+    return out
+
+
+def scan_grasps(grasps: Sequence[Grasp], k: float, ctx: ModelContext, kind: str) -> ScanResult:
+    """Run every grasp inside both cones (3 reversals each) and count what the detectors find."""
+    alpha, deg = math.radians(ALPHA_DEG), math.degrees
     n = back = stall = steps = 0
     ratio = math.inf
     flagged: list[FlaggedGrasp] = []
-    for i in range(n_x3):
-        x3 = lo + (hi - lo) * i / (n_x3 - 1)
-        for j in range(n_psi):
-            psi = math.radians(-30.0 + 90.0 * j / (n_psi - 1))
-            g = mirror_grasp(length, ctx, x3, psi)
-            if g is None:
-                continue
-            _, _, _, wa, wb = _measure(g.pose, g, ctx)
-            if not (inside_cone(wa, alpha) and inside_cone(wb, alpha)):
-                continue
-            run = simulate(g, Params(k, reversals=3, max_iterations=2000), ctx)
-            s = summarise(run)
-            n += 1
-            back += bool(s.backward)
-            stall += bool(s.stalls)
-            steps += s.backward_steps
-            if s.step_deg[1] > 0:
-                ratio = min(ratio, s.step_deg[0] / s.step_deg[1])
-            if s.backward or s.stalls:
-                deg = math.degrees
-                f = FlaggedGrasp(
-                    x3,
-                    deg(psi),
-                    deg(g.pose.phi4),
-                    deg(wa),
-                    _span(s),
-                    bool(s.backward),
-                    bool(s.stalls),
-                )
-                flagged.append(f)
-    return ScanResult(length, k, n, back, stall, steps, ratio, flagged)
+    length = grasps[0].length if grasps else math.nan
+    for g in grasps:
+        _, _, sigma0, wa, wb = _measure(g.pose, g, ctx)
+        if not (inside_cone(wa, alpha) and inside_cone(wb, alpha)):
+            continue
+        s = summarise(simulate(g, Params(k, reversals=3, max_iterations=2000), ctx))
+        n += 1
+        back += bool(s.backward)
+        stall += bool(s.stalls)
+        steps += s.backward_steps
+        if s.step_deg[1] > 0:
+            ratio = min(ratio, s.step_deg[0] / s.step_deg[1])
+        if s.backward or s.stalls:
+            p = g.pose
+            first = min(s.backward + s.stalls, key=lambda x: x.first)
+            flagged.append(FlaggedGrasp(
+                g.contact1.S, g.contact2.S, deg(p.phi2 + p.phi3), deg(sigma0), deg(p.phi4),
+                deg(wa), deg(wb), _span(s), bool(s.backward), bool(s.stalls),
+                first.sigma_from_deg,
+            ))  # fmt: skip
+    return ScanResult(length, k, kind, n, back, stall, steps, ratio, flagged)
 
 
 # --- plots ------------------------------------------------------------------------------------
@@ -948,45 +1001,82 @@ def write_report(
         + "; ".join(f"k = {k:g}: {_rng(_rate_range(runs[(MAIN_LENGTH, k)], ctx), 3)}" for k in KS)
         + " — never near zero.\n"
     )
-    add("### Every mirror grasp\n")
+    add("### Every other grasp\n")
+    mirror = [sc for sc in scans if sc.kind == "mirror"]
+    free = [sc for sc in scans if sc.kind == "any"]
     add(
-        "The same runs from every mirror grasp (σ = 0) on a grid of 12 contact points over the "
-        "pad × 21 values of Finger 1's ψ in [−30°, 60°], keeping those within the joint limits "
-        "and inside both cones (3 reversals each, same detectors):\n"
+        "The same runs (3 reversals each, same detectors) from other initial grasps, keeping "
+        "those within the joint limits and inside both cones. *Mirror*: σ = 0, the two fingers "
+        f"mirror images, the contact at {MIRROR_GRID[0]} points over the whole pad × Finger 1's "
+        f"ψ = φ2 + φ3 at {MIRROR_GRID[1]} values in [−30°, 60°]. *Any*: the stick's centre "
+        f"moved sideways by {_list(ANY_OFFSETS)} mm from midway "
+        f"between the proximal joints, at z0 = {_list(ANY_HEIGHTS)}"
+        f" mm, inclined by {_list(ANY_SIGMAS_DEG)}°, its ends at "
+        f"any of {ANY_N_X3} × {ANY_N_X3} pairs of contact points over the two "
+        "pads (S1 ≠ S2), each finger's angles by IK.\n"
     )
     add(
-        "| stick (mm) | k | grasps | with an unintended reversal | with a stall | iterations "
-        "with σ backwards, all grasps | slowest σ step / median, worst grasp |"
+        "| grasps | stick (mm) | k | grasps run | with an unintended reversal | with a stall | "
+        "iterations with σ backwards, all grasps | slowest σ step / median, worst grasp |"
     )
-    add("|---|---|---|---|---|---|---|")
+    add("|---|---|---|---|---|---|---|---|")
     for sc in scans:
         add(
-            f"| {sc.length:g} | {sc.k:g} | {sc.grasps} | {sc.with_backward} | {sc.with_stall} | "
-            f"{sc.backward_steps} | {_f(sc.min_rate_ratio)} |"
+            f"| {sc.kind} | {sc.length:g} | {sc.k:g} | {sc.grasps} | {sc.with_backward} | "
+            f"{sc.with_stall} | {sc.backward_steps} | {_f(sc.min_rate_ratio)} |"
         )
     add("")
+    n_back = sum(sc.with_backward for sc in scans)
     add(
-        "So the equations as the thesis states them (hand-model.md) do not produce the effect "
-        "of Fig 31.d for these sticks from any admissible mirror grasp, for either k.\n"
+        f"Unintended reversals (N = {BACKWARD_ITERATIONS}, X = {BACKWARD_DEG}°) over all "
+        f"{sum(sc.grasps for sc in scans)} grasps run: **{n_back}** "
+        f"(k = 5: {sum(sc.with_backward for sc in scans if sc.k == 5.0)}, k = 2: "
+        f"{sum(sc.with_backward for sc in scans if sc.k == 2.0)}); stalls: "
+        f"{sum(sc.with_stall for sc in mirror)} of the mirror grasps, "
+        f"{sum(sc.with_stall for sc in free)} of the others. Every grasp flagged is listed "
+        "here, with where on the pads its contacts are (the sensor reports S in 0–40.8 mm; "
+        "beyond that the contact sits below its active area) and the σ at which the flagged "
+        "stretch begins:\n"
     )
     flagged = [(sc, f) for sc in scans for f in sc.flagged]
     if flagged:
         add(
-            "The grasps the detectors flag are all listed here: each is a grasp where both "
-            "terms are small (φ4 near 0, and a distal joint that moves B almost along AB), "
-            "starting close to a cone's edge, so that the whole run turns σ by a few degrees at "
-            "most.\n"
+            "| grasps | stick (mm) | k | S1 | S2 | ψ1 | σ at start | φ4 at start | ωA, ωB at "
+            "start | σ range of the run | flagged, at σ |"
         )
-        add("| stick (mm) | k | x3 (mm) | ψ | φ4 | ω at start | σ range of the run | flagged |")
-        add("|---|---|---|---|---|---|---|---|")
+        add("|---|---|---|---|---|---|---|---|---|---|---|")
         for sc, f in flagged:
             what = ", ".join(w for w, on in (("unintended reversal", f.backward),
                                              ("stall", f.stall)) if on)  # fmt: skip
             add(
-                f"| {sc.length:g} | {sc.k:g} | {f.x3:.1f} | {f.psi:.0f}° | {f.phi4:.2f}° | "
-                f"{f.omega0:.1f}° | {f.sigma_span:.2f}° | {what} |"
+                f"| {sc.kind} | {sc.length:g} | {sc.k:g} | {f.S1:.1f} | {f.S2:.1f} | "
+                f"{f.psi1:.1f}° | {f.sigma0:.1f}° | {f.phi4:.2f}° | {f.omega_A0:.1f}°, "
+                f"{f.omega_B0:.1f}° | {f.sigma_span:.2f}° | {what}, {f.at_sigma:.2f}° |"
             )
         add("")
+        near0 = [(sc, f) for sc, f in flagged if abs(f.at_sigma) < 2.0]
+        margin = max(
+            ALPHA_DEG - max(abs(f.omega_A0 - 90), abs(f.omega_B0 - 90)) for _, f in flagged
+        )
+        add(
+            f"None of them reverses. {len(near0)} of the {len(flagged)} stalls begin near zero "
+            "inclination (|σ| < 2°)"
+            + (
+                f", on the {_list(sorted({sc.length for sc, _ in near0}))} mm stick with k = "
+                f"{_list(sorted({sc.k for sc, _ in near0}))}"
+                if near0
+                else ""
+            )
+            + f". Every flagged grasp starts within {margin:.1f}° of a cone's edge (α − |ω − 90°| "
+            "at the start); with k = 5, "
+            f"{sum(len(sc.flagged) for sc in scans if sc.k == 5.0)} grasps are flagged. The "
+            "stalls occur where the route's two terms are both small (φ4 near 0 and a weak "
+            "distal term, or Finger 2's contact at the base of its pad).\n"
+        )
+    add(
+        "So the equations as the thesis states them (hand-model.md) do not produce the effect "
+        "of Fig 31.d for these sticks, for either k, from any grasp tried.\n"
+    )
     add(
         "What the thesis's own program did differently cannot be checked: its code and "
         "figures are lost. Two candidates. (1) Eq 3.13 as printed (“+”): dσ = σ(Ac→Bd) + σc "
@@ -1032,6 +1122,10 @@ def _printed_text(run: Run, k: float) -> str:
         f"with k = {k:g} it commands {n} iteration{'s' * (n != 1)}, reverses at {revs} and "
         f"ends {run.end}"
     )
+
+
+def _list(xs: Sequence[float]) -> str:
+    return ", ".join(f"{x:g}" for x in xs)
 
 
 def _span(s: Summary) -> float:
@@ -1096,7 +1190,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             out / _png(length),
             f"Stick {length:g} mm: inclination σ for k = 5 and k = 2",
         )
-    scans = [scan_grasps(length, k, ctx) for length in LENGTHS for k in KS]
+    scans = [scan_grasps(mirror_grasps(ln, ctx), k, ctx, "mirror") for ln in LENGTHS for k in KS]
+    free = any_grasps(MAIN_LENGTH, ctx)
+    scans += [scan_grasps(free, k, ctx, "any") for k in KS]
     g = grasp_from_settings(MAIN_LENGTH, cfg)
     printed = {k: simulate(g, Params(k, printed_eq313=True), ctx) for k in KS}
     path = write_report(runs, scans, printed, ctx, cfg, out)

@@ -206,7 +206,9 @@ def test_the_detectors_see_what_they_define() -> None:
 def test_report_and_plots(
     tmp_path: Path, runs: dict[tuple[float, float], st.Run], cfg: Settings, ctx: ModelContext
 ) -> None:
-    scans = [st.scan_grasps(98.46, k, ctx, n_x3=3, n_psi=4) for k in st.KS]
+    grasps = st.mirror_grasps(98.46, ctx, n_x3=4, n_psi=5)
+    scans = [st.scan_grasps(grasps, k, ctx, "mirror") for k in st.KS]
+    assert all(sc.grasps > 0 and sc.with_backward == 0 for sc in scans)
     g = st.grasp_from_settings(st.MAIN_LENGTH, cfg)
     printed = {k: st.simulate(g, st.Params(k, printed_eq313=True), ctx) for k in st.KS}
     path = st.write_report(runs, scans, printed, ctx, cfg, tmp_path)
