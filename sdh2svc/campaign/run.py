@@ -118,7 +118,10 @@ class TruthProbe:
         self.hand: Any = None
         self.psi_grasp: float | None = None
         self.psi: list[tuple[int, float]] = []  # (iteration, ψ rad) of every rolling iteration
-        self.reversals: list[int | None] = []  # the iterations that reversed
+        # the iterations that reversed, and whether each ended a half stroke (the runner's count
+        # rose: Finger 2 travelled min_half_stroke_deg since the reversal before)
+        self.reversals: list[tuple[int | None, bool]] = []
+        self._half_strokes = 0
         self.grasp_F: float | None = None
         self.fault: str = ""
         self.end_t: float | None = None
@@ -136,7 +139,9 @@ class TruthProbe:
         if kind == "grasped" and self.hand is not None:
             self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
         elif kind == "reversal":
-            self.reversals.append(iteration)
+            n = int(detail.get("half_strokes", self._half_strokes))
+            self.reversals.append((iteration, n > self._half_strokes))
+            self._half_strokes = n
         elif kind == "fault":
             self.fault = str(detail.get("fault", ""))
         elif kind == "end":
@@ -151,22 +156,21 @@ class TruthProbe:
         excursion of ψ from its angle where the half stroke began (the grasp, or the reversal
         before), up to the reversal that ends it. The largest, not the net: an object may turn
         and come part of the way back within one half stroke (the egg does, ≈ 15° and back) —
-        it did turn. A reversal right after another (on the spot) ends no half stroke, as in
-        the runner; the unfinished last half stroke (the run ended) is not counted."""
+        it did turn. Only the reversals the runner counted end a half stroke (Finger 2
+        travelled far enough since the one before); the unfinished last half stroke (the run
+        ended) is not counted."""
         if self.psi_grasp is None:
             return []
         out: list[float] = []
-        start, prev, k = self.psi_grasp, None, 0
+        start, k = self.psi_grasp, 0
         peak = 0.0
-        for end in self.reversals:
+        for end, counted in self.reversals:
             while k < len(self.psi) and (end is None or self.psi[k][0] <= end):
                 peak = max(peak, abs(_wrap_deg(math.degrees(self.psi[k][1] - start))))
                 k += 1
-            on_the_spot = prev is not None and end is not None and end == prev + 1
-            if not on_the_spot:
+            if counted:
                 out.append(peak)
-            start = self.psi[k - 1][1] if k else start
-            prev, peak = end, 0.0
+                start, peak = (self.psi[k - 1][1] if k else start), 0.0
         return out
 
 

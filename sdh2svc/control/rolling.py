@@ -11,9 +11,9 @@ inclination change it imposes, dσ, is reinforced by λ; Finger 1 puts A on the 
 Λad around the new B at inclination σd. One-finger mode (§3.3): Finger 2 holds still and Finger 1
 turns A around B by dσ per iteration.
 
-Two additions to the thesis's reversal rule: a half stroke counts only when it moved, and when
-the rolling contact has carried ω past a cone's limit, or a contact onto the pad's edge row, the
-way back is not refused for still being there (see :attr:`RollState.out_A`).
+Additions to the thesis (each explained in config/default.toml): a half stroke counts only once
+Finger 2 has travelled ``min_half_stroke_deg`` along its route; a reversal commits to the way
+back (:attr:`RollState.waived`); Finger 1's step limit; the force band; the pads' wedge.
 """
 
 from __future__ import annotations
@@ -39,9 +39,9 @@ from sdh2svc.model.kinematics import (
 )
 from sdh2svc.model.observe import ModelContext, Observation, observe
 
-# How much further out than now a step back may take ω (see RollState.out_A): the step's own
-# effect on ω near a reversal is about 0.01°, the drift of a rolling contact 0.3° per iteration.
-RETREAT_SLACK = math.radians(0.1)
+# How far beyond a cone the way back may plan ω (see RollState.waived): a rolling contact drifts
+# from the plan by ≈ 0.3° per iteration, and sensor noise moves the measured ω by a few tenths.
+RETREAT_LIMIT = math.radians(2.0)
 
 
 class Reversal(StrEnum):
@@ -61,19 +61,18 @@ class RollState:
 
     direction: int = 1  # +1: Δφ as configured; −1: reversed
     F_prev: float | None = None
-    half_strokes: int = 0  # half strokes that moved: a reversal on the spot is not one
+    half_strokes: int = 0  # reversals after Finger 2 travelled at least min_half_stroke_deg
     iteration: int = 0
-    consecutive_reversals: int = 0
-    last_move: int = 0  # the direction of the last commanded move (0: none yet)
-    # While the measured ωA (ωB) is outside its cone: the direction of the move that carried it
-    # out, else 0. The plan respects the cone, but the rolling contact does not follow the plan
-    # exactly and can carry ω past the limit; near the end of a stroke the route then barely
-    # changes ω (the pad and AB turn together), so both directions would "leave" the cone and
-    # the thesis's rule reverses on the spot for ever. A step in the other direction passes that
-    # cone's check unless it takes ω further out than now.
-    out_A: int = 0
-    out_B: int = 0
-    out_edge: int = 0  # the same for a contact on its pad's first or last row
+    consecutive_reversals: int = 0  # reversals since Finger 2 last travelled a half stroke
+    travel: float = 0.0  # Finger 2's route travel since the last reversal (rad of φ4; σ in
+    # one-finger mode)
+    # The check that caused the last reversal (a cone or the pad's edge), waived on the way back
+    # until ``travel`` reaches a half stroke. The plan respects the cone, but the rolling contact
+    # does not follow it exactly and can carry ω past the limit (or a contact onto the edge
+    # row); near the end of a stroke the route then barely changes ω, so both directions would
+    # "leave" the cone, a noisy ω or edge flag flickers, and the thesis's rule reverses on the
+    # spot for ever. A waived cone still refuses a plan beyond it by more than RETREAT_LIMIT.
+    waived: Reversal | None = None
 
     @property
     def strokes(self) -> int:
@@ -135,6 +134,7 @@ class _Config:
     phi5d: float
     plan: Plan
     ik: IKResult
+    travel: float  # the route's step (rad of φ4; of σ in one-finger mode)
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,6 +147,7 @@ class _Route:
     lam_ad: float
     params: RollingParams
     ctx: ModelContext
+    wedge: float = 0.0  # Finger 2's distal correction this iteration (rad), see _wedge_correction
 
     def configure(self, scale: float) -> _Config | None:
         """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
@@ -164,6 +165,9 @@ class _Route:
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
             d_sigma = segment(obs.points.A, B_d)[1] - obs.sigma  # eq 3.13, sign typo fixed
             sigma_d = obs.sigma + p.lambda_gain * d_sigma
+            if self.wedge and self.ctx.limits2.contains(phi4d, phi5d + self.wedge):
+                phi5d += self.wedge  # beside the route: λ reinforces the route's dσ only
+                B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
         else:
             phi4d, phi5d, B_d = pose.phi4, pose.phi5, obs.points.B
             sigma_d = obs.sigma + scale * self.state.direction * p.d_sigma
@@ -171,38 +175,65 @@ class _Route:
         A_d = Point(B_d.y - lam * math.cos(sigma_d), B_d.z - lam * math.sin(sigma_d))
         ik = finger_ik(Finger.ONE, A_d, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), geom,
                        self.ctx.limits1)  # fmt: skip
-        return _Config(phi4d, phi5d, Plan(lam, sigma_d, A_d, B_d), ik)
+        step = scale * (abs(p.delta_phi) if p.mode == "two-finger" else abs(p.d_sigma))
+        return _Config(phi4d, phi5d, Plan(lam, sigma_d, A_d, B_d), ik, step)
 
 
-def _reverse(state: RollState, F: float, reason: Reversal) -> RollState:
-    moved = state.consecutive_reversals == 0 and state.iteration > 0
+def _wedge_correction(pose: HandPose, obs: Observation, p: RollingParams,
+                      ctx: ModelContext) -> float:  # fmt: skip
+    """Finger 2's distal correction (rad) taking ``wedge_gain`` of the pads' wedge,
+    (ωA + ωB)/2 − 90°, out this iteration: turning φ5 turns pad 2 against AB (∂ωB/∂φ5, found
+    by a finite difference of the model, ≈ −1) and leaves ωA nearly as it is."""
+    if p.wedge_gain == 0.0 or p.mode != "two-finger" or obs.omega_A is None:
+        return 0.0
+    assert obs.points is not None and obs.omega_B is not None
+    c2 = obs.contact2
+    assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
+    eps = math.radians(0.1)
+    B = contact_point(Finger.TWO, pose.phi4, pose.phi5 + eps, c2.r_mm, c2.theta_rad, ctx.geom)
+    wb = omega(Finger.TWO, pose.phi4 + pose.phi5 + eps, c2.x3_mm, B, obs.points.A, ctx.geom.pad)
+    slope = (wb - obs.omega_B) / eps
+    if abs(slope) < 0.2:  # AB nearly along pad 2's tangent: no use turning it
+        return 0.0
+    wedge = (obs.omega_A + obs.omega_B) / 2 - math.pi / 2
+    # ωB changes by slope·δ; the wedge by half of that
+    step = -p.wedge_gain * wedge / (slope / 2)
+    return max(-p.wedge_max_step, min(p.wedge_max_step, step))
+
+
+# A slower plan may still need a little more than Finger 1's step (the step's scaling is linear,
+# the inverse kinematics not); more than this factor means it cannot follow at any speed.
+FOLLOW_SLACK = 1.5
+
+
+def _finger1_step(cfg: _Config, pose: HandPose) -> float:
+    assert cfg.ik.solution is not None
+    return max(abs(cfg.ik.solution.proximal - pose.phi2), abs(cfg.ik.solution.distal - pose.phi3))
+
+
+_WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE)
+
+
+def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> RollState:
+    moved = state.travel >= p.min_half_stroke
     return replace(
         state,
         direction=-state.direction,
         F_prev=F,
         half_strokes=state.half_strokes + moved,
         iteration=state.iteration + 1,
-        consecutive_reversals=state.consecutive_reversals + 1,
+        consecutive_reversals=1 if moved else state.consecutive_reversals + 1,
+        travel=0.0,
+        waived=reason if reason in _WAIVABLE else None,
     )
 
 
-def _carried_out(was: int, out: bool, state: RollState) -> int:
-    """The new RollState.out_A/out_B/out_edge, given whether the condition holds now."""
-    return (was or state.last_move) if out else 0
-
-
-def _outside(w: float | None, alpha: float) -> bool:
-    return w is not None and not inside_cone(w, alpha)
-
-
-def _cone_refuses(w_d: float, w: float | None, out: int, direction: int, alpha: float) -> bool:
-    """Whether the planned ω ``w_d`` reverses the rotation: it leaves the cone (thesis), and
-    is not a step back from a measured ω already outside by no more than the slack."""
+def _cone_refuses(w_d: float, cone: Reversal, waived: Reversal | None, alpha: float) -> bool:
+    """Whether the planned ω ``w_d`` reverses the rotation: it leaves the cone (thesis), unless
+    this cone is waived on the way back and ω stays within RETREAT_LIMIT beyond it."""
     if inside_cone(w_d, alpha):
         return False
-    if w is None or direction != -out:  # out == 0: not carried out by a move
-        return True
-    return cone_margin(w_d, alpha) < cone_margin(w, alpha) - RETREAT_SLACK
+    return waived is not cone or cone_margin(w_d, alpha) < -RETREAT_LIMIT
 
 
 def step(
@@ -220,36 +251,34 @@ def step(
     dF = 0.0 if state.F_prev is None else F - state.F_prev
 
     alpha = params.alpha
-    state = replace(
-        state,
-        out_A=_carried_out(state.out_A, _outside(obs.omega_A, alpha), state),
-        out_B=_carried_out(state.out_B, _outside(obs.omega_B, alpha), state),
-        out_edge=_carried_out(state.out_edge, c1.at_edge or c2.at_edge, state),
-    )
+    waived = state.waived if state.travel < params.min_half_stroke else None
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
-        return StepResult(_reverse(state, F, reason), None, reason, obs, F, dF, plan)
+        return StepResult(_reverse(state, F, reason, params), None, reason, obs, F, dF, plan)
 
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
         return reverse(Reversal.CONTACT_LOST)
-    if (c1.at_edge or c2.at_edge) and state.direction != -state.out_edge:
-        return reverse(Reversal.CONTACT_EDGE)  # unless moving back the way it came
+    if (c1.at_edge or c2.at_edge) and waived is not Reversal.CONTACT_EDGE:
+        return reverse(Reversal.CONTACT_EDGE)
     assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
 
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
-    route = _Route(state, pose, obs, lam_ad, params, ctx)
+    route = _Route(state, pose, obs, lam_ad, params, ctx, _wedge_correction(pose, obs, params, ctx))
     cfg = route.configure(1.0)
     if cfg is None:
         return reverse(Reversal.WORKSPACE, Plan(lam_ad))
     if cfg.ik.solution is not None:  # Finger 1 can follow at most its step per iteration
-        need = max(abs(cfg.ik.solution.proximal - pose.phi2),
-                   abs(cfg.ik.solution.distal - pose.phi3))  # fmt: skip
+        need = _finger1_step(cfg, pose)
         if need > params.finger1_max_step:
             slower = route.configure(params.finger1_max_step / need)
             if slower is not None and slower.ik.solution is not None:
                 cfg = slower
+                # still too far at a fraction of the step: Λ's and the wedge's own corrections
+                # need it, near a stretched Finger 1 (singular); the servo could not follow
+                if _finger1_step(cfg, pose) > FOLLOW_SLACK * params.finger1_max_step:
+                    return reverse(Reversal.WORKSPACE, cfg.plan)
     plan, ik, phi4d, phi5d = cfg.plan, cfg.ik, cfg.phi4d, cfg.phi5d
     A_d, B_d = plan.A_d, plan.B_d
     assert A_d is not None and B_d is not None
@@ -261,11 +290,11 @@ def step(
     wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
     wb = omega(Finger.TWO, phi4d + phi5d, c2.x3_mm, B_d, A_d, pad)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
-    if _cone_refuses(wa, obs.omega_A, state.out_A, state.direction, alpha):
+    if _cone_refuses(wa, Reversal.CONE_A, waived, alpha):
         return reverse(Reversal.CONE_A, plan)
-    if _cone_refuses(wb, obs.omega_B, state.out_B, state.direction, alpha):
+    if _cone_refuses(wb, Reversal.CONE_B, waived, alpha):
         return reverse(Reversal.CONE_B, plan)
-    nxt = replace(state, F_prev=F, iteration=state.iteration + 1, consecutive_reversals=0,
-                  last_move=state.direction)  # fmt: skip
+    nxt = replace(state, F_prev=F, iteration=state.iteration + 1,
+                  travel=state.travel + cfg.travel)  # fmt: skip
     targets = HandPose(phi2d, phi3d, phi4d, phi5d)
     return StepResult(nxt, targets, None, obs, F, dF, plan)

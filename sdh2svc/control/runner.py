@@ -25,6 +25,7 @@ from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileE
 from sdh2svc.config import Settings
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
@@ -252,27 +253,36 @@ class Runner:
         await self.joints.set_controller(ControllerMode.POSE)
         await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * 7)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
-        p2, p3, p4, p5 = self._axes
+        law = GraspLaw(grasp_force=fd, gain_deg_s=run.grasp_gain_deg_s,
+                       max_velocity_deg_s=run.grasp_max_velocity_deg_s,
+                       min_velocity_deg_s=run.grasp_min_velocity_deg_s,
+                       align_gain=run.grasp_align_gain, period_s=period,
+                       max_step_deg=max_step)  # fmt: skip
+        p2, p4 = self._axes[0], self._axes[2]
+        settle_until: float | None = None
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = _force(c1, c2)
             if (fault := self._ceiling_fault(F)) is not None:
                 raise fault
-            if F >= fd:
-                self._event("grasped", {"F": F})
-                return
-            if loop.time() > deadline:
+            actual = await self.joints.get_actual()
+            pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
+            g = grasp_step(pose, c1, c2, law, self.ctx)
+            if F >= fd:  # held; the pads may still turn against their wedge for a while
+                settle_until = settle_until or loop.time() + run.grasp_settle_s
+                wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
+                if wedge_ok or law.align_gain == 0 or loop.time() >= settle_until:
+                    self._event("grasped", {"F": F, "wedge_deg": g.wedge_deg})
+                    return
+            elif loop.time() > deadline:
                 raise RunFault(Fault.NO_CONTACT, f"no grasp (F = {F:.2f} < Fd = {fd}) "
                                f"within {run.grasp_timeout_s:g} s")  # fmt: skip
-            actual = await self.joints.get_actual()
             if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
                 raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
             want = list(actual)
-            for prox, dist, f in ((p2, p3, c1.force), (p4, p5, c2.force)):
-                speed = min(run.grasp_max_velocity_deg_s, (fd - f) * run.grasp_gain_deg_s)
-                step = min(max(speed, 0.0) * period, max_step)
-                want[prox], want[dist] = actual[prox] + step, actual[dist] - step
+            for axis, inc in zip(self._axes, g.d_phi, strict=True):
+                want[axis] = actual[axis] + inc
             await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
                                                         max_step))  # fmt: skip
             await self.joints.move()
@@ -369,7 +379,8 @@ class Runner:
         res.latencies_ms.append(latency_ms)
         if r.reversal is not None:
             res.reversals.append({"iteration": r.state.iteration, "reason": r.reversal.value})
-            self._event("reversal", {"reason": r.reversal.value, "stroke": r.state.strokes},
+            self._event("reversal", {"reason": r.reversal.value, "stroke": r.state.strokes,
+                                     "half_strokes": r.state.half_strokes},
                         r.state.iteration)  # fmt: skip
         sample = Sample.from_step(r, pose, t, age_ms, latency_ms)
         if self._on_sample:

@@ -10,7 +10,7 @@ import pytest
 
 from sdh2svc.config import Settings
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.rolling import Reversal, RollState, step
+from sdh2svc.control.rolling import RETREAT_LIMIT, Reversal, RollState, step
 from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point, segment
 
 rad = math.radians
@@ -28,9 +28,9 @@ def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
 
 
 def params(cfg: Settings, **kw: object) -> RollingParams:
-    """The configured parameters with ``kw``; Finger 1's step unlimited unless given, so that
-    each iteration takes the route's full step."""
-    return cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0, **kw})
+    """The configured parameters with ``kw``; Finger 1's step unlimited and no wedge correction
+    unless given, so that each iteration takes the thesis's route, full step."""
+    return cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0, "wedge_gain": 0.0, **kw})
 
 
 TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))  # σ ≠ 0
@@ -188,47 +188,57 @@ def _past_cone_b(cfg: Settings, p: RollingParams, beyond_deg: float) -> HandPose
 
 def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> None:
     """ωB already outside (the rolling contact overshot): the thesis's rule refuses both
-    directions; once a move in one direction carried it out, the other passes unless it takes
-    ωB further out."""
+    directions; after a reversal at cone B the way back is not refused by cone B until Finger 2
+    has travelled a half stroke, unless the plan goes beyond the cone by RETREAT_LIMIT."""
     ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
     pose = _past_cone_b(cfg, p, beyond_deg=1.0)
     m = frame(20.0)
-    for d in (1, -1):  # never moved: the thesis's rule
+    for d in (1, -1):  # nothing waived: the thesis's rule
         r = step(RollState(direction=d), pose, m, m, p, ctx)
-        assert r.reversal is Reversal.CONE_B and r.state.out_B == 0
-    # which way of the route takes ωB back towards the cone (λ = 0: Finger 2's pad turns ωB)
-    plans = {d: step(RollState(direction=d), pose, m, m, p, ctx).plan.omega_B_d for d in (1, -1)}
-    back = min(plans, key=lambda d: abs(plans[d] - math.pi / 2))
-    # the last move went the other way: the way back passes, still outside, so out_B stays
-    came = RollState(direction=back, iteration=9, last_move=-back, consecutive_reversals=1)
-    r = step(came, pose, m, m, p, ctx)
+        assert r.reversal is Reversal.CONE_B and r.state.waived is Reversal.CONE_B
+    back = RollState(direction=1, iteration=9, waived=Reversal.CONE_B)
+    r = step(back, pose, m, m, p, ctx)
     assert r.reversal is None and r.targets is not None
-    assert r.state.out_B == -back and r.state.last_move == back
-    # carried out by a move the same way: reverse, as the thesis does (no half stroke: no move)
-    r = step(replace(came, last_move=back), pose, m, m, p, ctx)
-    assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 0
-    # the way "back" that would take ωB further out than now is refused
-    r = step(replace(came, direction=-back, last_move=back), pose, m, m, p, ctx)
+    assert r.state.travel == pytest.approx(rad(0.25)) and r.state.waived is Reversal.CONE_B
+    # waived only until the way back has travelled a half stroke
+    r = step(replace(back, travel=p.min_half_stroke), pose, m, m, p, ctx)
+    assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 1
+    # a waived cone A does not let cone B through
+    r = step(replace(back, waived=Reversal.CONE_A), pose, m, m, p, ctx)
     assert r.reversal is Reversal.CONE_B
-    # back inside: forgotten
-    r = step(replace(came, out_B=-back), MIRROR, m, m, p, ctx)
-    assert r.reversal is None and r.state.out_B == 0
+    # nor a plan beyond cone B by more than RETREAT_LIMIT
+    far = _past_cone_b(cfg, p, beyond_deg=math.degrees(RETREAT_LIMIT) + 1.0)
+    assert step(back, far, m, m, p, ctx).reversal is Reversal.CONE_B
 
 
 def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
-    """A contact on the edge row reverses the rotation; once a move carried it there, the move
-    back passes (the reversal itself moves nothing, so the thesis's rule would repeat)."""
+    """A contact on the edge row reverses the rotation; the way back passes while the contact
+    is still there (a reversal moves nothing, so the thesis's rule would repeat for ever)."""
     ctx, p = cfg.model_context(), params(cfg)
     edge = np.zeros((13, 6), np.uint16)
     edge[12, 1:5] = 1500  # on the last row
-    r = step(RollState(iteration=5, last_move=1), MIRROR, edge, edge, p, ctx)
-    assert r.reversal is Reversal.CONTACT_EDGE and r.state.out_edge == 1
-    assert r.state.half_strokes == 1 and r.state.direction == -1
+    r = step(RollState(iteration=5, travel=rad(3.0)), MIRROR, edge, edge, p, ctx)
+    assert r.reversal is Reversal.CONTACT_EDGE and r.state.waived is Reversal.CONTACT_EDGE
+    assert r.state.half_strokes == 1 and r.state.direction == -1 and r.state.travel == 0
     r = step(r.state, MIRROR, edge, edge, p, ctx)
     assert r.reversal is None and r.targets is not None  # on its way back
-    assert r.state.out_edge == 1 and r.state.last_move == -1
-    r = step(r.state, MIRROR, frame(20.0), frame(20.0), p, ctx)
-    assert r.reversal is None and r.state.out_edge == 0  # off the edge: forgotten
+    s = replace(r.state, travel=p.min_half_stroke)  # a half stroke further: the edge counts again
+    assert step(s, MIRROR, edge, edge, p, ctx).reversal is Reversal.CONTACT_EDGE
+
+
+def test_a_half_stroke_counts_only_after_finger2_travelled(cfg: Settings) -> None:
+    ctx, p = cfg.model_context(), params(cfg)
+    empty = np.zeros((13, 6), np.uint16)
+    s = RollState()
+    for _ in range(3):  # three steps of 0.25°: less than the 1° a half stroke needs
+        s = step(s, MIRROR, frame(20.0), frame(20.0), p, ctx).state
+    assert s.travel == pytest.approx(rad(0.75))
+    s = step(s, MIRROR, frame(20.0), empty, p, ctx).state
+    assert s.half_strokes == 0 and s.consecutive_reversals == 1 and s.travel == 0
+    for _ in range(4):
+        s = step(s, MIRROR, frame(20.0), frame(20.0), p, ctx).state
+    s = step(s, MIRROR, frame(20.0), empty, p, ctx).state
+    assert s.half_strokes == 1 and s.consecutive_reversals == 1
 
 
 def test_workspace_reverses_at_joint_limit(cfg: Settings) -> None:
@@ -266,10 +276,11 @@ def test_reversal_flips_direction_and_counts_strokes(cfg: Settings) -> None:
     ctx = cfg.model_context()
     empty = np.zeros((13, 6), np.uint16)
     s = RollState()
-    for _ in range(4):  # move, then reverse: four half strokes
-        s = step(s, MIRROR, frame(20.0), frame(20.0), params(cfg), ctx).state
-        assert s.consecutive_reversals == 0
+    for _ in range(4):  # move a half stroke's travel, then reverse: four half strokes
+        for _ in range(4):
+            s = step(s, MIRROR, frame(20.0), frame(20.0), params(cfg), ctx).state
         s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
+        assert s.consecutive_reversals == 1
     assert s.half_strokes == 4 and s.strokes == 2 and s.direction == 1
     for _ in range(3):  # reversing on the spot is not a half stroke
         s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
@@ -292,3 +303,40 @@ def test_one_finger_mode_turns_A_around_B(cfg: Settings) -> None:
     assert sig == pytest.approx(r.obs.sigma + rad(0.5))
     assert lam == pytest.approx(r.plan.Lambda_ad)
     assert isinstance(A_d, Point)
+
+
+WEDGED = HandPose(rad(-20), rad(40), rad(-20), rad(40))  # the pads' normals tilted apart
+
+
+def _wedge(r) -> float:  # noqa: ANN001
+    return (r.plan.omega_A_d + r.plan.omega_B_d) / 2 - math.pi / 2
+
+
+def test_wedge_correction_turns_pad2_against_the_wedge(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    plain = step(RollState(), WEDGED, frame(20.0), frame(20.0), params(cfg), ctx)
+    fixed = step(RollState(), WEDGED, frame(20.0), frame(20.0),
+                 params(cfg, wedge_gain=0.5, wedge_max_step_deg=0.25), ctx)  # fmt: skip
+    assert plain.targets is not None and fixed.targets is not None
+    w0 = (plain.obs.omega_A + plain.obs.omega_B) / 2 - math.pi / 2
+    assert abs(w0) > rad(5)  # a real wedge to take out
+    # the correction is Finger 2's distal joint alone, beside the route, within its step
+    assert fixed.targets.phi4 == pytest.approx(plain.targets.phi4)
+    extra = fixed.targets.phi5 - plain.targets.phi5
+    assert 0 < abs(extra) <= rad(0.25) + 1e-12
+    assert abs(_wedge(fixed)) < abs(_wedge(plain))  # the planned wedge is smaller
+    # λ reinforces the route's inclination change only: σd is the route's
+    assert fixed.plan.sigma_d == pytest.approx(plain.plan.sigma_d)
+
+
+def test_wedge_correction_is_proportional_below_its_limit(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    plain = step(RollState(), WEDGED, frame(20.0), frame(20.0), params(cfg), ctx)
+    extras = []
+    for gain in (0.01, 0.02):
+        r = step(RollState(), WEDGED, frame(20.0), frame(20.0),
+                 params(cfg, wedge_gain=gain, wedge_max_step_deg=5.0), ctx)  # fmt: skip
+        assert r.targets is not None and plain.targets is not None
+        extras.append(r.targets.phi5 - plain.targets.phi5)
+    assert extras[1] == pytest.approx(2 * extras[0])
+    assert 0 < abs(extras[0]) < rad(0.5)

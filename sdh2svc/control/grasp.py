@@ -1,0 +1,112 @@
+"""The grasp as a pure step: how far each coupled finger closes on one fresh frame (hand-model §8,
+step 1), from the two distal contacts and the actual joint angles. No I/O, no clock.
+
+The thesis (and SCHUNK's demo) close both fingers in a mirror pose at a speed proportional to
+Fd − F. Two additions:
+
+* **A floor on the closing speed** while F < Fd: the proportional law approaches Fd
+  asymptotically, and on a soft object or a small contact (little force per degree) it does not
+  reach Fd before the grasp's timeout.
+* **The pads' wedge.** Closing with the distal links held parallel presses a contact wherever
+  the pad happens to meet the object; on the pads' arcs (a large object held high, a corner)
+  the two pad normals are tilted apart, (ωA + ωB)/2 − 90° (the wedge) is as large as the
+  friction cone, and the rolling cannot start: both directions leave a cone. Once both contacts
+  are present, both distal joints also turn their pads so that the wedge shrinks by a fraction
+  ``align_gain`` per frame, each pad by the same change of its ω, so that the object's tilt
+  against the pads, ωA − ωB, is left as it is. The rolling step keeps taking the wedge out
+  (``rolling.wedge_gain``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from sdh2svc.model.contact import ContactEstimate
+from sdh2svc.model.friction import omega
+from sdh2svc.model.kinematics import Finger, HandPose, contact_point
+from sdh2svc.model.observe import ModelContext
+
+_EPS = math.radians(0.1)  # the finite difference of ω with respect to a distal joint
+
+
+@dataclass(frozen=True, slots=True)
+class GraspLaw:
+    """The grasp's closing law (config [run]; angles in degrees, speeds in degrees/s)."""
+
+    grasp_force: float  # Fd
+    gain_deg_s: float  # closing speed per force unit below Fd
+    max_velocity_deg_s: float
+    min_velocity_deg_s: float  # while F < Fd
+    align_gain: float  # fraction of (ω − 90°) a distal joint corrects per frame; 0: mirror grasp
+    period_s: float  # one frame
+    max_step_deg: float  # per joint per frame
+
+
+@dataclass(frozen=True, slots=True)
+class GraspStep:
+    """Joint increments (degrees) for φ2, φ3, φ4, φ5 and the ω the alignment saw (degrees)."""
+
+    d_phi: tuple[float, float, float, float]
+    omega_deg: tuple[float | None, float | None]
+    wedge_deg: float | None  # (ωA + ωB)/2 − 90°; None without both contacts
+
+
+def _closing_step(f: float, law: GraspLaw) -> float:
+    """Degrees one finger closes this frame for its own contact force ``f`` (negative: it
+    opens — above Fd, while the pads turn against their wedge)."""
+    speed = (law.grasp_force - f) * law.gain_deg_s
+    if f < law.grasp_force:
+        speed = max(law.min_velocity_deg_s, speed)
+    speed = max(-law.max_velocity_deg_s, min(law.max_velocity_deg_s, speed))
+    return max(-law.max_step_deg, min(speed * law.period_s, law.max_step_deg))
+
+
+def _omega(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: object,
+           ctx: ModelContext) -> float:  # fmt: skip
+    """ω at ``finger``'s contact for ``pose``, the other contact held at ``other_point``."""
+    assert mine.r_mm is not None and mine.theta_rad is not None and mine.x3_mm is not None
+    prox, dist = pose.finger(finger)
+    here = contact_point(finger, prox, dist, mine.r_mm, mine.theta_rad, ctx.geom)
+    return omega(finger, prox + dist, mine.x3_mm, here, other_point, ctx.geom.pad)  # type: ignore[arg-type]
+
+
+def _slope(finger: Finger, pose: HandPose, mine: ContactEstimate, other: ContactEstimate,
+           ctx: ModelContext) -> tuple[float, float]:  # fmt: skip
+    """ω at ``finger``'s contact (rad) and its change per radian of the finger's distal joint."""
+    assert other.r_mm is not None and other.theta_rad is not None
+    o = Finger.TWO if finger is Finger.ONE else Finger.ONE
+    oprox, odist = pose.finger(o)
+    other_point = contact_point(o, oprox, odist, other.r_mm, other.theta_rad, ctx.geom)
+    w = _omega(finger, pose, mine, other_point, ctx)
+    prox, dist = pose.finger(finger)
+    turned = pose.with_finger(finger, prox, dist + _EPS)
+    return w, (_omega(finger, turned, mine, other_point, ctx) - w) / _EPS  # ≈ ±1
+
+
+def grasp_step(
+    pose: HandPose, c1: ContactEstimate, c2: ContactEstimate, law: GraspLaw, ctx: ModelContext
+) -> GraspStep:
+    """The increments of one grasp frame: each finger closes (proximal in, distal out by the
+    same angle, so the pad keeps its orientation) and, once both contacts are present, turns
+    its distal joint against the pads' wedge. Every increment is within ±``max_step_deg``."""
+    s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
+    a1 = a2 = 0.0
+    w: tuple[float | None, float | None] = (None, None)
+    wedge: float | None = None
+    if c1.r_mm is not None and c2.r_mm is not None:
+        wa, sa = _slope(Finger.ONE, pose, c1, c2, ctx)
+        wb, sb = _slope(Finger.TWO, pose, c2, c1, ctx)
+        w = (math.degrees(wa), math.degrees(wb))
+        wedge = math.degrees((wa + wb) / 2 - math.pi / 2)
+        if law.align_gain > 0 and min(abs(sa), abs(sb)) > 0.2:  # else AB lies along a tangent
+            # turning a pad pressed on a corner squeezes: none at 2·Fd, where the fingers open
+            room = max(0.0, min(1.0, 2.0 - (c1.force + c2.force) / 2 / law.grasp_force))
+            gain = law.align_gain * room
+            a1, a2 = -gain * wedge / sa, -gain * wedge / sb
+    lim = law.max_step_deg
+
+    def clip(x: float) -> float:
+        return max(-lim, min(lim, x))
+
+    return GraspStep((s1, clip(-s1 + a1), s2, clip(-s2 + a2)), w, wedge)
