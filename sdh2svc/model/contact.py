@@ -85,6 +85,14 @@ def _mask_array(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
     return arr
 
 
+@lru_cache(maxsize=32)
+def _full_rows(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
+    """The rows whose every position is a real cell (they measure a band's width)."""
+    arr = _mask_array(rows, cols, mask).all(axis=1)
+    arr.flags.writeable = False
+    return arr
+
+
 class TactileCalibration(Frozen):
     """Raw counts → pressure, the contact threshold, and the S → distance map."""
 
@@ -235,9 +243,9 @@ def estimate_contact(
     x3, y3 = pad_point_from_L(L, pad)
     depth = NO_DEPTH
     if compliance is not None:
-        full_rows = layout.valid().all(axis=1)
+        full_rows = _full_rows(layout.rows, layout.cols, layout.mask)
         depth = contact_depth(values, labels == main_index + 1, full_rows, pitch_mm, compliance,
-                              total_counts=float(values[loaded].sum()))  # fmt: skip
+                              total_counts=pressure / p_per_count)  # fmt: skip
     r, theta = virtual_joint(*below_surface(x3, y3, depth.depth_mm, pad))
     row = S / pitch_mm
     margin = calib.edge_margin_rows

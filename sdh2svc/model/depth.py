@@ -111,30 +111,38 @@ def contact_depth(
     the counts of every loaded cell of the pad (the finger's load), default the contact's.
     """
     per = hand.pressure_per_count_n_per_mm2
-    values = np.where(contact, counts, 0.0)
-    total = float(values.sum())
+    values = counts * contact
+    # along the pad: each row's load and its largest cell (counts), as plain floats: 13 rows are
+    # too few for numpy to pay off
+    rows = values.sum(axis=1).tolist()
+    peaks = values.max(axis=1).tolist()
+    total = sum(rows)
     if total <= 0.0:
         return NO_DEPTH
     cell = pitch_mm * pitch_mm
     force = (total if total_counts is None else total_counts) * per * cell
     e = force / hand.finger_stiffness_n_per_mm
     k, t = hand.rubber_stiffness_n_per_mm3, hand.rubber_thickness_mm
-    # along the pad: each row's load (counts); across: the band's width from the full rows
-    rows = values.sum(axis=1)
-    peak = values.max(axis=1)
-    width_rows = rows / np.maximum(peak, 1e-12)  # cells' worth of band in each row
-    w_weights = rows * full_rows
-    if float(w_weights.sum()) <= 0.0:
-        w_weights = rows
-    band = pitch_mm * float((width_rows * w_weights).sum() / w_weights.sum())
+    # across the pad: the band's width, each full row's load over its largest cell (in cells),
+    # averaged over those rows by load (over every loaded row if no full row is loaded)
+    num = den = num_all = s1 = s2 = sq = 0.0
+    for j, (q, top, full) in enumerate(zip(rows, peaks, full_rows.tolist(), strict=True)):
+        if q <= 0.0:
+            continue
+        num_all += q * q / top
+        if full:
+            num += q * q / top
+            den += q
+        s1 += q * j
+        s2 += q * j * j
+        sq += q * q
+    band = pitch_mm * (num / den if den > 0.0 else num_all / total)
     load = total * per * cell / band  # P': N per mm of band
-    # the pressure profile along the pad, as the rows average it
-    p_rows = rows * per / (band / pitch_mm)  # mean pressure under the band in each row
-    c_cells = float((p_rows * p_rows).sum() / (k * p_rows.sum()))
-    pos = np.arange(rows.size) * pitch_mm
-    mean = float((rows * pos).sum()) / total
-    var = float((rows * (pos - mean) ** 2).sum()) / total
-    var_p = var - hand.spread_mm**2 - pitch_mm * pitch_mm / 12.0
+    # (3) on the rows: the mean pressure under the band in each row is q·per·pitch/band
+    c_cells = per * pitch_mm / band * sq / (k * total)
+    mean = s1 / total
+    var = (s2 / total - mean * mean) * cell  # the rows' variance along the pad, mm²
+    var_p = var - hand.spread_mm**2 - cell / 12.0
     c_wedge = 2.0 / 3.0 * math.sqrt(load * hand.corner_slope / k)
     sd = math.sqrt(var_p) if var_p > 0.0 else None
     c_foot = KAPPA * load / (k * sd) if sd is not None else math.inf
