@@ -4,6 +4,11 @@ Input: the raw 12-bit counts of one pad as a (rows, cols) array, row 0 at the fi
 Output: whether there is a contact and, if so, where (S, L, pad point x3/y3, virtual joint r/θ),
 how strong (both force conventions) and how large.
 
+The contact point is where the object really is: the pad point under the pressure centroid
+(x3, y3), moved into the pad along its normal by the contact's depth (finger yield plus rubber
+compression, :mod:`sdh2svc.model.depth`, docs/contact-depth.md) when a depth model is given;
+the virtual joint (r, θ) leads to that point.
+
 Separate blobs (8-connected groups of cells above the threshold) are all reported; the contact
 point comes from the *stronger* blob (largest pressure sum), so a second, weaker touch elsewhere
 on the pad does not drag the centroid into empty space between the two. The forces and area
@@ -12,6 +17,7 @@ cover the whole matrix, as SDHLibrary's ``GetContactInfo`` does, so they stay li
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Annotated
@@ -22,7 +28,8 @@ from scipy import ndimage
 
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.calibration import DistanceMap
-from sdh2svc.model.geometry import PadProfile, pad_point_from_L, virtual_joint
+from sdh2svc.model.depth import NO_DEPTH, ContactDepth, PadCompliance, contact_depth
+from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, virtual_joint
 
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -78,6 +85,14 @@ def _mask_array(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
     return arr
 
 
+@lru_cache(maxsize=32)
+def _full_rows(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
+    """The rows whose every position is a real cell (they measure a band's width)."""
+    arr = _mask_array(rows, cols, mask).all(axis=1)
+    arr.flags.writeable = False
+    return arr
+
+
 class TactileCalibration(Frozen):
     """Raw counts → pressure, the contact threshold, and the S → distance map."""
 
@@ -87,6 +102,10 @@ class TactileCalibration(Frozen):
     distance: DistanceMap
     # The controller's force: Σp × this area (see ContactEstimate.force); 0: the library's force.
     force_reference_area_mm2: Annotated[float, Field(ge=0.0, le=2000.0)] = 0.0
+    # The pads' physical pressure per raw count (N/mm² per count; the contact-depth model's
+    # scale, docs/contact-depth.md) and the rubber's spread of a point load before the cells.
+    physical_pressure_per_count_n_per_mm2: Annotated[float, Field(gt=0.0, le=1.0)] = 1.5977e-5
+    spread_mm: Annotated[float, Field(ge=0.0, le=10.0)] = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,6 +134,10 @@ class ContactEstimate:
     cells), so the same squeeze reads 10× less on a stick's end than on a box's face; Σp × a
     fixed area is proportional to the normal force whatever the contact's size, and equals the
     library's force for a contact of that area.
+
+    ``x3_mm``, ``y3_mm`` are the pad surface point under the contact's centroid; ``r_mm``,
+    ``theta_rad`` the virtual link to the contact itself, ``depth.depth_mm`` below that point
+    along the pad normal (0 without a depth model: then the surface point).
     """
 
     present: bool
@@ -131,6 +154,7 @@ class ContactEstimate:
     area_mm2: float
     n_cells: int
     blobs: tuple[Blob, ...]
+    depth: ContactDepth = NO_DEPTH
 
     @property
     def virtual_joint(self) -> tuple[float, float] | None:
@@ -189,8 +213,12 @@ def estimate_contact(
     pitch_mm: float,
     calib: TactileCalibration,
     pad: PadProfile,
+    compliance: PadCompliance | None = None,
 ) -> ContactEstimate:
-    """Estimate the contact on one pad from its raw counts, shape (rows, cols), row 0 at the tip."""
+    """Estimate the contact on one pad from its raw counts, shape (rows, cols), row 0 at the tip.
+
+    ``compliance``: the hand's depth model parameters; None puts the contact on the undeformed
+    pad surface (the thesis's model)."""
     if counts.shape != (layout.rows, layout.cols):
         raise ValueError(
             f"tactile matrix has shape {counts.shape}, layout says {(layout.rows, layout.cols)}"
@@ -202,7 +230,8 @@ def estimate_contact(
     labels, n = ndimage.label(loaded, structure=_EIGHT_CONNECTED)
     p_per_count = calib.pressure_per_count_n_per_mm2
     blobs = tuple(_blob(values, labels == i, pitch_mm, p_per_count) for i in range(1, n + 1))
-    main = max(blobs, key=lambda b: b.pressure_sum_n_per_mm2)
+    main_index = max(range(n), key=lambda i: blobs[i].pressure_sum_n_per_mm2)
+    main = blobs[main_index]
     # the blobs partition the loaded cells: the whole pad's totals are their sums
     n_cells = sum(b.n_cells for b in blobs)
     pressure = sum(b.pressure_sum_n_per_mm2 for b in blobs)
@@ -212,7 +241,12 @@ def estimate_contact(
     s_range = (layout.rows - 1) * pitch_mm
     L = calib.distance.L_from_S(S, s_range, pad)
     x3, y3 = pad_point_from_L(L, pad)
-    r, theta = virtual_joint(x3, y3)
+    depth = NO_DEPTH
+    if compliance is not None:
+        full_rows = _full_rows(layout.rows, layout.cols, layout.mask)
+        depth = contact_depth(values, labels == main_index + 1, full_rows, pitch_mm, compliance,
+                              total_counts=pressure / p_per_count)  # fmt: skip
+    r, theta = virtual_joint(*below_surface(x3, y3, depth.depth_mm, pad))
     row = S / pitch_mm
     margin = calib.edge_margin_rows
     return ContactEstimate(
@@ -230,4 +264,15 @@ def estimate_contact(
         area_mm2=n_cells * pitch_mm * pitch_mm,
         n_cells=n_cells,
         blobs=blobs,
+        depth=depth,
     )
+
+
+def below_surface(x3: float, y3: float, depth_mm: float, pad: PadProfile) -> tuple[float, float]:
+    """The frame-3 point ``depth_mm`` below the pad surface point (x3, y3), along the pad's
+    inward normal n = (m, −1)/sqrt(1 + m²), m the profile's slope dy3/dx3 at x3."""
+    if depth_mm == 0.0:
+        return x3, y3
+    m = pad_slope(x3, pad)
+    k = depth_mm / math.sqrt(1.0 + m * m)
+    return x3 + m * k, y3 - k

@@ -31,6 +31,10 @@ class PadProfile(Frozen):
     tip_end_x3_mm: PositiveMm
     sensor_active_length_mm: PositiveMm
     pad_base_to_active_mm: Annotated[float, Field(ge=0.0, le=100.0)]
+    # The rubber over the sensor cells (docs/contact-depth.md): pressure per mm of compression,
+    # and how far it compresses before the finger's shell stops it.
+    rubber_stiffness_n_per_mm3: Annotated[float, Field(gt=0.0, le=100.0)] = 0.2
+    rubber_thickness_mm: Annotated[float, Field(gt=0.0, le=20.0)] = 2.0
 
     @model_validator(mode="after")
     def _ordered(self) -> PadProfile:

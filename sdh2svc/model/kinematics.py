@@ -16,6 +16,7 @@ from typing import Annotated, NamedTuple
 from pydantic import Field
 
 from sdh2svc.model.base import Frozen
+from sdh2svc.model.depth import ContactDepthModel
 from sdh2svc.model.geometry import PadProfile
 
 PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
@@ -43,6 +44,9 @@ class HandGeometry(Frozen):
     distal_length_mm: PositiveMm
     distal_length_schunk_mm: PositiveMm
     pad: PadProfile
+    # the finger's yield along the pad normal (structure, gears, servo), unseen by the encoders
+    finger_stiffness_n_per_mm: Annotated[float, Field(gt=0.0, le=1e6)] = 10.0
+    contact_depth: ContactDepthModel = ContactDepthModel()
 
 
 @dataclass(frozen=True, slots=True)

@@ -6,7 +6,7 @@ controller, the dashboards and the benchmarks.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -16,6 +16,7 @@ from sdh2svc.model.contact import (
     TactileCalibration,
     estimate_contact,
 )
+from sdh2svc.model.depth import PadCompliance
 from sdh2svc.model.friction import omega
 from sdh2svc.model.kinematics import (
     Finger,
@@ -38,12 +39,32 @@ class ModelContext:
     calib: TactileCalibration
     limits1: FingerLimits
     limits2: FingerLimits
+    # the depth model's parameters (None: contacts on the undeformed pad surface)
+    compliance: PadCompliance | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "compliance", pad_compliance(self.geom, self.calib))
 
     def limits(self, finger: Finger) -> FingerLimits:
         return self.limits1 if finger is Finger.ONE else self.limits2
 
     def contact(self, counts: np.ndarray) -> ContactEstimate:
-        return estimate_contact(counts, self.distal, self.pitch_mm, self.calib, self.geom.pad)
+        return estimate_contact(counts, self.distal, self.pitch_mm, self.calib, self.geom.pad,
+                                self.compliance)  # fmt: skip
+
+
+def pad_compliance(geom: HandGeometry, calib: TactileCalibration) -> PadCompliance | None:
+    """The contact-depth model's parameters from the configuration (None: model "none")."""
+    if geom.contact_depth.model == "none":
+        return None
+    return PadCompliance(
+        rubber_stiffness_n_per_mm3=geom.pad.rubber_stiffness_n_per_mm3,
+        rubber_thickness_mm=geom.pad.rubber_thickness_mm,
+        finger_stiffness_n_per_mm=geom.finger_stiffness_n_per_mm,
+        pressure_per_count_n_per_mm2=calib.physical_pressure_per_count_n_per_mm2,
+        spread_mm=calib.spread_mm,
+        corner_slope=geom.contact_depth.corner_slope,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,7 +92,11 @@ class Observation:
 def observe(
     pose: HandPose, counts1: np.ndarray, counts2: np.ndarray, ctx: ModelContext
 ) -> Observation:
-    """Contact estimates on the distal pads of Finger 1 (S1) and Finger 2 (S2), then FK, Λ, σ, ω."""
+    """Contact estimates on the distal pads of Finger 1 (S1) and Finger 2 (S2), then FK, Λ, σ, ω.
+
+    A and B are the contacts themselves: with a depth model (``[hand.contact_depth]``) each lies
+    below its pad's undeformed surface along the pad normal (:mod:`sdh2svc.model.depth`), so Λ,
+    σ and ω are those of the corrected points."""
     c1, c2 = ctx.contact(counts1), ctx.contact(counts2)
     vj1, vj2 = c1.virtual_joint, c2.virtual_joint
     if vj1 is None or vj2 is None or c1.x3_mm is None or c2.x3_mm is None:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sdh2svc.config import Settings
+from sdh2svc.config import Settings, load_config
 from sdh2svc.model.kinematics import HandPose
 from sdh2svc.model.observe import observe
 
@@ -21,7 +21,8 @@ def s20(cfg: Settings) -> np.ndarray:
 
 
 def test_observe_mirror_pose(cfg: Settings) -> None:
-    ctx = cfg.model_context()
+    """hand-model §6's check values: the thesis's model, contacts on the undeformed pads."""
+    ctx = load_config(None, ["hand.contact_depth.model=none"]).model_context()
     pose = HandPose(*(math.radians(a) for a in (-20, 30, -20, 30)))
     obs = observe(pose, s20(cfg), s20(cfg), ctx)
     assert obs.contact1.S_mm == pytest.approx(20.0)
