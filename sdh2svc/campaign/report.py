@@ -56,6 +56,47 @@ def _stats(values: Sequence[float]) -> str:
             f"{np.percentile(a, 95):.2f} (n = {len(a)})")  # fmt: skip
 
 
+RIGID_N_PER_MM3 = 0.5  # objects at least this stiff (2.5 × the pads' rubber) count as rigid
+LAMBDA_TOLERANCE_MM = 1.7  # the texel uncertainty (thesis §4.2.2: ±1.7 mm per sensor)
+GAIN_BANDS = ((0.5, 0.75), (0.75, 1.0), (1.0, 1.25), (1.25, 1.5))
+
+
+def _stiffness(r: Row) -> float | None:
+    import json
+
+    try:
+        return float(json.loads(r["spec"])["object"]["material"]["stiffness_n_per_mm3"])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _share(rows: Sequence[Row], ok: Callable[[Row], bool]) -> str:
+    n = len(rows)
+    k = sum(1 for r in rows if ok(r))
+    return f"{k}/{n} ({100 * k / n:.0f} %)" if n else "–"
+
+
+def _headline(rows: Sequence[Row]) -> list[str]:
+    """The controller's targets: no drop, Λ at grasp on rigid objects, success per gain band."""
+    rigid = [r for r in rows if (_stiffness(r) or 0.0) >= RIGID_N_PER_MM3
+             and r["lambda_error_mm"] is not None]  # fmt: skip
+    lines = [
+        "",
+        f"* **without a drop**: {_share(rows, lambda r: not r['dropped'])}",
+        f"* **Λ at grasp within {LAMBDA_TOLERANCE_MM} mm** of the true contact width (the "
+        "distance between the simulation's contact points on the object at the first "
+        f"iteration), rigid objects (≥ {RIGID_N_PER_MM3} N/mm³) that reached an iteration: "
+        f"{_share(rigid, lambda r: abs(r['lambda_error_mm']) <= LAMBDA_TOLERANCE_MM)}",
+    ]
+    bands = []
+    for lo, hi in GAIN_BANDS:
+        last = hi == GAIN_BANDS[-1][1]
+        band = [r for r in rows if lo <= r["gain_factor"] < hi or (last and r["gain_factor"] == hi)]
+        bands.append(f"×{lo}–{hi}: {_share(band, lambda r: r['success'])}")
+    lines.append("* success by the sensor's gain factor: " + ", ".join(bands))
+    return lines
+
+
 def write_report(out: Path) -> Path:
     """``OUT/report.md`` and its plots (``OUT/plots/*.png``)."""
     rows, info = load(out)
@@ -86,6 +127,7 @@ def write_report(out: Path) -> Path:
         med = errs[len(errs) // 2] if errs else None
         lines.append(f"| {fam} | {len(rs)} | {rate(rs)} | {_fmt(med)} | "
                      f"{_fmt(sum(walls) / len(walls) if walls else None, 1)} |")  # fmt: skip
+    lines += _headline(rows)
     lines += ["", "## Failure reasons", "", "| reason | cases |", "|---|---|"]
     reasons = Counter(r["failure"] for r in rows if not r["success"])
     lines += [f"| {k} | {v} |" for k, v in reasons.most_common()] or ["| – | 0 |"]
@@ -103,7 +145,7 @@ def write_report(out: Path) -> Path:
     fmax = [r["f_max"] / r["fd"] for r in rows if r["f_max"] is not None and r["fd"]]
     rot = [h for r in rows for h in (r["half_stroke_rotation_deg"] or [])]
     lines += [
-        f"* Λ at grasp − true width (mm): {_stats(lam)}",
+        f"* Λ at grasp − true contact width (mm): {_stats(lam)}",
         f"* lowest F after the grasp (× Fd): {_stats(fmin)}",
         f"* highest F after the grasp (× Fd): {_stats(fmax)}",
         f"* true rotation per half stroke (°): {_stats(rot)}",
@@ -197,7 +239,7 @@ def _plots(rows: Sequence[Row], plots: Path) -> list[str]:
         save(fig, "failure_reasons")
 
     for key, label, name in (
-        ("lambda_error_mm", "Λ at grasp − true width (mm)", "dist_lambda_error"),
+        ("lambda_error_mm", "Λ at grasp − true contact width (mm)", "dist_lambda_error"),
         ("f_mean", "mean F after the grasp", "dist_force"),
         ("mean_stroke_rotation_deg", "true rotation per stroke (°)", "dist_rotation"),
     ):

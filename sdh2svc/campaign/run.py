@@ -123,6 +123,9 @@ class TruthProbe:
         self.reversals: list[tuple[int | None, bool]] = []
         self._half_strokes = 0
         self.grasp_F: float | None = None
+        # the distance between the true contact points on the object at the first iteration:
+        # the object's width where the pads really touch it
+        self.contact_width_mm: float | None = None
         self.fault: str = ""
         self.end_t: float | None = None
 
@@ -150,6 +153,8 @@ class TruthProbe:
     def sample(self, sample: Any) -> None:
         if self.hand is not None:
             self.psi.append((sample.iteration, self._psi()))
+            if self.contact_width_mm is None:
+                self.contact_width_mm = _contact_width(self.hand.world.contacts_now())
 
     def half_strokes_deg(self) -> list[float]:
         """How far the object truly turned in every half stroke (degrees): the largest
@@ -172,6 +177,13 @@ class TruthProbe:
                 out.append(peak)
                 start, peak = (self.psi[k - 1][1] if k else start), 0.0
         return out
+
+
+def _contact_width(contacts: Sequence[Any]) -> float | None:
+    """The distance between the two distal pads' true contact points, in the object's frame."""
+    pts = {c.surface: c.object_point for c in contacts}
+    a, b = pts.get("distal1"), pts.get("distal2")
+    return None if a is None or b is None else math.dist(a, b)
 
 
 def _wrap_deg(d: float) -> float:
@@ -245,7 +257,10 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
         "dropped": bool(truth.get("dropped", False)), "slips": int(truth.get("slips", 0)),
         "rotation_range_deg": truth.get("rotation_range_deg"),
         "lambda_at_grasp_mm": lam,
-        "lambda_error_mm": lam - case.true_width_mm if lam is not None else None,
+        "true_contact_width_mm": probe.contact_width_mm,
+        "lambda_error_mm": (lam - probe.contact_width_mm
+                            if lam is not None and probe.contact_width_mm is not None else None),
+        "lambda_error_placement_mm": lam - case.true_width_mm if lam is not None else None,
         "fd": cfg.rolling.grasp_force, "f_min": force.get("min"), "f_max": force.get("max"),
         "f_mean": force.get("mean"), "peak_force": max(peaks) if peaks else None,
         "sensor_gain": cfg.sim.sensor.gain_vs_library,
@@ -259,6 +274,7 @@ COLUMNS_DEFAULTS: dict[str, Any] = {
     "half_stroke_rotation_deg": [], "min_half_stroke_deg": None,
     "mean_stroke_rotation_deg": None, "dropped": False, "slips": 0,
     "rotation_range_deg": None, "lambda_at_grasp_mm": None, "lambda_error_mm": None,
+    "true_contact_width_mm": None, "lambda_error_placement_mm": None,
     "fd": None, "f_min": None, "f_max": None, "f_mean": None, "peak_force": None,
     "sensor_gain": None, "sim_s": None, "wall_s": None, "traceback": "",
 }  # fmt: skip

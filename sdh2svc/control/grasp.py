@@ -13,8 +13,7 @@ Fd − F. Two additions:
   friction cone, and the rolling cannot start: both directions leave a cone. Once both contacts
   are present, both distal joints also turn their pads so that the wedge shrinks by a fraction
   ``align_gain`` per frame, each pad by the same change of its ω, so that the object's tilt
-  against the pads, ωA − ωB, is left as it is. The rolling step keeps taking the wedge out
-  (``rolling.wedge_gain``).
+  against the pads, ωA − ωB, is left as it is.
 """
 
 from __future__ import annotations

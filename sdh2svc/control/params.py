@@ -66,13 +66,6 @@ class RollingParams(Frozen):
         description="Finger 2's travel along its route (φ4; σ in one-finger mode) before a "
         "reversal counts as a half stroke; fewer count towards 'stuck' (not in the thesis)"
     )
-    wedge_gain: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
-        description="fraction of (ωA + ωB)/2 − 90° (the pads' wedge) Finger 2's distal joint "
-        "takes out per iteration, beside its route (not in the thesis; 0: off)"
-    )
-    wedge_max_step_deg: Annotated[float, Field(ge=0.0, le=5.0)] = Field(
-        description="largest wedge correction of φ5 per iteration (not in the thesis)"
-    )
     cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
         description="back-and-forth strokes before the run ends"
     )
@@ -114,10 +107,6 @@ class RollingParams(Frozen):
     @property
     def min_half_stroke(self) -> float:
         return math.radians(self.min_half_stroke_deg)
-
-    @property
-    def wedge_max_step(self) -> float:
-        return math.radians(self.wedge_max_step_deg)
 
     @property
     def alpha(self) -> float:

@@ -13,7 +13,7 @@ turns A around B by dσ per iteration.
 
 Additions to the thesis (each explained in config/default.toml): a half stroke counts only once
 Finger 2 has travelled ``min_half_stroke_deg`` along its route; a reversal commits to the way
-back (:attr:`RollState.waived`); Finger 1's step limit; the force band; the pads' wedge.
+back (:attr:`RollState.waived`); Finger 1's step limit; the force band.
 """
 
 from __future__ import annotations
@@ -147,7 +147,6 @@ class _Route:
     lam_ad: float
     params: RollingParams
     ctx: ModelContext
-    wedge: float = 0.0  # Finger 2's distal correction this iteration (rad), see _wedge_correction
 
     def configure(self, scale: float) -> _Config | None:
         """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
@@ -165,9 +164,6 @@ class _Route:
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
             d_sigma = segment(obs.points.A, B_d)[1] - obs.sigma  # eq 3.13, sign typo fixed
             sigma_d = obs.sigma + p.lambda_gain * d_sigma
-            if self.wedge and self.ctx.limits2.contains(phi4d, phi5d + self.wedge):
-                phi5d += self.wedge  # beside the route: λ reinforces the route's dσ only
-                B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
         else:
             phi4d, phi5d, B_d = pose.phi4, pose.phi5, obs.points.B
             sigma_d = obs.sigma + scale * self.state.direction * p.d_sigma
@@ -177,28 +173,6 @@ class _Route:
                        self.ctx.limits1)  # fmt: skip
         step = scale * (abs(p.delta_phi) if p.mode == "two-finger" else abs(p.d_sigma))
         return _Config(phi4d, phi5d, Plan(lam, sigma_d, A_d, B_d), ik, step)
-
-
-def _wedge_correction(pose: HandPose, obs: Observation, p: RollingParams,
-                      ctx: ModelContext) -> float:  # fmt: skip
-    """Finger 2's distal correction (rad) taking ``wedge_gain`` of the pads' wedge,
-    (ωA + ωB)/2 − 90°, out this iteration: turning φ5 turns pad 2 against AB (∂ωB/∂φ5, found
-    by a finite difference of the model, ≈ −1) and leaves ωA nearly as it is."""
-    if p.wedge_gain == 0.0 or p.mode != "two-finger" or obs.omega_A is None:
-        return 0.0
-    assert obs.points is not None and obs.omega_B is not None
-    c2 = obs.contact2
-    assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
-    eps = math.radians(0.1)
-    B = contact_point(Finger.TWO, pose.phi4, pose.phi5 + eps, c2.r_mm, c2.theta_rad, ctx.geom)
-    wb = omega(Finger.TWO, pose.phi4 + pose.phi5 + eps, c2.x3_mm, B, obs.points.A, ctx.geom.pad)
-    slope = (wb - obs.omega_B) / eps
-    if abs(slope) < 0.2:  # AB nearly along pad 2's tangent: no use turning it
-        return 0.0
-    wedge = (obs.omega_A + obs.omega_B) / 2 - math.pi / 2
-    # ωB changes by slope·δ; the wedge by half of that
-    step = -p.wedge_gain * wedge / (slope / 2)
-    return max(-p.wedge_max_step, min(p.wedge_max_step, step))
 
 
 # A slower plan may still need a little more than Finger 1's step (the step's scaling is linear,
@@ -265,7 +239,7 @@ def step(
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
 
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
-    route = _Route(state, pose, obs, lam_ad, params, ctx, _wedge_correction(pose, obs, params, ctx))
+    route = _Route(state, pose, obs, lam_ad, params, ctx)
     cfg = route.configure(1.0)
     if cfg is None:
         return reverse(Reversal.WORKSPACE, Plan(lam_ad))
@@ -275,8 +249,8 @@ def step(
             slower = route.configure(params.finger1_max_step / need)
             if slower is not None and slower.ik.solution is not None:
                 cfg = slower
-                # still too far at a fraction of the step: Λ's and the wedge's own corrections
-                # need it, near a stretched Finger 1 (singular); the servo could not follow
+                # still too far at a fraction of the step: Λ's own correction needs it, near a
+                # stretched Finger 1 (singular); the servo could not follow
                 if _finger1_step(cfg, pose) > FOLLOW_SLACK * params.finger1_max_step:
                     return reverse(Reversal.WORKSPACE, cfg.plan)
     plan, ik, phi4d, phi5d = cfg.plan, cfg.ik, cfg.phi4d, cfg.phi5d

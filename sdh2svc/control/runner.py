@@ -23,9 +23,9 @@ from typing import Any
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
 from sdh2svc.config import Settings
+from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample

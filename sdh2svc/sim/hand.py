@@ -235,6 +235,10 @@ class PhysicsWorld:
         pose = self._physics.state.pose
         return float(pose[0]), float(pose[1]), float(pose[2])
 
+    def contacts_now(self) -> tuple[ContactTruth, ...]:
+        """The contacts as the physics last stepped; like :meth:`object_pose`, steps nothing."""
+        return tuple(self._physics.contacts())
+
     def truth(self) -> Truth:
         """The state at the joints' actual pose (this steps the physics up to it)."""
         phys = self.physics

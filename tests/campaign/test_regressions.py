@@ -1,0 +1,44 @@
+"""Failures `bench-v1` found in the controller, one representative case per class, each run as a
+campaign runs it (fast simulation through the full byte path, judged from the simulation's
+truth) with the default configuration. Each failed on the baseline
+(experiments/campaigns/bench-v1-baseline)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from sdh2svc.campaign.case import load_suite
+from sdh2svc.campaign.run import MIN_HALF_STROKE_DEG, run_case
+
+CASES = {c.id: c for c in load_suite("bench-v1").cases}
+
+
+def run(case_id: str) -> dict[str, Any]:
+    row = run_case(CASES[case_id].model_dump_json())
+    assert row["status"] != "crashed", row["traceback"]
+    return row
+
+
+@pytest.mark.parametrize(
+    ("case_id", "baseline"),
+    [
+        # a 116 mm box held on the pads' arcs: both cones refused both directions at once
+        # (the pads' wedge at the grasp as wide as the cone) — stuck at iteration 7
+        ("box-246", "faulted: stuck"),
+        # a rounded stick's end loads a few cells: the library's force (∝ area²) never reached
+        # Fd, the grasp timed out
+        ("stick-358", "faulted: no_contact"),
+        # reversals after a single moved iteration counted as half strokes: "completed" with
+        # half strokes that turned the object 0.4°
+        ("polygon-241", "half stroke < 1°"),
+        # a small foam box squeezed while the grasp crept towards Fd, and dropped
+        ("box-234", "dropped"),
+    ],
+)
+def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) -> None:
+    row = run(case_id)
+    assert row["success"], (baseline, row["failure"], row["message"])
+    assert row["strokes"] == row["cycles"] and not row["dropped"]
+    assert min(row["half_stroke_rotation_deg"]) >= MIN_HALF_STROKE_DEG
