@@ -73,6 +73,11 @@ class RollState:
     # "leave" the cone, a noisy ω or edge flag flickers, and the thesis's rule reverses on the
     # spot for ever. A waived cone still refuses a plan beyond it by more than RETREAT_LIMIT.
     waived: Reversal | None = None
+    # The largest |ω − 90°| at the first iteration: the grasp holds the object there, so its
+    # friction angle is at least this; the cones are max(α, this) wide. A grasp can end with AB
+    # tilted beyond α against the pads (small objects touching the pads at different heights),
+    # where the thesis's rule would refuse both directions from the start.
+    alpha_held: float = 0.0
 
     @property
     def strokes(self) -> int:
@@ -224,7 +229,10 @@ def step(
     F = (c1.force + c2.force) / 2  # eq 3.16 (ContactEstimate.force: which force)
     dF = 0.0 if state.F_prev is None else F - state.F_prev
 
-    alpha = params.alpha
+    if state.iteration == 0 and obs.omega_A is not None and obs.omega_B is not None:
+        held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
+        state = replace(state, alpha_held=held)
+    alpha = max(params.alpha, state.alpha_held)
     waived = state.waived if state.travel < params.min_half_stroke else None
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:

@@ -33,6 +33,7 @@ def params(cfg: Settings, **kw: object) -> RollingParams:
     return cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0, **kw})
 
 
+RUNNING = RollState(iteration=1)  # after the first iteration (see RollState.alpha_held)
 TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))  # σ ≠ 0
 
 
@@ -154,7 +155,7 @@ def test_contact_at_pad_edge_reverses(cfg: Settings) -> None:
 
 def test_cone_a_reverses(cfg: Settings) -> None:
     """In the mirror pose ωA ≈ 91.4°: a cone of ±1° is left at once, at A first."""
-    r = step(RollState(), MIRROR, frame(20.0), frame(20.0), params(cfg, alpha_deg=1.0),
+    r = step(RUNNING, MIRROR, frame(20.0), frame(20.0), params(cfg, alpha_deg=1.0),
              cfg.model_context())  # fmt: skip
     assert r.reversal is Reversal.CONE_A
     assert abs(math.degrees(r.plan.omega_A_d) - 90) >= 1.0
@@ -166,7 +167,7 @@ def test_cone_b_reverses(cfg: Settings) -> None:
     found = None
     for phi5 in range(30, 70):
         pose = HandPose(rad(-20), rad(30), rad(-20), rad(phi5))
-        r = step(RollState(), pose, frame(20.0), frame(20.0), p, ctx)
+        r = step(RUNNING, pose, frame(20.0), frame(20.0), p, ctx)
         if r.reversal is Reversal.CONE_B:
             found = r
             break
@@ -194,7 +195,7 @@ def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> Non
     pose = _past_cone_b(cfg, p, beyond_deg=1.0)
     m = frame(20.0)
     for d in (1, -1):  # nothing waived: the thesis's rule
-        r = step(RollState(direction=d), pose, m, m, p, ctx)
+        r = step(replace(RUNNING, direction=d), pose, m, m, p, ctx)
         assert r.reversal is Reversal.CONE_B and r.state.waived is Reversal.CONE_B
     back = RollState(direction=1, iteration=9, waived=Reversal.CONE_B)
     r = step(back, pose, m, m, p, ctx)
@@ -303,3 +304,22 @@ def test_one_finger_mode_turns_A_around_B(cfg: Settings) -> None:
     assert sig == pytest.approx(r.obs.sigma + rad(0.5))
     assert lam == pytest.approx(r.plan.Lambda_ad)
     assert isinstance(A_d, Point)
+
+
+def test_the_cones_are_as_wide_as_the_grasp_held(cfg: Settings) -> None:
+    """A grasp that ended with ωB beyond α shows the object holds there: from the first
+    iteration on, the cones are that wide, and the run can start (the thesis's rule refuses
+    both directions)."""
+    ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
+    pose = _past_cone_b(cfg, p, beyond_deg=1.0)
+    m = frame(20.0)
+    r = step(RollState(), pose, m, m, p, ctx)
+    held = abs(r.obs.omega_B - math.pi / 2)
+    assert r.state.alpha_held == pytest.approx(held) and held > rad(10.0)
+    assert r.reversal is None or r.reversal is Reversal.CONE_B
+    assert step(replace(r.state, direction=-r.state.direction) if r.reversal else r.state,
+                pose, m, m, p, ctx).state.alpha_held == pytest.approx(held)  # fmt: skip
+    moved = [step(RollState(direction=d), pose, m, m, p, ctx).reversal for d in (1, -1)]
+    assert None in moved  # at least one way to start
+    assert all(step(replace(RUNNING, direction=d), pose, m, m, p, ctx).reversal
+               is Reversal.CONE_B for d in (1, -1))  # fmt: skip
