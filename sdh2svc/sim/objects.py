@@ -257,6 +257,7 @@ class Outline:
             self._box_far = (self._box_core + self.radius)[:, None]  # its sides moved out by r
         self._ab: tuple[float, float] | None = None
         self._segment = None  # a stick's core: its centre, direction and half length
+        self._centred = not self.vertices.any()  # a disk about the origin
         if len(self.vertices) == 2:
             half = float(lengths[0]) / 2
             mid, unit = self.vertices.mean(axis=0), self.edges[0] / lengths[0]
@@ -329,8 +330,8 @@ class Outline:
             return self._box_exit(p.T, d.T)
         (px, py), (dx, dy) = p.T, d.T
         v, r = self.vertices, self.radius
-        if len(v) == 1:
-            return _disk_exit(p.T - v[0][:, None], d.T, r)
+        if len(v) == 1:  # a disk (about the origin, as every circle's core is)
+            return _disk_exit(p.T if self._centred else p.T - v[0][:, None], d.T, r)
         if not self._closed:
             return self._stick_exit(px, py, dx, dy)
         # a polygon's edges moved out by r: the first of their half-planes the ray leaves
