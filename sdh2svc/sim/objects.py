@@ -3,7 +3,9 @@
 Every shape is a convex polygon in its own frame, grown by a rounding radius (a Minkowski sum
 with a disk): a ``circle`` is a point grown by its radius, a ``stick`` a segment grown by half its
 diameter, a ``box`` a rectangle with optionally rounded corners, an ``ellipse`` a fine polygon,
-a ``polygon`` itself. One signed-distance function then serves all of them.
+a ``polygon`` itself. One signed-distance function then serves all of them (which points are
+inside), and one ray exit (how deep a point lies along a direction: the pads' compression along
+their normals, see ``sdh2svc/sim/physics.py``).
 """
 
 from __future__ import annotations
@@ -251,8 +253,18 @@ class Outline:
         self.bound_radius = float(np.max(np.linalg.norm(self.vertices, axis=1))) + self.radius
         # a box's core is axis-aligned: its distance has a closed form (see sdf)
         self._box_core = np.max(np.abs(self.vertices), axis=0) if isinstance(spec, Box) else None
+        if self._box_core is not None:
+            self._box_far = (self._box_core + self.radius)[:, None]  # its sides moved out by r
+        self._ab: tuple[float, float] | None = None
+        self._segment = None  # a stick's core: its centre, direction and half length
+        self._centred = not self.vertices.any()  # a disk about the origin
+        if len(self.vertices) == 2:
+            half = float(lengths[0]) / 2
+            mid, unit = self.vertices.mean(axis=0), self.edges[0] / lengths[0]
+            self._segment = ((float(mid[0]), float(mid[1])), (float(unit[0]), float(unit[1])), half)
         if isinstance(spec, Ellipse):
             self._ab = (spec.axis_a_mm / 2, spec.axis_b_mm / 2)
+            self._inv_ab = np.array([[2.0 / spec.axis_a_mm], [2.0 / spec.axis_b_mm]])
             self.half_extent = np.array(self._ab)
             self.bound_radius = max(self._ab)
 
@@ -301,6 +313,79 @@ class Outline:
             d[out] = np.min(np.linalg.norm(rel - t[..., None] * e[None], axis=2), axis=1)
         return d - self.radius
 
+    def exit_distance(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """How far each object-frame point p (N, 2) inside the outline goes along its unit
+        direction d (N, 2) before it leaves the outline: t ≥ 0 with p + t·d on the boundary.
+
+        The outline is convex, so a ray from inside crosses its boundary once. Closed forms: an
+        ellipse is a disk once scaled by its semi-axes, a quadratic in t; a polygon grown by r
+        is first left through one of its edges moved out by r (the first half-plane the ray
+        leaves), and where that exit lies beyond the ends of its edge it is in a rounded
+        corner, on that vertex's circle (a stick: its two sides, then its end caps). Few
+        points, so few whole-array operations: the coordinates are handled as rows.
+        """
+        if self._ab is not None:  # an ellipse: the unit circle, in coordinates scaled by 1/a, 1/b
+            return _disk_exit(p.T * self._inv_ab, d.T * self._inv_ab, 1.0, scaled=True)
+        if self._box_core is not None:
+            return self._box_exit(p.T, d.T)
+        (px, py), (dx, dy) = p.T, d.T
+        v, r = self.vertices, self.radius
+        if len(v) == 1:  # a disk (about the origin, as every circle's core is)
+            return _disk_exit(p.T if self._centred else p.T - v[0][:, None], d.T, r)
+        if not self._closed:
+            return self._stick_exit(px, py, dx, dy)
+        # a polygon's edges moved out by r: the first of their half-planes the ray leaves
+        dn = d @ self.normals.T
+        room = self.offsets + r - p @ self.normals.T
+        t_edges = np.divide(room, dn, out=np.full_like(room, np.inf), where=dn > 0.0)
+        if r <= 0.0:
+            return t_edges.min(axis=1)
+        k = np.argmin(t_edges, axis=1)
+        t = t_edges[np.arange(len(k)), k]
+        # beyond an end of that edge: the rounded corner, on its vertex's circle
+        e = self.edges[k]
+        along = ((px + t * dx - v[k, 0]) * e[:, 0] + (py + t * dy - v[k, 1]) * e[:, 1]) / (
+            e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1]
+        )
+        cap = (along < 0.0) | (along > 1.0)
+        if cap.any():
+            corner = v[(k[cap] + (along[cap] > 1.0)) % len(v)]
+            t[cap] = _disk_exit((p[cap] - corner).T, d[cap].T, r)
+        return t
+
+    def _box_exit(self, P: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """:meth:`exit_distance` of a box, points and directions as rows (x, y): its sides moved
+        out by r are the lines |x| = hx + r and |y| = hy + r; an exit beyond the core's half
+        side both ways is in a rounded corner."""
+        side = (self._box_far - np.sign(D) * P) / np.maximum(np.abs(D), 1e-300)
+        t = np.minimum(side[0], side[1])
+        if self.radius <= 0.0:
+            return t
+        Q = P + t * D
+        beyond = np.abs(Q) > self._box_core[:, None]
+        cap = beyond[0] & beyond[1]
+        if not cap.any():
+            return t
+        W = P - np.copysign(self._box_core[:, None], Q)  # from the corner
+        return np.where(cap, _disk_exit(W, D, self.radius), t)
+
+    def _stick_exit(self, px: np.ndarray, py: np.ndarray, dx: np.ndarray, dy: np.ndarray
+                    ) -> np.ndarray:  # fmt: skip
+        """:meth:`exit_distance` of a segment grown by r: through a side (w = ±r across it) when
+        that is within the segment's length, else through the end cap that way."""
+        (cx, cy), (ux, uy), half = self._segment
+        if (cx, cy, ux, uy) != (0.0, 0.0, 1.0, 0.0):  # into the segment's frame
+            px, py = (px - cx) * ux + (py - cy) * uy, (py - cy) * ux - (px - cx) * uy
+            dx, dy = dx * ux + dy * uy, dy * ux - dx * uy
+        r = self.radius
+        t = (r - np.sign(dy) * py) / np.maximum(np.abs(dy), 1e-300)
+        u = px + t * dx
+        cap = np.abs(u) > half
+        if cap.any():
+            W = np.stack((px - np.copysign(half, u), py))
+            t = np.where(cap, _disk_exit(W, np.stack((dx, dy)), r), t)
+        return t
+
     def _box_sdf(self, p: np.ndarray) -> np.ndarray:
         """:meth:`sdf` of a box: the same distances as the polygon's, without projecting every
         point on every edge (q: how far each coordinate lies beyond the core's half side)."""
@@ -311,6 +396,21 @@ class Outline:
             return outside  # as for any polygon: exact inside, positive outside
         corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
         return np.where(outside > 0.0, corner, outside) - self.radius
+
+
+def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> np.ndarray:
+    """The larger root t of |w + t·d|² = r², for points w (from the disk's centre) and
+    directions d as rows (x, y): where a ray leaves the disk, (√(b² − dd·c) − b)/dd with
+    b = w·d, c = w·w − r² and dd = d·d, 1 unless ``scaled``. A ray that misses the disk (only
+    by rounding, at a tangent) gets its nearest approach."""
+    WD, WW = W * D, W * W
+    b = WD[0] + WD[1]
+    c = WW[0] + WW[1] - r * r
+    if not scaled:
+        return np.sqrt(np.maximum(b * b - c, 0.0)) - b
+    DD = D * D
+    dd = DD[0] + DD[1]
+    return (np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd
 
 
 def load_object(path: str | Path) -> Stick | Box | Ellipse | Circle | Polygon:

@@ -6,9 +6,18 @@ The fingers are position-controlled bodies; the object is free. Each step finds 
 * Surfaces: both distal pads (the profile of hand-model §3), both proximal pads (flat, along the
   proximal links) and the palm, each sampled every ``sample_spacing_mm`` along its length.
 * Normal compliance, an elastic foundation ("Winkler") model: each pad sample that lies inside the
-  object by δ carries pressure k·δ (k: pad and object stiffness in series) over its strip of
-  pad, pushing along the pad normal. Faces pressed flat spread over many samples; edges and curved
-  objects concentrate — which is what the tactile sensor model rasterises.
+  object carries pressure k·δ (k: pad and object stiffness in series) over its strip of pad,
+  pushing along the pad normal. The foundation's rubber is compressed along the pad's normal, so
+  δ is the depth of the object's surface below the undeformed pad there, along that normal: the
+  distance from the sample along −n (into the finger) to where that line leaves the object
+  (``Outline.exit_distance``, a closed form for every shape), not the distance to the object's
+  nearest surface (−sdf). The two agree for a shallow contact of nearly parallel surfaces (a face
+  pressed flat: δ = −sdf); where they differ, the nearest surface can be the wrong one: a thin
+  stick pushed end-first into a pad sinks by its whole protrusion, while −sdf would stop at its
+  half thickness (its side being nearer), the force with it, and let the pad pass through the
+  stick. Faces pressed flat spread over many samples; edges and curved objects concentrate —
+  which is what the tactile sensor model rasterises. The point where pad and object touch is each
+  sample pushed back along its normal by its δ (less the finger's yield): on the object's surface.
 * Coulomb friction, per contact: a tangential spring anchored where the object and the pad touched
   at the previous step, capped at μ·N. Inside the cap the contact sticks, so the object rolls on
   the pad without slipping; at the cap it slides and a slip is recorded.
@@ -26,7 +35,8 @@ Speed (fast mode runs thousands of steps per simulated minute) never changes the
 surfaces are moved into frame 0 once per finger pose (cached on the exact pose), all nearby
 samples are moved into the object frame by one affine product and tested in one pass (a box's
 distance in closed form; an ellipse's test is a quadratic form of the samples' monomials, also
-one product, and its distance is worked out only for the samples inside), the per-contact sums
+one product), the depths along the normals are worked out only for the few samples inside (their
+points and normals moved into the object frame by one more product), the per-contact sums
 and their overlap-weighted twins come from one product (the samples a yielding finger left weigh
 0 instead of being picked out; the pressures are picked out only when a tactile frame asks for
 them), and the finger's yield is found by Newton steps on the pad's linear law in plain floats,
@@ -180,6 +190,8 @@ def _local_columns(surf: Surface) -> np.ndarray:
 
 # where _to_world's entries go in its 9 × 9 map (flat, row by row)
 _MAP_ENTRIES = np.array([0, 1, 2, 9, 10, 11, 20, 30, 31, 39, 40, 48, 49, 50, 60, 61, 69, 70, 80])
+# where ContactPhysics._depths's entries go in its 4 × 9 map to the object frame
+_OBJECT_ENTRIES = np.array([3, 4, 5, 12, 13, 14, 18, 19, 27, 28])
 
 
 def _along(dq: tuple[float, ...], ref: tuple[float, ...]) -> float | None:
@@ -234,22 +246,17 @@ def _broyden(J: Mat3, s: Vec3, y: Sequence[float]) -> Mat3:
 def _ellipse_forms(
     ia: float, ib: float, cos_p: float, sin_p: float, ox: float, oy: float
 ) -> np.ndarray:
-    """Two quadratic forms of a frame-0 point (y, z) as coefficients of its monomials
-    (y², yz, z², y, z, 1), for the ellipse at object offset (ox, oy) = Rᵀ·c turned by ψ:
-    g² = |q|² and |q/(a, b)|², with q = (x/a, y/b) the point in the object frame scaled by the
-    semi-axes. One product with the monomials then tests every sample (its ``g²`` is
-    :meth:`Outline.sdf`'s, expanded), and the second gives |∇g|·g for the few inside."""
-    # q = (A1·y + B1·z + C1, A2·y + B2·z + C2)
+    """The quadratic form g² = |q|² of a frame-0 point (y, z) as coefficients of its monomials
+    (y², yz, z², y, z, 1), for the ellipse at object offset (ox, oy) = Rᵀ·c turned by ψ, with
+    q = (x/a, y/b) the point in the object frame scaled by the semi-axes. One product with the
+    monomials then tests every sample (this ``g²`` is :meth:`Outline.sdf`'s, expanded)."""
+    # q = (A1·y + B1·z + C1, A2·y + B2·z + C2); g² = Σ q_k² for q_k = (A, B, C)·(y, z, 1)
     a1, b1, c1 = cos_p * ia, sin_p * ia, -ox * ia
     a2, b2, c2 = -sin_p * ib, cos_p * ib, -oy * ib
-    rows = []
-    for wa, wb in ((1.0, 1.0), (ia * ia, ib * ib)):  # Σ w·q_k² for q_k = (A, B, C)·(y, z, 1)
-        rows.append((
-            wa * a1 * a1 + wb * a2 * a2, 2.0 * (wa * a1 * b1 + wb * a2 * b2),
-            wa * b1 * b1 + wb * b2 * b2, 2.0 * (wa * a1 * c1 + wb * a2 * c2),
-            2.0 * (wa * b1 * c1 + wb * b2 * c2), wa * c1 * c1 + wb * c2 * c2,
-        ))  # fmt: skip
-    return np.array(rows)
+    return np.array((
+        a1 * a1 + a2 * a2, 2.0 * (a1 * b1 + a2 * b2), b1 * b1 + b2 * b2,
+        2.0 * (a1 * c1 + a2 * c2), 2.0 * (b1 * c1 + b2 * c2), c1 * c1 + c2 * c2,
+    ))  # fmt: skip
 
 
 def to_world(frame: tuple[np.ndarray, np.ndarray, np.ndarray], local: np.ndarray) -> np.ndarray:
@@ -346,6 +353,7 @@ class ContactPhysics:
         self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int]]] = {}
         self._starts: dict[tuple[int, ...], list[int]] = {}  # each group's surface starts
         self._map = np.zeros((9, 9))  # see _to_world
+        self._to_object = np.zeros((4, 9))  # see _depths
         self._frame_rows: list[tuple[tuple[float, float], ...]] = []
         self._world_circles: list[tuple[float, float, float]] = []
         self._circles = []  # each surface's bounding circle in its link frame: (a, b, radius)
@@ -498,7 +506,8 @@ class ContactPhysics:
         reach2: float,
     ) -> tuple[np.ndarray, np.ndarray, list[int], np.ndarray]:  # fmt: skip
         """Samples of the surfaces near_j (concatenated) inside the object at (cy, cz) turned
-        by ψ: their indices, their depths (−sdf), each surface's start, the columns."""
+        by ψ: their indices, their depths (see :meth:`_depths`), each surface's start, the
+        columns."""
         group = self._groups.get(near_j)
         if group is None:  # the surfaces' columns in frame 0, moved straight into one array
             starts = self._starts.get(near_j)
@@ -529,18 +538,35 @@ class ContactPhysics:
         ox, oy = cy * cos_p + cz * sin_p, cz * cos_p - cy * sin_p
         if self._ellipse is not None:
             forms = _ellipse_forms(*self._ellipse, cos_p, sin_p, ox, oy)
-            inside, depth = self._ellipse_inside(forms @ points)
-            return inside, depth, starts, cols
+            inside = (forms @ points < 1.0).nonzero()[0]  # g < 1 exactly when g² < 1
+            return inside, self._depths(cols, inside, cos_p, sin_p, ox, oy), starts, cols
         local = (np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points).T
         if not self._prefilter:
-            d = self.outline.sdf(local)
-            inside = np.nonzero(d < 0.0)[0]
-            return inside, -d[inside], starts, cols
-        # a polygon's sdf is dear: only for the samples in its bounding circle
-        near = np.nonzero(np.einsum("ij,ij->i", local, local) <= reach2)[0]
-        d = self.outline.sdf(local[near])
-        keep = d < 0.0
-        return near[keep], -d[keep], starts, cols
+            inside = np.nonzero(self.outline.sdf(local) < 0.0)[0]
+        else:  # a polygon's sdf is dear: only for the samples in its bounding circle
+            near = np.nonzero(np.einsum("ij,ij->i", local, local) <= reach2)[0]
+            inside = near[self.outline.sdf(local[near]) < 0.0]
+        return inside, self._depths(cols, inside, cos_p, sin_p, ox, oy), starts, cols
+
+    def _depths(
+        self, cols: np.ndarray, inside: np.ndarray, cos_p: float, sin_p: float, ox: float,
+        oy: float,
+    ) -> np.ndarray:  # fmt: skip
+        """Each inside sample's depth δ: how far the object's surface lies below the undeformed
+        pad there, along the pad's normal — the distance from the sample along −n (into the
+        finger) to where that line leaves the object (:meth:`Outline.exit_distance`). The
+        foundation's rubber is compressed along the normal, so this, not the distance to the
+        nearest surface (−sdf), is its compression: the two agree for a shallow contact of
+        nearly parallel surfaces, but a thin object's end pushed into the pad sinks by its
+        whole protrusion, which −sdf caps at the object's half thickness."""
+        if not len(inside):
+            return np.zeros(0)
+        # (point, normal) → object frame, p = Rᵀ·(point − c) and d = −Rᵀ·n, as one product
+        # with the columns (see _local_columns); rows (px, py, dx, dy)
+        self._to_object.put(_OBJECT_ENTRIES, (cos_p, sin_p, -ox, -sin_p, cos_p, -oy,
+                                              -cos_p, -sin_p, sin_p, -cos_p))  # fmt: skip
+        pd = self._to_object @ cols[inside].T
+        return self.outline.exit_distance(pd[:2].T, pd[2:].T)
 
     def _ellipse_sdf(self, pts: np.ndarray, c: np.ndarray, R: np.ndarray) -> np.ndarray:
         """:meth:`Outline.sdf` of an ellipse, (g − 1)/|∇g| with g = |(x/a, y/b)|, of frame-0
@@ -548,14 +574,6 @@ class ContactPhysics:
         q = ((pts - c) @ R * self._ellipse).T  # object frame, scaled by (1/a, 1/b)
         qx2, qy2 = q[0] * q[0], q[1] * q[1]
         return self._ellipse_d(np.sqrt(qx2 + qy2), qx2, qy2)
-
-    def _ellipse_inside(self, forms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The points inside the ellipse (g < 1, i.e. sdf < 0) and their depths (−sdf), from the
-        two rows of :func:`_ellipse_forms` (g² and |q/(a, b)|²) of every point."""
-        inside = (forms[0] < 1.0).nonzero()[0]  # g < 1 exactly when g² < 1 (sqrt rounds right)
-        g, g_grad = np.sqrt(forms[:, inside])  # g and g·|∇g|
-        grad = g_grad / np.maximum(g, 1e-12)
-        return inside, (1.0 - g) / np.maximum(grad, 1e-12)  # −(g − 1)/|∇g|
 
     def _ellipse_d(self, g: np.ndarray, qx2: np.ndarray, qy2: np.ndarray) -> np.ndarray:
         """(g − 1)/|∇g| with ∇g = (x/a², y/b²)/g, from g and the squares of q = (x/a, y/b)."""

@@ -20,8 +20,8 @@ from sdh2svc.model.kinematics import (
     segment,
 )
 from sdh2svc.sim.hand import PhysicsWorld
-from sdh2svc.sim.objects import get_object
-from sdh2svc.sim.physics import DISTAL1, DISTAL2, PALM
+from sdh2svc.sim.objects import get_object, parse_object
+from sdh2svc.sim.physics import DISTAL1, DISTAL2, PALM, PROXIMAL1, PROXIMAL2
 
 rad, deg = math.radians, math.degrees
 OPEN = [90.0, -30.0, 30.0, 0.0, 0.0, -30.0, 30.0]
@@ -163,8 +163,11 @@ def omega_A(rig: Rig) -> float:
 def test_tilting_out_of_the_cone_slips_then_drops() -> None:
     """With two contacts the forces act along AB: the contacts slip when ω leaves 90° ± α.
     Soft fingers (1 N/mm): this mirror tilt also squeezes, and stiffer fingers stall their
-    joints at the torque limit before the cone is left."""
-    cfg = quiet(**{"sim.physics.finger_stiffness_n_per_mm": "1.0"})
+    joints at the torque limit before the cone is left. The squeeze keeps growing while the
+    egg slides along the pads towards their tips (≈ 37 N when it leaves them): the distal
+    motors are given the torque for it (the stock 1.4 N·m stall them first, holding it)."""
+    cfg = quiet(**{"sim.physics.finger_stiffness_n_per_mm": "1.0",
+                   "sim.physics.torque_limit_distal_n_mm": "5000.0"})  # fmt: skip
     rig = Rig(cfg, "egg")
     rig.grasp()
     alpha = math.atan(get_object("egg").material.friction)
@@ -456,7 +459,8 @@ def test_finger_yield_fast_paths_match_newton_from_zero(name: str) -> None:
 @pytest.mark.parametrize("name", ["egg", "rubber", "cylinder"])
 def test_pressures_are_the_contact_samples_under_the_pad_law(name: str) -> None:
     """The pressures worked out from the last step's compressions are those of the samples still
-    pressed once the finger yielded: the pad's law of (overlap − yield), by the outline's sdf."""
+    pressed once the finger yielded: the pad's law of (overlap − yield), the overlap being the
+    depth of the object's surface below the pad along the pad's normal."""
     rig = Rig(quiet(), name)
     rig.grasp()
     phys = rig.w.physics
@@ -466,9 +470,12 @@ def test_pressures_are_the_contact_samples_under_the_pad_law(name: str) -> None:
     got = phys.pressures()
     assert {DISTAL1, DISTAL2} <= set(got)
     for j, (idx, p) in got.items():
-        pts, _n, _cols = phys._surface(j)
-        overlap = -phys.outline.sdf((pts - x[:2]) @ np.array([[c, -s], [s, c]]))
-        touching = np.nonzero(overlap > 0.0)[0]
+        pts, n, _cols = phys._surface(j)
+        R = np.array([[c, -s], [s, c]])
+        local = (pts - x[:2]) @ R
+        touching = np.nonzero(phys.outline.sdf(local) < 0.0)[0]
+        overlap = np.zeros(len(pts))
+        overlap[touching] = phys.outline.exit_distance(local[touching], -n[touching] @ R)
         e = _yield_reference(phys, overlap[touching], wds) if j != PALM else 0.0
         want = touching[overlap[touching] > e]
         assert np.array_equal(idx, want)
@@ -516,8 +523,7 @@ def test_link_frames_match_the_kinematics() -> None:
 
 
 @pytest.mark.parametrize("name", ["egg", "rubber", "cylinder", "stick74", "triangle"])
-def test_samples_inside_match_the_outline_sdf(name: str) -> None:
-    from sdh2svc.sim.objects import parse_object
+def test_samples_inside_match_the_outline_sdf_with_depths_along_the_pad_normal(name: str) -> None:
 
     triangle = {"kind": "polygon", "vertices_mm": [[-30, -15], [30, -15], [0, 20]], "depth_mm": 8}
     obj = parse_object(triangle) if name == "triangle" else get_object(name)
@@ -540,7 +546,14 @@ def test_samples_inside_match_the_outline_sdf(name: str) -> None:
         edge = np.abs(d) < 1e-9
         assert set(inside.tolist()) - set(np.nonzero(edge)[0].tolist()) == set(
             want.tolist()) - set(np.nonzero(edge)[0].tolist())  # fmt: skip
-        assert np.allclose(depth, -d[inside], atol=1e-9)
+        # each one's depth: from the sample along −n (into the finger) to the object's surface
+        normal = cols[inside, 0:2] @ np.array([[c, -s], [s, c]])
+        exit_ = local[inside] - depth[:, None] * normal
+        # never less than the distance to the nearest surface (the ellipse's sdf is that only
+        # near its boundary, to a µm: see Outline.sdf)
+        near, tol = (-d[inside] < 1.0, 1e-3) if name == "egg" else (depth == depth, 1e-9)
+        assert np.all(depth[near] >= -d[inside][near] - tol)
+        assert np.allclose(phys.outline.sdf(exit_), 0.0, atol=1e-9)
 
 
 def test_ellipse_overlap_matches_the_outline_sdf() -> None:
@@ -579,3 +592,125 @@ def test_fast_mode_world_is_bit_for_bit_repeatable() -> None:
         return rig.w.truth().pose, b"".join(frames)
 
     assert run() == run()
+
+
+# --- the pads' compression: the depth of the object's surface along the pad's normal ---------
+
+
+def _physics(spec):
+    return PhysicsWorld(quiet(), quiet().sim, spec).physics
+
+
+def _place(phys, j: int, k: int, local: np.ndarray, normal: np.ndarray) -> tuple[float, ...]:
+    """The object pose (y, z, ψ) that puts the object-frame point ``local`` on sample k of
+    surface j, with the object-frame direction ``normal`` along that sample's pad normal."""
+    pts, n, _cols = phys._surface(j)
+    psi = math.atan2(n[k, 1], n[k, 0]) - math.atan2(normal[1], normal[0])
+    c, s = math.cos(psi), math.sin(psi)
+    centre = pts[k] - np.array([[c, -s], [s, c]]) @ local
+    return float(centre[0]), float(centre[1]), psi
+
+
+def _stick_end_first(phys, depth: float) -> tuple[float, ...]:
+    """A stick along the normal of pad 1's middle sample, its end sunk ``depth`` into the pad."""
+    n_samples = len(phys.surfaces[DISTAL1].s)
+    half = phys.outline.spec.length_mm / 2
+    # the end (half, 0) at depth below the sample; the stick's axis −x along the pad's normal
+    return _place(phys, DISTAL1, n_samples // 2, np.array([half - depth, 0.0]),
+                  np.array([-1.0, 0.0]))  # fmt: skip
+
+
+def test_a_thin_stick_pushed_end_first_compresses_the_pad_by_its_whole_protrusion() -> None:
+    """2 mm thick: −sdf would stop at the radius (1 mm) and the force with it, letting the pad
+    through; along the normal the end sinks by all it protrudes, and the force keeps growing
+    (linearly, once the whole rounded end is in)."""
+    phys = _physics(get_object("stick98"))
+    half, r = get_object("stick98").length_mm / 2, 1.0
+    world = phys._world_samples(phys.hand_pose)
+    depths = np.arange(0.25, 4.01, 0.25)
+    forces = []
+    for depth in depths:
+        pose = _stick_end_first(phys, float(depth))
+        ev = phys._evaluate(pose, world)  # (the stick's far end passes through other surfaces)
+        y, z, psi = pose
+        _i, got, _s, _c = phys._inside((DISTAL1,), y, z, math.cos(psi), math.sin(psi), 1e4)
+        assert got.max() == pytest.approx(depth, abs=1e-9)  # the tip, under the sample
+        centroid, _t, n_force = ev.contacts[DISTAL1][:3]
+        forces.append(n_force)
+        # where pad and stick touch: on the stick's rounded end, never inside it
+        c, s = math.cos(psi), math.sin(psi)
+        dy, dz = centroid[0] - y, centroid[1] - z
+        obj = np.array([[c * dy + s * dz, c * dz - s * dy]])
+        # (the pressure's mean of points on the convex end lies a little inside it)
+        assert obj[0, 0] > half - r and abs(obj[0, 1]) < r
+    assert all(b > a for a, b in itertools.pairwise(forces))
+    # beyond the radius each 0.25 mm adds the same force (a constant contact width), until the
+    # pad bottoms out on its backing (then the same, larger, force)
+    steps = np.diff(forces)[(depths[1:] > 1.5) & (depths[1:] <= phys.knee)]
+    assert len(steps) >= 2
+    assert np.ptp(steps) < 0.05 * steps.mean()
+    assert forces[-1] > 4 * forces[3]  # 4 mm against 1 mm (−sdf: about the same)
+
+
+def test_fingers_closing_on_a_thin_stick_press_its_ends_and_never_pass_through() -> None:
+    """Grasp the 2 mm stick between the fingertips and keep closing: the force grows until the
+    motors stall, and each contact stays on its end of the stick."""
+    rig = Rig(quiet(), "stick98")
+    rig.grasp()
+    half, r = get_object("stick98").length_mm / 2, 1.0
+    forces = []
+    for _ in range(60):
+        q = rig.q
+        q[1] += 0.05
+        q[5] += 0.05
+        actual = rig.w.move_joints(rig.t + 0.02, q, [True] * 7)
+        rig.t += 0.02
+        rig.q = list(actual)
+        t = rig.w.truth()
+        assert t.held
+        for surface in ("distal1", "distal2"):
+            x, y = rig.contact(surface).object_point
+            assert abs(x) > half - r and abs(y) < r
+        if t.blocked_axes:
+            break
+        forces.append(rig.contact("distal1").normal_force_n)
+    assert t.blocked_axes  # pressed to the motors' torque limit, not through the stick
+    assert all(b > a for a, b in itertools.pairwise(forces))
+    assert forces[-1] > 10.0  # −sdf: ≈ 1.4 N, then the pads slid along the stick
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        get_object("rubber"),
+        {"kind": "box", "width_mm": 60.0, "height_mm": 30.0, "depth_mm": 10.0},
+        {"kind": "polygon", "vertices_mm": [[-40, -15], [40, -15], [25, 20], [-30, 18]],
+         "depth_mm": 8.0},
+    ],
+)  # fmt: skip
+@pytest.mark.parametrize("j", [PROXIMAL1, PROXIMAL2, PALM])
+def test_a_flat_face_pressed_flat_is_compressed_by_its_distance_as_before(spec, j: int) -> None:
+    """A face lying flat in a flat pad: along the normal or to the nearest surface, the depth is
+    the same (the cases where the two agree do not change)."""
+    spec = parse_object(spec) if isinstance(spec, dict) else spec
+    phys = _physics(spec)
+    o = phys.outline
+    v, e, nu = o.vertices, o.edges, o.normals
+    phys._world_samples(phys.hand_pose)
+    k = len(phys.surfaces[j].s) // 2
+    for depth in (0.05, 0.3, 0.8):
+        # the first edge's middle, moved out by the rounding radius, sunk by depth below sample k
+        local = v[0] + e[0] / 2 + (o.radius - depth) * nu[0]
+        y, z, psi = _place(phys, j, k, local, -nu[0])
+        reach = o.bound_radius
+        inside, got, _starts, cols = phys._inside(
+            (j,), y, z, math.cos(psi), math.sin(psi), reach * reach
+        )
+        c, s = math.cos(psi), math.sin(psi)
+        obj = (cols[inside, 3:5] - [y, z]) @ np.array([[c, -s], [s, c]])
+        # the samples over the face's flat part, off its ends (nearer the next face there)
+        along = (obj - v[0]) @ e[0] / np.linalg.norm(e[0])
+        flat = (along > 2.0) & (along < np.linalg.norm(e[0]) - 2.0)
+        assert flat.sum() > 20
+        assert np.allclose(got[flat], depth, atol=1e-9)
+        assert np.allclose(got[flat], -o.sdf(obj[flat]), atol=1e-9)
