@@ -8,8 +8,8 @@ the recorder). Everything the report says is read back from the run database
 (:class:`sdh2svc.service.store.RunStore`) and computed from it; the thesis's values are quotes.
 
 Experiments (thesis ch. 4 and §3.4.2): object A rubber, object B egg, object C cylinder (λ = 3),
-with the project's defaults (thesis Table 8, except ΔΛ: see the report), and the 98.46 mm stick
-with k = 2 and k = 5. ``--quick``: the egg only, one stroke (a smoke test of the whole pipeline).
+with the project's defaults (thesis Table 8, except where the report says), the four sticks with
+the defaults (k = 2) and the 98.46 mm stick with k = 5. ``--quick``: the egg only, one stroke (a smoke test of the whole pipeline).
 """
 
 from __future__ import annotations
@@ -40,18 +40,6 @@ from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.serve import start_simulated_hand
 
 DEFAULT_OUT = Path(__file__).parent / "report"
-# The sticks (2 mm thick, §3.4.2): their ends load a few texels only, so the library force stays
-# ≈0.2 when the closing servo blocks and a grasp at Fd = 2 never ends; the thesis simulated them
-# kinematically with a constant Λ. So: Fd 0.15 (contact threshold 0.02, a closing gain that keeps
-# the grasp speed), ΔΛ = 0 — Λ held at what is measured, as in the thesis's stick model — with
-# Finger 1 free to take whatever step its IK gives (the thesis's model had no servo to follow),
-# and fingers ten times softer than the default (1 N/mm), which absorb what a constant Λ does not
-# fit: with the default stiffness, the stick's few loaded texels report too little force change
-# to regulate Λ, and it is crushed (k = 2) or dropped (k = 5) within 50 iterations.
-STICK = ("rolling.grasp_force=0.15", "rolling.contact_force_min=0.02",
-         "rolling.delta_lambda_inc_mm=0.0", "rolling.delta_lambda_dec_mm=0.0",
-         "rolling.finger1_max_step_deg=10.0", "run.grasp_gain_deg_s=20.0",
-         "sim.physics.finger_stiffness_n_per_mm=1.0")  # fmt: skip
 LAMBDA_TOLERANCE_MM = 1.7  # the texel uncertainty (thesis §4.2.2: ±1.7 mm per sensor)
 F_BAND = (0.25, 2.5)  # × Fd: issue 5's target band after the grasp
 MIN_HALF_STROKE = 5  # commanded iterations a half stroke needs to count as motion
@@ -71,6 +59,7 @@ class Experiment:
     targets: bool = False  # issue 5's targets apply (rubber, egg, cylinder)
     foam: bool = False  # Λ at grasp excepted (compressed foam, as in the thesis)
     stick_k: float | None = None  # stick experiments: expect an unintended reversal for k = 5
+    rolls: bool = False  # the sticks' target: grasped with the defaults, 3 strokes, no drop
 
 
 EXPERIMENTS: tuple[Experiment, ...] = (
@@ -128,17 +117,19 @@ EXPERIMENTS: tuple[Experiment, ...] = (
         },
         targets=True, foam=True,
     ),
-    Experiment(
-        "stick98_k2", "Stick 98.46 mm, k = 2", "stick98", ("rolling.k=2.0", *STICK),
-        "§3.4.2, Fig 32 (a kinematic simulation in the thesis)",
-        {
-            "unintended": "“This effect is smaller for k=2 that the inclination only remains "
-                          "constant for some time.” (Fig 32.d) — no unintended reversal",
-        },
-        stick_k=2.0,
+    *(
+        Experiment(
+            f"{name}_k2", f"Stick {length} mm, k = 2 (the defaults)", name, (),
+            "§3.4.2 (a kinematic simulation in the thesis: Figs 32–34)",
+            {"unintended": "“This effect is smaller for k=2 that the inclination only remains "
+                           "constant for some time.” (Fig 32.d) — no unintended reversal"},
+            stick_k=2.0, rolls=True,
+        )
+        for name, length in (("stick62", "62.038"), ("stick74", "73.8"), ("stick98", "98.46"),
+                             ("stick119", "119.405"))
     ),
     Experiment(
-        "stick98_k5", "Stick 98.46 mm, k = 5", "stick98", ("rolling.k=5.0", *STICK),
+        "stick98_k5", "Stick 98.46 mm, k = 5", "stick98", ("rolling.k=5.0",),
         "§3.4.2, Fig 31 (a kinematic simulation in the thesis)",
         {
             "unintended": "“there is a period of time around the zero inclination that the "
@@ -315,7 +306,7 @@ def analyse(o: Outcome) -> None:
     done = s["status"] == "completed" and s["strokes"] >= cycles
     ours = f"{s['strokes']} of {cycles} ({s['status']}); {s['iterations']} iterations"
     rows.append(("strokes completed", th.get("strokes", "–"), ours, f"{cycles}",
-                 verdict(done) if exp.targets else "info"))  # fmt: skip
+                 verdict(done) if exp.targets or exp.rolls else "info"))  # fmt: skip
     rows.append(("half strokes that moved (≥ 5 commanded iterations)", "–",
                  f"{moving} of {len(halves)}", f"{2 * cycles}",
                  verdict(moving >= 2 * cycles) if exp.targets else "info"))  # fmt: skip
@@ -323,7 +314,7 @@ def analyse(o: Outcome) -> None:
     ours = (f"dropped: {'yes' if dropped else 'no'}, slips: {truth.get('slips', '–')}, "
             f"object turned {_fmt(truth.get('rotation_range_deg'), 1)}°")  # fmt: skip
     rows.append(("drops", th.get("drops", "–"), ours, "none",
-                 verdict(not dropped) if exp.targets else "info"))  # fmt: skip
+                 verdict(not dropped) if exp.targets or exp.rolls else "info"))  # fmt: skip
 
     # Λ at grasp
     lam0 = next((x["Lambda"] for x in samples if x["Lambda"] is not None), None)
@@ -524,6 +515,8 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         f"| force deadband on ΔF | – | {r.force_deadband:g} |",
         f"| force band (× Fd) | – | [{r.force_band_low:g}, {r.force_band_high:g}] |",
         f"| Finger 1's largest step per iteration | – | {r.finger1_max_step_deg:g}° |",
+        f"| Finger 2's travel before a reversal counts as a half stroke | – | "
+        f"{r.min_half_stroke_deg:g}° |",
         f"| strokes | 3 | {r.cycles if not quick else 1} |",
         "",
         "Deviations, deliberate (each explained in `config/default.toml`):",
@@ -546,33 +539,39 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         "stroke Finger 1's IK turns steep; a step of φ2 or φ3 beyond 1° per iteration slows the "
         "whole iteration down (Δφ scaled) instead of commanding a target the finger cannot reach "
         "within a frame: a finger lagging its route squeezes the object.",
-        "* **The way back from a cone or the pad's edge.** The thesis reverses when the next "
-        "configuration would leave a friction cone, or when a contact sits on a pad's edge row. "
-        "A rolling contact does not follow the plan exactly and can carry ω past the limit (or "
-        "the contact onto the edge row); near the end of a stroke the route then barely changes "
-        "ω — Finger 2's pad and AB turn together — so both directions “leave” the cone, and the "
-        "rotation reverses on the spot until the run is declared stuck. Here, once a move "
-        "carried ω out (or the contact onto the edge), a step in the other direction passes "
-        "that check unless it takes ω more than 0.1° further out. A reversal on the spot does "
-        "not count as a half stroke.",
+        "* **The force.** F1, F2 are Σp × a fixed reference area (185 mm², the thesis rubber's "
+        "contact at its grasp, `calibration.force_reference_area_mm2`), not SDHLibrary's Σp × "
+        "the contact's own area, which grows with the area squared: the same squeeze reads "
+        "≈10× less on a stick's end than on a box's face, and a grasp to Fd = 2 on a small "
+        "contact never ends. For the rubber the two agree.",
+        "* **Where the contacts lie.** A and B are moved below the undeformed pad surface by "
+        "the finger's yield and the rubber's compression estimated from each pad's matrix "
+        "(`docs/contact-depth.md`).",
+        "* **The grasp** closes by pose increments with a floor on the closing speed, and once "
+        "both pads touch, both distal joints turn against the pads' wedge, (ωA + ωB)/2 − 90°, "
+        "so that the rolling can start within the cones (`sdh2svc/control/grasp.py`).",
+        "* **Reversals.** A reversal counts as the end of a half stroke only after Finger 2 "
+        "travelled 1° along its route; shorter moves count towards “stuck”. A reversal at a cone "
+        "or the pad's edge commits to the way back: that check does not refuse it for a half "
+        "stroke's travel (a cone still does 2° beyond its limit) — near the end of a stroke the "
+        "route barely changes ω, a rolling contact overshoots the plan, and the thesis's rule "
+        "would reverse on the spot for ever. The cones are as wide as the grasp itself held at "
+        "the first iteration (at least α). A plan Finger 1 cannot follow within 1.5 × its step "
+        "even when slowed down (a nearly stretched finger) reverses as the workspace's limit.",
         "* **Sensor gain.** The simulated pads read 0.05 × SDHLibrary's nominal calibration "
         "(`config/sim.toml`), which puts Fd = 2 library units at a force that holds the objects. "
         "The fingers yield 0.1 mm per N where the joint encoders cannot see it (10 N/mm), "
         "calibrated on the thesis's rubber (Λ 0.7 mm short at grasp).",
         "* **Sticks.** The thesis's stick results (§3.4.2) come from a kinematic simulation with "
-        "fixed contact points and a constant Λ; here the stick (2 mm thick) is grasped and rolled "
-        "through the same physics, sensor model and controller as the real objects, with Λ held "
-        "as measured (ΔΛ = 0), Fd = 0.15 (a stick's end loads only a few texels, so the library "
-        "force stays ≈0.2 when the closing servo blocks, and a grasp to Fd = 2 never ends), "
-        "Finger 1's step not limited, and fingers of 1 N/mm, whose yield absorbs what a constant "
-        "Λ does not fit (with 10 N/mm the stick is crushed or dropped within 50 iterations). "
-        "The issue's targets are not applied to the sticks.",
+        "fixed contact points and a constant Λ (reproduced as it was in "
+        "`experiments/sticks/report.md`); here the sticks (2 mm thick) are grasped and rolled "
+        "with the defaults through the same physics, sensor model and controller as the other "
+        "objects. Target: grasped, 3 strokes, no drop.",
         "",
         "Targets (issue 5): rubber, egg and cylinder complete their strokes without a drop; Λ at "
         f"grasp within {LAMBDA_TOLERANCE_MM} mm of the true size (foam excepted, as in the "
         f"thesis); F within [{F_BAND[0]}, {F_BAND[1]}] × Fd after the grasp. “Half strokes that "
-        f"moved” counts the half strokes with at least {MIN_HALF_STROKE} commanded iterations "
-        "(the runner counts a half stroke once it moved at all).",
+        f"moved” counts the half strokes with at least {MIN_HALF_STROKE} commanded iterations.",
         "For the sticks, an *unintended reversal* is a stretch inside one half stroke where σ "
         f"runs against that half stroke's direction for ≥ {BACKWARD_ITERATIONS} iterations and "
         f"≥ {BACKWARD_DEG}° (the thesis's Fig 31.d).",
@@ -581,21 +580,7 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         "",
         "* **Λ at grasp.** The row “where the Λ error comes from” compares the estimate with the "
         "simulation's ground truth at the first iteration: the position *along* each pad (S → L) "
-        "is good to about half a millimetre; the rest lies across the pads — the model puts A "
-        "and B on the undeformed pad surface, while the pads' rubber and the fingers' yield "
-        "(which the joint encoders do not see) let the object sit deeper.",
-        "* **Cylinder half strokes.** Both contacts stay on the upper half of their pads (S1, S2 "
-        "≈ 22–39 mm; the thesis's moved apart: S1 16–40, S2 4–24), where the pads' arcs open a "
-        "wedge and ωA, ωB rise together towards 90° + α at both ends of a stroke. Without the "
-        "way back (see the deviations) ωB overshoots the limit at the end of the first stroke "
-        "and the run stalls (before this change: 2 of 6 half strokes moved; placements 116–124 "
-        "and 127–128 mm stalled too, on the cone or the pad's edge row). With it, every "
-        "placement from 116 to 136 mm (`--set sim.object_height_mm=…`) rolls three full "
-        "strokes without a drop, F within 1.19–2.48.",
-        "* **Stick, k = 2.** At iteration 140 one contact falls below the contact threshold "
-        "(ΔΛ = 0 cannot close the grip), the rotation reverses on the spot, and the runner "
-        "declares the run stuck after 2½ strokes. Before the runner stopped counting reversals "
-        "on the spot as half strokes, the same run was reported as 3 completed strokes.",
+        "and how deep the contacts sit below the pads' surface (the contact-depth model).",
         "",
     ]
     for o in outcomes:
