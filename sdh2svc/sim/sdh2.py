@@ -1059,14 +1059,15 @@ class Sdh2Emulator:
     def _observe(self, actual: list[float], dt: float) -> None:
         """Take the world's angles; detect blocked axes and release velocity-mode blocks."""
         ax, margin = self._ax, self.options.blocked_margin_deg
+        was, vel, powered, ref = ax.actual, ax.actual_vel, ax.powered, ax.ref
         for i in _ALL:
             if dt > 0.0:
-                ax.actual_vel[i] = (actual[i] - ax.actual[i]) / dt
-            ax.actual[i] = actual[i]
-            if not ax.powered[i]:
-                ax.ref[i], ax.rvel[i] = actual[i], 0.0  # limp: the reference follows the joint
+                vel[i] = (actual[i] - was[i]) / dt
+            was[i] = actual[i]
+            if not powered[i]:
+                ref[i], ax.rvel[i] = actual[i], 0.0  # limp: the reference follows the joint
                 continue
-            lag = ax.ref[i] - actual[i]
+            lag = ref[i] - actual[i]
             if ax.blocked[i]:
                 if self._con != POSE and abs(lag) <= margin / 2:
                     ax.blocked[i] = 0  # the obstacle gave way
