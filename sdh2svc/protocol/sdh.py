@@ -443,6 +443,8 @@ Values: TypeAlias = float | Sequence[float] | None
 def _as_values(values: Values) -> tuple[float, ...] | None:
     if values is None:
         return None
+    if type(values) is tuple or type(values) is list:  # the usual case: no ABC check
+        return tuple(map(float, values))
     if isinstance(values, Real):
         return (float(values),)
     return tuple(float(v) for v in values)
@@ -487,7 +489,7 @@ def encode_ascii(
     if vals is None:
         return head.encode("ascii") + EOL
     integer = spec is not None and spec.integer
-    body = ",".join(_format_number(v, fmt, integer) for v in vals)
+    body = ",".join([_format_number(v, fmt, integer) for v in vals])
     return f"{head}={body}".encode("ascii") + EOL
 
 
@@ -515,8 +517,13 @@ def encode_reply(
     else:
         spec = ASCII_COMMANDS.get(keyword.lower())
         integer = spec is not None and spec.reply_integer
-        raw = () if values is None else (values,) if isinstance(values, Real) else values
-        body = ",".join(_format_reply_value(v, fmt, integer) for v in raw)
+        if values is None:
+            raw: Sequence[float] = ()
+        elif type(values) is tuple or type(values) is list:  # the usual case: no ABC check
+            raw = values
+        else:
+            raw = (values,) if isinstance(values, Real) else values
+        body = ",".join([_format_reply_value(v, fmt, integer) for v in raw])
     line = f"{head}={body}"
     if not (line.isascii() and line.isprintable()):
         raise ValueError(f"reply must be printable ASCII: {line!r}")
@@ -524,6 +531,8 @@ def encode_reply(
 
 
 def _format_reply_value(value: float, fmt: str, integer: bool) -> str:
+    if type(value) is float:  # the usual case: no ABC check (a float is no Integral)
+        return _format_number(value, fmt, integer and value.is_integer())
     if isinstance(value, Integral):
         return str(int(value))
     v = float(value)

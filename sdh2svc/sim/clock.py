@@ -16,14 +16,38 @@ work sent to an executor (``asyncio.to_thread``) runs inline, on the loop's thre
 from __future__ import annotations
 
 import asyncio
+import heapq
 import select
 import selectors
+import sys
+from asyncio import base_events, format_helpers
 from collections.abc import Coroutine
 from typing import Any, TypeVar
 
 T = TypeVar("T")
 
 _EPOLL = selectors.DefaultSelector is getattr(selectors, "EpollSelector", None)
+# BaseEventLoop._run_once's constants; VirtualTimeLoop._run_once is that method written out
+# (the same on Python 3.11 to 3.13), else the stock one runs
+_MIN_SCHEDULED = getattr(base_events, "_MIN_SCHEDULED_TIMER_HANDLES", None)
+_MIN_CANCELLED_FRACTION = getattr(base_events, "_MIN_CANCELLED_TIMER_HANDLES_FRACTION", None)
+_MAX_TIMEOUT = getattr(base_events, "MAXIMUM_SELECT_TIMEOUT", None)
+_LEAN = sys.version_info < (3, 14) and None not in (
+    _MIN_SCHEDULED,
+    _MIN_CANCELLED_FRACTION,
+    _MAX_TIMEOUT,
+)
+
+
+def _callback_failed(handle: asyncio.Handle, exc: BaseException) -> None:
+    """What ``Handle._run`` does when its callback raises."""
+    cb = format_helpers._format_callback_source(handle._callback, handle._args)  # type: ignore[attr-defined]
+    context: dict[str, Any] = {
+        "message": f"Exception in callback {cb}", "exception": exc, "handle": handle,
+    }  # fmt: skip
+    if handle._source_traceback:  # type: ignore[attr-defined]
+        context["source_traceback"] = handle._source_traceback  # type: ignore[attr-defined]
+    handle._loop.call_exception_handler(context)  # type: ignore[attr-defined]
 
 
 class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
@@ -72,6 +96,61 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
 
     def time(self) -> float:
         return self._vtime
+
+    if _LEAN:
+
+        def _run_once(self) -> None:
+            """One iteration of the loop: ``BaseEventLoop._run_once`` (Python 3.11–3.13) step
+            for step — the same cancelled-timer purge, poll timeout, clock jump, timer cut-off
+            and callback order — written out for this loop (no debug mode: that takes the
+            stock path). A fast-mode run makes tens of thousands of these iterations."""
+            if self._debug:
+                super()._run_once()
+                return
+            scheduled = self._scheduled
+            sched_count = len(scheduled)
+            if (
+                sched_count > _MIN_SCHEDULED
+                and self._timer_cancelled_count / sched_count > _MIN_CANCELLED_FRACTION
+            ):
+                super()._run_once()  # the stock purge, rare: a heap full of cancelled timers
+                return
+            while scheduled and scheduled[0]._cancelled:
+                self._timer_cancelled_count -= 1
+                handle = heapq.heappop(scheduled)
+                handle._scheduled = False
+            ready = self._ready
+            selector = self._selector
+            if ready or self._stopping:
+                event_list = selector.select(0)
+            elif scheduled:
+                when = scheduled[0]._when
+                event_list = selector.select(min(max(0, when - self._vtime), _MAX_TIMEOUT))
+            else:
+                event_list = selector.select(None)
+            if event_list:
+                self._process_events(event_list)
+            event_list = None
+            end_time = self._vtime + self._clock_resolution
+            while scheduled:
+                handle = scheduled[0]
+                if handle._when >= end_time:
+                    break
+                handle = heapq.heappop(scheduled)
+                handle._scheduled = False
+                ready.append(handle)
+            popleft = ready.popleft
+            for _ in range(len(ready)):
+                handle = popleft()
+                if handle._cancelled:
+                    continue
+                try:  # Handle._run, inline
+                    handle._context.run(handle._callback, *handle._args)
+                except (SystemExit, KeyboardInterrupt):
+                    raise
+                except BaseException as exc:
+                    _callback_failed(handle, exc)
+            handle = None
 
     def advance(self, seconds: float) -> None:
         self._vtime += max(0.0, seconds)

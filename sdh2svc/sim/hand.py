@@ -192,7 +192,7 @@ class PhysicsWorld:
         if len(reference_deg) != n or len(powered) != n:
             raise ValueError(f"joint references and power for {n} axes expected")
         if all(powered):  # the usual case, at every servo tick
-            target = [float(r) for r in reference_deg]
+            target = list(map(float, reference_deg))
         else:
             ahead = zip(reference_deg, powered, self._angles, strict=True)
             target = [float(r) if on else a for r, on, a in ahead]

@@ -351,7 +351,7 @@ class Carry:
     def plan(cls, v0: float, accel: float, *, sin2: bool, at_least: float = 0.0) -> Carry:
         """Ramp down within ``accel``, and over no less than ``at_least`` s."""
         if v0 == 0.0 or accel <= 0.0:
-            return cls(0.0, 0.0, sin2)
+            return _STILL[sin2] if cls is Carry else cls(0.0, 0.0, sin2)
         peak = math.pi / 2 if sin2 else 1.0
         return cls(v0, max(peak * abs(v0) / accel, at_least), sin2)
 
@@ -379,6 +379,7 @@ class Carry:
 
 
 _NO_CARRY: Final = Carry(0.0, 0.0, False)
+_STILL: Final = {False: _NO_CARRY, True: Carry(0.0, 0.0, True)}  # Carry.plan of v0 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -391,10 +392,15 @@ class _Move:
     carry: tuple[Carry, ...] = (_NO_CARRY,) * NUM_AXES  # per axis: a replan's inherited velocity
     # asked at every servo tick: computed once
     duration: float = field(init=False, repr=False, compare=False)
+    spans: Vec = field(init=False, repr=False, compare=False)  # span(i) of every axis
+    coasting: tuple[bool, ...] = field(init=False, repr=False, compare=False)  # carry time > 0
 
     def __post_init__(self) -> None:
         duration = max(self.profile.duration, max(c.time for c in self.carry))
         object.__setattr__(self, "duration", duration)
+        ends = zip(self.goal, self.start, self.carry, strict=True)
+        object.__setattr__(self, "spans", tuple(g - s - c.distance for g, s, c in ends))
+        object.__setattr__(self, "coasting", tuple(c.time > 0.0 for c in self.carry))
 
     @property
     def end(self) -> float:
@@ -983,7 +989,7 @@ class Sdh2Emulator:
         elif self._con != POSE:
             self._integrate(dt)
         actual = self._world.move_joints(t, tuple(self._ax.ref), tuple(self._ax.powered))
-        self._observe([float(a) for a in actual], dt)
+        self._observe(list(map(float, actual)), dt)
         if self._move is not None and t >= self._move.end:
             self._move = None
             self._ax.in_move[:] = [False] * NUM_AXES
@@ -995,13 +1001,41 @@ class Sdh2Emulator:
         move, ax = self._move, self._ax
         assert move is not None
         tau = t - move.t0
-        done = tau >= move.duration
+        in_move, blocked, ref, rvel = ax.in_move, ax.blocked, ax.ref, ax.rvel
+        if tau >= move.duration:  # done
+            for i in _ALL:
+                if in_move[i] and not blocked[i]:
+                    ref[i], rvel[i] = move.goal[i], 0.0
+            return
         frac, rate = move.profile.fraction(tau), move.profile.rate(tau)
+        start, spans, coasting = move.start, move.spans, move.coasting
         for i in _ALL:
-            if ax.in_move[i] and not ax.blocked[i]:
-                span, c = move.span(i), move.carry[i]
-                ax.ref[i] = move.goal[i] if done else move.start[i] + c.offset(tau) + span * frac
-                ax.rvel[i] = 0.0 if done else c.velocity(tau) + span * rate
+            if in_move[i] and not blocked[i]:
+                span = spans[i]
+                if coasting[i]:  # Carry.offset and Carry.velocity, written out (time > 0)
+                    c = move.carry[i]
+                    v0, ctime = c.v0, c.time
+                    if tau <= 0.0:
+                        offset = 0.0
+                    elif tau >= ctime:
+                        offset = v0 * ctime / 2
+                    elif c.sin2:
+                        offset = v0 * (
+                            tau / 2 + ctime / (2 * math.pi) * math.sin(math.pi * tau / ctime)
+                        )
+                    else:
+                        offset = v0 * (tau - tau * tau / (2 * ctime))
+                    if tau < 0.0 or tau >= ctime:
+                        velocity = 0.0
+                    elif c.sin2:
+                        velocity = v0 * math.cos(math.pi * tau / (2 * ctime)) ** 2
+                    else:
+                        velocity = v0 * (1.0 - tau / ctime)
+                    ref[i] = start[i] + offset + span * frac
+                    rvel[i] = velocity + span * rate
+                else:  # no carry: its offset and velocity are 0.0
+                    ref[i] = start[i] + 0.0 + span * frac
+                    rvel[i] = 0.0 + span * rate
 
     def _integrate(self, dt: float) -> None:
         """Velocity controllers: advance each reference by its (ramped) velocity over ``dt``."""
@@ -1025,18 +1059,19 @@ class Sdh2Emulator:
     def _observe(self, actual: list[float], dt: float) -> None:
         """Take the world's angles; detect blocked axes and release velocity-mode blocks."""
         ax, margin = self._ax, self.options.blocked_margin_deg
+        was, vel, powered, ref = ax.actual, ax.actual_vel, ax.powered, ax.ref
         for i in _ALL:
             if dt > 0.0:
-                ax.actual_vel[i] = (actual[i] - ax.actual[i]) / dt
-            ax.actual[i] = actual[i]
-            if not ax.powered[i]:
-                ax.ref[i], ax.rvel[i] = actual[i], 0.0  # limp: the reference follows the joint
+                vel[i] = (actual[i] - was[i]) / dt
+            was[i] = actual[i]
+            if not powered[i]:
+                ref[i], ax.rvel[i] = actual[i], 0.0  # limp: the reference follows the joint
                 continue
-            lag = ax.ref[i] - actual[i]
+            lag = ref[i] - actual[i]
             if ax.blocked[i]:
                 if self._con != POSE and abs(lag) <= margin / 2:
                     ax.blocked[i] = 0  # the obstacle gave way
-            elif self._axis_moving(i) and abs(lag) > margin:
+            elif abs(lag) > margin and self._axis_moving(i):
                 ax.blocked[i] = 1 if lag > 0.0 else -1
                 ax.rvel[i] = 0.0
 

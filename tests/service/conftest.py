@@ -11,8 +11,12 @@ from sdh2svc.service.launch import LiveService, start_service
 # These tests are about the service, not the force loop (tests/control and the reproduction
 # report are): in real time the egg's force peaks near the first reversal reach 4.6–5.3 against
 # the default ceiling of 3 × Fd = 6, and some runs fault there. A ceiling of 4 × Fd keeps the
-# runs these tests watch going.
-LONG_RUNS = ("--set", "safety.force_ceiling_factor=4.0")
+# runs these tests watch going. Nor are they about the grasp (tests/control and
+# test_motion_safety.py are): the fingers close twice as fast (at most 9 °/s instead of 3, still
+# 0.3° per frame period, under a third of safety.max_step_deg), so a run reaches its rolling in
+# ≈ 9 s of real time instead of ≈ 16 (in fast mode the egg's peak force stays below 2 × Fd).
+FAST_GRASP = ("--set", "run.grasp_max_velocity_deg_s=9.0", "--set", "run.grasp_gain_deg_s=5.0")
+LONG_RUNS = ("--set", "safety.force_ceiling_factor=4.0", *FAST_GRASP)
 
 
 @pytest.fixture(scope="session")

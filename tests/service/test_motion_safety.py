@@ -187,11 +187,13 @@ async def test_after_a_fault_open_hand_releases_the_object(tmp_path: Path) -> No
         assert await _stop(svc) == 0, "".join(svc.log)
 
 
-async def test_a_huge_body_during_a_run_does_not_disturb_it(tmp_path: Path) -> None:
+async def test_a_huge_body_during_a_run_does_not_disturb_it(
+    tmp_path: Path, long_runs: tuple[str, ...]
+) -> None:
     """300 MB sent in chunks (no Content-Length) by a client without the token, mid-run: refused
     after the first `service.max_body_kb` — the run goes on as if nothing happened."""
     svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, token="secret",
-                                  extra=["--set", "safety.force_ceiling_factor=4.0"])  # fmt: skip
+                                  extra=long_runs)  # fmt: skip
 
     def chunks() -> Iterator[bytes]:
         block = b"[" + b"1," * (512 * 1024) + b"1]"

@@ -3,19 +3,27 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import logging
 import signal
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
+from typing import Any
 
+import pytest
 import serial_asyncio
 
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
+from sdh2svc.cli import main
+from sdh2svc.config import load_config
 from sdh2svc.protocol import dsa, sdh
+from sdh2svc.service.headless import run_once
+from sdh2svc.sim import serve
+from sdh2svc.sim.clock import run_fast
+from sdh2svc.sim.serve import LabAssistant, start_simulated_hand
 
 
 async def _dsa_info(url: str) -> dsa.ControllerInfo:
@@ -93,40 +101,73 @@ def test_sim_rejects_an_unknown_object() -> None:
     assert r.returncode == 2 and "presets" in r.stderr
 
 
-def test_sim_puts_the_object_back_between_runs(tmp_path: Path) -> None:
-    """Two real runs, one after the other, against one `sdh2svc sim` over TCP: after the first
-    lets the egg go, the lab assistant puts it back (logged), and the second grasps it again."""
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "sdh2svc", "sim", "--json", "--no-pty", "--dsa-port", "0",
-         "--sdh-port", "0", "--object", "egg", "--replace-after", "0.5"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    err: list[str] = []
-    reader = threading.Thread(target=lambda: err.extend(sim.stderr), daemon=True)  # type: ignore[arg-type]
-    reader.start()
-    try:
-        assert sim.stdout is not None
-        info = json.loads(sim.stdout.readline())
-        run = [sys.executable, "-m", "sdh2svc", "run", "--dsa", info["dsa"][0], "--sdh",
-               info["sdh"][0], "--cycles", "1", "--json",
-               # the egg's force peaks may reach the default 3 × Fd in real time (tests/service)
-               "--set", "safety.force_ceiling_factor=4.0",
-               "--set", f"storage.db_path={json.dumps(str(tmp_path / 'runs.sqlite'))}"]  # fmt: skip
-        for n in (1, 2):
-            r = subprocess.run(run, capture_output=True, text=True, timeout=180, cwd=tmp_path)
-            summary = json.loads(r.stdout)
-            assert summary["status"] == "completed", (n, summary, r.stderr)
-            assert summary["iterations"] > 0
-            deadline = time.monotonic() + 20.0
-            while not any("put back" in line for line in err[n - 1 :]):
-                assert time.monotonic() < deadline, f"run {n}: the egg was not put back: {err}"
-                time.sleep(0.05)
-    finally:
-        sim.send_signal(signal.SIGINT)
-        sim.wait(timeout=20)
-        reader.join(5.0)
-        for stream in (sim.stdout, sim.stderr):
-            stream.close()  # type: ignore[union-attr]
-    assert sim.returncode == 0, err
-    assert sum("put back between the fingertips" in line for line in err) == 2, err
-    assert not any("Traceback" in line for line in err)
+def test_sim_puts_the_object_back_between_runs(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Two runs, one after the other, against one simulated hand with the lab assistant that
+    `sdh2svc sim` starts: after the first lets the egg go, the assistant puts it back (logged),
+    and the second grasps it again. In fast mode (virtual clock) through the same drivers and
+    bytes; the option's way from the command line to the assistant is checked below."""
+    db = json.dumps(str(tmp_path / "runs.sqlite"))
+    cfg = load_config(overrides=[f"storage.db_path={db}", "sim.object='egg'", "rolling.cycles=1",
+                                 "safety.force_ceiling_factor=4.0"], use_env=False)  # fmt: skip
+
+    def put_back() -> list[str]:
+        return [m for m in caplog.messages if "put back between the fingertips" in m]
+
+    async def main() -> list[dict[str, Any]]:
+        hand = await start_simulated_hand(cfg, unix_dir=tmp_path)
+        # fast mode starts no assistant of its own: this is the one `sdh2svc sim` starts
+        assistant = asyncio.create_task(LabAssistant(hand.world, 0.5).run())
+        summaries = []
+        try:
+            urls = {"dsa_url": hand.urls("dsa")[0], "sdh_url": hand.urls("sdh")[0]}
+            for n in (1, 2):
+                summaries.append(await run_once(cfg, sim=False, fast=True, **urls))
+                async with asyncio.timeout(20.0):  # virtual seconds
+                    while len(put_back()) < n:
+                        await asyncio.sleep(0.1)
+                assert hand.world.truth().in_fixture, f"after run {n}"
+        finally:
+            assistant.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await assistant
+            await hand.stop()
+        return summaries
+
+    with caplog.at_level(logging.INFO, logger="sdh2svc.sim.serve"):
+        summaries = run_fast(main())
+    for n, summary in enumerate(summaries, 1):
+        assert summary["status"] == "completed", (n, summary)
+        assert summary["iterations"] > 0
+    assert len(put_back()) == 2, caplog.messages
+
+
+def test_sim_replace_after_reaches_the_lab_assistant(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`sdh2svc sim --replace-after S` configures the assistant, which the real-time hand
+    starts (the one the test above exercises)."""
+    seen: list[float] = []
+
+    async def fake_start(settings: Any, **kwargs: Any) -> Any:
+        seen.append(settings.sim.replace_after_s)
+        raise OSError("stop here")
+
+    monkeypatch.setattr(serve, "start_simulated_hand", fake_start)
+    assert main(["sim", "--no-pty", "--replace-after", "0.5"]) == 4  # "cannot serve" after it
+    assert seen == [0.5]
+    monkeypatch.undo()
+
+    class Recording(LabAssistant):
+        def __init__(self, world: Any, after_s: float, poll_s: float = 0.1) -> None:
+            seen.append(after_s)
+            super().__init__(world, after_s, poll_s)
+
+    monkeypatch.setattr(serve, "LabAssistant", Recording)
+
+    async def real_time() -> None:
+        cfg = load_config(overrides=["sim.replace_after_s=1.5"], use_env=False)
+        hand = await serve.start_simulated_hand(cfg, pty=False, tcp=True, dsa_port=0, sdh_port=0)
+        await hand.stop()
+
+    asyncio.run(real_time())
+    assert seen == [0.5, 1.5]
