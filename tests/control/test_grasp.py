@@ -1,0 +1,92 @@
+"""The grasp's pure step (control/grasp.py) on hand-built situations."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sdh2svc.config import Settings
+from sdh2svc.control.grasp import GraspLaw, grasp_step, wedge_turn
+from sdh2svc.model.kinematics import HandPose
+from sdh2svc.model.observe import observe
+
+rad = math.radians
+# mirror poses: parallel distal links (no wedge) and tilted towards each other (a wedge)
+PARALLEL = HandPose(rad(-20), rad(20), rad(-20), rad(20))
+WEDGED = HandPose(rad(-20), rad(40), rad(-20), rad(40))
+
+
+def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
+    m = np.zeros((13, 6), dtype=np.uint16)
+    j = min(int(S // 3.4), 11)
+    w = S / 3.4 - j
+    m[j, 1:5] = round(amplitude * (1 - w))
+    m[j + 1, 1:5] = round(amplitude * w)
+    return m
+
+
+def law(**kw: float) -> GraspLaw:
+    base = {"grasp_force": 2.0, "gain_deg_s": 2.5, "max_velocity_deg_s": 3.0,
+            "min_velocity_deg_s": 0.5, "align_gain": 0.5, "period_s": 1 / 30,
+            "max_step_deg": 1.0}  # fmt: skip
+    return GraspLaw(**{**base, **kw})
+
+
+def contacts(cfg: Settings, amplitude: float) -> tuple:
+    ctx = cfg.model_context()
+    return ctx.contact(frame(20.0, amplitude)), ctx.contact(frame(20.0, amplitude))
+
+
+def test_no_contact_closes_at_full_speed_keeping_the_pads_orientation(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    empty = ctx.contact(np.zeros((13, 6), np.uint16))
+    g = grasp_step(PARALLEL, empty, empty, law(), ctx)
+    step = 3.0 / 30  # max velocity × one frame
+    assert g.d_phi == pytest.approx((step, -step, step, -step))
+    assert g.wedge_deg is None
+
+
+def test_near_fd_the_closing_speed_keeps_its_floor(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    c1, c2 = contacts(cfg, 1000.0)
+    f = c1.force
+    g = grasp_step(PARALLEL, c1, c2, law(grasp_force=f + 0.01, align_gain=0.0), ctx)
+    assert g.d_phi[0] == pytest.approx(0.5 / 30)  # the floor, not 0.01 × 2.5 °/s
+    above = grasp_step(PARALLEL, c1, c2, law(grasp_force=f / 2, align_gain=0.0), ctx)
+    assert above.d_phi[0] < 0 and above.d_phi[2] < 0  # above Fd the fingers open
+
+
+def test_the_pads_turn_against_their_wedge_keeping_the_tilt(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    c1, c2 = contacts(cfg, 300.0)  # a light touch: no squeeze holds the turn back
+    g = grasp_step(WEDGED, c1, c2, law(align_gain=0.5), ctx)
+    plain = grasp_step(WEDGED, c1, c2, law(align_gain=0.0), ctx)
+    assert g.wedge_deg is not None and abs(g.wedge_deg) > 5.0
+    assert g.d_phi[0] == plain.d_phi[0] and g.d_phi[2] == plain.d_phi[2]  # proximal as before
+    turned = HandPose(WEDGED.phi2, WEDGED.phi3 + rad(g.d_phi[1] - plain.d_phi[1]),
+                      WEDGED.phi4, WEDGED.phi5 + rad(g.d_phi[3] - plain.d_phi[3]))  # fmt: skip
+    before = observe(WEDGED, frame(20.0, 300.0), frame(20.0, 300.0), ctx)
+    after = observe(turned, frame(20.0, 300.0), frame(20.0, 300.0), ctx)
+    w0 = (before.omega_A + before.omega_B) / 2 - math.pi / 2
+    w1 = (after.omega_A + after.omega_B) / 2 - math.pi / 2
+    assert abs(w1) < abs(w0)  # the wedge shrank
+    tilt0, tilt1 = before.omega_A - before.omega_B, after.omega_A - after.omega_B
+    assert tilt1 == pytest.approx(tilt0, abs=rad(1.0))  # the tilt is nearly kept
+    assert all(abs(d) <= 1.0 + 1e-12 for d in g.d_phi)
+
+
+def test_a_squeeze_at_twice_fd_stops_the_turn(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    c1, c2 = contacts(cfg, 1000.0)
+    g = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force / 2.5), ctx)
+    plain = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force / 2.5, align_gain=0.0), ctx)
+    assert g.d_phi == plain.d_phi
+
+
+def test_wedge_turn_is_none_without_both_contacts(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    c1, _ = contacts(cfg, 300.0)
+    empty = ctx.contact(np.zeros((13, 6), np.uint16))
+    assert wedge_turn(WEDGED, c1, empty, 0.5, ctx) is None
