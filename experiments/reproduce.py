@@ -9,7 +9,8 @@ the recorder). Everything the report says is read back from the run database
 
 Experiments (thesis ch. 4 and §3.4.2): object A rubber, object B egg, object C cylinder (λ = 3),
 with the project's defaults (thesis Table 8, except where the report says), the four sticks with
-the defaults (k = 2) and the 98.46 mm stick with k = 5. ``--quick``: the egg only, one stroke (a smoke test of the whole pipeline).
+the defaults (k = 2) and the 98.46 mm stick with k = 5. ``--quick``: the egg only, one stroke
+(a smoke test of the whole pipeline).
 """
 
 from __future__ import annotations
