@@ -83,21 +83,6 @@ def _slope(finger: Finger, pose: HandPose, mine: ContactEstimate, other: Contact
     return w, (_omega(finger, turned, mine, other_point, ctx) - w) / _EPS  # ≈ ±1
 
 
-def wedge_turn(pose: HandPose, c1: ContactEstimate, c2: ContactEstimate, fraction: float,
-               ctx: ModelContext) -> tuple[float, float, float] | None:  # fmt: skip
-    """Distal increments (rad) of Finger 1 and Finger 2 that shrink the pads' wedge by
-    ``fraction``, each pad by the same change of its ω (the tilt ωA − ωB kept), and the wedge
-    (rad); None without both contacts or with AB along a pad's tangent."""
-    if c1.r_mm is None or c2.r_mm is None:
-        return None
-    wa, sa = _slope(Finger.ONE, pose, c1, c2, ctx)
-    wb, sb = _slope(Finger.TWO, pose, c2, c1, ctx)
-    if min(abs(sa), abs(sb)) <= 0.2:
-        return None
-    wedge = (wa + wb) / 2 - math.pi / 2
-    return -fraction * wedge / sa, -fraction * wedge / sb, wedge
-
-
 def grasp_step(
     pose: HandPose, c1: ContactEstimate, c2: ContactEstimate, law: GraspLaw, ctx: ModelContext
 ) -> GraspStep:

@@ -15,9 +15,8 @@ Additions to the thesis (explained here and in config/default.toml), for objects
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
 route; a reversal at a cone or the pad's edge commits to the way back
 (:attr:`RollState.waived`); the cones are as wide as the grasp held
-(:attr:`RollState.alpha_held`); between both cones Finger 2's pad turns against the pads' wedge
-instead of reversing again (:func:`_realign`); a plan Finger 1 cannot follow reverses; Finger
-1's step limit; the force band.
+(:attr:`RollState.alpha_held`); a plan Finger 1 cannot follow reverses; Finger 1's step limit;
+the force band.
 """
 
 from __future__ import annotations
@@ -28,7 +27,6 @@ from enum import StrEnum
 
 import numpy as np
 
-from sdh2svc.control.grasp import wedge_turn
 from sdh2svc.control.params import RollingParams
 from sdh2svc.model.friction import cone_margin, inside_cone, omega
 from sdh2svc.model.kinematics import (
@@ -83,7 +81,6 @@ class RollState:
     # tilted beyond α against the pads (small objects touching the pads at different heights),
     # where the thesis's rule would refuse both directions from the start.
     alpha_held: float = 0.0
-    realigning: bool = False  # turning Finger 2's pad against the wedge (see _realign)
 
     @property
     def strokes(self) -> int:
@@ -158,7 +155,6 @@ class _Route:
     lam_ad: float
     params: RollingParams
     ctx: ModelContext
-    turn5: float = 0.0  # Finger 2's distal turn beside the route (rad), see _realign
 
     def configure(self, scale: float) -> _Config | None:
         """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
@@ -176,11 +172,6 @@ class _Route:
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
             d_sigma = segment(obs.points.A, B_d)[1] - obs.sigma  # eq 3.13, sign typo fixed
             sigma_d = obs.sigma + p.lambda_gain * d_sigma
-            if self.turn5:  # beside the route: λ reinforces the route's dσ only
-                phi5d += self.turn5
-                if not self.ctx.limits2.contains(phi4d, phi5d):
-                    return None
-                B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
         else:
             phi4d, phi5d, B_d = pose.phi4, pose.phi5, obs.points.B
             sigma_d = obs.sigma + scale * self.state.direction * p.d_sigma
@@ -200,49 +191,6 @@ FOLLOW_SLACK = 1.5
 def _finger1_step(cfg: _Config, pose: HandPose) -> float:
     assert cfg.ik.solution is not None
     return max(abs(cfg.ik.solution.proximal - pose.phi2), abs(cfg.ik.solution.distal - pose.phi3))
-
-
-# Stuck between both cones: at most this much of Finger 2's distal joint per iteration.
-REALIGN_STEP = math.radians(0.25)
-
-
-def _realign(route: _Route, F: float, dF: float, alpha: float, until: float) -> StepResult | None:
-    """Instead of reversing again at a cone, turn Finger 2's pad against the pads' wedge when it
-    takes up half the cone or more, (ωA + ωB)/2 − 90° ≥ α/2: both ω then sit near the same
-    limit — the contacts have rolled along the curved pads since the grasp — and every step of
-    the route leaves one cone or the other, so the thesis's rule reverses on the spot until the
-    run is stuck. Finger 2 does not move along its route (no travel, no half stroke); its
-    distal joint turns by up to REALIGN_STEP, and Finger 1 follows by its IK to keep A at Λad
-    and σ from the new B. Only a plan that shrinks the wedge and that Finger 1 can follow is
-    taken; the reversal count stays as it is."""
-    state, obs, p, ctx = route.state, route.obs, route.params, route.ctx
-    if obs.omega_A is None or obs.omega_B is None or p.mode != "two-finger":
-        return None
-    wedge = (obs.omega_A + obs.omega_B) / 2 - math.pi / 2
-    if abs(wedge) < until:
-        return None
-    turn = wedge_turn(route.pose, obs.contact1, obs.contact2, 1.0, ctx)
-    if turn is None:
-        return None
-    d5 = max(-REALIGN_STEP, min(REALIGN_STEP, 2 * turn[1]))  # pad 2 alone takes it out
-    cfg = replace(route, turn5=d5).configure(0.0)
-    if (
-        cfg is None
-        or cfg.ik.solution is None
-        or _finger1_step(cfg, route.pose) > p.finger1_max_step
-    ):
-        return None
-    pad, c1, c2 = ctx.geom.pad, obs.contact1, obs.contact2
-    A_d, B_d = cfg.plan.A_d, cfg.plan.B_d
-    assert A_d is not None and B_d is not None and c1.x3_mm is not None and c2.x3_mm is not None
-    phi2d, phi3d = cfg.ik.solution.proximal, cfg.ik.solution.distal
-    wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
-    wb = omega(Finger.TWO, cfg.phi4d + cfg.phi5d, c2.x3_mm, B_d, A_d, pad)
-    if abs((wa + wb) / 2 - math.pi / 2) >= abs(wedge):
-        return None
-    plan = replace(cfg.plan, omega_A_d=wa, omega_B_d=wb)
-    nxt = replace(state, F_prev=F, iteration=state.iteration + 1, realigning=True)
-    return StepResult(nxt, HandPose(phi2d, phi3d, cfg.phi4d, cfg.phi5d), None, obs, F, dF, plan)
 
 
 _WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE)
@@ -288,14 +236,9 @@ def step(
         held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
         state = replace(state, alpha_held=held)
     alpha = max(params.alpha, state.alpha_held)
-    routes: list[_Route] = []  # the iteration's route, once the contacts allow one
     waived = state.waived if state.travel < params.min_half_stroke else None
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
-        if reason in (Reversal.CONE_A, Reversal.CONE_B) and state.consecutive_reversals:
-            turned = _realign(routes[0], F, dF, alpha, alpha / 2) if routes else None
-            if turned is not None:
-                return turned
         return StepResult(_reverse(state, F, reason, params), None, reason, obs, F, dF, plan)
 
     present = min(c1.force, c2.force) > params.contact_force_min
@@ -308,13 +251,6 @@ def step(
 
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
     route = _Route(state, pose, obs, lam_ad, params, ctx)
-    routes.append(route)
-    if state.realigning:  # on until the wedge is down to a quarter of the cone
-        turned = _realign(route, F, dF, alpha, alpha / 4)
-        if turned is not None:
-            return turned
-        state = replace(state, realigning=False)
-        route = replace(route, state=state)
     cfg = route.configure(1.0)
     if cfg is None:
         return reverse(Reversal.WORKSPACE, Plan(lam_ad))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sdh2svc.config import Settings
-from sdh2svc.control.grasp import GraspLaw, grasp_step, wedge_turn
+from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.model.kinematics import HandPose
 from sdh2svc.model.observe import observe
 
@@ -83,10 +83,3 @@ def test_a_squeeze_at_twice_fd_stops_the_turn(cfg: Settings) -> None:
     g = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force / 2.5), ctx)
     plain = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force / 2.5, align_gain=0.0), ctx)
     assert g.d_phi == plain.d_phi
-
-
-def test_wedge_turn_is_none_without_both_contacts(cfg: Settings) -> None:
-    ctx = cfg.model_context()
-    c1, _ = contacts(cfg, 300.0)
-    empty = ctx.contact(np.zeros((13, 6), np.uint16))
-    assert wedge_turn(WEDGED, c1, empty, 0.5, ctx) is None

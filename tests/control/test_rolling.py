@@ -33,7 +33,6 @@ def params(cfg: Settings, **kw: object) -> RollingParams:
     return cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0, **kw})
 
 
-WEDGED = HandPose(rad(-20), rad(40), rad(-20), rad(40))  # the pads' normals tilted apart
 RUNNING = RollState(iteration=1)  # after the first iteration (see RollState.alpha_held)
 TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))  # σ ≠ 0
 
@@ -324,27 +323,3 @@ def test_the_cones_are_as_wide_as_the_grasp_held(cfg: Settings) -> None:
     assert None in moved  # at least one way to start
     assert all(step(replace(RUNNING, direction=d), pose, m, m, p, ctx).reversal
                is Reversal.CONE_B for d in (1, -1))  # fmt: skip
-
-
-def test_stuck_between_both_cones_the_pads_turn_against_the_wedge(cfg: Settings) -> None:
-    """A wedge of half the cone or more and a reversal just before: instead of reversing
-    again, Finger 2's distal joint turns pad 2 against the wedge (no travel along the route)
-    and Finger 1 follows; the turn goes on until the wedge is down to a quarter of the cone."""
-    ctx, p = cfg.model_context(), params(cfg, alpha_deg=5.0)
-    m = frame(20.0)
-    after_reversal = replace(RUNNING, consecutive_reversals=1)
-    r = step(after_reversal, WEDGED, m, m, p, ctx)
-    wedge = (r.obs.omega_A + r.obs.omega_B) / 2 - math.pi / 2
-    assert abs(wedge) >= rad(5.0)
-    assert r.reversal is None and r.targets is not None and r.state.realigning
-    assert r.targets.phi4 == pytest.approx(WEDGED.phi4)  # no move along the route
-    assert 0 < abs(r.targets.phi5 - WEDGED.phi5) <= rad(0.25) + 1e-12
-    assert r.state.travel == 0 and r.state.half_strokes == 0
-    assert r.state.consecutive_reversals == 1  # the count towards "stuck" is kept
-    planned = (r.plan.omega_A_d + r.plan.omega_B_d) / 2 - math.pi / 2
-    assert abs(planned) < abs(wedge)
-    # without a reversal just before, the thesis's rule reverses as usual
-    assert step(RUNNING, WEDGED, m, m, p, ctx).reversal in (Reversal.CONE_A, Reversal.CONE_B)
-    # once the wedge is within a quarter of the cone, the turn ends and the route goes on
-    done = step(replace(RUNNING, realigning=True), WEDGED, m, m, params(cfg, alpha_deg=40.0), ctx)
-    assert not done.state.realigning
