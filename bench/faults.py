@@ -53,7 +53,7 @@ async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
         nonlocal peak
         c1 = ctx.contact(frame.matrices[axes.finger1_distal_matrix])
         c2 = ctx.contact(frame.matrices[axes.finger2_distal_matrix])
-        peak = max(peak, (c1.force_library + c2.force_library) / 2)
+        peak = max(peak, (c1.force + c2.force) / 2)  # the controller's F
 
     def on_event(t: float, i: int | None, kind: str, detail: dict[str, Any]) -> None:
         if kind == "phase" and detail["phase"] == "grasping":

@@ -47,7 +47,7 @@ def run_object(name: str) -> dict[str, float]:
         t += FRAME_PERIOD_S
         f = w.tactile_frame(t, sens, thr)
         c1, c2 = ctx.contact(f[84:162].reshape(13, 6)), ctx.contact(f[408:486].reshape(13, 6))
-        if (c1.force_library + c2.force_library) / 2 >= 2.0 or q[1] > 40:
+        if (c1.force + c2.force) / 2 >= 2.0 or q[1] > 40:  # the controller's F at Fd
             break
         q[1] += 0.05
         q[2] -= 0.05

@@ -43,7 +43,7 @@ def test_bit_errors_never_let_the_force_pass_the_ceiling(
 
             def watch(frame: TactileFrame) -> None:
                 c1, c2 = ctx.contact(frame.matrices[m1]), ctx.contact(frame.matrices[m2])
-                forces.append((c1.force_library + c2.force_library) / 2)
+                forces.append((c1.force + c2.force) / 2)  # the controller's F
 
             runner.tactile.add_frame_listener(watch)
             runner._on_event = on_event
