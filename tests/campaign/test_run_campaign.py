@@ -90,6 +90,10 @@ def test_two_workers_give_the_same_results_as_one(one_worker: Path, tmp_path: Pa
         assert {k: one[i][k] for k in JUDGED} == {k: two[i][k] for k in JUDGED}, i
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def counting(calls: list[str]) -> Any:
     def fn(case_json: str, *args: Any) -> dict[str, Any]:
         calls.append(json.loads(case_json)["id"])
@@ -151,8 +155,11 @@ def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(tmp_path: Path,
     cmd = [sys.executable, "-m", "sdh2svc", "campaign", "run", str(tmp_path / "s.json"),
            "--out", str(out), "--workers", str(workers), "--quiet",
            "--set", ONE_STROKE[0]]  # fmt: skip
+    # a Ctrl-C as a terminal sends it, whatever this process does with SIGINT (an ignored
+    # signal is inherited, and a local Ray instance started by another test may ignore it)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            preexec_fn=_default_sigint)  # fmt: skip
     try:
         _wait_for_line(out / camp.CASES_FILE, proc, 240)
         proc.send_signal(signal.SIGINT)
