@@ -557,8 +557,11 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         "stroke's travel (a cone still does 2° beyond its limit) — near the end of a stroke the "
         "route barely changes ω, a rolling contact overshoots the plan, and the thesis's rule "
         "would reverse on the spot for ever. The cones are as wide as the grasp itself held at "
-        "the first iteration (at least α). A plan Finger 1 cannot follow within 1.5 × its step "
-        "even when slowed down (a nearly stretched finger) reverses as the workspace's limit.",
+        "the first iteration (at least α). A plan that would widen the pads' wedge, (ωA + ωB)/2 − "
+        "90°, beyond 16° (μ = 0.29, the lowest friction expected) reverses: beyond it both "
+        "contacts of a low-friction object slide the same way and it is pushed out. A plan "
+        "Finger 1 cannot follow within 1.5 × its step even when slowed down (a nearly stretched "
+        "finger) reverses as the workspace's limit.",
         "* **Sensor gain.** The simulated pads read 0.05 × SDHLibrary's nominal calibration "
         "(`config/sim.toml`), which puts Fd = 2 library units at a force that holds the objects. "
         "The fingers yield 0.1 mm per N where the joint encoders cannot see it (10 N/mm), "

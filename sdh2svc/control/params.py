@@ -66,6 +66,10 @@ class RollingParams(Frozen):
         description="Finger 2's travel along its route (φ4; σ in one-finger mode) before a "
         "reversal counts as a half stroke; fewer count towards 'stuck' (not in the thesis)"
     )
+    wedge_limit_deg: Annotated[float, Field(ge=0.0, le=60.0)] = Field(
+        description="the pads' wedge, (ωA + ωB)/2 − 90°, a plan may not widen beyond this "
+        "(not in the thesis; 0: off)"
+    )
     cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
         description="back-and-forth strokes before the run ends"
     )
@@ -107,6 +111,10 @@ class RollingParams(Frozen):
     @property
     def min_half_stroke(self) -> float:
         return math.radians(self.min_half_stroke_deg)
+
+    @property
+    def wedge_limit(self) -> float:
+        return math.radians(self.wedge_limit_deg)
 
     @property
     def alpha(self) -> float:

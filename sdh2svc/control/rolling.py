@@ -15,8 +15,8 @@ Additions to the thesis (explained here and in config/default.toml), for objects
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
 route; a reversal at a cone or the pad's edge commits to the way back
 (:attr:`RollState.waived`); the cones are as wide as the grasp held
-(:attr:`RollState.alpha_held`); a plan Finger 1 cannot follow reverses; Finger 1's step limit;
-the force band.
+(:attr:`RollState.alpha_held`); a plan that widens the pads' wedge beyond its limit reverses;
+a plan Finger 1 cannot follow reverses; Finger 1's step limit; the force band.
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ class Reversal(StrEnum):
 
     CONE_A = "cone_A"  # ωA would leave 90° ± α
     CONE_B = "cone_B"  # ωB would leave 90° ± α
+    WEDGE = "wedge"  # the pads' wedge, (ωA + ωB)/2 − 90°, would grow beyond its limit
     WORKSPACE = "workspace"  # Finger 2's next angles (or Finger 1's) outside the joint limits
     IK_UNREACHABLE = "ik_unreachable"  # Finger 1 cannot reach Ad
     CONTACT_EDGE = "contact_edge"  # a contact sits on the pad's first or last row
@@ -193,7 +194,7 @@ def _finger1_step(cfg: _Config, pose: HandPose) -> float:
     return max(abs(cfg.ik.solution.proximal - pose.phi2), abs(cfg.ik.solution.distal - pose.phi3))
 
 
-_WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE)
+_WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE, Reversal.WEDGE)
 
 
 def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> RollState:
@@ -208,6 +209,22 @@ def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> 
         travel=0.0,
         waived=reason if reason in _WAIVABLE else None,
     )
+
+
+def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | None,
+                   p: RollingParams) -> bool:  # fmt: skip
+    """Whether the plan takes the pads' wedge beyond its limit and wider than it is now. With
+    both ω beyond 90° on the same side, both contacts slide the same way and the squeeze pushes
+    the object out between the pads once both exceed the object's own friction angle; the
+    smaller of the two is at most the wedge, so a wedge within the lowest friction angle the
+    lab expects keeps one contact holding whatever α assumes."""
+    limit = p.wedge_limit
+    if limit <= 0.0 or obs.omega_A is None or obs.omega_B is None:
+        return False
+    planned = abs((wa + wb) / 2 - math.pi / 2)
+    if planned <= limit or waived is Reversal.WEDGE:
+        return False
+    return planned > abs((obs.omega_A + obs.omega_B) / 2 - math.pi / 2)
 
 
 def _cone_refuses(w_d: float, cone: Reversal, waived: Reversal | None, alpha: float) -> bool:
@@ -279,6 +296,8 @@ def step(
         return reverse(Reversal.CONE_A, plan)
     if _cone_refuses(wb, Reversal.CONE_B, waived, alpha):
         return reverse(Reversal.CONE_B, plan)
+    if _wedge_refuses(wa, wb, obs, waived, params):
+        return reverse(Reversal.WEDGE, plan)
     nxt = replace(state, F_prev=F, iteration=state.iteration + 1,
                   travel=state.travel + cfg.travel)  # fmt: skip
     targets = HandPose(phi2d, phi3d, phi4d, phi5d)

@@ -323,3 +323,30 @@ def test_the_cones_are_as_wide_as_the_grasp_held(cfg: Settings) -> None:
     assert None in moved  # at least one way to start
     assert all(step(replace(RUNNING, direction=d), pose, m, m, p, ctx).reversal
                is Reversal.CONE_B for d in (1, -1))  # fmt: skip
+
+
+def test_a_plan_that_widens_the_wedge_beyond_its_limit_reverses(cfg: Settings) -> None:
+    """Both pads tilted apart (both ω on the same side of 90°): within wide cones, a plan that
+    widens the wedge beyond ``wedge_limit_deg`` reverses; one that narrows it passes."""
+    ctx = cfg.model_context()
+    wedged = HandPose(rad(-20), rad(40), rad(-20), rad(40))
+    m = frame(20.0)
+    loose = params(cfg, alpha_deg=40.0, wedge_limit_deg=0.0)
+    plans = {d: step(replace(RUNNING, direction=d), wedged, m, m, loose, ctx) for d in (1, -1)}
+    r0 = plans[1]
+    now = abs((r0.obs.omega_A + r0.obs.omega_B) / 2 - math.pi / 2)
+    assert all(r.reversal is None for r in plans.values())
+    wedge = {d: abs((r.plan.omega_A_d + r.plan.omega_B_d) / 2 - math.pi / 2)
+             for d, r in plans.items()}  # fmt: skip
+    wider = max(wedge, key=wedge.get)
+    narrower = -wider
+    assert wedge[wider] > now
+    limit = math.degrees(now) - 0.5  # already beyond it
+    p = params(cfg, alpha_deg=40.0, wedge_limit_deg=limit)
+    r = step(replace(RUNNING, direction=wider), wedged, m, m, p, ctx)
+    assert r.reversal is Reversal.WEDGE and r.state.waived is Reversal.WEDGE
+    if wedge[narrower] < now:
+        assert step(replace(RUNNING, direction=narrower), wedged, m, m, p, ctx).reversal is None
+    # the way back is waived like a cone's
+    r = step(replace(RUNNING, direction=wider, waived=Reversal.WEDGE), wedged, m, m, p, ctx)
+    assert r.reversal is None
