@@ -11,20 +11,12 @@ from sdh2svc.config import Settings
 from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.model.kinematics import HandPose
 from sdh2svc.model.observe import observe
+from tests.control.test_rolling import frame
 
 rad = math.radians
 # mirror poses: parallel distal links (no wedge) and tilted towards each other (a wedge)
 PARALLEL = HandPose(rad(-20), rad(20), rad(-20), rad(20))
 WEDGED = HandPose(rad(-20), rad(40), rad(-20), rad(40))
-
-
-def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
-    m = np.zeros((13, 6), dtype=np.uint16)
-    j = min(int(S // 3.4), 11)
-    w = S / 3.4 - j
-    m[j, 1:5] = round(amplitude * (1 - w))
-    m[j + 1, 1:5] = round(amplitude * w)
-    return m
 
 
 def law(**kw: float) -> GraspLaw:
