@@ -22,8 +22,8 @@ import math
 from dataclasses import dataclass
 
 from sdh2svc.model.contact import ContactEstimate
-from sdh2svc.model.friction import omega
-from sdh2svc.model.kinematics import Finger, HandPose, contact_point
+from sdh2svc.model.friction import omega, wedge
+from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point
 from sdh2svc.model.observe import ModelContext
 
 _EPS = math.radians(0.1)  # the finite difference of ω with respect to a distal joint
@@ -37,17 +37,16 @@ class GraspLaw:
     gain_deg_s: float  # closing speed per force unit below Fd
     max_velocity_deg_s: float
     min_velocity_deg_s: float  # while F < Fd
-    align_gain: float  # fraction of (ω − 90°) a distal joint corrects per frame; 0: mirror grasp
+    align_gain: float  # fraction of the pads' wedge taken out per frame; 0: the mirror grasp
     period_s: float  # one frame
     max_step_deg: float  # per joint per frame
 
 
 @dataclass(frozen=True, slots=True)
 class GraspStep:
-    """Joint increments (degrees) for φ2, φ3, φ4, φ5 and the ω the alignment saw (degrees)."""
+    """Joint increments (degrees) for φ2, φ3, φ4, φ5, and the pads' wedge the step saw."""
 
     d_phi: tuple[float, float, float, float]
-    omega_deg: tuple[float | None, float | None]
     wedge_deg: float | None  # (ωA + ωB)/2 − 90°; None without both contacts
 
 
@@ -61,13 +60,13 @@ def _closing_step(f: float, law: GraspLaw) -> float:
     return max(-law.max_step_deg, min(speed * law.period_s, law.max_step_deg))
 
 
-def _omega(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: object,
+def _omega(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: Point,
            ctx: ModelContext) -> float:  # fmt: skip
     """ω at ``finger``'s contact for ``pose``, the other contact held at ``other_point``."""
     assert mine.r_mm is not None and mine.theta_rad is not None and mine.x3_mm is not None
     prox, dist = pose.finger(finger)
     here = contact_point(finger, prox, dist, mine.r_mm, mine.theta_rad, ctx.geom)
-    return omega(finger, prox + dist, mine.x3_mm, here, other_point, ctx.geom.pad)  # type: ignore[arg-type]
+    return omega(finger, prox + dist, mine.x3_mm, here, other_point, ctx.geom.pad)
 
 
 def _slope(finger: Finger, pose: HandPose, mine: ContactEstimate, other: ContactEstimate,
@@ -91,21 +90,19 @@ def grasp_step(
     its distal joint against the pads' wedge. Every increment is within ±``max_step_deg``."""
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
     a1 = a2 = 0.0
-    w: tuple[float | None, float | None] = (None, None)
-    wedge: float | None = None
+    wedge_deg: float | None = None
     if c1.r_mm is not None and c2.r_mm is not None:
         wa, sa = _slope(Finger.ONE, pose, c1, c2, ctx)
         wb, sb = _slope(Finger.TWO, pose, c2, c1, ctx)
-        w = (math.degrees(wa), math.degrees(wb))
-        wedge = math.degrees((wa + wb) / 2 - math.pi / 2)
+        wedge_deg = math.degrees(wedge(wa, wb))
         if law.align_gain > 0 and min(abs(sa), abs(sb)) > 0.2:  # else AB lies along a tangent
             # turning a pad pressed on a corner squeezes: none at 2·Fd, where the fingers open
             room = max(0.0, min(1.0, 2.0 - (c1.force + c2.force) / 2 / law.grasp_force))
             gain = law.align_gain * room
-            a1, a2 = -gain * wedge / sa, -gain * wedge / sb
+            a1, a2 = -gain * wedge_deg / sa, -gain * wedge_deg / sb
     lim = law.max_step_deg
 
     def clip(x: float) -> float:
         return max(-lim, min(lim, x))
 
-    return GraspStep((s1, clip(-s1 + a1), s2, clip(-s2 + a2)), w, wedge)
+    return GraspStep((s1, clip(-s1 + a1), s2, clip(-s2 + a2)), wedge_deg)

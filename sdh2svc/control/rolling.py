@@ -28,7 +28,8 @@ from enum import StrEnum
 import numpy as np
 
 from sdh2svc.control.params import RollingParams
-from sdh2svc.model.friction import cone_margin, inside_cone, omega
+from sdh2svc.model.contact import ContactEstimate
+from sdh2svc.model.friction import cone_margin, inside_cone, omega, wedge
 from sdh2svc.model.kinematics import (
     Finger,
     HandPoints,
@@ -221,10 +222,10 @@ def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | No
     limit = p.wedge_limit
     if limit <= 0.0 or obs.omega_A is None or obs.omega_B is None:
         return False
-    planned = abs((wa + wb) / 2 - math.pi / 2)
+    planned = abs(wedge(wa, wb))
     if planned <= limit or waived is Reversal.WEDGE:
         return False
-    return planned > abs((obs.omega_A + obs.omega_B) / 2 - math.pi / 2)
+    return planned > abs(wedge(obs.omega_A, obs.omega_B))
 
 
 def _cone_refuses(w_d: float, cone: Reversal, waived: Reversal | None, alpha: float) -> bool:
@@ -233,6 +234,11 @@ def _cone_refuses(w_d: float, cone: Reversal, waived: Reversal | None, alpha: fl
     if inside_cone(w_d, alpha):
         return False
     return waived is not cone or cone_margin(w_d, alpha) < -RETREAT_LIMIT
+
+
+def grip_force(c1: ContactEstimate, c2: ContactEstimate) -> float:
+    """F, the grip's force (eq 3.16) in the controller's force (:attr:`ContactEstimate.force`)."""
+    return (c1.force + c2.force) / 2
 
 
 def step(
@@ -246,7 +252,7 @@ def step(
     """One rolling iteration (hand-model §8, step 2)."""
     obs = observe(pose, counts1, counts2, ctx)
     c1, c2 = obs.contact1, obs.contact2
-    F = (c1.force + c2.force) / 2  # eq 3.16 (ContactEstimate.force: which force)
+    F = grip_force(c1, c2)
     dF = 0.0 if state.F_prev is None else F - state.F_prev
 
     if state.iteration == 0 and obs.omega_A is not None and obs.omega_B is not None:

@@ -26,7 +26,7 @@ from sdh2svc.config import Settings
 from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.rolling import RollState, StepResult, step
+from sdh2svc.control.rolling import RollState, StepResult, grip_force, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
@@ -221,7 +221,7 @@ class Runner:
             frame = sub.latest
             stale = self.settings.safety.stale_frame_ms / 1000
             if frame is not None and frame.age() <= stale:
-                fault = self._ceiling_fault(_force(*self._contacts(frame)))
+                fault = self._ceiling_fault(grip_force(*self._contacts(frame)))
                 if fault is not None:
                     raise fault
 
@@ -263,7 +263,7 @@ class Runner:
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
-            F = _force(c1, c2)
+            F = grip_force(c1, c2)
             if (fault := self._ceiling_fault(F)) is not None:
                 raise fault
             actual = await self.joints.get_actual()
@@ -403,8 +403,3 @@ class Runner:
             t = asyncio.get_running_loop().time() - self._t0
             self._on_event(t, iteration if iteration is not None else self.state.iteration, kind,
                            detail)  # fmt: skip
-
-
-def _force(c1: ContactEstimate, c2: ContactEstimate) -> float:
-    """F of the two distal contacts (library units, as Fd)."""
-    return (c1.force + c2.force) / 2

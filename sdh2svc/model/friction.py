@@ -40,6 +40,12 @@ def inside_cone(w: float, alpha: float) -> bool:
     return abs(w - math.pi / 2) < alpha
 
 
+def wedge(omega_a: float, omega_b: float) -> float:
+    """The pads' wedge (rad): (ωA + ωB)/2 − 90°, half the angle between the two pad normals at
+    the contacts — 0 when they face each other along AB, whatever the object's tilt (ωA − ωB)."""
+    return (omega_a + omega_b) / 2 - math.pi / 2
+
+
 def cone_margin(w: float, alpha: float) -> float:
     """How far (rad) ω is from leaving the cone; negative when outside."""
     return alpha - abs(w - math.pi / 2)
