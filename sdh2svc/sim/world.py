@@ -18,7 +18,8 @@ from typing import Protocol
 
 import numpy as np
 
-NUM_AXES = 7
+from sdh2svc.protocol.sdh import NUM_AXES
+
 MAX_COUNT = 4095
 FACTORY_SENSITIVITY = 0.5  # protocols.md §1.4.4
 
