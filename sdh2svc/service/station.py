@@ -27,6 +27,7 @@ from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.runs import RecordedRun, open_links
 from sdh2svc.service.store import RunStore
+from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Sim, Status, Tactile
 from sdh2svc.sim.objects import PRESETS, ObjectSpec, Outline, get_object, parse_object
 from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
 
@@ -300,8 +301,7 @@ class Station:
             await cancel(task)
 
     def _hand_event(self, kind: str, detail: dict[str, Any]) -> None:
-        self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
-                          "kind": kind, "detail": detail})  # fmt: skip
+        self.hub.publish(Event(None, None, None, kind, detail))
 
     @property
     def params_in_force(self) -> RollingParams:
@@ -396,7 +396,7 @@ class Station:
         }
 
     def publish_status(self) -> None:
-        self.hub.publish({"type": "status", "status": self.status()})
+        self.hub.publish(Status(self.status()))
 
     # --- internals ------------------------------------------------------------------------------
 
@@ -428,13 +428,11 @@ class Station:
 
     def _on_sample(self, s: Sample) -> None:
         run_id = self.run.run_id if self.run else None
-        self.hub.publish({"type": "sample", "run_id": run_id,
-                          "sample": dict(zip(Sample.columns(), s.row(), strict=True))})  # fmt: skip
+        self.hub.publish(SampleMsg(run_id, s))
 
     def _on_event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
         run_id = self.run.run_id if self.run else None
-        self.hub.publish({"type": "event", "run_id": run_id, "t": t, "iteration": iteration,
-                          "kind": kind, "detail": detail})  # fmt: skip
+        self.hub.publish(Event(run_id, t, iteration, kind, detail))
         if kind == "phase":
             self.publish_status()
 
@@ -445,8 +443,7 @@ class Station:
         if not self.hub.clients and not self.hub.has_listeners:
             return
         self._last_tactile = frame.arrival
-        self.hub.publish({"type": "tactile", "seq": frame.seq, "t": frame.arrival,
-                          "matrices": [m.tolist() for m in frame.matrices]})  # fmt: skip
+        self.hub.publish(Tactile(frame.seq, frame.arrival, frame.matrices))
 
     async def _status_loop(self) -> None:
         period = 1.0 / self.cfg.service.status_hz
@@ -466,9 +463,9 @@ class Station:
                 with contextlib.suppress(Exception):
                     await j.get_actual()
             if j.last_actual is not None:
-                self.hub.publish({"type": "pose", "angles_deg": list(j.last_actual)})
+                self.hub.publish(Pose(tuple(j.last_actual)))
             if self.hand is not None:
-                self.hub.publish({"type": "sim", "truth": self._truth()})
+                self.hub.publish(Sim(self._truth()))
 
     def _truth(self) -> dict[str, Any]:
         assert self.hand is not None and self._outline is not None

@@ -1,10 +1,11 @@
 """Live viser 3-D view of the hand: pose, tactile pads, contacts A and B, friction cones, object.
 
 The view consumes the telemetry messages of docs/api.md (``sample``, ``tactile``, ``pose``,
-``sim``, ``status``/``hello``). :meth:`Viewer.handle` only stores the latest message of each type;
-a render task on the service's event loop turns the changes into one ``server.atomic()`` batch at
-most ``max_hz`` times a second, and only when something changed, so telemetry at loop rate never
-costs more than a dictionary store. A frame is cheap because it is incremental: only the fingers
+``sim``, ``status``/``hello``), typed (:mod:`sdh2svc.service.telemetry`) or in their JSON form.
+:meth:`Viewer.handle` only stores the latest message of each type; a render task on the
+service's event loop turns the changes into one ``server.atomic()`` batch at most ``max_hz``
+times a second, and only when something changed, so telemetry at loop rate never costs more than
+a dictionary store. A frame is cheap because it is incremental: only the fingers
 whose joints moved are posed again, only pads whose counts changed are recoloured, and a scene
 property is sent only when its value differs from the one last sent (every assignment is a
 message that viser's thread encodes and sends, holding the GIL the control loop needs). Nobody
@@ -48,10 +49,10 @@ from websockets.asyncio.server import ServerConnection
 from websockets.http11 import Request
 
 from sdh2svc.config import Settings
-from sdh2svc.model.friction import pad_tangent
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
 from sdh2svc.service.pacing import paced
+from sdh2svc.service.telemetry import AnyMessage, SampleMsg, SampleView, as_array, sample_view
 
 _T = TypeVar("_T")
 log = logging.getLogger(__name__)
@@ -288,20 +289,6 @@ def cone_color(deviation_deg: float, alpha_deg: float) -> tuple[int, int, int]:
     return tuple(round(a + (b - a) * t) for a, b in zip(lo, hi, strict=True))  # type: ignore[return-value]
 
 
-def contact_normal(
-    finger: Finger, proximal: float, distal: float, at: Point, settings: Settings
-) -> Point:
-    """Unit outward pad normal (frame 0) at the contact point ``at`` of a coupled finger (rad):
-    the contact's x3 follows from its position along frame 3, the tangent from the pad profile."""
-    geom = settings.hand
-    C = distal_joint(finger, proximal, geom)
-    ex, ey = frame3_axes(finger, proximal + distal)
-    x3 = (at.y - C.y) * ex.y + (at.z - C.z) * ex.z
-    t = pad_tangent(finger, proximal + distal, x3, geom.pad)
-    n = Point(t.z, -t.y)
-    return n if n.y * ey.y + n.z * ey.z >= 0.0 else Point(-n.y, -n.z)
-
-
 def _cone_mesh(segments: int = 24) -> tuple[np.ndarray, np.ndarray]:
     """A unit cone: apex at the origin, axis +z, base circle of radius 1 at z = 1."""
     ang = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
@@ -348,19 +335,6 @@ def _axis_to(n: np.ndarray) -> np.ndarray:
 def _num(d: dict[str, Any] | None, key: str) -> float | None:
     v = (d or {}).get(key)
     return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
-
-
-def camera_message() -> bytes:
-    """What a browser sends once it shows the scene: its camera (viser counts a client as
-    connected, and the view draws for it, from then on). For scripted clients: tests, bench."""
-    import msgspec.msgpack
-    from viser import _messages
-
-    msg = _messages.ViewerCameraMessage(
-        wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.3, 0.0, 0.2), fov=1.0, near=0.01, far=100.0,
-        image_height=720, image_width=1280, look_at=(0.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0),
-    )  # fmt: skip
-    return msgspec.msgpack.encode(msg.as_serializable_dict())
 
 
 # --- who may open the view's WebSocket ------------------------------------------------------------
@@ -527,7 +501,8 @@ class Viewer:
         self._failures = 0
         self._sent: dict[tuple[int, str], Any] = {}  # (node id, property) → value last sent
         self._posed: dict[str, tuple[float, ...]] = {}  # finger → the angles it was posed at
-        self._pad_counts: dict[str, Any] = {}  # pad node → the counts it was coloured for
+        self._pad_counts: dict[str, np.ndarray] = {}  # pad node → the counts it was coloured for
+        self._view: tuple[int, SampleView | None] = (-1, None)  # (sample's seq, its view)
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -576,14 +551,20 @@ class Viewer:
 
     # -- telemetry in: cheap ----------------------------------------------------------------
 
-    def handle(self, msg: dict[str, Any]) -> None:
+    def handle(self, msg: AnyMessage) -> None:
         """Keep the latest message of each type and mark it for the next frame; no rendering."""
-        kind = msg.get("type")
-        key = _PAYLOAD.get(str(kind))
+        if isinstance(msg, dict):
+            kind, key = msg.get("type"), _PAYLOAD.get(str(msg.get("type")))
+            payload = msg.get(key) if key is not None else None
+        else:
+            kind, key = msg.type, _PAYLOAD.get(msg.type)
+            payload = getattr(msg, key) if key is not None else None
+            if isinstance(msg, SampleMsg) and msg.view is not None:
+                payload = msg.view  # what the sender made of the sample: drawn as given
         if key is None:
             return
-        kind = "status" if kind == "hello" else kind
-        self._latest[kind] = msg.get(key)
+        kind = "status" if kind == "hello" else str(kind)
+        self._latest[kind] = payload
         self._n += 1
         self._seq[kind] = self._n
         self._dirty.add(kind)
@@ -629,19 +610,29 @@ class Viewer:
 
     def _update_angles(self) -> None:
         """φ1 and the thumb from ``pose``; φ2…φ5 from whichever of pose/sample came last."""
-        pose, sample = self._latest.get("pose"), self._latest.get("sample")
+        pose, sample = self._latest.get("pose"), self._sample_view()
         ax = self.settings.axes
-        from_sample = [(ax.phi2, "phi2"), (ax.phi3, "phi3"), (ax.phi4, "phi4"), (ax.phi5, "phi5")]
-        steps = [("pose", pose), ("sample", sample)]
+        steps: list[tuple[str, Any]] = [("pose", pose), ("sample", sample)]
         steps.sort(key=lambda s: self._seq.get(s[0], 0))
         for kind, data in steps:
-            if kind == "pose" and isinstance(data, list) and len(data) == len(self._angles):
-                self._angles = [float(v) for v in data]
-            elif kind == "sample" and isinstance(data, dict):
-                for axis, name in from_sample:
-                    v = _num(data, name)
+            if kind == "pose" and isinstance(data, list | tuple):
+                if len(data) == len(self._angles):
+                    self._angles = [float(v) for v in data]
+            elif kind == "sample" and data is not None:
+                for axis, v in zip((ax.phi2, ax.phi3, ax.phi4, ax.phi5), data.phi_deg, strict=True):
                     if v is not None:
                         self._angles[axis] = v
+
+    def _sample_view(self) -> SampleView | None:
+        """The latest sample as drawn: as its sender made it, or made here once per sample."""
+        seq, s = self._seq.get("sample", 0), self._latest.get("sample")
+        if self._view[0] != seq:
+            view = s if isinstance(s, SampleView) or s is None else None
+            if view is None:
+                with contextlib.suppress(Exception):  # a malformed sample: nothing to draw
+                    view = sample_view(s, self.settings.hand)
+            self._view = (seq, view)
+        return self._view[1]
 
     def _set(self, node: Any, prop: str, value: Any) -> None:
         """Assign a scene property only if it differs from what was last sent."""
@@ -679,35 +670,28 @@ class Viewer:
         params = (self._latest.get("status") or {}).get("params") or {}
         return _num(params, "alpha_deg") or self.settings.rolling.alpha_deg
 
-    def _contact_sample(self) -> dict[str, Any]:
+    def _contact_sample(self) -> SampleView | None:
         """The latest sample, unless a newer status says no run is rolling: a finished run's
         contacts would otherwise linger through the release and the next grasp."""
         run = (self._latest.get("status") or {}).get("run") or {}
         newer = self._seq.get("status", 0) > self._seq.get("sample", 0)
         if newer and run.get("state") not in (None, "rolling"):
-            return {}
-        return self._latest.get("sample") or {}
+            return None
+        return self._sample_view()
 
     def _render_contacts(self) -> None:
         s = self._contact_sample()
         alpha = self._alpha_deg()
-        pts: dict[str, Point | None] = {}
-        for label, finger, pn, (py, pz), wn in (
-            ("A", Finger.ONE, ("phi2", "phi3"), ("Ay", "Az"), "omega_A"),
-            ("B", Finger.TWO, ("phi4", "phi5"), ("By", "Bz"), "omega_B"),
-        ):
-            y, z = _num(s, py), _num(s, pz)
-            p = Point(y, z) if y is not None and z is not None else None
-            pts[label] = p
+        contacts = {"A": s.A if s else None, "B": s.B if s else None}
+        for label, c in contacts.items():
             sphere, cone = self.nodes[f"/contacts/{label}"], self.nodes[f"/contacts/cone_{label}"]
-            self._set(sphere, "visible", p is not None)
-            prox, dist, w = _num(s, pn[0]), _num(s, pn[1]), _num(s, wn)
-            if p is None or prox is None or dist is None:
+            self._set(sphere, "visible", c is not None)
+            if c is None or c.normal is None:
                 self._set(cone, "visible", False)
                 continue
-            at = (0.0, p.y * MM, p.z * MM)
+            at = (0.0, c.at.y * MM, c.at.z * MM)
             self._set(sphere, "position", at)
-            n = contact_normal(finger, math.radians(prox), math.radians(dist), p, self.settings)
+            n, w = c.normal, c.omega_deg
             r = CONE_HEIGHT_MM * math.tan(math.radians(alpha)) * MM
             self._set(cone, "position", at)
             self._set(cone, "wxyz", _axis_to(np.array([0.0, n.y, n.z])))
@@ -715,21 +699,25 @@ class Viewer:
             color = cone_color(abs(w - 90.0), alpha) if w is not None else (150, 150, 150)
             self._set(cone, "color", color)
             self._set(cone, "visible", True)
-        A, B = pts["A"], pts["B"]
+        A, B = contacts["A"], contacts["B"]
         seg = self.nodes["/contacts/AB"]
         self._set(seg, "visible", A is not None and B is not None)
         if A is not None and B is not None:
-            self._set(seg, "points", np.array([[[0.0, A.y, A.z], [0.0, B.y, B.z]]]) * MM)
+            self._set(
+                seg, "points", np.array([[[0.0, A.at.y, A.at.z], [0.0, B.at.y, B.at.z]]]) * MM
+            )
 
     def _render_pads(self) -> None:
         mats = self._latest.get("tactile")
-        if not isinstance(mats, list):
+        if not isinstance(mats, list | tuple):
             return
         for name, index in self._pad_matrices().items():
-            if index >= len(mats) or self._pad_counts.get(name) == mats[index]:
-                continue  # absent, or the same counts as drawn (idle pads: most of them)
-            self._pad_counts[name] = mats[index]
-            counts = np.asarray(mats[index], dtype=float)
+            if index >= len(mats):
+                continue
+            counts, last = as_array(mats[index]), self._pad_counts.get(name)
+            if last is not None and np.array_equal(last, counts):
+                continue  # the same counts as drawn (idle pads: most of them)
+            self._pad_counts[name] = counts
             flat = self._tactile_idx[name]
             lay = self._layout(name)
             if counts.shape != (lay.rows, lay.cols):

@@ -17,9 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from sdh2svc.config import Settings
 from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, RunId, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
-from sdh2svc.service.hub import clean_json
 from sdh2svc.service.station import ServiceError, parse_object_request
 from sdh2svc.service.store import RunStore
+from sdh2svc.service.telemetry import clean_json
 
 router = APIRouter()
 

@@ -10,7 +10,8 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 
 from sdh2svc.service.api.deps import Svc
 from sdh2svc.service.api.errors import READ, responses
-from sdh2svc.service.hub import Client, encode
+from sdh2svc.service.hub import Client
+from sdh2svc.service.telemetry import Hello, encode
 
 router = APIRouter()
 
@@ -36,7 +37,7 @@ async def telemetry(
     await ws.accept()
     client = Client(max_queue=max_queue or svc.cfg.service.telemetry_queue,
                     decimate=decimate, tactile=bool(tactile))  # fmt: skip
-    client.put(encode({"type": "hello", "status": svc.station.status()}))
+    client.put(encode(Hello(svc.station.status())))
     sender = asyncio.create_task(svc.hub.serve(client, ws.send_text))
     receiver = asyncio.create_task(_drain(ws))
     try:
