@@ -627,8 +627,10 @@ class Viewer:
         """The latest sample as drawn: as its sender made it, or made here once per sample."""
         seq, s = self._seq.get("sample", 0), self._latest.get("sample")
         if self._view[0] != seq:
-            view = s if isinstance(s, SampleView) or s is None else None
-            if view is None:
+            view: SampleView | None = None
+            if isinstance(s, SampleView):
+                view = s
+            elif s is not None:
                 with contextlib.suppress(Exception):  # a malformed sample: nothing to draw
                     view = sample_view(s, self.settings.hand)
             self._view = (seq, view)

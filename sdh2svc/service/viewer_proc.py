@@ -360,9 +360,14 @@ async def _exited(proc: BaseProcess, timeout: float) -> bool:
     if proc.exitcode is not None:
         return True
     loop = asyncio.get_running_loop()
-    done = loop.create_future()
+    done: asyncio.Future[None] = loop.create_future()
     fd = proc.sentinel
-    loop.add_reader(fd, lambda: done.done() or done.set_result(None))
+
+    def exited() -> None:
+        if not done.done():
+            done.set_result(None)
+
+    loop.add_reader(fd, exited)
     try:
         async with asyncio.timeout(timeout):
             await done

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import pickle
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from sdh2svc.model.geometry import pad_point_from_L
 from sdh2svc.model.kinematics import Finger, pad_point
 from sdh2svc.service.hub import Client, TelemetryHub
 from sdh2svc.service.telemetry import (
+    AnyMessage,
     Dropped,
     Event,
     Hello,
@@ -42,7 +44,7 @@ def test_each_message_encodes_as_its_documented_dict() -> None:
     """What the dashboard reads: the same text the service sent when it published dicts."""
     s = a_sample(S1=math.nan)
     mats = tuple(np.arange(84, dtype=np.uint16).reshape(14, 6) + k for k in range(6))
-    pairs = [
+    pairs: list[tuple[AnyMessage, dict[str, Any]]] = [
         (Hello({"sim": True}), {"type": "hello", "status": {"sim": True}}),
         (Status({"run": None}), {"type": "status", "status": {"run": None}}),
         (SampleMsg(3, s), {"type": "sample", "run_id": 3,
@@ -67,7 +69,8 @@ def test_the_hub_takes_typed_messages_and_dicts_alike() -> None:
     hub.add_listener(seen.append)
     c = Client(max_queue=10, decimate=2, tactile=False)
     hub.clients.add(c)
-    msgs = [SampleMsg(1, a_sample()), {"type": "sample", "i": 1}, SampleMsg(1, a_sample())]
+    msgs: list[AnyMessage] = [SampleMsg(1, a_sample()), {"type": "sample", "i": 1},
+                              SampleMsg(1, a_sample())]  # fmt: skip
     for m in msgs:
         hub.publish(m)
     hub.publish(Tactile(1, 0.0, (np.zeros((2, 2)),)))
@@ -95,7 +98,7 @@ def test_the_views_sample_has_the_contacts_and_their_pad_normals(cfg: Settings) 
 
 @pytest.mark.parametrize("dtype", [np.uint16, np.float64])
 def test_a_frame_reaches_the_views_process_as_arrays(dtype: type) -> None:
-    mats = tuple(np.full((13, 6), 7, dtype=dtype) for _ in range(6))
+    mats = tuple(np.full((13, 6), 7, dtype=dtype) for _ in range(6))  # type: ignore[var-annotated]
     back = pickle.loads(pickle.dumps(Tactile(1, 0.5, mats), protocol=pickle.HIGHEST_PROTOCOL))
     assert all(isinstance(m, np.ndarray) and m.dtype == dtype for m in back.matrices)
     assert all(np.array_equal(a, b) for a, b in zip(back.matrices, mats, strict=True))

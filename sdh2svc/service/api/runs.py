@@ -48,7 +48,7 @@ _EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
 @router.post("/api/runs", status_code=201, dependencies=[Auth],
              responses=responses(*WRITE, 409, 422, 503))  # fmt: skip
 async def start_run(st: St, req: Annotated[RunRequest | None, Body()] = None) -> dict[str, Any]:
-    req = req or RunRequest()
+    req = req or RunRequest(params=None, object=None)
     obj = None
     if req.object is not None:
         if not st.sim:
