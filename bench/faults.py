@@ -61,7 +61,7 @@ async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
 
     tactile.add_frame_listener(watch)
     try:
-        result = await Runner(cfg, joints, tactile, on_event=on_event).run()
+        result = await Runner(cfg.control(), joints, tactile, on_event=on_event).run()
     finally:
         await tactile.close()
         await joints.close()

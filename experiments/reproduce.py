@@ -204,7 +204,7 @@ async def _grasp_truth(cfg: Settings) -> dict[str, float] | None:
                 got["L"] = (ctx.contact(frame.matrices[m1]).L_mm,
                             ctx.contact(frame.matrices[m2]).L_mm)  # fmt: skip
 
-        runner = Runner(cfg, joints, tactile, on_sample=on_sample, on_frame=on_frame)
+        runner = Runner(cfg.control(), joints, tactile, on_sample=on_sample, on_frame=on_frame)
         try:
             await runner.run()
         finally:

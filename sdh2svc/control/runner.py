@@ -22,7 +22,7 @@ from typing import Any
 
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
-from sdh2svc.config import Settings
+from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.params import RollingParams
@@ -95,7 +95,7 @@ class Runner:
 
     def __init__(
         self,
-        settings: Settings,
+        config: ControlConfig,
         joints: JointLink,
         tactile: TactileBus,
         *,
@@ -104,9 +104,9 @@ class Runner:
         on_event: Callable[[float, int | None, str, dict[str, Any]], None] | None = None,
         on_frame: Callable[[float, TactileFrame], None] | None = None,
     ) -> None:
-        self.settings, self.joints, self.tactile = settings, joints, tactile
-        self.ctx = settings.model_context()
-        self.params = params or settings.rolling
+        self.config, self.joints, self.tactile = config, joints, tactile
+        self.ctx = config.ctx
+        self.params = params or config.rolling
         self._pending: RollingParams | None = None
         self.phase = Phase.IDLE
         self.state = RollState()
@@ -115,7 +115,7 @@ class Runner:
         self._stop = asyncio.Event()
         self._t0 = 0.0
         self._task: asyncio.Task[RunResult] | None = None
-        a = settings.axes
+        a = config.axes
         self._axes = (a.phi2, a.phi3, a.phi4, a.phi5)
         self._m1, self._m2 = a.finger1_distal_matrix, a.finger2_distal_matrix
         self._last_seq: int | None = None
@@ -155,8 +155,8 @@ class Runner:
         self._task = asyncio.current_task()  # type: ignore[assignment]
         loop = asyncio.get_running_loop()
         self._t0 = loop.time()
-        sub = self.tactile.subscribe({self._m1, self._m2}, self.settings.run.tactile_rate_hz)
-        watch = self.tactile.subscribe(range(6), self.settings.run.watch_rate_hz)
+        sub = self.tactile.subscribe({self._m1, self._m2}, self.config.run.tactile_rate_hz)
+        watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
         try:
             self._set_phase(Phase.CONNECTING)
             self._event("start", {"params": self.params.model_dump()})
@@ -208,7 +208,7 @@ class Runner:
         return self.ctx.contact(m[self._m1]), self.ctx.contact(m[self._m2])
 
     def _ceiling_fault(self, F: float) -> RunFault | None:
-        s = self.settings.safety
+        s = self.config.safety
         if F > s.force_ceiling_factor * self.params.grasp_force:
             return RunFault(Fault.FORCE_CEILING, f"F = {F:.2f} above "
                             f"{s.force_ceiling_factor:g} × Fd")  # fmt: skip
@@ -219,7 +219,7 @@ class Runner:
 
         def check() -> None:
             frame = sub.latest
-            stale = self.settings.safety.stale_frame_ms / 1000
+            stale = self.config.safety.stale_frame_ms / 1000
             if frame is not None and frame.age() <= stale:
                 fault = self._ceiling_fault(grip_force(*self._contacts(frame)))
                 if fault is not None:
@@ -228,9 +228,9 @@ class Runner:
         return check
 
     async def _to_preshape(self, check: Callable[[], None] | None) -> None:
-        lim = self.settings.limits
-        await move_to_preshape(self.joints, self.settings.run, (lim.min_deg, lim.max_deg),
-                               self.settings.safety, check)  # fmt: skip
+        lim = self.config.limits
+        await move_to_preshape(self.joints, self.config.run, (lim.min_deg, lim.max_deg),
+                               self.config.safety, check)  # fmt: skip
 
     async def _preshape(self, sub: Subscription) -> None:
         self._set_phase(Phase.PRESHAPE)
@@ -245,8 +245,8 @@ class Runner:
         leaves the fingers at most one increment further.
         """
         self._set_phase(Phase.GRASPING)
-        run, fd, lim = self.settings.run, self.params.grasp_force, self.settings.limits
-        max_step = self.settings.safety.max_step_deg
+        run, fd, lim = self.config.run, self.params.grasp_force, self.config.limits
+        max_step = self.config.safety.max_step_deg
         period = 1.0 / run.tactile_rate_hz
         loop = asyncio.get_running_loop()
         deadline = loop.time() + run.grasp_timeout_s
@@ -289,7 +289,7 @@ class Runner:
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""
-        stale = self.settings.safety.stale_frame_ms / 1000
+        stale = self.config.safety.stale_frame_ms / 1000
         try:
             frame = await sub.next_frame(timeout=stale)
         except (FrameTimeout, TimeoutError):
@@ -306,7 +306,7 @@ class Runner:
         # One small move per frame, each replanning the last from its current velocity: with
         # the firmware's default 100 °/s² the fingers could not follow a step per frame period,
         # so use the axes' own acceleration limits.
-        await self.joints.set_velocities([self.settings.run.preshape_velocity_deg_s] * 7)
+        await self.joints.set_velocities([self.config.run.preshape_velocity_deg_s] * 7)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
         loop = asyncio.get_running_loop()
         t_start = loop.time()
@@ -317,7 +317,7 @@ class Runner:
 
     async def _roll_loop(self, sub: Subscription) -> None:
         loop = asyncio.get_running_loop()
-        safety, limits = self.settings.safety, self.settings.limits
+        safety, limits = self.config.safety, self.config.limits
         while not self._stop.is_set() and self.state.strokes < self.params.cycles:
             if self._pending is not None:
                 self.params, self._pending = self._pending, None
@@ -354,7 +354,7 @@ class Runner:
             self._record(r, pose, frame, age_ms, latency_ms)
 
     def _supervise(self, r: StepResult) -> RunFault | None:
-        s = self.settings.safety
+        s = self.config.safety
         c1, c2 = r.obs.contact1, r.obs.contact2
         if (fault := self._ceiling_fault(r.F)) is not None:
             return fault

@@ -76,7 +76,7 @@ class RecordedRun:
         self._truth: dict[str, Any] = {}
         self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
         self.runner = Runner(
-            cfg, joints, tactile, params=params,
+            cfg.control(), joints, tactile, params=params,
             on_sample=self._sample, on_event=self._event, on_frame=self._frame,
         )  # fmt: skip
         self.summary: dict[str, Any] | None = None

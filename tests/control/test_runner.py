@@ -36,7 +36,9 @@ async def rig(cfg: Settings, tmp: Path) -> AsyncIterator[tuple[SimulatedHand, Ru
     joints = await JointLink.open(hand.urls("sdh")[0])
     tactile = await TactileBus.open(hand.urls("dsa")[0])
     events: list[tuple[str, dict[str, Any]]] = []
-    runner = Runner(cfg, joints, tactile, on_event=lambda t, i, k, d: events.append((k, d)))
+    runner = Runner(
+        cfg.control(), joints, tactile, on_event=lambda t, i, k, d: events.append((k, d))
+    )
     runner.events = events  # type: ignore[attr-defined]
     try:
         yield hand, runner
