@@ -115,8 +115,7 @@ class Runner:
         self._stop = asyncio.Event()
         self._t0 = 0.0
         self._task: asyncio.Task[RunResult] | None = None
-        a = config.axes
-        self._axes = (a.phi2, a.phi3, a.phi4, a.phi5)
+        self._map = a = config.axes
         self._m1, self._m2 = a.finger1_distal_matrix, a.finger2_distal_matrix
         self._last_seq: int | None = None
         self._estopping = False
@@ -258,7 +257,7 @@ class Runner:
                        min_velocity_deg_s=run.grasp_min_velocity_deg_s,
                        align_gain=run.grasp_align_gain, period_s=period,
                        max_step_deg=max_step)  # fmt: skip
-        p2, p4 = self._axes[0], self._axes[2]
+        p2, p4 = self._map.phi2, self._map.phi4
         settle_until: float | None = None
         while not self._stop.is_set():
             frame = await self._fresh(sub)
@@ -267,7 +266,7 @@ class Runner:
             if (fault := self._ceiling_fault(F)) is not None:
                 raise fault
             actual = await self.joints.get_actual()
-            pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
+            pose = self._map.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
                 settle_until = settle_until or loop.time() + run.grasp_settle_s
@@ -280,9 +279,7 @@ class Runner:
                                f"within {run.grasp_timeout_s:g} s")  # fmt: skip
             if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
                 raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
-            want = list(actual)
-            for axis, inc in zip(self._axes, g.d_phi, strict=True):
-                want[axis] = actual[axis] + inc
+            want = self._map.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
                                                         max_step))  # fmt: skip
             await self.joints.move()
@@ -328,7 +325,7 @@ class Runner:
             self._last_seq = frame.seq
             actual = await self.joints.get_actual()
             age_ms = (loop.time() - frame.arrival) * 1000
-            pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
+            pose = self._map.pose(actual)
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
             fault = self._supervise(r)
@@ -336,10 +333,7 @@ class Runner:
                 self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
                 raise fault
             if r.targets is not None:
-                want = list(actual)
-                for axis, angle in zip(self._axes, (r.targets.phi2, r.targets.phi3, r.targets.phi4,
-                                                    r.targets.phi5), strict=True):  # fmt: skip
-                    want[axis] = math.degrees(angle)
+                want = self._map.wire_targets(r.targets, actual)
                 cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
                                     safety.max_step_deg)  # fmt: skip
                 await self.joints.set_targets(cmd)
