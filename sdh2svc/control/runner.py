@@ -22,6 +22,7 @@ from typing import Any
 
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
+from sdh2svc.control import safety
 from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
@@ -47,9 +48,16 @@ class Phase(StrEnum):
 
 
 class RunFault(Exception):
+    """The supervisor stopped the run (:mod:`sdh2svc.control.safety`)."""
+
     def __init__(self, fault: Fault, message: str) -> None:
         super().__init__(message)
         self.fault = fault
+
+
+def _raise(violation: safety.Violation | None) -> None:
+    if violation is not None:
+        raise RunFault(violation.fault, violation.message)
 
 
 @dataclass
@@ -206,23 +214,15 @@ class Runner:
         m = frame.matrices
         return self.ctx.contact(m[self._m1]), self.ctx.contact(m[self._m2])
 
-    def _ceiling_fault(self, F: float) -> RunFault | None:
-        s = self.config.safety
-        if F > s.force_ceiling_factor * self.params.grasp_force:
-            return RunFault(Fault.FORCE_CEILING, f"F = {F:.2f} above "
-                            f"{s.force_ceiling_factor:g} × Fd")  # fmt: skip
-        return None
-
     def _watch_ceiling(self, sub: Subscription) -> Callable[[], None]:
         """A move's check: the newest fresh frame's F must stay under the ceiling."""
 
         def check() -> None:
             frame = sub.latest
-            stale = self.config.safety.stale_frame_ms / 1000
-            if frame is not None and frame.age() <= stale:
-                fault = self._ceiling_fault(grip_force(*self._contacts(frame)))
-                if fault is not None:
-                    raise fault
+            s = self.config.safety
+            if frame is not None and safety.frame_age(frame.age(), s) is None:
+                F = grip_force(*self._contacts(frame))
+                _raise(safety.force_ceiling(F, self.params.grasp_force, s))
 
         return check
 
@@ -248,7 +248,7 @@ class Runner:
         max_step = self.config.safety.max_step_deg
         period = 1.0 / run.tactile_rate_hz
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + run.grasp_timeout_s
+        started = loop.time()
         await self.joints.set_controller(ControllerMode.POSE)
         await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * 7)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
@@ -257,14 +257,12 @@ class Runner:
                        min_velocity_deg_s=run.grasp_min_velocity_deg_s,
                        align_gain=run.grasp_align_gain, period_s=period,
                        max_step_deg=max_step)  # fmt: skip
-        p2, p4 = self._map.phi2, self._map.phi4
         settle_until: float | None = None
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
-            if (fault := self._ceiling_fault(F)) is not None:
-                raise fault
+            _raise(safety.force_ceiling(F, fd, self.config.safety))
             actual = await self.joints.get_actual()
             pose = self._map.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
@@ -274,11 +272,9 @@ class Runner:
                 if wedge_ok or law.align_gain == 0 or loop.time() >= settle_until:
                     self._event("grasped", {"F": F, "wedge_deg": g.wedge_deg})
                     return
-            elif loop.time() > deadline:
-                raise RunFault(Fault.NO_CONTACT, f"no grasp (F = {F:.2f} < Fd = {fd}) "
-                               f"within {run.grasp_timeout_s:g} s")  # fmt: skip
-            if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
-                raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
+            else:
+                _raise(safety.grasp_timeout(F, fd, loop.time(), started, run))
+            _raise(safety.closed_empty(actual, self._map, run))
             want = self._map.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
                                                         max_step))  # fmt: skip
@@ -286,15 +282,14 @@ class Runner:
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""
-        stale = self.config.safety.stale_frame_ms / 1000
+        s = self.config.safety
+        frame: TactileFrame | None
         try:
-            frame = await sub.next_frame(timeout=stale)
+            frame = await sub.next_frame(timeout=safety.stale_s(s))
         except (FrameTimeout, TimeoutError):
-            raise RunFault(
-                Fault.STALE_SENSOR, f"no tactile frame for {stale * 1000:.0f} ms"
-            ) from None
-        if frame.age() > stale:
-            raise RunFault(Fault.STALE_SENSOR, f"tactile frame {frame.age() * 1000:.0f} ms old")
+            frame = None
+        _raise(safety.frame_age(None if frame is None else frame.age(), s))
+        assert frame is not None  # no frame is always a violation
         return frame
 
     async def _roll(self, sub: Subscription) -> None:
@@ -314,7 +309,7 @@ class Runner:
 
     async def _roll_loop(self, sub: Subscription) -> None:
         loop = asyncio.get_running_loop()
-        safety, limits = self.config.safety, self.config.limits
+        sup, limits = self.config.safety, self.config.limits
         while not self._stop.is_set() and self.state.strokes < self.params.cycles:
             if self._pending is not None:
                 self.params, self._pending = self._pending, None
@@ -328,14 +323,14 @@ class Runner:
             pose = self._map.pose(actual)
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
-            fault = self._supervise(r)
-            if fault is not None:  # record what tripped it, command nothing
+            v = safety.rolling_step(r, self.params.grasp_force, sup)
+            if v is not None:  # record what tripped it, command nothing
                 self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
-                raise fault
+                _raise(v)
             if r.targets is not None:
                 want = self._map.wire_targets(r.targets, actual)
                 cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
-                                    safety.max_step_deg)  # fmt: skip
+                                    sup.max_step_deg)  # fmt: skip
                 await self.joints.set_targets(cmd)
                 latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
                 # Start the move and go on at once: the next iteration runs on the next fresh
@@ -346,18 +341,6 @@ class Runner:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state
             self._record(r, pose, frame, age_ms, latency_ms)
-
-    def _supervise(self, r: StepResult) -> RunFault | None:
-        s = self.config.safety
-        c1, c2 = r.obs.contact1, r.obs.contact2
-        if (fault := self._ceiling_fault(r.F)) is not None:
-            return fault
-        if not c1.present and not c2.present:
-            return RunFault(Fault.DROPPED, "both contacts lost: the object is no longer held")
-        if r.state.consecutive_reversals > s.max_consecutive_reversals:
-            return RunFault(Fault.STUCK, f"{r.state.consecutive_reversals} reversals in a row "
-                            f"(last: {r.reversal})")  # fmt: skip
-        return None
 
     def _record(
         self, r: StepResult, pose: HandPose, frame: TactileFrame, age_ms: float, latency_ms: float
