@@ -26,6 +26,7 @@ from sdh2svc.control import safety
 from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
+from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, StepResult, grip_force, step
 from sdh2svc.control.safety import Fault, clamp_targets
@@ -99,7 +100,7 @@ class RunResult:
 
 
 class Runner:
-    """One run on open links. ``on_sample``/``on_event`` receive everything worth recording."""
+    """One run on open links; its ``observer`` receives everything worth recording."""
 
     def __init__(
         self,
@@ -108,9 +109,7 @@ class Runner:
         tactile: TactileBus,
         *,
         params: RollingParams | None = None,
-        on_sample: Callable[[Sample], None] | None = None,
-        on_event: Callable[[float, int | None, str, dict[str, Any]], None] | None = None,
-        on_frame: Callable[[float, TactileFrame], None] | None = None,
+        observer: RunObserver | None = None,
     ) -> None:
         self.config, self.joints, self.tactile = config, joints, tactile
         self.ctx = config.ctx
@@ -119,7 +118,7 @@ class Runner:
         self.phase = Phase.IDLE
         self.state = RollState()
         self.result = RunResult(status="running")
-        self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
+        self.observer = observer
         self._stop = asyncio.Event()
         self._t0 = 0.0
         self._task: asyncio.Task[RunResult] | None = None
@@ -154,7 +153,7 @@ class Runner:
             await self.joints.emergency_stop()
         finally:
             self._set_phase(Phase.ESTOPPED)
-            self._event("estop", {})
+            self._event(EventKind.ESTOP, {})
 
     # --- the run ----------------------------------------------------------------------------
 
@@ -166,7 +165,7 @@ class Runner:
         watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
         try:
             self._set_phase(Phase.CONNECTING)
-            self._event("start", {"params": self.params.model_dump()})
+            self._event(EventKind.START, {"params": self.params.model_dump()})
             await self._preshape(sub)
             if not self._stop.is_set():
                 await self._grasp(sub)
@@ -181,12 +180,12 @@ class Runner:
             if e.fault is Fault.FORCE_CEILING:
                 with contextlib.suppress(Exception):
                     await self._release()
-            self._event("fault", {"fault": e.fault.value, "message": str(e)})
+            self._event(EventKind.FAULT, {"fault": e.fault.value, "message": str(e)})
             self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
         except (JointLinkError, TactileError) as e:
             await self._halt()
             fault = Fault.JOINT_ERROR if isinstance(e, JointLinkError) else Fault.SENSOR_ERROR
-            self._event("fault", {"fault": fault.value, "message": str(e)})
+            self._event(EventKind.FAULT, {"fault": fault.value, "message": str(e)})
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
         except asyncio.CancelledError:
             if not self._estopping:
@@ -202,7 +201,7 @@ class Runner:
         self.result.status, self.result.message = status, message
         self.result.strokes = self.state.strokes
         self._set_phase(phase)
-        self._event("end", {"status": status, "message": message})
+        self._event(EventKind.END, {"status": status, "message": message})
 
     async def _halt(self) -> None:
         """Hold where the hand is: stop every axis, targets = actual angles."""
@@ -270,7 +269,7 @@ class Runner:
                 settle_until = settle_until or loop.time() + run.grasp_settle_s
                 wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
                 if wedge_ok or law.align_gain == 0 or loop.time() >= settle_until:
-                    self._event("grasped", {"F": F, "wedge_deg": g.wedge_deg})
+                    self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
                     return
             else:
                 _raise(safety.grasp_timeout(F, fd, loop.time(), started, run))
@@ -313,7 +312,7 @@ class Runner:
         while not self._stop.is_set() and self.state.strokes < self.params.cycles:
             if self._pending is not None:
                 self.params, self._pending = self._pending, None
-                self._event("params", {"params": self.params.model_dump()})
+                self._event(EventKind.PARAMS, {"params": self.params.model_dump()})
             frame = await self._fresh(sub)
             if self._last_seq is not None:
                 self.result.frames_skipped += max(0, frame.seq - self._last_seq - 1)
@@ -356,14 +355,12 @@ class Runner:
         res.latencies_ms.append(latency_ms)
         if r.reversal is not None:
             res.reversals.append({"iteration": r.state.iteration, "reason": r.reversal.value})
-            self._event("reversal", {"reason": r.reversal.value, "stroke": r.state.strokes,
+            self._event(EventKind.REVERSAL, {"reason": r.reversal.value, "stroke": r.state.strokes,
                                      "half_strokes": r.state.half_strokes},
                         r.state.iteration)  # fmt: skip
-        sample = Sample.from_step(r, pose, t, age_ms, latency_ms)
-        if self._on_sample:
-            self._on_sample(sample)
-        if self._on_frame:
-            self._on_frame(t, frame)
+        if self.observer is not None:
+            self.observer.sample(Sample.from_step(r, pose, t, age_ms, latency_ms))
+            self.observer.frame(t, frame)
 
     async def _release(self) -> None:
         """Open to the pre-shape pose; no force check: opening is the remedy for a high F."""
@@ -373,10 +370,10 @@ class Runner:
     def _set_phase(self, phase: Phase) -> None:
         if phase is not self.phase:
             self.phase = phase
-            self._event("phase", {"phase": phase.value})
+            self._event(EventKind.PHASE, {"phase": phase.value})
 
-    def _event(self, kind: str, detail: dict[str, Any], iteration: int | None = None) -> None:
-        if self._on_event:
+    def _event(self, kind: EventKind, detail: dict[str, Any], iteration: int | None = None) -> None:
+        if self.observer is not None:
             t = asyncio.get_running_loop().time() - self._t0
-            self._on_event(t, iteration if iteration is not None else self.state.iteration, kind,
-                           detail)  # fmt: skip
+            i = iteration if iteration is not None else self.state.iteration
+            self.observer.event(Event(t, i, kind, detail))
