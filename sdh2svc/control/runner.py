@@ -158,7 +158,7 @@ class Runner:
     # --- the run ----------------------------------------------------------------------------
 
     async def run(self) -> RunResult:
-        self._task = asyncio.current_task()  # type: ignore[assignment]
+        self._task = asyncio.current_task()
         loop = asyncio.get_running_loop()
         self._t0 = loop.time()
         sub = self.tactile.subscribe({self._m1, self._m2}, self.config.run.tactile_rate_hz)

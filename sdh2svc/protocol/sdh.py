@@ -445,7 +445,7 @@ def _as_values(values: Values) -> tuple[float, ...] | None:
         return None
     if type(values) is tuple or type(values) is list:  # the usual case: no ABC check
         return tuple(map(float, values))
-    if isinstance(values, Real):
+    if isinstance(values, (float, Real)):
         return (float(values),)
     return tuple(float(v) for v in values)
 
@@ -521,8 +521,10 @@ def encode_reply(
             raw: Sequence[float] = ()
         elif type(values) is tuple or type(values) is list:  # the usual case: no ABC check
             raw = values
+        elif isinstance(values, (float, Real)):
+            raw = (values,)
         else:
-            raw = (values,) if isinstance(values, Real) else values
+            raw = values
         body = ",".join([_format_reply_value(v, fmt, integer) for v in raw])
     line = f"{head}={body}"
     if not (line.isascii() and line.isprintable()):
