@@ -136,7 +136,7 @@ class TruthProbe:
     def _psi(self) -> float:
         """ψ as the physics last stepped: reading it steps nothing (``world.object_pose``), so
         a campaign's runs stay bit for bit those of ``sdh2svc run --fast``."""
-        return self.hand.world.object_pose()[2]
+        return float(self.hand.world.object_pose()[2])
 
     def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
         if kind == "grasped" and self.hand is not None:

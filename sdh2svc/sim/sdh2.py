@@ -583,9 +583,9 @@ class Sdh2Emulator:
             if cmd.axis is None:
                 vec.write(cmd.values, _ALL)
             else:
-                values = list(vec.base())
-                values[cmd.axis] = cmd.values[0]
-                vec.write(tuple(values), (cmd.axis,))
+                row = list(vec.base())
+                row[cmd.axis] = cmd.values[0]
+                vec.write(tuple(row), (cmd.axis,))
         values = vec.read()
         if cmd.axis is None:
             return self._reply(cmd.keyword, values)
