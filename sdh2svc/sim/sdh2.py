@@ -509,11 +509,6 @@ class Sdh2Emulator:
         return tuple(self._ax.powered)
 
     @property
-    def axis_states(self) -> tuple[int, ...]:
-        """What ``state`` would report now (without advancing)."""
-        return tuple(self._state(i) for i in _ALL)
-
-    @property
     def moving(self) -> bool:
         """Whether the servo model needs ticks (a move runs or a velocity is non-zero)."""
         return self._active()
