@@ -33,6 +33,7 @@ from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.kinematics import HandPose
+from sdh2svc.protocol.sdh import NUM_AXES
 
 
 class Phase(StrEnum):
@@ -122,8 +123,8 @@ class Runner:
         self._stop = asyncio.Event()
         self._t0 = 0.0
         self._task: asyncio.Task[RunResult] | None = None
-        self._map = a = config.axes
-        self._m1, self._m2 = a.finger1_distal_matrix, a.finger2_distal_matrix
+        self._axes = config.axes  # wire ↔ model (AxisMap.pose, .wire_targets, .wire_steps)
+        self._m1, self._m2 = self._axes.finger1_distal_matrix, self._axes.finger2_distal_matrix
         self._last_seq: int | None = None
         self._estopping = False
 
@@ -249,7 +250,7 @@ class Runner:
         loop = asyncio.get_running_loop()
         started = loop.time()
         await self.joints.set_controller(ControllerMode.POSE)
-        await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * 7)
+        await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * NUM_AXES)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
         law = GraspLaw(grasp_force=fd, gain_deg_s=run.grasp_gain_deg_s,
                        max_velocity_deg_s=run.grasp_max_velocity_deg_s,
@@ -263,7 +264,7 @@ class Runner:
             F = grip_force(c1, c2)
             _raise(safety.force_ceiling(F, fd, self.config.safety))
             actual = await self.joints.get_actual()
-            pose = self._map.pose(actual)
+            pose = self._axes.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
                 settle_until = settle_until or loop.time() + run.grasp_settle_s
@@ -273,8 +274,8 @@ class Runner:
                     return
             else:
                 _raise(safety.grasp_timeout(F, fd, loop.time(), started, run))
-            _raise(safety.closed_empty(actual, self._map, run))
-            want = self._map.wire_steps(g.d_phi, actual)
+            _raise(safety.closed_empty(actual, self._axes, run))
+            want = self._axes.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
                                                         max_step))  # fmt: skip
             await self.joints.move()
@@ -297,7 +298,7 @@ class Runner:
         # One small move per frame, each replanning the last from its current velocity: with
         # the firmware's default 100 °/s² the fingers could not follow a step per frame period,
         # so use the axes' own acceleration limits.
-        await self.joints.set_velocities([self.config.run.preshape_velocity_deg_s] * 7)
+        await self.joints.set_velocities([self.config.run.preshape_velocity_deg_s] * NUM_AXES)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
         loop = asyncio.get_running_loop()
         t_start = loop.time()
@@ -319,7 +320,7 @@ class Runner:
             self._last_seq = frame.seq
             actual = await self.joints.get_actual()
             age_ms = (loop.time() - frame.arrival) * 1000
-            pose = self._map.pose(actual)
+            pose = self._axes.pose(actual)
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
             v = safety.rolling_step(r, self.params.grasp_force, sup)
@@ -327,7 +328,7 @@ class Runner:
                 self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
                 _raise(v)
             if r.targets is not None:
-                want = self._map.wire_targets(r.targets, actual)
+                want = self._axes.wire_targets(r.targets, actual)
                 cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
                                     sup.max_step_deg)  # fmt: skip
                 await self.joints.set_targets(cmd)
