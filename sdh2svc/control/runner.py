@@ -15,7 +15,7 @@ import asyncio
 import contextlib
 import math
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -228,8 +228,13 @@ class Runner:
 
     async def _to_preshape(self, check: Callable[[], None] | None) -> None:
         lim = self.config.limits
-        await move_to_preshape(self.joints, self.config.run, (lim.min_deg, lim.max_deg),
-                               self.config.safety, check)  # fmt: skip
+        limits = (lim.min_deg, lim.max_deg)
+        await move_to_preshape(self.joints, self.config.run, limits, self.config.safety, check)
+
+    def _clamp(self, want: Sequence[float], actual: Sequence[float]) -> tuple[float, ...]:
+        """The supervisor's bound on a command: within the joint limits, ≤ max_step_deg away."""
+        lim, max_step = self.config.limits, self.config.safety.max_step_deg
+        return clamp_targets(want, actual, lim.min_deg, lim.max_deg, max_step)
 
     async def _preshape(self, sub: Subscription) -> None:
         self._set_phase(Phase.PRESHAPE)
@@ -244,19 +249,22 @@ class Runner:
         leaves the fingers at most one increment further.
         """
         self._set_phase(Phase.GRASPING)
-        run, fd, lim = self.config.run, self.params.grasp_force, self.config.limits
-        max_step = self.config.safety.max_step_deg
+        run, fd = self.config.run, self.params.grasp_force
         period = 1.0 / run.tactile_rate_hz
         loop = asyncio.get_running_loop()
         started = loop.time()
         await self.joints.set_controller(ControllerMode.POSE)
         await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * NUM_AXES)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
-        law = GraspLaw(grasp_force=fd, gain_deg_s=run.grasp_gain_deg_s,
-                       max_velocity_deg_s=run.grasp_max_velocity_deg_s,
-                       min_velocity_deg_s=run.grasp_min_velocity_deg_s,
-                       align_gain=run.grasp_align_gain, period_s=period,
-                       max_step_deg=max_step)  # fmt: skip
+        law = GraspLaw(
+            grasp_force=fd,
+            gain_deg_s=run.grasp_gain_deg_s,
+            max_velocity_deg_s=run.grasp_max_velocity_deg_s,
+            min_velocity_deg_s=run.grasp_min_velocity_deg_s,
+            align_gain=run.grasp_align_gain,
+            period_s=period,
+            max_step_deg=self.config.safety.max_step_deg,
+        )
         settle_until: float | None = None
         while not self._stop.is_set():
             frame = await self._fresh(sub)
@@ -276,8 +284,7 @@ class Runner:
                 _raise(safety.grasp_timeout(F, fd, loop.time(), started, run))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)
-            await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
-                                                        max_step))  # fmt: skip
+            await self.joints.set_targets(self._clamp(want, actual))
             await self.joints.move()
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
@@ -309,7 +316,6 @@ class Runner:
 
     async def _roll_loop(self, sub: Subscription) -> None:
         loop = asyncio.get_running_loop()
-        sup, limits = self.config.safety, self.config.limits
         while not self._stop.is_set() and self.state.strokes < self.params.cycles:
             if self._pending is not None:
                 self.params, self._pending = self._pending, None
@@ -323,15 +329,13 @@ class Runner:
             pose = self._axes.pose(actual)
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
-            v = safety.rolling_step(r, self.params.grasp_force, sup)
+            v = safety.rolling_step(r, self.params.grasp_force, self.config.safety)
             if v is not None:  # record what tripped it, command nothing
                 self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
                 _raise(v)
             if r.targets is not None:
                 want = self._axes.wire_targets(r.targets, actual)
-                cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
-                                    sup.max_step_deg)  # fmt: skip
-                await self.joints.set_targets(cmd)
+                await self.joints.set_targets(self._clamp(want, actual))
                 latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
                 # Start the move and go on at once: the next iteration runs on the next fresh
                 # frame with the angles the fingers have then. A move still running is replanned
@@ -356,9 +360,9 @@ class Runner:
         res.latencies_ms.append(latency_ms)
         if r.reversal is not None:
             res.reversals.append({"iteration": r.state.iteration, "reason": r.reversal.value})
-            self._event(EventKind.REVERSAL, {"reason": r.reversal.value, "stroke": r.state.strokes,
-                                     "half_strokes": r.state.half_strokes},
-                        r.state.iteration)  # fmt: skip
+            st, why = r.state, r.reversal.value
+            detail = {"reason": why, "stroke": st.strokes, "half_strokes": st.half_strokes}
+            self._event(EventKind.REVERSAL, detail, st.iteration)
         if self.observer is not None:
             self.observer.sample(Sample.from_step(r, pose, t, age_ms, latency_ms))
             self.observer.frame(t, frame)
