@@ -27,6 +27,7 @@ import httpx
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import load_config
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Runner
 from sdh2svc.service.launch import LiveService, start_service
 from sdh2svc.sim.cable import Cable
@@ -55,13 +56,14 @@ async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
         c2 = ctx.contact(frame.matrices[axes.finger2_distal_matrix])
         peak = max(peak, (c1.force + c2.force) / 2)  # the controller's F
 
-    def on_event(t: float, i: int | None, kind: str, detail: dict[str, Any]) -> None:
-        if kind == "phase" and detail["phase"] == "grasping":
-            hand.endpoints["sdh"][0].set_faults(FaultConfig(bit_error_rate=ber, seed=seed))
+    class OnGrasping(BaseObserver):
+        def event(self, e: Event) -> None:
+            if e.kind is EventKind.PHASE and e.detail["phase"] == "grasping":
+                hand.endpoints["sdh"][0].set_faults(FaultConfig(bit_error_rate=ber, seed=seed))
 
     tactile.add_frame_listener(watch)
     try:
-        result = await Runner(cfg, joints, tactile, on_event=on_event).run()
+        result = await Runner(cfg.control(), joints, tactile, observer=OnGrasping()).run()
     finally:
         await tactile.close()
         await joints.close()

@@ -32,6 +32,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from sdh2svc.config import Settings, load_config
+from sdh2svc.control.observer import BaseObserver
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.headless import run_once
@@ -194,17 +195,18 @@ async def _grasp_truth(cfg: Settings) -> dict[str, float] | None:
         ctx = cfg.model_context()
         m1, m2 = cfg.axes.finger1_distal_matrix, cfg.axes.finger2_distal_matrix
 
-        def on_sample(x: Sample) -> None:
-            if "sample" not in got:
-                got["sample"], got["truth"] = x, hand.world.truth()
-                runner.request_stop()
+        class FirstIteration(BaseObserver):
+            def sample(self, x: Sample) -> None:
+                if "sample" not in got:
+                    got["sample"], got["truth"] = x, hand.world.truth()
+                    runner.request_stop()
 
-        def on_frame(t: float, frame: Any) -> None:
-            if "L" not in got:
-                got["L"] = (ctx.contact(frame.matrices[m1]).L_mm,
-                            ctx.contact(frame.matrices[m2]).L_mm)  # fmt: skip
+            def frame(self, t: float, frame: Any) -> None:
+                if "L" not in got:
+                    got["L"] = (ctx.contact(frame.matrices[m1]).L_mm,
+                                ctx.contact(frame.matrices[m2]).L_mm)  # fmt: skip
 
-        runner = Runner(cfg, joints, tactile, on_sample=on_sample, on_frame=on_frame)
+        runner = Runner(cfg.control(), joints, tactile, observer=FirstIteration())
         try:
             await runner.run()
         finally:

@@ -27,7 +27,7 @@ import tempfile
 import time
 import traceback
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -136,7 +136,7 @@ class TruthProbe:
     def _psi(self) -> float:
         """ψ as the physics last stepped: reading it steps nothing (``world.object_pose``), so
         a campaign's runs stay bit for bit those of ``sdh2svc run --fast``."""
-        return self.hand.world.object_pose()[2]
+        return float(self.hand.world.object_pose()[2])
 
     def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
         if kind == "grasped" and self.hand is not None:
@@ -675,10 +675,3 @@ def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | 
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
         raise
-
-
-def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
-    rows = list(rows)
-    n = len(rows)
-    ok = sum(1 for r in rows if r.get("success"))
-    return {"cases": n, "succeeded": ok, "success_rate": ok / n if n else None}

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus, TactileFrame
 from sdh2svc.config import Settings
+from sdh2svc.control.observer import Event
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
@@ -76,17 +77,20 @@ class RecordedRun:
         self._truth: dict[str, Any] = {}
         self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
         self.runner = Runner(
-            cfg, joints, tactile, params=params,
-            on_sample=self._sample, on_event=self._event, on_frame=self._frame,
+            cfg.control(), joints, tactile, params=params,
+            observer=self,
         )  # fmt: skip
         self.summary: dict[str, Any] | None = None
 
-    def _sample(self, s: Sample) -> None:
+    # --- control.observer.RunObserver: the runner reports here ---
+
+    def sample(self, s: Sample) -> None:
         self._rec.sample(s)
         if self._on_sample:
             self._on_sample(s)
 
-    def _event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
+    def event(self, e: Event) -> None:
+        t, iteration, kind, detail = e.t, e.iteration, e.kind, e.detail
         self._rec.event(t, iteration, kind, detail)
         # the simulation's truth as the run ends, before the fingers let go
         if self.hand is not None and kind == "phase" and detail["phase"] == "releasing":
@@ -94,7 +98,7 @@ class RecordedRun:
         if self._on_event:
             self._on_event(t, iteration, kind, detail)
 
-    def _frame(self, t: float, frame: TactileFrame) -> None:
+    def frame(self, t: float, frame: TactileFrame) -> None:
         self._rec.frame(t, None, frame.timestamp_ms, frame.texels)
         if self._on_frame:
             self._on_frame(t, frame)

@@ -17,6 +17,7 @@ import pytest
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import Settings, load_config
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.protocol.sdh import AxisState
 from sdh2svc.sim.clock import run_fast
@@ -35,15 +36,31 @@ async def rig(cfg: Settings, tmp: Path) -> AsyncIterator[tuple[SimulatedHand, Ru
     hand = await start_simulated_hand(cfg, unix_dir=tmp)
     joints = await JointLink.open(hand.urls("sdh")[0])
     tactile = await TactileBus.open(hand.urls("dsa")[0])
-    events: list[tuple[str, dict[str, Any]]] = []
-    runner = Runner(cfg, joints, tactile, on_event=lambda t, i, k, d: events.append((k, d)))
-    runner.events = events  # type: ignore[attr-defined]
+    runner = Runner(cfg.control(), joints, tactile, observer=Seen())
     try:
         yield hand, runner
     finally:
         await tactile.close()
         await joints.close()
         await hand.stop()
+
+
+class Seen(BaseObserver):
+    """A test's observer: every event as (kind, detail), and hooks called on each."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, dict[str, Any]]] = []
+        self.hooks: list[Callable[[Event], None]] = []
+
+    def event(self, event: Event) -> None:
+        self.events.append((event.kind, event.detail))
+        for hook in self.hooks:
+            hook(event)
+
+
+def seen(runner: Runner) -> Seen:
+    assert isinstance(runner.observer, Seen)
+    return runner.observer
 
 
 def fast(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
@@ -63,14 +80,13 @@ def test_full_run_completes_its_strokes_without_a_drop(
         async with rig(cfg, tmp_path) as (hand, runner):
             truth: list[Any] = []
 
-            def snapshot(t: float, i: int | None, kind: str, d: dict[str, Any]) -> None:
-                runner.events.append((kind, d))  # type: ignore[attr-defined]
-                if kind == "phase" and d["phase"] == "releasing":
+            def snapshot(e: Event) -> None:
+                if e.kind is EventKind.PHASE and e.detail["phase"] == "releasing":
                     truth.append(hand.world.truth())
 
-            runner._on_event = snapshot
+            seen(runner).hooks.append(snapshot)
             result = await runner.run()
-            return result, runner.events, truth[0]  # type: ignore[attr-defined]
+            return result, seen(runner).events, truth[0]
 
     result, events, truth = fast(main)
     phases = [d["phase"] for k, d in events if k == "phase"]
@@ -93,7 +109,7 @@ def test_force_ceiling_stops_and_opens_the_hand(tmp_path: Path) -> None:
     async def main() -> tuple[Any, list, bool]:
         async with rig(cfg, tmp_path) as (hand, runner):
             result = await runner.run()
-            return result, runner.events, hand.world.truth().held  # type: ignore[attr-defined]
+            return result, seen(runner).events, hand.world.truth().held
 
     result, events, held_after = fast(main)
     phases = [d["phase"] for k, d in events if k == "phase"]

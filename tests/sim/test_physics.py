@@ -556,18 +556,6 @@ def test_samples_inside_match_the_outline_sdf_with_depths_along_the_pad_normal(n
         assert np.allclose(phys.outline.sdf(exit_), 0.0, atol=1e-9)
 
 
-def test_ellipse_overlap_matches_the_outline_sdf() -> None:
-    from sdh2svc.sim.physics import rot
-
-    phys = PhysicsWorld(quiet(), quiet().sim, get_object("egg")).physics
-    rng = np.random.default_rng(5)
-    pts = rng.normal(size=(500, 2)) * 25 + [33.0, 125.0]
-    for psi in (-0.7, 0.0, 0.3):
-        c, R = np.array([33.5, 124.0]), rot(psi)
-        assert np.allclose(phys._ellipse_sdf(pts, c, R), phys.outline.sdf((pts - c) @ R),
-                           atol=1e-9)  # fmt: skip
-
-
 def test_sensor_settings_match_the_emulator_seam_definition() -> None:
     from sdh2svc.sim.world import apply_sensor_settings
 
