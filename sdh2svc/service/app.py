@@ -2,7 +2,7 @@
 
 Reads of the run database happen on worker threads with their own connection, so a large export
 never takes time from the control loop; everything that touches the hand goes through the
-:class:`~sdh2svc.service.station.Station` on the event loop. Before any route, the
+:class:`~sdh2svc.service.hand_service.HandService` on the event loop. Before any route, the
 :class:`~sdh2svc.service.guard.Guard` decides which requests get in at all (Host, Origin, content
 type, body size); the token is checked per route (``Auth``), and not for the e-stop.
 """
@@ -32,10 +32,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sdh2svc import __version__
 from sdh2svc.config import Settings, clip, error_key, error_message
+from sdh2svc.connect import Where
 from sdh2svc.control.params import RollingParams
 from sdh2svc.service.guard import Guard
+from sdh2svc.service.hand_service import HandService, ServiceError, parse_object_request
 from sdh2svc.service.hub import Client, TelemetryHub, clean_json, encode
-from sdh2svc.service.station import ServiceError, Station, parse_object_request
 from sdh2svc.service.store import RunStore
 
 log = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ class Services:
 
     cfg: Settings
     hub: TelemetryHub
-    station: Station
+    station: HandService
     viewer: Any = None  # a Viewer or ViewerProcess (sdh2svc.service.viewer*), when on
 
     @property
@@ -127,18 +128,10 @@ def _error(status: int, message: str, details: list[str] | None = None) -> JSONR
     return JSONResponse(body, status_code=status)
 
 
-async def open_services(
-    cfg: Settings,
-    *,
-    sim: bool,
-    dsa_url: str | None = None,
-    sdh_url: str | None = None,
-    obj: Any = None,
-    viewer: bool | None = None,
-) -> Services:
-    """Open the hand (both links, or the embedded simulated hand) and the 3-D view."""
+async def open_services(cfg: Settings, where: Where, *, viewer: bool | None = None) -> Services:
+    """Open the hand (real, or simulated in this process) and the 3-D view."""
     hub = TelemetryHub(send_timeout_s=cfg.service.send_timeout_s)
-    station = Station(cfg, hub, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
+    station = HandService(cfg, hub, where)
     services = Services(cfg, hub, station)
     try:
         await station.start()
@@ -192,7 +185,7 @@ def viewer_host(cfg: Settings) -> str:
     return cfg.service.host if cfg.service.token else "127.0.0.1"
 
 
-async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> Any:
+async def _start_viewer(cfg: Settings, station: HandService, hub: TelemetryHub) -> Any:
     """The 3-D view, in a process of its own unless ``service.viewer_process`` is off.
 
     The view cannot authenticate a browser. Without a token it is a control panel for whoever
@@ -255,7 +248,7 @@ def _services(request: Request) -> Services:
     return request.app.state.services  # type: ignore[no-any-return]
 
 
-def _station(request: Request) -> Station:
+def _station(request: Request) -> HandService:
     return _services(request).station
 
 
@@ -269,7 +262,7 @@ def _authorised(request: Request) -> None:
                            "Bearer <token>' (the service's SDH2SVC_SERVICE__TOKEN)")  # fmt: skip
 
 
-St = Annotated[Station, Depends(_station)]
+St = Annotated[HandService, Depends(_station)]
 Auth = Depends(_authorised)
 RunId = Annotated[int, PathParam(ge=1, le=SQL_INT_MAX, description="a run's id (GET /api/runs)")]
 
@@ -304,7 +297,7 @@ def _install_routes(app: FastAPI, cfg: Settings) -> None:
         req = req or RunRequest()
         obj = None
         if req.object is not None:
-            if not st.sim:
+            if st.bench is None:
                 raise ServiceError(422, "an object can only be chosen in simulation")
             name, spec = (req.object, None) if isinstance(req.object, str) else (None, req.object)
             obj = parse_object_request(name, spec)
