@@ -18,6 +18,7 @@ import tempfile
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
@@ -114,11 +115,17 @@ class Hand:
     dsa_url: str
     sdh_url: str
     bench: Bench | None
+    fast: bool = False  # simulated on the virtual clock
 
     @property
     def real(self) -> bool:
         """A real hand (whose e-stop latch on disk applies), not a simulated one."""
         return self.bench is None
+
+    def describe(self) -> dict[str, Any]:
+        """The hand as a run's record names it."""
+        return {"sim": not self.real, "fast": self.fast, "dsa_url": self.dsa_url,
+                "sdh_url": self.sdh_url}  # fmt: skip
 
 
 @contextlib.asynccontextmanager
@@ -158,6 +165,7 @@ async def connect_hand(cfg: Settings, where: Where) -> AsyncIterator[Hand]:
     (the links, then the simulated hand)."""
     async with contextlib.AsyncExitStack() as stack:
         bench: Bench | None = None
+        fast = isinstance(where, Simulated) and where.fast
         if isinstance(where, Simulated):
             bench = await stack.enter_async_context(simulated_hand(cfg, where))
             dsa_url, sdh_url = bench.sim.urls("dsa")[0], bench.sim.urls("sdh")[0]
@@ -166,7 +174,7 @@ async def connect_hand(cfg: Settings, where: Where) -> AsyncIterator[Hand]:
         joints, tactile = await open_links(cfg, dsa_url, sdh_url)
         stack.push_async_callback(_close_quietly, joints)
         stack.push_async_callback(_close_quietly, tactile)
-        yield Hand(joints, tactile, dsa_url, sdh_url, bench)
+        yield Hand(joints, tactile, dsa_url, sdh_url, bench, fast)
 
 
 async def _close_quietly(link: JointLink | TactileBus) -> None:

@@ -178,8 +178,8 @@ class HandService:
         run_params = validate_params(self.params, params) if params else self.params
         if self.bench is not None:  # as in a lab: the object is put back in the fixture first
             self.set_object(obj or self.bench.obj)
-        meta = {"sim": self.bench is not None, "fast": False, "dsa_url": self.dsa_url,
-                "sdh_url": self.sdh_url, "service": True}  # fmt: skip
+        assert self._hand is not None  # open: _links() says so
+        meta = {**self._hand.describe(), "service": True}
         self._run_params = run_params
         self.run = RecordedRun(
             self.cfg, joints, tactile, store, params=run_params, meta=meta, bench=self.bench,

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from sdh2svc.config import Settings
-from sdh2svc.connect import Bench, Simulated, Where, connect_hand
+from sdh2svc.connect import Bench, Where, connect_hand
 from sdh2svc.control.runner import Runner
 from sdh2svc.service.recording import RecordedRun, RunObserver
 from sdh2svc.service.store import EstopLatched, RunStore
@@ -36,9 +36,7 @@ async def run_once(
             # the latch belongs to the real hand, not a simulated one; checked before it moves
             if hand.real and (latch := store.estop_latch()) is not None:
                 raise EstopLatched(latch)
-            fast = isinstance(where, Simulated) and where.fast
-            meta = {"sim": not hand.real, "fast": fast, "dsa_url": hand.dsa_url,
-                    "sdh_url": hand.sdh_url}  # fmt: skip
+            meta = hand.describe()
             obs = observer(hand.bench) if observer else None
             run = RecordedRun(cfg, hand.joints, hand.tactile, store, meta=meta, bench=hand.bench,
                               on_event=obs.event if obs else None,
