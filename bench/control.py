@@ -17,6 +17,7 @@ import numpy as np
 
 from bench.common import percentile, summary_us, time_calls
 from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Simulated
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.model.kinematics import HandPose
 from sdh2svc.service.headless import run_once
@@ -47,7 +48,7 @@ def run() -> dict[str, float]:
         db = f"storage.db_path='{Path(tmp) / 'bench.sqlite'}'"
         rt = load_config(overrides=[db, "rolling.cycles=1", "sim.object='egg'"], use_env=False)
         t0 = time.perf_counter()
-        s = asyncio.run(run_once(rt, sim=True))
+        s = asyncio.run(run_once(rt, Simulated()))
         wall = time.perf_counter() - t0
         lat = s["latency_ms"]
         its, skipped = s["iterations"], s["frames_skipped"]
@@ -87,7 +88,7 @@ def _fast_run(cfg: Settings) -> tuple[dict[str, Any], float, float, float]:
     async def main() -> tuple[dict[str, Any], float]:
         loop = asyncio.get_running_loop()
         t0 = loop.time()
-        summary = await run_once(cfg, sim=True, fast=True)
+        summary = await run_once(cfg, Simulated(fast=True))
         return summary, loop.time() - t0
 
     c0, t0 = time.process_time(), time.perf_counter()

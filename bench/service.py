@@ -37,7 +37,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
 from bench.common import percentile
-from sdh2svc.service.launch import LiveService, start_service
+from tests.live_service import LiveService, start_service
 
 CLIENTS = 20
 PAIRS = 3

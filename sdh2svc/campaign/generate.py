@@ -77,6 +77,7 @@ from sdh2svc.sim.objects import (
     Material,
     Outline,
     Polygon,
+    Shape,
     Stick,
 )
 from sdh2svc.sim.physics import (
@@ -92,7 +93,6 @@ from sdh2svc.sim.physics import (
 
 __all__ = ["GENERATED", "SUITE_SEEDS", "build_suite", "generate_cases", "load_suite"]
 
-ObjectT = Stick | Box | Ellipse | Circle | Polygon
 GENERATED: tuple[str, ...] = tuple(f for f in FAMILIES if f != "thesis")
 
 # ranges (see the module docstring)
@@ -172,7 +172,7 @@ def _surface_points(
     return pts
 
 
-def check_placement(obj: ObjectT, height_mm: float, angle_deg: float) -> str | None:
+def check_placement(obj: Shape, height_mm: float, angle_deg: float) -> str | None:
     """Why the object cannot be grasped at this placement (None: it can); see the module
     docstring."""
     s, surfaces, _ = _hand()
@@ -257,7 +257,7 @@ def _r(x: float) -> float:
     return round(float(x), DECIMALS)
 
 
-def _true_width(obj: ObjectT, angle_deg: float) -> float:
+def _true_width(obj: Shape, angle_deg: float) -> float:
     """:func:`contact_width_mm` to a nanometre: the suite's text then never depends on the last
     bit of the platform's sine and cosine."""
     return round(contact_width_mm(obj, angle_deg), WIDTH_DECIMALS)
@@ -348,7 +348,7 @@ def _wrap_deg(a: float) -> float:
 
 def _shape(family: str, width: float, angle_u: float, depth: float, material: Material,
            rng: np.random.Generator, name: str, sides: int = 3, regular: bool = False,
-           ) -> tuple[ObjectT, float] | None:  # fmt: skip
+           ) -> tuple[Shape, float] | None:  # fmt: skip
     """One object of the family, scaled so that its contact width at its angle is ``width``,
     and its angle; None if this draw gives no valid object."""
     span = ANGLE_DEG[family]

@@ -111,11 +111,11 @@ def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
 
 
 class TruthProbe:
-    """Watches a run beside it (:class:`~sdh2svc.service.runs.RunObserver`): the simulated
+    """Watches a run beside it (:class:`~sdh2svc.service.recording.RunObserver`): the simulated
     object's true angle ψ at the grasp and at every iteration, and where the half strokes end."""
 
     def __init__(self) -> None:
-        self.hand: Any = None
+        self.bench: Any = None  # the simulated hand's bench (sdh2svc.connect.Bench)
         self.psi_grasp: float | None = None
         self.psi: list[tuple[int, float]] = []  # (iteration, ψ rad) of every rolling iteration
         # the iterations that reversed, and whether each ended a half stroke (the runner's count
@@ -129,17 +129,17 @@ class TruthProbe:
         self.fault: str = ""
         self.end_t: float | None = None
 
-    def __call__(self, hand: Any) -> TruthProbe:
-        self.hand = hand
+    def __call__(self, bench: Any) -> TruthProbe:
+        self.bench = bench
         return self
 
     def _psi(self) -> float:
-        """ψ as the physics last stepped: reading it steps nothing (``world.object_pose``), so
+        """ψ as the physics last stepped: reading it steps nothing (``bench.object_pose``), so
         a campaign's runs stay bit for bit those of ``sdh2svc run --fast``."""
-        return float(self.hand.world.object_pose()[2])
+        return float(self.bench.object_pose()[2])
 
     def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        if kind == "grasped" and self.hand is not None:
+        if kind == "grasped" and self.bench is not None:
             self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
         elif kind == "reversal":
             n = int(detail.get("half_strokes", self._half_strokes))
@@ -151,10 +151,10 @@ class TruthProbe:
             self.end_t = t
 
     def sample(self, sample: Any) -> None:
-        if self.hand is not None:
+        if self.bench is not None:
             self.psi.append((sample.iteration, self._psi()))
             if self.contact_width_mm is None:
-                self.contact_width_mm = _contact_width(self.hand.world.contacts_now())
+                self.contact_width_mm = _contact_width(self.bench.contacts_now())
 
     def half_strokes_deg(self) -> list[float]:
         """How far the object truly turned in every half stroke (degrees): the largest
@@ -210,6 +210,7 @@ def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | N
     """Run one case and return its judged row; never raises for the case's own failure: an
     exception becomes a row with status ``crashed`` and its traceback. The run database goes
     to a per-process directory under ``workdir`` (else a temporary one) and is deleted after."""
+    from sdh2svc.connect import Simulated
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
 
@@ -223,8 +224,8 @@ def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | N
         try:
             cfg = case_settings(case, overrides, config_path, db)
             probe = TruthProbe()
-            summary = run_fast(run_once(cfg, sim=True, obj=case.object, fast=True,
-                                        observer=probe))  # fmt: skip
+            where = Simulated(obj=case.object, fast=True)
+            summary = run_fast(run_once(cfg, where, observer=probe))
             row.update(measure(summary, probe, cfg, case))
         except Exception:
             row.update(status="crashed", traceback=traceback.format_exc())

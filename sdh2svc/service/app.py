@@ -1,9 +1,10 @@
 """The service's app: opens the services and assembles the API's rooms (docs/api.md is the
 contract; the routers are in :mod:`sdh2svc.service.api`).
 
-Everything that touches the hand goes through the :class:`~sdh2svc.service.station.Station` on
-the event loop. Before any route, the :class:`~sdh2svc.service.guard.Guard` decides which
-requests get in at all (Host, Origin, content type, body size); the token is checked per route
+Everything that touches the hand goes through the
+:class:`~sdh2svc.service.hand_service.HandService` on the event loop. Before any route, the
+:class:`~sdh2svc.service.guard.Guard` decides which requests get in at all (Host, Origin, content
+type, body size); the token is checked per route
 (``Auth``), and not for the e-stop.
 """
 
@@ -19,13 +20,14 @@ from fastapi import FastAPI
 
 from sdh2svc import __version__
 from sdh2svc.config import Settings
+from sdh2svc.connect import Where
 from sdh2svc.service.api import dashboard, estop, hand, params, runs, sim, telemetry
 from sdh2svc.service.api.dashboard import docs_assets_dir, web_dir
 from sdh2svc.service.api.deps import Services
 from sdh2svc.service.api.errors import install_errors
 from sdh2svc.service.guard import Guard
+from sdh2svc.service.hand_service import HandService
 from sdh2svc.service.hub import TelemetryHub
-from sdh2svc.service.station import Station
 
 __all__ = ["Services", "close_services", "create_app", "docs_assets_dir", "open_services",
            "viewer_host", "web_dir"]  # fmt: skip
@@ -37,18 +39,10 @@ ROUTERS = (dashboard.router, hand.router, params.router, runs.router, estop.rout
            sim.router, telemetry.router)  # fmt: skip
 
 
-async def open_services(
-    cfg: Settings,
-    *,
-    sim: bool,
-    dsa_url: str | None = None,
-    sdh_url: str | None = None,
-    obj: Any = None,
-    viewer: bool | None = None,
-) -> Services:
-    """Open the hand (both links, or the embedded simulated hand) and the 3-D view."""
+async def open_services(cfg: Settings, where: Where, *, viewer: bool | None = None) -> Services:
+    """Open the hand (real, or simulated in this process) and the 3-D view."""
     hub = TelemetryHub(send_timeout_s=cfg.service.send_timeout_s)
-    station = Station(cfg, hub, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
+    station = HandService(cfg, hub, where)
     services = Services(cfg, hub, station)
     try:
         await station.start()
@@ -100,7 +94,7 @@ def viewer_host(cfg: Settings) -> str:
     return cfg.service.host if cfg.service.token else "127.0.0.1"
 
 
-async def _start_viewer(cfg: Settings, station: Station, hub: TelemetryHub) -> Any:
+async def _start_viewer(cfg: Settings, station: HandService, hub: TelemetryHub) -> Any:
     """The 3-D view, in a process of its own unless ``service.viewer_process`` is off.
 
     The view cannot authenticate a browser. Without a token it is a control panel for whoever

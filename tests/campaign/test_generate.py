@@ -21,6 +21,7 @@ from sdh2svc.campaign.case import (
     suite_names,
 )
 from sdh2svc.config import default_config, load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import Box, Circle, Ellipse, Outline, Polygon, Stick, parse_object
 
@@ -232,7 +233,7 @@ def fixture_lets_go(case: Case) -> bool:
     fingers then hold it is the run's result, not the placement's.)"""
     cfg = load_config(overrides=case.overrides(default_config().sim.sensor.gain_vs_library),
                       use_env=False)  # fmt: skip
-    world = PhysicsWorld(cfg, cfg.sim, case.object)
+    world = PhysicsWorld(hand_model(cfg), cfg.sim, case.object)
     a = cfg.axes
     q = list(cfg.run.preshape_deg)
     t = 0.0

@@ -14,14 +14,13 @@ from typing import Any, TypeVar
 
 import pytest
 
-from sdh2svc.bus.joint import JointLink
-from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Simulated, connect_hand
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.protocol.sdh import AxisState
 from sdh2svc.sim.clock import run_fast
-from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+from sdh2svc.sim.lab import SimulatedHand
 
 T = TypeVar("T")
 
@@ -33,16 +32,11 @@ def cfg_with(tmp: Path, *extra: str) -> Settings:
 
 @contextlib.asynccontextmanager
 async def rig(cfg: Settings, tmp: Path) -> AsyncIterator[tuple[SimulatedHand, Runner]]:
-    hand = await start_simulated_hand(cfg, unix_dir=tmp)
-    joints = await JointLink.open(hand.urls("sdh")[0])
-    tactile = await TactileBus.open(hand.urls("dsa")[0])
-    runner = Runner(cfg.control(), joints, tactile, observer=Seen())
-    try:
-        yield hand, runner
-    finally:
-        await tactile.close()
-        await joints.close()
-        await hand.stop()
+    """The simulated hand in fast mode (its emulators and endpoints) and a runner on it."""
+    async with connect_hand(cfg, Simulated(fast=True)) as hand:
+        assert hand.bench is not None
+        runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
+        yield hand.bench.sim, runner
 
 
 class Seen(BaseObserver):
@@ -214,7 +208,7 @@ def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:
     def once(name: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         cfg = cfg_with(tmp_path / name, "rolling.cycles=1", "sim.object='rubber'")
         (tmp_path / name).mkdir()
-        summary = run_fast(run_once(cfg, sim=True, fast=True))
+        summary = run_fast(run_once(cfg, Simulated(fast=True)))
         store = RunStore(cfg.storage.db_path)
         try:
             return summary, store.samples(summary["run_id"], 0, 10**6)

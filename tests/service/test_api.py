@@ -21,8 +21,8 @@ from mcap.reader import make_reader
 from websockets.asyncio.client import ClientConnection, connect
 
 from sdh2svc.config import load_config
-from sdh2svc.service.launch import LiveService, service_command, start_service
 from sdh2svc.service.store import RunStore
+from tests.live_service import LiveService, service_command, start_service
 
 RUN_TIMEOUT_S = 120.0
 

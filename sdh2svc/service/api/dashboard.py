@@ -11,7 +11,7 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
-from sdh2svc.service.station import ServiceError
+from sdh2svc.service.hand_service import ServiceError
 
 DOCS_ASSETS = "/docs-assets"  # Swagger UI and ReDoc, served from the fastapi-offline package
 _FAVICON = f"{DOCS_ASSETS}/favicon.png"

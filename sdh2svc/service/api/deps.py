@@ -12,8 +12,8 @@ from fastapi import Path as PathParam
 from starlette.requests import HTTPConnection
 
 from sdh2svc.config import Settings
+from sdh2svc.service.hand_service import HandService, ServiceError
 from sdh2svc.service.hub import TelemetryHub
-from sdh2svc.service.station import ServiceError, Station
 
 SQL_INT_MAX = 2**63 - 1  # SQLite's largest integer: run ids, sample offsets
 
@@ -24,7 +24,7 @@ class Services:
 
     cfg: Settings
     hub: TelemetryHub
-    station: Station
+    station: HandService
     viewer: Any = None  # a Viewer or ViewerProcess (sdh2svc.service.viewer*), when on
 
     @property
@@ -37,7 +37,7 @@ def services(conn: HTTPConnection) -> Services:
     return conn.app.state.services  # type: ignore[no-any-return]
 
 
-def station(conn: HTTPConnection) -> Station:
+def station(conn: HTTPConnection) -> HandService:
     return services(conn).station
 
 
@@ -56,7 +56,7 @@ def authorised(request: HTTPConnection) -> None:
 
 
 Svc = Annotated[Services, Depends(services)]
-St = Annotated[Station, Depends(station)]
+St = Annotated[HandService, Depends(station)]
 Cfg = Annotated[Settings, Depends(settings)]
 Auth = Depends(authorised)
 RunId = Annotated[int, PathParam(ge=1, le=SQL_INT_MAX, description="a run's id (GET /api/runs)")]

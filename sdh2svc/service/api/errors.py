@@ -12,7 +12,7 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sdh2svc.config import clip, error_key, error_message
-from sdh2svc.service.station import ServiceError
+from sdh2svc.service.hand_service import ServiceError
 
 
 class ErrorBody(BaseModel):

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sdh2svc.config import Settings
 from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, RunId, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
-from sdh2svc.service.station import ServiceError, parse_object_request
+from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.store import RunStore
 from sdh2svc.service.telemetry import clean_json
 
@@ -51,7 +51,7 @@ async def start_run(st: St, req: Annotated[RunRequest | None, Body()] = None) ->
     req = req or RunRequest(params=None, object=None)
     obj = None
     if req.object is not None:
-        if not st.sim:
+        if st.bench is None:
             raise ServiceError(422, "an object can only be chosen in simulation")
         name, spec = (req.object, None) if isinstance(req.object, str) else (None, req.object)
         obj = parse_object_request(name, spec)

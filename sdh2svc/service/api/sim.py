@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.service.api.deps import Auth, St
 from sdh2svc.service.api.errors import READ, WRITE, responses
-from sdh2svc.service.station import parse_object_request
+from sdh2svc.service.hand_service import parse_object_request
 
 router = APIRouter()
 

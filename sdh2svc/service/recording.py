@@ -1,8 +1,9 @@
-"""One recorded run on open links: the runner, its recorder and its summary, in one place.
+"""Recording a run on an open hand: the runner, its recorder and its summary, in one place.
 
 Used by ``sdh2svc run`` (:mod:`sdh2svc.service.headless`) and by the service
-(:mod:`sdh2svc.service.station`): both create the run's database row, record every sample, event
-and frame, and finish the row with the summary — the only difference is who opened the links.
+(:mod:`sdh2svc.service.hand_service`): both create the run's database row, record every sample,
+event and frame, and finish the row with the summary. On a simulated hand (a bench), the summary
+also holds the simulation's truth as the run let go.
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ from typing import Any, Protocol
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus, TactileFrame
 from sdh2svc.config import Settings
+from sdh2svc.connect import Bench
 from sdh2svc.control.observer import Event
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.store import Recorder, RunStore
-from sdh2svc.sim.serve import SimulatedHand
 
 EventSink = Callable[[float, int | None, str, dict[str, Any]], None]
 
@@ -35,19 +36,6 @@ class RunObserver(Protocol):
         """Every iteration's record."""
 
 
-async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:
-    """Both of the hand's lines, the joint controller first (its limits from the config)."""
-    lim = cfg.limits
-    limits = list(zip(lim.min_deg, lim.max_deg, strict=True))
-    joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits)
-    try:
-        tactile = await TactileBus.open(dsa_url)
-    except BaseException:
-        await joints.close()
-        raise
-    return joints, tactile
-
-
 class RecordedRun:
     """A :class:`Runner` whose samples, events and frames go to the database (and listeners)."""
 
@@ -60,16 +48,16 @@ class RecordedRun:
         *,
         params: RollingParams | None = None,
         meta: dict[str, Any] | None = None,
-        hand: SimulatedHand | None = None,
+        bench: Bench | None = None,
         on_sample: Callable[[Sample], None] | None = None,
         on_event: EventSink | None = None,
         on_frame: Callable[[float, TactileFrame], None] | None = None,
     ) -> None:
-        self.cfg, self.tactile, self.store, self.hand = cfg, tactile, store, hand
+        self.cfg, self.tactile, self.store, self.bench = cfg, tactile, store, bench
         params = params or cfg.rolling
         full_meta = {
             "params": params.model_dump(),
-            "object": hand.world.obj.model_dump() if hand else None,
+            "object": bench.obj.model_dump() if bench else None,
             **(meta or {}),
         }
         self.run_id = store.create_run(full_meta)
@@ -93,8 +81,8 @@ class RecordedRun:
         t, iteration, kind, detail = e.t, e.iteration, e.kind, e.detail
         self._rec.event(t, iteration, kind, detail)
         # the simulation's truth as the run ends, before the fingers let go
-        if self.hand is not None and kind == "phase" and detail["phase"] == "releasing":
-            self._truth.update(sim_truth(self.hand))
+        if self.bench is not None and kind == "phase" and detail["phase"] == "releasing":
+            self._truth.update(self.bench.truth().summary())
         if self._on_event:
             self._on_event(t, iteration, kind, detail)
 
@@ -124,18 +112,9 @@ class RecordedRun:
         summary["frames"] = {"received": st.frames, "crc_errors": st.crc_errors,
                              "resyncs": st.resyncs, "frames_per_s": st.frames_per_s}  # fmt: skip
         summary["run_id"] = self.run_id
-        if self.hand is not None:
-            summary["truth"] = self._truth or sim_truth(self.hand)
+        if self.bench is not None:
+            summary["truth"] = self._truth or self.bench.truth().summary()
             if summary["truth"]["dropped"] and summary["status"] == "completed":
                 summary["status"] = "dropped"
         self.store.finish_run(self.run_id, summary["status"], summary)
         return summary
-
-
-def sim_truth(hand: SimulatedHand) -> dict[str, Any]:
-    """The simulation's ground truth for a run summary (never shown to the controller)."""
-    t = hand.world.truth()
-    return {
-        "object": t.object, "size_mm": t.size_mm, "dropped": t.dropped, "slips": t.slips,
-        "rotation_range_deg": t.rotation_range_deg,
-    }  # fmt: skip
