@@ -38,6 +38,7 @@ from pydantic import ValidationError
 
 from sdh2svc.campaign.case import Case, Suite
 from sdh2svc.config import ConfigError, format_errors, load_config
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 
 SUITES_DIR = Path(__file__).parent / "suites"
 CASES_FILE = "cases.jsonl"
@@ -110,8 +111,8 @@ def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
     return load_config(config_path, keys)
 
 
-class TruthProbe:
-    """Watches a run beside it (:class:`~sdh2svc.service.recording.RunObserver`): the simulated
+class TruthProbe(BaseObserver):
+    """Watches a run beside it (:class:`~sdh2svc.control.observer.RunObserver`): the simulated
     object's true angle ψ at the grasp and at every iteration, and where the half strokes end."""
 
     def __init__(self) -> None:
@@ -138,17 +139,18 @@ class TruthProbe:
         a campaign's runs stay bit for bit those of ``sdh2svc run --fast``."""
         return float(self.bench.object_pose()[2])
 
-    def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        if kind == "grasped" and self.bench is not None:
+    def event(self, e: Event) -> None:
+        kind, detail = e.kind, e.detail
+        if kind is EventKind.GRASPED and self.bench is not None:
             self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
-        elif kind == "reversal":
+        elif kind is EventKind.REVERSAL:
             n = int(detail.get("half_strokes", self._half_strokes))
-            self.reversals.append((iteration, n > self._half_strokes))
+            self.reversals.append((e.iteration, n > self._half_strokes))
             self._half_strokes = n
-        elif kind == "fault":
+        elif kind is EventKind.FAULT:
             self.fault = str(detail.get("fault", ""))
-        elif kind == "end":
-            self.end_t = t
+        elif kind is EventKind.END:
+            self.end_t = e.t
 
     def sample(self, sample: Any) -> None:
         if self.bench is not None:

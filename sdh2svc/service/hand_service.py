@@ -23,6 +23,8 @@ from sdh2svc.bus.tactile import Subscription, TactileBus, TactileFrame
 from sdh2svc.config import Settings, format_errors
 from sdh2svc.connect import Bench, Hand, Where, connect_hand
 from sdh2svc.control.motion import move_to_preshape
+from sdh2svc.control.observer import BaseObserver, EventKind
+from sdh2svc.control.observer import Event as RunEvent
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
@@ -182,10 +184,8 @@ class HandService:
         assert self._hand is not None  # open: _links() says so
         meta = {**self._hand.describe(), "service": True}
         self._run_params = run_params
-        self.run = RecordedRun(
-            self.cfg, joints, tactile, store, params=run_params, meta=meta, bench=self.bench,
-            on_sample=self._on_sample, on_event=self._on_event,
-        )  # fmt: skip
+        self.run = RecordedRun(self.cfg, joints, tactile, store, params=run_params, meta=meta,
+                               bench=self.bench, observer=_RunTelemetry(self))  # fmt: skip
         self._run_task = asyncio.create_task(self._execute(self.run), name="run")
         log.info("run %d started (cycles=%d)", self.run.run_id, run_params.cycles)
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
@@ -416,16 +416,6 @@ class HandService:
                  summary.get("message", ""))  # fmt: skip
         self.publish_status()
 
-    def _on_sample(self, s: Sample) -> None:
-        run_id = self.run.run_id if self.run else None
-        self.hub.publish(SampleMsg(run_id, s))
-
-    def _on_event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        run_id = self.run.run_id if self.run else None
-        self.hub.publish(Event(run_id, t, iteration, kind, detail))
-        if kind == "phase":
-            self.publish_status()
-
     def _on_frame(self, frame: TactileFrame) -> None:
         """Every delivered frame; forwarded at ≤ tactile_max_hz, and only if someone reads."""
         if frame.arrival - self._last_tactile < 1.0 / self.cfg.service.tactile_max_hz * 0.9:
@@ -456,6 +446,25 @@ class HandService:
                 self.hub.publish(Pose(tuple(j.last_actual)))
             if (bench := self.bench) is not None:
                 self.hub.publish(Sim(bench.truth().scene(bench.outline, _OUTLINE_POINTS)))
+
+
+class _RunTelemetry(BaseObserver):
+    """A run's samples and events to the telemetry hub (its frames go there from the bus)."""
+
+    def __init__(self, service: HandService) -> None:
+        self.service = service
+
+    def _run_id(self) -> int | None:
+        return self.service.run.run_id if self.service.run else None
+
+    def sample(self, sample: Sample) -> None:
+        self.service.hub.publish(SampleMsg(self._run_id(), sample))
+
+    def event(self, event: RunEvent) -> None:
+        self.service.hub.publish(Event(self._run_id(), event.t, event.iteration, event.kind,
+                                       event.detail))  # fmt: skip
+        if event.kind is EventKind.PHASE:
+            self.service.publish_status()
 
 
 def _stats(t: TactileBus) -> dict[str, Any]:

@@ -12,8 +12,9 @@ from typing import Any
 
 from sdh2svc.config import Settings
 from sdh2svc.connect import Bench, Where, connect_hand
+from sdh2svc.control.observer import RunObserver
 from sdh2svc.control.runner import Runner
-from sdh2svc.service.recording import RecordedRun, RunObserver
+from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import EstopLatched, RunStore
 
 
@@ -39,8 +40,7 @@ async def run_once(
             meta = hand.describe()
             obs = observer(hand.bench) if observer else None
             run = RecordedRun(cfg, hand.joints, hand.tactile, store, meta=meta, bench=hand.bench,
-                              on_event=obs.event if obs else None,
-                              on_sample=obs.sample if obs else None)  # fmt: skip
+                              observer=obs)  # fmt: skip
             ticker = asyncio.create_task(_tick(run.runner, progress)) if progress else None
             try:
                 return await run.execute()

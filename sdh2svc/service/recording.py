@@ -10,34 +10,22 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus, TactileFrame
 from sdh2svc.config import Settings
 from sdh2svc.connect import Bench
-from sdh2svc.control.observer import Event
+from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.store import Recorder, RunStore
 
-EventSink = Callable[[float, int | None, str, dict[str, Any]], None]
-
-
-class RunObserver(Protocol):
-    """What watches a run from beside it (e.g. a campaign sampling the simulation's truth)."""
-
-    def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        """Every event of the run (phase, grasped, reversal, fault, end, …)."""
-
-    def sample(self, sample: Sample) -> None:
-        """Every iteration's record."""
-
 
 class RecordedRun:
-    """A :class:`Runner` whose samples, events and frames go to the database (and listeners)."""
+    """A :class:`Runner` whose samples, events and frames go to the database, then to
+    ``observer`` (the service's telemetry, a campaign's truth probe)."""
 
     def __init__(
         self,
@@ -49,9 +37,7 @@ class RecordedRun:
         params: RollingParams | None = None,
         meta: dict[str, Any] | None = None,
         bench: Bench | None = None,
-        on_sample: Callable[[Sample], None] | None = None,
-        on_event: EventSink | None = None,
-        on_frame: Callable[[float, TactileFrame], None] | None = None,
+        observer: RunObserver | None = None,
     ) -> None:
         self.cfg, self.tactile, self.store, self.bench = cfg, tactile, store, bench
         params = params or cfg.rolling
@@ -63,33 +49,30 @@ class RecordedRun:
         self.run_id = store.create_run(full_meta)
         self._rec = Recorder(store.path, self.run_id)
         self._truth: dict[str, Any] = {}
-        self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
-        self.runner = Runner(
-            cfg.control(), joints, tactile, params=params,
-            observer=self,
-        )  # fmt: skip
+        self._observer: RunObserver = observer or BaseObserver()
+        self.runner = Runner(cfg.control(), joints, tactile, params=params, observer=self)
         self.summary: dict[str, Any] | None = None
 
     # --- control.observer.RunObserver: the runner reports here ---
 
     def sample(self, s: Sample) -> None:
         self._rec.sample(s)
-        if self._on_sample:
-            self._on_sample(s)
+        self._observer.sample(s)
 
     def event(self, e: Event) -> None:
-        t, iteration, kind, detail = e.t, e.iteration, e.kind, e.detail
-        self._rec.event(t, iteration, kind, detail)
+        self._rec.event(e.t, e.iteration, e.kind, e.detail)
         # the simulation's truth as the run ends, before the fingers let go
-        if self.bench is not None and kind == "phase" and detail["phase"] == "releasing":
+        if (
+            self.bench is not None
+            and e.kind is EventKind.PHASE
+            and e.detail["phase"] == "releasing"
+        ):
             self._truth.update(self.bench.truth().summary())
-        if self._on_event:
-            self._on_event(t, iteration, kind, detail)
+        self._observer.event(e)
 
     def frame(self, t: float, frame: TactileFrame) -> None:
         self._rec.frame(t, None, frame.timestamp_ms, frame.texels)
-        if self._on_frame:
-            self._on_frame(t, frame)
+        self._observer.frame(t, frame)
 
     async def execute(self) -> dict[str, Any]:
         """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
