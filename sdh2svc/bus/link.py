@@ -18,14 +18,14 @@ import contextlib
 import socket
 import urllib.parse
 from collections.abc import Callable
-from typing import Any, Final
+from typing import Any
 
 import serial
 import serial_asyncio
 
-__all__ = ["DEFAULT_BAUD", "PushReader", "close_streams", "is_socket_url", "open_streams"]
+from sdh2svc.protocol.line import BAUD
 
-DEFAULT_BAUD: Final = 115_200
+__all__ = ["PushReader", "close_streams", "is_socket_url", "open_streams"]
 
 
 class PushReader(asyncio.StreamReader):
@@ -76,7 +76,7 @@ def is_socket_url(url: str) -> bool:
 
 
 async def open_streams(
-    url: str, *, baudrate: int = DEFAULT_BAUD, limit: int = 2**16, **serial_kwargs: Any
+    url: str, *, baudrate: int = BAUD, limit: int = 2**16, **serial_kwargs: Any
 ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
     """Open ``url`` (device path or pyserial URL) raw 8N1, no flow control.
 

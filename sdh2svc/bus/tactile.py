@@ -70,6 +70,7 @@ import serial
 
 from sdh2svc.bus.link import close_streams, open_streams
 from sdh2svc.protocol import dsa
+from sdh2svc.protocol.line import BAUD, BITS_PER_BYTE
 
 __all__ = [
     "BusEvent",
@@ -93,8 +94,6 @@ logger = logging.getLogger(__name__)
 _T = TypeVar("_T")
 _A = TypeVar("_A")
 
-BAUD = 115_200
-BITS_PER_BYTE = 10  # 8N1
 PUSH_CAP_FPS = 30.0  # "highest possible rate (for now: 30 FPS)", §1.6
 ACK_BYTES = 10  # 0x03 ACK packet: 8 framing bytes + error u16
 _INITIAL_FRAME_BYTES = 175.0  # RLE restarted per row, §1.10: a middle-of-the-road guess
