@@ -162,21 +162,15 @@ class JointStats:
     reconnects: int = 0
     motion_stops: int = 0  # `stop`s sent before a retry because the hand might be moving
     rtt_count: int = 0
-    rtt_total_s: float = 0.0
     rtt_min_s: float = math.inf
     rtt_max_s: float = 0.0
     rtt_last_s: float = math.nan
 
     def record_rtt(self, seconds: float) -> None:
         self.rtt_count += 1
-        self.rtt_total_s += seconds
         self.rtt_min_s = min(self.rtt_min_s, seconds)
         self.rtt_max_s = max(self.rtt_max_s, seconds)
         self.rtt_last_s = seconds
-
-    @property
-    def rtt_mean_s(self) -> float:
-        return self.rtt_total_s / self.rtt_count if self.rtt_count else math.nan
 
 
 class _Garbled(Exception):
@@ -544,10 +538,6 @@ class JointLink:
         queue: asyncio.Queue[LinkEvent] = asyncio.Queue()
         self._subscribers.append(queue)
         return queue
-
-    def unsubscribe(self, queue: asyncio.Queue[LinkEvent]) -> None:
-        with contextlib.suppress(ValueError):
-            self._subscribers.remove(queue)
 
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
         event = LinkEvent(kind, self.url, detail)
@@ -923,9 +913,6 @@ class JointLink:
         """Start the coordinated move to the targets (``m``); returns its duration in s."""
         return (await self._call(self._request("m"))).values[0]
 
-    async def get_duration(self) -> float:
-        return (await self._call(self._request("get_duration"))).values[0]
-
     async def stop(self) -> None:
         """Stop an ``m`` move (``stop``)."""
         await self._call(self._request("stop"))
@@ -980,10 +967,6 @@ class JointLink:
     async def get_velocity(self) -> Vec:
         """Actual angular velocities (``vel``), deg/s."""
         return await self._vector("vel")
-
-    async def get_reference_velocity(self) -> Vec:
-        """Reference velocities of the velocity controller (``rvel``), deg/s."""
-        return await self._vector("rvel")
 
     async def temperatures(self) -> Vec:
         """9 temperatures (°C): 7 motors, FPGA, PCB."""
