@@ -157,6 +157,7 @@ class Runner:
         self._t0 = loop.time()
         sub = self.tactile.subscribe({self._m1, self._m2}, self.settings.run.tactile_rate_hz)
         watch = self.tactile.subscribe(range(6), self.settings.run.watch_rate_hz)
+        self.joints.start_polling()  # iterations take the newest angles, not a round trip
         try:
             self._set_phase(Phase.CONNECTING)
             self._event("start", {"params": self.params.model_dump()})
@@ -185,6 +186,7 @@ class Runner:
             if not self._estopping:
                 raise
         finally:
+            self.joints.stop_polling()
             sub.close()
             watch.close()
         return self.result
@@ -266,7 +268,7 @@ class Runner:
             F = grip_force(c1, c2)
             if (fault := self._ceiling_fault(F)) is not None:
                 raise fault
-            actual = await self.joints.get_actual()
+            actual, _ = self._newest_angles()
             pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
@@ -326,14 +328,15 @@ class Runner:
             if self._last_seq is not None:
                 self.result.frames_skipped += max(0, frame.seq - self._last_seq - 1)
             self._last_seq = frame.seq
-            actual = await self.joints.get_actual()
+            actual, joint_age_ms = self._newest_angles()
             age_ms = (loop.time() - frame.arrival) * 1000
             pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
             fault = self._supervise(r)
             if fault is not None:  # record what tripped it, command nothing
-                self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
+                self._record(r, pose, frame, age_ms, joint_age_ms,
+                             (loop.time() - frame.arrival) * 1000)  # fmt: skip
                 raise fault
             if r.targets is not None:
                 want = list(actual)
@@ -342,8 +345,8 @@ class Runner:
                     want[axis] = math.degrees(angle)
                 cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
                                     safety.max_step_deg)  # fmt: skip
-                await self.joints.set_targets(cmd)
-                latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
+                sent = await self.joints.send_targets(cmd)
+                latency_ms = (sent - frame.arrival) * 1000  # the targets are on the line
                 # Start the move and go on at once: the next iteration runs on the next fresh
                 # frame with the angles the fingers have then. A move still running is replanned
                 # by the firmware from its current velocity, so the fingers move continuously.
@@ -351,7 +354,15 @@ class Runner:
             else:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state
-            self._record(r, pose, frame, age_ms, latency_ms)
+            self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
+
+    def _newest_angles(self) -> tuple[tuple[float, ...], float]:
+        """The newest joint angles and their age in ms; stale ones are a fault, as a stale frame."""
+        reading = self.joints.take_reading()
+        age_s = math.inf if reading is None else reading.age()
+        if reading is None or age_s > self.settings.safety.stale_joint_ms / 1000:
+            raise RunFault(Fault.JOINT_ERROR, f"joint angles {age_s * 1000:.0f} ms old")
+        return reading.angles, age_s * 1000
 
     def _supervise(self, r: StepResult) -> RunFault | None:
         s = self.settings.safety
@@ -366,7 +377,13 @@ class Runner:
         return None
 
     def _record(
-        self, r: StepResult, pose: HandPose, frame: TactileFrame, age_ms: float, latency_ms: float
+        self,
+        r: StepResult,
+        pose: HandPose,
+        frame: TactileFrame,
+        age_ms: float,
+        joint_age_ms: float,
+        latency_ms: float,
     ) -> None:
         t = frame.arrival - self._t0
         res = self.result
@@ -382,7 +399,7 @@ class Runner:
             self._event("reversal", {"reason": r.reversal.value, "stroke": r.state.strokes,
                                      "half_strokes": r.state.half_strokes},
                         r.state.iteration)  # fmt: skip
-        sample = Sample.from_step(r, pose, t, age_ms, latency_ms)
+        sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms)
         if self._on_sample:
             self._on_sample(sample)
         if self._on_frame:

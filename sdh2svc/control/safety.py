@@ -47,6 +47,7 @@ class SafetyConfig(Frozen):
     max_step_deg: Annotated[float, Field(gt=0.0, le=1.0)]
     force_ceiling_factor: Annotated[float, Field(gt=1.0, le=20.0)]
     stale_frame_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
+    stale_joint_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
     max_consecutive_reversals: Annotated[int, Field(ge=2, le=1000)]
 
 
