@@ -24,8 +24,9 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
   commands that could move the hand (any set form except power-off, and ``m``) are refused with
   :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5).
 * Reconnect: when the port is lost (exception or EOF) the link reopens it with back-off
-  (0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake; meanwhile commands raise :class:`LinkLost`.
-  :class:`LinkEvent` values go to an optional callback and to :meth:`JointLink.subscribe` queues.
+  (:func:`sdh2svc.bus.reconnect.reconnect`: 0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake;
+  meanwhile commands raise :class:`LinkLost`. :class:`LinkEvent` values (the type both links
+  share) go to an optional callback and to :meth:`JointLink.subscribe` queues.
 * The newest actual angles (:attr:`JointLink.reading`, with their arrival time) come from every
   ``pos``/``tpap`` answer; :meth:`JointLink.start_polling` keeps them fresh, so a control loop
   takes them (:meth:`JointLink.take_reading`) without a round trip. While it takes them in a
@@ -44,9 +45,9 @@ import contextlib
 import logging
 import math
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from enum import IntEnum, StrEnum
+from enum import IntEnum
 from numbers import Real
 from types import TracebackType
 from typing import Final, Self, TypeAlias
@@ -55,6 +56,7 @@ import serial
 
 from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
 from sdh2svc.bus.polling import PollPlan
+from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, reconnect
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
@@ -100,9 +102,10 @@ DEFAULT_LIMITS: Final[tuple[tuple[float, float], ...]] = ((0.0, 90.0),) + ((-90.
 
 CONNECT_DRAIN_S: Final = 0.1  # §2.3: discard whatever arrives within 100 ms of the blank line
 VER_TIMEOUT_S: Final = 1.0  # §2.3: no `ver` reply within 1 s means "SDH not connected"
-BACKOFF_S: Final = (0.5, 1.0, 2.0, 4.0, 5.0)  # reconnect delays; the last one repeats
+BACKOFF: Final = Backoff(initial_s=0.5, max_s=5.0)  # before each attempt to reopen the line
 POLL_IDLE_S: Final = 0.05  # polling with no command to follow: the angles are read this often
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
+_WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
 
 
@@ -138,23 +141,6 @@ class ControllerMode(IntEnum):
     POSE = 0
     VELOCITY = 1
     VELOCITY_ACCELERATION = 2
-
-
-class LinkEventKind(StrEnum):
-    CONNECTED = "connected"
-    LOST = "lost"
-    RECONNECTED = "reconnected"
-    ERROR = "error"  # a reconnect attempt or a command failed for good
-    EMERGENCY_STOP = "emergency_stop"
-    RELEASED = "released"
-    CLOSED = "closed"
-
-
-@dataclass(frozen=True, slots=True)
-class LinkEvent:
-    kind: LinkEventKind
-    url: str
-    detail: str = ""
 
 
 @dataclass(slots=True)
@@ -571,9 +557,9 @@ class JointLink:
         return queue
 
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
-        event = LinkEvent(kind, self.url, detail)
-        logger.log(logging.INFO if kind is not LinkEventKind.ERROR else logging.WARNING,
-                   "%s %s %s", self.url, kind, detail)  # fmt: skip
+        event = LinkEvent(kind, self.url, asyncio.get_running_loop().time(), detail)
+        level = logging.WARNING if kind in _WARNINGS else logging.INFO
+        logger.log(level, "%s %s %s", self.url, kind, detail)
         for queue in self._subscribers:
             queue.put_nowait(event)
         if self._on_event is not None:
@@ -889,21 +875,20 @@ class JointLink:
 
     async def _reconnect_loop(self, old: _Conn) -> None:
         await old.close()
-        for delay in _backoff():
-            await asyncio.sleep(delay)
-            try:
-                conn = await self._connect_once()
-            except Exception as exc:  # whatever went wrong, keep trying: the hand needs us
-                self._emit(LinkEventKind.ERROR, f"reconnect failed: {exc}")
-                continue
-            if conn.lost is not None:  # died right after the handshake
-                await conn.close()
-                continue
-            self._conn = conn
-            self._reconnect_task = None
-            self.stats.reconnects += 1
-            self._emit(LinkEventKind.RECONNECTED, f"firmware {self.version}")
-            return
+        self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed)
+        self._reconnect_task = None
+        self.stats.reconnects += 1
+        self._emit(LinkEventKind.RECONNECTED, f"firmware {self.version}")
+
+    def _reconnect_failed(self, exc: Exception) -> None:
+        self._emit(LinkEventKind.RECONNECT_FAILED, str(exc))
+
+    async def _reconnect_once(self) -> _Conn:
+        conn = await self._connect_once()
+        if conn.lost is not None:
+            await conn.close()
+            raise LinkLost(f"lost right after the handshake: {conn.lost}")
+        return conn
 
     # -- limits ---------------------------------------------------------------------------------
 
@@ -1164,12 +1149,6 @@ class JointLink:
             raise
         self._emit(LinkEventKind.RELEASED)
         return flags
-
-
-def _backoff() -> Iterator[float]:
-    yield from BACKOFF_S
-    while True:
-        yield BACKOFF_S[-1]
 
 
 def _seven_values(values: Sequence[float], what: str) -> Vec:

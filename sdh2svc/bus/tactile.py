@@ -46,10 +46,11 @@ reports the mode, frames/s, bytes/s, line utilisation = bytes/s × 10 / baud, an
 
 Faults: the parser never raises; bad CRCs, oversized headers and undecodable frames are dropped
 and counted, a read timeout flushes the parser, commands are retried. The line is reopened (with
-back-off, rerunning the open sequence and the acquisition mode) when the port is lost, after more
-than ``max_error_streak`` errors in a row with no good packet for ``min_dead_s``, or when nothing
-good arrives for ``stall_s`` beyond the expected frame gap. Events (``connected``, ``lost``,
-``reconnected``, ``crc_error``, …) go to every subscription's queue and to listeners.
+back-off, :func:`~sdh2svc.bus.reconnect.reconnect`, rerunning the open sequence and the acquisition
+mode) when the port is lost, after more than ``max_error_streak`` errors in a row with no good
+packet for ``min_dead_s``, or when nothing good arrives for ``stall_s`` beyond the expected frame
+gap. Events (:class:`~sdh2svc.bus.reconnect.LinkEvent`, the type both links share: ``connected``,
+``lost``, ``reconnected``, ``crc_error``, …) go to every subscription's queue and to listeners.
 """
 
 from __future__ import annotations
@@ -69,13 +70,14 @@ import numpy.typing as npt
 import serial
 
 from sdh2svc.bus.link import close_streams, open_streams
+from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, reconnect
 from sdh2svc.protocol import dsa
 from sdh2svc.protocol.line import BAUD, BITS_PER_BYTE
 
 __all__ = [
-    "BusEvent",
-    "EventKind",
     "FrameTimeout",
+    "LinkEvent",
+    "LinkEventKind",
     "Mode",
     "Subscription",
     "SubscriptionClosed",
@@ -145,26 +147,6 @@ class Mode(StrEnum):
     IDLE = "idle"
     PULL = "pull"
     PUSH = "push"
-
-
-class EventKind(StrEnum):
-    CONNECTED = "connected"
-    LOST = "lost"
-    RECONNECTED = "reconnected"
-    RECONNECT_FAILED = "reconnect_failed"
-    CRC_ERROR = "crc_error"
-    OVERSIZED = "oversized"
-    BAD_FRAME = "bad_frame"
-    RESYNC = "resync"
-    TIMEOUT = "timeout"
-    MODE = "mode"
-
-
-@dataclass(frozen=True, slots=True)
-class BusEvent:
-    kind: EventKind
-    time: float  # loop time
-    detail: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,7 +251,7 @@ class Subscription:
         self.bus = bus
         self.matrices = matrices
         self.rate_hz = rate_hz
-        self.events: asyncio.Queue[BusEvent] = asyncio.Queue(bus.options.events_maxlen)
+        self.events: asyncio.Queue[LinkEvent] = asyncio.Queue(bus.options.events_maxlen)
         self._slot: TactileFrame | None = None
         self._last_seq = -1
         self._ready = asyncio.Event()
@@ -320,7 +302,7 @@ class Subscription:
         self._slot = frame
         self._ready.set()
 
-    def _event(self, event: BusEvent) -> None:
+    def _event(self, event: LinkEvent) -> None:
         if self.events.full():  # drop the oldest: recent events matter more
             self.events.get_nowait()
         self.events.put_nowait(event)
@@ -338,9 +320,9 @@ class TactileBus:
         self._loop = asyncio.get_running_loop()
         self._parser = dsa.PacketParser()
         self._subs: set[Subscription] = set()
-        self._listeners: list[Callable[[BusEvent], None]] = []
+        self._listeners: list[Callable[[LinkEvent], None]] = []
         self._frame_listeners: list[Callable[[TactileFrame], None]] = []
-        self.history: deque[BusEvent] = deque(maxlen=self.options.events_maxlen)
+        self.history: deque[LinkEvent] = deque(maxlen=self.options.events_maxlen)
         # connection state
         self._writer: asyncio.StreamWriter | None = None
         self._reader_task: asyncio.Task[None] | None = None
@@ -383,7 +365,7 @@ class TactileBus:
         """Open ``url`` (device path or pyserial URL) and run the SDHLibrary open sequence."""
         bus = cls(url, options)
         await bus._establish()
-        bus._emit(EventKind.CONNECTED, url)
+        bus._emit(LinkEventKind.CONNECTED, url)
         bus._supervisor = bus._loop.create_task(bus._supervise(), name="tactile-supervisor")
         return bus
 
@@ -438,7 +420,7 @@ class TactileBus:
         self._replan.set()
         return sub
 
-    def add_listener(self, callback: Callable[[BusEvent], None]) -> None:
+    def add_listener(self, callback: Callable[[LinkEvent], None]) -> None:
         """Call ``callback`` for every bus event (synchronously, from the reader task)."""
         self._listeners.append(callback)
 
@@ -557,23 +539,19 @@ class TactileBus:
     async def _supervise(self) -> None:
         """Wait for a loss, tear down, reconnect with back-off; report each step."""
         o = self.options
+        backoff = Backoff(o.backoff_initial_s, o.backoff_max_s)
         while True:
             await self._lost.wait()
             await self._teardown()
-            self._emit(EventKind.LOST, self._lost_reason)
+            self._emit(LinkEventKind.LOST, self._lost_reason)
             if not o.reconnect:
                 return
-            delay = o.backoff_initial_s
-            while True:
-                await asyncio.sleep(delay)
-                try:
-                    await self._establish()
-                    break
-                except Exception as exc:  # any failure to reopen is retried, never fatal
-                    self._emit(EventKind.RECONNECT_FAILED, repr(exc))
-                    delay = min(2.0 * delay, o.backoff_max_s)
+            await reconnect(self._establish, backoff, self._reconnect_failed)
             self._reconnects += 1
-            self._emit(EventKind.RECONNECTED, self.url)
+            self._emit(LinkEventKind.RECONNECTED, self.url)
+
+    def _reconnect_failed(self, exc: Exception) -> None:
+        self._emit(LinkEventKind.RECONNECT_FAILED, repr(exc))
 
     def _task_done(self, task: asyncio.Task[None]) -> None:
         """A crashed reader or scheduler is a bug: log it and start over on a new connection."""
@@ -630,7 +608,7 @@ class TactileBus:
         now = self._loop.time()
         if self._parser.buffered:
             self._dispatch(self._parser.flush(), now)
-            self._error(EventKind.TIMEOUT, "partial packet abandoned", now)
+            self._error(LinkEventKind.TIMEOUT, "partial packet abandoned", now)
             self._fail_waiter(_Garbled("reply cut off"))  # nothing else is coming: retry now
         self._check_health(now)
 
@@ -642,13 +620,13 @@ class TactileBus:
                 case dsa.Packet():
                     self._on_reply(ev)
                 case dsa.BadCrc():
-                    self._error(EventKind.CRC_ERROR, f"id {ev.id:#04x} len {ev.length}", now)
+                    self._error(LinkEventKind.CRC_ERROR, f"id {ev.id:#04x} len {ev.length}", now)
                     if self._waiter is not None and self._waiter[0] == ev.id:
                         self._fail_waiter(_Garbled("reply failed its CRC"))
                 case dsa.Oversized():
-                    self._error(EventKind.OVERSIZED, f"id {ev.id:#04x} len {ev.length}", now)
+                    self._error(LinkEventKind.OVERSIZED, f"id {ev.id:#04x} len {ev.length}", now)
                 case dsa.GarbageSkipped() if not self._opening:
-                    self._emit(EventKind.RESYNC, f"{ev.nbytes} bytes skipped", now)
+                    self._emit(LinkEventKind.RESYNC, f"{ev.nbytes} bytes skipped", now)
                 case _:  # boot noise, or garbage of a stale stream while opening
                     pass
 
@@ -659,7 +637,7 @@ class TactileBus:
             frame = dsa.decode_frame_payload(payload, self.nb_cells)
         except dsa.FrameError as exc:
             self._bad_frames += 1
-            self._error(EventKind.BAD_FRAME, str(exc), now)
+            self._error(LinkEventKind.BAD_FRAME, str(exc), now)
             return
         self._good(now)
         size = len(payload) + 8
@@ -687,7 +665,7 @@ class TactileBus:
         self._last_good = now
         self._error_streak = 0
 
-    def _error(self, kind: EventKind, detail: str, now: float) -> None:
+    def _error(self, kind: LinkEventKind, detail: str, now: float) -> None:
         self._error_streak += 1
         self._errors += 1
         self._frame_pulse.set()  # a pull cycle waiting for its frame may have just lost it
@@ -739,7 +717,7 @@ class TactileBus:
                         payload = await future
                 except TimeoutError:
                     self._timeouts += 1
-                    self._error(EventKind.TIMEOUT, f"no reply to {pid:#04x}", self._loop.time())
+                    self._error(LinkEventKind.TIMEOUT, f"no reply to {pid:#04x}", self._loop.time())
                     continue
                 except _Garbled:
                     continue  # counted as the CRC error / partial packet it was
@@ -802,7 +780,7 @@ class TactileBus:
         if mode is not self._mode:
             self._mode = mode
             self._active_since = self._loop.time()
-            self._emit(EventKind.MODE, mode.value)
+            self._emit(LinkEventKind.MODE, mode.value)
 
     async def _schedule(self) -> None:
         """Per connection: pick the mode, then run pull cycles or watch the push stream."""
@@ -879,7 +857,7 @@ class TactileBus:
         if self._seq == seq:
             if self._errors == errors:  # plain silence, not a garbled frame
                 self._timeouts += 1
-                self._error(EventKind.TIMEOUT, "no frame for a pull request", now)
+                self._error(LinkEventKind.TIMEOUT, "no frame for a pull request", now)
             return now
         if code is not None and self._errors == errors:  # clean cycles measure the line
             cycle = now - t0
@@ -928,8 +906,8 @@ class TactileBus:
 
     # -- events ------------------------------------------------------------------------------
 
-    def _emit(self, kind: EventKind, detail: str = "", now: float | None = None) -> None:
-        event = BusEvent(kind, self._loop.time() if now is None else now, detail)
+    def _emit(self, kind: LinkEventKind, detail: str = "", now: float | None = None) -> None:
+        event = LinkEvent(kind, self.url, self._loop.time() if now is None else now, detail)
         self.history.append(event)
         for sub in self._subs:
             sub._event(event)
