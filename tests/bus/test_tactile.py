@@ -27,7 +27,6 @@ from sdh2svc.bus.tactile import (
     TactileFrame,
     TactileOptions,
     TactileStats,
-    choose_mode,
 )
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
@@ -129,23 +128,6 @@ async def next_event(sub: Subscription, kind: LinkEventKind, timeout: float) -> 
         while (event := await sub.events.get()).kind is not kind:
             pass
     return event
-
-
-def test_scheduling_policy() -> None:
-    def mode(
-        required: float, push: float = 30.0, pull: float = 100.0, cur: Mode = Mode.IDLE
-    ) -> Mode:
-        return choose_mode(required, push_fps=push, pull_max_hz=pull, current=cur)
-
-    assert mode(0.0) is Mode.IDLE
-    assert mode(30.0) is Mode.PUSH  # rolling: distal pads at the controller's cap
-    assert mode(2.0) is Mode.PULL  # collision watch only
-    assert mode(20.0) is Mode.PULL  # pull sustains it with less line time
-    assert mode(24.0, cur=Mode.PUSH) is Mode.PUSH  # hysteresis: stays in push
-    assert mode(20.0, cur=Mode.PUSH) is Mode.PULL
-    # Heavy contact: 985-byte frames cap push at ~11.7 fps and pull at ~10.9 Hz.
-    assert mode(10.0, push=11.7, pull=10.9) is Mode.PUSH
-    assert mode(5.0, push=11.7, pull=10.9) is Mode.PULL
 
 
 @pytest.mark.parametrize("kind", ["pty", "tcp"])
