@@ -214,7 +214,7 @@ class _Request:
 def _as_values(values: float | Sequence[float] | None) -> Vec | None:
     if values is None:
         return None
-    if isinstance(values, Real):
+    if isinstance(values, (float, Real)):
         return (float(values),)
     return tuple(float(v) for v in values)
 

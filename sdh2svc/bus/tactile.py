@@ -94,7 +94,10 @@ class TactileCommandError(TactileError):
     """The controller answered a command with a non-zero error code."""
 
     def __init__(self, command: str, code: int) -> None:
-        name = dsa.DsaError(code).name if code in dsa.DsaError else str(code)
+        try:
+            name = dsa.DsaError(code).name
+        except ValueError:  # a code the protocol does not define (`in` raises on 3.11)
+            name = str(code)
         super().__init__(f"{command}: controller error {name}")
         self.code = code
 

@@ -24,10 +24,12 @@ from sdh2svc.bus.tactile import (
     Mode,
     Subscription,
     TactileBus,
+    TactileCommandError,
     TactileFrame,
     TactileOptions,
     TactileStats,
 )
+from sdh2svc.protocol import dsa
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Endpoint, FaultConfig, PtyEndpoint, TcpEndpoint, UnixEndpoint
@@ -128,6 +130,11 @@ async def next_event(sub: Subscription, kind: LinkEventKind, timeout: float) -> 
         while (event := await sub.events.get()).kind is not kind:
             pass
     return event
+
+
+def test_command_error_names_known_and_unknown_codes() -> None:
+    assert str(TactileCommandError("x", 0x10)).endswith(dsa.DsaError(0x10).name)
+    assert str(TactileCommandError("x", 999)) == "x: controller error 999"
 
 
 @pytest.mark.parametrize("kind", ["pty", "tcp"])
