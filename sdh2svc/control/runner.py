@@ -335,8 +335,8 @@ class Runner:
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
             fault = self._supervise(r)
             if fault is not None:  # record what tripped it, command nothing
-                self._record(r, pose, frame, age_ms, joint_age_ms,
-                             (loop.time() - frame.arrival) * 1000)  # fmt: skip
+                latency_ms = (loop.time() - frame.arrival) * 1000
+                self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
                 raise fault
             if r.targets is not None:
                 want = list(actual)
