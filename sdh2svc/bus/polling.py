@@ -6,12 +6,13 @@ right after the command leaves the angles a whole period old when the next itera
 A control loop takes the angles in a rhythm (once per tactile frame, :meth:`PollPlan.beat`), so
 the poll goes as late as it can: it is to be answered a margin before the next beat is due — the
 beats' own jitter (frames grow with contact) a few times over, at least ``guard_s`` — and the
-iteration finds angles about that margin old. After a beat the loop's
-command follows, so no poll starts before it (for at most ``hold_s``). A beat with no slot to
-spare (a slow round trip, a jittery rhythm) gets its poll right after the command: fresh angles
-come before a clean line. Without a rhythm (no loop
-running, or a beat overdue beyond ``late``) :meth:`PollPlan.start_at` says None and the caller
-polls on its own terms (after every command, and every so often).
+iteration finds angles about that margin old. After a beat the loop's command follows, so no
+poll starts before it (for at most ``hold_s``). A poll that misses its slot (its timer fired late
+on a busy machine) waits for the next one, and the iteration takes angles a period older; but a
+rhythm with no slot at all (a slow round trip) and a second beat in a row without a reading get
+their poll at once: fresh angles come before a clean line. Without a rhythm (no loop running, or
+a beat overdue beyond ``late``) :meth:`PollPlan.start_at` says None and the caller polls on its
+own terms (after every command, and every so often).
 """
 
 from __future__ import annotations
@@ -82,6 +83,10 @@ class PollPlan:
         latest = due - self.margin_s - self.rtt_s  # the last start answered in time
         if now <= latest:
             return latest  # read as late as possible
-        if self.last_answer < self.last_beat:
-            return now  # no slot left before the next beat, and nothing read since the last
-        return due + self.late * self.period_s  # read in its slot: the next poll after the beat
+        if self.last_answer < self.last_beat and (
+            latest <= self.last_beat  # no slot at all
+            or self.last_answer < self.last_beat - self.period_s  # the last beat went without
+            or now + self.rtt_s <= due - self.guard_s  # still in time, if only just
+        ):
+            return now
+        return due + self.late * self.period_s  # the next poll after the beat

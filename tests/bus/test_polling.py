@@ -62,6 +62,18 @@ def test_the_poll_is_answered_a_margin_before_the_next_beat() -> None:
     assert plan.start_at(last + PERIOD * (1 + plan.late) + 1e-6) is None  # the loop stopped
 
 
+def test_a_missed_slot_waits_for_the_next_unless_a_beat_went_without() -> None:
+    plan = PollPlan()
+    last = _rhythm(plan, 5)
+    due = last + PERIOD
+    after_beat = due + plan.late * PERIOD
+    assert plan.start_at(due - 0.006) == pytest.approx(after_beat)  # missed: not across the beat
+    plan.beat(due)  # this beat takes the angles read before the last one
+    plan.command()
+    late = due + PERIOD - plan.guard_s - 0.005 + 0.001  # this slot missed too
+    assert plan.start_at(late) == late  # a second beat must not go without
+
+
 def test_a_beat_without_a_slot_is_read_right_after_its_command() -> None:
     plan = PollPlan()
     last = _rhythm(plan, 5, rtt=0.040)  # a round trip longer than the period
