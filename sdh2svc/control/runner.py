@@ -164,6 +164,7 @@ class Runner:
         self._t0 = loop.time()
         sub = self.tactile.subscribe({self._m1, self._m2}, self.config.run.tactile_rate_hz)
         watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
+        self.joints.start_polling()  # iterations take the newest angles, not a round trip
         try:
             self._set_phase(Phase.CONNECTING)
             self._event(EventKind.START, {"params": self.params.model_dump()})
@@ -192,6 +193,7 @@ class Runner:
             if not self._estopping:
                 raise
         finally:
+            self.joints.stop_polling()
             sub.close()
             watch.close()
         return self.result
@@ -271,7 +273,7 @@ class Runner:
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
             _raise(safety.force_ceiling(F, fd, self.config.safety))
-            actual = await self.joints.get_actual()
+            actual, _ = self._newest_angles()
             pose = self._axes.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
@@ -324,19 +326,20 @@ class Runner:
             if self._last_seq is not None:
                 self.result.frames_skipped += max(0, frame.seq - self._last_seq - 1)
             self._last_seq = frame.seq
-            actual = await self.joints.get_actual()
+            actual, joint_age_ms = self._newest_angles()
             age_ms = (loop.time() - frame.arrival) * 1000
             pose = self._axes.pose(actual)
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
             v = safety.rolling_step(r, self.params.grasp_force, self.config.safety)
             if v is not None:  # record what tripped it, command nothing
-                self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
+                latency_ms = (loop.time() - frame.arrival) * 1000
+                self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
                 _raise(v)
             if r.targets is not None:
                 want = self._axes.wire_targets(r.targets, actual)
-                await self.joints.set_targets(self._clamp(want, actual))
-                latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
+                sent = await self.joints.send_targets(self._clamp(want, actual))
+                latency_ms = (sent - frame.arrival) * 1000  # the targets are on the line
                 # Start the move and go on at once: the next iteration runs on the next fresh
                 # frame with the angles the fingers have then. A move still running is replanned
                 # by the firmware from its current velocity, so the fingers move continuously.
@@ -344,10 +347,24 @@ class Runner:
             else:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state
-            self._record(r, pose, frame, age_ms, latency_ms)
+            self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
+
+    def _newest_angles(self) -> tuple[tuple[float, ...], float]:
+        """The newest joint angles and their age in ms; stale ones are a fault, as a stale frame."""
+        reading = self.joints.take_reading()
+        age_s = None if reading is None else reading.age()
+        _raise(safety.joint_age(age_s, self.config.safety))
+        assert reading is not None and age_s is not None
+        return reading.angles, age_s * 1000
 
     def _record(
-        self, r: StepResult, pose: HandPose, frame: TactileFrame, age_ms: float, latency_ms: float
+        self,
+        r: StepResult,
+        pose: HandPose,
+        frame: TactileFrame,
+        age_ms: float,
+        joint_age_ms: float,
+        latency_ms: float,
     ) -> None:
         t = frame.arrival - self._t0
         res = self.result
@@ -364,7 +381,8 @@ class Runner:
             detail = {"reason": why, "stroke": st.strokes, "half_strokes": st.half_strokes}
             self._event(EventKind.REVERSAL, detail, st.iteration)
         if self.observer is not None:
-            self.observer.sample(Sample.from_step(r, pose, t, age_ms, latency_ms))
+            sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms)
+            self.observer.sample(sample)
             self.observer.frame(t, frame)
 
     async def _release(self) -> None:

@@ -50,6 +50,7 @@ class SafetyConfig(Frozen):
     max_step_deg: Annotated[float, Field(gt=0.0, le=1.0)]
     force_ceiling_factor: Annotated[float, Field(gt=1.0, le=20.0)]
     stale_frame_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
+    stale_joint_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
     max_consecutive_reversals: Annotated[int, Field(ge=2, le=1000)]
 
 
@@ -103,6 +104,16 @@ def frame_age(age_s: float | None, safety: SafetyConfig) -> Violation | None:
         return Violation(Fault.STALE_SENSOR, f"no tactile frame for {stale * 1000:.0f} ms")
     if age_s > stale:
         return Violation(Fault.STALE_SENSOR, f"tactile frame {age_s * 1000:.0f} ms old")
+    return None
+
+
+def joint_age(age_s: float | None, safety: SafetyConfig) -> Violation | None:
+    """The newest joint reading ``age_s`` old is too old (``None``: none yet): the joint line is
+    lost as surely as a silent tactile stream, and nothing may move on angles that old."""
+    if age_s is None or age_s > safety.stale_joint_ms / 1000:
+        shown = "no" if age_s is None else f"{age_s * 1000:.0f} ms old"
+        return Violation(Fault.JOINT_ERROR, f"joint angles: {shown} reading "
+                         f"(limit {safety.stale_joint_ms:.0f} ms)")  # fmt: skip
     return None
 
 

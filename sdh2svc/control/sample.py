@@ -59,6 +59,7 @@ class Sample:
     half_strokes: int
     reversal: str | None
     frame_age_ms: float
+    joint_age_ms: float  # of the actual angles φ2…φ5 when the iteration took them
     latency_ms: float
 
     @classmethod
@@ -70,7 +71,13 @@ class Sample:
 
     @classmethod
     def from_step(
-        cls, r: StepResult, pose: HandPose, t: float, frame_age_ms: float, latency_ms: float
+        cls,
+        r: StepResult,
+        pose: HandPose,
+        t: float,
+        frame_age_ms: float,
+        joint_age_ms: float,
+        latency_ms: float,
     ) -> Sample:
         """The sample of one iteration; ``pose`` are the actual angles it started from."""
         obs, plan, tg = r.obs, r.plan, r.targets
@@ -95,5 +102,5 @@ class Sample:
             direction=r.state.direction, stroke=r.state.strokes,
             half_strokes=r.state.half_strokes,
             reversal=r.reversal.value if r.reversal else None,
-            frame_age_ms=frame_age_ms, latency_ms=latency_ms,
+            frame_age_ms=frame_age_ms, joint_age_ms=joint_age_ms, latency_ms=latency_ms,
         )  # fmt: skip

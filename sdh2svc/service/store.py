@@ -115,6 +115,7 @@ def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
         if not create and not _has_runs_table(db):
             raise StoreError(f"{p} is not a run database (it has no runs table)")
         db.executescript(SCHEMA)
+        _add_new_sample_columns(db)
     except (OSError, sqlite3.Error) as e:
         if db is not None:
             db.close()
@@ -126,6 +127,14 @@ def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
         raise
     db.row_factory = sqlite3.Row
     return db
+
+
+def _add_new_sample_columns(db: sqlite3.Connection) -> None:
+    """A database made before a Sample field was added gets its column (null in older rows)."""
+    have = {row[1] for row in db.execute("PRAGMA table_info(samples)")}
+    for column in SAMPLE_COLUMNS:
+        if column not in have:
+            db.execute(f'ALTER TABLE samples ADD COLUMN "{column}"')
 
 
 def _has_runs_table(db: sqlite3.Connection) -> bool:
@@ -297,7 +306,7 @@ class RunStore:
             put("events", e["t"], e)
         for t, it, ts, tex in self.frames(run_id):
             put("tactile", t, {"iteration": it, "timestamp_ms": ts, "texels": tex.tolist()})
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]
         return n
 
 

@@ -304,11 +304,11 @@ class Outline:
         v, e = self.vertices, self.edges
         n = len(v)
         if n == 1:
-            return np.linalg.norm(p - v[0], axis=1) - self.radius
+            return np.asarray(np.linalg.norm(p - v[0], axis=1) - self.radius)
         if not self._closed:  # a segment (stick)
             rel = p - v[0]
             t = np.clip(rel @ e[0] / float(e[0] @ e[0]), 0.0, 1.0)
-            return np.linalg.norm(rel - t[:, None] * e[0], axis=1) - self.radius
+            return np.asarray(np.linalg.norm(rel - t[:, None] * e[0], axis=1) - self.radius)
         side = p @ self.normals.T - self.offsets  # (N, E) signed distance to each edge's line
         outside = np.max(side, axis=1)
         d = outside.copy()
@@ -317,7 +317,7 @@ class Outline:
             rel = p[out][:, None, :] - v[None]
             t = np.clip(np.sum(rel * e[None], axis=2) / np.sum(e * e, axis=1)[None], 0.0, 1.0)
             d[out] = np.min(np.linalg.norm(rel - t[..., None] * e[None], axis=2), axis=1)
-        return d - self.radius
+        return np.asarray(d - self.radius)
 
     def exit_distance(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
         """How far each object-frame point p (N, 2) inside the outline goes along its unit
@@ -345,7 +345,7 @@ class Outline:
         room = self.offsets + r - p @ self.normals.T
         t_edges = np.divide(room, dn, out=np.full_like(room, np.inf), where=dn > 0.0)
         if r <= 0.0:
-            return t_edges.min(axis=1)
+            return np.asarray(t_edges.min(axis=1))
         k = np.argmin(t_edges, axis=1)
         t = t_edges[np.arange(len(k)), k]
         # beyond an end of that edge: the rounded corner, on its vertex's circle
@@ -357,7 +357,7 @@ class Outline:
         if cap.any():
             corner = v[(k[cap] + (along[cap] > 1.0)) % len(v)]
             t[cap] = _disk_exit((p[cap] - corner).T, d[cap].T, r)
-        return t
+        return np.asarray(t)
 
     def _box_exit(self, P: np.ndarray, D: np.ndarray) -> np.ndarray:
         """:meth:`exit_distance` of a box, points and directions as rows (x, y): its sides moved
@@ -366,14 +366,14 @@ class Outline:
         side = (self._box_far - np.sign(D) * P) / np.maximum(np.abs(D), 1e-300)
         t = np.minimum(side[0], side[1])
         if self.radius <= 0.0:
-            return t
+            return np.asarray(t)
         Q = P + t * D
         core = self._box_core
         assert core is not None  # a box's
         beyond = np.abs(Q) > core[:, None]
         cap = beyond[0] & beyond[1]
         if not cap.any():
-            return t
+            return np.asarray(t)
         W = P - np.copysign(core[:, None], Q)  # from the corner
         return np.where(cap, _disk_exit(W, D, self.radius), t)
 
@@ -393,7 +393,7 @@ class Outline:
         if cap.any():
             W = np.stack((px - np.copysign(half, u), py))
             t = np.where(cap, _disk_exit(W, np.stack((dx, dy)), r), t)
-        return t
+        return np.asarray(t)
 
     def _box_sdf(self, p: np.ndarray) -> np.ndarray:
         """:meth:`sdf` of a box: the same distances as the polygon's, without projecting every
@@ -402,9 +402,9 @@ class Outline:
         qx, qy = q[:, 0], q[:, 1]
         outside = np.maximum(qx, qy)  # inside the core: the distance to its nearest side
         if self.radius <= 0.0:
-            return outside  # as for any polygon: exact inside, positive outside
+            return np.asarray(outside)  # as for any polygon: exact inside, positive outside
         corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
-        return np.where(outside > 0.0, corner, outside) - self.radius
+        return np.asarray(np.where(outside > 0.0, corner, outside) - self.radius)
 
 
 def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> np.ndarray:
@@ -416,10 +416,10 @@ def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> 
     b = WD[0] + WD[1]
     c = WW[0] + WW[1] - r * r
     if not scaled:
-        return np.sqrt(np.maximum(b * b - c, 0.0)) - b
+        return np.asarray(np.sqrt(np.maximum(b * b - c, 0.0)) - b)
     DD = D * D
     dd = DD[0] + DD[1]
-    return (np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd
+    return np.asarray((np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd)
 
 
 def load_object(path: str | Path) -> Shape:
@@ -432,7 +432,8 @@ def load_object(path: str | Path) -> Shape:
 
 def parse_object(data: dict[str, Any]) -> Shape:
     """Validate an object definition (raises pydantic.ValidationError with the field's name)."""
-    return _ADAPTER.validate_python(data)
+    shape: Shape = _ADAPTER.validate_python(data)
+    return shape
 
 
 def get_object(name: str) -> Shape:

@@ -29,6 +29,20 @@ def test_frame_age_allows_up_to_the_limit_and_faults_beyond_or_without_a_frame(
     assert safety.frame_age(None, s) == Violation(Fault.STALE_SENSOR, "no tactile frame for 300 ms")
 
 
+def test_joint_age_allows_up_to_the_limit_and_faults_beyond_or_without_a_reading(
+    cfg: Settings,
+) -> None:
+    s = cfg.safety
+    limit = s.stale_joint_ms / 1000
+    assert safety.joint_age(0.0, s) is None
+    assert safety.joint_age(limit, s) is None
+    v = safety.joint_age(limit + 0.001, s)
+    assert v is not None and v.fault is Fault.JOINT_ERROR
+    assert f"{s.stale_joint_ms + 1:.0f} ms old" in v.message
+    v = safety.joint_age(None, s)
+    assert v is not None and v.fault is Fault.JOINT_ERROR and "no reading" in v.message
+
+
 def test_force_ceiling_is_the_factor_times_fd(cfg: Settings) -> None:
     s = cfg.safety  # 3 × Fd
     assert safety.force_ceiling(6.0, 2.0, s) is None

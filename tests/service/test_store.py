@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import math
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +21,7 @@ from sdh2svc.config import Settings
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.kinematics import HandPose
-from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.service.store import SAMPLE_COLUMNS, SCHEMA, Recorder, RunStore, connect
 
 
 def _frame(S: float) -> np.ndarray:
@@ -36,7 +38,8 @@ def _samples(cfg: Settings, n: int) -> list[Sample]:
     out = []
     for i in range(n):
         r = step(state, pose, _frame(20.0 + 0.1 * i), _frame(20.0), cfg.rolling, ctx)
-        out.append(Sample.from_step(r, pose, t=i / 30, frame_age_ms=3.0, latency_ms=1.5))
+        ages = {"frame_age_ms": 3.0, "joint_age_ms": 2.0, "latency_ms": 1.5}
+        out.append(Sample.from_step(r, pose, t=i / 30, **ages))
         state, pose = r.state, r.targets or pose
     return out
 
@@ -130,3 +133,12 @@ def test_durable_through_sigkill(tmp_path: Path) -> None:
     assert run["iterations"] >= durable
     assert run["status"] == "running"  # it never finished: a crash, not a stop
     store.close()
+
+
+def test_an_older_database_gets_new_sample_columns(tmp_path: Path) -> None:
+    path = tmp_path / "old.sqlite"
+    with contextlib.closing(sqlite3.connect(path)) as old:
+        old.executescript(SCHEMA.replace(', "joint_age_ms"', ""))
+    db = connect(path)
+    assert {row[1] for row in db.execute("PRAGMA table_info(samples)")} >= set(SAMPLE_COLUMNS)
+    db.close()
