@@ -12,20 +12,24 @@ from sdh2svc.bus.joint import JointReading
 from sdh2svc.config import Settings
 from sdh2svc.control.runner import RunFault, Runner
 from sdh2svc.control.safety import Fault
+from sdh2svc.sim.clock import run_fast
 
 ANGLES = (10.0, -20.0, 15.0, -25.0, 5.0, -20.0, 10.0)
 
 
 def _runner(cfg: Settings, reading: JointReading | None) -> Runner:
     joints: Any = SimpleNamespace(take_reading=lambda: reading)
-    return Runner(cfg, joints, tactile=None)  # type: ignore[arg-type]
+    return Runner(cfg.control(), joints, tactile=None)  # type: ignore[arg-type]
 
 
-async def test_fresh_angles_and_their_age(cfg: Settings) -> None:
-    now = asyncio.get_running_loop().time()
-    angles, age_ms = _runner(cfg, JointReading(ANGLES, now - 0.004))._newest_angles()
+def test_fresh_angles_and_their_age(cfg: Settings) -> None:
+    async def main() -> tuple[tuple[float, ...], float]:  # on the virtual clock: time stands
+        now = asyncio.get_running_loop().time()
+        return _runner(cfg, JointReading(ANGLES, now - 0.004))._newest_angles()
+
+    angles, age_ms = run_fast(main())
     assert angles == ANGLES
-    assert age_ms == pytest.approx(4.0, abs=1.0)
+    assert age_ms == pytest.approx(4.0, abs=1e-9)
 
 
 @pytest.mark.parametrize("age_s", [None, 0.301])
