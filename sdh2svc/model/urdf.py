@@ -9,10 +9,11 @@ its flat-and-arc profile).
 
 Frames (URDF's units: metres, radians):
 
-* ``palm``: centre of the finger bases' circle, z along the straightened fingers, x from the thumb
-  towards the coupled fingers, y from Finger 1 towards Finger 2.
+* ``palm``: at the palm's base below the finger bases' circle, z along the straightened fingers,
+  x from the thumb towards the coupled fingers, y from Finger 2 towards Finger 1 (SCHUNK's own
+  palm frame: knuckles at (19.05, ±33) mm, the thumb at (−38.11, 0) mm).
 * ``frame0``: the model's frame 0 (at Finger 1's proximal joint O, y0 towards Finger 2, z0 along
-  the straightened finger); its y and z are the model's (y, z) in mm / 1000.
+  the straightened finger, x0 towards the thumb); its y and z are the model's (y, z) in mm / 1000.
 * ``<finger>_frame3``: frame 3 at the distal joint (x along the distal link, y towards the pad),
   so a pad point (x3, y3) sits at (x3, y3, 0) there.
 * ``<finger>_<proximal|distal>_pad``: a tactile matrix's plane, origin at the corner of cell
@@ -43,9 +44,10 @@ _MM = 1e-3
 _CLOSE = (-1.0, 0.0, 0.0)  # every finger joint's axis: positive angles close towards +y
 _PAD_FRAME_RPY = (-math.pi / 2, 0.0, 0.0)  # link (x, y, z) → pad (x, −z, y)
 _ARC_SEGMENTS = 8  # boxes approximating the distal pad's arc
-# display only: the model has no such dimensions
-_PALM_THICKNESS_MM = 40.0
-_PALM_BELOW_JOINTS_MM = 12.0
+# display only: the model has no such dimensions (SCHUNK's URDF's: the palm's base to the
+# knuckles, the knuckle to the proximal joint)
+_PALM_HEIGHT_MM = 74.5
+_KNUCKLE_MM = 16.5
 _LINK_WIDTH_MM = 24.0
 
 
@@ -118,21 +120,23 @@ def describe(
     """The SDH2 as links, joints and visuals, from the configuration's sections."""
     side = geom.base_offset_mm * _MM
     r = side / math.sqrt(3.0)  # the finger bases' circle
-    base = {"finger1": (r / 2, -side / 2, 0.0), "finger2": (r / 2, side / 2, 0.0)}
-    base["thumb"] = (-r, 0.0, 0.0)
+    h = _PALM_HEIGHT_MM * _MM
+    base = {"finger1": (r / 2, side / 2, h), "finger2": (r / 2, -side / 2, h)}
+    base["thumb"] = (-r, 0.0, h)
     lim = {
         name: (math.radians(limits.min_deg[ax]), math.radians(limits.max_deg[ax]))
         for ax, name in joint_names(axes).items()
     }
-    joints = [Joint("frame0", "palm", "frame0", base["finger1"])]
-    # the coupling: Finger 1 turns by −φ1, Finger 2 by +φ1, from facing the thumb (yaw π/2)
+    o = (base["finger1"][0], base["finger1"][1], h + _KNUCKLE_MM * _MM)
+    joints = [Joint("frame0", "palm", "frame0", o, (0.0, 0.0, math.pi))]
+    # the coupling: Finger 1 turns by +φ1, Finger 2 by −φ1, from facing the thumb (yaw π/2)
     lo, hi = lim["phi1"]
     yaw = (0.0, 0.0, math.pi / 2)
     joints += [
         Joint("phi1", "palm", "finger1_knuckle", base["finger1"], yaw, "revolute",
-              (0.0, 0.0, -1.0), lo, hi),
+              (0.0, 0.0, 1.0), lo, hi),
         Joint("phi1_finger2", "palm", "finger2_knuckle", base["finger2"], yaw, "revolute",
-              (0.0, 0.0, 1.0), lo, hi, mimic="phi1"),
+              (0.0, 0.0, -1.0), lo, hi, mimic="phi1"),
         # the thumb stands still, facing the coupled fingers
         Joint("thumb_base", "palm", "thumb_knuckle", base["thumb"], (0.0, 0.0, -math.pi / 2)),
     ]  # fmt: skip
@@ -147,9 +151,8 @@ def describe(
 
 
 def _palm(r: float) -> Visual:
-    t = _PALM_THICKNESS_MM * _MM
-    z = -(_PALM_BELOW_JOINTS_MM * _MM + t / 2)
-    return Visual("palm", "cylinder", (r + _LINK_WIDTH_MM * _MM, t, 0.0), (0.0, 0.0, z))
+    h = _PALM_HEIGHT_MM * _MM
+    return Visual("palm", "cylinder", (r + _LINK_WIDTH_MM * _MM, h, 0.0), (0.0, 0.0, h / 2))
 
 
 def _finger(
@@ -165,7 +168,7 @@ def _finger(
     knuckle, prox, dist = f"{finger}_knuckle", f"{finger}_proximal", f"{finger}_distal"
     frame3, ppad, dpad = f"{finger}_frame3", f"{finger}_proximal_pad", f"{finger}_distal_pad"
     joints = [
-        Joint(prox_name, knuckle, prox, (0.0, 0.0, 0.0), kind="revolute", axis=_CLOSE,
+        Joint(prox_name, knuckle, prox, (0.0, 0.0, _KNUCKLE_MM * _MM), kind="revolute", axis=_CLOSE,
               lower=lim[prox_name][0], upper=lim[prox_name][1]),
         Joint(dist_name, prox, dist, (0.0, 0.0, l1), kind="revolute", axis=_CLOSE,
               lower=lim[dist_name][0], upper=lim[dist_name][1]),

@@ -126,6 +126,16 @@ def test_phi1_zero_turns_the_coupled_fingers_to_face_the_thumb(
         assert moved * knuckle[0] < 0
 
 
+def test_frame0_has_the_thumb_where_the_3d_view_puts_it(
+    cfg: Settings, robot: yourdfpy.URDF
+) -> None:
+    """x0 towards the thumb: its knuckle at (d·√3/2, d/2) in frame 0 (service/viewer.py)."""
+    d = cfg.hand.base_offset_mm
+    robot.update_cfg({n: 0.0 for n in robot.actuated_joint_names})
+    x0, y0, _ = robot.get_transform("thumb_knuckle", "frame0")[:3, 3] / MM
+    assert (x0, y0) == pytest.approx((d * math.sqrt(3) / 2, d / 2))
+
+
 def test_the_transforms_a_recording_carries_are_the_urdfs(
     cfg: Settings, robot: yourdfpy.URDF
 ) -> None:
