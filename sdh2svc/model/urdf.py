@@ -351,11 +351,18 @@ def joint_transforms(desc: HandDescription, angles: Mapping[str, float]) -> list
     return out
 
 
-def main() -> None:
-    """``python -m sdh2svc.model.urdf > sdh2.urdf``: the URDF of the packaged configuration."""
+def main(argv: list[str] | None = None) -> None:
+    """``python -m sdh2svc.model.urdf [--config FILE] > sdh2.urdf``: the configuration's URDF."""
+    import argparse
+
     from sdh2svc.config import load_config  # the entry point composes; the model never does
 
-    cfg = load_config()
+    p = argparse.ArgumentParser(
+        prog="python -m sdh2svc.model.urdf",
+        description="Print the SDH2's URDF, generated from the configuration's geometry.",
+    )
+    p.add_argument("--config", metavar="FILE", help="a TOML file overriding the defaults")
+    cfg = load_config(p.parse_args(argv).config)
     print(sdh2_urdf(cfg.hand, cfg.axes, cfg.limits, cfg.tactile), end="")
 
 

@@ -19,6 +19,7 @@ from sdh2svc.model.urdf import (
     describe,
     joint_names,
     joint_transforms,
+    main,
     pad_matrix,
     quat_from_rpy,
     sdh2_urdf,
@@ -172,3 +173,10 @@ def test_rpy_quaternion_is_urdfs_convention() -> None:
     Ry = np.array([[c[1], 0, s[1]], [0, 1, 0], [-s[1], 0, c[1]]])
     Rz = np.array([[c[2], -s[2], 0], [s[2], c[2], 0], [0, 0, 1]])
     assert np.allclose(r, Rz @ Ry @ Rx)
+
+
+def test_the_entry_point_prints_the_configurations_urdf(
+    text: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    main([])
+    assert capsys.readouterr().out == text
