@@ -31,7 +31,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
-from sdh2svc.model.geometry import PadProfile, pad_slope, pad_y3, x3_from_L
+from sdh2svc.model.geometry import pad_slope, pad_y3, x3_from_L
 from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig
 from sdh2svc.model.kinematics import HandGeometry
 
@@ -48,7 +48,13 @@ _ARC_SEGMENTS = 8  # boxes approximating the distal pad's arc
 # knuckles, the knuckle to the proximal joint)
 _PALM_HEIGHT_MM = 74.5
 _KNUCKLE_MM = 16.5
-_LINK_WIDTH_MM = 24.0
+_LINK_WIDTH_MM = 22.0
+_PROXIMAL_BODY_Y_MM = (-12.0, 12.0)
+_DISTAL_BODY_Y_MM = (-12.0, 3.0)  # behind the distal pad, whose back is the plane y3 = 3 mm
+_DISTAL_BODY_BEHIND_MM, _DISTAL_BODY_SHORT_MM = 8.0, 6.0  # from the joint, of the link's length
+_PAD_BACK_Y3_MM = 3.0
+_PROXIMAL_PAD_Y_MM = 14.0  # the proximal pad's surface…
+_PROXIMAL_ROW0_FROM_DISTAL_MM = 15.0  # …and its row 0's centre below the distal joint
 
 
 @dataclass(frozen=True, slots=True)
@@ -187,17 +193,21 @@ def _finger(
     y3 = pad_y3(x3, pad)
     joints.append(_pad_frame(f"{finger}_distal_pad", dist, (y3 * _MM, x3 * _MM), beta,
                              d.cols * pitch, d.rows * pitch))  # fmt: skip
-    # the proximal matrix (display: its place is not in the model): centred on the link, at the
-    # distal pad's flat height
+    # the proximal matrix (display: its place is not in the model)
     p = tactile.proximal
-    joints.append(_pad_frame(f"{finger}_proximal_pad", prox, (pad.flat_y3_mm * _MM, l1 / 2), 0.0,
+    z_mid = l1 - (_PROXIMAL_ROW0_FROM_DISTAL_MM + tactile.texel_pitch_mm * (p.rows - 1) / 2) * _MM
+    y_prox = _PROXIMAL_PAD_Y_MM * _MM
+    joints.append(_pad_frame(f"{finger}_proximal_pad", prox, (y_prox, z_mid), 0.0,
                              p.cols * pitch, p.rows * pitch))  # fmt: skip
-    w = _LINK_WIDTH_MM * _MM
-    depth = 2 * (pad.flat_y3_mm - pad.rubber_thickness_mm) * _MM
+    w, k = _LINK_WIDTH_MM * _MM, _KNUCKLE_MM * _MM
+    py0, py1 = (v * _MM for v in _PROXIMAL_BODY_Y_MM)
+    dy0, dy1 = (v * _MM for v in _DISTAL_BODY_Y_MM)
+    dz0, dz1 = -_DISTAL_BODY_BEHIND_MM * _MM, l2 - _DISTAL_BODY_SHORT_MM * _MM
     visuals = [
-        Visual(prox, "box", (w, depth, l1), (0.0, 0.0, l1 / 2)),
-        Visual(dist, "box", (w, depth, l2), (0.0, 0.0, l2 / 2)),
-        _slab(prox, p.cols * pitch, (pad.flat_y3_mm * _MM, l1 / 2), 0.0, p.rows * pitch, pad),
+        Visual(knuckle, "box", (w, w, k), (0.0, 0.0, k / 2)),
+        Visual(prox, "box", (w, py1 - py0, l1), (0.0, (py0 + py1) / 2, l1 / 2)),
+        Visual(dist, "box", (w, dy1 - dy0, dz1 - dz0), (0.0, (dy0 + dy1) / 2, (dz0 + dz1) / 2)),
+        _slab(prox, p.cols * pitch, (y_prox, z_mid), 0.0, p.rows * pitch, y_prox - py1),
         *_distal_pad(dist, d.cols * pitch, geom),
     ]
     return [knuckle, prox, dist, frame3, ppad, dpad], joints, visuals
@@ -221,10 +231,9 @@ def _slab(
     surface_yz: tuple[float, float],
     beta: float,
     length: float,
-    pad: PadProfile,
+    t: float,
 ) -> Visual:
-    """A pad strip of the rubber's thickness under the surface point, tilted by β about x."""
-    t = pad.rubber_thickness_mm * _MM
+    """A pad strip ``t`` thick under the surface point, tilted by β about x."""
     ys, zs = surface_yz
     ny, nz = math.cos(beta), math.sin(beta)  # the outward normal, link (y, z)
     return Visual(link, "box", (width, t, length), (0.0, ys - ny * t / 2, zs - nz * t / 2),
@@ -232,11 +241,12 @@ def _slab(
 
 
 def _distal_pad(link: str, width: float, geom: HandGeometry) -> list[Visual]:
-    """The distal pad's flat part and its arc (as short tangent strips)."""
+    """The distal pad's flat part and its arc (as short tangent strips), down to its back."""
     pad = geom.pad
     flat = pad.flat_end_x3_mm - pad.flat_start_x3_mm
     mid = (pad.flat_start_x3_mm + pad.flat_end_x3_mm) / 2
-    out = [_slab(link, width, (pad.flat_y3_mm * _MM, mid * _MM), 0.0, flat * _MM, pad)]
+    t = (pad.flat_y3_mm - _PAD_BACK_Y3_MM) * _MM
+    out = [_slab(link, width, (pad.flat_y3_mm * _MM, mid * _MM), 0.0, flat * _MM, t)]
     R = pad.arc_radius_mm
     end = math.asin((pad.tip_end_x3_mm - pad.flat_end_x3_mm) / R)
     for i in range(_ARC_SEGMENTS):
@@ -246,7 +256,8 @@ def _distal_pad(link: str, width: float, geom: HandGeometry) -> list[Visual]:
         x3 = pad.flat_end_x3_mm + R * math.sin(bm)
         y3 = pad.flat_y3_mm - R + R * math.cos(bm)
         chord = 2 * R * math.sin((b1 - b0) / 2)
-        out.append(_slab(link, width, (y3 * _MM, x3 * _MM), bm, chord * _MM, pad))
+        t = (y3 - _PAD_BACK_Y3_MM) / math.cos(bm) * _MM  # along the normal, to the back plane
+        out.append(_slab(link, width, (y3 * _MM, x3 * _MM), bm, chord * _MM, t))
     return out
 
 

@@ -11,7 +11,7 @@ import pytest
 import yourdfpy
 
 from sdh2svc.config import Settings
-from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
+from sdh2svc.model.geometry import pad_point_from_L, pad_y3, virtual_joint
 from sdh2svc.model.kinematics import Finger, contact_point, distal_joint, pad_point
 from sdh2svc.model.urdf import (
     FINGERS,
@@ -163,6 +163,23 @@ def test_the_distal_grid_is_centred_on_the_pad(cfg: Settings, robot: yourdfpy.UR
     assert x3 == pytest.approx(pad_point_from_L(27.5, pad)[0])
     # the grid's rows run from the fingertip's end (row 0) towards the distal joint
     assert (T[:3, :3] @ [0.0, 1.0, 0.0])[0] < 0
+
+
+def test_the_distal_pad_is_drawn_along_its_profile(cfg: Settings) -> None:
+    """Every strip of the distal pad touches the flat-and-arc profile of hand-model §3."""
+    pad = cfg.hand.pad
+    strips = [v for v in describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile).visuals
+              if v.link == "finger1_distal" and v.material == "pad"]  # fmt: skip
+    reach = []
+    for v in strips:
+        a = v.rpy[0]  # the strip's tilt about x; its y axis is the outward normal
+        y = v.xyz[1] + math.cos(a) * v.size[1] / 2
+        z = v.xyz[2] + math.sin(a) * v.size[1] / 2
+        x3, y3 = z / MM, y / MM
+        assert y3 == pytest.approx(pad_y3(x3, pad), abs=1e-9)
+        reach += [x3 - math.cos(a) * v.size[2] / 2 / MM, x3 + math.cos(a) * v.size[2] / 2 / MM]
+    assert min(reach) == pytest.approx(pad.flat_start_x3_mm)
+    assert max(reach) == pytest.approx(pad.tip_end_x3_mm, abs=0.1)
 
 
 def test_rpy_quaternion_is_urdfs_convention() -> None:
