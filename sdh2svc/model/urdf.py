@@ -46,15 +46,15 @@ _PAD_FRAME_RPY = (-math.pi / 2, 0.0, 0.0)  # link (x, y, z) → pad (x, −z, y)
 _ARC_SEGMENTS = 8  # boxes approximating the distal pad's arc
 # display only: the model has no such dimensions (SCHUNK's URDF's: the palm's base to the
 # knuckles, the knuckle to the proximal joint)
-_PALM_HEIGHT_MM = 74.5
-_KNUCKLE_MM = 16.5
+PALM_HEIGHT_MM = 74.5
+KNUCKLE_MM = 16.5
 _LINK_WIDTH_MM = 22.0
 _PROXIMAL_BODY_Y_MM = (-12.0, 12.0)
 _DISTAL_BODY_Y_MM = (-12.0, 3.0)  # behind the distal pad, whose back is the plane y3 = 3 mm
 _DISTAL_BODY_BEHIND_MM, _DISTAL_BODY_SHORT_MM = 8.0, 6.0  # from the joint, of the link's length
 _PAD_BACK_Y3_MM = 3.0
-_PROXIMAL_PAD_Y_MM = 14.0  # the proximal pad's surface…
-_PROXIMAL_ROW0_FROM_DISTAL_MM = 15.0  # …and its row 0's centre below the distal joint
+PROXIMAL_PAD_Y_MM = 14.0  # the proximal pad's surface…
+PROXIMAL_ROW0_FROM_DISTAL_MM = 15.0  # …and its row 0's centre below the distal joint
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,14 +126,14 @@ def describe(
     """The SDH2 as links, joints and visuals, from the configuration's sections."""
     side = geom.base_offset_mm * _MM
     r = side / math.sqrt(3.0)  # the finger bases' circle
-    h = _PALM_HEIGHT_MM * _MM
+    h = PALM_HEIGHT_MM * _MM
     base = {"finger1": (r / 2, side / 2, h), "finger2": (r / 2, -side / 2, h)}
     base["thumb"] = (-r, 0.0, h)
     lim = {
         name: (math.radians(limits.min_deg[ax]), math.radians(limits.max_deg[ax]))
         for ax, name in joint_names(axes).items()
     }
-    o = (base["finger1"][0], base["finger1"][1], h + _KNUCKLE_MM * _MM)
+    o = (base["finger1"][0], base["finger1"][1], h + KNUCKLE_MM * _MM)
     joints = [Joint("frame0", "palm", "frame0", o, (0.0, 0.0, math.pi))]
     # the coupling: Finger 1 turns by +φ1, Finger 2 by −φ1, from facing the thumb (yaw π/2)
     lo, hi = lim["phi1"]
@@ -157,7 +157,7 @@ def describe(
 
 
 def _palm(r: float) -> Visual:
-    h = _PALM_HEIGHT_MM * _MM
+    h = PALM_HEIGHT_MM * _MM
     return Visual("palm", "cylinder", (r + _LINK_WIDTH_MM * _MM, h, 0.0), (0.0, 0.0, h / 2))
 
 
@@ -174,7 +174,7 @@ def _finger(
     knuckle, prox, dist = f"{finger}_knuckle", f"{finger}_proximal", f"{finger}_distal"
     frame3, ppad, dpad = f"{finger}_frame3", f"{finger}_proximal_pad", f"{finger}_distal_pad"
     joints = [
-        Joint(prox_name, knuckle, prox, (0.0, 0.0, _KNUCKLE_MM * _MM), kind="revolute", axis=_CLOSE,
+        Joint(prox_name, knuckle, prox, (0.0, 0.0, KNUCKLE_MM * _MM), kind="revolute", axis=_CLOSE,
               lower=lim[prox_name][0], upper=lim[prox_name][1]),
         Joint(dist_name, prox, dist, (0.0, 0.0, l1), kind="revolute", axis=_CLOSE,
               lower=lim[dist_name][0], upper=lim[dist_name][1]),
@@ -195,11 +195,11 @@ def _finger(
                              d.cols * pitch, d.rows * pitch))  # fmt: skip
     # the proximal matrix (display: its place is not in the model)
     p = tactile.proximal
-    z_mid = l1 - (_PROXIMAL_ROW0_FROM_DISTAL_MM + tactile.texel_pitch_mm * (p.rows - 1) / 2) * _MM
-    y_prox = _PROXIMAL_PAD_Y_MM * _MM
+    z_mid = l1 - (PROXIMAL_ROW0_FROM_DISTAL_MM + tactile.texel_pitch_mm * (p.rows - 1) / 2) * _MM
+    y_prox = PROXIMAL_PAD_Y_MM * _MM
     joints.append(_pad_frame(f"{finger}_proximal_pad", prox, (y_prox, z_mid), 0.0,
                              p.cols * pitch, p.rows * pitch))  # fmt: skip
-    w, k = _LINK_WIDTH_MM * _MM, _KNUCKLE_MM * _MM
+    w, k = _LINK_WIDTH_MM * _MM, KNUCKLE_MM * _MM
     py0, py1 = (v * _MM for v in _PROXIMAL_BODY_Y_MM)
     dy0, dy1 = (v * _MM for v in _DISTAL_BODY_Y_MM)
     dz0, dz1 = -_DISTAL_BODY_BEHIND_MM * _MM, l2 - _DISTAL_BODY_SHORT_MM * _MM
