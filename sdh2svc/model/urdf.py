@@ -42,6 +42,7 @@ FINGERS = ("finger1", "finger2", "thumb")
 PADS = ("proximal", "distal")
 _MM = 1e-3
 _CLOSE = (-1.0, 0.0, 0.0)  # every finger joint's axis: positive angles close towards +y
+_UP, _DOWN = (0.0, 0.0, 1.0), (0.0, 0.0, -1.0)
 _PAD_FRAME_RPY = (-math.pi / 2, 0.0, 0.0)  # link (x, y, z) → pad (x, −z, y)
 _ARC_SEGMENTS = 8  # boxes approximating the distal pad's arc
 # display only: the model has no such dimensions (SCHUNK's URDF's: the palm's base to the
@@ -99,13 +100,31 @@ class HandDescription:
         return tuple(j.name for j in self.joints if j.kind == "revolute" and j.mimic is None)
 
 
+def _revolute(
+    name: str,
+    parent: str,
+    child: str,
+    xyz: Vec3,
+    axis: Vec3,
+    limits: tuple[float, float],
+    *,
+    yaw: float = 0.0,
+    mimic: str | None = None,
+) -> Joint:
+    return Joint(name, parent, child, xyz, (0.0, 0.0, yaw), "revolute", axis, *limits, mimic)
+
+
 def joint_names(axes: AxisMap) -> dict[int, str]:
     """Wire axis → the URDF joint it drives (the configuration's names for the axes)."""
     return {
-        axes.phi1: "phi1", axes.phi2: "phi2", axes.phi3: "phi3", axes.phi4: "phi4",
-        axes.phi5: "phi5", axes.thumb_proximal: "thumb_proximal",
+        axes.phi1: "phi1",
+        axes.phi2: "phi2",
+        axes.phi3: "phi3",
+        axes.phi4: "phi4",
+        axes.phi5: "phi5",
+        axes.thumb_proximal: "thumb_proximal",
         axes.thumb_distal: "thumb_distal",
-    }  # fmt: skip
+    }
 
 
 def _finger_joint_names(finger: str) -> tuple[str, str]:
@@ -136,16 +155,22 @@ def describe(
     o = (base["finger1"][0], base["finger1"][1], h + KNUCKLE_MM * _MM)
     joints = [Joint("frame0", "palm", "frame0", o, (0.0, 0.0, math.pi))]
     # the coupling: Finger 1 turns by +φ1, Finger 2 by −φ1, from facing the thumb (yaw π/2)
-    lo, hi = lim["phi1"]
-    yaw = (0.0, 0.0, math.pi / 2)
+    turn = lim["phi1"]
     joints += [
-        Joint("phi1", "palm", "finger1_knuckle", base["finger1"], yaw, "revolute",
-              (0.0, 0.0, 1.0), lo, hi),
-        Joint("phi1_finger2", "palm", "finger2_knuckle", base["finger2"], yaw, "revolute",
-              (0.0, 0.0, -1.0), lo, hi, mimic="phi1"),
+        _revolute("phi1", "palm", "finger1_knuckle", base["finger1"], _UP, turn, yaw=math.pi / 2),
+        _revolute(
+            "phi1_finger2",
+            "palm",
+            "finger2_knuckle",
+            base["finger2"],
+            _DOWN,
+            turn,
+            yaw=math.pi / 2,
+            mimic="phi1",
+        ),
         # the thumb stands still, facing the coupled fingers
         Joint("thumb_base", "palm", "thumb_knuckle", base["thumb"], (0.0, 0.0, -math.pi / 2)),
-    ]  # fmt: skip
+    ]
     links = ["palm", "frame0"]
     visuals = [_palm(r)]
     for finger in FINGERS:
@@ -174,13 +199,11 @@ def _finger(
     knuckle, prox, dist = f"{finger}_knuckle", f"{finger}_proximal", f"{finger}_distal"
     frame3, ppad, dpad = f"{finger}_frame3", f"{finger}_proximal_pad", f"{finger}_distal_pad"
     joints = [
-        Joint(prox_name, knuckle, prox, (0.0, 0.0, KNUCKLE_MM * _MM), kind="revolute", axis=_CLOSE,
-              lower=lim[prox_name][0], upper=lim[prox_name][1]),
-        Joint(dist_name, prox, dist, (0.0, 0.0, l1), kind="revolute", axis=_CLOSE,
-              lower=lim[dist_name][0], upper=lim[dist_name][1]),
+        _revolute(prox_name, knuckle, prox, (0.0, 0.0, KNUCKLE_MM * _MM), _CLOSE, lim[prox_name]),
+        _revolute(dist_name, prox, dist, (0.0, 0.0, l1), _CLOSE, lim[dist_name]),
         # frame 3: x3 along the link (the link's z), y3 towards the pad (the link's y)
         Joint(f"{finger}_frame3", dist, frame3, (0.0, 0.0, 0.0), (0.0, -math.pi / 2, 0.0)),
-    ]  # fmt: skip
+    ]
     pitch = tactile.texel_pitch_mm * _MM
     # the distal matrix: tangent to the pad at its middle row, centred on it
     d = tactile.distal
@@ -191,14 +214,20 @@ def _finger(
     x3 = x3_from_L(L_mid, pad)
     beta = math.atan(-pad_slope(x3, pad))  # the surface's tilt from the link's axis there
     y3 = pad_y3(x3, pad)
-    joints.append(_pad_frame(f"{finger}_distal_pad", dist, (y3 * _MM, x3 * _MM), beta,
-                             d.cols * pitch, d.rows * pitch))  # fmt: skip
+    joints.append(
+        _pad_frame(
+            f"{finger}_distal_pad", dist, (y3 * _MM, x3 * _MM), beta, d.cols * pitch, d.rows * pitch
+        )
+    )
     # the proximal matrix (display: its place is not in the model)
     p = tactile.proximal
     z_mid = l1 - (PROXIMAL_ROW0_FROM_DISTAL_MM + tactile.texel_pitch_mm * (p.rows - 1) / 2) * _MM
     y_prox = PROXIMAL_PAD_Y_MM * _MM
-    joints.append(_pad_frame(f"{finger}_proximal_pad", prox, (y_prox, z_mid), 0.0,
-                             p.cols * pitch, p.rows * pitch))  # fmt: skip
+    joints.append(
+        _pad_frame(
+            f"{finger}_proximal_pad", prox, (y_prox, z_mid), 0.0, p.cols * pitch, p.rows * pitch
+        )
+    )
     w, k = _LINK_WIDTH_MM * _MM, KNUCKLE_MM * _MM
     py0, py1 = (v * _MM for v in _PROXIMAL_BODY_Y_MM)
     dy0, dy1 = (v * _MM for v in _DISTAL_BODY_Y_MM)
@@ -236,8 +265,14 @@ def _slab(
     """A pad strip ``t`` thick under the surface point, tilted by β about x."""
     ys, zs = surface_yz
     ny, nz = math.cos(beta), math.sin(beta)  # the outward normal, link (y, z)
-    return Visual(link, "box", (width, t, length), (0.0, ys - ny * t / 2, zs - nz * t / 2),
-                  (beta, 0.0, 0.0), "pad")  # fmt: skip
+    return Visual(
+        link,
+        "box",
+        (width, t, length),
+        (0.0, ys - ny * t / 2, zs - nz * t / 2),
+        (beta, 0.0, 0.0),
+        "pad",
+    )
 
 
 def _distal_pad(link: str, width: float, geom: HandGeometry) -> list[Visual]:
@@ -294,8 +329,9 @@ def to_xml(desc: HandDescription, name: str = "sdh2") -> str:
         ET.SubElement(el, "origin", xyz=_v(j.xyz), rpy=_v(j.rpy))
         if j.kind == "revolute":
             ET.SubElement(el, "axis", xyz=_v(j.axis))
-            ET.SubElement(el, "limit", lower=repr(j.lower), upper=repr(j.upper),
-                          effort="10.0", velocity="3.0")  # fmt: skip
+            ET.SubElement(
+                el, "limit", lower=repr(j.lower), upper=repr(j.upper), effort="10.0", velocity="3.0"
+            )
         if j.mimic:
             ET.SubElement(el, "mimic", joint=j.mimic, multiplier="1.0", offset="0.0")
     ET.indent(robot)

@@ -142,20 +142,30 @@ class HandFrames:
         desc = describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
         pre = cfg.run.preshape_deg
         ax = cfg.axes
-        held = {"phi1": pre[ax.phi1], "thumb_proximal": pre[ax.thumb_proximal],
-                "thumb_distal": pre[ax.thumb_distal]}  # fmt: skip
+        held = {
+            "phi1": pre[ax.phi1],
+            "thumb_proximal": pre[ax.thumb_proximal],
+            "thumb_distal": pre[ax.thumb_distal],
+        }
         return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()})
 
     def transforms(self, s: Mapping[str, Any], ns: int) -> fm.FrameTransforms:
         angles = {**self.held, **{k: math.radians(s[k]) for k in ("phi2", "phi3", "phi4", "phi5")}}
         ts = _ts(ns)
-        return fm.FrameTransforms(transforms=[
-            fm.FrameTransform(timestamp=ts, parent_frame_id=t.parent, child_frame_id=t.child,
-                              translation=_v3(*t.translation),
-                              rotation=fm.Quaternion(x=t.rotation[0], y=t.rotation[1],
-                                                     z=t.rotation[2], w=t.rotation[3]))
-            for t in joint_transforms(self.desc, angles)
-        ])  # fmt: skip
+        return fm.FrameTransforms(
+            transforms=[
+                fm.FrameTransform(
+                    timestamp=ts,
+                    parent_frame_id=t.parent,
+                    child_frame_id=t.child,
+                    translation=_v3(*t.translation),
+                    rotation=fm.Quaternion(
+                        x=t.rotation[0], y=t.rotation[1], z=t.rotation[2], w=t.rotation[3]
+                    ),
+                )
+                for t in joint_transforms(self.desc, angles)
+            ]
+        )
 
     def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneUpdate:
         """A, B, the segment AB and the friction cones, in frame 0 (metres)."""
@@ -169,21 +179,36 @@ class HandFrames:
                 continue
             p = np.array([0.0, s[py], s[pz]]) * _MM
             pts[name] = p
-            n = self._normal(finger, (s[py] - s[cy], s[pz] - s[cz]),
-                             math.radians(s[psi[0]] + s[psi[1]]))  # fmt: skip
+            n = self._normal(
+                finger, (s[py] - s[cy], s[pz] - s[cz]), math.radians(s[psi[0]] + s[psi[1]])
+            )
             d = 6.0 * _MM  # the contact marker's diameter
-            spheres.append(fm.SpherePrimitive(pose=_pose(p), size=_v3(d, d, d),
-                                              color=_rgba(0.9, 0.2, 0.2, 1.0)))  # fmt: skip
+            spheres.append(
+                fm.SpherePrimitive(
+                    pose=_pose(p), size=_v3(d, d, d), color=_rgba(0.9, 0.2, 0.2, 1.0)
+                )
+            )
             cones.append(_cone(p, n, alpha, 25.0 * _MM))
         if len(pts) == 2:
-            lines.append(fm.LinePrimitive(
-                type=fm.LinePrimitiveLineType.LineStrip, thickness=1.0 * _MM,
-                points=[fm.Point3(x=float(q[0]), y=float(q[1]), z=float(q[2]))
-                        for q in (pts["A"], pts["B"])],
-                color=_rgba(1.0, 0.8, 0.1, 1.0),
-            ))  # fmt: skip
-        entity = fm.SceneEntity(timestamp=_ts(ns), frame_id="frame0", id="contacts",
-                                spheres=spheres, lines=lines, cylinders=cones)  # fmt: skip
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineStrip,
+                    thickness=1.0 * _MM,
+                    points=[
+                        fm.Point3(x=float(q[0]), y=float(q[1]), z=float(q[2]))
+                        for q in (pts["A"], pts["B"])
+                    ],
+                    color=_rgba(1.0, 0.8, 0.1, 1.0),
+                )
+            )
+        entity = fm.SceneEntity(
+            timestamp=_ts(ns),
+            frame_id="frame0",
+            id="contacts",
+            spheres=spheres,
+            lines=lines,
+            cylinders=cones,
+        )
         return fm.SceneUpdate(entities=[entity])
 
     def _normal(self, finger: int, ca: tuple[float, float], psi: float) -> np.ndarray:
@@ -209,18 +234,27 @@ class HandFrames:
             cells = counts[start : start + lay.rows * lay.cols]
             start += lay.rows * lay.cols
             out[f"{finger}_{part}"] = fm.Grid(
-                timestamp=_ts(ns), frame_id=f"{finger}_{part}_pad", column_count=lay.cols,
-                cell_size=fm.Vector2(x=pitch, y=pitch), row_stride=2 * lay.cols, cell_stride=2,
-                fields=[fm.PackedElementField(name="counts", offset=0,
-                                              type=fm.PackedElementFieldNumericType.Uint16)],
+                timestamp=_ts(ns),
+                frame_id=f"{finger}_{part}_pad",
+                column_count=lay.cols,
+                cell_size=fm.Vector2(x=pitch, y=pitch),
+                row_stride=2 * lay.cols,
+                cell_stride=2,
+                fields=[
+                    fm.PackedElementField(
+                        name="counts", offset=0, type=fm.PackedElementFieldNumericType.Uint16
+                    )
+                ],
                 data=cells.tobytes(),
-            )  # fmt: skip
+            )
         return out
 
 
 def _pose(p: np.ndarray, q: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)) -> fm.Pose:
-    return fm.Pose(position=_v3(float(p[0]), float(p[1]), float(p[2])),
-                   orientation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))  # fmt: skip
+    return fm.Pose(
+        position=_v3(float(p[0]), float(p[1]), float(p[2])),
+        orientation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
 
 
 def _cone(apex: np.ndarray, n: np.ndarray, alpha: float, height: float) -> fm.CylinderPrimitive:
@@ -228,9 +262,13 @@ def _cone(apex: np.ndarray, n: np.ndarray, alpha: float, height: float) -> fm.Cy
     a = math.atan2(-n[1], n[2])  # Rx(a) turns z onto n
     q = (math.sin(a / 2), 0.0, 0.0, math.cos(a / 2))
     d = 2.0 * height * math.tan(alpha)
-    return fm.CylinderPrimitive(pose=_pose(apex + n * height / 2, q), size=_v3(d, d, height),
-                                bottom_scale=0.0, top_scale=1.0,
-                                color=_rgba(0.2, 0.6, 1.0, 0.25))  # fmt: skip
+    return fm.CylinderPrimitive(
+        pose=_pose(apex + n * height / 2, q),
+        size=_v3(d, d, height),
+        bottom_scale=0.0,
+        top_scale=1.0,
+        color=_rgba(0.2, 0.6, 1.0, 0.25),
+    )
 
 
 _LEVELS = {"fault": fm.LogLevel.Error, "estop": fm.LogLevel.Error, "reversal": fm.LogLevel.Info}
@@ -241,8 +279,12 @@ def log_message(e: Mapping[str, Any], ns: int) -> fm.Log:
     detail = json.dumps(e["detail"], ensure_ascii=False, sort_keys=True)
     it = e["iteration"]
     text = f"{e['kind']}{'' if it is None else f' at iteration {it}'}: {detail}"
-    return fm.Log(timestamp=_ts(ns), level=_LEVELS.get(e["kind"], fm.LogLevel.Info),
-                  message=text, name=e["kind"])  # fmt: skip
+    return fm.Log(
+        timestamp=_ts(ns),
+        level=_LEVELS.get(e["kind"], fm.LogLevel.Info),
+        message=text,
+        name=e["kind"],
+    )
 
 
 def _strings(d: Any, key: str = "value") -> dict[str, str]:
@@ -279,8 +321,9 @@ def write_mcap(
         s = msg.get_schema()
         return channel(topic, s.name, s.encoding, s.data, s.encoding)
 
-    ch_samples = channel("/samples", "sdh2svc.Sample", "jsonschema",
-                         json.dumps(sample_schema()).encode(), "json")  # fmt: skip
+    ch_samples = channel(
+        "/samples", "sdh2svc.Sample", "jsonschema", json.dumps(sample_schema()).encode(), "json"
+    )
     ch_tf, ch_scene = typed("/tf", fm.FrameTransforms), typed("/contacts", fm.SceneUpdate)
     ch_log = typed("/events", fm.Log)
     ch_pads = {f"{f}_{p}": typed(f"/tactile/{f}_{p}", fm.Grid) for f in FINGERS for p in PADS}
@@ -320,8 +363,13 @@ def _write_records(
     w.add_metadata("object", _strings(meta.get("object") or "none (a real hand)", "name"))
     sections = {k: getattr(cfg, k).model_dump(mode="json") for k in _CONFIG_SECTIONS}
     w.add_metadata("configuration", _strings({**rest, **sections}))
-    w.add_attachment(create_time=t0_ns, log_time=t0_ns, name="sdh2.urdf",
-                     media_type="application/xml", data=to_xml(desc).encode())  # fmt: skip
+    w.add_attachment(
+        create_time=t0_ns,
+        log_time=t0_ns,
+        name="sdh2.urdf",
+        media_type="application/xml",
+        data=to_xml(desc).encode(),
+    )
 
 
 #: The configuration's sections a recording states (the hand, its wiring and the run's model).

@@ -43,11 +43,13 @@ def robot(text: str) -> yourdfpy.URDF:
 
 def _rot(q: tuple[float, float, float, float]) -> np.ndarray:
     x, y, z, w = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def test_parses_with_every_finger_pad_and_configured_limit(cfg: Settings, text: str) -> None:
@@ -69,8 +71,11 @@ def test_parses_with_every_finger_pad_and_configured_limit(cfg: Settings, text: 
     mimic = joints["phi1_finger2"].find("mimic")
     assert mimic is not None and mimic.get("joint") == "phi1"  # φ1 turns both coupled fingers
     # the pads are drawn: the distal one along its flat part and arc on every finger
-    pads = [v for v in describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile).visuals
-            if v.material == "pad"]  # fmt: skip
+    pads = [
+        v
+        for v in describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile).visuals
+        if v.material == "pad"
+    ]
     assert {v.link for v in pads} == {f"{f}_{p}" for f in FINGERS for p in PADS}
     assert len(pads) > 3 * 2 + 3 * 4
     assert {pad_matrix(cfg.axes, f, p) for f in FINGERS for p in PADS} == set(range(6))
@@ -96,8 +101,10 @@ def test_forward_kinematics_matches_the_model_at_random_poses(
         q = rng.uniform(lo, hi)
         q[cfg.axes.phi1] = math.pi / 2  # the plane of work: the coupled fingers face each other
         robot.update_cfg({names[a]: float(q[a]) for a in range(7)})
-        for finger, (pa, da) in ((Finger.ONE, (cfg.axes.phi2, cfg.axes.phi3)),
-                                 (Finger.TWO, (cfg.axes.phi4, cfg.axes.phi5))):  # fmt: skip
+        for finger, (pa, da) in (
+            (Finger.ONE, (cfg.axes.phi2, cfg.axes.phi3)),
+            (Finger.TWO, (cfg.axes.phi4, cfg.axes.phi5)),
+        ):
             prox, dist = float(q[pa]), float(q[da])
             frame3 = f"finger{int(finger)}_frame3"
             C = distal_joint(finger, prox, geom)
@@ -168,8 +175,11 @@ def test_the_distal_grid_is_centred_on_the_pad(cfg: Settings, robot: yourdfpy.UR
 def test_the_distal_pad_is_drawn_along_its_profile(cfg: Settings) -> None:
     """Every strip of the distal pad touches the flat-and-arc profile of hand-model §3."""
     pad = cfg.hand.pad
-    strips = [v for v in describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile).visuals
-              if v.link == "finger1_distal" and v.material == "pad"]  # fmt: skip
+    strips = [
+        v
+        for v in describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile).visuals
+        if v.link == "finger1_distal" and v.material == "pad"
+    ]
     reach = []
     for v in strips:
         a = v.rpy[0]  # the strip's tilt about x; its y axis is the outward normal

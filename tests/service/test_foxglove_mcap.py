@@ -87,8 +87,13 @@ def test_log_times_are_the_records_own(recorded: tuple[list[Sample], Recording])
     assert [x - t0 for x in t["/tactile/finger1_distal"]] == [0, 100_000_000, 200_000_000]
     for topic in ("/tf", "/contacts", "/events", "/tactile/thumb_proximal"):
         raw = rec.messages[topic][-1]["_raw"]
-        stamp = (raw.transforms[0] if topic == "/tf" else raw.entities[0] if topic == "/contacts"
-                 else raw).timestamp  # fmt: skip
+        stamp = (
+            raw.transforms[0]
+            if topic == "/tf"
+            else raw.entities[0]
+            if topic == "/contacts"
+            else raw
+        ).timestamp
         assert stamp.ToNanoseconds() == t[topic][-1]
 
 
