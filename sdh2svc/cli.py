@@ -399,14 +399,14 @@ def cmd_runs(args: argparse.Namespace) -> int:
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
     try:
-        return _runs(args, store)
+        return _runs(args, store, cfg)
     except sqlite3.Error as e:
         _fail(Exit.UNAVAILABLE, f"run database {store.path}: {_one_line(e)}")
     finally:
         store.close()
 
 
-def _runs(args: argparse.Namespace, store: Any) -> int:
+def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     if args.action == "list":
         for r in store.runs():
             print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
@@ -430,7 +430,7 @@ def _runs(args: argparse.Namespace, store: Any) -> int:
         else:
             assert path is not None  # an MCAP export goes to a file, always
             with open(path, "wb") as fh:
-                n = store.export_mcap(args.id, fh)
+                n = store.export_mcap(args.id, fh, cfg)
             print(f"{path}: {n} messages", file=sys.stderr)
     except OSError as e:
         _fail(Exit.UNAVAILABLE, f"cannot write {path or 'stdout'}: {e.strerror or e}")

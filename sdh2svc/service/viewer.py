@@ -15,8 +15,10 @@ Geometry. The scene is frame 0 of hand-model.md §2 (origin at Finger 1's proxim
 towards Finger 2, z0 along the straightened finger; x0 completes a right-handed frame and points
 towards the thumb), in metres (the model's millimetres × 1e-3). Fingers 1 and 2 are posed with
 the model's own functions (:func:`distal_joint`, :func:`frame3_axes`, :func:`pad_point`), so at
-φ1 = 90° they lie exactly in the y0z0 plane of the planar model. The thumb, the palm, the link
-bodies and the proximal pads are approximate (see :data:`THUMB_BASE` and :func:`proximal_cells`).
+φ1 = 90° they lie exactly in the y0z0 plane of the planar model. The bodies and pads drawn are
+the hand's URDF (:mod:`sdh2svc.model.urdf`, through viser's URDF support), posed with the same
+angles; the thumb's place, the palm, the link bodies and the proximal pads are approximate (see
+:data:`THUMB_BASE` and :func:`proximal_cells`).
 
 Authority. The panel cannot authenticate anyone. ``read_only`` (the service has a token): every
 control but E-STOP is disabled, its hint pointing to the dashboard. Open hand is enabled only
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
 import logging
 import math
 import sys
@@ -45,12 +48,21 @@ from urllib.parse import urlsplit
 import numpy as np
 import viser
 import websockets.asyncio.server
+import yourdfpy  # type: ignore[import-untyped]
+from viser.extras import ViserUrdf
 from websockets.asyncio.server import ServerConnection
 from websockets.http11 import Request
 
 from sdh2svc.config import Settings
-from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, pad_y3
+from sdh2svc.model.geometry import pad_point_from_L, pad_slope, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
+from sdh2svc.model.urdf import (
+    KNUCKLE_MM,
+    PROXIMAL_PAD_Y_MM,
+    PROXIMAL_ROW0_FROM_DISTAL_MM,
+    joint_names,
+    sdh2_urdf,
+)
 from sdh2svc.service.pacing import paced
 from sdh2svc.service.telemetry import AnyMessage, SampleMsg, SampleView, as_array, sample_view
 
@@ -69,17 +81,7 @@ _Z = np.array([0.0, 0.0, 1.0])
 # frame 0 the thumb is therefore at x0 = d·√3/2, y0 = d/2, closing towards −x0. Approximate:
 # the view only needs it parked out of the way.
 THUMB_BASE = (math.sqrt(3.0) / 2.0, 0.5)
-KNUCKLE_MM = 16.5  # proximal joint above the palm's top (URDF finger_12_joint origin)
-PALM_HEIGHT_MM = 74.5  # palm base to knuckle (URDF knuckle_joint origin)
 
-# Link bodies (approximate boxes, link-frame mm: x along the link, y towards the pad).
-FINGER_WIDTH_MM = 22.0
-PROX_Y_MM = (-12.0, 12.0)
-DIST_X_MM = (-8.0, 62.0)
-DIST_Y_MM = (-12.0, 3.0)
-PAD_BACK_Y3_MM = 3.0  # the distal pad's back face (its front is the profile of §3)
-PROX_PAD_Y_MM = 14.0  # proximal pad surface (not in the model: approximate)
-PROX_ROW0_FROM_DISTAL_MM = 15.0  # row 0's centre this far below the distal joint (approximate)
 TILE_GAP = 0.9  # a cell tile covers this fraction of the pitch, so the grid stays readable
 CONE_HEIGHT_MM = 20.0
 CONTACT_RADIUS_MM = 2.5
@@ -97,7 +99,7 @@ _CMAP_RGB = np.array(
 )
 FULL_SCALE_COUNTS = 4095.0
 
-GREY, DARK, PAD = (175, 178, 185), (90, 92, 100), (60, 60, 66)
+DARK = (90, 92, 100)
 COLOR_A, COLOR_B = (255, 120, 30), (160, 60, 230)
 
 COMMANDS = ("start", "stop", "open", "estop", "release")
@@ -174,9 +176,9 @@ def _transform(origin: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray
 def finger_frames(
     angles_deg: Sequence[float], settings: Settings, fingers: Sequence[str] = ("f1", "f2", "f3")
 ) -> dict[str, np.ndarray]:
-    """Link frames of the palm and the three fingers, frame 0, mm, for the 7 wire-axis angles.
+    """Link frames of the three fingers, frame 0, mm, for the 7 wire-axis angles.
 
-    Keys ``/palm``, ``/fN/base`` (knuckle, x up), ``/fN/proximal`` (at the proximal joint),
+    Keys ``/fN/base`` (knuckle, x up), ``/fN/proximal`` (at the proximal joint),
     ``/fN/distal`` (frame 3 at C/D: x = ex3, y = ey3 towards the pad) and ``/fN/tip`` (the pad's
     end at the fingertip) for N = 1, 2, 3 (3 = thumb) of those in ``fingers``. Each is a 4×4
     homogeneous transform.
@@ -191,8 +193,7 @@ def finger_frames(
     tip_x3 = geom.pad.tip_end_x3_mm
     tip_y3 = pad_y3(tip_x3, geom.pad)
     d = geom.base_offset_mm
-    palm = np.array([d * THUMB_BASE[0] / 3.0, d / 2.0, -KNUCKLE_MM - PALM_HEIGHT_MM / 2.0])
-    out = {"/palm": _transform(palm, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))}
+    out = {}
     for key, spec in _specs(a[ax.phi1], d).items():
         if key not in fingers:
             continue
@@ -207,26 +208,6 @@ def finger_frames(
         tip = spec.point(pad_point(f, prox, dist, tip_x3, tip_y3, geom))
         out[f"/{key}/tip"] = _transform(tip, spec.vector(ex3), spec.vector(ey3))
     return out
-
-
-def pad_vertices(pad: PadProfile, width_mm: float, n: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """The distal pad as a prism in frame 3 (mm): its front is the profile y3(x3) of §3 from the
-    pad's base to its end, its back the plane y3 = PAD_BACK_Y3_MM; z3 spans the pad's width."""
-    xs = np.linspace(pad.flat_start_x3_mm, pad.tip_end_x3_mm, n)
-    ys = np.array([pad_y3(float(x), pad) for x in xs])
-    h = width_mm / 2.0
-    verts = []
-    for x, y in zip(xs, ys, strict=True):  # one ring per profile point: front l/r, back r/l
-        verts += [(x, y, -h), (x, y, h), (x, PAD_BACK_Y3_MM, h), (x, PAD_BACK_Y3_MM, -h)]
-    faces = []
-    for i in range(n - 1):
-        for k in range(4):
-            a0, a1 = 4 * i + k, 4 * i + (k + 1) % 4
-            b0, b1 = a0 + 4, a1 + 4
-            faces += [(a0, b0, b1), (a0, b1, a1)]
-    last = 4 * (n - 1)
-    faces += [(0, 1, 2), (0, 2, 3), (last, last + 2, last + 1), (last, last + 3, last + 2)]
-    return np.array(verts, dtype=float), np.array(faces, dtype=np.uint32)
 
 
 def _rot_z(beta: float) -> tuple[float, float, float, float]:
@@ -259,12 +240,12 @@ def distal_cells(settings: Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def proximal_cells(settings: Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """As :func:`distal_cells` for the proximal pad, in the proximal link frame (mm). The model
-    has no proximal pad geometry: a flat pad PROX_PAD_Y_MM from the link axis, row 0 (at the
-    distal joint) PROX_ROW0_FROM_DISTAL_MM below it, rows a pitch apart (approximate)."""
+    has no proximal pad geometry: a flat pad PROXIMAL_PAD_Y_MM from the link axis, row 0 (at the
+    distal joint) PROXIMAL_ROW0_FROM_DISTAL_MM below it, rows a pitch apart (approximate)."""
     lay, pitch = settings.tactile.proximal, settings.tactile.texel_pitch_mm
-    x0 = settings.hand.proximal_length_mm - PROX_ROW0_FROM_DISTAL_MM
+    x0 = settings.hand.proximal_length_mm - PROXIMAL_ROW0_FROM_DISTAL_MM
     pos = [
-        (x0 - r * pitch, PROX_PAD_Y_MM + 0.3, (c - (lay.cols - 1) / 2.0) * pitch)
+        (x0 - r * pitch, PROXIMAL_PAD_Y_MM + 0.3, (c - (lay.cols - 1) / 2.0) * pitch)
         for r in range(lay.rows)
         for c in range(lay.cols)
     ]
@@ -503,6 +484,8 @@ class Viewer:
         self._posed: dict[str, tuple[float, ...]] = {}  # finger → the angles it was posed at
         self._pad_counts: dict[str, np.ndarray] = {}  # pad node → the counts it was coloured for
         self._view: tuple[int, SampleView | None] = (-1, None)  # (sample's seq, its view)
+        self.urdf: ViserUrdf | None = None
+        self._urdf_axes: list[int] = []  # the wire axis of each of the URDF's actuated joints
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -662,6 +645,8 @@ class Viewer:
                 moved.append(f)
         if not moved:
             return
+        if self.urdf is not None:  # the bodies: every joint of the URDF (a few dozen frames)
+            self.urdf.update_cfg(np.radians([a[i] for i in self._urdf_axes]))
         for name, T in finger_frames(a, self.settings, moved).items():
             node = self.nodes.get(name)
             if node is not None:
@@ -901,41 +886,39 @@ class Viewer:
 
     def _build_scene(self) -> None:
         assert self.server is not None
-        sc, cfg = self.server.scene, self.settings
+        cfg = self.settings
         d = cfg.hand.base_offset_mm
         # from the thumb's side and a little from Finger 1's back: both pads and AB in view
         self.server.initial_camera.position = (0.27, d / 2 * MM - 0.15, 0.18)
         self.server.initial_camera.look_at = (0.0, d / 2 * MM, 0.08)
-        self.nodes["/palm"] = sc.add_frame("/palm", show_axes=False)
-        size = (d * 1.7 * MM, d * 1.7 * MM, PALM_HEIGHT_MM * MM)
-        sc.add_box("/palm/body", color=DARK, dimensions=size)
+        self.urdf = self._load_urdf()
         for f in ("f1", "f2", "f3"):
             self._build_finger(f)
         self._build_contacts()
         self._render_hand()  # the pre-shape until the first pose arrives
 
+    def _load_urdf(self) -> ViserUrdf:
+        """The hand's bodies and pads: its URDF (:mod:`sdh2svc.model.urdf`), the palm placed in
+        frame 0, the scene's frame."""
+        assert self.server is not None
+        cfg = self.settings
+        text = sdh2_urdf(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
+        robot = yourdfpy.URDF.load(io.StringIO(text), build_collision_scene_graph=False)
+        T = robot.get_transform("palm", "frame0")  # a fixed joint: the same in every pose
+        self.nodes["/hand"] = self.server.scene.add_frame(
+            "/hand", show_axes=False, position=T[:3, 3], wxyz=_wxyz(T[:3, :3])
+        )
+        axis = {name: a for a, name in joint_names(cfg.axes).items()}
+        self._urdf_axes = [axis[name] for name in robot.actuated_joint_names]
+        return ViserUrdf(self.server, robot, root_node_name="/hand")
+
     def _build_finger(self, f: str) -> None:
-        """Link frames (posed every frame) and their constant children: bodies, pad, cells."""
+        """Link frames (posed every frame) and their constant children: the tip and the cells."""
         assert self.server is not None
         sc, cfg = self.server.scene, self.settings
         for link in ("base", "proximal", "distal"):
             self.nodes[f"/{f}/{link}"] = sc.add_frame(f"/{f}/{link}", show_axes=False)
-        l1, w = cfg.hand.proximal_length_mm, FINGER_WIDTH_MM
-        boxes = {  # name: (centre, size), link-frame mm
-            "base/body": ((KNUCKLE_MM / 2, 0, 0), (KNUCKLE_MM, 24.0, 24.0)),
-            "proximal/body": ((l1 / 2, sum(PROX_Y_MM) / 2, 0), (l1, np.ptp(PROX_Y_MM), w)),
-            "distal/body": (
-                (sum(DIST_X_MM) / 2, sum(DIST_Y_MM) / 2, 0),
-                (np.ptp(DIST_X_MM), np.ptp(DIST_Y_MM), w),
-            ),
-        }
-        for name, (centre, size) in boxes.items():
-            color = DARK if name.startswith("base") else GREY
-            pos, dims = np.array(centre) * MM, np.array(size) * MM
-            sc.add_box(f"/{f}/{name}", color=color, dimensions=dims, position=pos)
         pad = cfg.hand.pad
-        pad_v, pad_f = pad_vertices(pad, cfg.tactile.texel_pitch_mm * cfg.tactile.distal.cols)
-        sc.add_mesh_simple(f"/{f}/distal/pad", pad_v * MM, pad_f, color=PAD, side="double")
         tip = np.array([pad.tip_end_x3_mm, pad_y3(pad.tip_end_x3_mm, pad), 0.0]) * MM
         self.nodes[f"/{f}/distal/tip"] = sc.add_icosphere(
             f"/{f}/distal/tip", radius=1.5 * MM, color=DARK, position=tip

@@ -198,6 +198,15 @@ def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
     missing = subprocess.run([*base, "show", "999", *dbset], capture_output=True, text=True,
                              timeout=60)  # fmt: skip
     assert missing.returncode == 3 and "no run 999" in missing.stderr
+    from sdh2svc.service.store import RunStore
+
+    store = RunStore(db)
+    try:  # every recorded frame is linked to the iteration it was the frame of
+        its = [it for _t, it, _ts, _tex in store.frames(out["run_id"])]
+        samples = [s["iteration"] for s in store.samples(out["run_id"], 0, 10**6)]
+    finally:
+        store.close()
+    assert its == samples and len(its) == out["iterations"]
 
 
 def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
-import json
 import math
 import os
 import signal
@@ -15,7 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap_check import read
 
 from sdh2svc.config import Settings
 from sdh2svc.control.rolling import RollState, step
@@ -79,15 +78,14 @@ def test_record_read_back_and_export(cfg: Settings, tmp_path: Path) -> None:
 
     raw = io.BytesIO()
     n = store.export_mcap(run_id, raw)
-    assert n == 42
-    raw.seek(0)
-    topics: dict[str, list[dict]] = {}
-    for _schema, channel, message in make_reader(raw).iter_messages():
-        assert channel.message_encoding == "json"
-        topics.setdefault(channel.topic, []).append(json.loads(message.data))
-    assert len(topics["/samples"]) == 40 and topics["/samples"][7]["S1"] == samples[7].S1
-    assert topics["/events"][0]["kind"] == "reversal"
-    assert topics["/tactile"][0]["texels"][:3] == [0, 1, 2]
+    assert n == 40 * 3 + 1 + 6  # samples, their transforms and contacts; the event; six pads
+    got = read(raw.getvalue())  # every message valid against its schema (tests/service/mcap_check)
+    assert (
+        len(got.messages["/samples"]) == 40 and got.messages["/samples"][7]["S1"] == samples[7].S1
+    )
+    assert got.messages["/events"][0]["name"] == "reversal"
+    grid = got.messages["/tactile/finger1_proximal"][0]["_raw"]
+    assert np.frombuffer(grid.data, "<u2")[:3].tolist() == [0, 1, 2]
     store.close()
 
 

@@ -43,7 +43,6 @@ from sdh2svc.service.viewer import (
     distal_cells,
     finger_frames,
     origin_allowed,
-    pad_vertices,
     start_viser,
     tactile_colors,
 )
@@ -301,10 +300,21 @@ def test_distal_cells_sit_where_the_contact_estimate_puts_them(cfg: Settings) ->
     assert math.isclose(row0[0], x3, abs_tol=0.31) and math.isclose(row0[1], y3, abs_tol=0.31)
     last = pos[-1]  # row 12 nearest the distal joint: L = 5.5, on the flat part
     assert math.isclose(last[0], 17.5 + 5.5) and math.isclose(last[1], 15.3)
-    v, f = pad_vertices(cfg.hand.pad, 20.4)
-    front = v[0::4]
-    assert np.allclose(front[:, 1], [pad_y3(x, cfg.hand.pad) for x in front[:, 0]])
-    assert f.max() < len(v)
+    # the pad they sit on is the URDF's (tests/model/test_urdf.py: drawn along its profile)
+
+
+async def test_the_bodies_are_the_urdfs_posed_like_the_frames(
+    cfg: Settings, viewer: Viewer
+) -> None:
+    """The URDF's meshes are in the scene, and its distal link sits where the cells' frame does."""
+    assert viewer.urdf is not None and len(viewer.urdf._meshes) > 3 * 3 + 1
+    n = viewer.frames
+    viewer.handle({"type": "pose", "angles_deg": POSE})
+    await next_frame(viewer, n)
+    for key, finger in (("f1", "finger1"), ("f2", "finger2"), ("f3", "thumb")):
+        T = viewer.urdf._urdf.get_transform(f"{finger}_frame3", "frame0")
+        for local in (np.zeros(3), np.array([40.0, 12.0, 5.0]) * MM):
+            assert np.allclose(world(viewer, f"/{key}/distal", local), T[:3, :3] @ local + T[:3, 3])
 
 
 async def test_pads_coloured_from_tactile_frames(cfg: Settings, viewer: Viewer) -> None:

@@ -104,7 +104,7 @@ def export(cfg: Cfg, run_id: RunId, format: Literal["csv", "mcap"] = "csv") -> R
             store.export_csv(run_id, text)
             return Response(text.getvalue(), media_type="text/csv", headers=headers)
         data = io.BytesIO()
-        store.export_mcap(run_id, data)
+        store.export_mcap(run_id, data, cfg)
         return Response(data.getvalue(), media_type="application/octet-stream", headers=headers)
 
 
