@@ -48,51 +48,17 @@ Json = dict[str, Any]
 _MM = 1e-3
 
 #: What each Sample field is, with its unit (hand-model.md's names); one entry per field.
-SAMPLE_FIELDS: Mapping[str, str] = {
-    "iteration": "iteration number of the rolling loop (count)",
-    "t": "time since the run started, s",
-    "phi2": "Finger 1 proximal joint angle φ2, actual, deg",
-    "phi3": "Finger 1 distal joint angle φ3, actual, deg",
-    "phi4": "Finger 2 proximal joint angle φ4, actual, deg",
-    "phi5": "Finger 2 distal joint angle φ5, actual, deg",
-    "phi2_d": "φ2 target commanded this iteration, deg",
-    "phi3_d": "φ3 target commanded this iteration, deg",
-    "phi4_d": "φ4 target commanded this iteration, deg",
-    "phi5_d": "φ5 target commanded this iteration, deg",
-    "S1": "contact height on Finger 1's distal pad (tactile centroid), mm",
-    "S2": "contact height on Finger 2's distal pad (tactile centroid), mm",
-    "F1": "contact force on Finger 1's distal pad, library force units",
-    "F2": "contact force on Finger 2's distal pad, library force units",
-    "F": "mean contact force (F1 + F2)/2, library force units",
-    "dF": "change of F since the previous iteration, library force units",
-    "Lambda": "distance Λ = |AB| between the contact points, mm",
-    "Lambda_ad": "held distance Λad planned for the next step, mm",
-    "sigma": "inclination σ of AB in the y0z0 plane, deg",
-    "sigma_d": "desired inclination σd of the next step, deg",
-    "omega_A": "angle ωA between AB and Finger 1's pad tangent at A, deg",
-    "omega_B": "angle ωB between BA and Finger 2's pad tangent at B, deg",
-    "Ay": "contact point A on Finger 1, y0, mm",
-    "Az": "contact point A on Finger 1, z0, mm",
-    "By": "contact point B on Finger 2, y0, mm",
-    "Bz": "contact point B on Finger 2, z0, mm",
-    "Cy": "Finger 1's distal joint C, y0, mm",
-    "Cz": "Finger 1's distal joint C, z0, mm",
-    "Dy": "Finger 2's distal joint D, y0, mm",
-    "Dz": "Finger 2's distal joint D, z0, mm",
-    "direction": "rotation direction of Finger 2's step, sign of Δφ (+1 | -1)",
-    "stroke": "back-and-forth strokes completed (count)",
-    "half_strokes": "direction reversals so far (count)",
-    "reversal": "why the direction reversed this iteration (null: it did not)",
-    "frame_age_ms": "age of the tactile frame when the iteration used it, ms",
-    "latency_ms": "time from the frame's arrival to the command, ms",
-}
 
 _JSON_TYPES = {int: "integer", float: "number", str: "string", bool: "boolean"}
+
+
+COLUMNS = Sample.columns()
 
 
 def sample_schema() -> Json:
     """The JSON schema of ``/samples``, from :class:`Sample`'s fields and their types."""
     hints = typing.get_type_hints(Sample)
+    docs = Sample.descriptions()
     props: Json = {}
     for f in fields(Sample):
         tp = hints[f.name]
@@ -100,7 +66,7 @@ def sample_schema() -> Json:
         kinds = [_JSON_TYPES[a] if a is not type(None) else "null" for a in args]
         props[f.name] = {
             "type": kinds[0] if len(kinds) == 1 else kinds,
-            "description": SAMPLE_FIELDS[f.name],
+            "description": docs[f.name],
         }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -336,7 +302,7 @@ def write_mcap(
 
     for s in samples:
         ns = t0_ns + round(s["t"] * 1e9)
-        row = {k: _finite(s[k]) for k in SAMPLE_FIELDS}
+        row = {k: _finite(s[k]) for k in COLUMNS}
         put(ch_samples, ns, json.dumps(row, allow_nan=False).encode())
         put(ch_tf, ns, hand.transforms(s, ns).encode())
         put(ch_scene, ns, hand.contacts(s, ns, alpha).encode())
