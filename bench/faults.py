@@ -24,15 +24,15 @@ from typing import Any
 
 import httpx
 
-from sdh2svc.bus.joint import JointLink
-from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import load_config
+from sdh2svc.connect import Simulated, connect_hand, simulated_hand
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Runner
-from sdh2svc.service.launch import LiveService, start_service
 from sdh2svc.sim.cable import Cable
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.faults import FaultConfig
-from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+from sdh2svc.sim.lab import SimulatedHand
+from tests.live_service import LiveService, start_service
 
 RATES = (0.0, 1e-4, 3e-4, 1e-3, 3e-3)
 SEEDS = range(1, 9)
@@ -44,9 +44,6 @@ async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
     cfg = load_config(overrides=[f"storage.db_path='{tmp / 'b.sqlite'}'", f"sim.seed={seed}",
                                  "rolling.cycles=1"], use_env=False)  # fmt: skip
     ctx, axes = cfg.model_context(), cfg.axes
-    hand = await start_simulated_hand(cfg, unix_dir=tmp)
-    joints = await JointLink.open(hand.urls("sdh")[0])
-    tactile = await TactileBus.open(hand.urls("dsa")[0])
     peak = 0.0
 
     def watch(frame: Any) -> None:
@@ -55,17 +52,17 @@ async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
         c2 = ctx.contact(frame.matrices[axes.finger2_distal_matrix])
         peak = max(peak, (c1.force + c2.force) / 2)  # the controller's F
 
-    def on_event(t: float, i: int | None, kind: str, detail: dict[str, Any]) -> None:
-        if kind == "phase" and detail["phase"] == "grasping":
-            hand.endpoints["sdh"][0].set_faults(FaultConfig(bit_error_rate=ber, seed=seed))
+    async with connect_hand(cfg, Simulated(fast=True)) as hand:
+        assert hand.bench is not None
+        sim = hand.bench.sim
 
-    tactile.add_frame_listener(watch)
-    try:
-        result = await Runner(cfg, joints, tactile, on_event=on_event).run()
-    finally:
-        await tactile.close()
-        await joints.close()
-        await hand.stop()
+        class OnGrasping(BaseObserver):
+            def event(self, e: Event) -> None:
+                if e.kind is EventKind.PHASE and e.detail["phase"] == "grasping":
+                    sim.endpoints["sdh"][0].set_faults(FaultConfig(bit_error_rate=ber, seed=seed))
+
+        hand.tactile.add_frame_listener(watch)
+        result = await Runner(cfg.control(), hand.joints, hand.tactile, observer=OnGrasping()).run()
     how = result.status if result.status != "faulted" else result.message.split(":")[0]
     return how, peak / (cfg.safety.force_ceiling_factor * cfg.rolling.grasp_force)
 
@@ -125,9 +122,11 @@ def _travel(a: tuple[float, ...], b: tuple[float, ...]) -> float:
 
 async def _cut_or_kill(tmp: Path, kill: bool) -> tuple[float, float]:
     """The fingers' travel in WATCH_S after the fault, and after the link/service is back."""
-    cfg = load_config(use_env=False)
-    sim = await start_simulated_hand(cfg, pty=False, tcp=True, dsa_port=0, sdh_port=0,
-                                     replace_after_s=0.0)  # fmt: skip
+    async with simulated_hand(load_config(use_env=False), Simulated()) as bench:
+        return await _watch_cut_or_kill(tmp, kill, bench.sim)
+
+
+async def _watch_cut_or_kill(tmp: Path, kill: bool, sim: SimulatedHand) -> tuple[float, float]:
     host, port = sim.urls("sdh")[0].removeprefix("socket://").rsplit(":", 1)
     cable = Cable(host, int(port))
     await cable.plug()
@@ -159,7 +158,6 @@ async def _cut_or_kill(tmp: Path, kill: bool) -> tuple[float, float]:
     finally:
         await asyncio.to_thread(svc.stop)
         await cable.close()
-        await sim.stop()
 
 
 def run() -> None:

@@ -12,7 +12,7 @@ from bench.common import percentile
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import load_config
-from sdh2svc.sim.serve import start_simulated_hand
+from sdh2svc.connect import Simulated, simulated_hand
 
 SECONDS = 6.0
 
@@ -60,9 +60,9 @@ async def _joint(url: str, binary: bool, n: int = 200) -> tuple[float, float]:
 
 async def _main() -> dict[str, float]:
     cfg = load_config(overrides=["sim.object=egg"], use_env=False)
-    hand = await start_simulated_hand(cfg, pty=False, dsa_port=0, sdh_port=0)
     out: dict[str, float] = {}
-    try:
+    async with simulated_hand(cfg, Simulated()) as bench:
+        hand = bench.sim
         # hold the egg so frames carry a real contact (sizes as in a run)
         hand.world.move_joints(0.0, [90.0, -30.0, 30.0, -90.0, 0.0, -30.0, 30.0], [True] * 7)
         hand.world.move_joints(0.0, [90.0, -4.0, 4.0, -90.0, 0.0, -4.0, 4.0], [True] * 7)
@@ -90,8 +90,6 @@ async def _main() -> dict[str, float]:
             "  push is picked when the asked rate is ≥ 90 % of what push delivers (controller cap"
             " or line limit): a pull round trip per frame would only cost rate"
         )
-    finally:
-        await hand.stop()
     return out
 
 

@@ -37,7 +37,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
 from bench.common import percentile
-from sdh2svc.service.launch import LiveService, start_service
+from tests.live_service import LiveService, start_service
 
 CLIENTS = 20
 PAIRS = 3
@@ -121,13 +121,24 @@ async def _client(url: str, counts: dict[str, int], stop: asyncio.Event) -> None
 
 async def _viser(url: str, counts: dict[str, int], stop: asyncio.Event) -> None:
     """A 3-D view client: the viser websocket, reading every scene message it is sent."""
+    import msgspec.msgpack
     import viser
-
-    from sdh2svc.service.viewer import camera_message
+    from viser import _messages
 
     proto = [Subprotocol(f"viser-v{viser.__version__}")]
     async with connect(url.replace("http://", "ws://"), max_size=2**26, subprotocols=proto) as ws:
-        await ws.send(camera_message())  # as a browser showing the scene does
+        camera = _messages.ViewerCameraMessage(  # as a browser showing the scene sends
+            wxyz=(1.0, 0.0, 0.0, 0.0),
+            position=(0.3, 0.0, 0.2),
+            fov=1.0,
+            near=0.01,
+            far=100.0,
+            image_height=720,
+            image_width=1280,
+            look_at=(0.0, 0.0, 0.0),
+            up_direction=(0.0, 0.0, 1.0),
+        )
+        await ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
         closer = asyncio.create_task(_close_on(stop, ws))
         with contextlib.suppress(ConnectionClosed):
             async for _ in ws:

@@ -25,6 +25,7 @@ from typing import Any
 
 from bench.common import percentile
 from sdh2svc.config import load_config
+from sdh2svc.connect import Simulated, hand_model
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
 from sdh2svc.sim.physics import ContactPhysics
@@ -37,7 +38,7 @@ TARGET = 50.0  # × real time, for the simulated world (issue 4)
 
 def run_object(name: str) -> dict[str, float]:
     cfg = load_config(use_env=False)
-    w = PhysicsWorld(cfg, cfg.sim, get_object(name))
+    w = PhysicsWorld(hand_model(cfg), cfg.sim, get_object(name))
     ctx = cfg.model_context()
     q = [90.0, -30.0, 30.0, 0.0, 0.0, -30.0, 30.0]
     t = 0.0
@@ -135,7 +136,7 @@ def run_whole(name: str = "egg") -> dict[str, Any]:
         async def main() -> tuple[dict[str, Any], float]:
             loop = asyncio.get_running_loop()
             t0 = loop.time()
-            summary = await run_once(cfg, sim=True, obj=get_object(name), fast=True)
+            summary = await run_once(cfg, Simulated(obj=get_object(name), fast=True))
             return summary, loop.time() - t0
 
         t_wall = time.perf_counter()

@@ -32,13 +32,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Simulated, connect_hand
+from sdh2svc.control.observer import BaseObserver
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.headless import run_once
-from sdh2svc.service.runs import open_links
 from sdh2svc.service.store import RunStore
 from sdh2svc.sim.clock import run_fast
-from sdh2svc.sim.serve import start_simulated_hand
 
 DEFAULT_OUT = Path(__file__).parent / "report"
 LAMBDA_TOLERANCE_MM = 1.7  # the texel uncertainty (thesis §4.2.2: ±1.7 mm per sensor)
@@ -168,7 +168,7 @@ def run_experiment(exp: Experiment, db: Path, cycles: int, extra: Sequence[str] 
                                  f"rolling.cycles={cycles}", *exp.overrides, *extra],
                       use_env=False)  # fmt: skip
     t0 = time.perf_counter()
-    summary = run_fast(run_once(cfg, sim=True, fast=True))
+    summary = run_fast(run_once(cfg, Simulated(fast=True)))
     wall = time.perf_counter() - t0
     store = RunStore(db)
     try:
@@ -187,30 +187,26 @@ async def _grasp_truth(cfg: Settings) -> dict[str, float] | None:
     ground truth at the first iteration, to say where an error of Λ at grasp comes from: the
     true pressure centroids on the two distal pads vs the contact points estimated from the
     tactile frame and the joint angles."""
-    with tempfile.TemporaryDirectory(prefix="grasp-truth-") as tmp:
-        hand = await start_simulated_hand(cfg, unix_dir=Path(tmp))
-        joints, tactile = await open_links(cfg, hand.urls("dsa")[0], hand.urls("sdh")[0])
+    async with connect_hand(cfg, Simulated(fast=True)) as hand:
+        bench = hand.bench
+        assert bench is not None
         got: dict[str, Any] = {}
         ctx = cfg.model_context()
         m1, m2 = cfg.axes.finger1_distal_matrix, cfg.axes.finger2_distal_matrix
 
-        def on_sample(x: Sample) -> None:
-            if "sample" not in got:
-                got["sample"], got["truth"] = x, hand.world.truth()
-                runner.request_stop()
+        class FirstIteration(BaseObserver):
+            def sample(self, x: Sample) -> None:
+                if "sample" not in got:
+                    got["sample"], got["truth"] = x, bench.truth()
+                    runner.request_stop()
 
-        def on_frame(t: float, frame: Any) -> None:
-            if "L" not in got:
-                got["L"] = (ctx.contact(frame.matrices[m1]).L_mm,
-                            ctx.contact(frame.matrices[m2]).L_mm)  # fmt: skip
+            def frame(self, t: float, frame: Any) -> None:
+                if "L" not in got:
+                    got["L"] = (ctx.contact(frame.matrices[m1]).L_mm,
+                                ctx.contact(frame.matrices[m2]).L_mm)  # fmt: skip
 
-        runner = Runner(cfg, joints, tactile, on_sample=on_sample, on_frame=on_frame)
-        try:
-            await runner.run()
-        finally:
-            await tactile.close()
-            await joints.close()
-            await hand.stop()
+        runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=FirstIteration())
+        await runner.run()
     x = got.get("sample")
     if x is None or x.Ay is None or x.By is None:
         return None

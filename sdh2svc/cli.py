@@ -11,13 +11,17 @@ import sys
 import traceback
 from collections.abc import Sequence
 from enum import IntEnum
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from sdh2svc import __version__
 from sdh2svc.config import ConfigError, Settings, load_config
 from sdh2svc.model.friction import inside_cone, omega
 from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
+
+if TYPE_CHECKING:
+    from sdh2svc.connect import Bench
+    from sdh2svc.sim.objects import Shape
 
 
 class Exit(IntEnum):
@@ -128,7 +132,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     import asyncio
     import signal
 
-    from sdh2svc.sim.serve import start_simulated_hand
+    from sdh2svc.connect import Simulated, simulated_hand
 
     overrides = list(args.overrides)
     for flag, key in (("host", "host"), ("boot_s", "dsa_boot_s"), ("ber", "bit_error_rate"),
@@ -142,15 +146,26 @@ def cmd_sim(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     obj = _object(args, cfg.sim.object)
 
+    # ports default to the configuration's; the lab assistant to sim.replace_after_s
+    spec = Simulated(
+        obj=obj,
+        pty=not args.no_pty and cfg.sim.links.pty,
+        tcp=not args.no_tcp,
+        dsa_port=args.dsa_port,
+        sdh_port=args.sdh_port,
+        replace_after_s=None,
+    )
+
     async def main() -> None:
         try:
-            hand = await start_simulated_hand(
-                cfg, obj=obj, pty=not args.no_pty and cfg.sim.links.pty, tcp=not args.no_tcp,
-                dsa_port=args.dsa_port, sdh_port=args.sdh_port,
-            )  # fmt: skip
+            async with simulated_hand(cfg, spec) as bench:
+                await _serve_sim(bench)
         except OSError as e:  # a port in use, an unknown --host
             why = f"{cfg.sim.links.host}: {e.strerror or e}"
             _fail(Exit.UNAVAILABLE, f"cannot serve the simulated hand on {why}")
+
+    async def _serve_sim(bench: Bench) -> None:
+        hand = bench.sim
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -165,16 +180,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
             print(f"  DSACON32m (tactile): {'   '.join(info['dsa'])}")
             print(f"  SDH2 (joints):       {'   '.join(info['sdh'])}")
             print("  Point a driver at one URL of each. Ctrl-C stops.", flush=True)
-        try:
-            await stop.wait()
-        finally:
-            await hand.stop()
+        await stop.wait()
 
     asyncio.run(main())
     return 0
 
 
-def _object(args: argparse.Namespace, default: str | None) -> Any:
+def _object(args: argparse.Namespace, default: str = "") -> Shape:
     """The simulated object of ``--object``/``--object-file`` (else the preset ``default``)."""
     from sdh2svc.sim.objects import get_object, load_object
 
@@ -195,6 +207,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from sdh2svc.bus.joint import JointLinkError
     from sdh2svc.bus.tactile import TactileError
+    from sdh2svc.connect import Simulated, real_hand
     from sdh2svc.control.runner import Runner
     from sdh2svc.service.headless import run_once
     from sdh2svc.service.store import EstopLatched, StoreError
@@ -218,14 +231,14 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"iteration {r.state.iteration:5d}  F {F:5.2f}  σ {sig:6.2f}°", end="",
               file=sys.stderr)  # fmt: skip
 
+    where = Simulated(obj, fast=args.fast) if args.sim else real_hand(cfg, args.dsa, args.sdh)
     try:
         if args.fast:
             from sdh2svc.sim.clock import run_fast
 
-            summary = run_fast(run_once(cfg, sim=True, obj=obj, fast=True, progress=progress))
+            summary = run_fast(run_once(cfg, where, progress=progress))
         else:
-            summary = asyncio.run(run_once(cfg, sim=args.sim, obj=obj, dsa_url=args.dsa,
-                                           sdh_url=args.sdh, progress=progress))  # fmt: skip
+            summary = asyncio.run(run_once(cfg, where, progress=progress))
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, str(e))
     except EstopLatched as e:
@@ -258,7 +271,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     (--sim) or a real one (--dsa/--sdh or the config's links). Ctrl-C/SIGTERM stop motion first."""
     import asyncio
 
-    from sdh2svc.service.serve import ExposureError, StartError, serve, setup_logging
+    from sdh2svc.connect import Simulated, real_hand
+    from sdh2svc.service.server import ExposureError, StartError, serve, setup_logging
 
     overrides = list(args.overrides)
     for key, value in (("host", args.host), ("port", args.port), ("viser_port", args.viser_port)):
@@ -272,10 +286,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.object or args.object_file:
         if not args.sim:
             _fail(Exit.USAGE, "--object and --object-file need --sim")
-        obj = _object(args, None)
+        obj = _object(args)
+    # no lab assistant: the service puts the object back itself before every run
+    where = Simulated(obj) if args.sim else real_hand(cfg, args.dsa, args.sdh)
     try:
-        return asyncio.run(serve(cfg, sim=args.sim, dsa_url=args.dsa, sdh_url=args.sdh, obj=obj,
-                                 announce_json=args.json))  # fmt: skip
+        return asyncio.run(serve(cfg, where, announce_json=args.json))
     except ExposureError as e:
         _fail(Exit.USAGE, str(e))
     except StartError as e:
@@ -384,14 +399,14 @@ def cmd_runs(args: argparse.Namespace) -> int:
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
     try:
-        return _runs(args, store)
+        return _runs(args, store, cfg)
     except sqlite3.Error as e:
         _fail(Exit.UNAVAILABLE, f"run database {store.path}: {_one_line(e)}")
     finally:
         store.close()
 
 
-def _runs(args: argparse.Namespace, store: Any) -> int:
+def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     if args.action == "list":
         for r in store.runs():
             print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
@@ -413,8 +428,9 @@ def _runs(args: argparse.Namespace, store: Any) -> int:
                 if path:
                     out.close()
         else:
+            assert path is not None  # an MCAP export goes to a file, always
             with open(path, "wb") as fh:
-                n = store.export_mcap(args.id, fh)
+                n = store.export_mcap(args.id, fh, cfg)
             print(f"{path}: {n} messages", file=sys.stderr)
     except OSError as e:
         _fail(Exit.UNAVAILABLE, f"cannot write {path or 'stdout'}: {e.strerror or e}")

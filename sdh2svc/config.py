@@ -22,6 +22,7 @@ import annotated_types as at
 from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
+from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.safety import RunConfig, SafetyConfig
 from sdh2svc.model.base import Frozen
@@ -98,6 +99,17 @@ class Settings(BaseSettings):
             calib=self.calibration,
             limits1=self.finger_limits(Finger.ONE),
             limits2=self.finger_limits(Finger.TWO),
+        )
+
+    def control(self) -> ControlConfig:
+        """The controller's section: all a run needs."""
+        return ControlConfig(
+            ctx=self.model_context(),
+            axes=self.axes,
+            limits=self.limits,
+            run=self.run,
+            safety=self.safety,
+            rolling=self.rolling,
         )
 
     def finger_limits(self, finger: Finger) -> FingerLimits:

@@ -250,7 +250,7 @@ def test_serve_with_the_viser_port_in_use(tmp_path: Path, taken_port: int) -> No
 def test_a_viewer_that_lost_the_race_for_its_port_says_so_too() -> None:
     """The child's late report (the port taken between the check and viser's bind)."""
     from sdh2svc.config import default_config
-    from sdh2svc.service.serve import PortBusy, _start_error
+    from sdh2svc.service.server import PortBusy, _start_error
     from sdh2svc.service.viewer_proc import ViewerError
 
     cfg = default_config()
@@ -302,7 +302,7 @@ def test_health_of_a_service_that_does_not_answer(closed_port: int) -> None:
 
 
 def test_health_takes_the_base_url_of_a_live_service(tmp_path: Path) -> None:
-    from sdh2svc.service.launch import start_service
+    from tests.live_service import start_service
 
     svc = start_service(tmp_path, viewer=False)
     try:

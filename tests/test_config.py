@@ -31,6 +31,16 @@ def test_defaults_are_the_thesis_values() -> None:
     assert s.limits.min_deg[0] == 0.0 and s.limits.max_deg[0] == 90.0
 
 
+def test_the_controller_gets_its_own_section() -> None:
+    s = load_config(None, ["run.grasp_timeout_s=7"], use_env=False)
+    c = s.control()
+    assert (c.axes, c.limits, c.safety, c.rolling) == (s.axes, s.limits, s.safety, s.rolling)
+    assert c.run == s.run and c.run.grasp_timeout_s == 7.0
+    assert c.ctx == s.model_context()
+    with pytest.raises(AttributeError):
+        c.run = s.run  # type: ignore[misc]  # frozen
+
+
 def test_default_file_exists_and_every_key_has_a_unit_or_comment() -> None:
     text = default_config_path().read_text()
     for line in text.splitlines():

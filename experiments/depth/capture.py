@@ -34,6 +34,7 @@ class _Captured(RunFault):
 
 
 def capture_case(case: Any, workdir: Path, overrides: list[str] | None = None) -> dict[str, Any]:
+    from sdh2svc.connect import Simulated
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
 
@@ -42,8 +43,8 @@ def capture_case(case: Any, workdir: Path, overrides: list[str] | None = None) -
     holder: dict[str, Any] = {}
     real_step = runner_mod.step
 
-    def observer(hand: Any) -> Any:
-        holder["hand"] = hand
+    def observer(bench: Any) -> Any:
+        holder["bench"] = bench
 
         class _Obs:
             def event(self, *a: Any) -> None:
@@ -57,7 +58,7 @@ def capture_case(case: Any, workdir: Path, overrides: list[str] | None = None) -
     def step(state, pose, m1, m2, params, ctx):  # type: ignore[no-untyped-def]
         r = real_step(state, pose, m1, m2, params, ctx)
         if r.obs.Lambda is not None and not got:
-            phys = holder["hand"].world._physics
+            phys = holder["bench"].sim.world._physics
             contacts = {c.surface: c for c in phys.contacts()}
             truth = {}
             for name, j in DISTAL.items():
@@ -87,7 +88,7 @@ def capture_case(case: Any, workdir: Path, overrides: list[str] | None = None) -
 
     runner_mod.step = step
     try:
-        run_fast(run_once(cfg, sim=True, obj=case.object, fast=True, observer=observer))
+        run_fast(run_once(cfg, Simulated(obj=case.object, fast=True), observer=observer))
     finally:
         runner_mod.step = real_step
     spec = case.object

@@ -24,8 +24,16 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
   commands that could move the hand (any set form except power-off, and ``m``) are refused with
   :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5).
 * Reconnect: when the port is lost (exception or EOF) the link reopens it with back-off
-  (0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake; meanwhile commands raise :class:`LinkLost`.
-  :class:`LinkEvent` values go to an optional callback and to :meth:`JointLink.subscribe` queues.
+  (:func:`sdh2svc.bus.reconnect.reconnect`: 0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake;
+  meanwhile commands raise :class:`LinkLost`. :class:`LinkEvent` values (the type both links
+  share) go to an optional callback and to :meth:`JointLink.subscribe` queues.
+* The newest actual angles (:attr:`JointLink.reading`, with their arrival time) come from every
+  ``pos``/``tpap`` answer; :meth:`JointLink.start_polling` keeps them fresh, so a control loop
+  takes them (:meth:`JointLink.take_reading`) without a round trip. While it takes them in a
+  rhythm, one ``pos`` is answered just before each iteration is due and none goes out between an
+  iteration's start and its target command (:mod:`sdh2svc.bus.polling`); otherwise a ``pos``
+  follows every other command and, with nothing else sent, goes out every ``idle_s``. A poll
+  waits its turn like any command (never ahead of one queued first); an e-stop still goes first.
 
 Angles are degrees, velocities deg/s, accelerations deg/s² at this edge (as on the wire).
 """
@@ -37,9 +45,9 @@ import contextlib
 import logging
 import math
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from enum import IntEnum, StrEnum
+from enum import IntEnum
 from numbers import Real
 from types import TracebackType
 from typing import Final, Self, TypeAlias
@@ -47,6 +55,8 @@ from typing import Final, Self, TypeAlias
 import serial
 
 from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
+from sdh2svc.bus.polling import PollPlan
+from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, reconnect
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
@@ -75,6 +85,7 @@ __all__ = [
     "FirmwareError",
     "JointLink",
     "JointLinkError",
+    "JointReading",
     "JointStats",
     "LinkEvent",
     "LinkEventKind",
@@ -91,8 +102,10 @@ DEFAULT_LIMITS: Final[tuple[tuple[float, float], ...]] = ((0.0, 90.0),) + ((-90.
 
 CONNECT_DRAIN_S: Final = 0.1  # §2.3: discard whatever arrives within 100 ms of the blank line
 VER_TIMEOUT_S: Final = 1.0  # §2.3: no `ver` reply within 1 s means "SDH not connected"
-BACKOFF_S: Final = (0.5, 1.0, 2.0, 4.0, 5.0)  # reconnect delays; the last one repeats
+BACKOFF: Final = Backoff(initial_s=0.5, max_s=5.0)  # before each attempt to reopen the line
+POLL_IDLE_S: Final = 0.05  # polling with no command to follow: the angles are read this often
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
+_WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
 
 
@@ -130,23 +143,6 @@ class ControllerMode(IntEnum):
     VELOCITY_ACCELERATION = 2
 
 
-class LinkEventKind(StrEnum):
-    CONNECTED = "connected"
-    LOST = "lost"
-    RECONNECTED = "reconnected"
-    ERROR = "error"  # a reconnect attempt or a command failed for good
-    EMERGENCY_STOP = "emergency_stop"
-    RELEASED = "released"
-    CLOSED = "closed"
-
-
-@dataclass(frozen=True, slots=True)
-class LinkEvent:
-    kind: LinkEventKind
-    url: str
-    detail: str = ""
-
-
 @dataclass(slots=True)
 class JointStats:
     """Counters since construction (handshakes included)."""
@@ -162,21 +158,27 @@ class JointStats:
     reconnects: int = 0
     motion_stops: int = 0  # `stop`s sent before a retry because the hand might be moving
     rtt_count: int = 0
-    rtt_total_s: float = 0.0
     rtt_min_s: float = math.inf
     rtt_max_s: float = 0.0
     rtt_last_s: float = math.nan
 
     def record_rtt(self, seconds: float) -> None:
         self.rtt_count += 1
-        self.rtt_total_s += seconds
         self.rtt_min_s = min(self.rtt_min_s, seconds)
         self.rtt_max_s = max(self.rtt_max_s, seconds)
         self.rtt_last_s = seconds
 
-    @property
-    def rtt_mean_s(self) -> float:
-        return self.rtt_total_s / self.rtt_count if self.rtt_count else math.nan
+
+@dataclass(frozen=True, slots=True)
+class JointReading:
+    """Actual joint angles (deg, wire axis order) and the loop time their answer arrived."""
+
+    angles: Vec
+    at: float
+
+    def age(self, now: float | None = None) -> float:
+        """Seconds since arrival."""
+        return (asyncio.get_running_loop().time() if now is None else now) - self.at
 
 
 class _Garbled(Exception):
@@ -212,7 +214,7 @@ class _Request:
 def _as_values(values: float | Sequence[float] | None) -> Vec | None:
     if values is None:
         return None
-    if isinstance(values, Real):
+    if isinstance(values, (float, Real)):
         return (float(values),)
     return tuple(float(v) for v in values)
 
@@ -451,11 +453,18 @@ class JointLink:
         self._closed = False
         self._estopped = False
         self._estop_pending = 0
-        self.last_actual: Vec | None = None  # the newest `pos` answer, for displays (no line time)
+        self.reading: JointReading | None = None  # the newest actual angles (pos, tpap)
         self._may_be_moving = False  # a command that can start motion went out since the last hold
-        self._actual_at: float | None = None  # loop time of last_actual
+        self._poller: asyncio.Task[None] | None = None
+        self._polling = False
+        self._poll_idle_s = POLL_IDLE_S
+        self._poll_wanted = False  # a command went out since the last poll
+        self._poll_wake = asyncio.Event()  # a command went out (the plan may have changed)
+        self._last_poll = -math.inf
+        self.poll_plan = PollPlan()
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[None]] = set()
+        self._sent_at = math.nan  # loop time the last request went on the line
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -503,12 +512,14 @@ class JointLink:
             with contextlib.suppress(JointLinkError):
                 await self._call(self._request("power", (0,) * NUM_AXES))
         self._closed = True
+        self._polling = False
         self._gate.fail_waiting(lambda: LinkLost("link closed"), urgent_too=True)
-        task, self._reconnect_task = self._reconnect_task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        for task in (self._reconnect_task, self._poller):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        self._reconnect_task = self._poller = None
         conn, self._conn = self._conn, None
         if conn is not None:
             await conn.close()
@@ -545,14 +556,10 @@ class JointLink:
         self._subscribers.append(queue)
         return queue
 
-    def unsubscribe(self, queue: asyncio.Queue[LinkEvent]) -> None:
-        with contextlib.suppress(ValueError):
-            self._subscribers.remove(queue)
-
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
-        event = LinkEvent(kind, self.url, detail)
-        logger.log(logging.INFO if kind is not LinkEventKind.ERROR else logging.WARNING,
-                   "%s %s %s", self.url, kind, detail)  # fmt: skip
+        event = LinkEvent(kind, self.url, asyncio.get_running_loop().time(), detail)
+        level = logging.WARNING if kind in _WARNINGS else logging.INFO
+        logger.log(level, "%s %s %s", self.url, kind, detail)
         for queue in self._subscribers:
             queue.put_nowait(event)
         if self._on_event is not None:
@@ -622,24 +629,36 @@ class JointLink:
         if any(not lo - _READ_MARGIN_DEG <= v <= hi + _READ_MARGIN_DEG
                for v, (lo, hi) in zip(values, self.limits, strict=True)):  # fmt: skip
             return False
-        last, at = self.last_actual, self._actual_at
-        if last is None or at is None or not self.velocity_limits:
+        last = self.reading
+        if last is None or not self.velocity_limits:
             return True
-        dt = asyncio.get_running_loop().time() - at
+        dt = last.age()
         vlim = self.velocity_limits
         return all(abs(v - w) <= vmax * dt + _READ_MARGIN_DEG
-                   for v, w, vmax in zip(values, last, vlim, strict=True))  # fmt: skip
+                   for v, w, vmax in zip(values, last.angles, vlim, strict=True))  # fmt: skip
 
     async def _call(self, req: _Request, timeout_s: float | None = None) -> Reply:
+        return (await self._call_sent(req, timeout_s))[0]
+
+    async def _call_sent(
+        self, req: _Request, timeout_s: float | None = None
+    ) -> tuple[Reply, float]:
+        """The reply, and the loop time its (last) request was written to the line."""
         self._check_usable(req)
         await self._gate.acquire()
         try:
             self._check_usable(req)
             conn = self._require_conn()
-            return await self._transact(conn, req, timeout_s=timeout_s or self.timeout_s,
-                                        retries=self.retries)  # fmt: skip
+            reply = await self._transact(conn, req, timeout_s=timeout_s or self.timeout_s,
+                                         retries=self.retries)  # fmt: skip
+            if req.keyword == "p":
+                self.poll_plan.command()
+            return reply, self._sent_at
         finally:
             self._gate.release()
+            if req.keyword not in _ACTUAL_ANGLES:  # those answer the angles themselves
+                self._poll_wanted = True
+                self._poll_wake.set()
 
     def _check_usable(self, req: _Request) -> None:
         if self._closed:
@@ -695,6 +714,7 @@ class JointLink:
         start = loop.time()
         conn.dirty = True  # until the reply is in (also if the caller cancels us)
         await conn.send(req.data)
+        self._sent_at = loop.time()
         async with asyncio.timeout(timeout_s):
             while (reply := self._match(req, await conn.events.get(), conn)) is None:
                 pass
@@ -855,21 +875,20 @@ class JointLink:
 
     async def _reconnect_loop(self, old: _Conn) -> None:
         await old.close()
-        for delay in _backoff():
-            await asyncio.sleep(delay)
-            try:
-                conn = await self._connect_once()
-            except Exception as exc:  # whatever went wrong, keep trying: the hand needs us
-                self._emit(LinkEventKind.ERROR, f"reconnect failed: {exc}")
-                continue
-            if conn.lost is not None:  # died right after the handshake
-                await conn.close()
-                continue
-            self._conn = conn
-            self._reconnect_task = None
-            self.stats.reconnects += 1
-            self._emit(LinkEventKind.RECONNECTED, f"firmware {self.version}")
-            return
+        self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed)
+        self._reconnect_task = None
+        self.stats.reconnects += 1
+        self._emit(LinkEventKind.RECONNECTED, f"firmware {self.version}")
+
+    def _reconnect_failed(self, exc: Exception) -> None:
+        self._emit(LinkEventKind.RECONNECT_FAILED, str(exc))
+
+    async def _reconnect_once(self) -> _Conn:
+        conn = await self._connect_once()
+        if conn.lost is not None:
+            await conn.close()
+            raise LinkLost(f"lost right after the handshake: {conn.lost}")
+        return conn
 
     # -- limits ---------------------------------------------------------------------------------
 
@@ -908,8 +927,18 @@ class JointLink:
         return self._took_actual(await self._vector("pos"))
 
     def _took_actual(self, actual: Vec) -> Vec:
-        self.last_actual, self._actual_at = actual, asyncio.get_running_loop().time()
+        self.reading = JointReading(actual, asyncio.get_running_loop().time())
         return actual
+
+    def take_reading(self) -> JointReading | None:
+        """:attr:`reading`, for a control loop whose command follows: no poll goes out first."""
+        self.poll_plan.beat(asyncio.get_running_loop().time())
+        return self.reading
+
+    @property
+    def last_actual(self) -> Vec | None:
+        """The newest actual angles, for displays (no line time)."""
+        return None if self.reading is None else self.reading.angles
 
     async def get_targets(self) -> Vec:
         """Target angles (``p``), deg."""
@@ -919,12 +948,14 @@ class JointLink:
         """Set target angles (``p=…``) after the limit check; returns the echoed targets."""
         return await self._vector("p", self.check_targets(angles))
 
+    async def send_targets(self, angles: Sequence[float]) -> float:
+        """:meth:`set_targets` for a control loop: returns, once the firmware took them, the
+        loop time the targets were written to the line (where sense→command ends)."""
+        return (await self._call_sent(self._request("p", self.check_targets(angles))))[1]
+
     async def move(self) -> float:
         """Start the coordinated move to the targets (``m``); returns its duration in s."""
         return (await self._call(self._request("m"))).values[0]
-
-    async def get_duration(self) -> float:
-        return (await self._call(self._request("get_duration"))).values[0]
 
     async def stop(self) -> None:
         """Stop an ``m`` move (``stop``)."""
@@ -981,10 +1012,6 @@ class JointLink:
         """Actual angular velocities (``vel``), deg/s."""
         return await self._vector("vel")
 
-    async def get_reference_velocity(self) -> Vec:
-        """Reference velocities of the velocity controller (``rvel``), deg/s."""
-        return await self._vector("rvel")
-
     async def temperatures(self) -> Vec:
         """9 temperatures (°C): 7 motors, FPGA, PCB."""
         temps = await self._vector("temp")
@@ -1000,6 +1027,67 @@ class JointLink:
             if self._closed:
                 raise LinkLost("link closed")
             return await self._hold_on(self._require_conn())
+        finally:
+            self._gate.release()
+
+    # -- polling the actual angles ----------------------------------------------------------------
+
+    def start_polling(self, idle_s: float = POLL_IDLE_S) -> None:
+        """Keep :attr:`reading` fresh (module docstring) until :meth:`stop_polling`."""
+        if idle_s <= 0:
+            raise ValueError("idle_s must be > 0")
+        if self._closed:
+            raise LinkLost("link closed")
+        self._polling, self._poll_idle_s = True, idle_s
+        self._poll_wanted = True  # a first reading at once
+        self._poll_wake.set()
+        if self._poller is None or self._poller.done():
+            self._poller = asyncio.get_running_loop().create_task(
+                self._poll_loop(), name="sdh-joint-poll"
+            )
+
+    def stop_polling(self) -> None:
+        """No more polls once the one on the line (if any) is answered."""
+        self._polling = False
+        self._poll_wake.set()
+
+    def _next_poll(self, now: float) -> float:
+        at = self.poll_plan.start_at(now)
+        if at is not None:
+            return at
+        return now if self._poll_wanted else self._last_poll + self._poll_idle_s
+
+    async def _poll_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        while self._polling and not self._closed:
+            now = loop.time()
+            if (at := self._next_poll(now)) > now:
+                self._poll_wake.clear()
+                try:
+                    async with asyncio.timeout(at - now):
+                        await self._poll_wake.wait()
+                    continue  # a command went out: plan again
+                except TimeoutError:
+                    pass  # its time (a timer fires a little late: no second look at the plan)
+            try:
+                await self._poll()
+            except EmergencyStopped:
+                pass  # the stop went first; read again after it
+            except JointLinkError:  # line down or failing: the reading ages, its users see it
+                await asyncio.sleep(self._poll_idle_s)
+
+    async def _poll(self) -> None:
+        loop = asyncio.get_running_loop()
+        await self._gate.acquire()
+        try:
+            self._poll_wanted = False  # this reading follows every command so far
+            self._last_poll = start = loop.time()
+            if self._closed:
+                raise LinkLost("link closed")
+            conn, req = self._require_conn(), self._request("pos")
+            reply = await self._transact(conn, req, timeout_s=self.timeout_s, retries=self.retries)
+            self._took_actual(reply.values)
+            self.poll_plan.polled(start, loop.time())
         finally:
             self._gate.release()
 
@@ -1044,7 +1132,8 @@ class JointLink:
             await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
         except JointLinkError as exc:
             first_error = exc  # still hold the hand where it is
-        held = self.clip_to_limits((await self._urgent(conn, self._request("pos"))).values)
+        actual = self._took_actual((await self._urgent(conn, self._request("pos"))).values)
+        held = self.clip_to_limits(actual)
         await self._urgent(conn, self._request("p", held))
         if first_error is not None:
             raise first_error
@@ -1060,12 +1149,6 @@ class JointLink:
             raise
         self._emit(LinkEventKind.RELEASED)
         return flags
-
-
-def _backoff() -> Iterator[float]:
-    yield from BACKOFF_S
-    while True:
-        yield BACKOFF_S[-1]
 
 
 def _seven_values(values: Sequence[float], what: str) -> Vec:

@@ -17,15 +17,15 @@ import asyncio
 import contextlib
 import socket
 import urllib.parse
-from collections.abc import Callable
-from typing import Any, Final
+from collections.abc import Callable, Iterable
+from typing import Any, SupportsIndex
 
 import serial
 import serial_asyncio
 
-__all__ = ["DEFAULT_BAUD", "PushReader", "close_streams", "is_socket_url", "open_streams"]
+from sdh2svc.protocol.line import BAUD
 
-DEFAULT_BAUD: Final = 115_200
+__all__ = ["PushReader", "close_streams", "is_socket_url", "open_streams"]
 
 
 class PushReader(asyncio.StreamReader):
@@ -33,6 +33,8 @@ class PushReader(asyncio.StreamReader):
     (:meth:`push_to`), from the transport's callback: a task awaiting :meth:`read` would see it
     one event-loop round later, for nothing but a hop."""
 
+    _buffer: bytearray  # StreamReader's own (not in typeshed)
+    _maybe_resume_transport: Callable[[], None]
     _on_data: Callable[[bytes], None] | None = None
     _on_end: Callable[[BaseException | None], None] | None = None
 
@@ -50,7 +52,7 @@ class PushReader(asyncio.StreamReader):
         if (exc := self.exception()) is not None or self.at_eof():
             self._end(exc)
 
-    def feed_data(self, data: bytes) -> None:
+    def feed_data(self, data: Iterable[SupportsIndex]) -> None:
         if self._on_data is None:
             super().feed_data(data)
         elif data:
@@ -60,7 +62,7 @@ class PushReader(asyncio.StreamReader):
         super().feed_eof()
         self._end(None)
 
-    def set_exception(self, exc: BaseException) -> None:
+    def set_exception(self, exc: Exception) -> None:
         super().set_exception(exc)
         self._end(exc)
 
@@ -76,7 +78,7 @@ def is_socket_url(url: str) -> bool:
 
 
 async def open_streams(
-    url: str, *, baudrate: int = DEFAULT_BAUD, limit: int = 2**16, **serial_kwargs: Any
+    url: str, *, baudrate: int = BAUD, limit: int = 2**16, **serial_kwargs: Any
 ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
     """Open ``url`` (device path or pyserial URL) raw 8N1, no flow control.
 
@@ -120,7 +122,7 @@ async def _open_unix(url: str, limit: int) -> tuple[asyncio.StreamReader, asynci
     return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
 
 
-def _close_orphan(opening: asyncio.Future[serial.SerialBase]) -> None:
+def _close_orphan(opening: asyncio.Future[serial.Serial]) -> None:
     if not opening.cancelled() and opening.exception() is None:
         opening.result().close()
 

@@ -9,47 +9,18 @@ Subscribers (:meth:`TactileBus.subscribe`) declare the matrices and the rate the
 frame carries all six matrices (the protocol has no per-matrix request), so the line has to carry
 the highest rate any subscriber asked for, and each subscription holds only the newest frame.
 
-Scheduling policy (which acquisition mode, when, and why)
----------------------------------------------------------
-``R`` = the highest ``rate_hz`` of the open subscriptions. Measured, then refined continuously:
-
-* ``S``: wire size of a frame (EWMA over received frames; RLE makes it grow with contact, from
-  79 bytes for an empty hand to 985 for a busy one, §1.10; initial guess 175 bytes);
-* ``P`` = min(controller cap 30 fps, baud/10/S, 1.05 × the rate last measured over a whole
-  2 s window in push mode): what push mode can deliver;
-* ``Q`` = 1 / (EWMA of the pull cycle, request written → frame parsed): what pull can deliver
-  (initial guess from S, the 10-byte ACK and 5 ms of turnaround).
-
-Modes:
-
-* **idle** when nobody subscribes: acquisition off, the line is silent.
-* **push** (one "rate > 0, acq on"; the controller streams) when ``R ≥ 0.9·P`` — the subscriber
-  needs about every frame the controller or the line can produce, and pull's per-frame round trip
-  would only lose rate — or when ``R > 0.8·Q``, i.e. pull cannot keep up with a 20 % margin
-  (large frames under heavy contact). Once in push it stays while ``R ≥ 0.75·P``: frame sizes
-  change with contact and would otherwise make the mode flap. The framerate field is ceil(R)
-  (documented firmware streams at its maximum for any value > 0; firmware that honours the value
-  then streams at R).
-* **pull** otherwise: "rate 0, acq on" re-sent every 1/R s on an anchored schedule (a late cycle
-  starts at once instead of shifting every later one, so the mean rate stays R). It costs the
-  line R·(S + 10) bytes/s instead of P·S, keeps it quiet for configuration commands, and every
-  frame is sampled on request, so it is at most one ACK + one frame time old on arrival.
-
-Examples (rolling): distal pads at 30 Hz and the other pads at 2 Hz → R = 30 ≥ 0.9·30 → push,
-about 30 fps: ~25 % line utilisation with the emulator's two sliding blobs (~95-byte frames),
-45-50 % at ~175-byte frames. Only the 2 Hz watch → pull at 2 Hz, about 2 %. Under heavy
-contact (S ≈ 985 bytes) push gives at most P ≈ 11.7 fps and a 10 Hz request goes to push too
-(pull would manage only ≈ 10.9 Hz).
-
-The choice is re-evaluated whenever a subscription opens or closes and every 0.5 s; ``bus.stats``
-reports the mode, frames/s, bytes/s, line utilisation = bytes/s × 10 / baud, and the estimates.
+Which frames the controller is asked for, when and why (idle, push or pull, at what rate) is
+decided in :mod:`sdh2svc.bus.acquisition`, sans-I/O; the choice is re-evaluated whenever a
+subscription opens or closes and every 0.5 s. ``bus.stats`` reports the mode, frames/s, bytes/s,
+line utilisation = bytes/s × 10 / baud, and the estimates.
 
 Faults: the parser never raises; bad CRCs, oversized headers and undecodable frames are dropped
 and counted, a read timeout flushes the parser, commands are retried. The line is reopened (with
-back-off, rerunning the open sequence and the acquisition mode) when the port is lost, after more
-than ``max_error_streak`` errors in a row with no good packet for ``min_dead_s``, or when nothing
-good arrives for ``stall_s`` beyond the expected frame gap. Events (``connected``, ``lost``,
-``reconnected``, ``crc_error``, …) go to every subscription's queue and to listeners.
+back-off, :func:`~sdh2svc.bus.reconnect.reconnect`, rerunning the open sequence and the acquisition
+mode) when the port is lost, after more than ``max_error_streak`` errors in a row with no good
+packet for ``min_dead_s``, or when nothing good arrives for ``stall_s`` beyond the expected frame
+gap. Events (:class:`~sdh2svc.bus.reconnect.LinkEvent`, the type both links share: ``connected``,
+``lost``, ``reconnected``, ``crc_error``, …) go to every subscription's queue and to listeners.
 """
 
 from __future__ import annotations
@@ -61,20 +32,32 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Self, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 import serial
 
+from sdh2svc.bus.acquisition import (
+    RATE_WINDOW_S,
+    REPLAN_S,
+    LineEstimates,
+    Mode,
+    RateMeter,
+    choose_mode,
+    line_verdict,
+    next_pull,
+    push_framerate,
+)
 from sdh2svc.bus.link import close_streams, open_streams
+from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, reconnect
 from sdh2svc.protocol import dsa
+from sdh2svc.protocol.line import BAUD
 
 __all__ = [
-    "BusEvent",
-    "EventKind",
     "FrameTimeout",
+    "LinkEvent",
+    "LinkEventKind",
     "Mode",
     "Subscription",
     "SubscriptionClosed",
@@ -86,25 +69,11 @@ __all__ = [
     "TactileOptions",
     "TactileStats",
     "TactileTimeoutError",
-    "choose_mode",
 ]
 
 logger = logging.getLogger(__name__)
 _T = TypeVar("_T")
 _A = TypeVar("_A")
-
-BAUD = 115_200
-BITS_PER_BYTE = 10  # 8N1
-PUSH_CAP_FPS = 30.0  # "highest possible rate (for now: 30 FPS)", §1.6
-ACK_BYTES = 10  # 0x03 ACK packet: 8 framing bytes + error u16
-_INITIAL_FRAME_BYTES = 175.0  # RLE restarted per row, §1.10: a middle-of-the-road guess
-_TURNAROUND_S = 0.005  # host + controller reaction time assumed before the first pull
-_EWMA = 0.2
-_ENTER_PUSH = 0.9
-_STAY_PUSH = 0.75
-_PULL_MARGIN = 0.8
-_RATE_WINDOW_S = 2.0
-_REPLAN_S = 0.5
 
 _STOP = dsa.configure_acquisition(acquire=False, framerate=0)
 
@@ -125,7 +94,10 @@ class TactileCommandError(TactileError):
     """The controller answered a command with a non-zero error code."""
 
     def __init__(self, command: str, code: int) -> None:
-        name = dsa.DsaError(code).name if code in dsa.DsaError else str(code)
+        try:
+            name = dsa.DsaError(code).name
+        except ValueError:  # a code the protocol does not define (`in` raises on 3.11)
+            name = str(code)
         super().__init__(f"{command}: controller error {name}")
         self.code = code
 
@@ -140,32 +112,6 @@ class _Garbled(TactileError):
 
 class SubscriptionClosed(TactileError):
     """The subscription (or its bus) was closed."""
-
-
-class Mode(StrEnum):
-    IDLE = "idle"
-    PULL = "pull"
-    PUSH = "push"
-
-
-class EventKind(StrEnum):
-    CONNECTED = "connected"
-    LOST = "lost"
-    RECONNECTED = "reconnected"
-    RECONNECT_FAILED = "reconnect_failed"
-    CRC_ERROR = "crc_error"
-    OVERSIZED = "oversized"
-    BAD_FRAME = "bad_frame"
-    RESYNC = "resync"
-    TIMEOUT = "timeout"
-    MODE = "mode"
-
-
-@dataclass(frozen=True, slots=True)
-class BusEvent:
-    kind: EventKind
-    time: float  # loop time
-    detail: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,7 +134,7 @@ class TactileOptions:
     reconnect: bool = True
     backoff_initial_s: float = 0.25
     backoff_max_s: float = 4.0
-    push_cap_fps: float = PUSH_CAP_FPS
+    push_cap_fps: float = 30.0  # "highest possible rate (for now: 30 FPS)", §1.6
     rle: bool = True
     events_maxlen: int = 256
 
@@ -233,36 +179,6 @@ class TactileStats:
     connected: bool
 
 
-def choose_mode(required_hz: float, *, push_fps: float, pull_max_hz: float, current: Mode) -> Mode:
-    """The acquisition mode for ``required_hz`` (the policy in the module docstring)."""
-    if required_hz <= 0.0:
-        return Mode.IDLE
-    if required_hz > _PULL_MARGIN * pull_max_hz:
-        return Mode.PUSH
-    threshold = _STAY_PUSH if current is Mode.PUSH else _ENTER_PUSH
-    return Mode.PUSH if required_hz >= threshold * push_fps else Mode.PULL
-
-
-class _RateMeter:
-    """Sum of amounts over the last ``window`` seconds (or since ``start``), as a rate."""
-
-    def __init__(self, start: float, window: float = _RATE_WINDOW_S) -> None:
-        self.window = window
-        self._start = start
-        self._items: deque[tuple[float, int]] = deque()
-        self._sum = 0
-
-    def add(self, t: float, amount: int) -> None:
-        self._items.append((t, amount))
-        self._sum += amount
-
-    def rate(self, now: float) -> float:
-        while self._items and self._items[0][0] < now - self.window:
-            self._sum -= self._items.popleft()[1]
-        span = min(self.window, now - self._start)
-        return self._sum / span if span > 0.0 else 0.0
-
-
 class Subscription:
     """A subscriber's view: the newest frame only (a slot + an event), and the bus events."""
 
@@ -270,7 +186,7 @@ class Subscription:
         self.bus = bus
         self.matrices = matrices
         self.rate_hz = rate_hz
-        self.events: asyncio.Queue[BusEvent] = asyncio.Queue(bus.options.events_maxlen)
+        self.events: asyncio.Queue[LinkEvent] = asyncio.Queue(bus.options.events_maxlen)
         self._slot: TactileFrame | None = None
         self._last_seq = -1
         self._ready = asyncio.Event()
@@ -321,7 +237,7 @@ class Subscription:
         self._slot = frame
         self._ready.set()
 
-    def _event(self, event: BusEvent) -> None:
+    def _event(self, event: LinkEvent) -> None:
         if self.events.full():  # drop the oldest: recent events matter more
             self.events.get_nowait()
         self.events.put_nowait(event)
@@ -339,9 +255,9 @@ class TactileBus:
         self._loop = asyncio.get_running_loop()
         self._parser = dsa.PacketParser()
         self._subs: set[Subscription] = set()
-        self._listeners: list[Callable[[BusEvent], None]] = []
+        self._listeners: list[Callable[[LinkEvent], None]] = []
         self._frame_listeners: list[Callable[[TactileFrame], None]] = []
-        self.history: deque[BusEvent] = deque(maxlen=self.options.events_maxlen)
+        self.history: deque[LinkEvent] = deque(maxlen=self.options.events_maxlen)
         # connection state
         self._writer: asyncio.StreamWriter | None = None
         self._reader_task: asyncio.Task[None] | None = None
@@ -364,11 +280,9 @@ class TactileBus:
         self._last_good = 0.0
         self._last_rx = 0.0
         self._error_streak = 0
-        self._frame_bytes = _INITIAL_FRAME_BYTES
-        self._pull_cycle_s: float | None = None
-        self._push_achieved: float | None = None  # frames/s measured over a push window
-        self._byte_meter = _RateMeter(self._loop.time())
-        self._frame_meter = _RateMeter(self._loop.time())
+        self._line = LineEstimates(self.options.baud, self.options.push_cap_fps)
+        self._byte_meter = RateMeter(self._loop.time())
+        self._frame_meter = RateMeter(self._loop.time())
         self._last_frame: TactileFrame | None = None
         self._seq = 0
         self._bad_frames = 0
@@ -384,7 +298,7 @@ class TactileBus:
         """Open ``url`` (device path or pyserial URL) and run the SDHLibrary open sequence."""
         bus = cls(url, options)
         await bus._establish()
-        bus._emit(EventKind.CONNECTED, url)
+        bus._emit(LinkEventKind.CONNECTED, url)
         bus._supervisor = bus._loop.create_task(bus._supervise(), name="tactile-supervisor")
         return bus
 
@@ -439,7 +353,7 @@ class TactileBus:
         self._replan.set()
         return sub
 
-    def add_listener(self, callback: Callable[[BusEvent], None]) -> None:
+    def add_listener(self, callback: Callable[[LinkEvent], None]) -> None:
         """Call ``callback`` for every bus event (synchronously, from the reader task)."""
         self._listeners.append(callback)
 
@@ -480,11 +394,11 @@ class TactileBus:
             frames=self._seq,
             frames_per_s=self._frame_meter.rate(now),
             bytes_per_s=bps,
-            line_utilisation_pct=100.0 * bps * BITS_PER_BYTE / self.options.baud,
+            line_utilisation_pct=self._line.line_utilisation_pct(bps),
             frame_age_ms=math.inf if last is None else 1000.0 * (now - last.arrival),
-            frame_bytes=self._frame_bytes,
-            push_fps_estimate=self._push_fps(),
-            pull_max_hz=self._pull_max_hz(),
+            frame_bytes=self._line.frame_bytes,
+            push_fps_estimate=self._line.push_fps(),
+            pull_max_hz=self._line.pull_max_hz(),
             crc_errors=p.crc_errors,
             oversized=p.oversized,
             bad_frames=self._bad_frames,
@@ -558,23 +472,19 @@ class TactileBus:
     async def _supervise(self) -> None:
         """Wait for a loss, tear down, reconnect with back-off; report each step."""
         o = self.options
+        backoff = Backoff(o.backoff_initial_s, o.backoff_max_s)
         while True:
             await self._lost.wait()
             await self._teardown()
-            self._emit(EventKind.LOST, self._lost_reason)
+            self._emit(LinkEventKind.LOST, self._lost_reason)
             if not o.reconnect:
                 return
-            delay = o.backoff_initial_s
-            while True:
-                await asyncio.sleep(delay)
-                try:
-                    await self._establish()
-                    break
-                except Exception as exc:  # any failure to reopen is retried, never fatal
-                    self._emit(EventKind.RECONNECT_FAILED, repr(exc))
-                    delay = min(2.0 * delay, o.backoff_max_s)
+            await reconnect(self._establish, backoff, self._reconnect_failed)
             self._reconnects += 1
-            self._emit(EventKind.RECONNECTED, self.url)
+            self._emit(LinkEventKind.RECONNECTED, self.url)
+
+    def _reconnect_failed(self, exc: Exception) -> None:
+        self._emit(LinkEventKind.RECONNECT_FAILED, repr(exc))
 
     def _task_done(self, task: asyncio.Task[None]) -> None:
         """A crashed reader or scheduler is a bug: log it and start over on a new connection."""
@@ -631,7 +541,7 @@ class TactileBus:
         now = self._loop.time()
         if self._parser.buffered:
             self._dispatch(self._parser.flush(), now)
-            self._error(EventKind.TIMEOUT, "partial packet abandoned", now)
+            self._error(LinkEventKind.TIMEOUT, "partial packet abandoned", now)
             self._fail_waiter(_Garbled("reply cut off"))  # nothing else is coming: retry now
         self._check_health(now)
 
@@ -643,13 +553,13 @@ class TactileBus:
                 case dsa.Packet():
                     self._on_reply(ev)
                 case dsa.BadCrc():
-                    self._error(EventKind.CRC_ERROR, f"id {ev.id:#04x} len {ev.length}", now)
+                    self._error(LinkEventKind.CRC_ERROR, f"id {ev.id:#04x} len {ev.length}", now)
                     if self._waiter is not None and self._waiter[0] == ev.id:
                         self._fail_waiter(_Garbled("reply failed its CRC"))
                 case dsa.Oversized():
-                    self._error(EventKind.OVERSIZED, f"id {ev.id:#04x} len {ev.length}", now)
+                    self._error(LinkEventKind.OVERSIZED, f"id {ev.id:#04x} len {ev.length}", now)
                 case dsa.GarbageSkipped() if not self._opening:
-                    self._emit(EventKind.RESYNC, f"{ev.nbytes} bytes skipped", now)
+                    self._emit(LinkEventKind.RESYNC, f"{ev.nbytes} bytes skipped", now)
                 case _:  # boot noise, or garbage of a stale stream while opening
                     pass
 
@@ -660,11 +570,11 @@ class TactileBus:
             frame = dsa.decode_frame_payload(payload, self.nb_cells)
         except dsa.FrameError as exc:
             self._bad_frames += 1
-            self._error(EventKind.BAD_FRAME, str(exc), now)
+            self._error(LinkEventKind.BAD_FRAME, str(exc), now)
             return
         self._good(now)
         size = len(payload) + 8
-        self._frame_bytes += _EWMA * (size - self._frame_bytes)
+        self._line.frame(size)
         self._frame_meter.add(now, 1)
         self._seq += 1
         matrices = tuple(dsa.split_matrices(frame.texels, self.matrix_infos))
@@ -688,7 +598,7 @@ class TactileBus:
         self._last_good = now
         self._error_streak = 0
 
-    def _error(self, kind: EventKind, detail: str, now: float) -> None:
+    def _error(self, kind: LinkEventKind, detail: str, now: float) -> None:
         self._error_streak += 1
         self._errors += 1
         self._frame_pulse.set()  # a pull cycle waiting for its frame may have just lost it
@@ -699,14 +609,19 @@ class TactileBus:
         if self._opening or self._lost.is_set():
             return
         o = self.options
-        quiet = now - max(self._last_good, self._active_since)
-        if self._error_streak > o.max_error_streak and quiet >= o.min_dead_s:
-            self._mark_lost(f"{self._error_streak} errors in a row")
-        elif self._mode is not Mode.IDLE and quiet >= o.stall_s + self._expected_gap():
-            self._mark_lost(f"no good packet for {quiet:.2f} s")  # idle: silence is normal
+        why = line_verdict(
+            error_streak=self._error_streak,
+            max_error_streak=o.max_error_streak,
+            quiet_s=now - max(self._last_good, self._active_since),
+            min_dead_s=o.min_dead_s,
+            stall_s=o.stall_s,
+            expected_gap_s=None if self._mode is Mode.IDLE else self._expected_gap(),
+        )
+        if why is not None:
+            self._mark_lost(why)
 
     def _expected_gap(self) -> float:
-        rate = self._push_fps() if self._mode is Mode.PUSH else self._required_hz()
+        rate = self._line.push_fps() if self._mode is Mode.PUSH else self._required_hz()
         return 1.0 / rate if rate > 0 else 0.0
 
     # -- commands ----------------------------------------------------------------------------
@@ -740,7 +655,7 @@ class TactileBus:
                         payload = await future
                 except TimeoutError:
                     self._timeouts += 1
-                    self._error(EventKind.TIMEOUT, f"no reply to {pid:#04x}", self._loop.time())
+                    self._error(LinkEventKind.TIMEOUT, f"no reply to {pid:#04x}", self._loop.time())
                     continue
                 except _Garbled:
                     continue  # counted as the CRC error / partial packet it was
@@ -782,28 +697,17 @@ class TactileBus:
     def _required_hz(self) -> float:
         return max((s.rate_hz for s in self._subs), default=0.0)
 
-    def _push_fps(self) -> float:
-        line_fps = self.options.baud / BITS_PER_BYTE / self._frame_bytes
-        achieved = math.inf if self._push_achieved is None else 1.05 * self._push_achieved
-        return min(self.options.push_cap_fps, line_fps, achieved)
-
     def _measure_push(self) -> None:
         """What the stream really delivers, once a whole rate window lies inside push mode."""
         now = self._loop.time()
-        if self._mode is Mode.PUSH and now - self._active_since >= _RATE_WINDOW_S:
-            self._push_achieved = self._frame_meter.rate(now)
-
-    def _pull_max_hz(self) -> float:
-        if self._pull_cycle_s is None:
-            byte_s = BITS_PER_BYTE / self.options.baud
-            return 1.0 / ((self._frame_bytes + ACK_BYTES) * byte_s + _TURNAROUND_S)
-        return 1.0 / self._pull_cycle_s
+        if self._mode is Mode.PUSH and now - self._active_since >= RATE_WINDOW_S:
+            self._line.push_achieved = self._frame_meter.rate(now)
 
     def _set_mode(self, mode: Mode) -> None:
         if mode is not self._mode:
             self._mode = mode
             self._active_since = self._loop.time()
-            self._emit(EventKind.MODE, mode.value)
+            self._emit(LinkEventKind.MODE, mode.value)
 
     async def _schedule(self) -> None:
         """Per connection: pick the mode, then run pull cycles or watch the push stream."""
@@ -813,18 +717,18 @@ class TactileBus:
             required = self._required_hz()
             want = choose_mode(
                 required,
-                push_fps=self._push_fps(),
-                pull_max_hz=self._pull_max_hz(),
+                push_fps=self._line.push_fps(),
+                pull_max_hz=self._line.pull_max_hz(),
                 current=self._mode,
             )
             try:
                 if want is Mode.PUSH:
-                    rate = max(1, min(0xFFFF, math.ceil(required)))
+                    rate = push_framerate(required)
                     if self._mode is not Mode.PUSH or rate != push_rate:
                         await self._configure(acquire=True, framerate=rate)
                         push_rate = rate
                         self._set_mode(Mode.PUSH)
-                    await self._wait_replan(_REPLAN_S)
+                    await self._wait_replan(REPLAN_S)
                     self._measure_push()
                 elif want is Mode.PULL:
                     if self._mode is Mode.PUSH:
@@ -838,7 +742,7 @@ class TactileBus:
                     await self._wait_replan(None)
             except TactileCommandError as exc:  # the controller refused: retry a little later
                 logger.warning("tactile acquisition command refused: %s", exc)
-                await self._wait_replan(_REPLAN_S)
+                await self._wait_replan(REPLAN_S)
             except TactileTimeoutError:
                 pass  # counted; the health check decides whether to reconnect
             except TactileConnectionError:
@@ -880,13 +784,11 @@ class TactileBus:
         if self._seq == seq:
             if self._errors == errors:  # plain silence, not a garbled frame
                 self._timeouts += 1
-                self._error(EventKind.TIMEOUT, "no frame for a pull request", now)
+                self._error(LinkEventKind.TIMEOUT, "no frame for a pull request", now)
             return now
         if code is not None and self._errors == errors:  # clean cycles measure the line
-            cycle = now - t0
-            prev = self._pull_cycle_s
-            self._pull_cycle_s = cycle if prev is None else prev + _EWMA * (cycle - prev)
-        return max(due + period, now)
+            self._line.pull_cycle(now - t0)
+        return next_pull(due, period, now)
 
     async def _await_frame(
         self, seq: int, errors: int, ack: asyncio.Future[bytes], deadline: float
@@ -929,8 +831,8 @@ class TactileBus:
 
     # -- events ------------------------------------------------------------------------------
 
-    def _emit(self, kind: EventKind, detail: str = "", now: float | None = None) -> None:
-        event = BusEvent(kind, self._loop.time() if now is None else now, detail)
+    def _emit(self, kind: LinkEventKind, detail: str = "", now: float | None = None) -> None:
+        event = LinkEvent(kind, self.url, self._loop.time() if now is None else now, detail)
         self.history.append(event)
         for sub in self._subs:
             sub._event(event)

@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import Field
 
 from sdh2svc.model.base import Frozen
-from sdh2svc.sim.objects import Box, Circle, Ellipse, ObjectSpec, Polygon, Stick
+from sdh2svc.sim.objects import Ellipse, ObjectSpec, Shape
 
 Family = Literal["box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis"]
 FAMILIES: tuple[str, ...] = ("box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis")
@@ -100,8 +100,7 @@ class Suite(Frozen):
         return json.dumps(data, indent=1, ensure_ascii=False) + "\n"
 
 
-def extent_along_y0(obj: Stick | Box | Ellipse | Circle | Polygon, angle_deg: float
-                    ) -> tuple[float, float]:  # fmt: skip
+def extent_along_y0(obj: Shape, angle_deg: float) -> tuple[float, float]:
     """(min, max) of the object's outline along y0, relative to its centre, when it is turned by
     ``angle_deg`` (as sim.object_angle_deg turns it: object x along y0 at 0°).
 
@@ -118,7 +117,7 @@ def extent_along_y0(obj: Stick | Box | Ellipse | Circle | Polygon, angle_deg: fl
     return float(y.min()) - radius, float(y.max()) + radius
 
 
-def contact_width_mm(obj: Stick | Box | Ellipse | Circle | Polygon, angle_deg: float) -> float:
+def contact_width_mm(obj: Shape, angle_deg: float) -> float:
     """The object's true contact width at its placement: its width along y0 (the line between
     the fingertips) when turned by ``angle_deg`` — not its width across corners."""
     lo, hi = extent_along_y0(obj, angle_deg)

@@ -77,6 +77,7 @@ from sdh2svc.sim.objects import (
     Material,
     Outline,
     Polygon,
+    Shape,
     Stick,
 )
 from sdh2svc.sim.physics import (
@@ -85,13 +86,13 @@ from sdh2svc.sim.physics import (
     PALM,
     PROXIMAL1,
     PROXIMAL2,
+    Surface,
     build_surfaces,
     link_frame_rows,
 )
 
 __all__ = ["GENERATED", "SUITE_SEEDS", "build_suite", "generate_cases", "load_suite"]
 
-ObjectT = Stick | Box | Ellipse | Circle | Polygon
 GENERATED: tuple[str, ...] = tuple(f for f in FAMILIES if f != "thesis")
 
 # ranges (see the module docstring)
@@ -139,7 +140,7 @@ THESIS = ("rubber", "egg", "cylinder", "stick62", "stick74", "stick98", "stick11
 
 
 @lru_cache(maxsize=1)
-def _hand() -> tuple[Settings, tuple, tuple[float, float]]:
+def _hand() -> tuple[Settings, tuple[Surface, ...], tuple[float, float]]:
     s = default_config()
     surfaces = build_surfaces(s.hand, s.sim.physics)
     pitch = s.tactile.texel_pitch_mm
@@ -149,8 +150,7 @@ def _hand() -> tuple[Settings, tuple, tuple[float, float]]:
 
 
 def _preshape(s: Settings) -> HandPose:
-    a, q = s.axes, s.run.preshape_deg
-    return HandPose(*(math.radians(q[i]) for i in (a.phi2, a.phi3, a.phi4, a.phi5)))
+    return s.axes.pose(s.run.preshape_deg)
 
 
 def _sdf_world(outline: Outline, centre: tuple[float, float], angle: float, pts: np.ndarray
@@ -159,16 +159,20 @@ def _sdf_world(outline: Outline, centre: tuple[float, float], angle: float, pts:
     c, s = math.cos(angle), math.sin(angle)
     d = pts - np.asarray(centre)
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)  # Rᵀ·d
-    return outline.sdf(local)
+    d_mm: np.ndarray = outline.sdf(local)
+    return d_mm
 
 
-def _surface_points(surfaces: tuple, pose: HandPose, s: Settings, j: int) -> np.ndarray:
+def _surface_points(
+    surfaces: tuple[Surface, ...], pose: HandPose, s: Settings, j: int
+) -> np.ndarray:
     o, ex, ey = link_frame_rows(pose, s.hand)[j]
     loc = surfaces[j].local
-    return np.asarray(o) + loc[:, :1] * np.asarray(ex) + loc[:, 1:2] * np.asarray(ey)
+    pts: np.ndarray = np.asarray(o) + loc[:, :1] * np.asarray(ex) + loc[:, 1:2] * np.asarray(ey)
+    return pts
 
 
-def check_placement(obj: ObjectT, height_mm: float, angle_deg: float) -> str | None:
+def check_placement(obj: Shape, height_mm: float, angle_deg: float) -> str | None:
     """Why the object cannot be grasped at this placement (None: it can); see the module
     docstring."""
     s, surfaces, _ = _hand()
@@ -253,7 +257,7 @@ def _r(x: float) -> float:
     return round(float(x), DECIMALS)
 
 
-def _true_width(obj: ObjectT, angle_deg: float) -> float:
+def _true_width(obj: Shape, angle_deg: float) -> float:
     """:func:`contact_width_mm` to a nanometre: the suite's text then never depends on the last
     bit of the platform's sine and cosine."""
     return round(contact_width_mm(obj, angle_deg), WIDTH_DECIMALS)
@@ -296,7 +300,8 @@ def _irregular(n: int, rng: np.random.Generator) -> np.ndarray:
     vec = np.stack([dx, dy], axis=1)
     vec = vec[np.argsort(np.arctan2(vec[:, 1], vec[:, 0]), kind="stable")]
     pts = np.cumsum(vec, axis=0)
-    return pts - pts.mean(axis=0)
+    centred: np.ndarray = pts - pts.mean(axis=0)
+    return centred
 
 
 def _polygon_ok(v: np.ndarray) -> bool:
@@ -343,7 +348,7 @@ def _wrap_deg(a: float) -> float:
 
 def _shape(family: str, width: float, angle_u: float, depth: float, material: Material,
            rng: np.random.Generator, name: str, sides: int = 3, regular: bool = False,
-           ) -> tuple[ObjectT, float] | None:  # fmt: skip
+           ) -> tuple[Shape, float] | None:  # fmt: skip
     """One object of the family, scaled so that its contact width at its angle is ``width``,
     and its angle; None if this draw gives no valid object."""
     span = ANGLE_DEG[family]
@@ -377,12 +382,12 @@ def _shape(family: str, width: float, angle_u: float, depth: float, material: Ma
         return Stick(length_mm=_r(length), diameter_mm=_r(d), **common), angle
     if family == "polygon":
         unit_v = _regular(sides, rng) if regular else _irregular(sides, rng)
-        unit = Polygon(vertices_mm=[(float(x), float(y)) for x, y in unit_v * 50.0], **common)
-        centred = _centred_angle(unit, angle)
+        shape = Polygon(vertices_mm=[(float(x), float(y)) for x, y in unit_v * 50.0], **common)
+        centred = _centred_angle(shape, angle)
         if centred is None:
             return None
         angle = _r(_wrap_deg(centred))
-        scale = width / contact_width_mm(unit, angle)
+        scale = width / contact_width_mm(shape, angle)
         v = np.round(unit_v * 50.0 * scale, DECIMALS)
         if not _polygon_ok(v):
             return None

@@ -27,7 +27,7 @@ import tempfile
 import time
 import traceback
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -38,6 +38,7 @@ from pydantic import ValidationError
 
 from sdh2svc.campaign.case import Case, Suite
 from sdh2svc.config import ConfigError, format_errors, load_config
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 
 SUITES_DIR = Path(__file__).parent / "suites"
 CASES_FILE = "cases.jsonl"
@@ -110,12 +111,12 @@ def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
     return load_config(config_path, keys)
 
 
-class TruthProbe:
-    """Watches a run beside it (:class:`~sdh2svc.service.runs.RunObserver`): the simulated
+class TruthProbe(BaseObserver):
+    """Watches a run beside it (:class:`~sdh2svc.control.observer.RunObserver`): the simulated
     object's true angle ψ at the grasp and at every iteration, and where the half strokes end."""
 
     def __init__(self) -> None:
-        self.hand: Any = None
+        self.bench: Any = None  # the simulated hand's bench (sdh2svc.connect.Bench)
         self.psi_grasp: float | None = None
         self.psi: list[tuple[int, float]] = []  # (iteration, ψ rad) of every rolling iteration
         # the iterations that reversed, and whether each ended a half stroke (the runner's count
@@ -129,32 +130,33 @@ class TruthProbe:
         self.fault: str = ""
         self.end_t: float | None = None
 
-    def __call__(self, hand: Any) -> TruthProbe:
-        self.hand = hand
+    def __call__(self, bench: Any) -> TruthProbe:
+        self.bench = bench
         return self
 
     def _psi(self) -> float:
-        """ψ as the physics last stepped: reading it steps nothing (``world.object_pose``), so
+        """ψ as the physics last stepped: reading it steps nothing (``bench.object_pose``), so
         a campaign's runs stay bit for bit those of ``sdh2svc run --fast``."""
-        return self.hand.world.object_pose()[2]
+        return float(self.bench.object_pose()[2])
 
-    def event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        if kind == "grasped" and self.hand is not None:
+    def event(self, e: Event) -> None:
+        kind, detail = e.kind, e.detail
+        if kind is EventKind.GRASPED and self.bench is not None:
             self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
-        elif kind == "reversal":
+        elif kind is EventKind.REVERSAL:
             n = int(detail.get("half_strokes", self._half_strokes))
-            self.reversals.append((iteration, n > self._half_strokes))
+            self.reversals.append((e.iteration, n > self._half_strokes))
             self._half_strokes = n
-        elif kind == "fault":
+        elif kind is EventKind.FAULT:
             self.fault = str(detail.get("fault", ""))
-        elif kind == "end":
-            self.end_t = t
+        elif kind is EventKind.END:
+            self.end_t = e.t
 
     def sample(self, sample: Any) -> None:
-        if self.hand is not None:
+        if self.bench is not None:
             self.psi.append((sample.iteration, self._psi()))
             if self.contact_width_mm is None:
-                self.contact_width_mm = _contact_width(self.hand.world.contacts_now())
+                self.contact_width_mm = _contact_width(self.bench.contacts_now())
 
     def half_strokes_deg(self) -> list[float]:
         """How far the object truly turned in every half stroke (degrees): the largest
@@ -210,6 +212,7 @@ def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | N
     """Run one case and return its judged row; never raises for the case's own failure: an
     exception becomes a row with status ``crashed`` and its traceback. The run database goes
     to a per-process directory under ``workdir`` (else a temporary one) and is deleted after."""
+    from sdh2svc.connect import Simulated
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
 
@@ -223,8 +226,8 @@ def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | N
         try:
             cfg = case_settings(case, overrides, config_path, db)
             probe = TruthProbe()
-            summary = run_fast(run_once(cfg, sim=True, obj=case.object, fast=True,
-                                        observer=probe))  # fmt: skip
+            where = Simulated(obj=case.object, fast=True)
+            summary = run_fast(run_once(cfg, where, observer=probe))
             row.update(measure(summary, probe, cfg, case))
         except Exception:
             row.update(status="crashed", traceback=traceback.format_exc())
@@ -675,10 +678,3 @@ def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | 
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
         raise
-
-
-def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
-    rows = list(rows)
-    n = len(rows)
-    ok = sum(1 for r in rows if r.get("success"))
-    return {"cases": n, "succeeded": ok, "success_rate": ok / n if n else None}

@@ -79,6 +79,12 @@ async def move_to_preshape(
     """Open the coupled fingers to ``run.preshape_deg`` at the pre-shape speed (a run's
     pre-shape and release, the service's Open hand); ``limits`` are (min_deg, max_deg)."""
     lo, hi = limits
-    return await move_in_increments(joints, run.preshape_deg,
-                                    velocity_deg_s=run.preshape_velocity_deg_s, lo=lo, hi=hi,
-                                    max_step_deg=safety.max_step_deg, check=check)  # fmt: skip
+    return await move_in_increments(
+        joints,
+        run.preshape_deg,
+        velocity_deg_s=run.preshape_velocity_deg_s,
+        lo=lo,
+        hi=hi,
+        max_step_deg=safety.max_step_deg,
+        check=check,
+    )

@@ -15,22 +15,25 @@ import asyncio
 import contextlib
 import math
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
-from sdh2svc.config import Settings
+from sdh2svc.control import safety
+from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
+from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, StepResult, grip_force, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.kinematics import HandPose
+from sdh2svc.protocol.sdh import NUM_AXES
 
 
 class Phase(StrEnum):
@@ -47,9 +50,16 @@ class Phase(StrEnum):
 
 
 class RunFault(Exception):
+    """The supervisor stopped the run (:mod:`sdh2svc.control.safety`)."""
+
     def __init__(self, fault: Fault, message: str) -> None:
         super().__init__(message)
         self.fault = fault
+
+
+def _raise(violation: safety.Violation | None) -> None:
+    if violation is not None:
+        raise RunFault(violation.fault, violation.message)
 
 
 @dataclass
@@ -91,33 +101,30 @@ class RunResult:
 
 
 class Runner:
-    """One run on open links. ``on_sample``/``on_event`` receive everything worth recording."""
+    """One run on open links; its ``observer`` receives everything worth recording."""
 
     def __init__(
         self,
-        settings: Settings,
+        config: ControlConfig,
         joints: JointLink,
         tactile: TactileBus,
         *,
         params: RollingParams | None = None,
-        on_sample: Callable[[Sample], None] | None = None,
-        on_event: Callable[[float, int | None, str, dict[str, Any]], None] | None = None,
-        on_frame: Callable[[float, TactileFrame], None] | None = None,
+        observer: RunObserver | None = None,
     ) -> None:
-        self.settings, self.joints, self.tactile = settings, joints, tactile
-        self.ctx = settings.model_context()
-        self.params = params or settings.rolling
+        self.config, self.joints, self.tactile = config, joints, tactile
+        self.ctx = config.ctx
+        self.params = params or config.rolling
         self._pending: RollingParams | None = None
         self.phase = Phase.IDLE
         self.state = RollState()
         self.result = RunResult(status="running")
-        self._on_sample, self._on_event, self._on_frame = on_sample, on_event, on_frame
+        self.observer = observer
         self._stop = asyncio.Event()
         self._t0 = 0.0
         self._task: asyncio.Task[RunResult] | None = None
-        a = settings.axes
-        self._axes = (a.phi2, a.phi3, a.phi4, a.phi5)
-        self._m1, self._m2 = a.finger1_distal_matrix, a.finger2_distal_matrix
+        self._axes = config.axes  # wire ↔ model (AxisMap.pose, .wire_targets, .wire_steps)
+        self._m1, self._m2 = self._axes.finger1_distal_matrix, self._axes.finger2_distal_matrix
         self._last_seq: int | None = None
         self._estopping = False
 
@@ -147,19 +154,20 @@ class Runner:
             await self.joints.emergency_stop()
         finally:
             self._set_phase(Phase.ESTOPPED)
-            self._event("estop", {})
+            self._event(EventKind.ESTOP, {})
 
     # --- the run ----------------------------------------------------------------------------
 
     async def run(self) -> RunResult:
-        self._task = asyncio.current_task()  # type: ignore[assignment]
+        self._task = asyncio.current_task()
         loop = asyncio.get_running_loop()
         self._t0 = loop.time()
-        sub = self.tactile.subscribe({self._m1, self._m2}, self.settings.run.tactile_rate_hz)
-        watch = self.tactile.subscribe(range(6), self.settings.run.watch_rate_hz)
+        sub = self.tactile.subscribe({self._m1, self._m2}, self.config.run.tactile_rate_hz)
+        watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
+        self.joints.start_polling()  # iterations take the newest angles, not a round trip
         try:
             self._set_phase(Phase.CONNECTING)
-            self._event("start", {"params": self.params.model_dump()})
+            self._event(EventKind.START, {"params": self.params.model_dump()})
             await self._preshape(sub)
             if not self._stop.is_set():
                 await self._grasp(sub)
@@ -174,17 +182,18 @@ class Runner:
             if e.fault is Fault.FORCE_CEILING:
                 with contextlib.suppress(Exception):
                     await self._release()
-            self._event("fault", {"fault": e.fault.value, "message": str(e)})
+            self._event(EventKind.FAULT, {"fault": e.fault.value, "message": str(e)})
             self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
         except (JointLinkError, TactileError) as e:
             await self._halt()
             fault = Fault.JOINT_ERROR if isinstance(e, JointLinkError) else Fault.SENSOR_ERROR
-            self._event("fault", {"fault": fault.value, "message": str(e)})
+            self._event(EventKind.FAULT, {"fault": fault.value, "message": str(e)})
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
         except asyncio.CancelledError:
             if not self._estopping:
                 raise
         finally:
+            self.joints.stop_polling()
             sub.close()
             watch.close()
         return self.result
@@ -195,7 +204,7 @@ class Runner:
         self.result.status, self.result.message = status, message
         self.result.strokes = self.state.strokes
         self._set_phase(phase)
-        self._event("end", {"status": status, "message": message})
+        self._event(EventKind.END, {"status": status, "message": message})
 
     async def _halt(self) -> None:
         """Hold where the hand is: stop every axis, targets = actual angles."""
@@ -207,30 +216,27 @@ class Runner:
         m = frame.matrices
         return self.ctx.contact(m[self._m1]), self.ctx.contact(m[self._m2])
 
-    def _ceiling_fault(self, F: float) -> RunFault | None:
-        s = self.settings.safety
-        if F > s.force_ceiling_factor * self.params.grasp_force:
-            return RunFault(Fault.FORCE_CEILING, f"F = {F:.2f} above "
-                            f"{s.force_ceiling_factor:g} × Fd")  # fmt: skip
-        return None
-
     def _watch_ceiling(self, sub: Subscription) -> Callable[[], None]:
         """A move's check: the newest fresh frame's F must stay under the ceiling."""
 
         def check() -> None:
             frame = sub.latest
-            stale = self.settings.safety.stale_frame_ms / 1000
-            if frame is not None and frame.age() <= stale:
-                fault = self._ceiling_fault(grip_force(*self._contacts(frame)))
-                if fault is not None:
-                    raise fault
+            s = self.config.safety
+            if frame is not None and safety.frame_age(frame.age(), s) is None:
+                F = grip_force(*self._contacts(frame))
+                _raise(safety.force_ceiling(F, self.params.grasp_force, s))
 
         return check
 
     async def _to_preshape(self, check: Callable[[], None] | None) -> None:
-        lim = self.settings.limits
-        await move_to_preshape(self.joints, self.settings.run, (lim.min_deg, lim.max_deg),
-                               self.settings.safety, check)  # fmt: skip
+        lim = self.config.limits
+        limits = (lim.min_deg, lim.max_deg)
+        await move_to_preshape(self.joints, self.config.run, limits, self.config.safety, check)
+
+    def _clamp(self, want: Sequence[float], actual: Sequence[float]) -> tuple[float, ...]:
+        """The supervisor's bound on a command: within the joint limits, ≤ max_step_deg away."""
+        lim, max_step = self.config.limits, self.config.safety.max_step_deg
+        return clamp_targets(want, actual, lim.min_deg, lim.max_deg, max_step)
 
     async def _preshape(self, sub: Subscription) -> None:
         self._set_phase(Phase.PRESHAPE)
@@ -245,59 +251,54 @@ class Runner:
         leaves the fingers at most one increment further.
         """
         self._set_phase(Phase.GRASPING)
-        run, fd, lim = self.settings.run, self.params.grasp_force, self.settings.limits
-        max_step = self.settings.safety.max_step_deg
+        run, fd = self.config.run, self.params.grasp_force
         period = 1.0 / run.tactile_rate_hz
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + run.grasp_timeout_s
+        started = loop.time()
         await self.joints.set_controller(ControllerMode.POSE)
-        await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * 7)
+        await self.joints.set_velocities([run.grasp_max_velocity_deg_s] * NUM_AXES)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
-        law = GraspLaw(grasp_force=fd, gain_deg_s=run.grasp_gain_deg_s,
-                       max_velocity_deg_s=run.grasp_max_velocity_deg_s,
-                       min_velocity_deg_s=run.grasp_min_velocity_deg_s,
-                       align_gain=run.grasp_align_gain, period_s=period,
-                       max_step_deg=max_step)  # fmt: skip
-        p2, p4 = self._axes[0], self._axes[2]
+        law = GraspLaw(
+            grasp_force=fd,
+            gain_deg_s=run.grasp_gain_deg_s,
+            max_velocity_deg_s=run.grasp_max_velocity_deg_s,
+            min_velocity_deg_s=run.grasp_min_velocity_deg_s,
+            align_gain=run.grasp_align_gain,
+            period_s=period,
+            max_step_deg=self.config.safety.max_step_deg,
+        )
         settle_until: float | None = None
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
-            if (fault := self._ceiling_fault(F)) is not None:
-                raise fault
-            actual = await self.joints.get_actual()
-            pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
+            _raise(safety.force_ceiling(F, fd, self.config.safety))
+            actual, _ = self._newest_angles()
+            pose = self._axes.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
                 settle_until = settle_until or loop.time() + run.grasp_settle_s
                 wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
                 if wedge_ok or law.align_gain == 0 or loop.time() >= settle_until:
-                    self._event("grasped", {"F": F, "wedge_deg": g.wedge_deg})
+                    self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
                     return
-            elif loop.time() > deadline:
-                raise RunFault(Fault.NO_CONTACT, f"no grasp (F = {F:.2f} < Fd = {fd}) "
-                               f"within {run.grasp_timeout_s:g} s")  # fmt: skip
-            if max(actual[p2], actual[p4]) > run.grasp_max_close_deg:
-                raise RunFault(Fault.NO_CONTACT, "fingers closed without touching anything")
-            want = list(actual)
-            for axis, inc in zip(self._axes, g.d_phi, strict=True):
-                want[axis] = actual[axis] + inc
-            await self.joints.set_targets(clamp_targets(want, actual, lim.min_deg, lim.max_deg,
-                                                        max_step))  # fmt: skip
+            else:
+                _raise(safety.grasp_timeout(F, fd, loop.time(), started, run))
+            _raise(safety.closed_empty(actual, self._axes, run))
+            want = self._axes.wire_steps(g.d_phi, actual)
+            await self.joints.set_targets(self._clamp(want, actual))
             await self.joints.move()
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""
-        stale = self.settings.safety.stale_frame_ms / 1000
+        s = self.config.safety
+        frame: TactileFrame | None
         try:
-            frame = await sub.next_frame(timeout=stale)
+            frame = await sub.next_frame(timeout=safety.stale_s(s))
         except (FrameTimeout, TimeoutError):
-            raise RunFault(
-                Fault.STALE_SENSOR, f"no tactile frame for {stale * 1000:.0f} ms"
-            ) from None
-        if frame.age() > stale:
-            raise RunFault(Fault.STALE_SENSOR, f"tactile frame {frame.age() * 1000:.0f} ms old")
+            frame = None
+        _raise(safety.frame_age(None if frame is None else frame.age(), s))
+        assert frame is not None  # no frame is always a violation
         return frame
 
     async def _roll(self, sub: Subscription) -> None:
@@ -306,7 +307,7 @@ class Runner:
         # One small move per frame, each replanning the last from its current velocity: with
         # the firmware's default 100 °/s² the fingers could not follow a step per frame period,
         # so use the axes' own acceleration limits.
-        await self.joints.set_velocities([self.settings.run.preshape_velocity_deg_s] * 7)
+        await self.joints.set_velocities([self.config.run.preshape_velocity_deg_s] * NUM_AXES)
         await self.joints.set_accelerations(self.joints.acceleration_limits)
         loop = asyncio.get_running_loop()
         t_start = loop.time()
@@ -317,33 +318,28 @@ class Runner:
 
     async def _roll_loop(self, sub: Subscription) -> None:
         loop = asyncio.get_running_loop()
-        safety, limits = self.settings.safety, self.settings.limits
         while not self._stop.is_set() and self.state.strokes < self.params.cycles:
             if self._pending is not None:
                 self.params, self._pending = self._pending, None
-                self._event("params", {"params": self.params.model_dump()})
+                self._event(EventKind.PARAMS, {"params": self.params.model_dump()})
             frame = await self._fresh(sub)
             if self._last_seq is not None:
                 self.result.frames_skipped += max(0, frame.seq - self._last_seq - 1)
             self._last_seq = frame.seq
-            actual = await self.joints.get_actual()
+            actual, joint_age_ms = self._newest_angles()
             age_ms = (loop.time() - frame.arrival) * 1000
-            pose = HandPose(*(math.radians(actual[i]) for i in self._axes))
+            pose = self._axes.pose(actual)
             m1, m2 = frame.matrices[self._m1], frame.matrices[self._m2]
             r = step(self.state, pose, m1, m2, self.params, self.ctx)
-            fault = self._supervise(r)
-            if fault is not None:  # record what tripped it, command nothing
-                self._record(r, pose, frame, age_ms, (loop.time() - frame.arrival) * 1000)
-                raise fault
+            v = safety.rolling_step(r, self.params.grasp_force, self.config.safety)
+            if v is not None:  # record what tripped it, command nothing
+                latency_ms = (loop.time() - frame.arrival) * 1000
+                self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
+                _raise(v)
             if r.targets is not None:
-                want = list(actual)
-                for axis, angle in zip(self._axes, (r.targets.phi2, r.targets.phi3, r.targets.phi4,
-                                                    r.targets.phi5), strict=True):  # fmt: skip
-                    want[axis] = math.degrees(angle)
-                cmd = clamp_targets(want, actual, limits.min_deg, limits.max_deg,
-                                    safety.max_step_deg)  # fmt: skip
-                await self.joints.set_targets(cmd)
-                latency_ms = (loop.time() - frame.arrival) * 1000  # the targets are written
+                want = self._axes.wire_targets(r.targets, actual)
+                sent = await self.joints.send_targets(self._clamp(want, actual))
+                latency_ms = (sent - frame.arrival) * 1000  # the targets are on the line
                 # Start the move and go on at once: the next iteration runs on the next fresh
                 # frame with the angles the fingers have then. A move still running is replanned
                 # by the firmware from its current velocity, so the fingers move continuously.
@@ -351,22 +347,24 @@ class Runner:
             else:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state
-            self._record(r, pose, frame, age_ms, latency_ms)
+            self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
 
-    def _supervise(self, r: StepResult) -> RunFault | None:
-        s = self.settings.safety
-        c1, c2 = r.obs.contact1, r.obs.contact2
-        if (fault := self._ceiling_fault(r.F)) is not None:
-            return fault
-        if not c1.present and not c2.present:
-            return RunFault(Fault.DROPPED, "both contacts lost: the object is no longer held")
-        if r.state.consecutive_reversals > s.max_consecutive_reversals:
-            return RunFault(Fault.STUCK, f"{r.state.consecutive_reversals} reversals in a row "
-                            f"(last: {r.reversal})")  # fmt: skip
-        return None
+    def _newest_angles(self) -> tuple[tuple[float, ...], float]:
+        """The newest joint angles and their age in ms; stale ones are a fault, as a stale frame."""
+        reading = self.joints.take_reading()
+        age_s = None if reading is None else reading.age()
+        _raise(safety.joint_age(age_s, self.config.safety))
+        assert reading is not None and age_s is not None
+        return reading.angles, age_s * 1000
 
     def _record(
-        self, r: StepResult, pose: HandPose, frame: TactileFrame, age_ms: float, latency_ms: float
+        self,
+        r: StepResult,
+        pose: HandPose,
+        frame: TactileFrame,
+        age_ms: float,
+        joint_age_ms: float,
+        latency_ms: float,
     ) -> None:
         t = frame.arrival - self._t0
         res = self.result
@@ -379,14 +377,13 @@ class Runner:
         res.latencies_ms.append(latency_ms)
         if r.reversal is not None:
             res.reversals.append({"iteration": r.state.iteration, "reason": r.reversal.value})
-            self._event("reversal", {"reason": r.reversal.value, "stroke": r.state.strokes,
-                                     "half_strokes": r.state.half_strokes},
-                        r.state.iteration)  # fmt: skip
-        sample = Sample.from_step(r, pose, t, age_ms, latency_ms)
-        if self._on_sample:
-            self._on_sample(sample)
-        if self._on_frame:
-            self._on_frame(t, frame)
+            st, why = r.state, r.reversal.value
+            detail = {"reason": why, "stroke": st.strokes, "half_strokes": st.half_strokes}
+            self._event(EventKind.REVERSAL, detail, st.iteration)
+        if self.observer is not None:
+            sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms)
+            self.observer.sample(sample)
+            self.observer.frame(t, frame)
 
     async def _release(self) -> None:
         """Open to the pre-shape pose; no force check: opening is the remedy for a high F."""
@@ -396,10 +393,10 @@ class Runner:
     def _set_phase(self, phase: Phase) -> None:
         if phase is not self.phase:
             self.phase = phase
-            self._event("phase", {"phase": phase.value})
+            self._event(EventKind.PHASE, {"phase": phase.value})
 
-    def _event(self, kind: str, detail: dict[str, Any], iteration: int | None = None) -> None:
-        if self._on_event:
+    def _event(self, kind: EventKind, detail: dict[str, Any], iteration: int | None = None) -> None:
+        if self.observer is not None:
             t = asyncio.get_running_loop().time() - self._t0
-            self._on_event(t, iteration if iteration is not None else self.state.iteration, kind,
-                           detail)  # fmt: skip
+            i = iteration if iteration is not None else self.state.iteration
+            self.observer.event(Event(t, i, kind, detail))

@@ -8,12 +8,15 @@ or stale sensor stream, on a dropped object or when the rotation keeps reversing
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import Annotated
 
 from pydantic import Field, field_validator
 
+from sdh2svc.control.rolling import StepResult
 from sdh2svc.model.base import Frozen
+from sdh2svc.model.hand import AxisMap
 
 Deg7 = tuple[float, ...]
 
@@ -47,6 +50,7 @@ class SafetyConfig(Frozen):
     max_step_deg: Annotated[float, Field(gt=0.0, le=1.0)]
     force_ceiling_factor: Annotated[float, Field(gt=1.0, le=20.0)]
     stale_frame_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
+    stale_joint_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
     max_consecutive_reversals: Annotated[int, Field(ge=2, le=1000)]
 
 
@@ -75,3 +79,88 @@ def clamp_targets(
         t = min(c + max_step, max(c - max_step, t))
         out.append(min(b, max(a, t)))
     return tuple(out)
+
+
+# --- the supervisor's decisions: pure, one per fault, None while all is well --------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Violation:
+    """A reason to stop the run: which fault, and in words."""
+
+    fault: Fault
+    message: str
+
+
+def stale_s(safety: SafetyConfig) -> float:
+    """The oldest a tactile frame may be (and the longest to wait for one), seconds."""
+    return safety.stale_frame_ms / 1000
+
+
+def frame_age(age_s: float | None, safety: SafetyConfig) -> Violation | None:
+    """A frame ``age_s`` old is too old; ``None``: none came within :func:`stale_s`."""
+    stale = stale_s(safety)
+    if age_s is None:
+        return Violation(Fault.STALE_SENSOR, f"no tactile frame for {stale * 1000:.0f} ms")
+    if age_s > stale:
+        return Violation(Fault.STALE_SENSOR, f"tactile frame {age_s * 1000:.0f} ms old")
+    return None
+
+
+def joint_age(age_s: float | None, safety: SafetyConfig) -> Violation | None:
+    """The newest joint reading ``age_s`` old is too old (``None``: none yet): the joint line is
+    lost as surely as a silent tactile stream, and nothing may move on angles that old."""
+    if age_s is None or age_s > safety.stale_joint_ms / 1000:
+        shown = "no" if age_s is None else f"{age_s * 1000:.0f} ms old"
+        return Violation(Fault.JOINT_ERROR, f"joint angles: {shown} reading "
+                         f"(limit {safety.stale_joint_ms:.0f} ms)")  # fmt: skip
+    return None
+
+
+def force_ceiling(F: float, grasp_force: float, safety: SafetyConfig) -> Violation | None:
+    """The grip's F above ``force_ceiling_factor`` × Fd."""
+    if F > safety.force_ceiling_factor * grasp_force:
+        factor = safety.force_ceiling_factor
+        return Violation(Fault.FORCE_CEILING, f"F = {F:.2f} above {factor:g} × Fd")
+    return None
+
+
+def dropped(contact1: bool, contact2: bool) -> Violation | None:
+    """Both distal contacts lost while rolling: the object is no longer held."""
+    if not contact1 and not contact2:
+        return Violation(Fault.DROPPED, "both contacts lost: the object is no longer held")
+    return None
+
+
+def stuck(consecutive: int, last: str | None, safety: SafetyConfig) -> Violation | None:
+    """More reversals in a row than allowed (``last``: the latest one's reason)."""
+    if consecutive > safety.max_consecutive_reversals:
+        return Violation(Fault.STUCK, f"{consecutive} reversals in a row (last: {last})")
+    return None
+
+
+def rolling_step(r: StepResult, grasp_force: float, safety: SafetyConfig) -> Violation | None:
+    """A rolling iteration's verdict, the checks in order: force ceiling, dropped, stuck."""
+    c1, c2, n = r.obs.contact1, r.obs.contact2, r.state.consecutive_reversals
+    return (
+        force_ceiling(r.F, grasp_force, safety)
+        or dropped(c1.present, c2.present)
+        or stuck(n, r.reversal, safety)
+    )
+
+
+def grasp_timeout(
+    F: float, grasp_force: float, now: float, started: float, run: RunConfig
+) -> Violation | None:
+    """Still under Fd ``run.grasp_timeout_s`` after the grasp ``started`` (clock seconds)."""
+    if F < grasp_force and now > started + run.grasp_timeout_s:
+        msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
+        return Violation(Fault.NO_CONTACT, msg)
+    return None
+
+
+def closed_empty(wire_deg: Sequence[float], axes: AxisMap, run: RunConfig) -> Violation | None:
+    """A proximal joint (φ2 or φ4) closed past ``run.grasp_max_close_deg``: nothing in between."""
+    if max(wire_deg[axes.phi2], wire_deg[axes.phi4]) > run.grasp_max_close_deg:
+        return Violation(Fault.NO_CONTACT, "fingers closed without touching anything")
+    return None

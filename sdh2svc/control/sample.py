@@ -59,6 +59,7 @@ class Sample:
     half_strokes: int
     reversal: str | None
     frame_age_ms: float
+    joint_age_ms: float  # of the actual angles φ2…φ5 when the iteration took them
     latency_ms: float
 
     @classmethod
@@ -70,7 +71,13 @@ class Sample:
 
     @classmethod
     def from_step(
-        cls, r: StepResult, pose: HandPose, t: float, frame_age_ms: float, latency_ms: float
+        cls,
+        r: StepResult,
+        pose: HandPose,
+        t: float,
+        frame_age_ms: float,
+        joint_age_ms: float,
+        latency_ms: float,
     ) -> Sample:
         """The sample of one iteration; ``pose`` are the actual angles it started from."""
         obs, plan, tg = r.obs, r.plan, r.targets
@@ -79,12 +86,12 @@ class Sample:
         by, bz = _yz(pts.B if pts else None)
         cy, cz = _yz(pts.C if pts else None)
         dy, dz = _yz(pts.D if pts else None)
+        phi = pose.degrees()
+        phi_d = tg.degrees() if tg else (None, None, None, None)
         return cls(
             iteration=r.state.iteration, t=t,
-            phi2=math.degrees(pose.phi2), phi3=math.degrees(pose.phi3),
-            phi4=math.degrees(pose.phi4), phi5=math.degrees(pose.phi5),
-            phi2_d=_deg(tg.phi2) if tg else None, phi3_d=_deg(tg.phi3) if tg else None,
-            phi4_d=_deg(tg.phi4) if tg else None, phi5_d=_deg(tg.phi5) if tg else None,
+            phi2=phi[0], phi3=phi[1], phi4=phi[2], phi5=phi[3],
+            phi2_d=phi_d[0], phi3_d=phi_d[1], phi4_d=phi_d[2], phi5_d=phi_d[3],
             S1=obs.contact1.S_mm, S2=obs.contact2.S_mm,
             F1=obs.contact1.force, F2=obs.contact2.force, F=r.F, dF=r.dF,
             Lambda=obs.Lambda, Lambda_ad=plan.Lambda_ad if plan else None,
@@ -95,5 +102,5 @@ class Sample:
             direction=r.state.direction, stroke=r.state.strokes,
             half_strokes=r.state.half_strokes,
             reversal=r.reversal.value if r.reversal else None,
-            frame_age_ms=frame_age_ms, latency_ms=latency_ms,
+            frame_age_ms=frame_age_ms, joint_age_ms=joint_age_ms, latency_ms=latency_ms,
         )  # fmt: skip

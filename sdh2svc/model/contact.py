@@ -88,7 +88,7 @@ def _mask_array(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
 @lru_cache(maxsize=32)
 def _full_rows(rows: int, cols: int, mask: tuple[str, ...]) -> np.ndarray:
     """The rows whose every position is a real cell (they measure a band's width)."""
-    arr = _mask_array(rows, cols, mask).all(axis=1)
+    arr = np.asarray(_mask_array(rows, cols, mask).all(axis=1))
     arr.flags.writeable = False
     return arr
 

@@ -7,13 +7,14 @@ texel layouts — the same value for the model, the controller and the simulator
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Annotated
 
 from pydantic import Field, field_validator, model_validator
 
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.contact import MatrixLayout
-from sdh2svc.model.kinematics import Finger
+from sdh2svc.model.kinematics import Finger, HandPose
 from sdh2svc.protocol.sdh import NUM_AXES  # the wire's count, written once
 
 AxisIndex = Annotated[int, Field(ge=0, le=6)]
@@ -60,8 +61,31 @@ class AxisMap(Frozen):
         """Wire axes (proximal, distal) of a coupled finger."""
         return (self.phi2, self.phi3) if finger is Finger.ONE else (self.phi4, self.phi5)
 
-    def distal_matrix(self, finger: Finger) -> int:
-        return self.finger1_distal_matrix if finger is Finger.ONE else self.finger2_distal_matrix
+    @property
+    def coupled(self) -> tuple[int, int, int, int]:
+        """Wire axes of φ2, φ3, φ4, φ5 (the coupled fingers the model knows)."""
+        return self.phi2, self.phi3, self.phi4, self.phi5
+
+    # The wire ↔ model conversion, here only: the wire has 7 axes in degrees, the model φ2…φ5
+    # in radians (:class:`HandPose`); the axes the model does not know keep their angles.
+
+    def pose(self, wire_deg: Sequence[float]) -> HandPose:
+        """The model's pose from the wire's 7 angles (degrees)."""
+        return HandPose.from_degrees(*(wire_deg[i] for i in self.coupled))
+
+    def wire_targets(self, pose: HandPose, wire_deg: Sequence[float]) -> list[float]:
+        """7 wire targets (degrees): ``pose``'s φ2…φ5, the other axes as in ``wire_deg``."""
+        out = list(wire_deg)
+        for axis, angle_deg in zip(self.coupled, pose.degrees(), strict=True):
+            out[axis] = angle_deg
+        return out
+
+    def wire_steps(self, d_phi_deg: Sequence[float], wire_deg: Sequence[float]) -> list[float]:
+        """7 wire targets (degrees): ``wire_deg`` with φ2…φ5 moved by ``d_phi_deg``."""
+        out = list(wire_deg)
+        for axis, inc in zip(self.coupled, d_phi_deg, strict=True):
+            out[axis] = wire_deg[axis] + inc
+        return out
 
 
 class JointLimits(Frozen):
@@ -85,9 +109,6 @@ class JointLimits(Frozen):
         if bad:
             raise ValueError(f"min_deg must be below max_deg for every axis; not so for axes {bad}")
         return self
-
-    def clamp_deg(self, axis: int, angle_deg: float) -> float:
-        return min(self.max_deg[axis], max(self.min_deg[axis], angle_deg))
 
 
 class TactileConfig(Frozen):

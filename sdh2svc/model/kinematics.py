@@ -74,6 +74,16 @@ class HandPose:
     phi4: float
     phi5: float
 
+    @classmethod
+    def from_degrees(cls, phi2: float, phi3: float, phi4: float, phi5: float) -> HandPose:
+        """The pose of φ2…φ5 given in degrees (as the wire and the records have them)."""
+        return cls(math.radians(phi2), math.radians(phi3), math.radians(phi4), math.radians(phi5))
+
+    def degrees(self) -> tuple[float, float, float, float]:
+        """φ2…φ5 in degrees (as the wire and the records have them)."""
+        d = math.degrees
+        return d(self.phi2), d(self.phi3), d(self.phi4), d(self.phi5)
+
     def finger(self, finger: Finger) -> tuple[float, float]:
         return (self.phi2, self.phi3) if finger is Finger.ONE else (self.phi4, self.phi5)
 

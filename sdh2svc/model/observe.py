@@ -84,10 +84,6 @@ class Observation:
     omega_A: float | None
     omega_B: float | None
 
-    @property
-    def both_contacts(self) -> bool:
-        return self.points is not None
-
 
 def observe(
     pose: HandPose, counts1: np.ndarray, counts2: np.ndarray, ctx: ModelContext

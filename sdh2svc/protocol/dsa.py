@@ -24,7 +24,7 @@ import struct
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, fields
 from enum import IntEnum, IntFlag
-from typing import ClassVar, NamedTuple, Protocol, Self, TypeAlias
+from typing import Any, ClassVar, NamedTuple, Protocol, Self, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
@@ -527,7 +527,7 @@ def _pack(st: struct.Struct, *values: object) -> bytes:
         raise ValueError(f"field out of range for layout {st.format!r}: {exc}") from None
 
 
-def _unpack(cls_name: str, st: struct.Struct, payload: bytes) -> tuple:
+def _unpack(cls_name: str, st: struct.Struct, payload: bytes) -> tuple[Any, ...]:
     if len(payload) != st.size:
         raise ProtocolError(
             f"{cls_name} payload must be exactly {st.size} bytes, got {len(payload)}",
@@ -883,9 +883,16 @@ def encode_command(cmd: Command) -> bytes:
             return configure_acquisition(
                 acquire=cmd.acquire, framerate=cmd.framerate, rle=cmd.rle, extra_flags=extra
             )
-        case SetSensitivity() | SetThreshold():
-            encoder = set_sensitivity if isinstance(cmd, SetSensitivity) else set_threshold
-            return encoder(
+        case SetSensitivity():
+            return set_sensitivity(
+                cmd.matrix,
+                cmd.value,
+                all_matrices=cmd.all_matrices,
+                persistent=cmd.persistent,
+                reset=cmd.reset,
+            )
+        case SetThreshold():
+            return set_threshold(
                 cmd.matrix,
                 cmd.value,
                 all_matrices=cmd.all_matrices,
@@ -1266,7 +1273,7 @@ def rle_encode(values: npt.ArrayLike, *, breaks: Iterable[int] = ()) -> bytes:
     return words.astype("<u2").tobytes()
 
 
-def rle_decode(data: bytes, nb_cells: int) -> npt.NDArray[np.uint16]:
+def rle_decode(data: bytes | memoryview, nb_cells: int) -> npt.NDArray[np.uint16]:
     """Expand RLE words; raise :class:`FrameError` unless they give exactly ``nb_cells`` texels.
 
     Words with count 0 produce nothing (protocols.md §1.5). An odd byte count is rejected.

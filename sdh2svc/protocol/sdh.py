@@ -5,9 +5,9 @@ turn typed values into the exact bytes to write; parsers are fed whatever bytes 
 of any size, and hand back typed events. The same module serves both ends of the link:
 
 * host (driver) side: :func:`encode_ascii`, :func:`encode_blank`, :func:`encode_binary_request`
-  produce requests; :class:`ReplyParser` (ASCII lines *and* binary replies) or :class:`LineParser`
-  (ASCII only) turn the SDH's output into :class:`Reply`, :class:`ErrorLine`, :class:`DebugLine`,
-  :class:`BinaryReply` and :class:`Garbage` events;
+  produce requests; :class:`ReplyParser` (ASCII lines, and binary replies unless
+  ``binary=False``) turns the SDH's output into :class:`Reply`, :class:`ErrorLine`,
+  :class:`DebugLine`, :class:`BinaryReply` and :class:`Garbage` events;
 * controller (emulator) side: :class:`HostStreamParser` turns the host's output (ASCII command
   lines and binary frames mixed on one line, §2.6) into :class:`AsciiCommand`,
   :class:`BinaryRequest`, :class:`BlankLine` and :class:`ProtocolErrorEvent` events;
@@ -72,12 +72,10 @@ __all__ = [
     "Garbage",
     "HostEvent",
     "HostStreamParser",
-    "LineParser",
     "ProtocolErrorEvent",
     "Reply",
     "ReplyEvent",
     "ReplyParser",
-    "Role",
     "SdhError",
     "SdhProtocolError",
     "binary_reply_size",
@@ -445,7 +443,7 @@ def _as_values(values: Values) -> tuple[float, ...] | None:
         return None
     if type(values) is tuple or type(values) is list:  # the usual case: no ABC check
         return tuple(map(float, values))
-    if isinstance(values, Real):
+    if isinstance(values, (float, Real)):
         return (float(values),)
     return tuple(float(v) for v in values)
 
@@ -521,8 +519,10 @@ def encode_reply(
             raw: Sequence[float] = ()
         elif type(values) is tuple or type(values) is list:  # the usual case: no ABC check
             raw = values
+        elif isinstance(values, (float, Real)):
+            raw = (values,)
         else:
-            raw = (values,) if isinstance(values, Real) else values
+            raw = values
         body = ",".join([_format_reply_value(v, fmt, integer) for v in raw])
     line = f"{head}={body}"
     if not (line.isascii() and line.isprintable()):
@@ -1177,38 +1177,3 @@ class HostStreamParser(_Framer[HostEvent]):
             return total, ProtocolErrorEvent(
                 exc.code, exc.message, frame, ErrorSource.FRAME, BinaryCommand(frame[0]), form
             )
-
-
-class Role(StrEnum):
-    """Which end of the link a :class:`LineParser` serves."""
-
-    HOST = "host"  # parse replies
-    CONTROLLER = "controller"  # parse commands
-
-
-class LineParser:
-    """ASCII-only line parser for either end (no binary framing; §2.3, PART 3 item 1).
-
-    Reassembles lines across arbitrary chunks, accepts ``\\r\\n`` and bare ``\\n`` (a bare
-    ``\\r`` does not end a line, as for the real host, PART 4 item 3), strips CR/LF/spaces and
-    reports over-long lines once, dropping them up to their LF. ``Role.HOST`` yields
-    :data:`ReplyEvent` events as :class:`ReplyParser` does; ``Role.CONTROLLER`` yields
-    :data:`HostEvent` events as :class:`HostStreamParser` does.
-    """
-
-    def __init__(
-        self, *, max_line: int = DEFAULT_MAX_LINE, role: Role = Role.HOST, report_debug: bool = True
-    ) -> None:
-        self._impl: ReplyParser | HostStreamParser
-        if role is Role.HOST:
-            self._impl = ReplyParser(max_line=max_line, report_debug=report_debug, binary=False)
-        else:
-            self._impl = HostStreamParser(max_line=max_line, binary=False)
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Event]:
-        """Add received bytes; return the events of the lines they complete."""
-        return list(self._impl.feed(data))
-
-    def reset(self) -> None:
-        """Forget a partial line."""
-        self._impl.reset()

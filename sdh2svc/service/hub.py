@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import math
 from collections import deque
@@ -25,32 +24,18 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from sdh2svc.service.telemetry import AnyMessage, Dropped, clean_json, encode, kind_of
+
+__all__ = ["Client", "Listener", "TelemetryHub", "cancel", "clean_json", "encode"]
+
 log = logging.getLogger(__name__)
 
-Listener = Callable[[dict[str, Any]], None]
+Listener = Callable[[AnyMessage], None]
 Send = Callable[[str], Awaitable[None]]
 
 HOLD_S = 0.012  # no run iteration under way: deliver this long after the first pending message
 SAMPLE_WAIT_S = 0.030  # samples flowing (rolling): wait this long at most for the iteration's end
 ROLLING_GAP_S = 0.2  # a sample this recently: a run is rolling, the next sample will come
-
-
-def clean_json(obj: Any) -> Any:
-    """JSON has no NaN or infinity: send null (the dashboard treats it as a gap)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: clean_json(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [clean_json(v) for v in obj]
-    return obj
-
-
-def encode(msg: dict[str, Any]) -> str:
-    try:
-        return json.dumps(msg, allow_nan=False, separators=(",", ":"))
-    except ValueError:
-        return json.dumps(clean_json(msg), allow_nan=False, separators=(",", ":"))
 
 
 @dataclass(eq=False)
@@ -86,28 +71,29 @@ class Client:
 
 
 class TelemetryHub:
-    """Fan-out of telemetry messages (dicts with a ``type``, docs/api.md) to clients, listeners."""
+    """Fan-out of telemetry messages (:mod:`sdh2svc.service.telemetry`; during the transition
+    also their JSON form as dicts) to clients and listeners."""
 
     def __init__(self, *, send_timeout_s: float = 2.0) -> None:
         self.send_timeout_s = send_timeout_s
         self.clients: set[Client] = set()
         self._listeners: list[Listener] = []
-        self._pending: list[dict[str, Any]] = []
+        self._pending: list[AnyMessage] = []
         self._flush_at: asyncio.Handle | None = None
         self._last_sample = -math.inf
         self.published = 0
         self.disconnected_slow = 0
 
     def add_listener(self, listener: Listener) -> None:
-        """In-process readers (the 3-D view); called with the dict at flush time, must return
-        quickly."""
+        """In-process readers (the 3-D view); called with the message as published, at flush
+        time; must return quickly."""
         self._listeners.append(listener)
 
     @property
     def has_listeners(self) -> bool:
         return bool(self._listeners)
 
-    def publish(self, msg: dict[str, Any]) -> None:
+    def publish(self, msg: AnyMessage) -> None:
         """Queue ``msg`` for delivery: O(1) here, the work is done by :meth:`flush`."""
         self.published += 1
         self._pending.append(msg)
@@ -117,7 +103,7 @@ class TelemetryHub:
             self.flush()
             return
         now = loop.time()
-        if msg["type"] == "sample":  # the end of an iteration: the loop is free now
+        if kind_of(msg) == "sample":  # the end of an iteration: the loop is free now
             self._last_sample = now
             self._schedule(loop, None)
         elif self._flush_at is None:
@@ -143,13 +129,13 @@ class TelemetryHub:
         for msg in pending:
             self._deliver(msg)
 
-    def _deliver(self, msg: dict[str, Any]) -> None:
+    def _deliver(self, msg: AnyMessage) -> None:
         for listener in self._listeners:
             try:
                 listener(msg)
             except Exception:  # a broken view must not break the telemetry of others
                 log.exception("telemetry listener failed")
-        kind = msg["type"]
+        kind = kind_of(msg)
         takers = [c for c in self.clients if c.wants(kind)]
         if takers:
             text = encode(msg)
@@ -172,7 +158,7 @@ class TelemetryHub:
                         deadline.reschedule(loop.time() + self.send_timeout_s)
                         if client.dropped != client._reported_drops:
                             client._reported_drops = client.dropped
-                            await send(encode({"type": "dropped", "count": client.dropped}))
+                            await send(encode(Dropped(client.dropped)))
                             client.sent += 1
                         await send(client.queue.popleft())
                         client.sent += 1

@@ -16,11 +16,14 @@ import time
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
 from sdh2svc.control.sample import Sample
+
+if TYPE_CHECKING:
+    from sdh2svc.config import Settings
 
 SAMPLE_COLUMNS = Sample.columns()
 _ROWS_PER_INSERT = 200  # rows in one multi-row INSERT (within SQLite's variable limit)
@@ -115,6 +118,7 @@ def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
         if not create and not _has_runs_table(db):
             raise StoreError(f"{p} is not a run database (it has no runs table)")
         db.executescript(SCHEMA)
+        _add_new_sample_columns(db)
     except (OSError, sqlite3.Error) as e:
         if db is not None:
             db.close()
@@ -126,6 +130,14 @@ def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
         raise
     db.row_factory = sqlite3.Row
     return db
+
+
+def _add_new_sample_columns(db: sqlite3.Connection) -> None:
+    """A database made before a Sample field was added gets its column (null in older rows)."""
+    have = {row[1] for row in db.execute("PRAGMA table_info(samples)")}
+    for column in SAMPLE_COLUMNS:
+        if column not in have:
+            db.execute(f'ALTER TABLE samples ADD COLUMN "{column}"')
 
 
 def _has_runs_table(db: sqlite3.Connection) -> bool:
@@ -265,40 +277,20 @@ class RunStore:
             n += 1
         return n
 
-    def export_mcap(self, run_id: int, out: IO[bytes]) -> int:
-        """The run as MCAP with JSON channels /samples, /events, /tactile (Foxglove-readable)."""
-        from mcap.writer import Writer
+    def export_mcap(self, run_id: int, out: IO[bytes], cfg: Settings | None = None) -> int:
+        """The run as Foxglove-native MCAP (:mod:`sdh2svc.service.foxglove_mcap`): samples,
+        the hand's transforms, contacts and friction cones, the pads as grids, events as logs,
+        the run's metadata and the URDF. ``cfg``: the configuration the run was recorded with
+        (default: the packaged one). Returns the message count."""
+        from sdh2svc.config import default_config
+        from sdh2svc.service.foxglove_mcap import write_mcap
 
-        writer = Writer(out)
-        writer.start(profile="", library="sdh2svc")
-        ids = {}
-        for topic in ("samples", "events", "tactile"):
-            schema = writer.register_schema(
-                name=f"sdh2svc.{topic}", encoding="jsonschema",
-                data=json.dumps({"type": "object"}).encode(),
-            )  # fmt: skip
-            ids[topic] = writer.register_channel(
-                topic=f"/{topic}", message_encoding="json", schema_id=schema
-            )
-        run = self.run(run_id)
+        run = self.run(run_id) or {}
         t0 = _epoch_ns(run["started_at"]) if run else 0
-        n = 0
-
-        def put(topic: str, t: float, obj: dict[str, Any]) -> None:
-            nonlocal n
-            ns = t0 + int(t * 1e9)
-            data = json.dumps(obj).encode()
-            writer.add_message(ids[topic], log_time=ns, publish_time=ns, data=data, sequence=n)
-            n += 1
-
-        for s in self.samples(run_id, 0, 10**9):
-            put("samples", s["t"], s)
-        for e in self.events(run_id):
-            put("events", e["t"], e)
-        for t, it, ts, tex in self.frames(run_id):
-            put("tactile", t, {"iteration": it, "timestamp_ms": ts, "texels": tex.tolist()})
-        writer.finish()
-        return n
+        return write_mcap(
+            out, cfg or default_config(), run, t0,
+            self.samples(run_id, 0, 10**9), self.events(run_id), self.frames(run_id),
+        )  # fmt: skip
 
 
 def _epoch_ns(iso: str) -> int:

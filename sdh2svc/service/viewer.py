@@ -1,10 +1,11 @@
 """Live viser 3-D view of the hand: pose, tactile pads, contacts A and B, friction cones, object.
 
 The view consumes the telemetry messages of docs/api.md (``sample``, ``tactile``, ``pose``,
-``sim``, ``status``/``hello``). :meth:`Viewer.handle` only stores the latest message of each type;
-a render task on the service's event loop turns the changes into one ``server.atomic()`` batch at
-most ``max_hz`` times a second, and only when something changed, so telemetry at loop rate never
-costs more than a dictionary store. A frame is cheap because it is incremental: only the fingers
+``sim``, ``status``/``hello``), typed (:mod:`sdh2svc.service.telemetry`) or in their JSON form.
+:meth:`Viewer.handle` only stores the latest message of each type; a render task on the
+service's event loop turns the changes into one ``server.atomic()`` batch at most ``max_hz``
+times a second, and only when something changed, so telemetry at loop rate never costs more than
+a dictionary store. A frame is cheap because it is incremental: only the fingers
 whose joints moved are posed again, only pads whose counts changed are recoloured, and a scene
 property is sent only when its value differs from the one last sent (every assignment is a
 message that viser's thread encodes and sends, holding the GIL the control loop needs). Nobody
@@ -14,8 +15,10 @@ Geometry. The scene is frame 0 of hand-model.md §2 (origin at Finger 1's proxim
 towards Finger 2, z0 along the straightened finger; x0 completes a right-handed frame and points
 towards the thumb), in metres (the model's millimetres × 1e-3). Fingers 1 and 2 are posed with
 the model's own functions (:func:`distal_joint`, :func:`frame3_axes`, :func:`pad_point`), so at
-φ1 = 90° they lie exactly in the y0z0 plane of the planar model. The thumb, the palm, the link
-bodies and the proximal pads are approximate (see :data:`THUMB_BASE` and :func:`proximal_cells`).
+φ1 = 90° they lie exactly in the y0z0 plane of the planar model. The bodies and pads drawn are
+the hand's URDF (:mod:`sdh2svc.model.urdf`, through viser's URDF support), posed with the same
+angles; the thumb's place, the palm, the link bodies and the proximal pads are approximate (see
+:data:`THUMB_BASE` and :func:`proximal_cells`).
 
 Authority. The panel cannot authenticate anyone. ``read_only`` (the service has a token): every
 control but E-STOP is disabled, its hint pointing to the dashboard. Open hand is enabled only
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
 import logging
 import math
 import sys
@@ -44,14 +48,23 @@ from urllib.parse import urlsplit
 import numpy as np
 import viser
 import websockets.asyncio.server
+import yourdfpy  # type: ignore[import-untyped]
+from viser.extras import ViserUrdf
 from websockets.asyncio.server import ServerConnection
 from websockets.http11 import Request
 
 from sdh2svc.config import Settings
-from sdh2svc.model.friction import pad_tangent
-from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, pad_y3
+from sdh2svc.model.geometry import pad_point_from_L, pad_slope, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
+from sdh2svc.model.urdf import (
+    KNUCKLE_MM,
+    PROXIMAL_PAD_Y_MM,
+    PROXIMAL_ROW0_FROM_DISTAL_MM,
+    joint_names,
+    sdh2_urdf,
+)
 from sdh2svc.service.pacing import paced
+from sdh2svc.service.telemetry import AnyMessage, SampleMsg, SampleView, as_array, sample_view
 
 _T = TypeVar("_T")
 log = logging.getLogger(__name__)
@@ -68,17 +81,7 @@ _Z = np.array([0.0, 0.0, 1.0])
 # frame 0 the thumb is therefore at x0 = d·√3/2, y0 = d/2, closing towards −x0. Approximate:
 # the view only needs it parked out of the way.
 THUMB_BASE = (math.sqrt(3.0) / 2.0, 0.5)
-KNUCKLE_MM = 16.5  # proximal joint above the palm's top (URDF finger_12_joint origin)
-PALM_HEIGHT_MM = 74.5  # palm base to knuckle (URDF knuckle_joint origin)
 
-# Link bodies (approximate boxes, link-frame mm: x along the link, y towards the pad).
-FINGER_WIDTH_MM = 22.0
-PROX_Y_MM = (-12.0, 12.0)
-DIST_X_MM = (-8.0, 62.0)
-DIST_Y_MM = (-12.0, 3.0)
-PAD_BACK_Y3_MM = 3.0  # the distal pad's back face (its front is the profile of §3)
-PROX_PAD_Y_MM = 14.0  # proximal pad surface (not in the model: approximate)
-PROX_ROW0_FROM_DISTAL_MM = 15.0  # row 0's centre this far below the distal joint (approximate)
 TILE_GAP = 0.9  # a cell tile covers this fraction of the pitch, so the grid stays readable
 CONE_HEIGHT_MM = 20.0
 CONTACT_RADIUS_MM = 2.5
@@ -96,7 +99,7 @@ _CMAP_RGB = np.array(
 )
 FULL_SCALE_COUNTS = 4095.0
 
-GREY, DARK, PAD = (175, 178, 185), (90, 92, 100), (60, 60, 66)
+DARK = (90, 92, 100)
 COLOR_A, COLOR_B = (255, 120, 30), (160, 60, 230)
 
 COMMANDS = ("start", "stop", "open", "estop", "release")
@@ -173,9 +176,9 @@ def _transform(origin: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray
 def finger_frames(
     angles_deg: Sequence[float], settings: Settings, fingers: Sequence[str] = ("f1", "f2", "f3")
 ) -> dict[str, np.ndarray]:
-    """Link frames of the palm and the three fingers, frame 0, mm, for the 7 wire-axis angles.
+    """Link frames of the three fingers, frame 0, mm, for the 7 wire-axis angles.
 
-    Keys ``/palm``, ``/fN/base`` (knuckle, x up), ``/fN/proximal`` (at the proximal joint),
+    Keys ``/fN/base`` (knuckle, x up), ``/fN/proximal`` (at the proximal joint),
     ``/fN/distal`` (frame 3 at C/D: x = ex3, y = ey3 towards the pad) and ``/fN/tip`` (the pad's
     end at the fingertip) for N = 1, 2, 3 (3 = thumb) of those in ``fingers``. Each is a 4×4
     homogeneous transform.
@@ -190,8 +193,7 @@ def finger_frames(
     tip_x3 = geom.pad.tip_end_x3_mm
     tip_y3 = pad_y3(tip_x3, geom.pad)
     d = geom.base_offset_mm
-    palm = np.array([d * THUMB_BASE[0] / 3.0, d / 2.0, -KNUCKLE_MM - PALM_HEIGHT_MM / 2.0])
-    out = {"/palm": _transform(palm, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))}
+    out = {}
     for key, spec in _specs(a[ax.phi1], d).items():
         if key not in fingers:
             continue
@@ -206,26 +208,6 @@ def finger_frames(
         tip = spec.point(pad_point(f, prox, dist, tip_x3, tip_y3, geom))
         out[f"/{key}/tip"] = _transform(tip, spec.vector(ex3), spec.vector(ey3))
     return out
-
-
-def pad_vertices(pad: PadProfile, width_mm: float, n: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """The distal pad as a prism in frame 3 (mm): its front is the profile y3(x3) of §3 from the
-    pad's base to its end, its back the plane y3 = PAD_BACK_Y3_MM; z3 spans the pad's width."""
-    xs = np.linspace(pad.flat_start_x3_mm, pad.tip_end_x3_mm, n)
-    ys = np.array([pad_y3(float(x), pad) for x in xs])
-    h = width_mm / 2.0
-    verts = []
-    for x, y in zip(xs, ys, strict=True):  # one ring per profile point: front l/r, back r/l
-        verts += [(x, y, -h), (x, y, h), (x, PAD_BACK_Y3_MM, h), (x, PAD_BACK_Y3_MM, -h)]
-    faces = []
-    for i in range(n - 1):
-        for k in range(4):
-            a0, a1 = 4 * i + k, 4 * i + (k + 1) % 4
-            b0, b1 = a0 + 4, a1 + 4
-            faces += [(a0, b0, b1), (a0, b1, a1)]
-    last = 4 * (n - 1)
-    faces += [(0, 1, 2), (0, 2, 3), (last, last + 2, last + 1), (last, last + 3, last + 2)]
-    return np.array(verts, dtype=float), np.array(faces, dtype=np.uint32)
 
 
 def _rot_z(beta: float) -> tuple[float, float, float, float]:
@@ -258,12 +240,12 @@ def distal_cells(settings: Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def proximal_cells(settings: Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """As :func:`distal_cells` for the proximal pad, in the proximal link frame (mm). The model
-    has no proximal pad geometry: a flat pad PROX_PAD_Y_MM from the link axis, row 0 (at the
-    distal joint) PROX_ROW0_FROM_DISTAL_MM below it, rows a pitch apart (approximate)."""
+    has no proximal pad geometry: a flat pad PROXIMAL_PAD_Y_MM from the link axis, row 0 (at the
+    distal joint) PROXIMAL_ROW0_FROM_DISTAL_MM below it, rows a pitch apart (approximate)."""
     lay, pitch = settings.tactile.proximal, settings.tactile.texel_pitch_mm
-    x0 = settings.hand.proximal_length_mm - PROX_ROW0_FROM_DISTAL_MM
+    x0 = settings.hand.proximal_length_mm - PROXIMAL_ROW0_FROM_DISTAL_MM
     pos = [
-        (x0 - r * pitch, PROX_PAD_Y_MM + 0.3, (c - (lay.cols - 1) / 2.0) * pitch)
+        (x0 - r * pitch, PROXIMAL_PAD_Y_MM + 0.3, (c - (lay.cols - 1) / 2.0) * pitch)
         for r in range(lay.rows)
         for c in range(lay.cols)
     ]
@@ -286,20 +268,6 @@ def cone_color(deviation_deg: float, alpha_deg: float) -> tuple[int, int, int]:
     r = min(1.0, max(0.0, abs(deviation_deg) / alpha_deg)) if alpha_deg > 0 else 1.0
     lo, hi, t = (GREEN, YELLOW, 2.0 * r) if r < 0.5 else (YELLOW, RED, 2.0 * r - 1.0)
     return tuple(round(a + (b - a) * t) for a, b in zip(lo, hi, strict=True))  # type: ignore[return-value]
-
-
-def contact_normal(
-    finger: Finger, proximal: float, distal: float, at: Point, settings: Settings
-) -> Point:
-    """Unit outward pad normal (frame 0) at the contact point ``at`` of a coupled finger (rad):
-    the contact's x3 follows from its position along frame 3, the tangent from the pad profile."""
-    geom = settings.hand
-    C = distal_joint(finger, proximal, geom)
-    ex, ey = frame3_axes(finger, proximal + distal)
-    x3 = (at.y - C.y) * ex.y + (at.z - C.z) * ex.z
-    t = pad_tangent(finger, proximal + distal, x3, geom.pad)
-    n = Point(t.z, -t.y)
-    return n if n.y * ey.y + n.z * ey.z >= 0.0 else Point(-n.y, -n.z)
 
 
 def _cone_mesh(segments: int = 24) -> tuple[np.ndarray, np.ndarray]:
@@ -348,19 +316,6 @@ def _axis_to(n: np.ndarray) -> np.ndarray:
 def _num(d: dict[str, Any] | None, key: str) -> float | None:
     v = (d or {}).get(key)
     return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
-
-
-def camera_message() -> bytes:
-    """What a browser sends once it shows the scene: its camera (viser counts a client as
-    connected, and the view draws for it, from then on). For scripted clients: tests, bench."""
-    import msgspec.msgpack
-    from viser import _messages
-
-    msg = _messages.ViewerCameraMessage(
-        wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.3, 0.0, 0.2), fov=1.0, near=0.01, far=100.0,
-        image_height=720, image_width=1280, look_at=(0.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0),
-    )  # fmt: skip
-    return msgspec.msgpack.encode(msg.as_serializable_dict())
 
 
 # --- who may open the view's WebSocket ------------------------------------------------------------
@@ -527,7 +482,10 @@ class Viewer:
         self._failures = 0
         self._sent: dict[tuple[int, str], Any] = {}  # (node id, property) → value last sent
         self._posed: dict[str, tuple[float, ...]] = {}  # finger → the angles it was posed at
-        self._pad_counts: dict[str, Any] = {}  # pad node → the counts it was coloured for
+        self._pad_counts: dict[str, np.ndarray] = {}  # pad node → the counts it was coloured for
+        self._view: tuple[int, SampleView | None] = (-1, None)  # (sample's seq, its view)
+        self.urdf: ViserUrdf | None = None
+        self._urdf_axes: list[int] = []  # the wire axis of each of the URDF's actuated joints
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -576,14 +534,20 @@ class Viewer:
 
     # -- telemetry in: cheap ----------------------------------------------------------------
 
-    def handle(self, msg: dict[str, Any]) -> None:
+    def handle(self, msg: AnyMessage) -> None:
         """Keep the latest message of each type and mark it for the next frame; no rendering."""
-        kind = msg.get("type")
-        key = _PAYLOAD.get(str(kind))
+        if isinstance(msg, dict):
+            kind, key = msg.get("type"), _PAYLOAD.get(str(msg.get("type")))
+            payload = msg.get(key) if key is not None else None
+        else:
+            kind, key = msg.type, _PAYLOAD.get(msg.type)
+            payload = getattr(msg, key) if key is not None else None
+            if isinstance(msg, SampleMsg) and msg.view is not None:
+                payload = msg.view  # what the sender made of the sample: drawn as given
         if key is None:
             return
-        kind = "status" if kind == "hello" else kind
-        self._latest[kind] = msg.get(key)
+        kind = "status" if kind == "hello" else str(kind)
+        self._latest[kind] = payload
         self._n += 1
         self._seq[kind] = self._n
         self._dirty.add(kind)
@@ -629,19 +593,31 @@ class Viewer:
 
     def _update_angles(self) -> None:
         """φ1 and the thumb from ``pose``; φ2…φ5 from whichever of pose/sample came last."""
-        pose, sample = self._latest.get("pose"), self._latest.get("sample")
+        pose, sample = self._latest.get("pose"), self._sample_view()
         ax = self.settings.axes
-        from_sample = [(ax.phi2, "phi2"), (ax.phi3, "phi3"), (ax.phi4, "phi4"), (ax.phi5, "phi5")]
-        steps = [("pose", pose), ("sample", sample)]
+        steps: list[tuple[str, Any]] = [("pose", pose), ("sample", sample)]
         steps.sort(key=lambda s: self._seq.get(s[0], 0))
         for kind, data in steps:
-            if kind == "pose" and isinstance(data, list) and len(data) == len(self._angles):
-                self._angles = [float(v) for v in data]
-            elif kind == "sample" and isinstance(data, dict):
-                for axis, name in from_sample:
-                    v = _num(data, name)
+            if kind == "pose" and isinstance(data, list | tuple):
+                if len(data) == len(self._angles):
+                    self._angles = [float(v) for v in data]
+            elif kind == "sample" and data is not None:
+                for axis, v in zip((ax.phi2, ax.phi3, ax.phi4, ax.phi5), data.phi_deg, strict=True):
                     if v is not None:
                         self._angles[axis] = v
+
+    def _sample_view(self) -> SampleView | None:
+        """The latest sample as drawn: as its sender made it, or made here once per sample."""
+        seq, s = self._seq.get("sample", 0), self._latest.get("sample")
+        if self._view[0] != seq:
+            view: SampleView | None = None
+            if isinstance(s, SampleView):
+                view = s
+            elif s is not None:
+                with contextlib.suppress(Exception):  # a malformed sample: nothing to draw
+                    view = sample_view(s, self.settings.hand)
+            self._view = (seq, view)
+        return self._view[1]
 
     def _set(self, node: Any, prop: str, value: Any) -> None:
         """Assign a scene property only if it differs from what was last sent."""
@@ -669,6 +645,8 @@ class Viewer:
                 moved.append(f)
         if not moved:
             return
+        if self.urdf is not None:  # the bodies: every joint of the URDF (a few dozen frames)
+            self.urdf.update_cfg(np.radians([a[i] for i in self._urdf_axes]))
         for name, T in finger_frames(a, self.settings, moved).items():
             node = self.nodes.get(name)
             if node is not None:
@@ -679,35 +657,28 @@ class Viewer:
         params = (self._latest.get("status") or {}).get("params") or {}
         return _num(params, "alpha_deg") or self.settings.rolling.alpha_deg
 
-    def _contact_sample(self) -> dict[str, Any]:
+    def _contact_sample(self) -> SampleView | None:
         """The latest sample, unless a newer status says no run is rolling: a finished run's
         contacts would otherwise linger through the release and the next grasp."""
         run = (self._latest.get("status") or {}).get("run") or {}
         newer = self._seq.get("status", 0) > self._seq.get("sample", 0)
         if newer and run.get("state") not in (None, "rolling"):
-            return {}
-        return self._latest.get("sample") or {}
+            return None
+        return self._sample_view()
 
     def _render_contacts(self) -> None:
         s = self._contact_sample()
         alpha = self._alpha_deg()
-        pts: dict[str, Point | None] = {}
-        for label, finger, pn, (py, pz), wn in (
-            ("A", Finger.ONE, ("phi2", "phi3"), ("Ay", "Az"), "omega_A"),
-            ("B", Finger.TWO, ("phi4", "phi5"), ("By", "Bz"), "omega_B"),
-        ):
-            y, z = _num(s, py), _num(s, pz)
-            p = Point(y, z) if y is not None and z is not None else None
-            pts[label] = p
+        contacts = {"A": s.A if s else None, "B": s.B if s else None}
+        for label, c in contacts.items():
             sphere, cone = self.nodes[f"/contacts/{label}"], self.nodes[f"/contacts/cone_{label}"]
-            self._set(sphere, "visible", p is not None)
-            prox, dist, w = _num(s, pn[0]), _num(s, pn[1]), _num(s, wn)
-            if p is None or prox is None or dist is None:
+            self._set(sphere, "visible", c is not None)
+            if c is None or c.normal is None:
                 self._set(cone, "visible", False)
                 continue
-            at = (0.0, p.y * MM, p.z * MM)
+            at = (0.0, c.at.y * MM, c.at.z * MM)
             self._set(sphere, "position", at)
-            n = contact_normal(finger, math.radians(prox), math.radians(dist), p, self.settings)
+            n, w = c.normal, c.omega_deg
             r = CONE_HEIGHT_MM * math.tan(math.radians(alpha)) * MM
             self._set(cone, "position", at)
             self._set(cone, "wxyz", _axis_to(np.array([0.0, n.y, n.z])))
@@ -715,21 +686,25 @@ class Viewer:
             color = cone_color(abs(w - 90.0), alpha) if w is not None else (150, 150, 150)
             self._set(cone, "color", color)
             self._set(cone, "visible", True)
-        A, B = pts["A"], pts["B"]
+        A, B = contacts["A"], contacts["B"]
         seg = self.nodes["/contacts/AB"]
         self._set(seg, "visible", A is not None and B is not None)
         if A is not None and B is not None:
-            self._set(seg, "points", np.array([[[0.0, A.y, A.z], [0.0, B.y, B.z]]]) * MM)
+            self._set(
+                seg, "points", np.array([[[0.0, A.at.y, A.at.z], [0.0, B.at.y, B.at.z]]]) * MM
+            )
 
     def _render_pads(self) -> None:
         mats = self._latest.get("tactile")
-        if not isinstance(mats, list):
+        if not isinstance(mats, list | tuple):
             return
         for name, index in self._pad_matrices().items():
-            if index >= len(mats) or self._pad_counts.get(name) == mats[index]:
-                continue  # absent, or the same counts as drawn (idle pads: most of them)
-            self._pad_counts[name] = mats[index]
-            counts = np.asarray(mats[index], dtype=float)
+            if index >= len(mats):
+                continue
+            counts, last = as_array(mats[index]), self._pad_counts.get(name)
+            if last is not None and np.array_equal(last, counts):
+                continue  # the same counts as drawn (idle pads: most of them)
+            self._pad_counts[name] = counts
             flat = self._tactile_idx[name]
             lay = self._layout(name)
             if counts.shape != (lay.rows, lay.cols):
@@ -911,41 +886,39 @@ class Viewer:
 
     def _build_scene(self) -> None:
         assert self.server is not None
-        sc, cfg = self.server.scene, self.settings
+        cfg = self.settings
         d = cfg.hand.base_offset_mm
         # from the thumb's side and a little from Finger 1's back: both pads and AB in view
         self.server.initial_camera.position = (0.27, d / 2 * MM - 0.15, 0.18)
         self.server.initial_camera.look_at = (0.0, d / 2 * MM, 0.08)
-        self.nodes["/palm"] = sc.add_frame("/palm", show_axes=False)
-        size = (d * 1.7 * MM, d * 1.7 * MM, PALM_HEIGHT_MM * MM)
-        sc.add_box("/palm/body", color=DARK, dimensions=size)
+        self.urdf = self._load_urdf()
         for f in ("f1", "f2", "f3"):
             self._build_finger(f)
         self._build_contacts()
         self._render_hand()  # the pre-shape until the first pose arrives
 
+    def _load_urdf(self) -> ViserUrdf:
+        """The hand's bodies and pads: its URDF (:mod:`sdh2svc.model.urdf`), the palm placed in
+        frame 0, the scene's frame."""
+        assert self.server is not None
+        cfg = self.settings
+        text = sdh2_urdf(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
+        robot = yourdfpy.URDF.load(io.StringIO(text), build_collision_scene_graph=False)
+        T = robot.get_transform("palm", "frame0")  # a fixed joint: the same in every pose
+        self.nodes["/hand"] = self.server.scene.add_frame(
+            "/hand", show_axes=False, position=T[:3, 3], wxyz=_wxyz(T[:3, :3])
+        )
+        axis = {name: a for a, name in joint_names(cfg.axes).items()}
+        self._urdf_axes = [axis[name] for name in robot.actuated_joint_names]
+        return ViserUrdf(self.server, robot, root_node_name="/hand")
+
     def _build_finger(self, f: str) -> None:
-        """Link frames (posed every frame) and their constant children: bodies, pad, cells."""
+        """Link frames (posed every frame) and their constant children: the tip and the cells."""
         assert self.server is not None
         sc, cfg = self.server.scene, self.settings
         for link in ("base", "proximal", "distal"):
             self.nodes[f"/{f}/{link}"] = sc.add_frame(f"/{f}/{link}", show_axes=False)
-        l1, w = cfg.hand.proximal_length_mm, FINGER_WIDTH_MM
-        boxes = {  # name: (centre, size), link-frame mm
-            "base/body": ((KNUCKLE_MM / 2, 0, 0), (KNUCKLE_MM, 24.0, 24.0)),
-            "proximal/body": ((l1 / 2, sum(PROX_Y_MM) / 2, 0), (l1, np.ptp(PROX_Y_MM), w)),
-            "distal/body": (
-                (sum(DIST_X_MM) / 2, sum(DIST_Y_MM) / 2, 0),
-                (np.ptp(DIST_X_MM), np.ptp(DIST_Y_MM), w),
-            ),
-        }
-        for name, (centre, size) in boxes.items():
-            color = DARK if name.startswith("base") else GREY
-            pos, dims = np.array(centre) * MM, np.array(size) * MM
-            sc.add_box(f"/{f}/{name}", color=color, dimensions=dims, position=pos)
         pad = cfg.hand.pad
-        pad_v, pad_f = pad_vertices(pad, cfg.tactile.texel_pitch_mm * cfg.tactile.distal.cols)
-        sc.add_mesh_simple(f"/{f}/distal/pad", pad_v * MM, pad_f, color=PAD, side="double")
         tip = np.array([pad.tip_end_x3_mm, pad_y3(pad.tip_end_x3_mm, pad), 0.0]) * MM
         self.nodes[f"/{f}/distal/tip"] = sc.add_icosphere(
             f"/{f}/distal/tip", radius=1.5 * MM, color=DARK, position=tip

@@ -10,7 +10,10 @@ The child runs the real :class:`~sdh2svc.service.viewer.Viewer` on an event loop
 The link is a socketpair of length-prefixed pickles, as asyncio streams on each side's event
 loop (no threads, never a blocking write). On it:
 
-* parent → child: ``("telemetry", [msg, …])`` the changed latest messages in arrival order;
+* parent → child: ``("telemetry", [msg, …])`` the changed latest messages in arrival order,
+  typed (:mod:`sdh2svc.service.telemetry`): a sample with what the view draws of it (its
+  contacts and their pad normals, made here once), a tactile frame's matrices as arrays (pickled
+  as bytes and shape);
   ``("result", id, error | None)`` a GUI command's outcome; ``("stop",)``.
 * child → parent: ``("ready", url)`` or ``("error", text)`` once at start-up;
   ``("watched", bool)`` as browsers come and go; ``("command", id, kind, args)`` from the GUI
@@ -45,6 +48,7 @@ from typing import Any
 
 from sdh2svc.config import Settings
 from sdh2svc.service.pacing import paced
+from sdh2svc.service.telemetry import AnyMessage, SampleMsg, kind_of
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +163,7 @@ class ViewerProcess:
         self._read_only = read_only
         self._max_hz = max_hz
         self._period = 1.0 / max_hz
-        self._latest: dict[str, dict[str, Any]] = {}  # kind → latest message, arrival order
+        self._latest: dict[str, AnyMessage] = {}  # kind → latest message, arrival order
         self._changed: set[str] = set()
         self._wake = asyncio.Event()
         self._watched = False
@@ -255,9 +259,9 @@ class ViewerProcess:
 
     # -- telemetry in: cheap ----------------------------------------------------------------
 
-    def handle(self, msg: dict[str, Any]) -> None:
+    def handle(self, msg: AnyMessage) -> None:
         """Keep the latest message of each type, in arrival order; no pickling here."""
-        kind = KINDS.get(msg.get("type"))
+        kind = KINDS.get(kind_of(msg))
         if kind is None:
             return
         latest = self._latest
@@ -281,7 +285,12 @@ class ViewerProcess:
 
     def _forward(self, chan: Channel) -> None:
         changed, self._changed = self._changed, set()
-        batch = [m for k, m in self._latest.items() if k in changed]
+        geom = self.settings.hand
+        batch = [
+            m.with_view(geom) if isinstance(m, SampleMsg) else m
+            for k, m in self._latest.items()
+            if k in changed
+        ]
         if batch and self._watched:
             chan.send(("telemetry", batch))
             self.forwarded += len(batch)
@@ -351,9 +360,14 @@ async def _exited(proc: BaseProcess, timeout: float) -> bool:
     if proc.exitcode is not None:
         return True
     loop = asyncio.get_running_loop()
-    done = loop.create_future()
+    done: asyncio.Future[None] = loop.create_future()
     fd = proc.sentinel
-    loop.add_reader(fd, lambda: done.done() or done.set_result(None))
+
+    def exited() -> None:
+        if not done.done():
+            done.set_result(None)
+
+    loop.add_reader(fd, exited)
     try:
         async with asyncio.timeout(timeout):
             await done

@@ -16,22 +16,25 @@ work sent to an executor (``asyncio.to_thread``) runs inline, on the loop's thre
 from __future__ import annotations
 
 import asyncio
+import collections
 import heapq
 import select
 import selectors
 import sys
 from asyncio import base_events, format_helpers
-from collections.abc import Coroutine
-from typing import Any, TypeVar
+from collections.abc import Callable, Coroutine
+from concurrent.futures import Executor
+from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple
 
 T = TypeVar("T")
+Ts = TypeVarTuple("Ts")
 
 _EPOLL = selectors.DefaultSelector is getattr(selectors, "EpollSelector", None)
 # BaseEventLoop._run_once's constants; VirtualTimeLoop._run_once is that method written out
 # (the same on Python 3.11 to 3.13), else the stock one runs
-_MIN_SCHEDULED = getattr(base_events, "_MIN_SCHEDULED_TIMER_HANDLES", None)
-_MIN_CANCELLED_FRACTION = getattr(base_events, "_MIN_CANCELLED_TIMER_HANDLES_FRACTION", None)
-_MAX_TIMEOUT = getattr(base_events, "MAXIMUM_SELECT_TIMEOUT", None)
+_MIN_SCHEDULED: Any = getattr(base_events, "_MIN_SCHEDULED_TIMER_HANDLES", None)
+_MIN_CANCELLED_FRACTION: Any = getattr(base_events, "_MIN_CANCELLED_TIMER_HANDLES_FRACTION", None)
+_MAX_TIMEOUT: Any = getattr(base_events, "MAXIMUM_SELECT_TIMEOUT", None)
 _LEAN = sys.version_info < (3, 14) and None not in (
     _MIN_SCHEDULED,
     _MIN_CANCELLED_FRACTION,
@@ -50,8 +53,12 @@ def _callback_failed(handle: asyncio.Handle, exc: BaseException) -> None:
     handle._loop.call_exception_handler(context)  # type: ignore[attr-defined]
 
 
-class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-type]
+class _JumpingSelector(selectors.DefaultSelector):
     """Polls without blocking; an idle wait becomes a jump of the virtual clock."""
+
+    if TYPE_CHECKING:  # EpollSelector's private state, which _poll reads (not in typeshed)
+        _selector: Any
+        _fd_to_key: dict[int, selectors.SelectorKey]
 
     def __init__(self) -> None:
         super().__init__()
@@ -88,6 +95,18 @@ class _JumpingSelector(selectors.DefaultSelector):  # type: ignore[misc,valid-ty
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """A selector event loop whose clock is virtual and jumps over idle waits."""
 
+    if TYPE_CHECKING:  # BaseEventLoop's private state, which _run_once works on (not in typeshed)
+        _debug: bool
+        _scheduled: list[Any]  # TimerHandles, with their private _when, _cancelled, …
+        _timer_cancelled_count: int
+        _ready: collections.deque[Any]
+        _selector: _JumpingSelector
+        _stopping: bool
+        _clock_resolution: float
+
+        def _process_events(self, event_list: list[tuple[selectors.SelectorKey, int]]) -> None:
+            pass
+
     def __init__(self, start: float = 0.0) -> None:
         self._vtime = start
         selector = _JumpingSelector()
@@ -105,7 +124,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
             and callback order — written out for this loop (no debug mode: that takes the
             stock path). A fast-mode run makes tens of thousands of these iterations."""
             if self._debug:
-                super()._run_once()
+                super()._run_once()  # type: ignore[misc]
                 return
             scheduled = self._scheduled
             sched_count = len(scheduled)
@@ -113,7 +132,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
                 sched_count > _MIN_SCHEDULED
                 and self._timer_cancelled_count / sched_count > _MIN_CANCELLED_FRACTION
             ):
-                super()._run_once()  # the stock purge, rare: a heap full of cancelled timers
+                super()._run_once()  # type: ignore[misc]  # the stock purge, rare: a heap full of cancelled timers
                 return
             while scheduled and scheduled[0]._cancelled:
                 self._timer_cancelled_count -= 1
@@ -130,7 +149,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
                 event_list = selector.select(None)
             if event_list:
                 self._process_events(event_list)
-            event_list = None
+            del event_list
             end_time = self._vtime + self._clock_resolution
             while scheduled:
                 handle = scheduled[0]
@@ -155,11 +174,13 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     def advance(self, seconds: float) -> None:
         self._vtime += max(0.0, seconds)
 
-    def run_in_executor(self, executor: Any, func: Any, *args: Any) -> asyncio.Future[Any]:
+    def run_in_executor(
+        self, executor: Executor | None, func: Callable[[*Ts], T], *args: *Ts
+    ) -> asyncio.Future[T]:
         """Run ``func`` right here, at once: a worker thread would finish at a wall-clock moment
         the virtual clock cannot wait for, and the run would stop being deterministic. Blocking
         the loop is harmless when no time is real."""
-        fut: asyncio.Future[Any] = self.create_future()
+        fut: asyncio.Future[T] = self.create_future()
         try:
             fut.set_result(func(*args))
         except BaseException as e:  # handed to the awaiting coroutine, as an executor would

@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Literal, Protocol, Self, runtime_checkable
 
+from sdh2svc.protocol.line import BAUD as DEFAULT_BAUD
+from sdh2svc.protocol.line import BITS_PER_BYTE
 from sdh2svc.sim.faults import FaultConfig, FaultedPacket, FaultInjector, FaultKind
 
 __all__ = [
@@ -55,8 +57,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_BAUD = 115_200
-BITS_PER_BYTE = 10  # start + 8 data + stop (8N1)
 _READ_SIZE = 65_536
 
 

@@ -28,9 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from sdh2svc.config import Settings
-from sdh2svc.model.kinematics import HandPose
-from sdh2svc.sim.objects import Box, Circle, Ellipse, Outline, Polygon, Stick, get_object
+from sdh2svc.model.contact import TactileCalibration
+from sdh2svc.model.hand import AxisMap, TactileConfig
+from sdh2svc.model.kinematics import HandGeometry, HandPose
+from sdh2svc.sim.objects import Outline, Shape, get_object
 from sdh2svc.sim.physics import (
     DISTAL1,
     DISTAL2,
@@ -42,7 +43,16 @@ from sdh2svc.sim.physics import (
 from sdh2svc.sim.sensor import PadRaster, TactileSensorModel
 from sdh2svc.sim.simconfig import SimConfig
 
-ObjectSpecT = Stick | Box | Ellipse | Circle | Polygon
+
+@dataclass(frozen=True, slots=True)
+class HandModel:
+    """What the simulation copies of the real hand (the model's sections of the configuration):
+    its geometry, which wire axis and matrix is which, the pads' layouts and their calibration."""
+
+    geometry: HandGeometry
+    axes: AxisMap
+    tactile: TactileConfig
+    calibration: TactileCalibration
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +71,26 @@ class Truth:
     rotation_range_deg: float
     blocked_axes: tuple[int, ...]
 
+    def summary(self) -> dict[str, Any]:
+        """What a run's summary keeps of it (never shown to the controller)."""
+        return {"object": self.object, "size_mm": self.size_mm, "dropped": self.dropped,
+                "slips": self.slips, "rotation_range_deg": self.rotation_range_deg}  # fmt: skip
+
+    def scene(self, outline: Outline, points: int = 90) -> dict[str, Any]:
+        """For the viewers: the object's state and ``points`` of its ``outline`` where it lies
+        (hand frame, mm)."""
+        y, z, psi = self.pose
+        pts = outline.perimeter_points[:: max(1, len(outline.perimeter_points) // points)]
+        c, s = math.cos(psi), math.sin(psi)
+        world = np.column_stack([y + c * pts[:, 0] - s * pts[:, 1],
+                                 z + s * pts[:, 0] + c * pts[:, 1]])  # fmt: skip
+        return {
+            "object": self.object, "size_mm": self.size_mm, "held": self.held,
+            "dropped": self.dropped, "in_fixture": self.in_fixture, "pose": [y, z, psi],
+            "slips": self.slips, "outline": np.round(world, 2).tolist(),
+            "contacts": [asdict(c) for c in self.contacts],
+        }  # fmt: skip
+
 
 class PhysicsWorld:
     """Both coupled fingers, one object, six tactile pads; advances lazily to each ``now``.
@@ -71,10 +101,10 @@ class PhysicsWorld:
     docstring); :meth:`flush` brings it up to ``_angles``.
     """
 
-    def __init__(self, settings: Settings, sim: SimConfig, obj: ObjectSpecT | None = None) -> None:
-        self.settings, self.sim = settings, sim
-        self.axes = settings.axes
-        layouts = [settings.tactile.proximal, settings.tactile.distal] * 3
+    def __init__(self, model: HandModel, sim: SimConfig, obj: Shape | None = None) -> None:
+        self.model, self.sim = model, sim
+        self.axes = model.axes
+        layouts = [model.tactile.proximal, model.tactile.distal] * 3
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
         self._angles = [0.0] * 7
         self._stepped = list(self._angles)  # the joint angles the physics was last stepped to
@@ -142,22 +172,22 @@ class PhysicsWorld:
 
     # --- the object ---------------------------------------------------------------------------
 
-    def place(self, obj: ObjectSpecT, *, height_mm: float | None = None,
+    def place(self, obj: Shape, *, height_mm: float | None = None,
               angle_deg: float | None = None) -> None:  # fmt: skip
         """Put ``obj`` between the fingertips, held by the fixture until the fingers grasp it."""
-        s, sim = self.settings, self.sim
+        s, sim = self.model, self.sim
         self.obj = obj
-        outline = Outline(obj)
+        self.outline = outline = Outline(obj)
         pose = (
-            s.hand.base_offset_mm / 2,
+            s.geometry.base_offset_mm / 2,
             sim.object_height_mm if height_mm is None else height_mm,
             math.radians(sim.object_angle_deg if angle_deg is None else angle_deg),
         )
         # a new world at the joints' actual pose: nothing of the old one is left to step
-        self._physics = ContactPhysics(s.hand, sim.physics, outline, self._pose(), pose)
+        self._physics = ContactPhysics(s.geometry, sim.physics, outline, self._pose(), pose)
         self._stepped, self._tau = list(self._angles), None
         pitch = s.tactile.texel_pitch_mm
-        pad = s.hand.pad
+        pad = s.geometry.pad
         distal_centre = pad.pad_base_to_active_mm + pad.sensor_active_length_mm / 2
         phys = sim.physics
         prox_centre = (phys.proximal_pad_start_mm + phys.proximal_pad_end_mm) / 2
@@ -257,7 +287,3 @@ class PhysicsWorld:
             rotation_range_deg=rng,
             blocked_axes=tuple(sorted(self._blocked)),
         )
-
-    def truth_dict(self) -> dict[str, Any]:
-        """:meth:`truth` as plain JSON-ready data."""
-        return asdict(self.truth())

@@ -214,7 +214,10 @@ class Polygon(_ShapeBase):
         return float(np.min(np.max(dist, axis=1)))
 
 
-ObjectSpec = Annotated[Stick | Box | Ellipse | Circle | Polygon, Field(discriminator="kind")]
+# Every shape there is, written once: a new shape is its class above and its name here.
+Shape = Stick | Box | Ellipse | Circle | Polygon
+# a shape as data: validated by its ``kind``
+ObjectSpec = Annotated[Shape, Field(discriminator="kind")]
 _ADAPTER: TypeAdapter[Any] = TypeAdapter(ObjectSpec)
 
 PLASTIC = Material(mass_g=20.0, friction=0.6, stiffness_n_per_mm3=2.0)
@@ -222,7 +225,7 @@ RUBBER = Material(mass_g=18.0, friction=0.9, stiffness_n_per_mm3=0.5)
 FOAM = Material(mass_g=15.0, friction=0.8, stiffness_n_per_mm3=0.01)
 SHELL = Material(mass_g=58.0, friction=0.5, stiffness_n_per_mm3=3.0)
 
-PRESETS: dict[str, Stick | Box | Ellipse | Circle | Polygon] = {
+PRESETS: dict[str, Shape] = {
     # thesis ch. 4 objects
     "rubber": Box(name="rubber", width_mm=60.5, height_mm=22.0, corner_radius_mm=1.0,
                   depth_mm=11.0, material=RUBBER),
@@ -239,7 +242,7 @@ PRESETS: dict[str, Stick | Box | Ellipse | Circle | Polygon] = {
 class Outline:
     """A shape's convex core polygon (object frame) and rounding radius, with its SDF."""
 
-    def __init__(self, spec: Stick | Box | Ellipse | Circle | Polygon) -> None:
+    def __init__(self, spec: Shape) -> None:
         self.spec = spec
         self.vertices, self.radius = spec.outline()
         self.edges = np.roll(self.vertices, -1, axis=0) - self.vertices
@@ -252,11 +255,14 @@ class Outline:
         self.half_extent = np.max(np.abs(self.vertices), axis=0) + self.radius
         self.bound_radius = float(np.max(np.linalg.norm(self.vertices, axis=1))) + self.radius
         # a box's core is axis-aligned: its distance has a closed form (see sdf)
-        self._box_core = np.max(np.abs(self.vertices), axis=0) if isinstance(spec, Box) else None
+        self._box_core: np.ndarray | None = None
+        if isinstance(spec, Box):
+            self._box_core = np.max(np.abs(self.vertices), axis=0)
         if self._box_core is not None:
             self._box_far = (self._box_core + self.radius)[:, None]  # its sides moved out by r
         self._ab: tuple[float, float] | None = None
-        self._segment = None  # a stick's core: its centre, direction and half length
+        # a stick's core: its centre, direction and half length
+        self._segment: tuple[tuple[float, float], tuple[float, float], float] | None = None
         self._centred = not self.vertices.any()  # a disk about the origin
         if len(self.vertices) == 2:
             half = float(lengths[0]) / 2
@@ -287,7 +293,7 @@ class Outline:
         (g − 1)/|∇g| of g = |(x/a, y/b)|: exact on the boundary, within a few µm for the
         sub-millimetre depths that contacts reach.
         """
-        if isinstance(self.spec, Ellipse):
+        if self._ab is not None:  # an ellipse
             a, b = self._ab
             qx, qy = p[:, 0] / a, p[:, 1] / b
             g = np.sqrt(qx * qx + qy * qy)
@@ -298,11 +304,11 @@ class Outline:
         v, e = self.vertices, self.edges
         n = len(v)
         if n == 1:
-            return np.linalg.norm(p - v[0], axis=1) - self.radius
+            return np.asarray(np.linalg.norm(p - v[0], axis=1) - self.radius)
         if not self._closed:  # a segment (stick)
             rel = p - v[0]
             t = np.clip(rel @ e[0] / float(e[0] @ e[0]), 0.0, 1.0)
-            return np.linalg.norm(rel - t[:, None] * e[0], axis=1) - self.radius
+            return np.asarray(np.linalg.norm(rel - t[:, None] * e[0], axis=1) - self.radius)
         side = p @ self.normals.T - self.offsets  # (N, E) signed distance to each edge's line
         outside = np.max(side, axis=1)
         d = outside.copy()
@@ -311,7 +317,7 @@ class Outline:
             rel = p[out][:, None, :] - v[None]
             t = np.clip(np.sum(rel * e[None], axis=2) / np.sum(e * e, axis=1)[None], 0.0, 1.0)
             d[out] = np.min(np.linalg.norm(rel - t[..., None] * e[None], axis=2), axis=1)
-        return d - self.radius
+        return np.asarray(d - self.radius)
 
     def exit_distance(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
         """How far each object-frame point p (N, 2) inside the outline goes along its unit
@@ -339,7 +345,7 @@ class Outline:
         room = self.offsets + r - p @ self.normals.T
         t_edges = np.divide(room, dn, out=np.full_like(room, np.inf), where=dn > 0.0)
         if r <= 0.0:
-            return t_edges.min(axis=1)
+            return np.asarray(t_edges.min(axis=1))
         k = np.argmin(t_edges, axis=1)
         t = t_edges[np.arange(len(k)), k]
         # beyond an end of that edge: the rounded corner, on its vertex's circle
@@ -351,7 +357,7 @@ class Outline:
         if cap.any():
             corner = v[(k[cap] + (along[cap] > 1.0)) % len(v)]
             t[cap] = _disk_exit((p[cap] - corner).T, d[cap].T, r)
-        return t
+        return np.asarray(t)
 
     def _box_exit(self, P: np.ndarray, D: np.ndarray) -> np.ndarray:
         """:meth:`exit_distance` of a box, points and directions as rows (x, y): its sides moved
@@ -360,19 +366,22 @@ class Outline:
         side = (self._box_far - np.sign(D) * P) / np.maximum(np.abs(D), 1e-300)
         t = np.minimum(side[0], side[1])
         if self.radius <= 0.0:
-            return t
+            return np.asarray(t)
         Q = P + t * D
-        beyond = np.abs(Q) > self._box_core[:, None]
+        core = self._box_core
+        assert core is not None  # a box's
+        beyond = np.abs(Q) > core[:, None]
         cap = beyond[0] & beyond[1]
         if not cap.any():
-            return t
-        W = P - np.copysign(self._box_core[:, None], Q)  # from the corner
+            return np.asarray(t)
+        W = P - np.copysign(core[:, None], Q)  # from the corner
         return np.where(cap, _disk_exit(W, D, self.radius), t)
 
     def _stick_exit(self, px: np.ndarray, py: np.ndarray, dx: np.ndarray, dy: np.ndarray
                     ) -> np.ndarray:  # fmt: skip
         """:meth:`exit_distance` of a segment grown by r: through a side (w = ±r across it) when
         that is within the segment's length, else through the end cap that way."""
+        assert self._segment is not None  # a stick's
         (cx, cy), (ux, uy), half = self._segment
         if (cx, cy, ux, uy) != (0.0, 0.0, 1.0, 0.0):  # into the segment's frame
             px, py = (px - cx) * ux + (py - cy) * uy, (py - cy) * ux - (px - cx) * uy
@@ -384,7 +393,7 @@ class Outline:
         if cap.any():
             W = np.stack((px - np.copysign(half, u), py))
             t = np.where(cap, _disk_exit(W, np.stack((dx, dy)), r), t)
-        return t
+        return np.asarray(t)
 
     def _box_sdf(self, p: np.ndarray) -> np.ndarray:
         """:meth:`sdf` of a box: the same distances as the polygon's, without projecting every
@@ -393,9 +402,9 @@ class Outline:
         qx, qy = q[:, 0], q[:, 1]
         outside = np.maximum(qx, qy)  # inside the core: the distance to its nearest side
         if self.radius <= 0.0:
-            return outside  # as for any polygon: exact inside, positive outside
+            return np.asarray(outside)  # as for any polygon: exact inside, positive outside
         corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
-        return np.where(outside > 0.0, corner, outside) - self.radius
+        return np.asarray(np.where(outside > 0.0, corner, outside) - self.radius)
 
 
 def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> np.ndarray:
@@ -407,13 +416,13 @@ def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> 
     b = WD[0] + WD[1]
     c = WW[0] + WW[1] - r * r
     if not scaled:
-        return np.sqrt(np.maximum(b * b - c, 0.0)) - b
+        return np.asarray(np.sqrt(np.maximum(b * b - c, 0.0)) - b)
     DD = D * D
     dd = DD[0] + DD[1]
-    return (np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd
+    return np.asarray((np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd)
 
 
-def load_object(path: str | Path) -> Stick | Box | Ellipse | Circle | Polygon:
+def load_object(path: str | Path) -> Shape:
     """An object from a TOML or JSON file (``kind = "box"``, ``width_mm = …``, …)."""
     path = Path(path)
     text = path.read_bytes()
@@ -421,12 +430,13 @@ def load_object(path: str | Path) -> Stick | Box | Ellipse | Circle | Polygon:
     return parse_object(data)
 
 
-def parse_object(data: dict[str, Any]) -> Stick | Box | Ellipse | Circle | Polygon:
+def parse_object(data: dict[str, Any]) -> Shape:
     """Validate an object definition (raises pydantic.ValidationError with the field's name)."""
-    return _ADAPTER.validate_python(data)
+    shape: Shape = _ADAPTER.validate_python(data)
+    return shape
 
 
-def get_object(name: str) -> Stick | Box | Ellipse | Circle | Polygon:
+def get_object(name: str) -> Shape:
     """A preset by name (``rubber``, ``egg``, ``cylinder``, ``stick62`` … ``stick119``)."""
     try:
         return PRESETS[name]

@@ -69,6 +69,8 @@ Pair = tuple[float, float]
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, ...]  # 3 rows
 _Pull = tuple[float, float, float, float, float]  # an anchor's spring, see ContactPhysics._pulls
+# each surface's (normals, points, columns) in frame 0 at the current pose, once computed
+_World = list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]
 
 
 class PhysicsConfig(Frozen):
@@ -261,7 +263,8 @@ def _ellipse_forms(
 
 def to_world(frame: tuple[np.ndarray, np.ndarray, np.ndarray], local: np.ndarray) -> np.ndarray:
     o, ex, ey = frame
-    return o + local[..., :1] * ex + local[..., 1:2] * ey
+    out: np.ndarray = o + local[..., :1] * ex + local[..., 1:2] * ey
+    return out
 
 
 def rot(psi: float) -> np.ndarray:
@@ -349,8 +352,8 @@ class ContactPhysics:
         self._motion: list[tuple[tuple[float, ...], Vec3]] = []  # last two (Δq, Δx)
         self._last = _Eval(_ZERO3, {}, {})
         self._world_key: tuple[float, ...] | None = None
-        self._world: list = []
-        self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int]]] = {}
+        self._world: _World = []
+        self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int], np.ndarray]] = {}
         self._starts: dict[tuple[int, ...], list[int]] = {}  # each group's surface starts
         self._map = np.zeros((9, 9))  # see _to_world
         self._to_object = np.zeros((4, 9))  # see _depths
@@ -373,7 +376,7 @@ class ContactPhysics:
 
     # --- geometry of one evaluation -----------------------------------------------------------
 
-    def _world_samples(self, pose: HandPose) -> list:
+    def _world_samples(self, pose: HandPose) -> _World:
         """Link frames and each surface's bounding circle in frame 0 for ``pose``, cached on the
         exact pose (the joint emulator asks again and again for the same pose between servo
         ticks); the samples themselves are moved into frame 0 lazily, by :meth:`_surface`."""
@@ -395,7 +398,7 @@ class ContactPhysics:
         :meth:`_evaluate` sums per sample: normal, point × normal, point, 1, tangent, s."""
         got = self._world[j]
         if got is None:
-            cols = self._local_cols[j] @ self._to_world(j)
+            cols: np.ndarray = self._local_cols[j] @ self._to_world(j)
             got = (cols[:, 3:5], cols[:, 0:2], cols)
             self._world[j] = got
         return got
@@ -424,8 +427,8 @@ class ContactPhysics:
         return self._map
 
     def _evaluate(
-        self, x: Sequence[float], world: list, pulls: dict[int, _Pull] | None = None,
-        slip: dict | None = None,
+        self, x: Sequence[float], world: _World, pulls: dict[int, _Pull] | None = None,
+        slip: dict[int, float] | None = None,
     ) -> _Eval:  # fmt: skip
         """Net force and moment on the object at pose x (the residual), and the contacts.
 
@@ -437,9 +440,9 @@ class ContactPhysics:
         cos_p, sin_p = math.cos(psi), math.sin(psi)
         fy, fz = self._gravity_yz
         moment = 0.0
-        contacts: dict = {}
-        pressures: dict = {}
-        sums: dict = {}
+        contacts: dict[int, tuple[Pair, Pair, float, float, float, float, bool]] = {}
+        pressures: dict[int, tuple[np.ndarray, int, np.ndarray, float]] = {}
+        sums: dict[int, tuple[float, float, float]] = {}
         max_depth = 0.0
         wds, kw, reach = self._wds, self._kw, self.outline.bound_radius
         near_j = tuple([
@@ -491,7 +494,7 @@ class ContactPhysics:
                 u = u0 + ((cy + cos_p * ay - sin_p * az - sy) * tan_y
                           + (cz + sin_p * ay + cos_p * az - sz) * tan_z)  # fmt: skip
             slipping = slip is not None and j in slip
-            ft = slip[j] * self.mu * N if slipping else -self._kt * u
+            ft = slip[j] * self.mu * N if slip is not None and slipping else -self._kt * u
             ty, tz = ft * tan_y, ft * tan_z
             fy += ty
             fz += tz
@@ -568,19 +571,6 @@ class ContactPhysics:
         pd = self._to_object @ cols[inside].T
         return self.outline.exit_distance(pd[:2].T, pd[2:].T)
 
-    def _ellipse_sdf(self, pts: np.ndarray, c: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """:meth:`Outline.sdf` of an ellipse, (g − 1)/|∇g| with g = |(x/a, y/b)|, of frame-0
-        points for the object at c turned by R (as :meth:`_inside` computes it)."""
-        q = ((pts - c) @ R * self._ellipse).T  # object frame, scaled by (1/a, 1/b)
-        qx2, qy2 = q[0] * q[0], q[1] * q[1]
-        return self._ellipse_d(np.sqrt(qx2 + qy2), qx2, qy2)
-
-    def _ellipse_d(self, g: np.ndarray, qx2: np.ndarray, qy2: np.ndarray) -> np.ndarray:
-        """(g − 1)/|∇g| with ∇g = (x/a², y/b²)/g, from g and the squares of q = (x/a, y/b)."""
-        ia, ib = self._ellipse
-        grad = np.sqrt(qx2 * (ia * ia) + qy2 * (ib * ib)) / np.maximum(g, 1e-12)
-        return (g - 1.0) / np.maximum(grad, 1e-12)
-
     def _pulls(self) -> dict[int, _Pull]:
         """Each anchored contact's spring at the current pose, for :meth:`_evaluate`: its
         object point (object frame), its pad point moved into frame 0, its elastic stretch."""
@@ -599,7 +589,8 @@ class ContactPhysics:
         if top is not None and top <= self.knee:
             return self.k * compression
         soft = self.k * np.minimum(compression, self.knee)
-        return soft + self.k_bottomed * np.maximum(compression - self.knee, 0.0)
+        p: np.ndarray = soft + self.k_bottomed * np.maximum(compression - self.knee, 0.0)
+        return p
 
     def _yield(
         self, overlap: np.ndarray, wds: float, deepest: float, j: int = -1,
@@ -738,14 +729,13 @@ class ContactPhysics:
                         psi + a1 * dpsi + curve * (dpsi - a2 * mpsi))  # fmt: skip
         return y + a1 * dy, z + a1 * dz, psi + a1 * dpsi
 
-    def _solve(self, world: list, dq: tuple[float, ...] | None) -> bool:
+    def _solve(self, world: _World, dq: tuple[float, ...] | None) -> bool:
         """Find the balancing pose: first with every contact sticking, then with the contacts
         whose friction would exceed μ·N sliding at μ·N (an active set, grown until consistent).
         False (nothing changed but the solver's caches) if there is none with both distal pads
         pressing."""
         st = self.state
         slip: dict[int, float] = {}
-        x, ev, converged = st.pose.copy(), None, False
         x0 = self._predict(dq)
         pulls = self._pulls()
         for _ in range(len(self.surfaces) + 1):
@@ -782,7 +772,7 @@ class ContactPhysics:
         self._last = _Eval(_ZERO3, {}, {})
 
     def _newton(
-        self, x0: Vec3, world: list, pulls: dict[int, _Pull], slip: dict[int, float]
+        self, x0: Vec3, world: _World, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> tuple[np.ndarray, _Eval, bool]:
         """Damped Newton on the 3 pose coordinates. The Jacobian (finite differences) is kept
         from step to step, corrected by Broyden's update after every move, and refreshed only
@@ -803,9 +793,9 @@ class ContactPhysics:
                         lim2 / (abs(dx[2]) + 1e-300))  # fmt: skip
             dx = (dx[0] * scale, dx[1] * scale, dx[2] * scale)
             base, step = _norm3(r), 1.0
-            x0, x1, x2 = x
+            xa, xb, xc = x
             while step > 1e-3:
-                x_c = (x0 + step * dx[0], x1 + step * dx[1], x2 + step * dx[2])
+                x_c = (xa + step * dx[0], xb + step * dx[1], xc + step * dx[2])
                 ev_c = self._evaluate(x_c, world, pulls, slip)
                 r_c = ev_c.residual
                 if _norm3(r_c) < base:
@@ -814,7 +804,7 @@ class ContactPhysics:
                 step /= 2
             else:
                 if fresh:
-                    return x, ev, False
+                    return np.array(x), ev, False
                 J = None  # stale Jacobian: refresh and try again
                 continue
             # Broyden's rank-one update: the secant of this move corrects J for free
@@ -826,7 +816,7 @@ class ContactPhysics:
         return np.array(x), ev, max(abs(v) for v in ev.residual) < tol
 
     def _hybrid(
-        self, x: np.ndarray, world: list, pulls: dict[int, _Pull], slip: dict[int, float]
+        self, x: np.ndarray, world: _World, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> tuple[np.ndarray, _Eval, bool]:
         """Powell's hybrid method (scipy) as the fallback of :meth:`_newton`."""
         sol = optimize.root(
@@ -840,7 +830,7 @@ class ContactPhysics:
         return sol.x, ev, max(abs(v) for v in ev.residual) < tol and sane
 
     def _fd_jacobian(
-        self, x: Vec3, r: Vec3, world: list, pulls: dict[int, _Pull], slip: dict[int, float]
+        self, x: Vec3, r: Vec3, world: _World, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> Mat3:
         cols = []
         for k, h in enumerate((1e-4, 1e-4, 1e-5)):

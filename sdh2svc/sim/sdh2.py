@@ -509,11 +509,6 @@ class Sdh2Emulator:
         return tuple(self._ax.powered)
 
     @property
-    def axis_states(self) -> tuple[int, ...]:
-        """What ``state`` would report now (without advancing)."""
-        return tuple(self._state(i) for i in _ALL)
-
-    @property
     def moving(self) -> bool:
         """Whether the servo model needs ticks (a move runs or a velocity is non-zero)."""
         return self._active()
@@ -583,9 +578,9 @@ class Sdh2Emulator:
             if cmd.axis is None:
                 vec.write(cmd.values, _ALL)
             else:
-                values = list(vec.base())
-                values[cmd.axis] = cmd.values[0]
-                vec.write(tuple(values), (cmd.axis,))
+                row = list(vec.base())
+                row[cmd.axis] = cmd.values[0]
+                vec.write(tuple(row), (cmd.axis,))
         values = vec.read()
         if cmd.axis is None:
             return self._reply(cmd.keyword, values)

@@ -99,7 +99,8 @@ class PadRaster:
         run = idx.size and int(idx[-1]) - int(idx[0]) + 1 == idx.size
         w = self.weights[:, int(idx[0]) : int(idx[-1]) + 1] if run else self.weights[:, idx]
         row_p = w @ pressure
-        return row_p[:, None] * self._columns(band_mm)
+        out: np.ndarray = row_p[:, None] * self._columns(band_mm)
+        return out
 
 
 class TactileSensorModel:
@@ -194,6 +195,6 @@ class TactileSensorModel:
             st = (key_s, key_t, gain, thr)
             self._settings = st
         # np.clip's own overhead is far dearer than its two ufuncs
-        seg = np.minimum(np.maximum(np.rint(raw * st[2]), 0.0), MAX_COUNT)
+        seg: np.ndarray = np.minimum(np.maximum(np.rint(raw * st[2]), 0.0), MAX_COUNT)
         seg[seg < st[3]] = 0
         return seg.astype(np.uint16)

@@ -18,17 +18,18 @@ import numpy as np
 import pytest
 
 from sdh2svc.bus.tactile import (
-    BusEvent,
-    EventKind,
     FrameTimeout,
+    LinkEvent,
+    LinkEventKind,
     Mode,
     Subscription,
     TactileBus,
+    TactileCommandError,
     TactileFrame,
     TactileOptions,
     TactileStats,
-    choose_mode,
 )
+from sdh2svc.protocol import dsa
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Endpoint, FaultConfig, PtyEndpoint, TcpEndpoint, UnixEndpoint
@@ -124,28 +125,16 @@ async def until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
             await asyncio.sleep(0.01)
 
 
-async def next_event(sub: Subscription, kind: EventKind, timeout: float) -> BusEvent:
+async def next_event(sub: Subscription, kind: LinkEventKind, timeout: float) -> LinkEvent:
     async with asyncio.timeout(timeout):
         while (event := await sub.events.get()).kind is not kind:
             pass
     return event
 
 
-def test_scheduling_policy() -> None:
-    def mode(
-        required: float, push: float = 30.0, pull: float = 100.0, cur: Mode = Mode.IDLE
-    ) -> Mode:
-        return choose_mode(required, push_fps=push, pull_max_hz=pull, current=cur)
-
-    assert mode(0.0) is Mode.IDLE
-    assert mode(30.0) is Mode.PUSH  # rolling: distal pads at the controller's cap
-    assert mode(2.0) is Mode.PULL  # collision watch only
-    assert mode(20.0) is Mode.PULL  # pull sustains it with less line time
-    assert mode(24.0, cur=Mode.PUSH) is Mode.PUSH  # hysteresis: stays in push
-    assert mode(20.0, cur=Mode.PUSH) is Mode.PULL
-    # Heavy contact: 985-byte frames cap push at ~11.7 fps and pull at ~10.9 Hz.
-    assert mode(10.0, push=11.7, pull=10.9) is Mode.PUSH
-    assert mode(5.0, push=11.7, pull=10.9) is Mode.PULL
+def test_command_error_names_known_and_unknown_codes() -> None:
+    assert str(TactileCommandError("x", 0x10)).endswith(dsa.DsaError(0x10).name)
+    assert str(TactileCommandError("x", 999)) == "x: controller error 999"
 
 
 @pytest.mark.parametrize("kind", ["pty", "tcp"])
@@ -318,7 +307,7 @@ async def test_noisy_line_drops_bad_frames_and_keeps_delivering() -> None:
         kinds = {e.kind for e in bus.history}
     assert pulled[0].seq > pushed[-1].seq
     assert stats.crc_errors > 0 and stats.garbage_bytes > 0 and stats.resyncs > 0
-    assert EventKind.CRC_ERROR in kinds and EventKind.RESYNC in kinds
+    assert LinkEventKind.CRC_ERROR in kinds and LinkEventKind.RESYNC in kinds
     assert_plausible(r, r.frames)  # CRC-checked: nothing corrupted got through
     assert len(r.frames) < len(r.world.sampled)  # frames were lost to the noise, and skipped
 
@@ -329,9 +318,9 @@ async def test_pty_line_going_silent_is_detected_and_reopened() -> None:
         sub = r.bus.subscribe(DISTAL, rate_hz=30.0)
         before = await sub.next_frame()
         r.endpoint.disconnect(1.0)  # a pty cannot tell: the bytes just stop
-        lost = await next_event(sub, EventKind.LOST, timeout=5.0)
+        lost = await next_event(sub, LinkEventKind.LOST, timeout=5.0)
         assert "no good packet" in lost.detail
-        await next_event(sub, EventKind.RECONNECTED, timeout=20.0)
+        await next_event(sub, LinkEventKind.RECONNECTED, timeout=20.0)
         after = await sub.next_frame(timeout=2.0)
         assert after.timestamp_ms > before.timestamp_ms + 1000
         assert r.bus.mode is Mode.PUSH and r.bus.stats.reconnects == 1
@@ -347,8 +336,8 @@ async def test_tcp_disconnect_times_out_waiters_then_reconnects() -> None:
         with pytest.raises(FrameTimeout):
             while True:
                 await sub.next_frame()  # default limit: frame_timeout_s beyond 1/rate
-        await next_event(sub, EventKind.LOST, timeout=5.0)
-        await next_event(sub, EventKind.RECONNECTED, timeout=20.0)
+        await next_event(sub, LinkEventKind.LOST, timeout=5.0)
+        await next_event(sub, LinkEventKind.RECONNECTED, timeout=20.0)
         after = await sub.next_frame(timeout=2.0)
         assert after.timestamp_ms > before.timestamp_ms + 1500
         assert r.bus.mode is Mode.PUSH and r.bus.connected

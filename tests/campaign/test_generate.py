@@ -21,13 +21,14 @@ from sdh2svc.campaign.case import (
     suite_names,
 )
 from sdh2svc.config import default_config, load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.sim.hand import PhysicsWorld
-from sdh2svc.sim.objects import Box, Circle, Ellipse, Outline, Polygon, Stick, parse_object
+from sdh2svc.sim.objects import Box, Circle, Ellipse, Outline, Polygon, Shape, Stick, parse_object
 
 TAN_ALPHA = math.tan(math.radians(22.0))  # μ at the controller's friction angle α = 22°
 
 
-def boundary(obj: Box | Circle | Ellipse | Polygon | Stick, n: int = 20000) -> np.ndarray:
+def boundary(obj: Shape, n: int = 20000) -> np.ndarray:
     """Points of the outline (object frame), found independently of the generator's support
     function: bisection of the signed distance along n rays from the centre (every shape is
     convex and contains its centre); spaced ≤ 2π·75 mm / n ≈ 0.024 mm apart."""
@@ -42,7 +43,7 @@ def boundary(obj: Box | Circle | Ellipse | Polygon | Stick, n: int = 20000) -> n
     return u * lo[:, None]
 
 
-def sampled_width(obj: Box | Circle | Ellipse | Polygon | Stick, angle_deg: float) -> float:
+def sampled_width(obj: Shape, angle_deg: float) -> float:
     """The y0-extent of the boundary points turned by angle_deg (as the world turns the object:
     y0 = cos·x − sin·y)."""
     a = math.radians(angle_deg)
@@ -86,7 +87,7 @@ _mm = st.floats(5.0, 140.0)
 
 
 @st.composite
-def objects(draw: st.DrawFn) -> Box | Circle | Ellipse | Polygon | Stick:
+def objects(draw: st.DrawFn) -> Shape:
     kind = draw(st.sampled_from(["box", "ellipse", "circle", "stick", "polygon"]))
     if kind == "box":
         w, h = draw(_mm), draw(_mm)
@@ -232,7 +233,7 @@ def fixture_lets_go(case: Case) -> bool:
     fingers then hold it is the run's result, not the placement's.)"""
     cfg = load_config(overrides=case.overrides(default_config().sim.sensor.gain_vs_library),
                       use_env=False)  # fmt: skip
-    world = PhysicsWorld(cfg, cfg.sim, case.object)
+    world = PhysicsWorld(hand_model(cfg), cfg.sim, case.object)
     a = cfg.axes
     q = list(cfg.run.preshape_deg)
     t = 0.0

@@ -19,6 +19,7 @@ from sdh2svc.campaign import run as camp
 from sdh2svc.campaign.case import Case, Suite
 from sdh2svc.campaign.results import METADATA_KEY
 from sdh2svc.cli import main
+from sdh2svc.connect import Simulated
 from sdh2svc.sim.objects import get_object
 
 ONE_STROKE = ["rolling.cycles=1"]  # a few seconds per case
@@ -193,10 +194,10 @@ def test_a_crashing_case_is_recorded_with_its_traceback_and_the_rest_run(
 ) -> None:
     real = headless.run_once
 
-    async def run_once(cfg: Any, **kw: Any) -> dict[str, Any]:
+    async def run_once(cfg: Any, where: Any, **kw: Any) -> dict[str, Any]:
         if cfg.sim.seed == 2:
             raise RuntimeError("the world fell over")
-        return await real(cfg, **kw)
+        return await real(cfg, where, **kw)
 
     monkeypatch.setattr(headless, "run_once", run_once)
     out = tmp_path / "out"
@@ -272,7 +273,7 @@ def test_watching_the_truth_leaves_the_run_as_it_is_unwatched(one_worker: Path,
     row = next(r for r in lines(one_worker) if r["id"] == "egg-1")
     case = Case.model_validate_json(row["spec"])
     cfg = camp.case_settings(case, ONE_STROKE, None, tmp_path / "runs.sqlite")
-    plain = run_fast(headless.run_once(cfg, sim=True, obj=case.object, fast=True))
+    plain = run_fast(headless.run_once(cfg, Simulated(obj=case.object, fast=True)))
     assert (plain["iterations"], plain["force"]["max"], plain["lambda_initial_mm"],
             plain["truth"]["slips"]) == (row["iterations"], row["f_max"],
                                           row["lambda_at_grasp_mm"], row["slips"])  # fmt: skip

@@ -14,13 +14,13 @@ from typing import Any, TypeVar
 
 import pytest
 
-from sdh2svc.bus.joint import JointLink
-from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Simulated, connect_hand
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.protocol.sdh import AxisState
 from sdh2svc.sim.clock import run_fast
-from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+from sdh2svc.sim.lab import SimulatedHand
 
 T = TypeVar("T")
 
@@ -32,18 +32,29 @@ def cfg_with(tmp: Path, *extra: str) -> Settings:
 
 @contextlib.asynccontextmanager
 async def rig(cfg: Settings, tmp: Path) -> AsyncIterator[tuple[SimulatedHand, Runner]]:
-    hand = await start_simulated_hand(cfg, unix_dir=tmp)
-    joints = await JointLink.open(hand.urls("sdh")[0])
-    tactile = await TactileBus.open(hand.urls("dsa")[0])
-    events: list[tuple[str, dict[str, Any]]] = []
-    runner = Runner(cfg, joints, tactile, on_event=lambda t, i, k, d: events.append((k, d)))
-    runner.events = events  # type: ignore[attr-defined]
-    try:
-        yield hand, runner
-    finally:
-        await tactile.close()
-        await joints.close()
-        await hand.stop()
+    """The simulated hand in fast mode (its emulators and endpoints) and a runner on it."""
+    async with connect_hand(cfg, Simulated(fast=True)) as hand:
+        assert hand.bench is not None
+        runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
+        yield hand.bench.sim, runner
+
+
+class Seen(BaseObserver):
+    """A test's observer: every event as (kind, detail), and hooks called on each."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, dict[str, Any]]] = []
+        self.hooks: list[Callable[[Event], None]] = []
+
+    def event(self, event: Event) -> None:
+        self.events.append((event.kind, event.detail))
+        for hook in self.hooks:
+            hook(event)
+
+
+def seen(runner: Runner) -> Seen:
+    assert isinstance(runner.observer, Seen)
+    return runner.observer
 
 
 def fast(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
@@ -63,14 +74,13 @@ def test_full_run_completes_its_strokes_without_a_drop(
         async with rig(cfg, tmp_path) as (hand, runner):
             truth: list[Any] = []
 
-            def snapshot(t: float, i: int | None, kind: str, d: dict[str, Any]) -> None:
-                runner.events.append((kind, d))  # type: ignore[attr-defined]
-                if kind == "phase" and d["phase"] == "releasing":
+            def snapshot(e: Event) -> None:
+                if e.kind is EventKind.PHASE and e.detail["phase"] == "releasing":
                     truth.append(hand.world.truth())
 
-            runner._on_event = snapshot
+            seen(runner).hooks.append(snapshot)
             result = await runner.run()
-            return result, runner.events, truth[0]  # type: ignore[attr-defined]
+            return result, seen(runner).events, truth[0]
 
     result, events, truth = fast(main)
     phases = [d["phase"] for k, d in events if k == "phase"]
@@ -93,7 +103,7 @@ def test_force_ceiling_stops_and_opens_the_hand(tmp_path: Path) -> None:
     async def main() -> tuple[Any, list, bool]:
         async with rig(cfg, tmp_path) as (hand, runner):
             result = await runner.run()
-            return result, runner.events, hand.world.truth().held  # type: ignore[attr-defined]
+            return result, seen(runner).events, hand.world.truth().held
 
     result, events, held_after = fast(main)
     phases = [d["phase"] for k, d in events if k == "phase"]
@@ -188,6 +198,15 @@ def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
     missing = subprocess.run([*base, "show", "999", *dbset], capture_output=True, text=True,
                              timeout=60)  # fmt: skip
     assert missing.returncode == 3 and "no run 999" in missing.stderr
+    from sdh2svc.service.store import RunStore
+
+    store = RunStore(db)
+    try:  # every recorded frame is linked to the iteration it was the frame of
+        its = [it for _t, it, _ts, _tex in store.frames(out["run_id"])]
+        samples = [s["iteration"] for s in store.samples(out["run_id"], 0, 10**6)]
+    finally:
+        store.close()
+    assert its == samples and len(its) == out["iterations"]
 
 
 def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:
@@ -198,7 +217,7 @@ def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:
     def once(name: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         cfg = cfg_with(tmp_path / name, "rolling.cycles=1", "sim.object='rubber'")
         (tmp_path / name).mkdir()
-        summary = run_fast(run_once(cfg, sim=True, fast=True))
+        summary = run_fast(run_once(cfg, Simulated(fast=True)))
         store = RunStore(cfg.storage.db_path)
         try:
             return summary, store.samples(summary["run_id"], 0, 10**6)

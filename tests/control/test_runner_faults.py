@@ -15,9 +15,10 @@ from typing import Any
 import pytest
 
 from sdh2svc.bus.tactile import TactileFrame
+from sdh2svc.control.observer import Event, EventKind
 from sdh2svc.control.safety import Fault
 from sdh2svc.sim.faults import FaultConfig
-from tests.control.test_runner import cfg_with, fast, rig
+from tests.control.test_runner import cfg_with, fast, rig, seen
 
 # the velocity grasp this replaced reached 9.4 × Fd at 1e-3 with seeds 4 and 5
 CASES = [(3e-4, seed) for seed in (1, 2, 3)] + [(1e-3, seed) for seed in range(1, 7)]
@@ -37,8 +38,8 @@ def test_bit_errors_never_let_the_force_pass_the_ceiling(
             forces: list[float] = []
             noisy = FaultConfig(bit_error_rate=ber, seed=seed)
 
-            def on_event(t: float, i: int | None, kind: str, detail: dict[str, Any]) -> None:
-                if kind == "phase" and detail["phase"] == "grasping":
+            def on_event(e: Event) -> None:
+                if e.kind is EventKind.PHASE and e.detail["phase"] == "grasping":
                     hand.endpoints["sdh"][0].set_faults(noisy)
 
             def watch(frame: TactileFrame) -> None:
@@ -46,7 +47,7 @@ def test_bit_errors_never_let_the_force_pass_the_ceiling(
                 forces.append((c1.force + c2.force) / 2)  # the controller's F
 
             runner.tactile.add_frame_listener(watch)
-            runner._on_event = on_event
+            seen(runner).hooks.append(on_event)
             result = await runner.run()
             return result, forces, runner.joints.stats
 

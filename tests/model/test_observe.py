@@ -26,7 +26,7 @@ def test_observe_mirror_pose(cfg: Settings) -> None:
     pose = HandPose(*(math.radians(a) for a in (-20, 30, -20, 30)))
     obs = observe(pose, s20(cfg), s20(cfg), ctx)
     assert obs.contact1.S_mm == pytest.approx(20.0)
-    assert obs.both_contacts
+    assert obs.points is not None
     assert obs.Lambda == pytest.approx(82.20, abs=0.005)
     assert obs.sigma == pytest.approx(0.0, abs=1e-12)
     assert math.degrees(obs.omega_A) == pytest.approx(91.39, abs=0.005)
@@ -38,5 +38,5 @@ def test_observe_without_second_contact(cfg: Settings) -> None:
     pose = HandPose(0.0, 0.0, 0.0, 0.0)
     obs = observe(pose, s20(cfg), np.zeros_like(s20(cfg)), ctx)
     assert obs.contact1.present and not obs.contact2.present
-    assert not obs.both_contacts
+    assert obs.points is None
     assert obs.Lambda is None and obs.omega_A is None

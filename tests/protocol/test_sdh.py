@@ -31,11 +31,9 @@ from sdh2svc.protocol.sdh import (
     ErrorSource,
     Garbage,
     HostStreamParser,
-    LineParser,
     ProtocolErrorEvent,
     Reply,
     ReplyParser,
-    Role,
     SdhError,
     SdhProtocolError,
     binary_reply_size,
@@ -488,19 +486,19 @@ def test_line_parser_host_role_terminators_and_debug() -> None:
         Reply("VEL", None, (1, 2, 3, 4, 5, 6, 7), "1,2,3,4,5,6,7"),
         Reply("VP", None, (0.0,), "0"),
     ]
-    assert LineParser().feed(stream) == expected
-    quiet = LineParser(report_debug=False).feed(stream)
+    assert ReplyParser(binary=False).feed(stream) == expected
+    quiet = ReplyParser(binary=False, report_debug=False).feed(stream)
     assert quiet == expected[1:]
 
 
 def test_line_parser_bare_cr_does_not_end_a_line() -> None:
-    parser = LineParser()
+    parser = ReplyParser(binary=False)
     assert parser.feed(b"P=1\r") == []
     assert parser.feed(b"\n") == [Reply("P", None, (1.0,), "1")]
 
 
 def test_line_parser_controller_role() -> None:
-    parser = LineParser(role=Role.CONTROLLER)
+    parser = HostStreamParser(binary=False)
     events = parser.feed(b" \r\nver\r\np(3)=     -45.000\r\nbogus\r\n\x83\x03\x00\r\n")
     assert events[:3] == [BLANK, AsciiCommand("ver"), AsciiCommand("p", 3, (-45.0,))]
     assert isinstance(events[3], ProtocolErrorEvent) and events[3].code is SdhError.CMD_UNKNOWN
@@ -521,7 +519,7 @@ def test_overlong_lines_reported_once_then_recovered() -> None:
     # chunked: identical events
     chunked = HostStreamParser(max_line=32)
     assert [e for b in long + b"pos\r\n" for e in chunked.feed(bytes([b]))] == events
-    reply = LineParser(max_line=32).feed(b"X" * 100 + b"\r\nCON=1\r\n")
+    reply = ReplyParser(max_line=32, binary=False).feed(b"X" * 100 + b"\r\nCON=1\r\n")
     assert reply == [
         Garbage(b"X" * 32, "line longer than 32 bytes"),
         Reply("CON", None, (1.0,), "1"),
@@ -794,8 +792,9 @@ def test_fuzz_reply_parser(data: st.DataObject, crc: bool | None) -> None:
 @FUZZ
 @given(garbage=st.binary(max_size=400))
 def test_fuzz_line_parsers_never_raise(garbage: bytes) -> None:
-    for role in Role:
-        parser = LineParser(role=role, max_line=64)
-        parser.feed(garbage)
-        tail = parser.feed(b"\r\n" + (b"CON=1\r\n" if role is Role.HOST else b"con\r\n"))
-        assert tail[-1] in (Reply("CON", None, (1.0,), "1"), AsciiCommand("con"))
+    host = ReplyParser(max_line=64, binary=False)
+    host.feed(garbage)
+    assert host.feed(b"\r\nCON=1\r\n")[-1] == Reply("CON", None, (1.0,), "1")
+    controller = HostStreamParser(max_line=64, binary=False)
+    controller.feed(garbage)
+    assert controller.feed(b"\r\ncon\r\n")[-1] == AsciiCommand("con")

@@ -1,4 +1,4 @@
-"""Fixtures of the service tests: a live ``sdh2svc serve --sim`` (sdh2svc.service.launch)."""
+"""Fixtures of the service tests: a live ``sdh2svc serve --sim`` (tests/live_service.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from sdh2svc.service.launch import LiveService, start_service
+from tests.live_service import LiveService, start_service
 
 # These tests are about the service, not the force loop (tests/control and the reproduction
 # report are): in real time the egg's force peaks near the first reversal reach 4.6–5.3 against

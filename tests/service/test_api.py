@@ -17,12 +17,12 @@ from urllib.parse import urlparse
 
 import httpx
 import pytest
-from mcap.reader import make_reader
+from mcap_check import read
 from websockets.asyncio.client import ClientConnection, connect
 
 from sdh2svc.config import load_config
-from sdh2svc.service.launch import LiveService, service_command, start_service
 from sdh2svc.service.store import RunStore
+from tests.live_service import LiveService, service_command, start_service
 
 RUN_TIMEOUT_S = 120.0
 
@@ -206,10 +206,10 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         assert len(rows) == page["total"] and float(rows[0]["F"]) == page["samples"][0]["F"]
         r = await c.get(f"/api/runs/{run_id}/export", params={"format": "mcap"})
         assert r.status_code == 200
-        topics: dict[str, int] = {}
-        for _schema, channel, _message in make_reader(io.BytesIO(r.content)).iter_messages():
-            topics[channel.topic] = topics.get(channel.topic, 0) + 1
-        assert max(n for t, n in topics.items() if "sample" in t) == page["total"]
+        got = read(r.content)  # every message valid against its schema (mcap_check)
+        assert len(got.messages["/samples"]) == page["total"]
+        assert len(got.messages["/tf"]) == len(got.messages["/contacts"]) == page["total"]
+        assert got.messages["/tactile/finger1_distal"] and got.messages["/events"]
         r = await c.get(f"/api/runs/{run_id}/export", params={"format": "xls"})
         assert r.status_code == 422
 

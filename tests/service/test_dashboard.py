@@ -26,7 +26,7 @@ import playwright.async_api as playwright_api
 import pytest
 from playwright.async_api import expect
 
-from sdh2svc.service.launch import LiveService, start_service
+from tests.live_service import LiveService, start_service
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [

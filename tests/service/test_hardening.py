@@ -16,7 +16,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from sdh2svc.service.launch import LiveService, start_service
+from tests.live_service import LiveService, start_service
 
 EVIL = "http://evil.example"
 ALLOWED_ORIGIN = "http://dash.example:9000"

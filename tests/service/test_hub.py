@@ -6,7 +6,8 @@ import asyncio
 import json
 import math
 
-from sdh2svc.service.hub import Client, TelemetryHub, encode
+from sdh2svc.service.hub import Client, TelemetryHub
+from sdh2svc.service.telemetry import AnyMessage, encode, kind_of, to_json
 
 
 def test_full_queue_drops_the_oldest_and_counts() -> None:
@@ -85,11 +86,11 @@ def test_a_failing_listener_does_not_stop_publishing() -> None:
     hub = TelemetryHub()
     seen: list[int] = []
 
-    def broken(msg: dict[str, object]) -> None:
+    def broken(msg: AnyMessage) -> None:
         raise RuntimeError("view crashed")
 
     hub.add_listener(broken)
-    hub.add_listener(lambda m: seen.append(int(m["i"])))  # type: ignore[call-overload]
+    hub.add_listener(lambda m: seen.append(int(to_json(m)["i"])))
     hub.publish({"type": "event", "i": 1})
     assert seen == [1]
 
@@ -102,7 +103,7 @@ async def test_delivery_waits_for_the_end_of_the_iteration() -> None:
     c = Client()
     hub.clients.add(c)
     seen: list[str] = []
-    hub.add_listener(lambda m: seen.append(str(m["type"])))
+    hub.add_listener(lambda m: seen.append(kind_of(m)))
     hub.publish({"type": "tactile", "seq": 1})
     assert not c.queue and not seen  # the frame has just arrived: nothing done yet
     hub.publish({"type": "sample", "iteration": 1})

@@ -18,9 +18,10 @@ import httpx
 import pytest
 
 from sdh2svc.config import load_config
-from sdh2svc.service.launch import LiveService, start_service
+from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.sim.cable import Cable
-from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+from sdh2svc.sim.lab import SimulatedHand
+from tests.live_service import LiveService, start_service
 
 STEP_DEG = 1.0  # safety.max_step_deg: the furthest a finger may go without a fresh command
 WATCH_S = 2.0  # how long the test watches a hand nobody commands (longer only makes it stricter)
@@ -29,17 +30,15 @@ FINGER_AXES = (1, 2, 3, 4, 5, 6)  # the coupled fingers and the thumb
 
 @pytest.fixture
 async def hand() -> AsyncIterator[tuple[SimulatedHand, Cable]]:
-    cfg = load_config()
-    sim = await start_simulated_hand(cfg, pty=False, tcp=True, dsa_port=0, sdh_port=0,
-                                     replace_after_s=0.0)  # fmt: skip
-    host, port = sim.urls("sdh")[0].removeprefix("socket://").rsplit(":", 1)
-    cable = Cable(host, int(port))
-    await cable.plug()
-    try:
-        yield sim, cable
-    finally:
-        await cable.close()
-        await sim.stop()
+    async with simulated_hand(load_config(), Simulated()) as bench:
+        sim = bench.sim
+        host, port = sim.urls("sdh")[0].removeprefix("socket://").rsplit(":", 1)
+        cable = Cable(host, int(port))
+        await cable.plug()
+        try:
+            yield sim, cable
+        finally:
+            await cable.close()
 
 
 def _angles(sim: SimulatedHand) -> tuple[float, ...]:

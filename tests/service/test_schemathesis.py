@@ -14,7 +14,7 @@ from pathlib import Path
 
 import httpx
 
-from sdh2svc.service.launch import start_service
+from tests.live_service import start_service
 
 CHECKS = "not_a_server_error,status_code_conformance,content_type_conformance"
 MAX_EXAMPLES = 6  # per operation and phase: ≈ 300 requests, ≈ 15 s on a quiet 2-core machine

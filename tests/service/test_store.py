@@ -2,24 +2,25 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
-import json
 import math
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap_check import read
 
 from sdh2svc.config import Settings
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.kinematics import HandPose
-from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.service.store import SAMPLE_COLUMNS, SCHEMA, Recorder, RunStore, connect
 
 
 def _frame(S: float) -> np.ndarray:
@@ -36,7 +37,8 @@ def _samples(cfg: Settings, n: int) -> list[Sample]:
     out = []
     for i in range(n):
         r = step(state, pose, _frame(20.0 + 0.1 * i), _frame(20.0), cfg.rolling, ctx)
-        out.append(Sample.from_step(r, pose, t=i / 30, frame_age_ms=3.0, latency_ms=1.5))
+        ages = {"frame_age_ms": 3.0, "joint_age_ms": 2.0, "latency_ms": 1.5}
+        out.append(Sample.from_step(r, pose, t=i / 30, **ages))
         state, pose = r.state, r.targets or pose
     return out
 
@@ -76,15 +78,14 @@ def test_record_read_back_and_export(cfg: Settings, tmp_path: Path) -> None:
 
     raw = io.BytesIO()
     n = store.export_mcap(run_id, raw)
-    assert n == 42
-    raw.seek(0)
-    topics: dict[str, list[dict]] = {}
-    for _schema, channel, message in make_reader(raw).iter_messages():
-        assert channel.message_encoding == "json"
-        topics.setdefault(channel.topic, []).append(json.loads(message.data))
-    assert len(topics["/samples"]) == 40 and topics["/samples"][7]["S1"] == samples[7].S1
-    assert topics["/events"][0]["kind"] == "reversal"
-    assert topics["/tactile"][0]["texels"][:3] == [0, 1, 2]
+    assert n == 40 * 3 + 1 + 6  # samples, their transforms and contacts; the event; six pads
+    got = read(raw.getvalue())  # every message valid against its schema (tests/service/mcap_check)
+    assert (
+        len(got.messages["/samples"]) == 40 and got.messages["/samples"][7]["S1"] == samples[7].S1
+    )
+    assert got.messages["/events"][0]["name"] == "reversal"
+    grid = got.messages["/tactile/finger1_proximal"][0]["_raw"]
+    assert np.frombuffer(grid.data, "<u2")[:3].tolist() == [0, 1, 2]
     store.close()
 
 
@@ -130,3 +131,12 @@ def test_durable_through_sigkill(tmp_path: Path) -> None:
     assert run["iterations"] >= durable
     assert run["status"] == "running"  # it never finished: a crash, not a stop
     store.close()
+
+
+def test_an_older_database_gets_new_sample_columns(tmp_path: Path) -> None:
+    path = tmp_path / "old.sqlite"
+    with contextlib.closing(sqlite3.connect(path)) as old:
+        old.executescript(SCHEMA.replace(', "joint_age_ms"', ""))
+    db = connect(path)
+    assert {row[1] for row in db.execute("PRAGMA table_info(samples)")} >= set(SAMPLE_COLUMNS)
+    db.close()

@@ -17,7 +17,7 @@ import viser
 import viser.transforms as vtf
 import websockets.asyncio.server
 from viser import GuiEvent
-from viser_client import PROTOCOL, browser, ws_url
+from viser_client import PROTOCOL, browser, camera_message, ws_url
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 from websockets.typing import Origin, Subprotocol
@@ -28,6 +28,7 @@ from sdh2svc.model.kinematics import Finger, Point, frame3_axes, pad_point
 from sdh2svc.service import viewer as viewer_module
 from sdh2svc.service import viewer_proc
 from sdh2svc.service.app import _start_viewer
+from sdh2svc.service.telemetry import Contact, SampleMsg, SampleView, contact_normal
 from sdh2svc.service.viewer import (
     BUTTONS,
     COMMANDS,
@@ -38,13 +39,10 @@ from sdh2svc.service.viewer import (
     YELLOW,
     Viewer,
     ViewerSecurityError,
-    camera_message,
     cone_color,
-    contact_normal,
     distal_cells,
     finger_frames,
     origin_allowed,
-    pad_vertices,
     start_viser,
     tactile_colors,
 )
@@ -225,17 +223,17 @@ def test_contact_normal_is_the_pad_normal(cfg: Settings) -> None:
     ex, ey = frame3_axes(Finger.ONE, p2 + p3)
     x3, y3 = pad_point_from_L(8.0, cfg.hand.pad)  # on the flat part: the normal is ey3
     A = pad_point(Finger.ONE, p2, p3, x3, y3, cfg.hand)
-    n = contact_normal(Finger.ONE, p2, p3, A, cfg)
+    n = contact_normal(Finger.ONE, p2, p3, A, cfg.hand)
     assert math.isclose(n.y, ey.y, abs_tol=1e-9) and math.isclose(n.z, ey.z, abs_tol=1e-9)
     # on the arc it tilts away from ey3 towards −ex3 (the pad curves back), still unit length
     x3, y3 = pad_point_from_L(40.0, cfg.hand.pad)
     A = pad_point(Finger.ONE, p2, p3, x3, y3, cfg.hand)
-    n = contact_normal(Finger.ONE, p2, p3, A, cfg)
+    n = contact_normal(Finger.ONE, p2, p3, A, cfg.hand)
     assert math.isclose(math.hypot(n.y, n.z), 1.0)
     assert n.y * ex.y + n.z * ex.z > 0.2
     # Finger 2 is the mirror image
     B = pad_point(Finger.TWO, p2, p3, x3, y3, cfg.hand)
-    m = contact_normal(Finger.TWO, p2, p3, B, cfg)
+    m = contact_normal(Finger.TWO, p2, p3, B, cfg.hand)
     assert math.isclose(m.y, -n.y, abs_tol=1e-9) and math.isclose(m.z, n.z, abs_tol=1e-9)
 
 
@@ -253,8 +251,27 @@ async def test_cones_sit_at_the_contacts_coloured_by_omega(viewer: Viewer) -> No
     assert math.isclose(math.degrees(math.atan2(r, h)), 25.0)  # half-angle α
     axis = vtf.SO3(np.asarray(cone_a.wxyz)).as_matrix()[:, 2]
     p = [math.radians(v) for v in (-20.0, 30.0)]
-    normal = contact_normal(Finger.ONE, p[0], p[1], Point(-8.0, 140.0), viewer.settings)
+    normal = contact_normal(Finger.ONE, p[0], p[1], Point(-8.0, 140.0), viewer.settings.hand)
     assert np.allclose(axis, (0.0, normal.y, normal.z))
+
+
+async def test_cones_follow_the_normals_the_message_brings(viewer: Viewer) -> None:
+    """A sample that comes with its view (as from the service's side of the view's process):
+    the cones stand on the normals given, nothing is worked out again."""
+    tilted = Point(math.sin(0.3), math.cos(0.3))  # not this pose's pad normal: only given
+    view = SampleView(
+        (-20.0, 30.0, -20.0, 30.0),
+        Contact(Point(-8.0, 140.0), tilted, 90.0),
+        Contact(Point(74.0, 140.0), None, None),  # no normal: a point without its cone
+    )
+    n = viewer.frames
+    viewer.handle(SampleMsg(1, object(), view))  # type: ignore[arg-type]
+    await next_frame(viewer, n)
+    cone_a = viewer.nodes["/contacts/cone_A"]
+    assert cone_a.visible and not viewer.nodes["/contacts/cone_B"].visible
+    assert viewer.nodes["/contacts/B"].visible and viewer.nodes["/contacts/AB"].visible
+    axis = vtf.SO3(np.asarray(cone_a.wxyz)).as_matrix()[:, 2]
+    assert np.allclose(axis, (0.0, tilted.y, tilted.z))
 
 
 async def test_contacts_vanish_when_the_run_ends(viewer: Viewer) -> None:
@@ -283,10 +300,21 @@ def test_distal_cells_sit_where_the_contact_estimate_puts_them(cfg: Settings) ->
     assert math.isclose(row0[0], x3, abs_tol=0.31) and math.isclose(row0[1], y3, abs_tol=0.31)
     last = pos[-1]  # row 12 nearest the distal joint: L = 5.5, on the flat part
     assert math.isclose(last[0], 17.5 + 5.5) and math.isclose(last[1], 15.3)
-    v, f = pad_vertices(cfg.hand.pad, 20.4)
-    front = v[0::4]
-    assert np.allclose(front[:, 1], [pad_y3(x, cfg.hand.pad) for x in front[:, 0]])
-    assert f.max() < len(v)
+    # the pad they sit on is the URDF's (tests/model/test_urdf.py: drawn along its profile)
+
+
+async def test_the_bodies_are_the_urdfs_posed_like_the_frames(
+    cfg: Settings, viewer: Viewer
+) -> None:
+    """The URDF's meshes are in the scene, and its distal link sits where the cells' frame does."""
+    assert viewer.urdf is not None and len(viewer.urdf._meshes) > 3 * 3 + 1
+    n = viewer.frames
+    viewer.handle({"type": "pose", "angles_deg": POSE})
+    await next_frame(viewer, n)
+    for key, finger in (("f1", "finger1"), ("f2", "finger2"), ("f3", "thumb")):
+        T = viewer.urdf._urdf.get_transform(f"{finger}_frame3", "frame0")
+        for local in (np.zeros(3), np.array([40.0, 12.0, 5.0]) * MM):
+            assert np.allclose(world(viewer, f"/{key}/distal", local), T[:3, :3] @ local + T[:3, 3])
 
 
 async def test_pads_coloured_from_tactile_frames(cfg: Settings, viewer: Viewer) -> None:

@@ -15,9 +15,18 @@ from viser import _messages
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.typing import Origin, Subprotocol
 
-from sdh2svc.service.viewer import camera_message
-
 PROTOCOL = [Subprotocol(f"viser-v{viser.__version__}")]
+
+
+def camera_message() -> bytes:
+    """What a browser sends once it shows the scene: its camera (viser counts a client as
+    connected, and the view draws for it, from then on). viser's private message type: a
+    scripted client's business, not the service's."""
+    msg = _messages.ViewerCameraMessage(
+        wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.3, 0.0, 0.2), fov=1.0, near=0.01, far=100.0,
+        image_height=720, image_width=1280, look_at=(0.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0),
+    )  # fmt: skip
+    return msgspec.msgpack.encode(msg.as_serializable_dict())
 
 
 class Browser:

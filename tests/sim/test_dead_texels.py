@@ -7,6 +7,7 @@ import pytest
 
 from sdh2svc.campaign.case import Case, SensorVariation, Texel
 from sdh2svc.config import ConfigError, Settings, load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
 
@@ -15,7 +16,7 @@ def grasped_frames(cfg: Settings) -> list[np.ndarray]:
     """The egg grasped by closing both coupled fingers in a mirror pose (as the grasp does) until
     its distal pads read a firm load, then held still: the raw frames of ten ticks (noise and
     creep on, as configured)."""
-    world = PhysicsWorld(cfg, cfg.sim, get_object("egg"))
+    world = PhysicsWorld(hand_model(cfg), cfg.sim, get_object("egg"))
     a = cfg.axes
     q = [90.0, -30.0, 30.0, 0.0, 0.0, -30.0, 30.0]
     t = 0.0
@@ -83,4 +84,4 @@ def test_impossible_dead_texels_are_refused(value: str) -> None:
 def test_a_dead_texel_outside_its_matrix_is_refused() -> None:
     cfg = load_config(overrides=["sim.sensor.dead_texels=[[1, 13, 0]]"], use_env=False)
     with pytest.raises(ValueError, match="no such cell"):  # the distal pads have 13 rows
-        PhysicsWorld(cfg, cfg.sim, get_object("egg"))
+        PhysicsWorld(hand_model(cfg), cfg.sim, get_object("egg"))

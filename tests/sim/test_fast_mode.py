@@ -10,6 +10,7 @@ import serial_asyncio
 
 import sdh2svc.bus  # noqa: F401  (registers unix:// with pyserial)
 from sdh2svc.config import load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.protocol import dsa
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.dsacon import DsaconEmulator
@@ -21,7 +22,8 @@ async def _push_session(sock: Path, seconds: float) -> tuple[list[bytes], float]
     """Open the DSACON32m emulator over unix://, stream push frames for ``seconds`` of the
     line's (virtual) time, and return the frame payloads and the virtual time it took."""
     cfg = load_config(use_env=False)
-    world = PhysicsWorld(cfg, cfg.sim)  # noise and creep on: the frames vary from one to the next
+    # noise and creep on: the frames vary from one to the next
+    world = PhysicsWorld(hand_model(cfg), cfg.sim)
     world.move_joints(0.0, [90.0, -30.0, 30.0, 0.0, 0.0, -30.0, 30.0], [True] * 7)
     world.move_joints(0.0, [90.0, -5.0, 5.0, 0.0, 0.0, -5.0, 5.0], [True] * 7)  # the egg, held
     emu = DsaconEmulator(world)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.model.friction import omega
 from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import (
@@ -39,7 +40,7 @@ class Rig:
 
     def __init__(self, cfg: Settings, name: str) -> None:
         self.cfg, self.ctx = cfg, cfg.model_context()
-        self.w = PhysicsWorld(cfg, cfg.sim, get_object(name))
+        self.w = PhysicsWorld(hand_model(cfg), cfg.sim, get_object(name))
         self.q = list(OPEN)
         self.t = 0.0
         self.move(self.q)
@@ -444,7 +445,7 @@ def _yield_reference(phys, overlap: np.ndarray, wds: float) -> float:
 
 @pytest.mark.parametrize("name", ["egg", "rubber", "cylinder"])
 def test_finger_yield_fast_paths_match_newton_from_zero(name: str) -> None:
-    phys = PhysicsWorld(quiet(), quiet().sim, get_object(name)).physics
+    phys = PhysicsWorld(hand_model(quiet()), quiet().sim, get_object(name)).physics
     rng = np.random.default_rng(7)
     wds = phys.width_mm * phys.cfg.sample_spacing_mm
     for trial in range(300):
@@ -527,7 +528,7 @@ def test_samples_inside_match_the_outline_sdf_with_depths_along_the_pad_normal(n
 
     triangle = {"kind": "polygon", "vertices_mm": [[-30, -15], [30, -15], [0, 20]], "depth_mm": 8}
     obj = parse_object(triangle) if name == "triangle" else get_object(name)
-    w = PhysicsWorld(quiet(), quiet().sim, obj)
+    w = PhysicsWorld(hand_model(quiet()), quiet().sim, obj)
     phys = w.physics
     rng = np.random.default_rng(4)
     near_j = tuple(range(len(phys.surfaces)))
@@ -556,22 +557,10 @@ def test_samples_inside_match_the_outline_sdf_with_depths_along_the_pad_normal(n
         assert np.allclose(phys.outline.sdf(exit_), 0.0, atol=1e-9)
 
 
-def test_ellipse_overlap_matches_the_outline_sdf() -> None:
-    from sdh2svc.sim.physics import rot
-
-    phys = PhysicsWorld(quiet(), quiet().sim, get_object("egg")).physics
-    rng = np.random.default_rng(5)
-    pts = rng.normal(size=(500, 2)) * 25 + [33.0, 125.0]
-    for psi in (-0.7, 0.0, 0.3):
-        c, R = np.array([33.5, 124.0]), rot(psi)
-        assert np.allclose(phys._ellipse_sdf(pts, c, R), phys.outline.sdf((pts - c) @ R),
-                           atol=1e-9)  # fmt: skip
-
-
 def test_sensor_settings_match_the_emulator_seam_definition() -> None:
     from sdh2svc.sim.world import apply_sensor_settings
 
-    w = PhysicsWorld(quiet(), quiet().sim, get_object("egg"))
+    w = PhysicsWorld(hand_model(quiet()), quiet().sim, get_object("egg"))
     rng = np.random.default_rng(9)
     raw = rng.random(w.sensor.offsets[-1]) * 5000
     for sens, thr in (([0.5] * 6, [0] * 6), ([0.1, 0.9, 0.5, 1.0, 0.3, 0.7], [0, 5, 100, 0, 7, 3])):
@@ -598,7 +587,7 @@ def test_fast_mode_world_is_bit_for_bit_repeatable() -> None:
 
 
 def _physics(spec):
-    return PhysicsWorld(quiet(), quiet().sim, spec).physics
+    return PhysicsWorld(hand_model(quiet()), quiet().sim, spec).physics
 
 
 def _place(phys, j: int, k: int, local: np.ndarray, normal: np.ndarray) -> tuple[float, ...]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from sdh2svc.config import load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import parse_object
 
@@ -13,7 +14,7 @@ def test_object_between_the_proximal_links_presses_their_pads() -> None:
     cfg = load_config(overrides=["sim.sensor.noise=false", "sim.sensor.creep=false"],
                       use_env=False)  # fmt: skip
     ball = parse_object({"kind": "circle", "name": "ball", "diameter_mm": 42, "depth_mm": 30})
-    world = PhysicsWorld(cfg, cfg.sim, ball)
+    world = PhysicsWorld(hand_model(cfg), cfg.sim, ball)
     world.place(ball, height_mm=55.0)  # below the fingertips, level with the proximal pads
     off = np.cumsum([0] + [r * c for r, c in world.matrix_shapes])
     a = cfg.axes

@@ -15,15 +15,17 @@ from typing import Any
 import pytest
 import serial_asyncio
 
+from sdh2svc import connect
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.cli import main
 from sdh2svc.config import load_config
+from sdh2svc.connect import Real, hand_model
 from sdh2svc.protocol import dsa, sdh
 from sdh2svc.service.headless import run_once
-from sdh2svc.sim import serve
+from sdh2svc.sim import lab
 from sdh2svc.sim.clock import run_fast
-from sdh2svc.sim.serve import LabAssistant, start_simulated_hand
+from sdh2svc.sim.lab import LabAssistant, start_simulated_hand
 
 
 async def _dsa_info(url: str) -> dsa.ControllerInfo:
@@ -116,14 +118,14 @@ def test_sim_puts_the_object_back_between_runs(
         return [m for m in caplog.messages if "put back between the fingertips" in m]
 
     async def main() -> list[dict[str, Any]]:
-        hand = await start_simulated_hand(cfg, unix_dir=tmp_path)
+        hand = await start_simulated_hand(hand_model(cfg), cfg.sim, unix_dir=tmp_path)
         # fast mode starts no assistant of its own: this is the one `sdh2svc sim` starts
         assistant = asyncio.create_task(LabAssistant(hand.world, 0.5).run())
         summaries = []
         try:
-            urls = {"dsa_url": hand.urls("dsa")[0], "sdh_url": hand.urls("sdh")[0]}
+            real = Real(hand.urls("dsa")[0], hand.urls("sdh")[0])  # to the drivers, a real hand
             for n in (1, 2):
-                summaries.append(await run_once(cfg, sim=False, fast=True, **urls))
+                summaries.append(await run_once(cfg, real))
                 async with asyncio.timeout(20.0):  # virtual seconds
                     while len(put_back()) < n:
                         await asyncio.sleep(0.1)
@@ -135,7 +137,7 @@ def test_sim_puts_the_object_back_between_runs(
             await hand.stop()
         return summaries
 
-    with caplog.at_level(logging.INFO, logger="sdh2svc.sim.serve"):
+    with caplog.at_level(logging.INFO, logger="sdh2svc.sim.lab"):
         summaries = run_fast(main())
     for n, summary in enumerate(summaries, 1):
         assert summary["status"] == "completed", (n, summary)
@@ -148,11 +150,12 @@ def test_sim_replace_after_reaches_the_lab_assistant(monkeypatch: pytest.MonkeyP
     starts (the one the test above exercises)."""
     seen: list[float] = []
 
-    async def fake_start(settings: Any, **kwargs: Any) -> Any:
-        seen.append(settings.sim.replace_after_s)
+    async def fake_start(model: Any, sim: Any, **kwargs: Any) -> Any:
+        after = kwargs["replace_after_s"]
+        seen.append(sim.replace_after_s if after is None else after)
         raise OSError("stop here")
 
-    monkeypatch.setattr(serve, "start_simulated_hand", fake_start)
+    monkeypatch.setattr(connect, "start_simulated_hand", fake_start)
     assert main(["sim", "--no-pty", "--replace-after", "0.5"]) == 4  # "cannot serve" after it
     assert seen == [0.5]
     monkeypatch.undo()
@@ -162,11 +165,13 @@ def test_sim_replace_after_reaches_the_lab_assistant(monkeypatch: pytest.MonkeyP
             seen.append(after_s)
             super().__init__(world, after_s, poll_s)
 
-    monkeypatch.setattr(serve, "LabAssistant", Recording)
+    monkeypatch.setattr(lab, "LabAssistant", Recording)
 
     async def real_time() -> None:
         cfg = load_config(overrides=["sim.replace_after_s=1.5"], use_env=False)
-        hand = await serve.start_simulated_hand(cfg, pty=False, tcp=True, dsa_port=0, sdh_port=0)
+        hand = await lab.start_simulated_hand(
+            hand_model(cfg), cfg.sim, pty=False, tcp=True, dsa_port=0, sdh_port=0
+        )
         await hand.stop()
 
     asyncio.run(real_time())

@@ -9,9 +9,10 @@ import numpy as np
 import serial_asyncio
 
 from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import hand_model
 from sdh2svc.model.contact import estimate_contact
 from sdh2svc.protocol import dsa, sdh
-from sdh2svc.sim.serve import start_simulated_hand
+from sdh2svc.sim.lab import start_simulated_hand
 
 
 class Host:
@@ -59,7 +60,7 @@ class Host:
 
 async def test_fingers_moving_over_bytes_change_the_tactile_frames() -> None:
     cfg = load_config(overrides=["sim.object=egg"], use_env=False)
-    hand = await start_simulated_hand(cfg, pty=False, dsa_port=0, sdh_port=0)
+    hand = await start_simulated_hand(hand_model(cfg), cfg.sim, pty=False, dsa_port=0, sdh_port=0)
     host = Host(cfg, hand.urls("sdh")[0], hand.urls("dsa")[0])
     try:
         await host.open()

@@ -17,11 +17,12 @@ class Serial(protocol_socket.Serial):
     """pyserial's socket port, connected to a Unix-domain socket path instead of host:port."""
 
     def open(self) -> None:
-        if self._port is None:
+        url = self.portstr
+        if url is None:
             raise SerialException("Port must be configured before it can be used.")
         if self.is_open:
             raise SerialException("Port is already open.")
-        path = self.from_url(self.portstr)
+        path = self.from_url(url)
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             sock.connect(path)

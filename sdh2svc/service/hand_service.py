@@ -1,5 +1,5 @@
-"""The hand as the service owns it: both links, the current run, the parameters, the e-stop, and
-the telemetry that flows from them to the hub.
+"""The hand's application service: the open hand (through :mod:`sdh2svc.connect`), the current
+run, the parameters, the e-stop, and the telemetry that flows from them to the hub.
 
 Everything a user can ask for (REST, the 3-D view's buttons) is a method here, with one rule per
 conflict: one run at a time, no run while the e-stop is latched, no object change during a run.
@@ -12,23 +12,26 @@ import asyncio
 import contextlib
 import logging
 import math
+from contextlib import AsyncExitStack
 from dataclasses import asdict
 from typing import Any
 
-import numpy as np
 from pydantic import ValidationError
 
 from sdh2svc.bus.joint import JointLink, JointLinkError
 from sdh2svc.bus.tactile import Subscription, TactileBus, TactileFrame
 from sdh2svc.config import Settings, format_errors
+from sdh2svc.connect import Bench, Hand, Where, connect_hand
 from sdh2svc.control.motion import move_to_preshape
+from sdh2svc.control.observer import BaseObserver, EventKind
+from sdh2svc.control.observer import Event as RunEvent
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
-from sdh2svc.service.runs import RecordedRun, open_links
+from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import RunStore
-from sdh2svc.sim.objects import PRESETS, ObjectSpec, Outline, get_object, parse_object
-from sdh2svc.sim.serve import SimulatedHand, start_simulated_hand
+from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Sim, Status, Tactile
+from sdh2svc.sim.objects import PRESETS, ObjectSpec, Shape, get_object, parse_object
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +55,7 @@ def validate_params(current: RollingParams, patch: dict[str, Any]) -> RollingPar
         raise ServiceError(422, "invalid rolling parameters", lines) from None
 
 
-def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Any:
+def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Shape:
     """A preset by ``name`` or an object ``spec`` (422 naming the bad field)."""
     if (name is None) == (spec is None):
         raise ServiceError(422, "give either an object preset name or an object spec",
@@ -68,25 +71,15 @@ def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Any:
         raise ServiceError(422, "invalid object spec", format_errors(e, ObjectSpec)) from None
 
 
-class Station:
-    """Owns the links (and, with ``sim``, the embedded simulated hand) for the service's life."""
+class HandService:
+    """Owns the open hand — a real one, or a simulated one with its bench — for the service's
+    life."""
 
-    def __init__(
-        self,
-        cfg: Settings,
-        hub: TelemetryHub,
-        *,
-        sim: bool,
-        dsa_url: str | None = None,
-        sdh_url: str | None = None,
-        obj: Any = None,
-    ) -> None:
-        self.cfg, self.hub, self.sim = cfg, hub, sim
+    def __init__(self, cfg: Settings, hub: TelemetryHub, where: Where) -> None:
+        self.cfg, self.hub, self.where = cfg, hub, where
         self.params = cfg.rolling
-        self.dsa_url = dsa_url or cfg.links.dsa_url
-        self.sdh_url = sdh_url or cfg.links.sdh_url
-        self._initial_object = obj
-        self.hand: SimulatedHand | None = None
+        self._hand: Hand | None = None
+        self._stack = AsyncExitStack()  # closes the hand (links, then a simulated hand)
         self.joints: JointLink | None = None
         self.tactile: TactileBus | None = None
         self.store: RunStore | None = None
@@ -97,7 +90,6 @@ class Station:
         self._monitor: Subscription | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._last_tactile = -math.inf
-        self._outline: Outline | None = None
         self._opening: asyncio.Task[None] | None = None
         self._latch: dict[str, str] | None = None  # the e-stop latch as on disk
         self._closed = False
@@ -106,14 +98,8 @@ class Station:
 
     async def start(self) -> None:
         cfg = self.cfg
-        if self.sim:
-            # no lab assistant: the station puts the object back itself before every run
-            self.hand = await start_simulated_hand(cfg, obj=self._initial_object, pty=False,
-                                                   tcp=True, dsa_port=0, sdh_port=0,
-                                                   replace_after_s=0.0)  # fmt: skip
-            self.dsa_url, self.sdh_url = self.hand.urls("dsa")[0], self.hand.urls("sdh")[0]
-            self._outline = Outline(self.hand.world.obj)
-        self.joints, self.tactile = await open_links(cfg, self.dsa_url, self.sdh_url)
+        self._hand = hand = await self._stack.enter_async_context(connect_hand(cfg, self.where))
+        self.joints, self.tactile = hand.joints, hand.tactile
         self.store = RunStore(cfg.storage.db_path)
         interrupted = self.store.mark_interrupted()
         if interrupted:
@@ -130,7 +116,7 @@ class Station:
             self._monitor = self.tactile.subscribe(range(6), cfg.service.monitor_rate_hz)
         self._tasks = [asyncio.create_task(self._status_loop(), name="status"),
                        asyncio.create_task(self._pose_loop(), name="pose")]  # fmt: skip
-        log.info("hand ready: dsa=%s sdh=%s sim=%s", self.dsa_url, self.sdh_url, self.sim)
+        log.info("hand ready: dsa=%s sdh=%s sim=%s", self.dsa_url, self.sdh_url, not hand.real)
 
     async def close(self) -> None:
         """Stop motion first (the run stops and releases; e-stop past the timeout), then close."""
@@ -153,15 +139,23 @@ class Station:
             await cancel(task)
         if self._monitor is not None:
             self._monitor.close()
-        for link in (self.tactile, self.joints):
-            if link is not None:
-                with contextlib.suppress(Exception):
-                    await link.close()
-        if self.hand is not None:
-            await self.hand.stop()
+        await self._stack.aclose()
         if self.store is not None:
             self.store.close()
         log.info("hand closed")
+
+    @property
+    def bench(self) -> Bench | None:
+        """The simulated hand's bench (None on a real hand, or before the hand is open)."""
+        return self._hand.bench if self._hand else None
+
+    @property
+    def dsa_url(self) -> str:
+        return self._hand.dsa_url if self._hand else ""
+
+    @property
+    def sdh_url(self) -> str:
+        return self._hand.sdh_url if self._hand else ""
 
     # --- what users ask for ---------------------------------------------------------------------
 
@@ -185,15 +179,13 @@ class Station:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
         run_params = validate_params(self.params, params) if params else self.params
-        if self.hand is not None:  # as in a lab: the object is put back in the fixture first
-            self.set_object(obj or self.hand.world.obj)
-        meta = {"sim": self.sim, "fast": False, "dsa_url": self.dsa_url, "sdh_url": self.sdh_url,
-                "service": True}  # fmt: skip
+        if self.bench is not None:  # as in a lab: the object is put back in the fixture first
+            self.set_object(obj or self.bench.obj)
+        assert self._hand is not None  # open: _links() says so
+        meta = {**self._hand.describe(), "service": True}
         self._run_params = run_params
-        self.run = RecordedRun(
-            self.cfg, joints, tactile, store, params=run_params, meta=meta, hand=self.hand,
-            on_sample=self._on_sample, on_event=self._on_event,
-        )  # fmt: skip
+        self.run = RecordedRun(self.cfg, joints, tactile, store, params=run_params, meta=meta,
+                               bench=self.bench, observer=_RunTelemetry(self))  # fmt: skip
         self._run_task = asyncio.create_task(self._execute(self.run), name="run")
         log.info("run %d started (cycles=%d)", self.run.run_id, run_params.cycles)
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
@@ -300,8 +292,7 @@ class Station:
             await cancel(task)
 
     def _hand_event(self, kind: str, detail: dict[str, Any]) -> None:
-        self.hub.publish({"type": "event", "run_id": None, "t": None, "iteration": None,
-                          "kind": kind, "detail": detail})  # fmt: skip
+        self.hub.publish(Event(None, None, None, kind, detail))
 
     @property
     def params_in_force(self) -> RollingParams:
@@ -321,16 +312,15 @@ class Station:
         return self.params_in_force
 
     def object_info(self) -> dict[str, Any]:
-        hand = self._sim_hand()
-        return {"object": hand.world.obj.model_dump(), "presets": list(PRESETS)}
+        bench = self._bench()
+        return {"object": bench.obj.model_dump(), "presets": list(PRESETS)}
 
-    def set_object(self, obj: Any) -> dict[str, Any]:
+    def set_object(self, obj: Shape) -> dict[str, Any]:
         """Place another object between the fingertips (simulation only, between runs)."""
-        hand = self._sim_hand()
+        bench = self._bench()
         if self.running:
             raise ServiceError(409, "the object cannot change during a run; stop the run first")
-        hand.world.place(obj)
-        self._outline = Outline(obj)
+        bench.place(obj)
         log.info("simulated object: %s", obj.name or obj.kind)
         self.publish_status()
         return self.object_info()
@@ -374,7 +364,7 @@ class Station:
             }  # fmt: skip
         connected = {"joints": bool(j and j.connected), "tactile": bool(t and t.connected)}
         return {
-            "sim": self.sim,
+            "sim": self.bench is not None,
             "auth_required": bool(self.cfg.service.token),
             "estopped": bool(j and j.estopped),
             "estop": self._latch,
@@ -391,12 +381,12 @@ class Station:
             "run": run,
             "last_run": self.last_run,
             "params": self.params_in_force.model_dump(),
-            "object": self.hand.world.obj.model_dump() if self.hand else None,
+            "object": self.bench.obj.model_dump() if self.bench else None,
             "telemetry": self.hub.stats(),
         }
 
     def publish_status(self) -> None:
-        self.hub.publish({"type": "status", "status": self.status()})
+        self.hub.publish(Status(self.status()))
 
     # --- internals ------------------------------------------------------------------------------
 
@@ -405,10 +395,10 @@ class Station:
             raise ServiceError(503, "the hand's links are not open yet")
         return self.joints, self.tactile, self.store
 
-    def _sim_hand(self) -> SimulatedHand:
-        if self.hand is None:
+    def _bench(self) -> Bench:
+        if self.bench is None:
             raise ServiceError(404, "not in simulation: the object is whatever the real hand holds")
-        return self.hand
+        return self.bench
 
     async def _execute(self, run: RecordedRun) -> None:
         try:
@@ -426,18 +416,6 @@ class Station:
                  summary.get("message", ""))  # fmt: skip
         self.publish_status()
 
-    def _on_sample(self, s: Sample) -> None:
-        run_id = self.run.run_id if self.run else None
-        self.hub.publish({"type": "sample", "run_id": run_id,
-                          "sample": dict(zip(Sample.columns(), s.row(), strict=True))})  # fmt: skip
-
-    def _on_event(self, t: float, iteration: int | None, kind: str, detail: dict[str, Any]) -> None:
-        run_id = self.run.run_id if self.run else None
-        self.hub.publish({"type": "event", "run_id": run_id, "t": t, "iteration": iteration,
-                          "kind": kind, "detail": detail})  # fmt: skip
-        if kind == "phase":
-            self.publish_status()
-
     def _on_frame(self, frame: TactileFrame) -> None:
         """Every delivered frame; forwarded at ≤ tactile_max_hz, and only if someone reads."""
         if frame.arrival - self._last_tactile < 1.0 / self.cfg.service.tactile_max_hz * 0.9:
@@ -445,8 +423,7 @@ class Station:
         if not self.hub.clients and not self.hub.has_listeners:
             return
         self._last_tactile = frame.arrival
-        self.hub.publish({"type": "tactile", "seq": frame.seq, "t": frame.arrival,
-                          "matrices": [m.tolist() for m in frame.matrices]})  # fmt: skip
+        self.hub.publish(Tactile(frame.seq, frame.arrival, frame.matrices))
 
     async def _status_loop(self) -> None:
         period = 1.0 / self.cfg.service.status_hz
@@ -466,24 +443,28 @@ class Station:
                 with contextlib.suppress(Exception):
                     await j.get_actual()
             if j.last_actual is not None:
-                self.hub.publish({"type": "pose", "angles_deg": list(j.last_actual)})
-            if self.hand is not None:
-                self.hub.publish({"type": "sim", "truth": self._truth()})
+                self.hub.publish(Pose(tuple(j.last_actual)))
+            if (bench := self.bench) is not None:
+                self.hub.publish(Sim(bench.truth().scene(bench.outline, _OUTLINE_POINTS)))
 
-    def _truth(self) -> dict[str, Any]:
-        assert self.hand is not None and self._outline is not None
-        t = self.hand.world.truth()
-        y, z, psi = t.pose
-        pts = self._outline.perimeter_points[:: max(1, 180 // _OUTLINE_POINTS)]
-        c, s = math.cos(psi), math.sin(psi)
-        world = np.column_stack([y + c * pts[:, 0] - s * pts[:, 1],
-                                 z + s * pts[:, 0] + c * pts[:, 1]])  # fmt: skip
-        return {
-            "object": t.object, "size_mm": t.size_mm, "held": t.held, "dropped": t.dropped,
-            "in_fixture": t.in_fixture, "pose": [y, z, psi], "slips": t.slips,
-            "outline": np.round(world, 2).tolist(),
-            "contacts": [asdict(c) for c in t.contacts],
-        }  # fmt: skip
+
+class _RunTelemetry(BaseObserver):
+    """A run's samples and events to the telemetry hub (its frames go there from the bus)."""
+
+    def __init__(self, service: HandService) -> None:
+        self.service = service
+
+    def _run_id(self) -> int | None:
+        return self.service.run.run_id if self.service.run else None
+
+    def sample(self, sample: Sample) -> None:
+        self.service.hub.publish(SampleMsg(self._run_id(), sample))
+
+    def event(self, event: RunEvent) -> None:
+        self.service.hub.publish(Event(self._run_id(), event.t, event.iteration, event.kind,
+                                       event.detail))  # fmt: skip
+        if event.kind is EventKind.PHASE:
+            self.service.publish_status()
 
 
 def _stats(t: TactileBus) -> dict[str, Any]:

@@ -22,6 +22,7 @@ import uvicorn
 from sdh2svc.bus.joint import JointLinkError
 from sdh2svc.bus.tactile import TactileError
 from sdh2svc.config import Settings
+from sdh2svc.connect import Where
 from sdh2svc.service.app import Services, close_services, create_app, open_services, viewer_host
 from sdh2svc.service.store import RunStore, StoreError
 from sdh2svc.service.viewer_proc import bind_error
@@ -137,7 +138,8 @@ class _Server(uvicorn.Server):
     """uvicorn's server whose exit signal first asks the running run to stop."""
 
     def handle_exit(self, sig: int, frame: Any) -> None:
-        services: Services | None = getattr(self.config.app.state, "services", None)
+        app: Any = self.config.app  # ours: a FastAPI app
+        services: Services | None = getattr(app.state, "services", None)
         st = services.station if services else None
         if st is not None and st.running and st.run is not None:
             st.run.runner.request_stop()  # only sets an asyncio.Event: safe in a signal handler
@@ -147,15 +149,7 @@ class _Server(uvicorn.Server):
         getattr(self, "_captured_signals", []).clear()
 
 
-async def serve(
-    cfg: Settings,
-    *,
-    sim: bool,
-    dsa_url: str | None = None,
-    sdh_url: str | None = None,
-    obj: Any = None,
-    announce_json: bool = False,
-) -> int:
+async def serve(cfg: Settings, where: Where, *, announce_json: bool = False) -> int:
     """Run the service until a signal; returns the exit status.
 
     Raises :class:`ExposureError` (refusal: configuration) or a :class:`StartError` (a port is
@@ -166,7 +160,7 @@ async def serve(
     try:
         check_viser_port(cfg)
         RunStore(cfg.storage.db_path).close()  # an unusable database fails before the hand moves
-        services = await open_services(cfg, sim=sim, dsa_url=dsa_url, sdh_url=sdh_url, obj=obj)
+        services = await open_services(cfg, where)
     except BaseException as e:
         sock.close()
         err = _start_error(e, cfg)
@@ -186,7 +180,7 @@ async def serve(
         while not server.started and not task.done():
             await asyncio.sleep(0.05)
         if server.started:
-            _announce(server, services, sim, announce_json)
+            _announce(server, services, announce_json)
         try:
             await task
         except SystemExit as e:  # uvicorn's startup failure: it has logged why
@@ -215,11 +209,12 @@ def _start_error(e: BaseException, cfg: Settings) -> StartError | None:
     return None
 
 
-def _announce(server: uvicorn.Server, services: Services, sim: bool, as_json: bool) -> None:
+def _announce(server: uvicorn.Server, services: Services, as_json: bool) -> None:
     sock = server.servers[0].sockets[0].getsockname()
     host = server.config.host
     url = f"http://{host if ':' not in host else f'[{host}]'}:{sock[1]}"
     st = services.station
+    sim = st.bench is not None
     info = {"url": url, "dashboard": f"{url}/", "docs": f"{url}/docs",
             "viewer_url": services.viewer_url, "sim": sim,
             "dsa_url": st.dsa_url, "sdh_url": st.sdh_url}  # fmt: skip

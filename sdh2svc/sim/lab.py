@@ -19,12 +19,13 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sdh2svc.config import Settings
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Device, Endpoint, PtyEndpoint, TcpEndpoint, UnixEndpoint
 from sdh2svc.sim.faults import FaultConfig
-from sdh2svc.sim.hand import ObjectSpecT, PhysicsWorld
+from sdh2svc.sim.hand import HandModel, PhysicsWorld
+from sdh2svc.sim.objects import Shape
 from sdh2svc.sim.sdh2 import Sdh2Emulator
+from sdh2svc.sim.simconfig import SimConfig
 
 log = logging.getLogger(__name__)
 
@@ -140,9 +141,10 @@ class SimulatedHand:
 
 
 async def start_simulated_hand(
-    settings: Settings,
+    model: HandModel,
+    sim: SimConfig,
     *,
-    obj: ObjectSpecT | None = None,
+    obj: Shape | None = None,
     pty: bool | None = None,
     tcp: bool = True,
     unix_dir: Path | None = None,
@@ -153,18 +155,18 @@ async def start_simulated_hand(
     """Build the world and both emulators and start their endpoints.
 
     ``unix_dir`` serves each device on a Unix socket in that folder instead of TCP and ptys (fast
-    mode). Ports default to the configuration's ``sim.links``; 0 picks free ones.
-    ``replace_after_s`` (default: config ``sim.replace_after_s``; 0: never) starts the
+    mode). Ports default to ``sim.links``; 0 picks free ones.
+    ``replace_after_s`` (default: ``sim.replace_after_s``; 0: never) starts the
     :class:`LabAssistant` on the real-time event loop; in fast mode, whose clock is virtual, it
     is off.
     """
-    links = settings.sim.links
-    world = PhysicsWorld(settings, settings.sim, obj)
-    masks = [layout.valid() for layout in (settings.tactile.proximal, settings.tactile.distal) * 3]
+    links = sim.links
+    world = PhysicsWorld(model, sim, obj)
+    masks = [layout.valid() for layout in (model.tactile.proximal, model.tactile.distal) * 3]
     dsa = DsaconEmulator(world, options=DsaconOptions(boot_s=links.dsa_boot_s), static_masks=masks)
     sdh = Sdh2Emulator(world)
     hand = SimulatedHand(world, dsa, sdh)
-    faults = FaultConfig(bit_error_rate=links.bit_error_rate, seed=settings.sim.seed)
+    faults = FaultConfig(bit_error_rate=links.bit_error_rate, seed=sim.seed)
     ports = {
         "dsa": links.dsa_tcp_port if dsa_port is None else dsa_port,
         "sdh": links.sdh_tcp_port if sdh_port is None else sdh_port,
@@ -190,7 +192,7 @@ async def start_simulated_hand(
     except BaseException:
         await hand.stop()
         raise
-    after = settings.sim.replace_after_s if replace_after_s is None else replace_after_s
+    after = sim.replace_after_s if replace_after_s is None else replace_after_s
     if after > 0 and unix_dir is None:
         assistant = LabAssistant(world, after)
         hand._assistant = asyncio.create_task(assistant.run(), name="lab-assistant")

@@ -1,0 +1,182 @@
+"""Connecting to a hand, real or simulated: the one seam between the drivers and what uses them.
+
+A real hand is two serial URLs (:class:`Real`). A simulated one (:class:`Simulated`) is an object
+and a clock: the simulated hand is started in this process and the drivers reach it through the
+same URL mechanism a real hand has (TCP; Unix sockets in fast mode, on the virtual clock). Either
+way :func:`connect_hand` yields a :class:`Hand` with both open links; in simulation only, it also
+carries a :class:`Bench` — what a lab has beside the hand: put the object back, its true outline,
+the truth. Nothing above asks "is it simulated?" again; it asks whether there is a bench.
+
+Opening and closing in order is written here once: the simulated hand, then the joint line, then
+the tactile bus; closed the other way round.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.tactile import TactileBus
+from sdh2svc.config import Settings
+from sdh2svc.sim.hand import HandModel, Truth
+from sdh2svc.sim.lab import SimulatedHand, start_simulated_hand
+from sdh2svc.sim.objects import Outline, Shape
+from sdh2svc.sim.physics import ContactTruth
+
+
+@dataclass(frozen=True, slots=True)
+class Real:
+    """A real hand: its DSACON32m (tactile) and SDH2 (joints) lines, device paths or URLs."""
+
+    dsa_url: str
+    sdh_url: str
+
+
+@dataclass(frozen=True, slots=True)
+class Simulated:
+    """A simulated hand in this process.
+
+    ``obj`` defaults to the configuration's ``sim.object``. ``fast``: Unix sockets in a
+    temporary folder, for the virtual clock (:func:`sdh2svc.sim.clock.run_fast`); else TCP on
+    ``sim.links.host`` (ports: 0 = free ones, None = the configuration's) and, with ``pty``,
+    ptys. ``replace_after_s`` > 0 starts a lab assistant that puts a let-go object back (real
+    time only); None takes ``sim.replace_after_s``.
+    """
+
+    obj: Shape | None = None
+    fast: bool = False
+    tcp: bool = True
+    pty: bool = False
+    dsa_port: int | None = 0
+    sdh_port: int | None = 0
+    replace_after_s: float | None = 0.0
+
+
+Where = Real | Simulated
+
+
+def real_hand(cfg: Settings, dsa_url: str | None = None, sdh_url: str | None = None) -> Real:
+    """The real hand at the given lines, else at the configuration's ``links``."""
+    return Real(dsa_url or cfg.links.dsa_url, sdh_url or cfg.links.sdh_url)
+
+
+def hand_model(cfg: Settings) -> HandModel:
+    """The model's sections of the configuration that the simulation copies."""
+    return HandModel(cfg.hand, cfg.axes, cfg.tactile, cfg.calibration)
+
+
+class Bench:
+    """The simulated hand's surroundings, as a lab has them: the object between the fingertips
+    (put it back, or another), its true outline, and the truth. A real hand has none."""
+
+    def __init__(self, sim: SimulatedHand) -> None:
+        self.sim = sim  # the emulators, for tests that look at the devices themselves
+
+    @property
+    def obj(self) -> Shape:
+        return self.sim.world.obj
+
+    @property
+    def outline(self) -> Outline:
+        return self.sim.world.outline
+
+    def place(
+        self, obj: Shape | None = None, *, height_mm: float | None = None,
+        angle_deg: float | None = None,
+    ) -> None:  # fmt: skip
+        """Put ``obj`` (default: the same object) between the fingertips, in the fixture."""
+        self.sim.world.place(obj or self.obj, height_mm=height_mm, angle_deg=angle_deg)
+
+    def truth(self) -> Truth:
+        """What really happens now (steps the physics up to the joints' actual pose)."""
+        return self.sim.world.truth()
+
+    def object_pose(self) -> tuple[float, float, float]:
+        """The object's pose (y, z mm; ψ rad) without stepping anything: reading it mid-run
+        leaves the run exactly as it would have been unobserved."""
+        return self.sim.world.object_pose()
+
+    def contacts_now(self) -> tuple[ContactTruth, ...]:
+        """The true contacts as last stepped; like :meth:`object_pose`, steps nothing."""
+        return self.sim.world.contacts_now()
+
+
+@dataclass(frozen=True, slots=True)
+class Hand:
+    """An open hand: both links, where they lead, and — in simulation only — the bench."""
+
+    joints: JointLink
+    tactile: TactileBus
+    dsa_url: str
+    sdh_url: str
+    bench: Bench | None
+    fast: bool = False  # simulated on the virtual clock
+
+    @property
+    def real(self) -> bool:
+        """A real hand (whose e-stop latch on disk applies), not a simulated one."""
+        return self.bench is None
+
+    def describe(self) -> dict[str, Any]:
+        """The hand as a run's record names it."""
+        return {"sim": not self.real, "fast": self.fast, "dsa_url": self.dsa_url,
+                "sdh_url": self.sdh_url}  # fmt: skip
+
+
+@contextlib.asynccontextmanager
+async def simulated_hand(cfg: Settings, spec: Simulated) -> AsyncIterator[Bench]:
+    """The simulated hand alone, served on its endpoints (``bench.sim.urls``), stopped at the
+    end: for a driver elsewhere (``sdh2svc sim``, a service in another process)."""
+    with contextlib.ExitStack() as stack:
+        unix_dir = None
+        if spec.fast:
+            unix_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="sdh2svc-")))
+        sim = await start_simulated_hand(
+            hand_model(cfg), cfg.sim, obj=spec.obj, pty=spec.pty, tcp=spec.tcp, unix_dir=unix_dir,
+            dsa_port=spec.dsa_port, sdh_port=spec.sdh_port, replace_after_s=spec.replace_after_s,
+        )  # fmt: skip
+        try:
+            yield Bench(sim)
+        finally:
+            await sim.stop()
+
+
+async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:
+    """Both of the hand's lines, the joint controller first (its limits from the config)."""
+    lim = cfg.limits
+    limits = list(zip(lim.min_deg, lim.max_deg, strict=True))
+    joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits)
+    try:
+        tactile = await TactileBus.open(dsa_url)
+    except BaseException:
+        await joints.close()
+        raise
+    return joints, tactile
+
+
+@contextlib.asynccontextmanager
+async def connect_hand(cfg: Settings, where: Where) -> AsyncIterator[Hand]:
+    """Open the hand — the simulated one first, if that — and both links; close them in order
+    (the links, then the simulated hand)."""
+    async with contextlib.AsyncExitStack() as stack:
+        bench: Bench | None = None
+        fast = isinstance(where, Simulated) and where.fast
+        if isinstance(where, Simulated):
+            bench = await stack.enter_async_context(simulated_hand(cfg, where))
+            dsa_url, sdh_url = bench.sim.urls("dsa")[0], bench.sim.urls("sdh")[0]
+        else:
+            dsa_url, sdh_url = where.dsa_url, where.sdh_url
+        joints, tactile = await open_links(cfg, dsa_url, sdh_url)
+        stack.push_async_callback(_close_quietly, joints)
+        stack.push_async_callback(_close_quietly, tactile)
+        yield Hand(joints, tactile, dsa_url, sdh_url, bench, fast)
+
+
+async def _close_quietly(link: JointLink | TactileBus) -> None:
+    with contextlib.suppress(Exception):
+        await link.close()

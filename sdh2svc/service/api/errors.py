@@ -1,0 +1,78 @@
+"""Every error as one body (a sentence a person can act on, one line per problem), the handlers
+that produce it, and the documentation of each status the routes may answer."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from sdh2svc.config import clip, error_key, error_message
+from sdh2svc.service.hand_service import ServiceError
+
+
+class ErrorBody(BaseModel):
+    """Every error: a sentence a person can act on, and one line per problem."""
+
+    error: str
+    details: list[str]
+
+
+_WHY = {
+    400: "the Host header names another site (without a token: service.allowed_hosts), or a "
+    "malformed request",
+    401: "missing or wrong bearer token (when service.token is set)",
+    403: "cross-origin request from a web page (without a token: service.allowed_origins)",
+    404: "no such run, or not in simulation",
+    409: "conflicts with the hand's state (a run is running, none is, the hand is opening, the "
+    "e-stop is latched)",
+    413: "request body larger than service.max_body_kb",
+    415: "a request that changes something must say Content-Type: application/json",
+    422: "invalid values: one line per bad field, naming the field and its allowed range",
+    503: "the hand's links are not up",
+}
+READ = (400,)  # every route: the Host rule
+WRITE = (400, 401, 403, 413, 415)  # every mutating route but POST /api/estop
+# A mutating route without a body: an empty JSON object, or nothing, with the JSON content type
+# (so that Swagger UI's "Try it out" sends the content type the guard asks for)
+EMPTY_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": False,
+        "content": {
+            "application/json": {
+                "schema": {"type": "object", "properties": {}, "additionalProperties": False}
+            }
+        },
+    }
+}
+
+
+def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """The OpenAPI ``responses`` of a route that may answer ``codes``."""
+    return {c: {"model": ErrorBody, "description": _WHY[c]} for c in sorted(set(codes))}
+
+
+def error(status: int, message: str, details: list[str] | None = None) -> JSONResponse:
+    # the last guard against echoing a long value back (the handlers clip what they quote)
+    body = {"error": clip(message, 400), "details": [clip(d, 400) for d in details or []][:50]}
+    return JSONResponse(body, status_code=status)
+
+
+def install_errors(app: FastAPI) -> None:
+    @app.exception_handler(ServiceError)
+    async def _service_error(_: Request, e: ServiceError) -> JSONResponse:
+        return error(e.status, e.message, e.details)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_: Request, e: RequestValidationError) -> JSONResponse:
+        # never the input itself: only its place and a message, each clipped
+        lines = [f"{error_key(err['loc'])}: {error_message(err)}" for err in e.errors()]
+        return error(422, "invalid request", lines)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, e: StarletteHTTPException) -> JSONResponse:
+        return error(e.status_code, str(e.detail))

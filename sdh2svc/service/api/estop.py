@@ -1,0 +1,24 @@
+"""The e-stop: latching it (no token, no Origin or content-type rule: stopping always works,
+sdh2svc.service.guard) and releasing it (with the token)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter
+
+from sdh2svc.service.api.deps import Auth, St
+from sdh2svc.service.api.errors import EMPTY_BODY, WRITE, responses
+
+router = APIRouter()
+
+
+@router.post("/api/estop", responses=responses(400, 413, 503), openapi_extra=EMPTY_BODY)
+async def estop(st: St) -> dict[str, Any]:
+    return await st.estop()
+
+
+@router.post("/api/estop/release", dependencies=[Auth], responses=responses(*WRITE, 503),
+             openapi_extra=EMPTY_BODY)  # fmt: skip
+async def release(st: St) -> dict[str, Any]:
+    return await st.release_estop()

@@ -1,0 +1,37 @@
+"""The rolling parameters (in force, their schema, a patch) and the effective configuration."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body
+
+from sdh2svc.control.params import RollingParams
+from sdh2svc.service.api.deps import Auth, Cfg, St
+from sdh2svc.service.api.errors import READ, WRITE, responses
+
+router = APIRouter()
+
+
+@router.get("/api/params", responses=responses(*READ))
+async def get_params(st: St) -> dict[str, Any]:
+    return st.params_in_force.model_dump()
+
+
+@router.get("/api/params/schema", responses=responses(*READ))
+def params_schema() -> dict[str, Any]:
+    return RollingParams.model_json_schema()
+
+
+@router.patch("/api/params", dependencies=[Auth], responses=responses(*WRITE, 422))
+async def patch_params(st: St, patch: Annotated[dict[str, Any], Body()]) -> dict[str, Any]:
+    return st.patch_params(patch).model_dump()
+
+
+@router.get("/api/config", responses=responses(*READ))
+async def config(cfg: Cfg) -> dict[str, Any]:
+    """The effective configuration (hand geometry, axis and matrix maps, limits, safety),
+    without the token."""
+    data = cfg.model_dump(mode="json")
+    data["service"]["token"] = "***" if cfg.service.token else ""
+    return data

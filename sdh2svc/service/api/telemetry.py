@@ -1,0 +1,60 @@
+"""Telemetry's ways out: the WebSocket (``/ws/telemetry``) and where the 3-D view is served."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
+
+from sdh2svc.service.api.deps import Svc
+from sdh2svc.service.api.errors import READ, responses
+from sdh2svc.service.hub import Client
+from sdh2svc.service.telemetry import Hello, encode
+
+router = APIRouter()
+
+
+@router.get("/api/viewer", responses=responses(*READ))
+async def viewer(request: Request, svc: Svc) -> dict[str, Any]:
+    url = svc.viewer_url
+    if url is not None and svc.cfg.service.host in ("0.0.0.0", "::"):
+        # bound to every interface: reachable at whatever host the caller used
+        port = url.rsplit(":", 1)[1]
+        url = f"{request.url.scheme}://{request.url.hostname}:{port}"
+    return {"url": url}
+
+
+@router.websocket("/ws/telemetry")
+async def telemetry(
+    ws: WebSocket,
+    svc: Svc,
+    decimate: Annotated[int, Query(ge=1, le=1000)] = 1,
+    tactile: Annotated[int, Query(ge=0, le=1)] = 1,
+    max_queue: Annotated[int, Query(ge=1, le=100_000)] = 0,
+) -> None:
+    await ws.accept()
+    client = Client(max_queue=max_queue or svc.cfg.service.telemetry_queue,
+                    decimate=decimate, tactile=bool(tactile))  # fmt: skip
+    client.put(encode(Hello(svc.station.status())))
+    sender = asyncio.create_task(svc.hub.serve(client, ws.send_text))
+    receiver = asyncio.create_task(_drain(ws))
+    try:
+        await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in (sender, receiver):
+            task.cancel()
+            with contextlib.suppress(BaseException):
+                await task
+        with contextlib.suppress(Exception):
+            await ws.close()
+
+
+async def _drain(ws: WebSocket) -> None:
+    """Read (and ignore) what the client sends, to notice when it goes away."""
+    with contextlib.suppress(WebSocketDisconnect):
+        while True:
+            msg = await ws.receive()
+            if msg["type"] == "websocket.disconnect":
+                return

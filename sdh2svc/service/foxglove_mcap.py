@@ -1,0 +1,384 @@
+"""A recorded run as a Foxglove-native MCAP file: what each channel carries and how it is built.
+
+Channels (log times: the run's start plus each record's own time ``t``):
+
+* ``/samples`` — one JSON message per iteration; its JSON schema is generated from
+  :class:`~sdh2svc.control.sample.Sample`'s fields, with units in the descriptions.
+* ``/tf`` — ``foxglove.FrameTransforms`` of the URDF's joints from each sample's φ2…φ5 (φ1 and the
+  thumb at the run's pre-shape, where a run holds them).
+* ``/contacts`` — ``foxglove.SceneUpdate`` in ``frame0``: contact points A, B, the segment AB and
+  the friction cones of half-angle α about each pad's normal.
+* ``/tactile/<finger>_<proximal|distal>`` — each pad as ``foxglove.Grid`` (raw counts, uint16) in
+  its URDF frame, cells of the texel pitch.
+* ``/events`` — ``foxglove.Log``, one per run event.
+
+Metadata records ``run``, ``parameters``, ``object`` and ``configuration``; the URDF attached as
+``sdh2.urdf``. The Foxglove messages are the SDK's (``foxglove-sdk``: the official protobuf
+schemas and encoders); the file is written with ``mcap``'s writer (any binary stream will do).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import types
+import typing
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, fields
+from typing import IO, Any
+
+import numpy as np
+from foxglove import messages as fm
+from mcap.writer import Writer
+
+from sdh2svc.config import Settings
+from sdh2svc.control.sample import Sample
+from sdh2svc.model.geometry import pad_slope
+from sdh2svc.model.urdf import (
+    FINGERS,
+    PADS,
+    HandDescription,
+    describe,
+    joint_transforms,
+    pad_matrix,
+    to_xml,
+)
+
+Json = dict[str, Any]
+_MM = 1e-3
+
+#: What each Sample field is, with its unit (hand-model.md's names); one entry per field.
+SAMPLE_FIELDS: Mapping[str, str] = {
+    "iteration": "iteration number of the rolling loop (count)",
+    "t": "time since the run started, s",
+    "phi2": "Finger 1 proximal joint angle φ2, actual, deg",
+    "phi3": "Finger 1 distal joint angle φ3, actual, deg",
+    "phi4": "Finger 2 proximal joint angle φ4, actual, deg",
+    "phi5": "Finger 2 distal joint angle φ5, actual, deg",
+    "phi2_d": "φ2 target commanded this iteration, deg",
+    "phi3_d": "φ3 target commanded this iteration, deg",
+    "phi4_d": "φ4 target commanded this iteration, deg",
+    "phi5_d": "φ5 target commanded this iteration, deg",
+    "S1": "contact height on Finger 1's distal pad (tactile centroid), mm",
+    "S2": "contact height on Finger 2's distal pad (tactile centroid), mm",
+    "F1": "contact force on Finger 1's distal pad, library force units",
+    "F2": "contact force on Finger 2's distal pad, library force units",
+    "F": "mean contact force (F1 + F2)/2, library force units",
+    "dF": "change of F since the previous iteration, library force units",
+    "Lambda": "distance Λ = |AB| between the contact points, mm",
+    "Lambda_ad": "held distance Λad planned for the next step, mm",
+    "sigma": "inclination σ of AB in the y0z0 plane, deg",
+    "sigma_d": "desired inclination σd of the next step, deg",
+    "omega_A": "angle ωA between AB and Finger 1's pad tangent at A, deg",
+    "omega_B": "angle ωB between BA and Finger 2's pad tangent at B, deg",
+    "Ay": "contact point A on Finger 1, y0, mm",
+    "Az": "contact point A on Finger 1, z0, mm",
+    "By": "contact point B on Finger 2, y0, mm",
+    "Bz": "contact point B on Finger 2, z0, mm",
+    "Cy": "Finger 1's distal joint C, y0, mm",
+    "Cz": "Finger 1's distal joint C, z0, mm",
+    "Dy": "Finger 2's distal joint D, y0, mm",
+    "Dz": "Finger 2's distal joint D, z0, mm",
+    "direction": "rotation direction of Finger 2's step, sign of Δφ (+1 | -1)",
+    "stroke": "back-and-forth strokes completed (count)",
+    "half_strokes": "direction reversals so far (count)",
+    "reversal": "why the direction reversed this iteration (null: it did not)",
+    "frame_age_ms": "age of the tactile frame when the iteration used it, ms",
+    "latency_ms": "time from the frame's arrival to the command, ms",
+}
+
+_JSON_TYPES = {int: "integer", float: "number", str: "string", bool: "boolean"}
+
+
+def sample_schema() -> Json:
+    """The JSON schema of ``/samples``, from :class:`Sample`'s fields and their types."""
+    hints = typing.get_type_hints(Sample)
+    props: Json = {}
+    for f in fields(Sample):
+        tp = hints[f.name]
+        args = typing.get_args(tp) if isinstance(tp, types.UnionType) else (tp,)
+        kinds = [_JSON_TYPES[a] if a is not type(None) else "null" for a in args]
+        props[f.name] = {
+            "type": kinds[0] if len(kinds) == 1 else kinds,
+            "description": SAMPLE_FIELDS[f.name],
+        }
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "sdh2svc.Sample",
+        "description": "One rolling iteration (control/sample.py); frame 0 as in hand-model.md §2",
+        "type": "object",
+        "properties": props,
+        "required": [f.name for f in fields(Sample)],
+        "additionalProperties": False,
+    }
+
+
+def _finite(v: Any) -> Any:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _ts(ns: int) -> fm.Timestamp:
+    return fm.Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _v3(x: float, y: float, z: float) -> fm.Vector3:
+    return fm.Vector3(x=x, y=y, z=z)
+
+
+def _rgba(r: float, g: float, b: float, a: float) -> fm.Color:
+    return fm.Color(r=r, g=g, b=b, a=a)
+
+
+@dataclass(frozen=True, slots=True)
+class HandFrames:
+    """What a run's recording needs of the configuration, gathered once."""
+
+    cfg: Settings
+    desc: HandDescription
+    held: Mapping[str, float]  # the joints a sample does not carry (φ1, thumb), rad
+
+    @classmethod
+    def of(cls, cfg: Settings) -> HandFrames:
+        desc = describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
+        pre = cfg.run.preshape_deg
+        ax = cfg.axes
+        held = {
+            "phi1": pre[ax.phi1],
+            "thumb_proximal": pre[ax.thumb_proximal],
+            "thumb_distal": pre[ax.thumb_distal],
+        }
+        return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()})
+
+    def transforms(self, s: Mapping[str, Any], ns: int) -> fm.FrameTransforms:
+        angles = {**self.held, **{k: math.radians(s[k]) for k in ("phi2", "phi3", "phi4", "phi5")}}
+        ts = _ts(ns)
+        return fm.FrameTransforms(
+            transforms=[
+                fm.FrameTransform(
+                    timestamp=ts,
+                    parent_frame_id=t.parent,
+                    child_frame_id=t.child,
+                    translation=_v3(*t.translation),
+                    rotation=fm.Quaternion(
+                        x=t.rotation[0], y=t.rotation[1], z=t.rotation[2], w=t.rotation[3]
+                    ),
+                )
+                for t in joint_transforms(self.desc, angles)
+            ]
+        )
+
+    def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneUpdate:
+        """A, B, the segment AB and the friction cones, in frame 0 (metres)."""
+        spheres, lines, cones = [], [], []
+        pts = {}
+        for name, finger, (py, pz), (cy, cz), psi in (
+            ("A", 1, ("Ay", "Az"), ("Cy", "Cz"), ("phi2", "phi3")),
+            ("B", 2, ("By", "Bz"), ("Dy", "Dz"), ("phi4", "phi5")),
+        ):
+            if s[py] is None or s[cy] is None:
+                continue
+            p = np.array([0.0, s[py], s[pz]]) * _MM
+            pts[name] = p
+            n = self._normal(
+                finger, (s[py] - s[cy], s[pz] - s[cz]), math.radians(s[psi[0]] + s[psi[1]])
+            )
+            d = 6.0 * _MM  # the contact marker's diameter
+            spheres.append(
+                fm.SpherePrimitive(
+                    pose=_pose(p), size=_v3(d, d, d), color=_rgba(0.9, 0.2, 0.2, 1.0)
+                )
+            )
+            cones.append(_cone(p, n, alpha, 25.0 * _MM))
+        if len(pts) == 2:
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineStrip,
+                    thickness=1.0 * _MM,
+                    points=[
+                        fm.Point3(x=float(q[0]), y=float(q[1]), z=float(q[2]))
+                        for q in (pts["A"], pts["B"])
+                    ],
+                    color=_rgba(1.0, 0.8, 0.1, 1.0),
+                )
+            )
+        entity = fm.SceneEntity(
+            timestamp=_ts(ns),
+            frame_id="frame0",
+            id="contacts",
+            spheres=spheres,
+            lines=lines,
+            cylinders=cones,
+        )
+        return fm.SceneUpdate(entities=[entity])
+
+    def _normal(self, finger: int, ca: tuple[float, float], psi: float) -> np.ndarray:
+        """The pad's outward normal (frame 0: x, y, z) at the contact C→A = ``ca`` (mm)."""
+        s, c = math.sin(psi), math.cos(psi)
+        ex, ey = ((s, c), (c, -s)) if finger == 1 else ((-s, c), (-c, -s))
+        x3 = ca[0] * ex[0] + ca[1] * ex[1]
+        k = pad_slope(x3, self.cfg.hand.pad)
+        ny, nz = -k * ex[0] + ey[0], -k * ex[1] + ey[1]
+        norm = math.hypot(ny, nz)
+        return np.array([0.0, ny / norm, nz / norm])
+
+    def grids(self, texels: np.ndarray, ns: int) -> dict[str, fm.Grid]:
+        """Each pad's matrix of one frame as a Grid in its URDF frame, keyed by pad name."""
+        tac, ax = self.cfg.tactile, self.cfg.axes
+        by_index = {pad_matrix(ax, f, p): (f, p) for f in FINGERS for p in PADS}
+        pitch = tac.texel_pitch_mm * _MM
+        out, start = {}, 0
+        counts = np.ascontiguousarray(texels, dtype="<u2")
+        for m in range(len(by_index)):
+            finger, part = by_index[m]
+            lay = tac.proximal if part == "proximal" else tac.distal
+            cells = counts[start : start + lay.rows * lay.cols]
+            start += lay.rows * lay.cols
+            out[f"{finger}_{part}"] = fm.Grid(
+                timestamp=_ts(ns),
+                frame_id=f"{finger}_{part}_pad",
+                column_count=lay.cols,
+                cell_size=fm.Vector2(x=pitch, y=pitch),
+                row_stride=2 * lay.cols,
+                cell_stride=2,
+                fields=[
+                    fm.PackedElementField(
+                        name="counts", offset=0, type=fm.PackedElementFieldNumericType.Uint16
+                    )
+                ],
+                data=cells.tobytes(),
+            )
+        return out
+
+
+def _pose(p: np.ndarray, q: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)) -> fm.Pose:
+    return fm.Pose(
+        position=_v3(float(p[0]), float(p[1]), float(p[2])),
+        orientation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+
+
+def _cone(apex: np.ndarray, n: np.ndarray, alpha: float, height: float) -> fm.CylinderPrimitive:
+    """A friction cone: apex at the contact, axis along the pad's normal n (in the yz plane)."""
+    a = math.atan2(-n[1], n[2])  # Rx(a) turns z onto n
+    q = (math.sin(a / 2), 0.0, 0.0, math.cos(a / 2))
+    d = 2.0 * height * math.tan(alpha)
+    return fm.CylinderPrimitive(
+        pose=_pose(apex + n * height / 2, q),
+        size=_v3(d, d, height),
+        bottom_scale=0.0,
+        top_scale=1.0,
+        color=_rgba(0.2, 0.6, 1.0, 0.25),
+    )
+
+
+_LEVELS = {"fault": fm.LogLevel.Error, "estop": fm.LogLevel.Error, "reversal": fm.LogLevel.Info}
+
+
+def log_message(e: Mapping[str, Any], ns: int) -> fm.Log:
+    """A run event as a Log line: its kind as the name, the detail as the text."""
+    detail = json.dumps(e["detail"], ensure_ascii=False, sort_keys=True)
+    it = e["iteration"]
+    text = f"{e['kind']}{'' if it is None else f' at iteration {it}'}: {detail}"
+    return fm.Log(
+        timestamp=_ts(ns),
+        level=_LEVELS.get(e["kind"], fm.LogLevel.Info),
+        message=text,
+        name=e["kind"],
+    )
+
+
+def _strings(d: Any, key: str = "value") -> dict[str, str]:
+    """A metadata record's values: strings as they are, anything else as JSON (a value that is
+    not a mapping becomes one entry, ``key``)."""
+    items = d.items() if isinstance(d, Mapping) else [(key, d)]
+    return {k: v if isinstance(v, str) else json.dumps(v) for k, v in items}
+
+
+Frame = tuple[float, int | None, int, np.ndarray]
+
+
+def write_mcap(
+    out: IO[bytes],
+    cfg: Settings,
+    run: Mapping[str, Any],
+    t0_ns: int,
+    samples: Iterable[Mapping[str, Any]],
+    events: Iterable[Mapping[str, Any]],
+    frames: Iterable[Frame],
+) -> int:
+    """Write one run (its row, samples, events, frames) to ``out``; returns the message count."""
+    hand = HandFrames.of(cfg)
+    meta = run.get("meta") or {}
+    alpha = math.radians((meta.get("params") or {}).get("alpha_deg", cfg.rolling.alpha_deg))
+    w = Writer(out)
+    w.start(profile="", library="sdh2svc")
+
+    def channel(topic: str, name: str, encoding: str, data: bytes, msg_enc: str) -> int:
+        sid = w.register_schema(name=name, encoding=encoding, data=data)
+        return w.register_channel(topic=topic, message_encoding=msg_enc, schema_id=sid)
+
+    def typed(topic: str, msg: type[Any]) -> int:
+        s = msg.get_schema()
+        return channel(topic, s.name, s.encoding, s.data, s.encoding)
+
+    ch_samples = channel(
+        "/samples", "sdh2svc.Sample", "jsonschema", json.dumps(sample_schema()).encode(), "json"
+    )
+    ch_tf, ch_scene = typed("/tf", fm.FrameTransforms), typed("/contacts", fm.SceneUpdate)
+    ch_log = typed("/events", fm.Log)
+    ch_pads = {f"{f}_{p}": typed(f"/tactile/{f}_{p}", fm.Grid) for f in FINGERS for p in PADS}
+    n = 0
+
+    def put(ch: int, ns: int, data: bytes) -> None:
+        nonlocal n
+        w.add_message(ch, log_time=ns, publish_time=ns, data=data, sequence=n)
+        n += 1
+
+    for s in samples:
+        ns = t0_ns + round(s["t"] * 1e9)
+        row = {k: _finite(s[k]) for k in SAMPLE_FIELDS}
+        put(ch_samples, ns, json.dumps(row, allow_nan=False).encode())
+        put(ch_tf, ns, hand.transforms(s, ns).encode())
+        put(ch_scene, ns, hand.contacts(s, ns, alpha).encode())
+    for e in events:
+        ns = t0_ns + round(e["t"] * 1e9)
+        put(ch_log, ns, log_message(e, ns).encode())
+    for t, _it, _stamp, texels in frames:
+        ns = t0_ns + round(t * 1e9)
+        for pad, grid in hand.grids(texels, ns).items():
+            put(ch_pads[pad], ns, grid.encode())
+    _write_records(w, cfg, run, hand.desc, t0_ns)
+    w.finish()  # type: ignore[no-untyped-call]
+    return n
+
+
+def _write_records(
+    w: Writer, cfg: Settings, run: Mapping[str, Any], desc: HandDescription, t0_ns: int
+) -> None:
+    meta = run.get("meta") or {}
+    rest = {k: v for k, v in meta.items() if k not in ("params", "object")}
+    info = {k: run.get(k) for k in ("id", "started_at", "ended_at", "status", "summary")}
+    w.add_metadata("run", _strings(info))
+    w.add_metadata("parameters", _strings(meta.get("params")))
+    w.add_metadata("object", _strings(meta.get("object") or "none (a real hand)", "name"))
+    sections = {k: getattr(cfg, k).model_dump(mode="json") for k in _CONFIG_SECTIONS}
+    w.add_metadata("configuration", _strings({**rest, **sections}))
+    w.add_attachment(
+        create_time=t0_ns,
+        log_time=t0_ns,
+        name="sdh2.urdf",
+        media_type="application/xml",
+        data=to_xml(desc).encode(),
+    )
+
+
+#: The configuration's sections a recording states (the hand, its wiring and the run's model).
+_CONFIG_SECTIONS: Sequence[str] = (
+    "hand",
+    "axes",
+    "limits",
+    "tactile",
+    "calibration",
+    "run",
+    "safety",
+)

@@ -1,0 +1,105 @@
+"""Recording a run on an open hand: the runner, its recorder and its summary, in one place.
+
+Used by ``sdh2svc run`` (:mod:`sdh2svc.service.headless`) and by the service
+(:mod:`sdh2svc.service.hand_service`): both create the run's database row, record every sample,
+event and frame, and finish the row with the summary. On a simulated hand (a bench), the summary
+also holds the simulation's truth as the run let go.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Any
+
+from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.tactile import TactileBus, TactileFrame
+from sdh2svc.config import Settings
+from sdh2svc.connect import Bench
+from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
+from sdh2svc.control.params import RollingParams
+from sdh2svc.control.runner import Runner
+from sdh2svc.control.sample import Sample
+from sdh2svc.service.store import Recorder, RunStore
+
+
+class RecordedRun:
+    """A :class:`Runner` whose samples, events and frames go to the database, then to
+    ``observer`` (the service's telemetry, a campaign's truth probe)."""
+
+    def __init__(
+        self,
+        cfg: Settings,
+        joints: JointLink,
+        tactile: TactileBus,
+        store: RunStore,
+        *,
+        params: RollingParams | None = None,
+        meta: dict[str, Any] | None = None,
+        bench: Bench | None = None,
+        observer: RunObserver | None = None,
+    ) -> None:
+        self.cfg, self.tactile, self.store, self.bench = cfg, tactile, store, bench
+        params = params or cfg.rolling
+        full_meta = {
+            "params": params.model_dump(),
+            "object": bench.obj.model_dump() if bench else None,
+            **(meta or {}),
+        }
+        self.run_id = store.create_run(full_meta)
+        self._rec = Recorder(store.path, self.run_id)
+        self._truth: dict[str, Any] = {}
+        self._iteration: int | None = None  # the last sample's: its frame is recorded next
+        self._observer: RunObserver = observer or BaseObserver()
+        self.runner = Runner(cfg.control(), joints, tactile, params=params, observer=self)
+        self.summary: dict[str, Any] | None = None
+
+    # --- control.observer.RunObserver: the runner reports here ---
+
+    def sample(self, s: Sample) -> None:
+        self._iteration = s.iteration  # the runner hands over an iteration's frame after it
+        self._rec.sample(s)
+        self._observer.sample(s)
+
+    def event(self, e: Event) -> None:
+        self._rec.event(e.t, e.iteration, e.kind, e.detail)
+        # the simulation's truth as the run ends, before the fingers let go
+        if (
+            self.bench is not None
+            and e.kind is EventKind.PHASE
+            and e.detail["phase"] == "releasing"
+        ):
+            self._truth.update(self.bench.truth().summary())
+        self._observer.event(e)
+
+    def frame(self, t: float, frame: TactileFrame) -> None:
+        self._rec.frame(t, self._iteration, frame.timestamp_ms, frame.texels)
+        self._observer.frame(t, frame)
+
+    async def execute(self) -> dict[str, Any]:
+        """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
+        try:
+            result = await self.runner.run()
+        except asyncio.CancelledError:
+            result = self.runner.result
+            if result.status == "running":
+                result.status, result.message = "stopped", "cancelled"
+            self.summary = self._finish(result.summary())
+            raise
+        finally:
+            with contextlib.suppress(Exception):
+                self._rec.close()
+        self.summary = self._finish(result.summary())
+        return self.summary
+
+    def _finish(self, summary: dict[str, Any]) -> dict[str, Any]:
+        st = self.tactile.stats
+        summary["frames"] = {"received": st.frames, "crc_errors": st.crc_errors,
+                             "resyncs": st.resyncs, "frames_per_s": st.frames_per_s}  # fmt: skip
+        summary["run_id"] = self.run_id
+        if self.bench is not None:
+            summary["truth"] = self._truth or self.bench.truth().summary()
+            if summary["truth"]["dropped"] and summary["status"] == "completed":
+                summary["status"] = "dropped"
+        self.store.finish_run(self.run_id, summary["status"], summary)
+        return summary

@@ -1,0 +1,251 @@
+"""The telemetry messages (docs/api.md, "WebSocket"): one typed value per message type, and its
+one JSON form.
+
+The service publishes these values to the hub as they are, so the control loop's path builds no
+dict and converts no matrix: the JSON form is made once, at delivery (:func:`encode`), for the
+WebSocket clients; the 3-D view takes the values themselves, and its process gets them pickled
+(a tactile frame's matrices as arrays: bytes and shape, never lists).
+
+What the view draws of a sample — the contact points A, B with their pad normals and ω — is
+:class:`SampleView`, made here once per forwarded sample (:func:`sample_view`), so the view
+draws the contacts as given and never works out a pad's geometry itself.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from enum import StrEnum
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from sdh2svc.control.sample import Sample
+from sdh2svc.model.friction import pad_tangent
+from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
+
+
+class Kind(StrEnum):
+    """A message's ``type``."""
+
+    HELLO = "hello"
+    STATUS = "status"
+    SAMPLE = "sample"
+    EVENT = "event"
+    TACTILE = "tactile"
+    POSE = "pose"
+    SIM = "sim"
+    DROPPED = "dropped"
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """The first message on a connection: the status at that moment."""
+
+    status: dict[str, Any]
+    type: ClassVar[Kind] = Kind.HELLO
+
+    def json(self) -> dict[str, Any]:
+        return {"type": "hello", "status": self.status}
+
+
+@dataclass(frozen=True, slots=True)
+class Status:
+    """The service's status (``GET /api/status``), periodically and on every change."""
+
+    status: dict[str, Any]
+    type: ClassVar[Kind] = Kind.STATUS
+
+    def json(self) -> dict[str, Any]:
+        return {"type": "status", "status": self.status}
+
+
+@dataclass(frozen=True, slots=True)
+class SampleMsg:
+    """One rolling iteration's :class:`Sample` of run ``run_id``; ``view``, when made, is what
+    the 3-D view draws of it (not in the JSON form)."""
+
+    run_id: int | None
+    sample: Sample
+    view: SampleView | None = None
+    type: ClassVar[Kind] = Kind.SAMPLE
+
+    def with_view(self, geom: HandGeometry) -> SampleMsg:
+        return self if self.view is not None else replace(self, view=sample_view(self.sample, geom))
+
+    def json(self) -> dict[str, Any]:
+        s = self.sample
+        fields = dict(zip(s.columns(), s.row(), strict=True))
+        return {"type": "sample", "run_id": self.run_id, "sample": fields}
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    """A run's event (``run_id`` None: the hand's own, e.g. opening it, an e-stop)."""
+
+    run_id: int | None
+    t: float | None
+    iteration: int | None
+    kind: str  # a str enum's value serialises as itself
+    detail: dict[str, Any]
+    type: ClassVar[Kind] = Kind.EVENT
+
+    def json(self) -> dict[str, Any]:
+        return {"type": "event", "run_id": self.run_id, "t": self.t,
+                "iteration": self.iteration, "kind": self.kind, "detail": self.detail}  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class Tactile:
+    """A tactile frame: the six matrices of raw counts, as arrays (lists only in JSON)."""
+
+    seq: int
+    t: float
+    matrices: tuple[npt.NDArray[Any], ...]
+    type: ClassVar[Kind] = Kind.TACTILE
+
+    def json(self) -> dict[str, Any]:
+        mats = [m.tolist() for m in self.matrices]
+        return {"type": "tactile", "seq": self.seq, "t": self.t, "matrices": mats}
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """The hand's actual angles, degrees, one per wire axis."""
+
+    angles_deg: tuple[float, ...]
+    type: ClassVar[Kind] = Kind.POSE
+
+    def json(self) -> dict[str, Any]:
+        return {"type": "pose", "angles_deg": list(self.angles_deg)}
+
+
+@dataclass(frozen=True, slots=True)
+class Sim:
+    """The simulation's truth (object, pose, outline, contacts; docs/api.md)."""
+
+    truth: dict[str, Any]
+    type: ClassVar[Kind] = Kind.SIM
+
+    def json(self) -> dict[str, Any]:
+        return {"type": "sim", "truth": self.truth}
+
+
+@dataclass(frozen=True, slots=True)
+class Dropped:
+    """To one client: how many of its messages were dropped so far (it reads too slowly)."""
+
+    count: int
+    type: ClassVar[Kind] = Kind.DROPPED
+
+    def json(self) -> dict[str, Any]:
+        return {"type": "dropped", "count": self.count}
+
+
+Message = Hello | Status | SampleMsg | Event | Tactile | Pose | Sim | Dropped
+# A message, or (from code not yet publishing typed values) its JSON form as a dict.
+AnyMessage = Message | dict[str, Any]
+
+
+def kind_of(msg: AnyMessage) -> str:
+    return str(msg.get("type")) if isinstance(msg, dict) else msg.type
+
+
+def to_json(msg: AnyMessage) -> dict[str, Any]:
+    return msg if isinstance(msg, dict) else msg.json()
+
+
+def clean_json(obj: Any) -> Any:
+    """JSON has no NaN or infinity: send null (the dashboard treats it as a gap)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: clean_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [clean_json(v) for v in obj]
+    return obj
+
+
+def encode(msg: AnyMessage) -> str:
+    """The one JSON text of a message (compact; NaN and infinity as null)."""
+    data = to_json(msg)
+    try:
+        return json.dumps(data, allow_nan=False, separators=(",", ":"))
+    except ValueError:
+        return json.dumps(clean_json(data), allow_nan=False, separators=(",", ":"))
+
+
+# --- what the 3-D view draws -----------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Contact:
+    """A contact point (frame 0, mm), the outward pad normal there (unit; None without the
+    finger's angles) and ω (degrees from the pad tangent; None when unknown)."""
+
+    at: Point
+    normal: Point | None
+    omega_deg: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class SampleView:
+    """A sample as the 3-D view draws it: φ2…φ5 (degrees; None: not in the sample) and the
+    contacts A (Finger 1) and B (Finger 2)."""
+
+    phi_deg: tuple[float | None, float | None, float | None, float | None]
+    A: Contact | None
+    B: Contact | None
+
+
+def contact_normal(
+    finger: Finger, proximal: float, distal: float, at: Point, geom: HandGeometry
+) -> Point:
+    """Unit outward pad normal (frame 0) at the contact point ``at`` of a coupled finger (rad):
+    the contact's x3 follows from its position along frame 3, the tangent from the pad profile."""
+    C = distal_joint(finger, proximal, geom)
+    ex, ey = frame3_axes(finger, proximal + distal)
+    x3 = (at.y - C.y) * ex.y + (at.z - C.z) * ex.z
+    t = pad_tangent(finger, proximal + distal, x3, geom.pad)
+    n = Point(t.z, -t.y)
+    return n if n.y * ey.y + n.z * ey.z >= 0.0 else Point(-n.y, -n.z)
+
+
+def _num(s: Sample | Mapping[str, Any], key: str) -> float | None:
+    v = getattr(s, key, None) if isinstance(s, Sample) else s.get(key)
+    return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
+
+
+def _contact(
+    s: Sample | Mapping[str, Any], finger: Finger, names: tuple[str, str, str, str, str],
+    geom: HandGeometry,
+) -> Contact | None:  # fmt: skip
+    y, z, prox, dist, w = (_num(s, n) for n in names)
+    if y is None or z is None:
+        return None
+    at = Point(y, z)
+    normal = None
+    if prox is not None and dist is not None:
+        normal = contact_normal(finger, math.radians(prox), math.radians(dist), at, geom)
+    return Contact(at, normal, w)
+
+
+def sample_view(s: Sample | Mapping[str, Any], geom: HandGeometry) -> SampleView:
+    """What the view draws of ``s`` (a :class:`Sample` or its JSON form; a missing or
+    non-finite field is None)."""
+    phis = (_num(s, "phi2"), _num(s, "phi3"), _num(s, "phi4"), _num(s, "phi5"))
+    A = _contact(s, Finger.ONE, ("Ay", "Az", "phi2", "phi3", "omega_A"), geom)
+    B = _contact(s, Finger.TWO, ("By", "Bz", "phi4", "phi5", "omega_B"), geom)
+    return SampleView(phis, A, B)
+
+
+def as_array(matrix: Any) -> npt.NDArray[np.float64]:
+    """A tactile matrix (array, or nested lists from JSON) as a 2-D float array (ValueError
+    when it is not one)."""
+    a = np.asarray(matrix, dtype=float)
+    if a.ndim != 2:
+        raise ValueError(f"a tactile matrix has 2 dimensions, not {a.ndim}")
+    return a

@@ -1,0 +1,115 @@
+"""The supervisor's decisions (control.safety), each on both sides of its boundary."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from sdh2svc.config import Settings
+from sdh2svc.control import safety
+from sdh2svc.control.rolling import Reversal, RollState, StepResult, step
+from sdh2svc.control.safety import Fault, Violation
+from tests.control.test_rolling import MIRROR, frame, params
+
+
+def fault(v: Violation | None) -> Fault | None:
+    return None if v is None else v.fault
+
+
+def test_frame_age_allows_up_to_the_limit_and_faults_beyond_or_without_a_frame(
+    cfg: Settings,
+) -> None:
+    s = cfg.safety  # 300 ms
+    assert safety.stale_s(s) == 0.3
+    assert safety.frame_age(0.0, s) is None
+    assert safety.frame_age(0.3, s) is None
+    v = safety.frame_age(0.301, s)
+    assert v == Violation(Fault.STALE_SENSOR, "tactile frame 301 ms old")
+    assert safety.frame_age(None, s) == Violation(Fault.STALE_SENSOR, "no tactile frame for 300 ms")
+
+
+def test_joint_age_allows_up_to_the_limit_and_faults_beyond_or_without_a_reading(
+    cfg: Settings,
+) -> None:
+    s = cfg.safety
+    limit = s.stale_joint_ms / 1000
+    assert safety.joint_age(0.0, s) is None
+    assert safety.joint_age(limit, s) is None
+    v = safety.joint_age(limit + 0.001, s)
+    assert v is not None and v.fault is Fault.JOINT_ERROR
+    assert f"{s.stale_joint_ms + 1:.0f} ms old" in v.message
+    v = safety.joint_age(None, s)
+    assert v is not None and v.fault is Fault.JOINT_ERROR and "no reading" in v.message
+
+
+def test_force_ceiling_is_the_factor_times_fd(cfg: Settings) -> None:
+    s = cfg.safety  # 3 × Fd
+    assert safety.force_ceiling(6.0, 2.0, s) is None
+    v = safety.force_ceiling(6.01, 2.0, s)
+    assert v == Violation(Fault.FORCE_CEILING, "F = 6.01 above 3 × Fd")
+
+
+@pytest.mark.parametrize(
+    ("c1", "c2", "want"),
+    [(True, True, None), (True, False, None), (False, True, None), (False, False, Fault.DROPPED)],
+)
+def test_dropped_only_when_both_contacts_are_lost(c1: bool, c2: bool, want: Fault | None) -> None:
+    assert fault(safety.dropped(c1, c2)) is want
+
+
+def test_stuck_beyond_the_allowed_reversals_in_a_row(cfg: Settings) -> None:
+    s = cfg.safety  # 6
+    assert safety.stuck(6, Reversal.CONE_A, s) is None
+    v = safety.stuck(7, Reversal.CONE_A, s)
+    assert v == Violation(Fault.STUCK, "7 reversals in a row (last: cone_A)")
+
+
+def test_grasp_timeout_only_under_fd_and_after_the_timeout(cfg: Settings) -> None:
+    run = cfg.run  # 20 s
+    assert safety.grasp_timeout(1.0, 2.0, 120.0, 100.0, run) is None
+    v = safety.grasp_timeout(1.0, 2.0, 120.001, 100.0, run)
+    assert v == Violation(Fault.NO_CONTACT, "no grasp (F = 1.00 < Fd = 2.0) within 20 s")
+    assert safety.grasp_timeout(2.0, 2.0, 500.0, 100.0, run) is None  # held: no timeout
+
+
+def test_closed_empty_on_either_proximal_joint(cfg: Settings) -> None:
+    run, axes = cfg.run.model_copy(update={"grasp_max_close_deg": 10.0}), cfg.axes
+    wire = [0.0] * 7
+    assert safety.closed_empty(wire, axes, run) is None
+    for axis in (axes.phi2, axes.phi4):
+        at, past = list(wire), list(wire)
+        at[axis], past[axis] = 10.0, 10.5
+        assert safety.closed_empty(at, axes, run) is None
+        assert fault(safety.closed_empty(past, axes, run)) is Fault.NO_CONTACT
+    others = [90.0 if i not in (axes.phi2, axes.phi4) else 0.0 for i in range(7)]
+    assert safety.closed_empty(others, axes, run) is None  # distal joints, thumb: not closing
+
+
+def _step(cfg: Settings) -> StepResult:
+    return step(RollState(), MIRROR, frame(20.0), frame(20.0), params(cfg), cfg.model_context())
+
+
+def test_rolling_step_checks_ceiling_then_drop_then_stuck(cfg: Settings) -> None:
+    s, fd = cfg.safety, 2.0
+    r = _step(cfg)
+    assert r.obs.contact1.present and r.obs.contact2.present
+    r = replace(r, F=fd)
+    assert safety.rolling_step(r, fd, s) is None
+    lost = replace(r.obs.contact1, present=False)
+    none = replace(r, obs=replace(r.obs, contact1=lost, contact2=lost))
+    stuck = replace(r, state=replace(r.state, consecutive_reversals=7), reversal=Reversal.WEDGE)
+    assert fault(safety.rolling_step(none, fd, s)) is Fault.DROPPED
+    assert fault(safety.rolling_step(stuck, fd, s)) is Fault.STUCK
+    both = replace(none, state=stuck.state)
+    assert fault(safety.rolling_step(both, fd, s)) is Fault.DROPPED
+    high = replace(both, F=3 * fd + 0.01)
+    assert fault(safety.rolling_step(high, fd, s)) is Fault.FORCE_CEILING
+
+
+def test_clamp_targets_limits_the_step_and_the_range() -> None:
+    lo, hi = [-90.0] * 3, [90.0] * 3
+    got = safety.clamp_targets([5.0, -5.0, 95.0], [0.0, 0.0, 89.5], lo, hi, 1.0)
+    assert got == (1.0, -1.0, 90.0)
+    within = [0.5, 0.0, 89.7]
+    assert safety.clamp_targets(within, [0.0, 0.0, 89.5], lo, hi, 1.0) == tuple(within)

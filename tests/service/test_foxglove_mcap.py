@@ -1,0 +1,198 @@
+"""The Foxglove-native MCAP export: every message valid against its schema, every channel there."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap_check import Recording, read
+from test_store import _frame, _samples
+
+from sdh2svc.config import Settings
+from sdh2svc.control.sample import Sample
+from sdh2svc.model.urdf import FINGERS, PADS, describe
+from sdh2svc.service.foxglove_mcap import SAMPLE_FIELDS, sample_schema
+from sdh2svc.service.store import Recorder, RunStore
+
+N = 30
+
+
+@pytest.fixture(scope="module")
+def recorded(cfg: Settings, tmp_path_factory: pytest.TempPathFactory) -> tuple[list[Sample], Any]:
+    db = tmp_path_factory.mktemp("fox") / "runs.sqlite"
+    store = RunStore(db)
+    obj = {"name": "egg", "shape": "ellipsoid", "size_mm": [53.0, 39.0, 39.0]}
+    run_id = store.create_run({"params": cfg.rolling.model_dump(), "object": obj, "sim": True})
+    rec = Recorder(db, run_id)
+    samples = _samples(cfg, N)
+    for s in samples:
+        rec.sample(s)
+    rec.event(0.0, None, "phase", {"phase": "rolling"})
+    rec.event(0.5, 15, "reversal", {"reason": "cone_A"})
+    rec.event(0.9, None, "fault", {"fault": "stale_frame", "message": "no frame for 0.2 s"})
+    distal = _frame(20.0)
+    for i in range(3):  # the six matrices of a frame, in wire order: proximal 6×14, distal 6×13
+        parts = [np.full(84, i, np.uint16) if m % 2 == 0 else distal.ravel() for m in range(6)]
+        rec.frame(0.1 * i, None, 1000 + 33 * i, np.concatenate(parts))
+    rec.close()
+    store.finish_run(run_id, "completed", {"strokes": 3})
+    raw = io.BytesIO()
+    n = store.export_mcap(run_id, raw, cfg)
+    store.close()
+    rec_ = read(raw.getvalue())
+    assert n == sum(len(v) for v in rec_.messages.values()) == 3 * N + 3 + 3 * 6
+    return samples, rec_
+
+
+def test_channels_and_their_schemas(recorded: tuple[list[Sample], Recording]) -> None:
+    _, rec = recorded
+    want = {
+        "/samples": ("sdh2svc.Sample", "jsonschema"),
+        "/tf": ("foxglove.FrameTransforms", "protobuf"),
+        "/contacts": ("foxglove.SceneUpdate", "protobuf"),
+        "/events": ("foxglove.Log", "protobuf"),
+        **{f"/tactile/{f}_{p}": ("foxglove.Grid", "protobuf") for f in FINGERS for p in PADS},
+    }
+    assert rec.schemas == want
+
+
+def test_the_sample_schema_is_the_sample(recorded: tuple[list[Sample], Recording]) -> None:
+    samples, rec = recorded
+    schema = sample_schema()
+    assert list(schema["properties"]) == list(Sample.columns()) == list(SAMPLE_FIELDS)
+    assert schema["properties"]["S1"]["type"] == ["number", "null"]
+    assert schema["properties"]["iteration"]["type"] == "integer"
+    assert schema["properties"]["reversal"]["type"] == ["string", "null"]
+    for name in ("t", "phi2", "S1", "Lambda", "sigma", "Ay", "frame_age_ms"):  # units stated
+        assert schema["properties"][name]["description"].endswith((", s", ", deg", ", mm", ", ms"))
+    got = rec.messages["/samples"]
+    assert [m["iteration"] for m in got] == [s.iteration for s in samples]
+    assert got[7] == {f.name: getattr(samples[7], f.name) for f in fields(Sample)}
+
+
+def test_log_times_are_the_records_own(recorded: tuple[list[Sample], Recording]) -> None:
+    samples, rec = recorded
+    t = rec.log_times
+    t0 = t["/samples"][0] - round(samples[0].t * 1e9)
+    assert [x - t0 for x in t["/samples"]] == [round(s.t * 1e9) for s in samples]
+    assert t["/tf"] == t["/contacts"] == t["/samples"]
+    assert [x - t0 for x in t["/events"]] == [0, 500_000_000, 900_000_000]
+    assert [x - t0 for x in t["/tactile/finger1_distal"]] == [0, 100_000_000, 200_000_000]
+    for topic in ("/tf", "/contacts", "/events", "/tactile/thumb_proximal"):
+        raw = rec.messages[topic][-1]["_raw"]
+        stamp = (
+            raw.transforms[0]
+            if topic == "/tf"
+            else raw.entities[0]
+            if topic == "/contacts"
+            else raw
+        ).timestamp
+        assert stamp.ToNanoseconds() == t[topic][-1]
+
+
+def test_transforms_follow_the_recorded_angles(
+    cfg: Settings, recorded: tuple[list[Sample], Recording]
+) -> None:
+    samples, rec = recorded
+    desc = describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
+    links = set(desc.links)
+    for msg in rec.messages["/tf"]:
+        tfs = msg["transforms"]
+        assert len(tfs) == len(desc.joints)
+        assert all(t["parent_frame_id"] in links and t["child_frame_id"] in links for t in tfs)
+    # φ2 of sample 5: the proximal joint's rotation about −x by φ2
+    (t,) = [
+        t for t in rec.messages["/tf"][5]["transforms"] if t["child_frame_id"] == "finger1_proximal"
+    ]
+    q = t["rotation"]
+    assert -2 * math.atan2(q.get("x", 0.0), q["w"]) == pytest.approx(math.radians(samples[5].phi2))
+
+
+def test_contacts_segment_and_cones(
+    cfg: Settings, recorded: tuple[list[Sample], Recording]
+) -> None:
+    samples, rec = recorded
+    s, msg = samples[4], rec.messages["/contacts"][4]
+    (entity,) = msg["entities"]
+    assert entity["frame_id"] == "frame0" and entity["id"] == "contacts"
+    A = entity["spheres"][0]["pose"]["position"]
+    assert (A.get("y", 0.0) * 1e3, A["z"] * 1e3) == pytest.approx((s.Ay, s.Az))
+    pts = entity["lines"][0]["points"]
+    got = [c for p in pts for c in (p.get("y", 0.0) * 1e3, p["z"] * 1e3)]
+    assert got == pytest.approx([s.Ay, s.Az, s.By, s.Bz])
+    cones = entity["cylinders"]
+    assert len(cones) == 2 and all(c.get("bottom_scale", 0.0) == 0.0 for c in cones)
+    # the cone's opening: diameter / height = 2 tan α
+    c = cones[0]["size"]
+    assert c["x"] / c["z"] == pytest.approx(2 * math.tan(math.radians(cfg.rolling.alpha_deg)))
+    # the cone's axis leaves A towards the other finger (+y for Finger 1 in a mirror pose)
+    centres = [c["pose"]["position"].get("y", 0.0) * 1e3 for c in cones]
+    assert centres[0] > s.Ay and centres[1] < s.By
+
+
+def test_pads_as_grids(cfg: Settings, recorded: tuple[list[Sample], Recording]) -> None:
+    _, rec = recorded
+    pitch = cfg.tactile.texel_pitch_mm * 1e-3
+    for f in FINGERS:
+        for p in PADS:
+            g = rec.messages[f"/tactile/{f}_{p}"][2]
+            lay = cfg.tactile.proximal if p == "proximal" else cfg.tactile.distal
+            assert g["frame_id"] == f"{f}_{p}_pad" and g["column_count"] == lay.cols
+            assert g["cell_size"] == {"x": pytest.approx(pitch), "y": pytest.approx(pitch)}
+            assert g["row_stride"] == 2 * lay.cols and g["cell_stride"] == 2
+            assert g["fields"] == [{"name": "counts", "type": "UINT16"}]
+            data = np.frombuffer(base64.b64decode(g["data"]), "<u2")
+            assert data.size == lay.rows * lay.cols
+            if p == "proximal":
+                assert (data == 2).all()
+            else:
+                assert np.array_equal(data.reshape(lay.rows, lay.cols), _frame(20.0))
+
+
+def test_events_as_logs(recorded: tuple[list[Sample], Recording]) -> None:
+    _, rec = recorded
+    logs = rec.messages["/events"]
+    assert [m["name"] for m in logs] == ["phase", "reversal", "fault"]
+    assert [m["level"] for m in logs] == ["INFO", "INFO", "ERROR"]
+    assert logs[1]["message"] == 'reversal at iteration 15: {"reason": "cone_A"}'
+
+
+def test_metadata_and_the_urdf(cfg: Settings, recorded: tuple[list[Sample], Recording]) -> None:
+    _, rec = recorded
+    md = rec.metadata
+    assert set(md) == {"run", "parameters", "object", "configuration"}
+    assert md["run"]["status"] == "completed" and json.loads(md["run"]["summary"]) == {"strokes": 3}
+    assert json.loads(md["parameters"]["alpha_deg"]) == cfg.rolling.alpha_deg
+    assert set(md["parameters"]) == set(cfg.rolling.model_dump())
+    assert md["object"]["name"] == "egg" and json.loads(md["object"]["size_mm"])[0] == 53.0
+    conf = md["configuration"]
+    assert json.loads(conf["sim"]) is True
+    assert json.loads(conf["hand"])["proximal_length_mm"] == cfg.hand.proximal_length_mm
+    assert json.loads(conf["axes"])["phi2"] == cfg.axes.phi2
+    media, urdf = rec.attachments["sdh2.urdf"]
+    assert media == "application/xml" and b'<robot name="sdh2">' in urdf
+
+
+def test_an_export_without_frames_or_contacts(cfg: Settings, tmp_path: Path) -> None:
+    """A run that faulted before its first contact: no A, B — an empty scene, no cones."""
+    store = RunStore(tmp_path / "runs.sqlite")
+    run_id = store.create_run({})
+    rec = Recorder(store.path, run_id)
+    s = _samples(cfg, 1)[0]
+    none = {n: None for n in ("Ay", "Az", "By", "Bz", "Cy", "Cz", "Dy", "Dz", "S1", "S2")}
+    rec.sample(Sample(**{**{f.name: getattr(s, f.name) for f in fields(Sample)}, **none}))
+    rec.close()
+    raw = io.BytesIO()
+    assert store.export_mcap(run_id, raw) == 3
+    store.close()
+    got = read(raw.getvalue())
+    (entity,) = got.messages["/contacts"][0]["entities"]
+    assert "spheres" not in entity and "cylinders" not in entity
+    assert got.metadata["object"] == {"name": "none (a real hand)"}
