@@ -13,7 +13,7 @@ turns A around B by dσ per iteration.
 
 Additions to the thesis (explained here and in config/default.toml), for objects nobody tuned it
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
-route; a reversal at a cone or the pad's edge commits to the way back
+route; a reversal at a cone, the pad's edge or the wedge commits to the way back
 (:attr:`RollState.waived`); the cones are as wide as the grasp held
 (:attr:`RollState.alpha_held`); a plan that widens the pads' wedge beyond its limit reverses;
 a plan Finger 1 cannot follow reverses; Finger 1's step limit; the force band.
@@ -71,12 +71,15 @@ class RollState:
     consecutive_reversals: int = 0  # reversals since Finger 2 last travelled a half stroke
     travel: float = 0.0  # Finger 2's route travel since the last reversal (rad of φ4; σ in
     # one-finger mode)
-    # The check that caused the last reversal (a cone or the pad's edge), waived on the way back
-    # until ``travel`` reaches a half stroke. The plan respects the cone, but the rolling contact
-    # does not follow it exactly and can carry ω past the limit (or a contact onto the edge
-    # row); near the end of a stroke the route then barely changes ω, so both directions would
-    # "leave" the cone, a noisy ω or edge flag flickers, and the thesis's rule reverses on the
-    # spot for ever. A waived cone still refuses a plan beyond it by more than RETREAT_LIMIT.
+    # The check that caused the last reversal (a cone, the pad's edge or the wedge). While set,
+    # and until ``travel`` reaches a half stroke, the way back is waived by all four of them.
+    # The plan respects a cone, but the rolling contact does not follow it exactly and can carry
+    # ω past the limit (or a contact onto the edge row); near the end of a stroke the route then
+    # barely changes ω, so both directions would "leave" the cone, a noisy ω or edge flag
+    # flickers, and the thesis's rule reverses on the spot for ever. And at the end of a stroke
+    # one check often stops one way and another the other way (the edge of Finger 1's pad and
+    # Finger 2's cone): each waiving only itself, they refuse both ways in turn. A cone still
+    # refuses a plan beyond it by more than RETREAT_LIMIT.
     waived: Reversal | None = None
     # The largest |ω − 90°| at the first iteration: the grasp holds the object there, so its
     # friction angle is at least this; the cones are max(α, this) wide. A grasp can end with AB
@@ -223,17 +226,17 @@ def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | No
     if limit <= 0.0 or obs.omega_A is None or obs.omega_B is None:
         return False
     planned = abs(wedge(wa, wb))
-    if planned <= limit or waived is Reversal.WEDGE:
+    if planned <= limit or waived is not None:
         return False
     return planned > abs(wedge(obs.omega_A, obs.omega_B))
 
 
-def _cone_refuses(w_d: float, cone: Reversal, waived: Reversal | None, alpha: float) -> bool:
+def _cone_refuses(w_d: float, waived: Reversal | None, alpha: float) -> bool:
     """Whether the planned ω ``w_d`` reverses the rotation: it leaves the cone (thesis), unless
-    this cone is waived on the way back and ω stays within RETREAT_LIMIT beyond it."""
+    on the way back (``waived``) ω stays within RETREAT_LIMIT beyond it."""
     if inside_cone(w_d, alpha):
         return False
-    return waived is not cone or cone_margin(w_d, alpha) < -RETREAT_LIMIT
+    return waived is None or cone_margin(w_d, alpha) < -RETREAT_LIMIT
 
 
 def grip_force(c1: ContactEstimate, c2: ContactEstimate) -> float:
@@ -267,7 +270,7 @@ def step(
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
         return reverse(Reversal.CONTACT_LOST)
-    if (c1.at_edge or c2.at_edge) and waived is not Reversal.CONTACT_EDGE:
+    if (c1.at_edge or c2.at_edge) and waived is None:
         return reverse(Reversal.CONTACT_EDGE)
     assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
@@ -298,9 +301,9 @@ def step(
     wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
     wb = omega(Finger.TWO, phi4d + phi5d, c2.x3_mm, B_d, A_d, pad)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
-    if _cone_refuses(wa, Reversal.CONE_A, waived, alpha):
+    if _cone_refuses(wa, waived, alpha):
         return reverse(Reversal.CONE_A, plan)
-    if _cone_refuses(wb, Reversal.CONE_B, waived, alpha):
+    if _cone_refuses(wb, waived, alpha):
         return reverse(Reversal.CONE_B, plan)
     if _wedge_refuses(wa, wb, obs, waived, params):
         return reverse(Reversal.WEDGE, plan)

@@ -189,8 +189,8 @@ def _past_cone_b(cfg: Settings, p: RollingParams, beyond_deg: float) -> HandPose
 
 def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> None:
     """ωB already outside (the rolling contact overshot): the thesis's rule refuses both
-    directions; after a reversal at cone B the way back is not refused by cone B until Finger 2
-    has travelled a half stroke, unless the plan goes beyond the cone by RETREAT_LIMIT."""
+    directions; after a reversal the way back is not refused by a cone until Finger 2 has
+    travelled a half stroke, unless the plan goes beyond the cone by RETREAT_LIMIT."""
     ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
     pose = _past_cone_b(cfg, p, beyond_deg=1.0)
     m = frame(20.0)
@@ -204,9 +204,10 @@ def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> Non
     # waived only until the way back has travelled a half stroke
     r = step(replace(back, travel=p.min_half_stroke), pose, m, m, p, ctx)
     assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 1
-    # a waived cone A does not let cone B through
-    r = step(replace(back, waived=Reversal.CONE_A), pose, m, m, p, ctx)
-    assert r.reversal is Reversal.CONE_B
+    # the way back from another check (cone A, the pad's edge) passes cone B as well: at the
+    # end of a stroke one check stops one way and another the other way
+    for other in (Reversal.CONE_A, Reversal.CONTACT_EDGE, Reversal.WEDGE):
+        assert step(replace(back, waived=other), pose, m, m, p, ctx).reversal is None
     # nor a plan beyond cone B by more than RETREAT_LIMIT
     far = _past_cone_b(cfg, p, beyond_deg=math.degrees(RETREAT_LIMIT) + 1.0)
     assert step(back, far, m, m, p, ctx).reversal is Reversal.CONE_B
@@ -225,6 +226,11 @@ def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
     assert r.reversal is None and r.targets is not None  # on its way back
     s = replace(r.state, travel=p.min_half_stroke)  # a half stroke further: the edge counts again
     assert step(s, MIRROR, edge, edge, p, ctx).reversal is Reversal.CONTACT_EDGE
+    # the way back from a cone passes the edge too
+    back = replace(r.state, waived=Reversal.CONE_A)
+    assert step(back, MIRROR, edge, edge, p, ctx).reversal is None
+    # nothing waived: the edge refuses
+    assert step(replace(back, waived=None), MIRROR, edge, edge, p, ctx).reversal is not None
 
 
 def test_a_half_stroke_counts_only_after_finger2_travelled(cfg: Settings) -> None:
