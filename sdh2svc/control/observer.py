@@ -27,6 +27,9 @@ class EventKind(StrEnum):
     FAULT = "fault"  # {fault, message}
     ESTOP = "estop"  # {}
     END = "end"  # {status, message}
+    # the hand's own, outside a run: the service opening the hand (control.motion)
+    OPEN = "open"  # {}
+    OPENED = "opened"  # {completed, message?}
 
 
 @dataclass(frozen=True, slots=True)

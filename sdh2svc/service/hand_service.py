@@ -216,7 +216,7 @@ class HandService:
             else:
                 await self._cancel_opening()
                 await joints.emergency_stop()
-                self._hand_event("estop", {})
+                self._hand_event(EventKind.ESTOP, {})
         except JointLinkError as e:
             reached, problem = False, str(e)
             log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
@@ -267,22 +267,22 @@ class HandService:
 
     async def _open(self, joints: JointLink) -> None:
         lim = self.cfg.limits
-        self._hand_event("open", {})
+        self._hand_event(EventKind.OPEN, {})
         try:
             await move_to_preshape(joints, self.cfg.run, (lim.min_deg, lim.max_deg),
                                    self.cfg.safety)  # fmt: skip
         except asyncio.CancelledError:
             with contextlib.suppress(Exception):
                 await joints.hold()
-            self._hand_event("opened", {"completed": False, "message": "stopped"})
+            self._hand_event(EventKind.OPENED, {"completed": False, "message": "stopped"})
             raise
         except Exception as e:  # the line failed, the fingers are blocked, an e-stop came
             with contextlib.suppress(Exception):
                 await joints.hold()
             log.warning("opening the hand failed: %s", e)
-            self._hand_event("fault", {"fault": "open_failed", "message": str(e)})
+            self._hand_event(EventKind.FAULT, {"fault": "open_failed", "message": str(e)})
         else:
-            self._hand_event("opened", {"completed": True})
+            self._hand_event(EventKind.OPENED, {"completed": True})
         finally:
             self.publish_status()
 
@@ -291,7 +291,7 @@ class HandService:
         if task is not None:
             await cancel(task)
 
-    def _hand_event(self, kind: str, detail: dict[str, Any]) -> None:
+    def _hand_event(self, kind: EventKind, detail: dict[str, Any]) -> None:
         self.hub.publish(Event(None, None, None, kind, detail))
 
     @property

@@ -23,6 +23,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from sdh2svc.control.observer import EventKind
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.friction import pad_tangent
 from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
@@ -89,7 +90,7 @@ class Event:
     run_id: int | None
     t: float | None
     iteration: int | None
-    kind: str  # a str enum's value serialises as itself
+    kind: EventKind  # a str enum: its value is its JSON form
     detail: dict[str, Any]
     type: ClassVar[Kind] = Kind.EVENT
 
