@@ -9,6 +9,7 @@ from sdh2svc.control.observer import BaseObserver, Event, EventKind, Observers
 
 # what the store, the WebSocket and the dashboard read: the kinds' strings never change
 KINDS = ["start", "phase", "params", "grasped", "reversal", "fault", "estop", "end"]
+KINDS += ["open", "opened"]  # the hand's own, outside a run
 
 
 def test_event_kinds_serialise_as_their_strings() -> None:
