@@ -46,6 +46,12 @@ from sdh2svc.model.observe import ModelContext, Observation, observe
 # How far beyond a cone the way back may plan ω (see RollState.waived): a rolling contact drifts
 # from the plan by ≈ 0.3° per iteration, and sensor noise moves the measured ω by a few tenths.
 RETREAT_LIMIT = math.radians(2.0)
+# How far the way back is waived, in minimum half strokes (``min_half_stroke_deg``): ω turns
+# back slowly after a reversal (the contact rolls on a little and the route first mostly moves
+# the other contact), so a way back as short as one minimum half stroke meets the other
+# direction's check while ω is still where the reversal left it, and the strokes shrink to a
+# dither of ≈ 1° that barely turns the object.
+WAY_BACK = 2.0
 
 
 class Reversal(StrEnum):
@@ -72,7 +78,7 @@ class RollState:
     travel: float = 0.0  # Finger 2's route travel since the last reversal (rad of φ4; σ in
     # one-finger mode)
     # The check that caused the last reversal (a cone, the pad's edge or the wedge). While set,
-    # and until ``travel`` reaches a half stroke, the way back is waived by all four of them.
+    # and until ``travel`` reaches WAY_BACK half strokes, the way back is waived by all of them.
     # The plan respects a cone, but the rolling contact does not follow it exactly and can carry
     # ω past the limit (or a contact onto the edge row); near the end of a stroke the route then
     # barely changes ω, so both directions would "leave" the cone, a noisy ω or edge flag
@@ -262,7 +268,7 @@ def step(
         held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
         state = replace(state, alpha_held=held)
     alpha = max(params.alpha, state.alpha_held)
-    waived = state.waived if state.travel < params.min_half_stroke else None
+    waived = state.waived if state.travel < WAY_BACK * params.min_half_stroke else None
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
         return StepResult(_reverse(state, F, reason, params), None, reason, obs, F, dF, plan)

@@ -10,7 +10,7 @@ import pytest
 
 from sdh2svc.config import Settings
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.rolling import RETREAT_LIMIT, Reversal, RollState, step
+from sdh2svc.control.rolling import RETREAT_LIMIT, WAY_BACK, Reversal, RollState, step
 from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point, segment
 
 rad = math.radians
@@ -190,7 +190,7 @@ def _past_cone_b(cfg: Settings, p: RollingParams, beyond_deg: float) -> HandPose
 def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> None:
     """ωB already outside (the rolling contact overshot): the thesis's rule refuses both
     directions; after a reversal the way back is not refused by a cone until Finger 2 has
-    travelled a half stroke, unless the plan goes beyond the cone by RETREAT_LIMIT."""
+    travelled WAY_BACK half strokes, unless the plan goes beyond the cone by RETREAT_LIMIT."""
     ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
     pose = _past_cone_b(cfg, p, beyond_deg=1.0)
     m = frame(20.0)
@@ -201,8 +201,10 @@ def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> Non
     r = step(back, pose, m, m, p, ctx)
     assert r.reversal is None and r.targets is not None
     assert r.state.travel == pytest.approx(rad(0.25)) and r.state.waived is Reversal.CONE_B
-    # waived only until the way back has travelled a half stroke
-    r = step(replace(back, travel=p.min_half_stroke), pose, m, m, p, ctx)
+    # waived while the way back is shorter than WAY_BACK half strokes, and only so long
+    way = WAY_BACK * p.min_half_stroke
+    assert step(replace(back, travel=0.99 * way), pose, m, m, p, ctx).reversal is None
+    r = step(replace(back, travel=way), pose, m, m, p, ctx)
     assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 1
     # the way back from another check (cone A, the pad's edge) passes cone B as well: at the
     # end of a stroke one check stops one way and another the other way
@@ -224,7 +226,7 @@ def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
     assert r.state.half_strokes == 1 and r.state.direction == -1 and r.state.travel == 0
     r = step(r.state, MIRROR, edge, edge, p, ctx)
     assert r.reversal is None and r.targets is not None  # on its way back
-    s = replace(r.state, travel=p.min_half_stroke)  # a half stroke further: the edge counts again
+    s = replace(r.state, travel=WAY_BACK * p.min_half_stroke)  # the way back's end: it counts
     assert step(s, MIRROR, edge, edge, p, ctx).reversal is Reversal.CONTACT_EDGE
     # the way back from a cone passes the edge too
     back = replace(r.state, waived=Reversal.CONE_A)
