@@ -106,9 +106,9 @@ class Unavailable(ApiError):
 
 
 _ERRORS: dict[int, type[ApiError]] = {
-    400: InvalidRequest, 401: Unauthorized, 403: Forbidden, 404: NotFound, 409: Conflict,
-    413: InvalidRequest, 415: InvalidRequest, 422: InvalidRequest, 503: Unavailable,
-}  # fmt: skip
+    **dict.fromkeys((400, 413, 415, 422), InvalidRequest),
+    **{401: Unauthorized, 403: Forbidden, 404: NotFound, 409: Conflict, 503: Unavailable},
+}
 
 
 def _raise_for(r: httpx.Response) -> None:
@@ -161,7 +161,9 @@ def _samples(run_id: int, offset: int, limit: int) -> _Call:
 def _object(name: str | None, spec: Mapping[str, Any] | None) -> _Call:
     if (name is None) == (spec is None):
         raise ValueError("give an object's name or its spec")
-    return _Call("PUT", "/api/sim/object", {"name": name} if name else {"spec": dict(spec or {})})
+    return _Call(
+        "PUT", "/api/sim/object", {"name": name} if name is not None else {"spec": dict(spec or {})}
+    )
 
 
 def _export(run_id: int, fmt: ExportFormat) -> _Call:
@@ -323,8 +325,8 @@ class Client:
         """The live messages (``hello`` first), until the service closes the socket. Close
         the generator (or leave its loop) to disconnect."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
-        with ws_connect_sync(url, additional_headers=_headers(self.token),
-                             max_size=_WS_MAX_BYTES) as ws:  # fmt: skip
+        headers = _headers(self.token)
+        with ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES) as ws:
             try:
                 for text in ws:
                     yield cast(TelemetryMessage, json.loads(text))

@@ -4,14 +4,17 @@ refusals, and telemetry during a one-cycle run."""
 from __future__ import annotations
 
 import csv
+import functools
 import io
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 
 from sdh2svc.client import (
+    ApiError,
     AsyncClient,
     AsyncTelemetry,
     Client,
@@ -19,6 +22,7 @@ from sdh2svc.client import (
     InvalidRequest,
     NotFound,
     Unauthorized,
+    _raise_for,
 )
 from tests.live_service import LiveService, start_service
 from tests.service.conftest import LONG_RUNS
@@ -34,6 +38,18 @@ def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
         yield s
     finally:
         assert s.stop() == 0, "".join(s.log)
+
+
+def test_an_error_without_the_service_body() -> None:
+    """A proxy's or a crashed worker's answer still raises, with what it said."""
+    request = httpx.Request("GET", "http://127.0.0.1:1/api/status")
+    with pytest.raises(ApiError) as raised:
+        _raise_for(httpx.Response(502, text="Bad Gateway", request=request))
+    assert type(raised.value) is ApiError and raised.value.status == 502
+    assert raised.value.details == ["Bad Gateway"] and "502" in str(raised.value)
+    body = {"error": "no run 7 (GET /api/runs lists them)", "details": []}
+    with pytest.raises(NotFound, match="no run 7"):
+        _raise_for(httpx.Response(404, json=body, request=request))
 
 
 def test_calls_and_refusals(svc: LiveService) -> None:
@@ -67,8 +83,8 @@ def test_calls_and_refusals(svc: LiveService) -> None:
 
     with Client(svc.url) as anonymous:  # reading needs no token; commanding does
         assert anonymous.status()["estopped"] is False
-        for command in (lambda: anonymous.patch_params({"k": 3.0}), anonymous.start_run,
-                        anonymous.release_estop, anonymous.open_hand):  # fmt: skip
+        patch = functools.partial(anonymous.patch_params, {"k": 3.0})
+        for command in (patch, anonymous.start_run, anonymous.release_estop, anonymous.open_hand):
             with pytest.raises(Unauthorized) as refused:
                 command()
             assert refused.value.status == 401 and "bearer token" in refused.value.error
