@@ -323,7 +323,7 @@ class Client:
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
     ) -> Generator[TelemetryMessage, None, None]:
         """The live messages (``hello`` first), until the service closes the socket. Close
-        the generator (or leave its loop) to disconnect."""
+        the generator (or drop it) to disconnect."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
         headers = _headers(self.token)
         with ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES) as ws:
