@@ -37,6 +37,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
 from bench.common import percentile
+from sdh2svc.client import AsyncClient
 from tests.live_service import LiveService, start_service
 
 CLIENTS = 20
@@ -160,19 +161,14 @@ async def _run(
     pids = [svc.proc.pid, os.getpid()] + ([hand.proc.pid] if hand else []) + kids
     cpu0, t0 = [_cpu_s(p) for p in pids], time.monotonic()
     put_backs = hand.put_backs() if hand else 0
-    body: dict[str, Any] = {"params": {"cycles": 1}}
-    if hand is None:
-        body["object"] = "egg"  # embedded: the service puts it between the fingertips
-    async with svc.client() as c:
-        r = await c.post("/api/runs", json=body)
-        run_id = r.json()["run_id"]
-        while True:
-            st = (await c.get("/api/status")).json()
-            if st["last_run"] and st["last_run"]["id"] == run_id:
-                break
-            await asyncio.sleep(0.25)
-        summary = (await c.get(f"/api/runs/{run_id}")).json()["summary"]
-        page = (await c.get(f"/api/runs/{run_id}/samples", params={"limit": 10000})).json()
+    # embedded: the service puts the egg between the fingertips; external: the lab assistant
+    obj = "egg" if hand is None else None
+    async with AsyncClient(svc.url, token=svc.token) as c:
+        run_id = (await c.start_run({"cycles": 1}, obj))["run_id"]
+        await c.wait_run(run_id, poll_s=0.25)
+        st = await c.status()
+        summary = (await c.run(run_id))["summary"]
+        page = await c.samples(run_id, limit=10_000)
     dt = time.monotonic() - t0
     cpu = [(_cpu_s(p) - c0) / dt for p, c0 in zip(pids, cpu0, strict=True)]
     stop.set()

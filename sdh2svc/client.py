@@ -1,0 +1,499 @@
+"""A Python client of the sdh2svc service (``sdh2svc serve``): :class:`Client` (sync) and
+:class:`AsyncClient` (asyncio), over its REST API and the ``/ws/telemetry`` WebSocket.
+
+    with Client("http://127.0.0.1:8000") as hand:
+        run_id = hand.start_run(params={"cycles": 1}, object="egg")["run_id"]
+        hand.wait_run(run_id)
+        hand.export(run_id, "run.mcap")
+
+Every call is one route of docs/api.md; a refusal raises :class:`ApiError` (or the subclass for
+its status) carrying the service's ``{"error", "details"}``. Answers are the service's JSON as
+dicts. Imports nothing of the service itself, so a lab script needs only httpx and websockets.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator, Generator, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal, TypedDict, cast
+
+import httpx
+from websockets.asyncio.client import ClientConnection
+from websockets.asyncio.client import connect as ws_connect
+from websockets.exceptions import ConnectionClosedOK
+from websockets.sync.client import connect as ws_connect_sync
+
+__all__ = [
+    "ApiError",
+    "AsyncClient",
+    "AsyncTelemetry",
+    "Client",
+    "Conflict",
+    "Forbidden",
+    "InvalidRequest",
+    "NotFound",
+    "RunRef",
+    "SamplePage",
+    "Unauthorized",
+    "Unavailable",
+]
+
+DEFAULT_URL = "http://127.0.0.1:8000"
+ExportFormat = Literal["csv", "mcap"]
+JSON = dict[str, Any]
+# the sdh2svc.service.telemetry messages (hello, status, sample, event, tactile, pose, sim,
+# dropped) as JSON: each has a "type"
+TelemetryMessage = JSON
+_WS_MAX_BYTES = 2**24  # a hello carries the whole status; a tactile frame six matrices
+
+
+class RunRef(TypedDict):
+    """A run as it was started or stopped; follow its state in ``status()["run"]``."""
+
+    run_id: int
+    state: str
+
+
+class SamplePage(TypedDict):
+    run_id: int
+    offset: int
+    limit: int
+    total: int
+    samples: list[JSON]
+
+
+# --- errors ----------------------------------------------------------------------------------
+
+
+class ApiError(Exception):
+    """The service refused a request: ``status`` (HTTP), ``error`` (a sentence), ``details``
+    (one line per bad field, for a 422)."""
+
+    def __init__(self, status: int, error: str, details: list[Any], method: str, url: str):
+        self.status, self.error, self.details = status, error, details
+        self.method, self.url = method, url
+        more = "".join(f"\n  {d}" for d in details)
+        super().__init__(f"{method} {url}: {status} {error}{more}")
+
+
+class InvalidRequest(ApiError):
+    """400, 413, 415, 422: the request itself (a value out of range, an unknown field …)."""
+
+
+class Unauthorized(ApiError):
+    """401: a token is configured and this request did not carry it."""
+
+
+class Forbidden(ApiError):
+    """403: the Origin is not allowed."""
+
+
+class NotFound(ApiError):
+    """404: no such run, or not in simulation."""
+
+
+class Conflict(ApiError):
+    """409: a run is (not) running, the e-stop is latched, the hand is opening."""
+
+
+class Unavailable(ApiError):
+    """503: the hand's links are not up."""
+
+
+_ERRORS: dict[int, type[ApiError]] = {
+    **dict.fromkeys((400, 413, 415, 422), InvalidRequest),
+    **{401: Unauthorized, 403: Forbidden, 404: NotFound, 409: Conflict, 503: Unavailable},
+}
+
+
+def _raise_for(r: httpx.Response) -> None:
+    if r.is_success:
+        return
+    try:
+        body = r.json()
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and "error" in body:
+        error, details = str(body["error"]), list(body.get("details") or [])
+    else:
+        error, details = r.reason_phrase or "error", [r.text[:200]] if r.text else []
+    kind = _ERRORS.get(r.status_code, ApiError)
+    raise kind(r.status_code, error, details, r.request.method, str(r.request.url))
+
+
+# --- the routes, once for both clients --------------------------------------------------------
+
+_NONE: Any = object()  # no body at all (POST /api/estop); other commands send JSON, even {}
+
+
+@dataclass(frozen=True)
+class _Call:
+    method: str
+    path: str
+    body: Any = _NONE
+    query: dict[str, Any] = field(default_factory=dict)
+
+    def kwargs(self) -> dict[str, Any]:
+        kw: dict[str, Any] = {"params": self.query} if self.query else {}
+        if self.body is not _NONE:
+            kw["json"] = self.body
+        return kw
+
+
+def _start(params: Mapping[str, Any] | None, obj: str | Mapping[str, Any] | None) -> _Call:
+    body: JSON = {}
+    if params is not None:
+        body["params"] = dict(params)
+    if obj is not None:
+        body["object"] = obj if isinstance(obj, str) else dict(obj)
+    return _Call("POST", "/api/runs", body)
+
+
+def _samples(run_id: int, offset: int, limit: int) -> _Call:
+    return _Call("GET", f"/api/runs/{run_id}/samples", query={"offset": offset, "limit": limit})
+
+
+def _object(name: str | None, spec: Mapping[str, Any] | None) -> _Call:
+    if (name is None) == (spec is None):
+        raise ValueError("give an object's name or its spec")
+    return _Call(
+        "PUT", "/api/sim/object", {"name": name} if name is not None else {"spec": dict(spec or {})}
+    )
+
+
+def _export(run_id: int, fmt: ExportFormat) -> _Call:
+    return _Call("GET", f"/api/runs/{run_id}/export", query={"format": fmt})
+
+
+def _format_of(path: Path, fmt: ExportFormat | None) -> ExportFormat:
+    if fmt is not None:
+        return fmt
+    if path.suffix.lower() in (".csv", ".mcap"):
+        return cast(ExportFormat, path.suffix.lower()[1:])
+    raise ValueError(f"{path}: say format='csv' or 'mcap' (or name it .csv / .mcap)")
+
+
+def _ended(status: JSON, run_id: int) -> JSON | None:
+    """The run's end (``status["last_run"]``) once it has ended, else None."""
+    last = status.get("last_run")
+    return cast(JSON, last) if last and last.get("id") == run_id else None
+
+
+def _ws_url(base_url: str, decimate: int, tactile: bool, max_queue: int | None) -> str:
+    url = base_url.rstrip("/").replace("http", "ws", 1)  # https → wss
+    query = f"?decimate={decimate}&tactile={int(tactile)}"
+    return f"{url}/ws/telemetry{query}" + (f"&max_queue={max_queue}" if max_queue else "")
+
+
+def _headers(token: str | None) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"} if token else {}
+
+
+# --- sync --------------------------------------------------------------------------------------
+
+
+class Client:
+    """The service over HTTP, blocking. ``token``: the service's bearer token, if it has one."""
+
+    def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
+        self.url, self.token = url.rstrip("/"), token
+        self._http = httpx.Client(base_url=self.url, headers=_headers(token), timeout=timeout)
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _call(self, call: _Call) -> Any:
+        r = self._http.request(call.method, call.path, **call.kwargs())
+        _raise_for(r)
+        return r.json()
+
+    # the hand
+    def status(self) -> JSON:
+        return cast(JSON, self._call(_Call("GET", "/api/status")))
+
+    def open_hand(self) -> JSON:
+        """Open the fingers to the pre-shape pose (answers at once; ``status()["hand"]
+        ["opening"]`` is true meanwhile)."""
+        return cast(JSON, self._call(_Call("POST", "/api/hand/open", {})))
+
+    def estop(self) -> JSON:
+        return cast(JSON, self._call(_Call("POST", "/api/estop")))
+
+    def release_estop(self) -> JSON:
+        return cast(JSON, self._call(_Call("POST", "/api/estop/release", {})))
+
+    # parameters and configuration
+    def params(self) -> JSON:
+        return cast(JSON, self._call(_Call("GET", "/api/params")))
+
+    def patch_params(self, changes: Mapping[str, Any]) -> JSON:
+        """Change some rolling parameters; answers the whole new set."""
+        return cast(JSON, self._call(_Call("PATCH", "/api/params", dict(changes))))
+
+    def params_schema(self) -> JSON:
+        return cast(JSON, self._call(_Call("GET", "/api/params/schema")))
+
+    def config(self) -> JSON:
+        return cast(JSON, self._call(_Call("GET", "/api/config")))
+
+    # runs
+    def start_run(
+        self, params: Mapping[str, Any] | None = None, object: str | Mapping[str, Any] | None = None
+    ) -> RunRef:
+        """Start a run (``object``, in simulation: a preset name or a spec)."""
+        return cast(RunRef, self._call(_start(params, object)))
+
+    def stop_run(self) -> RunRef:
+        return cast(RunRef, self._call(_Call("POST", "/api/runs/stop", {})))
+
+    def runs(self) -> list[JSON]:
+        """Every recorded run, newest first."""
+        return cast(list[JSON], self._call(_Call("GET", "/api/runs")))
+
+    def run(self, run_id: int) -> JSON:
+        """One run with its ``events``."""
+        return cast(JSON, self._call(_Call("GET", f"/api/runs/{run_id}")))
+
+    def events(self, run_id: int) -> list[JSON]:
+        return cast(list[JSON], self.run(run_id)["events"])
+
+    def samples(self, run_id: int, offset: int = 0, limit: int = 1000) -> SamplePage:
+        return cast(SamplePage, self._call(_samples(run_id, offset, limit)))
+
+    def iter_samples(self, run_id: int, page: int = 1000) -> Iterator[JSON]:
+        """Every sample of a run, fetched a page at a time."""
+        offset = 0
+        while True:
+            got = self.samples(run_id, offset, page)["samples"]
+            yield from got
+            if len(got) < page:
+                return
+            offset += len(got)
+
+    def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
+        call = _export(run_id, format)
+        r = self._http.request(call.method, call.path, **call.kwargs())
+        _raise_for(r)
+        return r.content
+
+    def export(self, run_id: int, path: str | Path, format: ExportFormat | None = None) -> Path:
+        """Write a run to a file (CSV or MCAP, from ``format`` or the file's suffix)."""
+        path = Path(path)
+        call = _export(run_id, _format_of(path, format))
+        with self._http.stream(call.method, call.path, **call.kwargs()) as r:
+            if not r.is_success:
+                r.read()
+                _raise_for(r)
+            with path.open("wb") as f:
+                for chunk in r.iter_bytes():
+                    f.write(chunk)
+        return path
+
+    def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
+        """Wait until the run has ended; answers ``status()["last_run"]`` (id, status,
+        message). TimeoutError after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while (end := _ended(self.status(), run_id)) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"run {run_id} has not ended within {timeout} s")
+            time.sleep(poll_s)
+        return end
+
+    # the simulated object (NotFound on a real hand)
+    def sim_object(self) -> JSON:
+        return cast(JSON, self._call(_Call("GET", "/api/sim/object")))
+
+    def set_sim_object(
+        self, name: str | None = None, spec: Mapping[str, Any] | None = None
+    ) -> JSON:
+        return cast(JSON, self._call(_object(name, spec)))
+
+    def telemetry(
+        self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
+    ) -> Generator[TelemetryMessage, None, None]:
+        """The live messages (``hello`` first), until the service closes the socket. Close
+        the generator (or drop it) to disconnect."""
+        url = _ws_url(self.url, decimate, tactile, max_queue)
+        headers = _headers(self.token)
+        with ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES) as ws:
+            try:
+                for text in ws:
+                    yield cast(TelemetryMessage, json.loads(text))
+            except ConnectionClosedOK:
+                return
+
+
+# --- async -------------------------------------------------------------------------------------
+
+
+class AsyncTelemetry:
+    """The live messages of ``/ws/telemetry`` (``hello`` first) as an async iterator. Connects
+    on first use; use it as ``async with`` to disconnect as soon as the block is left."""
+
+    def __init__(self, url: str, headers: dict[str, str]) -> None:
+        self._url, self._headers = url, headers
+        self._ws: ClientConnection | None = None
+
+    async def __aenter__(self) -> AsyncTelemetry:
+        await self._connect()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        if self._ws is not None:
+            await self._ws.close()
+
+    def __aiter__(self) -> AsyncIterator[TelemetryMessage]:
+        return self
+
+    async def __anext__(self) -> TelemetryMessage:
+        ws = await self._connect()
+        try:
+            text = await ws.recv()
+        except ConnectionClosedOK:
+            raise StopAsyncIteration from None
+        return cast(TelemetryMessage, json.loads(text))
+
+    async def _connect(self) -> ClientConnection:
+        if self._ws is None:
+            self._ws = await ws_connect(
+                self._url, additional_headers=self._headers, max_size=_WS_MAX_BYTES
+            )
+        return self._ws
+
+
+class AsyncClient:
+    """The service over HTTP and its WebSocket, for asyncio. Same calls as :class:`Client`."""
+
+    def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
+        self.url, self.token = url.rstrip("/"), token
+        self._http = httpx.AsyncClient(base_url=self.url, headers=_headers(token), timeout=timeout)
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _call(self, call: _Call) -> Any:
+        r = await self._http.request(call.method, call.path, **call.kwargs())
+        _raise_for(r)
+        return r.json()
+
+    # the hand
+    async def status(self) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", "/api/status")))
+
+    async def open_hand(self) -> JSON:
+        return cast(JSON, await self._call(_Call("POST", "/api/hand/open", {})))
+
+    async def estop(self) -> JSON:
+        return cast(JSON, await self._call(_Call("POST", "/api/estop")))
+
+    async def release_estop(self) -> JSON:
+        return cast(JSON, await self._call(_Call("POST", "/api/estop/release", {})))
+
+    # parameters and configuration
+    async def params(self) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", "/api/params")))
+
+    async def patch_params(self, changes: Mapping[str, Any]) -> JSON:
+        return cast(JSON, await self._call(_Call("PATCH", "/api/params", dict(changes))))
+
+    async def params_schema(self) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", "/api/params/schema")))
+
+    async def config(self) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", "/api/config")))
+
+    # runs
+    async def start_run(
+        self, params: Mapping[str, Any] | None = None, object: str | Mapping[str, Any] | None = None
+    ) -> RunRef:
+        return cast(RunRef, await self._call(_start(params, object)))
+
+    async def stop_run(self) -> RunRef:
+        return cast(RunRef, await self._call(_Call("POST", "/api/runs/stop", {})))
+
+    async def runs(self) -> list[JSON]:
+        return cast(list[JSON], await self._call(_Call("GET", "/api/runs")))
+
+    async def run(self, run_id: int) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", f"/api/runs/{run_id}")))
+
+    async def events(self, run_id: int) -> list[JSON]:
+        return cast(list[JSON], (await self.run(run_id))["events"])
+
+    async def samples(self, run_id: int, offset: int = 0, limit: int = 1000) -> SamplePage:
+        return cast(SamplePage, await self._call(_samples(run_id, offset, limit)))
+
+    async def iter_samples(self, run_id: int, page: int = 1000) -> AsyncIterator[JSON]:
+        offset = 0
+        while True:
+            got = (await self.samples(run_id, offset, page))["samples"]
+            for s in got:
+                yield s
+            if len(got) < page:
+                return
+            offset += len(got)
+
+    async def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
+        call = _export(run_id, format)
+        r = await self._http.request(call.method, call.path, **call.kwargs())
+        _raise_for(r)
+        return r.content
+
+    async def export(
+        self, run_id: int, path: str | Path, format: ExportFormat | None = None
+    ) -> Path:
+        path = Path(path)
+        call = _export(run_id, _format_of(path, format))
+        async with self._http.stream(call.method, call.path, **call.kwargs()) as r:
+            if not r.is_success:
+                await r.aread()
+                _raise_for(r)
+            with path.open("wb") as f:
+                async for chunk in r.aiter_bytes():
+                    f.write(chunk)
+        return path
+
+    async def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
+        deadline = time.monotonic() + timeout
+        while (end := _ended(await self.status(), run_id)) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"run {run_id} has not ended within {timeout} s")
+            await asyncio.sleep(poll_s)
+        return end
+
+    # the simulated object
+    async def sim_object(self) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", "/api/sim/object")))
+
+    async def set_sim_object(
+        self, name: str | None = None, spec: Mapping[str, Any] | None = None
+    ) -> JSON:
+        return cast(JSON, await self._call(_object(name, spec)))
+
+    def telemetry(
+        self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
+    ) -> AsyncTelemetry:
+        """``async with client.telemetry() as tm: async for msg in tm: …``"""
+        return AsyncTelemetry(_ws_url(self.url, decimate, tactile, max_queue), _headers(self.token))
