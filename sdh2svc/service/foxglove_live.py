@@ -4,7 +4,8 @@ Foxglove WebSocket protocol by ``foxglove-sdk``, fed from the telemetry hub.
 * ``/samples`` (JSON, the schema from Sample) — every iteration;
 * ``/tf`` — the links at each forwarded sample's φ2…φ5, and between runs at the hand's actual
   angles (the ``pose`` messages);
-* ``/contacts`` — A, B, AB and the friction cones of each forwarded sample;
+* ``/contacts`` — A, B, AB and the friction cones (α of the run in force) of each forwarded
+  sample;
 * ``/tactile/<finger>_<proximal|distal>`` — each forwarded tactile frame's pads as Grids;
 * ``/events`` — every event, as Log lines.
 
@@ -31,6 +32,7 @@ import foxglove
 from foxglove import channels as fc
 
 from sdh2svc.config import Settings
+from sdh2svc.control.observer import EventKind
 from sdh2svc.model.urdf import to_xml
 from sdh2svc.service.foxglove_mcap import (
     CONTACTS,
@@ -111,9 +113,7 @@ class FoxgloveLive:
         elif isinstance(msg, Tactile):
             self._tactile(msg)
         elif isinstance(msg, Event):
-            if self._events.has_sinks():
-                ns = time.time_ns()
-                self._events.log(log_message(msg.json(), ns), log_time=ns)
+            self._event(msg)
         elif isinstance(msg, Pose) and self._tf.has_sinks() and self._due_3d():
             ns = time.time_ns()
             self._tf.log(self._hand.pose_transforms(msg.angles_deg, ns), log_time=ns)
@@ -130,6 +130,15 @@ class FoxgloveLive:
                 self._tf.log(self._hand.transforms(row, ns), log_time=ns)
             if contacts:
                 self._contacts.log(self._hand.contacts(row, ns, self._alpha), log_time=ns)
+
+    def _event(self, msg: Event) -> None:
+        if msg.kind in (EventKind.START, EventKind.PARAMS):  # the cones' α is the run's
+            alpha = msg.detail.get("params", {}).get("alpha_deg")
+            if isinstance(alpha, int | float):
+                self._alpha = math.radians(alpha)
+        if self._events.has_sinks():
+            ns = time.time_ns()
+            self._events.log(log_message(msg.json(), ns), log_time=ns)
 
     def _tactile(self, msg: Tactile) -> None:
         now = time.monotonic()

@@ -8,22 +8,29 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import math
 import socket
 import struct
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import httpx
 import jsonschema
+import numpy as np
 import pytest
+from foxglove import messages as fm
 from mcap_check import _no_unknown_fields, _proto_class
 from websockets.asyncio.client import ClientConnection, connect
 
-from sdh2svc.service.foxglove_live import URDF_URI
+from sdh2svc.config import load_config
+from sdh2svc.control.observer import EventKind
+from sdh2svc.service import foxglove_live
+from sdh2svc.service.foxglove_live import URDF_URI, FoxgloveLive
 from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
+from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Tactile
 from tests.live_service import LiveService, start_service
+from tests.service.test_telemetry import a_sample
 
 TIMEOUT_S = 120.0
 # The protocol's names: foxglove-sdk ≥ 0.30 answers to the newer one only; a client offers both.
@@ -142,7 +149,139 @@ async def test_every_channel_live_during_a_run(fox: tuple[LiveService, int]) -> 
         assert len(grid.data) == grid.row_stride * (len(grid.data) // grid.row_stride) > 0
 
 
-async def test_off_by_default(tmp_path: Path) -> None:
-    from sdh2svc.config import load_config
-
+def test_off_by_default() -> None:
     assert load_config(use_env=False).service.foxglove_port == 0
+
+
+# --- the listener's policy, in process (no client: the channels and the builders are fakes) ---
+
+
+class FakeChannel:
+    def __init__(self, subscribed: bool = True) -> None:
+        self.subscribed = subscribed
+        self.logged: list[tuple[Any, int | None]] = []
+
+    def has_sinks(self) -> bool:
+        return self.subscribed
+
+    def log(self, msg: Any, *, log_time: int | None = None) -> None:
+        self.logged.append((msg, log_time))
+
+
+class FakeHand:
+    """Counts what is built (the builders themselves: test_foxglove_mcap.py)."""
+
+    def __init__(self) -> None:
+        self.built: list[str] = []
+
+    def transforms(self, s: Any, ns: int) -> str:
+        self.built.append("tf")
+        return "tf"
+
+    def pose_transforms(self, angles: Any, ns: int) -> str:
+        self.built.append("pose")
+        return "pose"
+
+    def contacts(self, s: Any, ns: int, alpha: float) -> tuple[str, float]:
+        self.built.append("contacts")
+        return ("contacts", alpha)
+
+    def pad_grids(self, mats: Any, ns: int) -> dict[str, str]:
+        self.built.append("grids")
+        return {p: p for p in PAD_NAMES}
+
+
+class Clock:
+    now = 100.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def time_ns(self) -> int:
+        return round(self.now * 1e9)
+
+
+@pytest.fixture
+def live(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[FoxgloveLive, FakeHand, Clock]]:
+    clock = Clock()
+    monkeypatch.setattr(foxglove_live, "time", clock)
+    fox = FoxgloveLive(load_config(use_env=False), host="127.0.0.1", port=0, max_hz=10.0)
+    fox.start()
+    assert fox.port > 0 and fox.url == f"ws://127.0.0.1:{fox.port}"
+    hand = FakeHand()
+    fox._hand = hand  # type: ignore[assignment]
+    try:
+        yield fox, hand, clock
+    finally:
+        fox.stop()
+
+
+def _chans(fox: FoxgloveLive, subscribed: bool) -> dict[str, FakeChannel]:
+    ch = {n: FakeChannel(subscribed) for n in ("_samples", "_tf", "_contacts", "_events")}
+    for name, c in ch.items():
+        setattr(fox, name, c)
+    fox._pads = {p: FakeChannel(subscribed) for p in PAD_NAMES}  # type: ignore[misc]
+    return ch
+
+
+def _tactile(seq: int) -> Tactile:
+    return Tactile(seq, 0.0, tuple(np.zeros((2, 3), np.uint16) for _ in PAD_NAMES))
+
+
+def test_nothing_is_built_for_a_channel_nobody_reads(
+    live: tuple[FoxgloveLive, FakeHand, Clock],
+) -> None:
+    fox, hand, _ = live
+    ch = _chans(fox, subscribed=False)
+    fox.handle(SampleMsg(1, a_sample()))
+    fox.handle(_tactile(1))
+    fox.handle(Pose((0.0,) * 7))
+    fox.handle(Event(1, 0.0, 0, EventKind.PHASE, {"phase": "grasping"}))
+    assert hand.built == [] and not any(c.logged for c in ch.values())
+
+
+def test_3d_channels_at_most_max_hz_samples_and_events_all(
+    live: tuple[FoxgloveLive, FakeHand, Clock],
+) -> None:
+    fox, hand, clock = live
+    ch = _chans(fox, subscribed=True)
+    for i in range(5):  # 5 samples and frames within 0.1 s (max_hz = 10): the 3-D ones once
+        clock.now += 0.02
+        fox.handle(SampleMsg(1, a_sample(iteration=i + 1)))
+        fox.handle(_tactile(i))
+    assert [json.loads(m)["iteration"] for m, _ in ch["_samples"].logged] == [1, 2, 3, 4, 5]
+    assert hand.built == ["tf", "contacts", "grids"]
+    assert all(len(c.logged) == 1 for c in fox._pads.values())  # type: ignore[attr-defined]
+    clock.now += 0.1  # a period later: the next sample and frame are drawn
+    fox.handle(SampleMsg(1, a_sample(iteration=6)))
+    fox.handle(_tactile(6))
+    assert hand.built == ["tf", "contacts", "grids", "tf", "contacts", "grids"]
+    # log times: the clock at delivery
+    assert ch["_samples"].logged[-1][1] == clock.time_ns()
+
+
+def test_the_cones_take_the_runs_alpha(live: tuple[FoxgloveLive, FakeHand, Clock]) -> None:
+    fox, _, _ = live
+    ch = _chans(fox, subscribed=True)
+    fox.handle(Event(1, 0.0, 0, EventKind.START, {"params": {"alpha_deg": 30.0}}))
+    fox.handle(SampleMsg(1, a_sample()))
+    assert ch["_contacts"].logged[-1][0] == ("contacts", pytest.approx(math.radians(30.0)))
+    assert [type(m) for m, _ in ch["_events"].logged] == [fm.Log]
+
+
+def test_stopped_it_ignores_messages(live: tuple[FoxgloveLive, FakeHand, Clock]) -> None:
+    fox, hand, _ = live
+    _chans(fox, subscribed=True)
+    fox.stop()
+    fox.handle(SampleMsg(1, a_sample()))
+    assert hand.built == []
+
+
+def test_a_taken_port_is_an_os_error() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        fox = FoxgloveLive(load_config(use_env=False), host="127.0.0.1",
+                           port=s.getsockname()[1], max_hz=10.0)  # fmt: skip
+        with pytest.raises(OSError, match="in use"):
+            fox.start()
