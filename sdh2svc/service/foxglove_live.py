@@ -49,11 +49,15 @@ from sdh2svc.service.foxglove_mcap import (
 )
 from sdh2svc.service.telemetry import AnyMessage, Event, Pose, SampleMsg, Tactile
 
-__all__ = ["URDF_URI", "FoxgloveLive"]
+__all__ = ["URDF_URI", "FoxgloveLive", "FoxgloveStartError"]
 
 log = logging.getLogger(__name__)
 
 URDF_URI = "package://sdh2svc/sdh2.urdf"  # what the URDF layer asks the server for
+
+
+class FoxgloveStartError(RuntimeError):
+    """The live view cannot listen (the message names the port and what to do)."""
 
 
 class FoxgloveLive:
@@ -82,14 +86,17 @@ class FoxgloveLive:
         self._server: Any = None  # a foxglove.WebSocketServer while serving
 
     def start(self) -> None:
-        """Listen (OSError when the port is taken)."""
+        """Listen (:class:`FoxgloveStartError` when it cannot, e.g. the port is taken)."""
         try:
             self._server = foxglove.start_server(
                 name="sdh2svc", host=self.host, port=self.port, capabilities=[],
                 asset_handler=self._asset, context=self._ctx,
             )  # fmt: skip
-        except RuntimeError as e:  # the SDK's bind error
-            raise OSError(f"Foxglove live view on {self.host}:{self.port}: {e}") from e
+        except RuntimeError as e:  # the SDK's FoxgloveError, e.g. "Address already in use"
+            raise FoxgloveStartError(
+                f"cannot serve the live Foxglove view on {self.host}:{self.port}: {e}; set "
+                "service.foxglove_port to a free port, or 0 (off)"
+            ) from e
         self.port = self._server.port
 
     @property

@@ -26,7 +26,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from sdh2svc.config import load_config
 from sdh2svc.control.observer import EventKind
 from sdh2svc.service import foxglove_live
-from sdh2svc.service.foxglove_live import URDF_URI, FoxgloveLive
+from sdh2svc.service.foxglove_live import URDF_URI, FoxgloveLive, FoxgloveStartError
 from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
 from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Tactile
 from tests.live_service import LiveService, start_service
@@ -277,11 +277,11 @@ def test_stopped_it_ignores_messages(live: tuple[FoxgloveLive, FakeHand, Clock])
     assert hand.built == []
 
 
-def test_a_taken_port_is_an_os_error() -> None:
+def test_a_taken_port_is_a_start_error() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
         fox = FoxgloveLive(load_config(use_env=False), host="127.0.0.1",
                            port=s.getsockname()[1], max_hz=10.0)  # fmt: skip
-        with pytest.raises(OSError, match="in use"):
+        with pytest.raises(FoxgloveStartError, match=r"in use.*service\.foxglove_port"):
             fox.start()
