@@ -68,6 +68,7 @@ class ServiceConfig(Frozen):
     allowed_hosts: tuple[str, ...] = ()
     allowed_origins: tuple[str, ...] = ()
     max_body_kb: Annotated[int, Field(ge=1, le=1_048_576)] = 1024
+    foxglove_port: Annotated[int, Field(ge=0, le=65535)] = 0  # the live Foxglove view; 0: off
 
 
 class Settings(BaseSettings):

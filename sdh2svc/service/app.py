@@ -25,6 +25,7 @@ from sdh2svc.service.api import dashboard, estop, hand, params, runs, sim, telem
 from sdh2svc.service.api.dashboard import docs_assets_dir, web_dir
 from sdh2svc.service.api.deps import Services
 from sdh2svc.service.api.errors import install_errors
+from sdh2svc.service.foxglove_live import FoxgloveLive
 from sdh2svc.service.guard import Guard
 from sdh2svc.service.hand_service import HandService
 from sdh2svc.service.hub import TelemetryHub
@@ -48,6 +49,8 @@ async def open_services(cfg: Settings, where: Where, *, viewer: bool | None = No
         await station.start()
         if cfg.service.viewer if viewer is None else viewer:
             services.viewer = await _start_viewer(cfg, station, hub)
+        if cfg.service.foxglove_port:
+            services.foxglove = _start_foxglove(cfg, hub)
     except BaseException:
         await close_services(services)
         raise
@@ -61,6 +64,9 @@ async def close_services(services: Services) -> None:
         with contextlib.suppress(Exception):
             await services.viewer.stop()
         services.viewer = None
+    if services.foxglove is not None:
+        services.foxglove.stop()
+        services.foxglove = None
 
 
 def create_app(services: Services) -> FastAPI:
@@ -90,7 +96,8 @@ def create_app(services: Services) -> FastAPI:
 
 
 def viewer_host(cfg: Settings) -> str:
-    """Where the 3-D view listens: loopback unless a token is set (see _start_viewer)."""
+    """Where the 3-D view (and the live Foxglove view) listens: loopback unless a token is set
+    (see _start_viewer)."""
     return cfg.service.host if cfg.service.token else "127.0.0.1"
 
 
@@ -114,3 +121,13 @@ async def _start_viewer(cfg: Settings, station: HandService, hub: TelemetryHub) 
     hub.add_listener(v.handle)
     log.info("3-D view at %s", v.url)
     return v
+
+
+def _start_foxglove(cfg: Settings, hub: TelemetryHub) -> FoxgloveLive:
+    """The live Foxglove view (read-only), bound like the 3-D view: loopback without a token."""
+    sc = cfg.service
+    fox = FoxgloveLive(cfg, host=viewer_host(cfg), port=sc.foxglove_port, max_hz=sc.viewer_max_hz)
+    fox.start()
+    hub.add_listener(fox.handle)
+    log.info("Foxglove live view at %s", fox.url)
+    return fox

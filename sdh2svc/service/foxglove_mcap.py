@@ -47,12 +47,26 @@ from sdh2svc.model.urdf import (
 Json = dict[str, Any]
 _MM = 1e-3
 
-#: What each Sample field is, with its unit (hand-model.md's names); one entry per field.
-
+SAMPLE_SCHEMA = "sdh2svc.Sample"  # the /samples channel's schema name
 _JSON_TYPES = {int: "integer", float: "number", str: "string", bool: "boolean"}
 
 
 COLUMNS = Sample.columns()
+
+# The channels, the same in a file and live (foxglove_live.py).
+SAMPLES, TF, CONTACTS, EVENTS = "/samples", "/tf", "/contacts", "/events"
+PAD_NAMES = tuple(f"{f}_{p}" for f in FINGERS for p in PADS)
+#: The joints of the URDF, by AxisMap's names.
+JOINTS = ("phi1", "phi2", "phi3", "phi4", "phi5", "thumb_proximal", "thumb_distal")
+
+
+def pad_topic(pad: str) -> str:
+    return f"/tactile/{pad}"
+
+
+def sample_json(s: Mapping[str, Any]) -> bytes:
+    """A ``/samples`` message: the sample's columns (non-finite numbers as null)."""
+    return json.dumps({k: _finite(s[k]) for k in COLUMNS}, allow_nan=False).encode()
 
 
 def sample_schema() -> Json:
@@ -70,7 +84,7 @@ def sample_schema() -> Json:
         }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": "sdh2svc.Sample",
+        "title": SAMPLE_SCHEMA,
         "description": "One rolling iteration (control/sample.py); frame 0 as in hand-model.md §2",
         "type": "object",
         "properties": props,
@@ -116,7 +130,17 @@ class HandFrames:
         return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()})
 
     def transforms(self, s: Mapping[str, Any], ns: int) -> fm.FrameTransforms:
+        """The links at a sample's φ2…φ5 (the other joints held)."""
         angles = {**self.held, **{k: math.radians(s[k]) for k in ("phi2", "phi3", "phi4", "phi5")}}
+        return self.joint_frames(angles, ns)
+
+    def pose_transforms(self, angles_deg: Sequence[float], ns: int) -> fm.FrameTransforms:
+        """The links at the hand's actual angles (degrees, one per wire axis)."""
+        ax = self.cfg.axes
+        return self.joint_frames({n: math.radians(angles_deg[getattr(ax, n)]) for n in JOINTS}, ns)
+
+    def joint_frames(self, angles: Mapping[str, float], ns: int) -> fm.FrameTransforms:
+        """The URDF's joint transforms at ``angles`` (rad, by AxisMap's joint names)."""
         ts = _ts(ns)
         return fm.FrameTransforms(
             transforms=[
@@ -188,23 +212,30 @@ class HandFrames:
         return np.array([0.0, ny / norm, nz / norm])
 
     def grids(self, texels: np.ndarray, ns: int) -> dict[str, fm.Grid]:
-        """Each pad's matrix of one frame as a Grid in its URDF frame, keyed by pad name."""
-        tac, ax = self.cfg.tactile, self.cfg.axes
-        by_index = {pad_matrix(ax, f, p): (f, p) for f in FINGERS for p in PADS}
-        pitch = tac.texel_pitch_mm * _MM
-        out, start = {}, 0
-        counts = np.ascontiguousarray(texels, dtype="<u2")
-        for m in range(len(by_index)):
-            finger, part = by_index[m]
+        """Each pad's matrix of one flat frame (matrices in index order) as a Grid."""
+        tac, mats, start = self.cfg.tactile, [], 0
+        counts = np.asarray(texels)
+        for _finger, part in self._by_matrix():
             lay = tac.proximal if part == "proximal" else tac.distal
-            cells = counts[start : start + lay.rows * lay.cols]
-            start += lay.rows * lay.cols
+            n = lay.rows * lay.cols
+            mats.append(counts[start : start + n].reshape(lay.rows, lay.cols))
+            start += n
+        return self.pad_grids(mats, ns)
+
+    def pad_grids(self, matrices: Sequence[np.ndarray], ns: int) -> dict[str, fm.Grid]:
+        """Each pad's matrix (rows × columns of raw counts, in matrix index order) as a Grid in
+        its URDF frame, keyed by pad name."""
+        pitch = self.cfg.tactile.texel_pitch_mm * _MM
+        out = {}
+        for (finger, part), mat in zip(self._by_matrix(), matrices, strict=True):
+            cells = np.ascontiguousarray(mat, dtype="<u2")
+            cols = cells.shape[1]
             out[f"{finger}_{part}"] = fm.Grid(
                 timestamp=_ts(ns),
                 frame_id=f"{finger}_{part}_pad",
-                column_count=lay.cols,
+                column_count=cols,
                 cell_size=fm.Vector2(x=pitch, y=pitch),
-                row_stride=2 * lay.cols,
+                row_stride=2 * cols,
                 cell_stride=2,
                 fields=[
                     fm.PackedElementField(
@@ -214,6 +245,12 @@ class HandFrames:
                 data=cells.tobytes(),
             )
         return out
+
+    def _by_matrix(self) -> list[tuple[str, str]]:
+        """(finger, pad) of each matrix index, in index order."""
+        ax = self.cfg.axes
+        by_index = {pad_matrix(ax, f, p): (f, p) for f in FINGERS for p in PADS}
+        return [by_index[m] for m in range(len(by_index))]
 
 
 def _pose(p: np.ndarray, q: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)) -> fm.Pose:
@@ -288,11 +325,11 @@ def write_mcap(
         return channel(topic, s.name, s.encoding, s.data, s.encoding)
 
     ch_samples = channel(
-        "/samples", "sdh2svc.Sample", "jsonschema", json.dumps(sample_schema()).encode(), "json"
+        SAMPLES, SAMPLE_SCHEMA, "jsonschema", json.dumps(sample_schema()).encode(), "json"
     )
-    ch_tf, ch_scene = typed("/tf", fm.FrameTransforms), typed("/contacts", fm.SceneUpdate)
-    ch_log = typed("/events", fm.Log)
-    ch_pads = {f"{f}_{p}": typed(f"/tactile/{f}_{p}", fm.Grid) for f in FINGERS for p in PADS}
+    ch_tf, ch_scene = typed(TF, fm.FrameTransforms), typed(CONTACTS, fm.SceneUpdate)
+    ch_log = typed(EVENTS, fm.Log)
+    ch_pads = {pad: typed(pad_topic(pad), fm.Grid) for pad in PAD_NAMES}
     n = 0
 
     def put(ch: int, ns: int, data: bytes) -> None:
@@ -302,8 +339,7 @@ def write_mcap(
 
     for s in samples:
         ns = t0_ns + round(s["t"] * 1e9)
-        row = {k: _finite(s[k]) for k in COLUMNS}
-        put(ch_samples, ns, json.dumps(row, allow_nan=False).encode())
+        put(ch_samples, ns, sample_json(s))
         put(ch_tf, ns, hand.transforms(s, ns).encode())
         put(ch_scene, ns, hand.contacts(s, ns, alpha).encode())
     for e in events:

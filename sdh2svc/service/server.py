@@ -24,6 +24,7 @@ from sdh2svc.bus.tactile import TactileError
 from sdh2svc.config import Settings
 from sdh2svc.connect import Where
 from sdh2svc.service.app import Services, close_services, create_app, open_services, viewer_host
+from sdh2svc.service.foxglove_live import FoxgloveStartError
 from sdh2svc.service.store import RunStore, StoreError
 from sdh2svc.service.viewer_proc import bind_error
 
@@ -202,6 +203,8 @@ def _start_error(e: BaseException, cfg: Settings) -> StartError | None:
         if "in use" in str(e):  # the port was taken between our check and viser's bind
             return PortBusy(_viser_busy(cfg.service.viser_port))
         return StartError(f"cannot start the 3-D view: {e}")
+    if isinstance(e, FoxgloveStartError):
+        return PortBusy(str(e)) if "in use" in str(e) else StartError(str(e))
     if isinstance(e, JointLinkError | TactileError | OSError):
         return HandUnreachable(
             f"cannot open the hand: {e} (check --sdh/--dsa or links.sdh_url/dsa_url)"

@@ -26,6 +26,7 @@ class Services:
     hub: TelemetryHub
     station: HandService
     viewer: Any = None  # a Viewer or ViewerProcess (sdh2svc.service.viewer*), when on
+    foxglove: Any = None  # the live Foxglove view (sdh2svc.service.foxglove_live), when on
 
     @property
     def viewer_url(self) -> str | None:
