@@ -200,7 +200,7 @@ async def _grasp_truth(cfg: Settings) -> dict[str, float] | None:
                     got["sample"], got["truth"] = x, bench.truth()
                     runner.request_stop()
 
-            def frame(self, t: float, frame: Any) -> None:
+            def frame(self, t: float, iteration: int, frame: Any) -> None:
                 if "L" not in got:
                     got["L"] = (ctx.contact(frame.matrices[m1]).L_mm,
                                 ctx.contact(frame.matrices[m2]).L_mm)  # fmt: skip

@@ -1,9 +1,9 @@
 """What watches a run from beside it: one interface for its samples, events and frames.
 
-The runner reports to one :class:`RunObserver`; the recorder, the telemetry hub, a campaign's
-truth probe each implement it, and :class:`Observers` hands everything to several. An event's
-serialised form (``kind``'s value, ``detail`` as a JSON object) is what the store, the
-WebSocket and the dashboard read.
+The runner reports to one :class:`RunObserver`: the recorded run, which records and hands on to
+one more (the service's telemetry, a campaign's truth probe). An event's serialised form
+(``kind``'s value, ``detail`` as a JSON object) is what the store, the WebSocket and the
+dashboard read.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class RunObserver(Protocol):
     def event(self, event: Event) -> None:
         """Every event (phase, grasped, reversal, fault, end, …)."""
 
-    def frame(self, t: float, frame: TactileFrame) -> None:
+    def frame(self, t: float, iteration: int, frame: TactileFrame) -> None:
         """The tactile frame of every rolling iteration, ``t`` s after the run started."""
 
 
@@ -64,24 +64,5 @@ class BaseObserver:
     def event(self, event: Event) -> None:
         pass
 
-    def frame(self, t: float, frame: TactileFrame) -> None:
+    def frame(self, t: float, iteration: int, frame: TactileFrame) -> None:
         pass
-
-
-class Observers:
-    """Several observers as one, each told in the order given."""
-
-    def __init__(self, *observers: RunObserver) -> None:
-        self.observers = observers
-
-    def sample(self, sample: Sample) -> None:
-        for o in self.observers:
-            o.sample(sample)
-
-    def event(self, event: Event) -> None:
-        for o in self.observers:
-            o.event(event)
-
-    def frame(self, t: float, frame: TactileFrame) -> None:
-        for o in self.observers:
-            o.frame(t, frame)

@@ -383,7 +383,7 @@ class Runner:
         if self.observer is not None:
             sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms)
             self.observer.sample(sample)
-            self.observer.frame(t, frame)
+            self.observer.frame(t, sample.iteration, frame)
 
     async def _release(self) -> None:
         """Open to the pre-shape pose; no force check: opening is the remedy for a high F."""

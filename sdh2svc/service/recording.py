@@ -49,7 +49,6 @@ class RecordedRun:
         self.run_id = store.create_run(full_meta)
         self._rec = Recorder(store.path, self.run_id)
         self._truth: dict[str, Any] = {}
-        self._iteration: int | None = None  # the last sample's: its frame is recorded next
         self._observer: RunObserver = observer or BaseObserver()
         self.runner = Runner(cfg.control(), joints, tactile, params=params, observer=self)
         self.summary: dict[str, Any] | None = None
@@ -57,7 +56,6 @@ class RecordedRun:
     # --- control.observer.RunObserver: the runner reports here ---
 
     def sample(self, s: Sample) -> None:
-        self._iteration = s.iteration  # the runner hands over an iteration's frame after it
         self._rec.sample(s)
         self._observer.sample(s)
 
@@ -72,9 +70,9 @@ class RecordedRun:
             self._truth.update(self.bench.truth().summary())
         self._observer.event(e)
 
-    def frame(self, t: float, frame: TactileFrame) -> None:
-        self._rec.frame(t, self._iteration, frame.timestamp_ms, frame.texels)
-        self._observer.frame(t, frame)
+    def frame(self, t: float, iteration: int, frame: TactileFrame) -> None:
+        self._rec.frame(t, iteration, frame.timestamp_ms, frame.texels)
+        self._observer.frame(t, iteration, frame)
 
     async def execute(self) -> dict[str, Any]:
         """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
