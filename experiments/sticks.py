@@ -206,6 +206,11 @@ class Params:
     reversals: int = REVERSALS
     max_iterations: int = MAX_ITERATIONS
     printed_eq313: bool = False  # eq 3.13 as printed, σ(Ac→Bd) + σ(Ac→Bc): a check only
+    # Ad by the thesis's quadratic and root test (eqs 3.6–3.9) comparing inclinations within this
+    # tolerance, instead of the closed form: a check only. ``root_last_wins``: when both roots
+    # pass, the one tried last is kept (a loop over i = 1, 2 without a break).
+    root_tol_deg: float | None = None
+    root_last_wins: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -259,6 +264,29 @@ def _measure(
     return pts, lam, sigma, wa, wb
 
 
+def thesis_root(B: Point, lam: float, sigma_d: float, tol: float, last_wins: bool) -> Point | None:
+    """Ad by eqs 3.6–3.9: the two roots z01, z02 of the circle of radius Λ around B, each with
+    its y by eq 3.8 (the left semicircle), kept if its inclination is σd within ``tol`` (rad)."""
+    t2 = math.tan(sigma_d) ** 2
+    root = math.sqrt(lam**2 * t2 + lam**2 * t2**2)
+    chosen: Point | None = None
+    for z in ((B.z + B.z * t2 - root) / (1 + t2), (B.z + B.z * t2 + root) / (1 + t2)):
+        y = B.y - math.sqrt(max(lam**2 - (z - B.z) ** 2, 0.0))
+        if abs(math.atan((B.z - z) / (B.y - y)) - sigma_d) <= tol:
+            chosen = Point(y, z)
+            if not last_wins:
+                break
+    return chosen
+
+
+def _desired_A(B: Point, lam: float, sigma_d: float, p: Params) -> Point:
+    closed = Point(B.y - lam * math.cos(sigma_d), B.z - lam * math.sin(sigma_d))
+    if p.root_tol_deg is None:
+        return closed
+    tol = math.radians(p.root_tol_deg)
+    return thesis_root(B, lam, sigma_d, tol, p.root_last_wins) or closed
+
+
 def simulate(g: Grasp, p: Params, ctx: ModelContext) -> Run:
     """The two-finger algorithm of §3.4.1 on a stick with fixed contacts and constant Λ = length."""
     geom, pad = ctx.geom, ctx.geom.pad
@@ -279,7 +307,7 @@ def simulate(g: Grasp, p: Params, ctx: ModelContext) -> Run:
             if p.printed_eq313:
                 d_sigma += 2.0 * sigma
             sigma_d = sigma + p.lambda_gain * d_sigma  # eq 3.14
-            A_d = Point(B_d.y - lam * math.cos(sigma_d), B_d.z - lam * math.sin(sigma_d))
+            A_d = _desired_A(B_d, lam, sigma_d, p)
             ik = finger_ik(
                 Finger.ONE, A_d, c1.r, c1.theta, (pose.phi2, pose.phi3), geom, ctx.limits1
             )
@@ -771,6 +799,7 @@ def write_report(
     ctx: ModelContext,
     cfg: Settings,
     out: Path,
+    roots: dict[tuple[float, bool, float, float], Summary] | None = None,
 ) -> Path:
     S = {key: summarise(r) for key, r in runs.items()}
     main5, main2 = S[(MAIN_LENGTH, 5.0)], S[(MAIN_LENGTH, 2.0)]
@@ -1087,11 +1116,13 @@ def write_report(
         + " — no period of back-and-forth around zero, so not the thesis's effect either. "
         "(2) The root test of eq 3.9, which picks between A1 and its mirror A3 by comparing "
         "their inclinations ±σd with σd: near σd = 0 the two come close, so a comparison with a "
-        "tolerance (or one that fails on rounding) can pick the mirror root and flip σ exactly "
+        "tolerance (or one that fails on rounding) can pick the mirror root and flip σ "
         "“around the zero inclination”. How the thesis's program compared them is not in the "
-        "text, so this is not simulated; the project's closed form (Ad = Bd − Λ·(cos σd, "
-        "sin σd)) has no such ambiguity.\n"
+        "text, so it is tried below over a range of tolerances; the project's closed form "
+        "(Ad = Bd − Λ·(cos σd, sin σd)) has no such ambiguity.\n"
     )
+    if roots:
+        add(_roots_section(roots))
     add("## Plots\n")
     for k in KS:
         add(f"![{MAIN_LENGTH:g} mm, k = {k:g}]({_png(MAIN_LENGTH, k)})\n")
@@ -1100,6 +1131,76 @@ def write_report(
     path = out / "report.md"
     path.write_text("\n".join(L), encoding="utf-8")
     return path
+
+
+ROOT_TOLERANCES_DEG = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0)
+
+
+def root_test_runs(
+    cfg: Settings, tolerances: Sequence[float] = ROOT_TOLERANCES_DEG
+) -> dict[tuple[float, bool, float, float], Summary]:
+    """Every stick and k with Ad by the thesis's root test, per tolerance and tie order."""
+    ctx = cfg.model_context()
+    out = {}
+    for length in LENGTHS:
+        g = grasp_from_settings(length, cfg)
+        for tol, last, k in itertools.product(tolerances, (True, False), KS):
+            params = Params(k, root_tol_deg=tol, root_last_wins=last)
+            out[(tol, last, length, k)] = summarise(simulate(g, params, ctx))
+    return out
+
+
+def _roots_section(roots: dict[tuple[float, bool, float, float], Summary]) -> str:
+    tolerances = sorted({key[0] for key in roots})
+    rows = [
+        "### Candidate (2): the root test of eq 3.9 with a tolerance\n",
+        "Ad computed by eqs 3.6–3.8 and kept by eq 3.9's test |atan((Bz − Az)/(By − Ay)) − σd| ≤ "
+        "tolerance; when both roots pass (|σd| ≤ tolerance / 2) either the one tried last or the "
+        "first is kept. Same grasps, detectors (N = 2, X = 0.25°) and stop rule as above; summed "
+        "over the four sticks.\n",
+        "| tolerance | both pass: kept | k | runs ending stuck | unintended reversals | stalls "
+        "| iterations with σ backwards |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for tol, last, k in itertools.product(tolerances, (True, False), KS):
+        ss = [roots[(tol, last, ln, k)] for ln in LENGTHS]
+        rows.append(
+            f"| {tol:g}° | {'last' if last else 'first'} | {k:g} | "
+            f"{sum(s.end == 'stuck' for s in ss)} | {sum(len(s.backward) for s in ss)} | "
+            f"{sum(len(s.stalls) for s in ss)} | {sum(s.backward_steps for s in ss)} |"
+        )
+    effect = [
+        (tol, last)
+        for tol, last in itertools.product(tolerances, (True, False))
+        if any(roots[(tol, last, ln, 5.0)].backward for ln in LENGTHS)
+        and not any(roots[(tol, last, ln, 2.0)].backward for ln in LENGTHS)
+    ]
+    back = {
+        (t, la): [sum(roots[(t, la, ln, k)].backward_steps for ln in LENGTHS) for k in (2.0, 5.0)]
+        for t, la in itertools.product(tolerances, (True, False))
+    }
+    picked = [b for b in back.values() if any(b)]
+    worse2 = sum(b2 > b5 for b2, b5 in picked)
+    verdict = (
+        "For no tolerance and tie order does k = 5 show an unintended reversal while k = 2 does not"
+        if not effect
+        else "k = 5 shows an unintended reversal and k = 2 does not for: "
+        + ", ".join(f"{t:g}° ({'last' if la else 'first'})" for t, la in effect)
+    )
+    rows.append(
+        f"\n{verdict}. Where the mirror root is picked at all ({len(picked)} settings), k = 2 "
+        f"has more iterations with σ backwards than k = 5 in {worse2}"
+        + (
+            " — the opposite of the thesis's observation: k = 2's smaller σ steps spend more "
+            "iterations inside the band |σd| ≤ tolerance / 2"
+            if 2 * worse2 > len(picked)
+            else ""
+        )
+        + ". So this candidate does not explain Fig 31.d either.\n"
+        if not effect
+        else f"\n{verdict}.\n"
+    )
+    return "\n".join(rows)
 
 
 def link_normal_range(ctx: ModelContext, sensor: bool, n: int = 400) -> tuple[float, float]:
@@ -1196,7 +1297,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     scans += [scan_grasps(free, k, ctx, "any") for k in KS]
     g = grasp_from_settings(MAIN_LENGTH, cfg)
     printed = {k: simulate(g, Params(k, printed_eq313=True), ctx) for k in KS}
-    path = write_report(runs, scans, printed, ctx, cfg, out)
+    path = write_report(runs, scans, printed, ctx, cfg, out, root_test_runs(cfg))
     print(f"wrote {path}")
     return 0
 

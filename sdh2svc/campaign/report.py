@@ -24,10 +24,17 @@ def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     return read_results(out)
 
 
+def percent(k: int, n: int) -> str:
+    """k of n as a percentage with one decimal, never rounded up across a target (94.7 %, not
+    95 %); whole numbers without the decimal."""
+    tenths = 1000 * k // n
+    return f"{tenths // 10} %" if tenths % 10 == 0 else f"{tenths / 10:.1f} %"
+
+
 def rate(rows: Sequence[Row]) -> str:
     n = len(rows)
     ok = sum(1 for r in rows if r["success"])
-    return f"{ok}/{n} ({100 * ok / n:.0f} %)" if n else "–"
+    return f"{ok}/{n} ({percent(ok, n)})" if n else "–"
 
 
 def by(rows: Iterable[Row], key: Callable[[Row], Any]) -> dict[Any, list[Row]]:
@@ -73,7 +80,7 @@ def _stiffness(r: Row) -> float | None:
 def _share(rows: Sequence[Row], ok: Callable[[Row], bool]) -> str:
     n = len(rows)
     k = sum(1 for r in rows if ok(r))
-    return f"{k}/{n} ({100 * k / n:.0f} %)" if n else "–"
+    return f"{k}/{n} ({percent(k, n)})" if n else "–"
 
 
 def _headline(rows: Sequence[Row]) -> list[str]:

@@ -84,7 +84,7 @@ def test_report_writes_markdown_and_plots(tmp_path: Path) -> None:
     write(tmp_path / "a", rows)
     assert main(["campaign", "report", str(tmp_path / "a")]) == 0
     md = (tmp_path / "a" / "report.md").read_text()
-    assert "**Success overall: 6/11 (55 %)**" in md
+    assert "**Success overall: 6/11 (54.5 %)**" in md
     assert "| box | 6 | 6/6 (100 %) |" in md and "| circle | 5 | 0/5 (0 %) |" in md
     assert "| faulted: stuck | 4 |" in md and "| crashed | 1 |" in md
     assert "ValueError: x" in md
@@ -121,3 +121,11 @@ def test_report_on_a_directory_without_a_campaign_is_not_found(
 ) -> None:
     assert main(["campaign", "report", str(tmp_path)]) == 3
     assert "no campaign in" in capsys.readouterr().err
+
+
+def test_a_percentage_is_never_rounded_up_across_a_target() -> None:
+    from sdh2svc.campaign.report import percent
+
+    assert percent(341, 360) == "94.7 %"  # not "95 %"
+    assert percent(359, 360) == "99.7 %" and percent(360, 360) == "100 %"
+    assert percent(1, 2) == "50 %" and percent(0, 7) == "0 %"

@@ -217,3 +217,25 @@ def test_report_and_plots(
     assert "**Not reproduced.**" in text and f"N = {st.BACKWARD_ITERATIONS}" in text
     st.plot_inclination([runs[(62.038, k)] for k in st.KS], tmp_path / "s.png", "t")
     assert (tmp_path / "s.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_thesis_root_test_is_the_closed_form_unless_both_roots_pass() -> None:
+    B, lam = Point(50.0, 120.0), 98.46
+    for sd in (math.radians(-3.0), math.radians(0.4), math.radians(4.0)):
+        closed = Point(B.y - lam * math.cos(sd), B.z - lam * math.sin(sd))
+        for last in (True, False):
+            got = st.thesis_root(B, lam, sd, math.radians(0.1), last)
+            assert got is not None and math.dist(got, closed) < 1e-9
+    # |σd| ≤ tol / 2: both roots pass, and the kept one depends on the order tried
+    sd, tol = math.radians(0.2), math.radians(1.0)
+    last = st.thesis_root(B, lam, sd, tol, True)
+    first = st.thesis_root(B, lam, sd, tol, False)
+    assert last is not None and first is not None
+    assert math.degrees(segment(last, B)[1]) == pytest.approx(-0.2)
+    assert math.degrees(segment(first, B)[1]) == pytest.approx(0.2)
+
+
+def test_the_root_test_candidate_is_reported(cfg: Settings) -> None:
+    text = st._roots_section(st.root_test_runs(cfg, (0.1, 5.0)))
+    assert "| 0.1° | last | 5 |" in text and "| 5° | first | 2 |" in text
+    assert "does not explain Fig 31.d" in text or "k = 5 shows an unintended reversal" in text
