@@ -29,7 +29,7 @@ from sdh2svc.model.contact import MatrixLayout
 
 MAX_FORCE_N = 50.0  # a firm press of a fingertip is ~10 N; more is a typo
 MAX_DURATION_S = 60.0
-MAX_RADIUS_MM = 25.0  # a pad is 20.4 mm wide
+MIN_RADIUS_MM, MAX_RADIUS_MM = 0.5, 25.0  # a point of a pen … a palm (a pad is 20.4 mm wide)
 
 
 class Press(Frozen):
@@ -39,7 +39,9 @@ class Press(Frozen):
     x_mm: Annotated[float, Field(ge=0.0, le=100.0, description="across the pad, from column 0")]
     y_mm: Annotated[float, Field(ge=0.0, le=100.0, description="along the pad, from row 0")]
     force_n: Annotated[float, Field(gt=0.0, le=MAX_FORCE_N, description="total force, N")]
-    radius_mm: Annotated[float, Field(gt=0.0, le=MAX_RADIUS_MM, description="contact disc")] = 3.0
+    radius_mm: Annotated[
+        float, Field(ge=MIN_RADIUS_MM, le=MAX_RADIUS_MM, description="contact disc, mm")
+    ] = 3.0
     duration_s: Annotated[float, Field(gt=0.0, le=MAX_DURATION_S, description="s")] = 1.0
 
     def check_on(self, layout: MatrixLayout, pitch_mm: float) -> None:

@@ -148,3 +148,11 @@ def test_the_middle_finger_parks_follows_its_targets_and_its_pads_read_a_press(
             sub.close()
 
     run_fast(main())
+
+
+def test_the_smallest_press_is_still_a_disc() -> None:
+    tiny = Press(pad=1, x_mm=10.2, y_mm=22.1, force_n=1e-300, radius_mm=0.5)
+    cells = press_cells(tiny, DISTAL, PITCH, SPREAD)
+    assert np.isfinite(cells).all() and cells.sum() * PITCH**2 == pytest.approx(1e-300, rel=1e-3)
+    with pytest.raises(ValueError, match="radius_mm"):
+        Press(pad=1, x_mm=10.2, y_mm=22.1, force_n=1, radius_mm=5e-324)
