@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import Field, Strict, ValidationError
 from scipy.special import ndtr
 
 from sdh2svc.model.base import Frozen
@@ -33,16 +33,17 @@ MIN_RADIUS_MM, MAX_RADIUS_MM = 0.5, 25.0  # a point of a pen … a palm (a pad i
 
 
 class Press(Frozen):
-    """One press on one pad (see the module docstring for the frame)."""
+    """One press on one pad (see the module docstring for the frame). Strict: numbers, never
+    true/false or strings; finite (the bounds)."""
 
-    pad: Annotated[int, Field(ge=0, le=5, description="matrix 0…5 (wire order)")]
-    x_mm: Annotated[float, Field(ge=0.0, le=100.0, description="across the pad, from column 0")]
-    y_mm: Annotated[float, Field(ge=0.0, le=100.0, description="along the pad, from row 0")]
-    force_n: Annotated[float, Field(gt=0.0, le=MAX_FORCE_N, description="total force, N")]
+    pad: Annotated[int, Strict(), Field(ge=0, le=5, description="matrix 0…5 (wire order)")]
+    x_mm: Annotated[float, Strict(), Field(ge=0.0, le=100.0, description="across, from column 0")]
+    y_mm: Annotated[float, Strict(), Field(ge=0.0, le=100.0, description="along, from row 0")]
+    force_n: Annotated[float, Strict(), Field(gt=0.0, le=MAX_FORCE_N, description="total force")]
     radius_mm: Annotated[
-        float, Field(ge=MIN_RADIUS_MM, le=MAX_RADIUS_MM, description="contact disc, mm")
+        float, Strict(), Field(ge=MIN_RADIUS_MM, le=MAX_RADIUS_MM, description="contact disc")
     ] = 3.0
-    duration_s: Annotated[float, Field(gt=0.0, le=MAX_DURATION_S, description="s")] = 1.0
+    duration_s: Annotated[float, Strict(), Field(gt=0.0, le=MAX_DURATION_S)] = 1.0
 
     def check_on(self, layout: MatrixLayout, pitch_mm: float) -> None:
         """Raise ValueError unless the press's centre lies on the pad of ``layout``."""

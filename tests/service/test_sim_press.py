@@ -38,6 +38,7 @@ def test_a_press_through_the_api_reads_in_the_next_frames(tmp_path: Path) -> Non
                                ({**PRESS, "force_n": 1e4}, "force_n"),
                                ({**PRESS, "duration_s": 61}, "duration_s"),
                                ({**PRESS, "pad": 6}, "pad"),
+                               ({**PRESS, "force_n": True}, "force_n"),
                                ({**PRESS, "colour": "red"}, "colour")):  # fmt: skip
                 r = await c.post("/api/sim/press", json=bad)
                 assert r.status_code == 422 and field in r.json()["details"][0], r.text
