@@ -22,6 +22,7 @@ from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
 if TYPE_CHECKING:
     from sdh2svc.connect import Bench
     from sdh2svc.sim.objects import Shape
+    from sdh2svc.sim.press import Press
 
 
 class Exit(IntEnum):
@@ -128,7 +129,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated hand's two controllers (DSACON32m tactile, SDH2 joints) on ptys and
-    TCP ports, for any driver — ours, SCHUNK's SDHLibrary, the ROS node — until Ctrl-C."""
+    TCP ports, for any driver — ours, SCHUNK's SDHLibrary, the ROS node — until Ctrl-C. A pad is
+    pressed with --press, or by typing `press pad=3 x=10 y=12 force=2 …` (or `release`) on the
+    standard input while it runs."""
     import asyncio
     import signal
 
@@ -170,6 +173,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
+        for spec, (press, at) in args.press or ():
+            try:
+                bench.press(press, after_s=at)
+            except ValueError as e:
+                _fail(Exit.USAGE, f"--press {spec}: {e}")
         info = {"object": obj.name or obj.kind, "dsa": hand.urls("dsa"), "sdh": hand.urls("sdh")}
         if args.json:
             print(json.dumps(info), flush=True)
@@ -179,11 +187,67 @@ def cmd_sim(args: argparse.Namespace) -> int:
                   f"fingertips")  # fmt: skip
             print(f"  DSACON32m (tactile): {'   '.join(info['dsa'])}")
             print(f"  SDH2 (joints):       {'   '.join(info['sdh'])}")
+            for _, (press, at) in args.press or ():
+                print(f"  press: {press.describe()}, {at:g} s from now")
             print("  Point a driver at one URL of each. Ctrl-C stops.", flush=True)
+        _read_presses(bench, loop)
         await stop.wait()
 
     asyncio.run(main())
     return 0
+
+
+def _press_arg(spec: str) -> tuple[str, tuple[Press, float]]:
+    """``--press SPEC``: the spec as given, and its press and delay (argparse's type)."""
+    from sdh2svc.sim.press import parse_spec
+
+    try:
+        return spec, parse_spec(spec)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def sim_command(bench: Bench, line: str) -> str | None:
+    """One line typed into `sdh2svc sim`: ``press <spec>`` presses a pad, ``release`` lifts
+    every press. Returns what to tell the user (None for a blank line); a bad line changes
+    nothing."""
+    from sdh2svc.sim.press import SPEC_HELP, parse_spec
+
+    word, _, rest = line.strip().partition(" ")
+    try:
+        if word == "press":
+            press, at = parse_spec(rest)
+            bench.press(press, after_s=at)
+            return f"pressing {press.describe()}" + (f", {at:g} s from now" if at else "")
+        if word == "release":
+            return f"released {bench.release()} press(es)"
+    except ValueError as e:
+        return f"bad press: {e}"
+    return f"unknown command {word!r}: type `press {SPEC_HELP}` or `release`" if word else None
+
+
+def _read_presses(bench: Bench, loop: Any) -> None:
+    """Lines typed (or piped) into `sdh2svc sim` while it runs (:func:`sim_command`), answered
+    on stderr. A thread reads them (a daemon: it never holds up the exit); the loop acts on
+    them. Nothing is read unless stdin is a terminal or a pipe."""
+    import stat
+    import threading
+
+    try:
+        if not (sys.stdin.isatty() or stat.S_ISFIFO(os.fstat(sys.stdin.fileno()).st_mode)):
+            return
+    except (OSError, ValueError, AttributeError):  # no usable stdin
+        return
+
+    def act(line: str) -> None:
+        if (message := sim_command(bench, line)) is not None:
+            print(f"sdh2svc sim: {message}", file=sys.stderr, flush=True)
+
+    def read() -> None:
+        for line in sys.stdin:
+            loop.call_soon_threadsafe(act, line)
+
+    threading.Thread(target=read, name="sim-stdin", daemon=True).start()
 
 
 def _object(args: argparse.Namespace, default: str = "") -> Shape:
@@ -537,6 +601,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--replace-after", type=float, metavar="S",
                    help="put a released or dropped object back after S s untouched "
                         "(default 1; 0 = never)")  # fmt: skip
+    press_help = (
+        "press a pad: pad=0…5,x=MM,y=MM,force=N[,radius=MM][,duration=S][,at=S] "
+        "(x across, y along from the tip; at: s after start; repeatable)"
+    )
+    p.add_argument("--press", action="append", type=_press_arg, metavar="SPEC", help=press_help)
     p.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
     p.set_defaults(func=cmd_sim)
 

@@ -13,6 +13,7 @@ the tactile bus; closed the other way round.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import tempfile
 from collections.abc import AsyncIterator
@@ -27,6 +28,7 @@ from sdh2svc.sim.hand import HandModel, Truth
 from sdh2svc.sim.lab import SimulatedHand, start_simulated_hand
 from sdh2svc.sim.objects import Outline, Shape
 from sdh2svc.sim.physics import ContactTruth
+from sdh2svc.sim.press import Press
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,7 +74,8 @@ def hand_model(cfg: Settings) -> HandModel:
 
 class Bench:
     """The simulated hand's surroundings, as a lab has them: the object between the fingertips
-    (put it back, or another), its true outline, and the truth. A real hand has none."""
+    (put it back, or another), its true outline, the truth, and a person's finger to press a
+    pad with. A real hand has none."""
 
     def __init__(self, sim: SimulatedHand) -> None:
         self.sim = sim  # the emulators, for tests that look at the devices themselves
@@ -91,6 +94,15 @@ class Bench:
     ) -> None:  # fmt: skip
         """Put ``obj`` (default: the same object) between the fingertips, in the fixture."""
         self.sim.world.place(obj or self.obj, height_mm=height_mm, angle_deg=angle_deg)
+
+    def press(self, press: Press, after_s: float = 0.0) -> None:
+        """Press a pad ``after_s`` from now, on the simulated hand's clock (the running event
+        loop's: virtual in fast mode); ValueError if the press is off the pad."""
+        self.sim.world.press(press, asyncio.get_running_loop().time() + after_s)
+
+    def release(self) -> int:
+        """Lift every press that is on now; returns how many."""
+        return self.sim.world.release(asyncio.get_running_loop().time())
 
     def truth(self) -> Truth:
         """What really happens now (steps the physics up to the joints' actual pose)."""

@@ -2,6 +2,9 @@
 //
 // Matrix order 0…5 as in the config's axes.*_matrix. Row 0 is at the fingertip's end (distal
 // pads) or at the distal joint (proximal pads), so it is drawn at the top: the fingertip is "up".
+// In simulation, pressing and holding a cell presses the simulated pad there (see pressable).
+
+import { request } from "/web/api.js";
 
 export const PAD_LABELS = ["F1 prox", "F1 dist", "thumb prox", "thumb dist", "F2 prox", "F2 dist"];
 const SHAPES = [[14, 6], [13, 6], [14, 6], [13, 6], [14, 6], [13, 6]]; // rows × cols
@@ -70,6 +73,7 @@ export class Pads {
       this.canvases.push(canvas);
       this.infos.push(info);
       this.draw(i, null);
+      this.pressable(i);
     });
     const scale = document.createElement("div");
     scale.className = "pad-scale";
@@ -89,6 +93,45 @@ export class Pads {
       if (!m) return;
       for (let i = 0; i < this.canvases.length; i++) this.draw(i, m[i] || null);
     });
+  }
+
+  /**
+   * Press-and-hold on pad i presses the simulated pad under the pointer (POST /api/sim/press,
+   * 2 N over a 4 mm disc, position in mm from the cell frame: x across, y along from the tip);
+   * letting go lifts it (DELETE). A real hand answers 404: its pads stay read-only.
+   */
+  pressable(i) {
+    const PITCH_MM = 3.4; // the config's tactile.texel_pitch_mm
+    const canvas = this.canvases[i];
+    const [rows, cols] = SHAPES[i];
+    canvas.style.cursor = "crosshair";
+    canvas.addEventListener("pointerdown", (e) => {
+      if (this.readOnly || e.button !== 0) return;
+      canvas.setPointerCapture(e.pointerId);
+      const box = canvas.getBoundingClientRect();
+      const x = ((e.clientX - box.left) / box.width) * cols * PITCH_MM;
+      const y = ((e.clientY - box.top) / box.height) * rows * PITCH_MM;
+      const press = { pad: i, x_mm: +x.toFixed(2), y_mm: +y.toFixed(2), force_n: 2, radius_mm: 4,
+        duration_s: 60 };
+      // resolves to whether the press is on, so that letting go early still lifts it
+      this.pressing = request("POST", "/api/sim/press", press).then(
+        () => true,
+        (err) => {
+          if (err.status === 404) {
+            this.readOnly = true;
+            this.canvases.forEach((c) => (c.style.cursor = ""));
+          } else this.infos[i].textContent = err.message;
+          return false;
+        },
+      );
+    });
+    const lift = async () => {
+      const pressing = this.pressing;
+      this.pressing = null;
+      if (pressing && (await pressing)) request("DELETE", "/api/sim/press", {}).catch(() => {});
+    };
+    canvas.addEventListener("pointerup", lift);
+    canvas.addEventListener("pointercancel", lift);
   }
 
   draw(i, matrix) {

@@ -32,6 +32,7 @@ from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import RunStore
 from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Sim, Status, Tactile
 from sdh2svc.sim.objects import PRESETS, ObjectSpec, Shape, get_object, parse_object
+from sdh2svc.sim.press import Press
 
 log = logging.getLogger(__name__)
 
@@ -325,6 +326,21 @@ class HandService:
         self.publish_status()
         return self.object_info()
 
+    def press(self, press: Press) -> dict[str, Any]:
+        """A person presses a pad of the simulated hand, starting now (422 if off the pad)."""
+        bench = self._bench("not in simulation: press the real hand's pads with a finger")
+        try:
+            bench.press(press)
+        except ValueError as e:
+            raise ServiceError(422, "the press is off its pad", [str(e)]) from None
+        log.info("pressing %s", press.describe())
+        return press.model_dump()
+
+    def release_presses(self) -> dict[str, int]:
+        """Lift every press on the simulated hand's pads."""
+        bench = self._bench("not in simulation: press the real hand's pads with a finger")
+        return {"released": bench.release()}
+
     async def command(self, kind: str, args: dict[str, Any]) -> None:
         """The 3-D view's buttons and sliders; a refusal is logged and raised (the view shows
         it in its panel). The view cannot authenticate: with a token set, only the e-stop."""
@@ -395,9 +411,11 @@ class HandService:
             raise ServiceError(503, "the hand's links are not open yet")
         return self.joints, self.tactile, self.store
 
-    def _bench(self) -> Bench:
+    def _bench(
+        self, why: str = "not in simulation: the object is whatever the real hand holds"
+    ) -> Bench:
         if self.bench is None:
-            raise ServiceError(404, "not in simulation: the object is whatever the real hand holds")
+            raise ServiceError(404, why)
         return self.bench
 
     async def _execute(self, run: RecordedRun) -> None:

@@ -16,7 +16,10 @@ power change, :meth:`~PhysicsWorld.flush`). The torque limit is checked at every
 last step's contact torques, which are never more than one substep behind: a finger pressing a
 stiff object stops within 0.25° of where its torque reached the limit, as with coarse ticks.
 
-The rolling plane model assumes axis 0 (φ1) at 90°, the fingers facing each other.
+The rolling plane model assumes axis 0 (φ1) at 90°, the fingers facing each other. The third
+(middle) finger stands outside that plane: its joints follow their references like the others but
+touch nothing, and it starts parked out of the way (:data:`MIDDLE_PARKED_DEG`), as the thesis parks
+it. Any pad, its two included, reads what a person presses on it (:mod:`sdh2svc.sim.press`).
 """
 
 from __future__ import annotations
@@ -40,8 +43,14 @@ from sdh2svc.sim.physics import (
     ContactPhysics,
     ContactTruth,
 )
+from sdh2svc.sim.press import Press, Presses
 from sdh2svc.sim.sensor import PadRaster, TactileSensorModel
 from sdh2svc.sim.simconfig import SimConfig
+
+# The middle finger's (proximal, distal) angles at power-on, deg: opened away from the coupled
+# fingers, out of their plane of work (thesis §2.9), as SCHUNK's grasping demo's start pose and
+# the controller's pre-shape have it.
+MIDDLE_PARKED_DEG = (-90.0, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,7 +102,8 @@ class Truth:
 
 
 class PhysicsWorld:
-    """Both coupled fingers, one object, six tactile pads; advances lazily to each ``now``.
+    """Three fingers — the two coupled ones in contact with one object, the middle one parked —
+    and six tactile pads that a person may press; advances lazily to each ``now``.
 
     ``_angles`` are the actual joint angles (what :meth:`move_joints` reports): the reference
     of each powered joint that is not stalled, the held angle of a stalled or limp one. The
@@ -107,12 +117,16 @@ class PhysicsWorld:
         layouts = [model.tactile.proximal, model.tactile.distal] * 3
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
         self._angles = [0.0] * 7
+        self._angles[self.axes.thumb_proximal], self._angles[self.axes.thumb_distal] = (
+            MIDDLE_PARKED_DEG
+        )
         self._stepped = list(self._angles)  # the joint angles the physics was last stepped to
         self._powered: tuple[bool, ...] | None = None  # as of the last move_joints
         # the last step's joints at their torque limit, (axis, torque), once asked
         self._tau: list[tuple[int, float]] | None = None
         self._blocked: set[int] = set()
         self._seed = sim.seed
+        self.presses = Presses(layouts, model.tactile.texel_pitch_mm, sim.sensor.spread_mm)
         a, phys = self.axes, sim.physics
         self._physical_axes = (a.phi2, a.phi3, a.phi4, a.phi5)  # the joints the physics sees
         self._max_lead_deg = phys.max_joint_step_deg
@@ -155,7 +169,19 @@ class PhysicsWorld:
         self, now: float, sensitivity: Sequence[float], threshold: Sequence[int]
     ) -> np.ndarray:
         phys = self.physics
-        return self.sensor.frame(now, phys.pressures(), phys.width_mm, sensitivity, threshold)
+        pressed = self.presses.pressure(now)
+        return self.sensor.frame(
+            now, phys.pressures(), phys.width_mm, sensitivity, threshold, pressed
+        )
+
+    def press(self, press: Press, start: float) -> None:
+        """A person presses a pad from ``start`` (s, the world's clock) for the press's duration;
+        ValueError if its centre is off the pad."""
+        self.presses.add(press, start)
+
+    def release(self, now: float) -> int:
+        """Every press on at ``now`` is lifted; returns how many."""
+        return self.presses.release(now)
 
     def flush(self) -> None:
         """Step the contact physics to the joints' actual pose (a no-op if it stands there)."""

@@ -11,6 +11,8 @@
   scaled by ``gain_vs_library`` (1.0: exactly the library's nominal calibration; see sim.toml),
   plus seeded Gaussian noise on loaded cells (an unloaded resistive cell reads a clean 0),
   then the controller's sensitivity, threshold and saturation at 4095.
+* Pressure from outside the physics (a person pressing a pad, :mod:`sdh2svc.sim.press`) is
+  added to the cells' pressure before creep and noise: it reads as any load does.
 * Dead texels (``dead_texels``, [matrix, row, col] each) read 0 whatever presses them, as a
   broken cell of a worn pad does.
 * Creep (thesis §2.8, §4.1): each cell keeps a memory m that follows its pressure with a time
@@ -160,9 +162,13 @@ class TactileSensorModel:
         band_mm: float,
         sensitivity: Sequence[float],
         threshold: Sequence[int],
+        pressed: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Raw counts of all six matrices at ``now`` (flat uint16, wire order)."""
+        """Raw counts of all six matrices at ``now`` (flat uint16, wire order); ``pressed``: more
+        pressure (N/mm², flat, wire order) from outside the physics — a person's press."""
         p = self._flat_pressures(by_surface, band_mm)
+        if pressed is not None:
+            p += pressed
         dt = 0.0 if self._t is None else max(0.0, now - self._t)
         self._t = now
         cfg = self.cfg

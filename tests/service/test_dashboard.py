@@ -153,6 +153,17 @@ async def test_layout_and_static_assets(service: LiveService, page: Any) -> None
     assert await page.inner_text("#ws-state") == "live"
     assert (await counters(page))["lastError"] is None
 
+    # in simulation, press-and-hold on a pad's cell presses the pad there; letting go lifts it
+    sel = "#pads canvas[data-matrix='3']"
+    lit = f"(a) => ({COUNT_PIXELS_NOT})(a) > 0"
+    box = await page.locator(sel).bounding_box()
+    assert box is not None and not await page.evaluate(lit, [sel, PAD_ZERO_RGB])
+    await page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    await page.mouse.down()
+    await page.wait_for_function(lit, arg=[sel, PAD_ZERO_RGB], timeout=10_000)
+    await page.mouse.up()
+    await page.wait_for_function(f"(a) => !({lit})(a)", arg=[sel, PAD_ZERO_RGB], timeout=10_000)
+
 
 async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: Any) -> None:
     await page.select_option("#object-select", "egg")

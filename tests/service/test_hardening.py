@@ -268,6 +268,8 @@ async def test_openapi_lists_every_status_and_content_type(svc: LiveService) -> 
         ("post", "/api/hand/open"): {202, 400, 401, 403, 409, 413, 415, 503},
         ("get", "/api/sim/object"): {200, 400, 404},
         ("put", "/api/sim/object"): {200, 400, 401, 403, 404, 409, 413, 415, 422},
+        ("post", "/api/sim/press"): {202, 400, 401, 403, 404, 413, 415, 422},
+        ("delete", "/api/sim/press"): {200, 400, 401, 403, 404, 413, 415},
     }
     for (method, path), codes in expect.items():
         responses = paths[path][method]["responses"]

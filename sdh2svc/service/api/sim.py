@@ -1,4 +1,5 @@
-"""The simulated object (404 on a real hand: the object is whatever it holds)."""
+"""The simulated hand's surroundings: its object, a person's press on a pad (404 on a real hand:
+the object is whatever it holds, its pads are pressed by hand)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.service.api.deps import Auth, St
-from sdh2svc.service.api.errors import READ, WRITE, responses
+from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import parse_object_request
+from sdh2svc.sim.press import Press
 
 router = APIRouter()
 
@@ -32,3 +34,24 @@ async def get_object(st: St) -> dict[str, Any]:
 async def put_object(st: St, req: ObjectRequest) -> dict[str, Any]:
     st.object_info()  # 404 first when not in simulation
     return st.set_object(parse_object_request(req.name, req.spec))
+
+
+@router.post(
+    "/api/sim/press", status_code=202, dependencies=[Auth], responses=responses(*WRITE, 404, 422)
+)
+async def press(st: St, req: Press) -> dict[str, Any]:
+    """Press a pad as a person would, starting now: matrix ``pad``, centre (``x_mm`` across from
+    column 0, ``y_mm`` along from row 0), ``force_n`` over a disc of ``radius_mm`` for
+    ``duration_s``. Answers the accepted press; the next tactile frames read it."""
+    return st.press(req)
+
+
+@router.delete(
+    "/api/sim/press",
+    dependencies=[Auth],
+    responses=responses(*WRITE, 404),
+    openapi_extra=EMPTY_BODY,
+)
+async def release(st: St) -> dict[str, int]:
+    """Lift every press that is on now (a person takes the finger away)."""
+    return st.release_presses()
