@@ -208,7 +208,7 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         assert r.status_code == 200
         got = read(r.content)  # every message valid against its schema (mcap_check)
         assert len(got.messages["/samples"]) == page["total"]
-        assert len(got.messages["/tf"]) == len(got.messages["/contacts"]) == page["total"]
+        assert len(got.messages["/tf"]) == len(got.messages["/scene"]) == page["total"]
         assert got.messages["/tactile/finger1_distal"] and got.messages["/events"]
         r = await c.get(f"/api/runs/{run_id}/export", params={"format": "xls"})
         assert r.status_code == 422

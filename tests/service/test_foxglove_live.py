@@ -28,7 +28,7 @@ from sdh2svc.control.observer import EventKind
 from sdh2svc.service import foxglove_live
 from sdh2svc.service.foxglove_live import URDF_URI, FoxgloveLive, FoxgloveStartError
 from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
-from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Tactile
+from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Sim, Tactile
 from tests.live_service import LiveService, start_service
 from tests.service.test_telemetry import a_sample
 
@@ -36,7 +36,7 @@ TIMEOUT_S = 120.0
 # The protocol's names: foxglove-sdk ≥ 0.30 answers to the newer one only; a client offers both.
 SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
 MESSAGE_DATA, FETCH_ASSET_RESPONSE = 0x01, 0x04  # binary opcodes (server → client)
-TOPICS = {"/samples", "/tf", "/contacts", "/events", *(pad_topic(p) for p in PAD_NAMES)}
+TOPICS = {"/samples", "/tf", "/scene", "/events", *(pad_topic(p) for p in PAD_NAMES)}
 
 
 def _free_port() -> int:
@@ -118,11 +118,12 @@ async def test_every_channel_live_during_a_run(fox: tuple[LiveService, int]) -> 
 
         got: dict[str, list[Any]] = {}
         urdf = b""
+        scene_ids: set[str] = set()
         async with httpx.AsyncClient(base_url=svc.url, headers=svc.headers()) as c:
             r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 1}})
             assert r.status_code == 201, r.text
             deadline = time.monotonic() + TIMEOUT_S
-            while set(got) != TOPICS or not urdf:
+            while set(got) != TOPICS or not urdf or not {"contacts", "object"} <= scene_ids:
                 m = await asyncio.wait_for(ws.recv(), deadline - time.monotonic())
                 if isinstance(m, str):
                     continue
@@ -135,13 +136,18 @@ async def test_every_channel_live_during_a_run(fox: tuple[LiveService, int]) -> 
                 sub, _log_time = struct.unpack_from("<IQ", m, 1)
                 topic, msg = decode(subs[sub], m[13:])
                 got.setdefault(topic, []).append(msg)
+                if topic == "/scene":
+                    scene_ids.update(e.id for e in msg.entities)
             await c.post("/api/runs/stop")  # the module's service idle for the next test
 
     assert urdf.startswith(b"<?xml") and b"<robot" in urdf
     sample = got["/samples"][0]
     assert sample["iteration"] >= 1 and "phi2" in sample
     assert any(t.child_frame_id for t in got["/tf"][0].transforms)
-    assert got["/contacts"][-1].entities[0].frame_id == "frame0"
+    entities = {e.id: e for m in got["/scene"] for e in m.entities}
+    assert entities["contacts"].frame_id == "frame0"
+    assert {f"pads/{p}" for p in PAD_NAMES} <= set(entities)
+    assert entities["object"].frame_id == "frame0" and len(entities["object"].lines[0].points) > 20
     assert any(log.name for log in got["/events"])
     for pad in PAD_NAMES:
         grid = got[pad_topic(pad)][0]
@@ -182,9 +188,9 @@ class FakeHand:
         self.built.append("pose")
         return "pose"
 
-    def contacts(self, s: Any, ns: int, alpha: float) -> tuple[str, float]:
-        self.built.append("contacts")
-        return ("contacts", alpha)
+    def scene(self, s: Any, ns: int, alpha: float, truth: Any = None) -> tuple[str, float]:
+        self.built.append("scene" if truth is None else "object")
+        return ("scene", alpha)
 
     def pad_grids(self, mats: Any, ns: int) -> dict[str, str]:
         self.built.append("grids")
@@ -217,7 +223,7 @@ def live(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[FoxgloveLive, FakeHa
 
 
 def _chans(fox: FoxgloveLive, subscribed: bool) -> dict[str, FakeChannel]:
-    ch = {n: FakeChannel(subscribed) for n in ("_samples", "_tf", "_contacts", "_events")}
+    ch = {n: FakeChannel(subscribed) for n in ("_samples", "_tf", "_scene", "_events")}
     for name, c in ch.items():
         setattr(fox, name, c)
     fox._pads = {p: FakeChannel(subscribed) for p in PAD_NAMES}  # type: ignore[misc]
@@ -250,12 +256,12 @@ def test_3d_channels_at_most_max_hz_samples_and_events_all(
         fox.handle(SampleMsg(1, a_sample(iteration=i + 1)))
         fox.handle(_tactile(i))
     assert [json.loads(m)["iteration"] for m, _ in ch["_samples"].logged] == [1, 2, 3, 4, 5]
-    assert hand.built == ["tf", "contacts", "grids"]
+    assert hand.built == ["tf", "scene", "grids"]
     assert all(len(c.logged) == 1 for c in fox._pads.values())  # type: ignore[attr-defined]
     clock.now += 0.1  # a period later: the next sample and frame are drawn
     fox.handle(SampleMsg(1, a_sample(iteration=6)))
     fox.handle(_tactile(6))
-    assert hand.built == ["tf", "contacts", "grids", "tf", "contacts", "grids"]
+    assert hand.built == ["tf", "scene", "grids", "tf", "scene", "grids"]
     # log times: the clock at delivery
     assert ch["_samples"].logged[-1][1] == clock.time_ns()
 
@@ -265,8 +271,21 @@ def test_the_cones_take_the_runs_alpha(live: tuple[FoxgloveLive, FakeHand, Clock
     ch = _chans(fox, subscribed=True)
     fox.handle(Event(1, 0.0, 0, EventKind.START, {"params": {"alpha_deg": 30.0}}))
     fox.handle(SampleMsg(1, a_sample()))
-    assert ch["_contacts"].logged[-1][0] == ("contacts", pytest.approx(math.radians(30.0)))
+    assert ch["_scene"].logged[-1][0] == ("scene", pytest.approx(math.radians(30.0)))
     assert [type(m) for m, _ in ch["_events"].logged] == [fm.Log]
+
+
+def test_the_object_and_the_contacts_end(live: tuple[FoxgloveLive, FakeHand, Clock]) -> None:
+    """The truth's object at each ``sim`` message; a run's end deletes its contacts."""
+    fox, hand, _ = live
+    ch = _chans(fox, subscribed=True)
+    fox.handle(Sim({"outline": [[0.0, 100.0], [10.0, 110.0]]}))
+    fox.handle(Sim({"outline": [[0.0, 100.0], [10.0, 110.0]]}))
+    assert hand.built == ["object", "object"]
+    fox.handle(Event(1, 9.0, 300, EventKind.END, {"status": "completed", "message": ""}))
+    update = _proto_class("foxglove.SceneUpdate", fm.SceneUpdate.get_schema().data)
+    (deletion,) = update.FromString(ch["_scene"].logged[-1][0].encode()).deletions
+    assert deletion.id == "contacts" and deletion.type == 0  # MATCHING_ID, not ALL
 
 
 def test_stopped_it_ignores_messages(live: tuple[FoxgloveLive, FakeHand, Clock]) -> None:
