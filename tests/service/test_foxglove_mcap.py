@@ -78,6 +78,18 @@ def test_the_sample_schema_is_the_sample(recorded: tuple[list[Sample], Recording
     assert got[7] == {f.name: getattr(samples[7], f.name) for f in fields(Sample)}
 
 
+def test_the_csv_header_carries_the_units() -> None:
+    """``name [unit]`` from the Sample's fields, the same unit as the schema's description."""
+    header = Sample.csv_header()
+    assert header[:3] == ("iteration", "t [s]", "phi2 [deg]")
+    assert {"S1 [mm]", "F [library force units]", "latency_ms [ms]", "reversal"} <= set(header)
+    docs = Sample.descriptions()
+    for name, col in zip(Sample.columns(), header, strict=True):
+        unit = Sample.units()[name]
+        assert col == (name if unit is None else f"{name} [{unit}]")
+        assert unit is None or docs[name].endswith(f", {unit}")
+
+
 def test_log_times_are_the_records_own(recorded: tuple[list[Sample], Recording]) -> None:
     samples, rec = recorded
     t = rec.log_times
