@@ -62,27 +62,29 @@ def cycle(lab: tuple[LiveService, int]) -> Cycle:
 
 
 async def _watch_a_cycle(svc: LiveService, port: int) -> Cycle:
-    async with (
-        connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws,  # type: ignore[arg-type]
-        AsyncClient(svc.url, token=TOKEN) as c,
-        c.telemetry(tactile=False) as tm,
-    ):
-        assert ws.subprotocol in SUBPROTOCOLS
-        info = await asyncio.wait_for(recv_json(ws, "serverInfo"), 10.0)
-        assert info["name"] == "sdh2svc"
-        channels = (await asyncio.wait_for(recv_json(ws, "advertise"), 10.0))["channels"]
-        assert {c["topic"] for c in channels} == TOPICS
-        subs = {i: c["id"] for i, c in enumerate(channels)}  # subscription id → channel id
-        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": i, "channelId": ch} for i, ch in subs.items()]}))  # fmt: skip
-        await ws.send(json.dumps({"op": "fetchAsset", "uri": URDF_URI, "requestId": 7}))
+    async with AsyncClient(svc.url, token=TOKEN) as c:
+        # the watchers close once they have seen enough: an unread socket takes seconds to
+        # close behind what the service queued for it
+        async with (
+            connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws,  # type: ignore[arg-type]
+            c.telemetry(tactile=False) as tm,
+        ):
+            assert ws.subprotocol in SUBPROTOCOLS
+            info = await asyncio.wait_for(recv_json(ws, "serverInfo"), 10.0)
+            assert info["name"] == "sdh2svc"
+            channels = (await asyncio.wait_for(recv_json(ws, "advertise"), 10.0))["channels"]
+            assert {c["topic"] for c in channels} == TOPICS
+            subs = {i: c["id"] for i, c in enumerate(channels)}  # subscription id → channel id
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": i, "channelId": ch} for i, ch in subs.items()]}))  # fmt: skip
+            await ws.send(json.dumps({"op": "fetchAsset", "uri": URDF_URI, "requestId": 7}))
 
-        hello = await anext(tm)
-        run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
-        async with asyncio.timeout(RUN_TIMEOUT_S):
-            first, (got, urdf) = await asyncio.gather(
-                _first_sample(tm, run_id), _every_channel(ws, Decoder(channels), subs)
-            )
+            hello = await anext(tm)
+            run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
+            async with asyncio.timeout(RUN_TIMEOUT_S):
+                first, (got, urdf) = await asyncio.gather(
+                    _first_sample(tm, run_id), _every_channel(ws, Decoder(channels), subs)
+                )
         with pytest.raises(Conflict):  # one run at a time
             await c.start_run()
         end = await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
