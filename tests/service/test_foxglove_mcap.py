@@ -150,6 +150,7 @@ def test_pads_as_boxes_in_their_frames(
     """Each pad a box under its Grid, in the pad's frame of /tf, following it."""
     _, rec = recorded
     frames = {t["child_frame_id"] for t in rec.messages["/tf"][0]["transforms"]}
+    assert "frame0" in frames  # the contacts' frame
     pitch = cfg.tactile.texel_pitch_mm * 1e-3
     pads = {e["id"]: e for e in rec.messages["/scene"][3]["entities"] if e["id"] != "contacts"}
     assert set(pads) == {f"pads/{f}_{p}" for f in FINGERS for p in PADS}
