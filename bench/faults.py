@@ -22,8 +22,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-import httpx
-
+from sdh2svc.client import AsyncClient, StatusCheck, run_state
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, connect_hand, simulated_hand
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
@@ -90,13 +89,13 @@ async def _estop_latency(tmp: Path, trials: int = 5) -> None:
     try:
         async with svc.client() as client:
             for _ in range(trials):
-                assert (await client.post("/api/runs", json={})).status_code == 201
-                await _wait(client, lambda st: st["run"] and st["run"]["state"] == "rolling")
+                await client.start_run()
+                await _wait(client, run_state("rolling"))
                 t0 = time.perf_counter()
-                r = await client.post("/api/estop")
+                answer = await client.estop()
                 times.append((time.perf_counter() - t0) * 1000)
-                assert r.status_code == 200 and r.json()["hand_reached"], r.text
-                await client.post("/api/estop/release", json={})
+                assert answer["hand_reached"], answer
+                await client.release_estop()
                 await _wait(client, lambda st: not st["run"] or st["run"]["state"] == "e-stopped")
     finally:
         await asyncio.to_thread(svc.stop)
@@ -104,11 +103,8 @@ async def _estop_latency(tmp: Path, trials: int = 5) -> None:
           f"trials: median {statistics.median(times):.0f} ms, max {max(times):.0f} ms")  # fmt: skip
 
 
-async def _wait(client: httpx.AsyncClient, ok: Any, timeout_s: float = 90.0) -> dict[str, Any]:
-    async with asyncio.timeout(timeout_s):
-        while not ok(st := (await client.get("/api/status")).json()):
-            await asyncio.sleep(0.05)
-    return st
+async def _wait(client: AsyncClient, ok: StatusCheck, timeout_s: float = 90.0) -> dict[str, Any]:
+    return await client.wait_status(ok, timeout=timeout_s)
 
 
 def _angles(sim: SimulatedHand) -> tuple[float, ...]:
@@ -135,8 +131,8 @@ async def _watch_cut_or_kill(tmp: Path, kill: bool, sim: SimulatedHand) -> tuple
     svc: LiveService = await asyncio.to_thread(serve)
     try:
         async with svc.client() as client:
-            assert (await client.post("/api/runs", json={})).status_code == 201
-            await _wait(client, lambda st: st["run"] and st["run"]["state"] == "grasping")
+            await client.start_run()
+            await _wait(client, run_state("grasping"))
         start = _angles(sim)
         while _travel(_angles(sim), start) < 0.3:
             await asyncio.sleep(0.02)

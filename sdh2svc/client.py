@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-from collections.abc import AsyncIterator, Generator, Iterator, Mapping
+from collections.abc import AsyncIterator, Callable, Generator, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -39,8 +39,10 @@ __all__ = [
     "NotFound",
     "RunRef",
     "SamplePage",
+    "StatusCheck",
     "Unauthorized",
     "Unavailable",
+    "run_state",
 ]
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -49,6 +51,7 @@ JSON = dict[str, Any]
 # the sdh2svc.service.telemetry messages (hello, status, sample, event, tactile, pose, sim,
 # dropped) as JSON: each has a "type"
 TelemetryMessage = JSON
+StatusCheck = Callable[[JSON], bool]  # a condition on the status (Client.wait_status)
 _WS_MAX_BYTES = 2**24  # a hello carries the whole status; a tactile frame six matrices
 
 
@@ -190,6 +193,12 @@ def _ws_url(base_url: str, decimate: int, tactile: bool, max_queue: int | None) 
     return f"{url}/ws/telemetry{query}" + (f"&max_queue={max_queue}" if max_queue else "")
 
 
+def run_state(*states: str) -> StatusCheck:
+    """A :meth:`Client.wait_status` check: a run is in one of ``states`` (``grasping``,
+    ``rolling``, ``e-stopped`` …)."""
+    return lambda st: bool(st.get("run")) and st["run"]["state"] in states
+
+
 def _headers(token: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"} if token else {}
 
@@ -246,6 +255,10 @@ class Client:
 
     def config(self) -> JSON:
         return cast(JSON, self._call(_Call("GET", "/api/config")))
+
+    def viewer(self) -> JSON:
+        """Where the 3-D view is: ``{"url": …}`` (None when it is off)."""
+        return cast(JSON, self._call(_Call("GET", "/api/viewer")))
 
     # runs
     def start_run(
@@ -309,6 +322,16 @@ class Client:
                 raise TimeoutError(f"run {run_id} has not ended within {timeout} s")
             time.sleep(poll_s)
         return end
+
+    def wait_status(self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05) -> JSON:
+        """Poll the status until ``ok(status)`` holds (e.g. :func:`run_state` ``("rolling")``);
+        answers that status. TimeoutError after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while not ok(st := self.status()):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the status did not come to pass within {timeout} s")
+            time.sleep(poll_s)
+        return st
 
     # the simulated object (NotFound on a real hand)
     def sim_object(self) -> JSON:
@@ -424,6 +447,9 @@ class AsyncClient:
     async def config(self) -> JSON:
         return cast(JSON, await self._call(_Call("GET", "/api/config")))
 
+    async def viewer(self) -> JSON:
+        return cast(JSON, await self._call(_Call("GET", "/api/viewer")))
+
     # runs
     async def start_run(
         self, params: Mapping[str, Any] | None = None, object: str | Mapping[str, Any] | None = None
@@ -482,6 +508,16 @@ class AsyncClient:
                 raise TimeoutError(f"run {run_id} has not ended within {timeout} s")
             await asyncio.sleep(poll_s)
         return end
+
+    async def wait_status(
+        self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05
+    ) -> JSON:
+        deadline = time.monotonic() + timeout
+        while not ok(st := await self.status()):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the status did not come to pass within {timeout} s")
+            await asyncio.sleep(poll_s)
+        return st
 
     # the simulated object
     async def sim_object(self) -> JSON:

@@ -16,7 +16,8 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+
+from sdh2svc.client import AsyncClient, Client
 
 START_TIMEOUT_S = 90.0
 
@@ -33,16 +34,20 @@ class LiveService:
 
     @property
     def ws_url(self) -> str:
+        """The telemetry WebSocket's URL, for tests that speak the protocol raw."""
         return self.url.replace("http://", "ws://", 1) + "/ws/telemetry"
 
     def headers(self) -> dict[str, str]:
+        """The token's header, for raw HTTP requests."""
         return {"Authorization": f"Bearer {self.token}"} if self.token else {}
 
-    def client(self) -> Any:
-        """An ``httpx.AsyncClient`` on the service, with the token (httpx: a dev dependency)."""
-        import httpx
+    def client(self) -> AsyncClient:
+        """The service's :class:`~sdh2svc.client.AsyncClient`, with its token."""
+        return AsyncClient(self.url, token=self.token)
 
-        return httpx.AsyncClient(base_url=self.url, headers=self.headers(), timeout=30.0)
+    def sync_client(self) -> Client:
+        """The service's blocking :class:`~sdh2svc.client.Client`, with its token."""
+        return Client(self.url, token=self.token)
 
     def stop(self, sig: int = signal.SIGTERM, timeout: float = 60.0) -> int:
         if self.proc.poll() is None:

@@ -21,9 +21,10 @@ def _yz(p: Point | None) -> tuple[float | None, float | None]:
     return (None, None) if p is None else (p.y, p.z)
 
 
-def _doc(text: str) -> Any:
-    """A field's description, with its unit (the MCAP export's schema, the API's docs)."""
-    return field(metadata={"doc": text})
+def _doc(text: str, unit: str | None = None) -> Any:
+    """A field's description and its unit (None: a count, a sign or a name), for the MCAP
+    export's schema, the CSV export's header and the API's docs."""
+    return field(metadata={"doc": f"{text}, {unit}" if unit else text, "unit": unit})
 
 
 @dataclass(frozen=True, slots=True)
@@ -31,48 +32,48 @@ class Sample:
     """The flat record of one iteration (None where a quantity does not exist this time)."""
 
     iteration: int = _doc("iteration number of the rolling loop (count)")
-    t: float = _doc("time since the run started, s")
-    phi2: float = _doc("Finger 1 proximal joint angle φ2, actual, deg")
-    phi3: float = _doc("Finger 1 distal joint angle φ3, actual, deg")
-    phi4: float = _doc("Finger 2 proximal joint angle φ4, actual, deg")
-    phi5: float = _doc("Finger 2 distal joint angle φ5, actual, deg")
-    phi2_d: float | None = _doc("φ2 target commanded this iteration, deg")
-    phi3_d: float | None = _doc("φ3 target commanded this iteration, deg")
-    phi4_d: float | None = _doc("φ4 target commanded this iteration, deg")
-    phi5_d: float | None = _doc("φ5 target commanded this iteration, deg")
-    S1: float | None = _doc("contact height on Finger 1's distal pad (tactile centroid), mm")
-    S2: float | None = _doc("contact height on Finger 2's distal pad (tactile centroid), mm")
-    F1: float = _doc("contact force on Finger 1's distal pad, library force units")
-    F2: float = _doc("contact force on Finger 2's distal pad, library force units")
-    F: float = _doc("mean contact force (F1 + F2)/2, library force units")
-    dF: float = _doc("change of F since the previous iteration, library force units")
-    Lambda: float | None = _doc("distance Λ = |AB| between the contact points, mm")
-    Lambda_ad: float | None = _doc("held distance Λad planned for the next step, mm")
-    sigma: float | None = _doc("inclination σ of AB in the y0z0 plane, deg")
-    sigma_d: float | None = _doc("desired inclination σd of the next step, deg")
+    t: float = _doc("time since the run started", "s")
+    phi2: float = _doc("Finger 1 proximal joint angle φ2, actual", "deg")
+    phi3: float = _doc("Finger 1 distal joint angle φ3, actual", "deg")
+    phi4: float = _doc("Finger 2 proximal joint angle φ4, actual", "deg")
+    phi5: float = _doc("Finger 2 distal joint angle φ5, actual", "deg")
+    phi2_d: float | None = _doc("φ2 target commanded this iteration", "deg")
+    phi3_d: float | None = _doc("φ3 target commanded this iteration", "deg")
+    phi4_d: float | None = _doc("φ4 target commanded this iteration", "deg")
+    phi5_d: float | None = _doc("φ5 target commanded this iteration", "deg")
+    S1: float | None = _doc("contact height on Finger 1's distal pad (tactile centroid)", "mm")
+    S2: float | None = _doc("contact height on Finger 2's distal pad (tactile centroid)", "mm")
+    F1: float = _doc("contact force on Finger 1's distal pad", "library force units")
+    F2: float = _doc("contact force on Finger 2's distal pad", "library force units")
+    F: float = _doc("mean contact force (F1 + F2)/2", "library force units")
+    dF: float = _doc("change of F since the previous iteration", "library force units")
+    Lambda: float | None = _doc("distance Λ = |AB| between the contact points", "mm")
+    Lambda_ad: float | None = _doc("held distance Λad planned for the next step", "mm")
+    sigma: float | None = _doc("inclination σ of AB in the y0z0 plane", "deg")
+    sigma_d: float | None = _doc("desired inclination σd of the next step", "deg")
     omega_A: float | None = _doc(
-        "angle ωA between AB and Finger 1's pad tangent at A (planned when a plan exists), deg"
+        "angle ωA between AB and Finger 1's pad tangent at A (planned when a plan exists)", "deg"
     )
     omega_B: float | None = _doc(
-        "angle ωB between BA and Finger 2's pad tangent at B (planned when a plan exists), deg"
+        "angle ωB between BA and Finger 2's pad tangent at B (planned when a plan exists)", "deg"
     )
-    Ay: float | None = _doc("contact point A on Finger 1, y0, mm")
-    Az: float | None = _doc("contact point A on Finger 1, z0, mm")
-    By: float | None = _doc("contact point B on Finger 2, y0, mm")
-    Bz: float | None = _doc("contact point B on Finger 2, z0, mm")
-    Cy: float | None = _doc("Finger 1's distal joint C, y0, mm")
-    Cz: float | None = _doc("Finger 1's distal joint C, z0, mm")
-    Dy: float | None = _doc("Finger 2's distal joint D, y0, mm")
-    Dz: float | None = _doc("Finger 2's distal joint D, z0, mm")
+    Ay: float | None = _doc("contact point A on Finger 1, y0", "mm")
+    Az: float | None = _doc("contact point A on Finger 1, z0", "mm")
+    By: float | None = _doc("contact point B on Finger 2, y0", "mm")
+    Bz: float | None = _doc("contact point B on Finger 2, z0", "mm")
+    Cy: float | None = _doc("Finger 1's distal joint C, y0", "mm")
+    Cz: float | None = _doc("Finger 1's distal joint C, z0", "mm")
+    Dy: float | None = _doc("Finger 2's distal joint D, y0", "mm")
+    Dz: float | None = _doc("Finger 2's distal joint D, z0", "mm")
     direction: int = _doc("rotation direction of Finger 2's step, sign of Δφ (+1 | -1)")
     stroke: int = _doc("back-and-forth strokes completed (count)")
     half_strokes: int = _doc("direction reversals that ended a half stroke so far (count)")
     reversal: str | None = _doc("why the direction reversed this iteration (null: it did not)")
-    frame_age_ms: float = _doc("age of the tactile frame when the iteration used it, ms")
+    frame_age_ms: float = _doc("age of the tactile frame when the iteration used it", "ms")
     joint_age_ms: float = _doc(
-        "age of the actual joint angles φ2…φ5 when the iteration took them, ms"
+        "age of the actual joint angles φ2…φ5 when the iteration took them", "ms"
     )
-    latency_ms: float = _doc("time from the frame's arrival to the targets on the joint line, ms")
+    latency_ms: float = _doc("time from the frame's arrival to the targets on the joint line", "ms")
 
     @classmethod
     def columns(cls) -> tuple[str, ...]:
@@ -82,6 +83,16 @@ class Sample:
     def descriptions(cls) -> dict[str, str]:
         """Every field's description, with its unit."""
         return {f.name: str(f.metadata["doc"]) for f in fields(cls)}
+
+    @classmethod
+    def units(cls) -> dict[str, str | None]:
+        """Every field's unit (None where it has none: a count, a sign, a reason)."""
+        return {f.name: f.metadata["unit"] for f in fields(cls)}
+
+    @classmethod
+    def csv_header(cls) -> tuple[str, ...]:
+        """The CSV export's header: each column as ``name [unit]`` (a bare name without one)."""
+        return tuple(n if u is None else f"{n} [{u}]" for n, u in cls.units().items())
 
     def row(self) -> tuple[object, ...]:
         return tuple(getattr(self, name) for name in self.columns())

@@ -4,14 +4,15 @@ Foxglove WebSocket protocol by ``foxglove-sdk``, fed from the telemetry hub.
 * ``/samples`` (JSON, the schema from Sample) — every iteration;
 * ``/tf`` — the links at each forwarded sample's φ2…φ5, and between runs at the hand's actual
   angles (the ``pose`` messages);
-* ``/contacts`` — A, B, AB and the friction cones (α of the run in force) of each forwarded
-  sample;
+* ``/scene`` — the pads, and A, B, AB and the friction cones (α of the run in force) of each
+  forwarded sample; in simulation the object's true outline (the ``sim`` messages); the contacts
+  are deleted when a run ends;
 * ``/tactile/<finger>_<proximal|distal>`` — each forwarded tactile frame's pads as Grids;
 * ``/events`` — every event, as Log lines.
 
 The messages are built by the same functions as the file's. The hub calls :meth:`FoxgloveLive.
 handle` on the event loop, so its cost is the control loop's: nothing is built for a channel no
-client subscribes to, and the 3-D channels (``/tf``, ``/contacts``, ``/tactile/*``) are forwarded
+client subscribes to, and the 3-D channels (``/tf``, ``/scene``, ``/tactile/*``) are forwarded
 at most ``max_hz`` times a second, like the viser view (``service.viewer_max_hz``). Encoding and
 sending are the SDK's (its own threads). Log times: the wall clock at delivery (a live view has
 no other common clock).
@@ -30,16 +31,17 @@ from typing import Any
 
 import foxglove
 from foxglove import channels as fc
+from foxglove import messages as fm
 
 from sdh2svc.config import Settings
 from sdh2svc.control.observer import EventKind
 from sdh2svc.model.urdf import to_xml
 from sdh2svc.service.foxglove_mcap import (
-    CONTACTS,
     EVENTS,
     PAD_NAMES,
     SAMPLE_SCHEMA,
     SAMPLES,
+    SCENE,
     TF,
     HandFrames,
     log_message,
@@ -47,13 +49,25 @@ from sdh2svc.service.foxglove_mcap import (
     sample_json,
     sample_schema,
 )
-from sdh2svc.service.telemetry import AnyMessage, Event, Pose, SampleMsg, Tactile
+from sdh2svc.service.telemetry import AnyMessage, Event, Pose, SampleMsg, Sim, Tactile
 
 __all__ = ["URDF_URI", "FoxgloveLive", "FoxgloveStartError"]
 
 log = logging.getLogger(__name__)
 
 URDF_URI = "package://sdh2svc/sdh2.urdf"  # what the URDF layer asks the server for
+
+
+def _clear_contacts(ns: int) -> fm.SceneUpdate:
+    return fm.SceneUpdate(
+        deletions=[
+            fm.SceneEntityDeletion(
+                timestamp=fm.Timestamp(ns // 10**9, ns % 10**9),
+                type=fm.SceneEntityDeletionType.MatchingId,
+                id="contacts",
+            )
+        ]
+    )
 
 
 class FoxgloveStartError(RuntimeError):
@@ -68,7 +82,7 @@ class FoxgloveLive:
         self._hand = HandFrames.of(cfg)
         self._alpha = math.radians(cfg.rolling.alpha_deg)
         self._period_s = 1.0 / max_hz
-        self._last_3d = -math.inf  # when /tf and /contacts were last fed (monotonic)
+        self._last_3d = -math.inf  # when /tf and /scene were last fed (monotonic)
         self._last_pads = -math.inf
         self._urdf = to_xml(self._hand.desc).encode()
         ctx = foxglove.Context()  # this service's channels only (tests run several)
@@ -79,7 +93,7 @@ class FoxgloveLive:
             SAMPLES, schema=schema, message_encoding="json", context=ctx
         )
         self._tf = fc.FrameTransformsChannel(TF, context=ctx)
-        self._contacts = fc.SceneUpdateChannel(CONTACTS, context=ctx)
+        self._scene = fc.SceneUpdateChannel(SCENE, context=ctx)
         self._events = fc.LogChannel(EVENTS, context=ctx)
         self._pads = {pad: fc.GridChannel(pad_topic(pad), context=ctx) for pad in PAD_NAMES}
         self._ctx = ctx
@@ -121,6 +135,10 @@ class FoxgloveLive:
             self._tactile(msg)
         elif isinstance(msg, Event):
             self._event(msg)
+        elif isinstance(msg, Sim):
+            if self._scene.has_sinks():  # at the service's pose_hz: not rate-limited here
+                ns = time.time_ns()
+                self._scene.log(self._hand.scene(None, ns, self._alpha, msg.truth), log_time=ns)
         elif isinstance(msg, Pose) and self._tf.has_sinks() and self._due_3d():
             ns = time.time_ns()
             self._tf.log(self._hand.pose_transforms(msg.angles_deg, ns), log_time=ns)
@@ -131,18 +149,21 @@ class FoxgloveLive:
         ns = time.time_ns()
         if self._samples.has_sinks():
             self._samples.log(sample_json(row), log_time=ns)
-        tf, contacts = self._tf.has_sinks(), self._contacts.has_sinks()
-        if (tf or contacts) and self._due_3d():
+        tf, scene = self._tf.has_sinks(), self._scene.has_sinks()
+        if (tf or scene) and self._due_3d():
             if tf:
                 self._tf.log(self._hand.transforms(row, ns), log_time=ns)
-            if contacts:
-                self._contacts.log(self._hand.contacts(row, ns, self._alpha), log_time=ns)
+            if scene:
+                self._scene.log(self._hand.scene(row, ns, self._alpha), log_time=ns)
 
     def _event(self, msg: Event) -> None:
         if msg.kind in (EventKind.START, EventKind.PARAMS):  # the cones' α is the run's
             alpha = msg.detail.get("params", {}).get("alpha_deg")
             if isinstance(alpha, int | float):
                 self._alpha = math.radians(alpha)
+        if msg.kind is EventKind.END and self._scene.has_sinks():  # no contacts between runs
+            ns = time.time_ns()
+            self._scene.log(_clear_contacts(ns), log_time=ns)
         if self._events.has_sinks():
             ns = time.time_ns()
             self._events.log(log_message(msg.json(), ns), log_time=ns)

@@ -6,8 +6,10 @@ Channels (log times: the run's start plus each record's own time ``t``):
   :class:`~sdh2svc.control.sample.Sample`'s fields, with units in the descriptions.
 * ``/tf`` — ``foxglove.FrameTransforms`` of the URDF's joints from each sample's φ2…φ5 (φ1 and the
   thumb at the run's pre-shape, where a run holds them).
-* ``/contacts`` — ``foxglove.SceneUpdate`` in ``frame0``: contact points A, B, the segment AB and
-  the friction cones of half-angle α about each pad's normal.
+* ``/scene`` — ``foxglove.SceneUpdate``: the six pads as boxes in their URDF frames (``pads/<pad>``,
+  following ``/tf``), and in ``frame0`` the contact points A, B, the segment AB and the friction
+  cones of half-angle α about each pad's normal (``contacts``); live, in simulation, the object's
+  true outline too (``object``: the recording holds no truth per iteration).
 * ``/tactile/<finger>_<proximal|distal>`` — each pad as ``foxglove.Grid`` (raw counts, uint16) in
   its URDF frame, cells of the texel pitch.
 * ``/events`` — ``foxglove.Log``, one per run event.
@@ -46,6 +48,7 @@ from sdh2svc.model.urdf import (
 
 Json = dict[str, Any]
 _MM = 1e-3
+PAD_BOX_MM = 1.5  # the pads' boxes' thickness (display: under the Grid, which lies at z = 0)
 
 SAMPLE_SCHEMA = "sdh2svc.Sample"  # the /samples channel's schema name
 _JSON_TYPES = {int: "integer", float: "number", str: "string", bool: "boolean"}
@@ -54,7 +57,7 @@ _JSON_TYPES = {int: "integer", float: "number", str: "string", bool: "boolean"}
 COLUMNS = Sample.columns()
 
 # The channels, the same in a file and live (foxglove_live.py).
-SAMPLES, TF, CONTACTS, EVENTS = "/samples", "/tf", "/contacts", "/events"
+SAMPLES, TF, SCENE, EVENTS = "/samples", "/tf", "/scene", "/events"
 PAD_NAMES = tuple(f"{f}_{p}" for f in FINGERS for p in PADS)
 #: The joints of the URDF, by AxisMap's names.
 JOINTS = ("phi1", "phi2", "phi3", "phi4", "phi5", "thumb_proximal", "thumb_distal")
@@ -157,7 +160,49 @@ class HandFrames:
             ]
         )
 
-    def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneUpdate:
+    def scene(
+        self,
+        s: Mapping[str, Any] | None,
+        ns: int,
+        alpha: float,
+        truth: Mapping[str, Any] | None = None,
+    ) -> fm.SceneUpdate:
+        """The pads, and a sample's contacts (``s``), and the simulation's object (``truth``: a
+        ``sim`` message's, :meth:`sdh2svc.sim.hand.Truth.scene`); what is not given is left as
+        it was drawn."""
+        entities = self.pads(ns)
+        if s is not None:
+            entities.append(self.contacts(s, ns, alpha))
+        if truth is not None and (obj := object_entity(truth, ns)) is not None:
+            entities.append(obj)
+        return fm.SceneUpdate(entities=entities)
+
+    def pads(self, ns: int) -> list[fm.SceneEntity]:
+        """Each tactile matrix as a box under its Grid, in the pad's frame (it follows ``/tf``)."""
+        tac, ts = self.cfg.tactile, _ts(ns)
+        pitch, t = tac.texel_pitch_mm * _MM, PAD_BOX_MM * _MM
+        out = []
+        for finger in FINGERS:
+            for part in PADS:
+                lay = tac.proximal if part == "proximal" else tac.distal
+                w, h = lay.cols * pitch, lay.rows * pitch
+                cube = fm.CubePrimitive(
+                    pose=_pose(np.array([w / 2, h / 2, -t / 2])),
+                    size=_v3(w, h, t),
+                    color=_rgba(0.15, 0.15, 0.15, 1.0),
+                )
+                out.append(
+                    fm.SceneEntity(
+                        timestamp=ts,
+                        frame_id=f"{finger}_{part}_pad",
+                        id=f"pads/{finger}_{part}",
+                        frame_locked=True,
+                        cubes=[cube],
+                    )
+                )
+        return out
+
+    def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneEntity:
         """A, B, the segment AB and the friction cones, in frame 0 (metres)."""
         spheres, lines, cones = [], [], []
         pts = {}
@@ -191,7 +236,7 @@ class HandFrames:
                     color=_rgba(1.0, 0.8, 0.1, 1.0),
                 )
             )
-        entity = fm.SceneEntity(
+        return fm.SceneEntity(
             timestamp=_ts(ns),
             frame_id="frame0",
             id="contacts",
@@ -199,7 +244,6 @@ class HandFrames:
             lines=lines,
             cylinders=cones,
         )
-        return fm.SceneUpdate(entities=[entity])
 
     def _normal(self, finger: int, ca: tuple[float, float], psi: float) -> np.ndarray:
         """The pad's outward normal (frame 0: x, y, z) at the contact C→A = ``ca`` (mm)."""
@@ -258,6 +302,22 @@ def _pose(p: np.ndarray, q: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 
         position=_v3(float(p[0]), float(p[1]), float(p[2])),
         orientation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
     )
+
+
+def object_entity(truth: Mapping[str, Any], ns: int) -> fm.SceneEntity | None:
+    """The simulated object's true outline (frame 0's y, z in mm), a closed line in frame 0;
+    red once it has dropped. None without an outline."""
+    pts = [(float(y), float(z)) for y, z in truth.get("outline") or ()]
+    if len(pts) < 2:
+        return None
+    color = _rgba(0.9, 0.2, 0.2, 1.0) if truth.get("dropped") else _rgba(0.2, 0.8, 0.3, 1.0)
+    line = fm.LinePrimitive(
+        type=fm.LinePrimitiveLineType.LineLoop,
+        thickness=1.0 * _MM,
+        points=[fm.Point3(x=0.0, y=y * _MM, z=z * _MM) for y, z in pts],
+        color=color,
+    )
+    return fm.SceneEntity(timestamp=_ts(ns), frame_id="frame0", id="object", lines=[line])
 
 
 def _cone(apex: np.ndarray, n: np.ndarray, alpha: float, height: float) -> fm.CylinderPrimitive:
@@ -327,7 +387,7 @@ def write_mcap(
     ch_samples = channel(
         SAMPLES, SAMPLE_SCHEMA, "jsonschema", json.dumps(sample_schema()).encode(), "json"
     )
-    ch_tf, ch_scene = typed(TF, fm.FrameTransforms), typed(CONTACTS, fm.SceneUpdate)
+    ch_tf, ch_scene = typed(TF, fm.FrameTransforms), typed(SCENE, fm.SceneUpdate)
     ch_log = typed(EVENTS, fm.Log)
     ch_pads = {pad: typed(pad_topic(pad), fm.Grid) for pad in PAD_NAMES}
     n = 0
@@ -341,7 +401,7 @@ def write_mcap(
         ns = t0_ns + round(s["t"] * 1e9)
         put(ch_samples, ns, sample_json(s))
         put(ch_tf, ns, hand.transforms(s, ns).encode())
-        put(ch_scene, ns, hand.contacts(s, ns, alpha).encode())
+        put(ch_scene, ns, hand.scene(s, ns, alpha).encode())
     for e in events:
         ns = t0_ns + round(e["t"] * 1e9)
         put(ch_log, ns, log_message(e, ns).encode())

@@ -265,9 +265,10 @@ class RunStore:
     # --- exports --------------------------------------------------------------------------------
 
     def export_csv(self, run_id: int, out: IO[str]) -> int:
-        """All samples of a run as CSV (header = the Sample's fields); returns the row count."""
+        """All samples of a run as CSV (header: the Sample's fields with their units, ``phi2
+        [deg]``); returns the row count."""
         w = csv.writer(out)
-        w.writerow(SAMPLE_COLUMNS)
+        w.writerow(Sample.csv_header())
         n = 0
         for r in self.db.execute(
             f"SELECT {_QUOTED} FROM samples WHERE run_id = ? ORDER BY rowid",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import csv
+import functools
 import io
 import itertools
 import json
@@ -18,8 +19,15 @@ from urllib.parse import urlparse
 import httpx
 import pytest
 from mcap_check import read
-from websockets.asyncio.client import ClientConnection, connect
 
+from sdh2svc.client import (
+    AsyncClient,
+    AsyncTelemetry,
+    Conflict,
+    InvalidRequest,
+    NotFound,
+    Unauthorized,
+)
 from sdh2svc.config import load_config
 from sdh2svc.service.store import RunStore
 from tests.live_service import LiveService, service_command, start_service
@@ -39,17 +47,16 @@ def svc(
 
 
 class Telemetry:
-    """Everything one WebSocket client receives, collected in the background."""
+    """Everything one telemetry client receives, collected in the background."""
 
-    def __init__(self, ws: ClientConnection) -> None:
-        self.ws = ws
+    def __init__(self, tm: AsyncTelemetry) -> None:
         self.messages: list[dict[str, Any]] = []
-        self._task = asyncio.create_task(self._collect())
+        self._task = asyncio.create_task(self._collect(tm))
 
-    async def _collect(self) -> None:
+    async def _collect(self, tm: AsyncTelemetry) -> None:
         with contextlib.suppress(Exception):
-            async for text in self.ws:
-                self.messages.append(json.loads(text))
+            async for msg in tm:
+                self.messages.append(msg)
 
     def of(self, kind: str) -> list[dict[str, Any]]:
         return [m for m in self.messages if m["type"] == kind]
@@ -71,68 +78,66 @@ class Telemetry:
 
 
 @contextlib.asynccontextmanager
-async def telemetry(svc: LiveService, query: str = "") -> AsyncIterator[Telemetry]:
-    async with connect(svc.ws_url + query, max_size=2**24) as ws:
-        t = Telemetry(ws)
+async def telemetry(
+    c: AsyncClient, decimate: int = 1, tactile: bool = True
+) -> AsyncIterator[Telemetry]:
+    async with c.telemetry(decimate=decimate, tactile=tactile) as tm:
+        t = Telemetry(tm)
         yield t
         t._task.cancel()
 
 
-async def run_state(client: httpx.AsyncClient) -> dict[str, Any]:
-    return (await client.get("/api/status")).json()
-
-
-async def wait_run_end(client: httpx.AsyncClient, run_id: int) -> dict[str, Any]:
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while time.monotonic() < deadline:
-        st = await run_state(client)
-        if st["last_run"] and st["last_run"]["id"] == run_id:
-            return st
-        await asyncio.sleep(0.2)
-    raise AssertionError(f"run {run_id} did not end")
+async def wait_run_end(c: AsyncClient, run_id: int) -> dict[str, Any]:
+    """The status once the run has ended."""
+    await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
+    return await c.status()
 
 
 async def test_status_and_clear_errors(svc: LiveService) -> None:
     async with svc.client() as c:
-        st = await run_state(c)
+        st = await c.status()
         assert st["sim"] is True and st["auth_required"] is False
         assert st["hand"]["connected"] == {"joints": True, "tactile": True}
         assert st["links"]["tactile"]["connected"] is True
         assert st["object"]["kind"] in {"ellipse", "box", "circle", "stick", "polygon"}
 
-        r = await c.patch("/api/params", json={"k": 0.5})
-        assert r.status_code == 422
-        body = r.json()
-        assert body["error"] == "invalid rolling parameters"
-        assert any(d.startswith("k = 0.5") and "1.0 < k ≤ 10.0" in d for d in body["details"])
-        r = await c.patch("/api/params", json={"delta_phi_deg": 0})
-        assert r.status_code == 422 and "must not be 0" in r.json()["details"][0]
-        r = await c.patch("/api/params", json={"no_such": 1})
-        assert r.status_code == 422 and "no_such" in r.json()["details"][0]
-        assert (await c.get("/api/params")).json()["k"] == 2.0  # nothing half-applied
+        with pytest.raises(InvalidRequest) as bad:
+            await c.patch_params({"k": 0.5})
+        assert bad.value.status == 422 and bad.value.error == "invalid rolling parameters"
+        assert any(d.startswith("k = 0.5") and "1.0 < k ≤ 10.0" in d for d in bad.value.details)
+        with pytest.raises(InvalidRequest, match="must not be 0"):
+            await c.patch_params({"delta_phi_deg": 0})
+        with pytest.raises(InvalidRequest) as bad:
+            await c.patch_params({"no_such": 1})
+        assert bad.value.status == 422 and "no_such" in bad.value.details[0]
+        assert (await c.params())["k"] == 2.0  # nothing half-applied
 
-        r = await c.post("/api/runs/stop", json={})
-        assert r.status_code == 409 and r.json()["error"] == "no run is running"
-        r = await c.get("/api/runs/9999")
-        assert r.status_code == 404 and "no run 9999" in r.json()["error"]
-        r = await c.get("/api/runs/1/samples", params={"limit": 0})
-        assert r.status_code == 422 and "limit" in r.json()["details"][0]
-        r = await c.put("/api/sim/object", json={"name": "teapot"})
-        assert r.status_code == 422 and "teapot" in r.json()["error"]
-        r = await c.put("/api/sim/object", json={"spec": {"kind": "circle", "diameter_mm": -3}})
-        assert r.status_code == 422 and any("diameter_mm" in d for d in r.json()["details"])
-        r = await c.post("/api/runs", json={"params": {"alpha_deg": 90}})
-        assert r.status_code == 422 and "alpha_deg" in r.json()["details"][0]
-        assert (await run_state(c))["run"] is None  # the refused run never started
+        with pytest.raises(Conflict) as none:
+            await c.stop_run()
+        assert none.value.status == 409 and none.value.error == "no run is running"
+        with pytest.raises(NotFound, match="no run 9999"):
+            await c.run(9999)
+        with pytest.raises(InvalidRequest) as bad:
+            await c.samples(1, limit=0)
+        assert bad.value.status == 422 and "limit" in bad.value.details[0]
+        with pytest.raises(InvalidRequest, match="teapot"):
+            await c.set_sim_object(name="teapot")
+        with pytest.raises(InvalidRequest) as bad:
+            await c.set_sim_object(spec={"kind": "circle", "diameter_mm": -3})
+        assert any("diameter_mm" in d for d in bad.value.details)
+        with pytest.raises(InvalidRequest) as bad:
+            await c.start_run({"alpha_deg": 90})
+        assert "alpha_deg" in bad.value.details[0]
+        assert (await c.status())["run"] is None  # the refused run never started
 
-        r = await c.put("/api/sim/object", json={"name": "rubber"})
-        assert r.status_code == 200 and r.json()["object"]["name"] == "rubber"
-        assert "egg" in r.json()["presets"]
-        assert (await c.get("/api/sim/object")).json()["object"]["name"] == "rubber"
-        schema = (await c.get("/api/params/schema")).json()
+        got = await c.set_sim_object(name="rubber")
+        assert got["object"]["name"] == "rubber" and "egg" in got["presets"]
+        assert (await c.sim_object())["object"]["name"] == "rubber"
+        schema = await c.params_schema()
         assert schema["properties"]["k"]["exclusiveMinimum"] == 1.0
-        assert (await c.get("/docs")).status_code == 200
-        assert (await c.get("/api/viewer")).json() == {"url": None}
+        assert (await c.viewer()) == {"url": None}
+    async with httpx.AsyncClient(base_url=svc.url) as browser:  # a page, not the API
+        assert (await browser.get("/docs")).status_code == 200
 
 
 def assert_steps(samples: list[dict], dphi: float) -> None:
@@ -143,24 +148,21 @@ def assert_steps(samples: list[dict], dphi: float) -> None:
 
 
 async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveService) -> None:
-    async with svc.client() as c, telemetry(svc) as tm, telemetry(svc, "?decimate=3") as tm3:
+    async with svc.client() as c, telemetry(c) as tm, telemetry(c, decimate=3) as tm3:
         await tm.until(lambda: tm.of("hello"))
         slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
-        r = await c.post("/api/runs", json={"object": "egg", "params": slow})
-        assert r.status_code == 201, r.text
-        run_id = r.json()["run_id"]
-        r = await c.post("/api/runs", json={})
-        assert r.status_code == 409 and "already running" in r.json()["error"]
-        r = await c.put("/api/sim/object", json={"name": "egg"})
-        assert r.status_code == 409
+        run_id = (await c.start_run(slow, "egg"))["run_id"]
+        with pytest.raises(Conflict, match="already running"):
+            await c.start_run()
+        with pytest.raises(Conflict):
+            await c.set_sim_object(name="egg")
 
         # rolling: Finger 2 steps Δφ = 0.05° per iteration (φ4 − φ4d), less where Finger 1's
         # step limit slows an iteration down
         await tm.until(lambda: len(tm.samples(run_id)) >= 15)
         before = [s for s in tm.samples(run_id) if s["phi4_d"] is not None]
         assert_steps(before, 0.05)
-        r = await c.patch("/api/params", json={"delta_phi_deg": 0.08})
-        assert r.status_code == 200 and r.json()["delta_phi_deg"] == 0.08
+        assert (await c.patch_params({"delta_phi_deg": 0.08}))["delta_phi_deg"] == 0.08
         ev = await tm.until(lambda: tm.events(run_id, "params"))
         changed_at = ev[0]["iteration"]
         assert ev[0]["detail"]["params"]["delta_phi_deg"] == 0.08
@@ -173,45 +175,44 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         for s in after:
             assert abs((s["phi5_d"] - s["phi5"]) / (s["phi4"] - s["phi4_d"]) - 2.0) < 1e-6
 
-        st = await run_state(c)
+        st = await c.status()
         assert st["run"]["id"] == run_id and st["run"]["state"] == "rolling"
         assert st["run"]["strokes_total"] == 50
         assert st["links"]["tactile"]["frames_per_s"] > 5
-        r = await c.post("/api/runs/stop", json={})
-        assert r.status_code == 202
+        assert (await c.stop_run())["run_id"] == run_id  # 202: it stops and releases
         st = await wait_run_end(c, run_id)
         assert st["last_run"]["status"] == "stopped"
         assert st["run"]["state"] == "stopped"
-        await c.patch("/api/params", json={"delta_phi_deg": 0.25})
+        await c.patch_params({"delta_phi_deg": 0.25})
 
         # the record: every sample the clients saw is in the database, the exports parse
         seen = tm.samples(run_id)
-        page = (await c.get(f"/api/runs/{run_id}/samples", params={"limit": 10000})).json()
+        page = await c.samples(run_id, limit=10000)
         assert page["total"] == len(page["samples"]) >= len(seen) > 0
         by_iter = {s["iteration"]: s for s in page["samples"]}
         for s in seen:
             assert by_iter[s["iteration"]]["F"] == pytest.approx(s["F"])
-        half = (await c.get(f"/api/runs/{run_id}/samples",
-                            params={"offset": 5, "limit": 3})).json()  # fmt: skip
+        half = await c.samples(run_id, offset=5, limit=3)
         assert [s["iteration"] for s in half["samples"]] == \
             [s["iteration"] for s in page["samples"][5:8]]  # fmt: skip
-        run = (await c.get(f"/api/runs/{run_id}")).json()
+        run = await c.run(run_id)
         assert run["status"] == "stopped" and run["meta"]["object"]["name"] == "egg"
         kinds = [e["kind"] for e in run["events"]]
         assert "params" in kinds and "grasped" in kinds and kinds[-1] == "end"
 
-        r = await c.get(f"/api/runs/{run_id}/export", params={"format": "csv"})
-        assert r.status_code == 200 and "attachment" in r.headers["content-disposition"]
-        rows = list(csv.DictReader(io.StringIO(r.text)))
-        assert len(rows) == page["total"] and float(rows[0]["F"]) == page["samples"][0]["F"]
-        r = await c.get(f"/api/runs/{run_id}/export", params={"format": "mcap"})
-        assert r.status_code == 200
-        got = read(r.content)  # every message valid against its schema (mcap_check)
+        text = (await c.export_bytes(run_id, "csv")).decode()
+        rows = list(csv.DictReader(io.StringIO(text)))
+        assert len(rows) == page["total"]
+        assert float(rows[0]["F [library force units]"]) == page["samples"][0]["F"]
+        got = read(await c.export_bytes(run_id, "mcap"))  # every message valid (mcap_check)
         assert len(got.messages["/samples"]) == page["total"]
-        assert len(got.messages["/tf"]) == len(got.messages["/contacts"]) == page["total"]
+        assert len(got.messages["/tf"]) == len(got.messages["/scene"]) == page["total"]
         assert got.messages["/tactile/finger1_distal"] and got.messages["/events"]
-        r = await c.get(f"/api/runs/{run_id}/export", params={"format": "xls"})
-        assert r.status_code == 422
+        with pytest.raises(InvalidRequest):
+            await c.export_bytes(run_id, "xls")  # type: ignore[arg-type]
+        async with httpx.AsyncClient(base_url=svc.url) as browser:  # the download, as a file
+            r = await browser.get(f"/api/runs/{run_id}/export", params={"format": "csv"})
+            assert "attachment" in r.headers["content-disposition"] and r.text == text
 
         # a decimating client got every third sample; tactile frames came at ≤ 30 Hz
         every = [s["iteration"] for s in tm.samples(run_id)]
@@ -230,35 +231,31 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
 
 
 async def test_estop_mid_run_and_release(svc: LiveService) -> None:
-    async with svc.client() as c, telemetry(svc, "?tactile=0") as tm:
+    async with svc.client() as c, telemetry(c, tactile=False) as tm:
         slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
-        r = await c.post("/api/runs", json={"object": "egg", "params": slow})
-        run_id = r.json()["run_id"]
+        run_id = (await c.start_run(slow, "egg"))["run_id"]
         await tm.until(lambda: tm.samples(run_id))
         t0 = time.monotonic()
-        r = await c.post("/api/estop")
-        assert r.status_code == 200 and r.json()["estopped"] is True
+        assert (await c.estop())["estopped"] is True
         assert time.monotonic() - t0 < 5.0  # generous: answered, not hung behind the run
         st = await wait_run_end(c, run_id)
         assert st["estopped"] is True and st["run"]["state"] == "e-stopped"
         assert st["last_run"]["status"] == "e-stopped"
         assert tm.events(run_id, "estop")
         n = len(tm.samples(run_id))
-        r = await c.post("/api/runs", json={})
-        assert r.status_code == 409 and "e-stop is latched" in r.json()["error"]
+        with pytest.raises(Conflict, match="e-stop is latched"):
+            await c.start_run()
         # e-stop while idle works too, and the hand stays where it stopped
-        assert (await c.post("/api/estop")).status_code == 200
+        assert (await c.estop())["estopped"] is True
         await asyncio.sleep(0.6)  # the angles shown between runs are polled at 5 Hz
-        a1 = (await run_state(c))["hand"]["angles_deg"]
+        a1 = (await c.status())["hand"]["angles_deg"]
         await asyncio.sleep(1.0)
-        a2 = (await run_state(c))["hand"]["angles_deg"]
+        a2 = (await c.status())["hand"]["angles_deg"]
         assert a1 == a2
         assert len(tm.samples(run_id)) == n  # no iteration after the e-stop
-        r = await c.post("/api/estop/release", json={})
-        assert r.status_code == 200 and r.json() == {"estopped": False}
-        assert (await run_state(c))["estopped"] is False
-        run = (await c.get(f"/api/runs/{run_id}")).json()
-        assert run["status"] == "e-stopped"
+        assert (await c.release_estop()) == {"estopped": False}
+        assert (await c.status())["estopped"] is False
+        assert (await c.run(run_id))["status"] == "e-stopped"
 
 
 async def test_token_required_when_exposed(tmp_path: Path) -> None:
@@ -277,46 +274,43 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
         host = urlparse(svc.url)
         assert host.hostname == "0.0.0.0"
         url = f"http://127.0.0.1:{host.port}"
-        async with httpx.AsyncClient(base_url=url, timeout=30) as c:
-            assert (await c.get("/api/status")).json()["auth_required"] is True
-            for method, path, body in (("PATCH", "/api/params", {"k": 3}),
-                                       ("POST", "/api/runs", {}), ("POST", "/api/runs/stop", {}),
-                                       ("POST", "/api/estop/release", {}),
-                                       ("POST", "/api/hand/open", {}),
-                                       ("PUT", "/api/sim/object", {"name": "egg"})):  # fmt: skip
-                r = await c.request(method, path, json=body)
-                assert r.status_code == 401, (method, path)
-                assert "bearer token" in r.json()["error"]
-                r = await c.request(method, path, json=body,
-                                    headers={"Authorization": "Bearer wrong"})  # fmt: skip
-                assert r.status_code == 401
-            # stopping needs no token (nor JSON, nor an Origin of its own); releasing does
-            r = await c.post("/api/estop", headers={"Origin": "http://evil.example"})
+        async with AsyncClient(url) as anon, AsyncClient(url, token="wrong") as wrong:
+            assert (await anon.status())["auth_required"] is True
+            for who in (anon, wrong):
+                for command in (
+                    functools.partial(who.patch_params, {"k": 3}),
+                    who.start_run,
+                    who.stop_run,
+                    who.release_estop,
+                    who.open_hand,
+                    functools.partial(who.set_sim_object, name="egg"),
+                ):
+                    with pytest.raises(Unauthorized, match="bearer token"):
+                        await command()
+        async with httpx.AsyncClient(base_url=url, timeout=30) as raw:
+            # stopping needs no token (nor JSON, nor an Origin of its own)
+            r = await raw.post("/api/estop", headers={"Origin": "http://evil.example"})
             assert r.status_code == 200 and r.json()["estopped"] is True
-            r = await c.post("/api/estop/release", json={},
-                             headers={"Authorization": "Bearer s3cret"})  # fmt: skip
-            assert r.status_code == 200 and r.json() == {"estopped": False}
             # with the token too, a command must be JSON; and a huge body is refused before the
             # token is even looked at
-            r = await c.post("/api/runs/stop", headers={"Authorization": "Bearer s3cret",
-                                                        "Content-Type": "text/plain"})  # fmt: skip
+            text = {"Authorization": "Bearer s3cret", "Content-Type": "text/plain"}
+            r = await raw.post("/api/runs/stop", headers=text)
             assert r.status_code == 415
-            head = (
-                f"PATCH /api/params HTTP/1.1\r\nHost: 127.0.0.1:{host.port}\r\n"
-                f"Content-Type: application/json\r\nContent-Length: {300 * 2**20}\r\n\r\n"
-            )
-            with socket.create_connection(("127.0.0.1", host.port), timeout=10) as sock:
-                sock.sendall(head.encode())  # and no body: it is refused before it is read
-                assert sock.recv(64).startswith(b"HTTP/1.1 413")
-            r = await c.patch("/api/params", json={"k": 3},
-                              headers={"Authorization": "Bearer s3cret"})  # fmt: skip
-            assert r.status_code == 200 and r.json()["k"] == 3
-            assert (await c.get("/api/params")).json()["k"] == 3
-            conf = (await c.get("/api/config")).json()
+        head = (
+            f"PATCH /api/params HTTP/1.1\r\nHost: 127.0.0.1:{host.port}\r\n"
+            f"Content-Type: application/json\r\nContent-Length: {300 * 2**20}\r\n\r\n"
+        )
+        with socket.create_connection(("127.0.0.1", host.port), timeout=10) as sock:
+            sock.sendall(head.encode())  # and no body: it is refused before it is read
+            assert sock.recv(64).startswith(b"HTTP/1.1 413")
+        async with AsyncClient(url, token="s3cret") as c:  # releasing needs the token
+            assert (await c.release_estop()) == {"estopped": False}
+            assert (await c.patch_params({"k": 3}))["k"] == 3
+            assert (await c.params())["k"] == 3
+            conf = await c.config()
             assert conf["service"]["token"] == "***" and "s3cret" not in json.dumps(conf)
             assert conf["hand"]["pad"]["arc_radius_mm"] == 60.0 and conf["axes"]["phi4"] == 5
-            viewer = await c.get("/api/viewer")
-            assert viewer.json() == {"url": None}
+            assert (await c.viewer()) == {"url": None}
     finally:
         assert await asyncio.to_thread(svc.stop) == 0
 
@@ -351,10 +345,10 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
     async with svc.client() as c:
         stalled = [_stalled_client(svc.ws_url) for _ in range(3)]
         try:
-            async with telemetry(svc) as tm:
-                summary = await _one_stroke_run(c, svc)
+            async with telemetry(c) as tm:
+                summary = await _one_stroke_run(c)
                 run_id = summary["run_id"]
-                st = await run_state(c)
+                st = await c.status()
             samples = tm.samples(run_id)
         finally:
             for s in stalled:
@@ -372,12 +366,11 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
     assert summary["loop_hz"] >= 0.7 * rate, summary
 
 
-async def _one_stroke_run(c: httpx.AsyncClient, svc: LiveService) -> dict[str, Any]:
-    r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 1}})
-    assert r.status_code == 201, r.text
-    run_id = r.json()["run_id"]
-    await wait_run_end(c, run_id)
-    return (await c.get(f"/api/runs/{run_id}")).json()["summary"]
+async def _one_stroke_run(c: AsyncClient) -> dict[str, Any]:
+    run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
+    await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
+    summary: dict[str, Any] = (await c.run(run_id))["summary"]
+    return summary
 
 
 async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
@@ -385,9 +378,8 @@ async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
 ) -> None:
     svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, extra=long_runs)
     try:
-        async with svc.client() as c, telemetry(svc, "?tactile=0") as tm:
-            r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 50}})
-            run_id = r.json()["run_id"]
+        async with svc.client() as c, telemetry(c, tactile=False) as tm:
+            run_id = (await c.start_run({"cycles": 50}, "egg"))["run_id"]
             await tm.until(lambda: tm.samples(run_id))
     finally:
         code = await asyncio.to_thread(svc.stop)

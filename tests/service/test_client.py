@@ -1,17 +1,26 @@
-"""sdh2svc.client against a real ``sdh2svc serve --sim`` with a token: every call once, its
-refusals, and telemetry during a one-cycle run."""
+"""One real ``sdh2svc serve --sim`` with a token and the live Foxglove view: sdh2svc.client's
+every call once and its refusals; one one-cycle run watched by the client's telemetry and by a
+client of the Foxglove WebSocket protocol (over ``websockets``) subscribed to every channel, then
+read back."""
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import functools
 import io
+import json
+import socket
+import struct
 from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
+from foxglove_ws import FETCH_ASSET_RESPONSE, MESSAGE_DATA, SUBPROTOCOLS, Decoder, recv_json
+from websockets.asyncio.client import ClientConnection, connect
 
 from sdh2svc.client import (
     ApiError,
@@ -24,20 +33,119 @@ from sdh2svc.client import (
     Unauthorized,
     _raise_for,
 )
+from sdh2svc.service.foxglove_live import URDF_URI
+from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
 from tests.live_service import LiveService, start_service
 from tests.service.conftest import LONG_RUNS
 
 TOKEN = "s3cret"
 RUN_TIMEOUT_S = 120.0
+TOPICS = {"/samples", "/tf", "/scene", "/events", *(pad_topic(p) for p in PAD_NAMES)}
+
+
+@dataclass
+class Cycle:
+    """A one-cycle run on the egg, watched by the client's telemetry and in Foxglove."""
+
+    run_id: int
+    hello: dict[str, Any]
+    first_sample: dict[str, Any]  # of the run, from the client's telemetry
+    end: dict[str, Any]  # wait_run's answer
+    foxglove: dict[str, list[Any]]  # topic → the messages received, decoded
+    urdf: bytes  # the URDF asset, fetched from the Foxglove server
 
 
 @pytest.fixture(scope="module")
-def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
-    s = start_service(tmp_path_factory.mktemp("client"), viewer=False, extra=LONG_RUNS, token=TOKEN)
+def cycle(lab: tuple[LiveService, int]) -> Cycle:
+    """One run for the two watchers (a run takes ≈ 10 s in real time)."""
+    return asyncio.run(_watch_a_cycle(*lab))
+
+
+async def _watch_a_cycle(svc: LiveService, port: int) -> Cycle:
+    async with AsyncClient(svc.url, token=TOKEN) as c:
+        # the watchers close once they have seen enough: an unread socket takes seconds to
+        # close behind what the service queued for it
+        async with (
+            connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws,  # type: ignore[arg-type]
+            c.telemetry(tactile=False) as tm,
+        ):
+            assert ws.subprotocol in SUBPROTOCOLS
+            info = await asyncio.wait_for(recv_json(ws, "serverInfo"), 10.0)
+            assert info["name"] == "sdh2svc"
+            channels = (await asyncio.wait_for(recv_json(ws, "advertise"), 10.0))["channels"]
+            assert {c["topic"] for c in channels} == TOPICS
+            subs = {i: c["id"] for i, c in enumerate(channels)}  # subscription id → channel id
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": i, "channelId": ch} for i, ch in subs.items()]}))  # fmt: skip
+            await ws.send(json.dumps({"op": "fetchAsset", "uri": URDF_URI, "requestId": 7}))
+
+            hello = await anext(tm)
+            run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
+            async with asyncio.timeout(RUN_TIMEOUT_S):
+                first, (got, urdf) = await asyncio.gather(
+                    _first_sample(tm, run_id), _every_channel(ws, Decoder(channels), subs)
+                )
+        with pytest.raises(Conflict):  # one run at a time
+            await c.start_run()
+        end = await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
+    return Cycle(run_id, hello, first, end, got, urdf)
+
+
+async def _first_sample(tm: AsyncTelemetry, run_id: int) -> dict[str, Any]:
+    async for msg in tm:
+        if msg["type"] == "sample" and msg["run_id"] == run_id:
+            return msg["sample"]  # type: ignore[no-any-return]
+    raise AssertionError("the telemetry ended before the run's first sample")
+
+
+async def _every_channel(
+    ws: ClientConnection, decode: Decoder, subs: dict[int, int]
+) -> tuple[dict[str, list[Any]], bytes]:
+    """Every channel's messages, until each has brought one (the scene its contacts and the
+    object), and the URDF asset."""
+    got: dict[str, list[Any]] = {}
+    urdf = b""
+    scene_ids: set[str] = set()
+    while set(got) != TOPICS or not urdf or not {"contacts", "object"} <= scene_ids:
+        m = await ws.recv()
+        if isinstance(m, str):
+            continue
+        if m[0] == FETCH_ASSET_RESPONSE:
+            request_id, status, n = struct.unpack_from("<IBI", m, 1)
+            assert (request_id, status) == (7, 0), m[10 : 10 + n]
+            urdf = bytes(m[10 + n :])
+            continue
+        assert m[0] == MESSAGE_DATA
+        sub, _log_time = struct.unpack_from("<IQ", m, 1)
+        topic, msg = decode(subs[sub], m[13:])
+        got.setdefault(topic, []).append(msg)
+        if topic == "/scene":
+            scene_ids.update(e.id for e in msg.entities)
+    return got, urdf
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveService, int]]:
+    """The service and its live Foxglove view's port (the tests leave it idle)."""
+    port = _free_port()
+    extra = (*LONG_RUNS, "--set", f"service.foxglove_port={port}")
+    s = start_service(tmp_path_factory.mktemp("lab"), viewer=False, extra=extra, token=TOKEN)
     try:
-        yield s
+        yield s, port
     finally:
         assert s.stop() == 0, "".join(s.log)
+
+
+@pytest.fixture
+def svc(lab: tuple[LiveService, int]) -> LiveService:
+    return lab[0]
 
 
 def test_an_error_without_the_service_body() -> None:
@@ -54,6 +162,7 @@ def test_an_error_without_the_service_body() -> None:
 
 def test_calls_and_refusals(svc: LiveService) -> None:
     with Client(svc.url, token=TOKEN) as c:
+        assert c.viewer() == {"url": None}
         st = c.status()
         assert st["sim"] is True and st["auth_required"] is True
         assert c.params()["k"] == 2.0
@@ -93,23 +202,12 @@ def test_calls_and_refusals(svc: LiveService) -> None:
         c.release_estop()
 
 
-async def test_run_observed_and_read_back(svc: LiveService, tmp_path: Path) -> None:
+async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_path: Path) -> None:
+    assert cycle.hello["status"]["sim"] is True
+    assert cycle.first_sample["iteration"] >= 0
+    assert cycle.end["status"] == "completed", cycle.end
+    run_id = cycle.run_id
     async with AsyncClient(svc.url, token=TOKEN) as c:
-        async with c.telemetry(tactile=False) as tm:
-            run_id = None
-            async for msg in tm:
-                if msg["type"] == "hello":
-                    assert msg["status"]["sim"] is True
-                    run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
-                elif msg["type"] == "sample" and msg["run_id"] == run_id:
-                    assert msg["sample"]["iteration"] >= 0
-                    break
-        assert run_id is not None
-        with pytest.raises(Conflict):
-            await c.start_run()
-        end = await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
-        assert end["status"] == "completed", end
-
         assert (await c.runs())[0]["id"] == run_id
         run = await c.run(run_id)
         assert run["status"] == "completed" and run["iterations"] > 0
@@ -151,3 +249,20 @@ async def _until_event(tm: AsyncTelemetry, kind: str) -> AsyncIterator[dict[str,
             yield msg
             if msg["kind"] == kind:
                 return
+
+
+def test_every_foxglove_channel_live_during_a_run(cycle: Cycle) -> None:
+    got = cycle.foxglove
+    assert cycle.urdf.startswith(b"<?xml") and b"<robot" in cycle.urdf
+    sample = got["/samples"][0]
+    assert sample["iteration"] >= 1 and "phi2" in sample
+    assert any(t.child_frame_id for t in got["/tf"][0].transforms)
+    entities = {e.id: e for m in got["/scene"] for e in m.entities}
+    assert entities["contacts"].frame_id == "frame0"
+    assert {f"pads/{p}" for p in PAD_NAMES} <= set(entities)
+    assert entities["object"].frame_id == "frame0" and len(entities["object"].lines[0].points) > 20
+    assert any(log.name for log in got["/events"])
+    for pad in PAD_NAMES:
+        grid = got[pad_topic(pad)][0]
+        assert grid.frame_id == f"{pad}_pad" and grid.column_count > 0
+        assert len(grid.data) == grid.row_stride * (len(grid.data) // grid.row_stride) > 0

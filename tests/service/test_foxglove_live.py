@@ -1,152 +1,27 @@
-"""The live Foxglove view of ``sdh2svc serve --sim``: a client speaking the Foxglove WebSocket
-protocol (foxglove.websocket.v1, now named foxglove.sdk.v1) over ``websockets`` subscribes to
-every channel during a one-stroke run and decodes what each one receives against the schema it
-was advertised with."""
+"""The live Foxglove view's listener in process: what it builds, when, and for whom. (A client of
+the Foxglove WebSocket protocol receiving every channel during a run of a live service:
+test_client.py, which shares that service.)"""
 
 from __future__ import annotations
 
-import asyncio
-import base64
 import json
 import math
 import socket
-import struct
-import time
 from collections.abc import Iterator
 from typing import Any
 
-import httpx
-import jsonschema
 import numpy as np
 import pytest
 from foxglove import messages as fm
-from mcap_check import _no_unknown_fields, _proto_class
-from websockets.asyncio.client import ClientConnection, connect
+from mcap_check import _proto_class
 
 from sdh2svc.config import load_config
 from sdh2svc.control.observer import EventKind
 from sdh2svc.service import foxglove_live
-from sdh2svc.service.foxglove_live import URDF_URI, FoxgloveLive, FoxgloveStartError
-from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
-from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Tactile
-from tests.live_service import LiveService, start_service
+from sdh2svc.service.foxglove_live import FoxgloveLive, FoxgloveStartError
+from sdh2svc.service.foxglove_mcap import PAD_NAMES
+from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Sim, Tactile
 from tests.service.test_telemetry import a_sample
-
-TIMEOUT_S = 120.0
-# The protocol's names: foxglove-sdk ≥ 0.30 answers to the newer one only; a client offers both.
-SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
-MESSAGE_DATA, FETCH_ASSET_RESPONSE = 0x01, 0x04  # binary opcodes (server → client)
-TOPICS = {"/samples", "/tf", "/contacts", "/events", *(pad_topic(p) for p in PAD_NAMES)}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-@pytest.fixture(scope="module")
-def fox(
-    tmp_path_factory: pytest.TempPathFactory, long_runs: tuple[str, ...]
-) -> Iterator[tuple[LiveService, int]]:
-    port = _free_port()
-    extra = (*long_runs, "--set", f"service.foxglove_port={port}")
-    s = start_service(tmp_path_factory.mktemp("fox"), viewer=False, extra=extra)
-    try:
-        yield s, port
-    finally:
-        assert s.stop() == 0, "".join(s.log)
-
-
-class Decoder:
-    """Each advertised channel's decoder: JSON checked against its JSON schema, protobuf parsed
-    with the FileDescriptorSet it was advertised with (no unknown fields)."""
-
-    def __init__(self, channels: list[dict[str, Any]]) -> None:
-        self.topics = {c["id"]: c["topic"] for c in channels}
-        self._decode = {c["id"]: self._decoder(c) for c in channels}
-
-    @staticmethod
-    def _decoder(c: dict[str, Any]) -> Any:
-        if c["encoding"] == "json":
-            assert c["schemaEncoding"] == "jsonschema"
-            doc = json.loads(c["schema"])
-            jsonschema.Draft202012Validator.check_schema(doc)
-            validator = jsonschema.Draft202012Validator(doc)
-
-            def json_message(data: bytes) -> Any:
-                obj = json.loads(data)
-                validator.validate(obj)
-                return obj
-
-            return json_message
-        assert c["encoding"] == "protobuf" and c["schemaEncoding"] == "protobuf"
-        cls = _proto_class(c["schemaName"], base64.b64decode(c["schema"]))
-
-        def proto_message(data: bytes) -> Any:
-            msg = cls.FromString(data)
-            _no_unknown_fields(msg)
-            return msg
-
-        return proto_message
-
-    def __call__(self, channel_id: int, data: bytes) -> tuple[str, Any]:
-        return self.topics[channel_id], self._decode[channel_id](data)
-
-
-async def _recv_json(ws: ClientConnection, op: str) -> dict[str, Any]:
-    while True:
-        m = await ws.recv()
-        if isinstance(m, str) and (obj := json.loads(m))["op"] == op:
-            return obj  # type: ignore[no-any-return]
-
-
-async def test_every_channel_live_during_a_run(fox: tuple[LiveService, int]) -> None:
-    svc, port = fox
-    async with connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws:  # type: ignore[arg-type]
-        assert ws.subprotocol in SUBPROTOCOLS
-        info = await asyncio.wait_for(_recv_json(ws, "serverInfo"), 10.0)
-        assert info["name"] == "sdh2svc"
-        channels = (await asyncio.wait_for(_recv_json(ws, "advertise"), 10.0))["channels"]
-        assert {c["topic"] for c in channels} == TOPICS
-        decode = Decoder(channels)
-        subs = {i: c["id"] for i, c in enumerate(channels)}  # subscription id → channel id
-        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": i, "channelId": ch} for i, ch in subs.items()]}))  # fmt: skip
-        await ws.send(json.dumps({"op": "fetchAsset", "uri": URDF_URI, "requestId": 7}))
-
-        got: dict[str, list[Any]] = {}
-        urdf = b""
-        async with httpx.AsyncClient(base_url=svc.url, headers=svc.headers()) as c:
-            r = await c.post("/api/runs", json={"object": "egg", "params": {"cycles": 1}})
-            assert r.status_code == 201, r.text
-            deadline = time.monotonic() + TIMEOUT_S
-            while set(got) != TOPICS or not urdf:
-                m = await asyncio.wait_for(ws.recv(), deadline - time.monotonic())
-                if isinstance(m, str):
-                    continue
-                if m[0] == FETCH_ASSET_RESPONSE:
-                    request_id, status, n = struct.unpack_from("<IBI", m, 1)
-                    assert (request_id, status) == (7, 0), m[10 : 10 + n]
-                    urdf = m[10 + n :]
-                    continue
-                assert m[0] == MESSAGE_DATA
-                sub, _log_time = struct.unpack_from("<IQ", m, 1)
-                topic, msg = decode(subs[sub], m[13:])
-                got.setdefault(topic, []).append(msg)
-            await c.post("/api/runs/stop")  # the module's service idle for the next test
-
-    assert urdf.startswith(b"<?xml") and b"<robot" in urdf
-    sample = got["/samples"][0]
-    assert sample["iteration"] >= 1 and "phi2" in sample
-    assert any(t.child_frame_id for t in got["/tf"][0].transforms)
-    assert got["/contacts"][-1].entities[0].frame_id == "frame0"
-    assert any(log.name for log in got["/events"])
-    for pad in PAD_NAMES:
-        grid = got[pad_topic(pad)][0]
-        assert grid.frame_id == f"{pad}_pad" and grid.column_count > 0
-        assert len(grid.data) == grid.row_stride * (len(grid.data) // grid.row_stride) > 0
 
 
 def test_off_by_default() -> None:
@@ -182,9 +57,9 @@ class FakeHand:
         self.built.append("pose")
         return "pose"
 
-    def contacts(self, s: Any, ns: int, alpha: float) -> tuple[str, float]:
-        self.built.append("contacts")
-        return ("contacts", alpha)
+    def scene(self, s: Any, ns: int, alpha: float, truth: Any = None) -> tuple[str, float]:
+        self.built.append("scene" if truth is None else "object")
+        return ("scene", alpha)
 
     def pad_grids(self, mats: Any, ns: int) -> dict[str, str]:
         self.built.append("grids")
@@ -217,7 +92,7 @@ def live(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[FoxgloveLive, FakeHa
 
 
 def _chans(fox: FoxgloveLive, subscribed: bool) -> dict[str, FakeChannel]:
-    ch = {n: FakeChannel(subscribed) for n in ("_samples", "_tf", "_contacts", "_events")}
+    ch = {n: FakeChannel(subscribed) for n in ("_samples", "_tf", "_scene", "_events")}
     for name, c in ch.items():
         setattr(fox, name, c)
     fox._pads = {p: FakeChannel(subscribed) for p in PAD_NAMES}  # type: ignore[misc]
@@ -250,12 +125,12 @@ def test_3d_channels_at_most_max_hz_samples_and_events_all(
         fox.handle(SampleMsg(1, a_sample(iteration=i + 1)))
         fox.handle(_tactile(i))
     assert [json.loads(m)["iteration"] for m, _ in ch["_samples"].logged] == [1, 2, 3, 4, 5]
-    assert hand.built == ["tf", "contacts", "grids"]
+    assert hand.built == ["tf", "scene", "grids"]
     assert all(len(c.logged) == 1 for c in fox._pads.values())  # type: ignore[attr-defined]
     clock.now += 0.1  # a period later: the next sample and frame are drawn
     fox.handle(SampleMsg(1, a_sample(iteration=6)))
     fox.handle(_tactile(6))
-    assert hand.built == ["tf", "contacts", "grids", "tf", "contacts", "grids"]
+    assert hand.built == ["tf", "scene", "grids", "tf", "scene", "grids"]
     # log times: the clock at delivery
     assert ch["_samples"].logged[-1][1] == clock.time_ns()
 
@@ -265,8 +140,21 @@ def test_the_cones_take_the_runs_alpha(live: tuple[FoxgloveLive, FakeHand, Clock
     ch = _chans(fox, subscribed=True)
     fox.handle(Event(1, 0.0, 0, EventKind.START, {"params": {"alpha_deg": 30.0}}))
     fox.handle(SampleMsg(1, a_sample()))
-    assert ch["_contacts"].logged[-1][0] == ("contacts", pytest.approx(math.radians(30.0)))
+    assert ch["_scene"].logged[-1][0] == ("scene", pytest.approx(math.radians(30.0)))
     assert [type(m) for m, _ in ch["_events"].logged] == [fm.Log]
+
+
+def test_the_object_and_the_contacts_end(live: tuple[FoxgloveLive, FakeHand, Clock]) -> None:
+    """The truth's object at each ``sim`` message; a run's end deletes its contacts."""
+    fox, hand, _ = live
+    ch = _chans(fox, subscribed=True)
+    fox.handle(Sim({"outline": [[0.0, 100.0], [10.0, 110.0]]}))
+    fox.handle(Sim({"outline": [[0.0, 100.0], [10.0, 110.0]]}))
+    assert hand.built == ["object", "object"]
+    fox.handle(Event(1, 9.0, 300, EventKind.END, {"status": "completed", "message": ""}))
+    update = _proto_class("foxglove.SceneUpdate", fm.SceneUpdate.get_schema().data)
+    (deletion,) = update.FromString(ch["_scene"].logged[-1][0].encode()).deletions
+    assert deletion.id == "contacts" and deletion.type == 0  # MATCHING_ID, not ALL
 
 
 def test_stopped_it_ignores_messages(live: tuple[FoxgloveLive, FakeHand, Clock]) -> None:

@@ -12,13 +12,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from mcap_check import Recording, read
+from foxglove import messages as fm
+from mcap_check import Recording, _no_unknown_fields, _proto_class, read
 from test_store import _frame, _samples
 
 from sdh2svc.config import Settings
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.urdf import FINGERS, PADS, describe
-from sdh2svc.service.foxglove_mcap import sample_schema
+from sdh2svc.service.foxglove_mcap import HandFrames, sample_schema
 from sdh2svc.service.store import Recorder, RunStore
 
 N = 30
@@ -56,7 +57,7 @@ def test_channels_and_their_schemas(recorded: tuple[list[Sample], Recording]) ->
     want = {
         "/samples": ("sdh2svc.Sample", "jsonschema"),
         "/tf": ("foxglove.FrameTransforms", "protobuf"),
-        "/contacts": ("foxglove.SceneUpdate", "protobuf"),
+        "/scene": ("foxglove.SceneUpdate", "protobuf"),
         "/events": ("foxglove.Log", "protobuf"),
         **{f"/tactile/{f}_{p}": ("foxglove.Grid", "protobuf") for f in FINGERS for p in PADS},
     }
@@ -77,24 +78,30 @@ def test_the_sample_schema_is_the_sample(recorded: tuple[list[Sample], Recording
     assert got[7] == {f.name: getattr(samples[7], f.name) for f in fields(Sample)}
 
 
+def test_the_csv_header_carries_the_units() -> None:
+    """``name [unit]`` from the Sample's fields, the same unit as the schema's description."""
+    header = Sample.csv_header()
+    assert header[:3] == ("iteration", "t [s]", "phi2 [deg]")
+    assert {"S1 [mm]", "F [library force units]", "latency_ms [ms]", "reversal"} <= set(header)
+    docs = Sample.descriptions()
+    for name, col in zip(Sample.columns(), header, strict=True):
+        unit = Sample.units()[name]
+        assert col == (name if unit is None else f"{name} [{unit}]")
+        assert unit is None or docs[name].endswith(f", {unit}")
+
+
 def test_log_times_are_the_records_own(recorded: tuple[list[Sample], Recording]) -> None:
     samples, rec = recorded
     t = rec.log_times
     t0 = t["/samples"][0] - round(samples[0].t * 1e9)
     assert [x - t0 for x in t["/samples"]] == [round(s.t * 1e9) for s in samples]
-    assert t["/tf"] == t["/contacts"] == t["/samples"]
+    assert t["/tf"] == t["/scene"] == t["/samples"]
     assert [x - t0 for x in t["/events"]] == [0, 500_000_000, 900_000_000]
     assert [x - t0 for x in t["/tactile/finger1_distal"]] == [0, 100_000_000, 200_000_000]
-    for topic in ("/tf", "/contacts", "/events", "/tactile/thumb_proximal"):
+    for topic in ("/tf", "/scene", "/events", "/tactile/thumb_proximal"):
         raw = rec.messages[topic][-1]["_raw"]
-        stamp = (
-            raw.transforms[0]
-            if topic == "/tf"
-            else raw.entities[0]
-            if topic == "/contacts"
-            else raw
-        ).timestamp
-        assert stamp.ToNanoseconds() == t[topic][-1]
+        stamped = raw.transforms if topic == "/tf" else raw.entities if topic == "/scene" else [raw]
+        assert {x.timestamp.ToNanoseconds() for x in stamped} == {t[topic][-1]}
 
 
 def test_transforms_follow_the_recorded_angles(
@@ -119,9 +126,9 @@ def test_contacts_segment_and_cones(
     cfg: Settings, recorded: tuple[list[Sample], Recording]
 ) -> None:
     samples, rec = recorded
-    s, msg = samples[4], rec.messages["/contacts"][4]
-    (entity,) = msg["entities"]
-    assert entity["frame_id"] == "frame0" and entity["id"] == "contacts"
+    s, msg = samples[4], rec.messages["/scene"][4]
+    (entity,) = [e for e in msg["entities"] if e["id"] == "contacts"]
+    assert entity["frame_id"] == "frame0"
     A = entity["spheres"][0]["pose"]["position"]
     assert (A.get("y", 0.0) * 1e3, A["z"] * 1e3) == pytest.approx((s.Ay, s.Az))
     pts = entity["lines"][0]["points"]
@@ -135,6 +142,50 @@ def test_contacts_segment_and_cones(
     # the cone's axis leaves A towards the other finger (+y for Finger 1 in a mirror pose)
     centres = [c["pose"]["position"].get("y", 0.0) * 1e3 for c in cones]
     assert centres[0] > s.Ay and centres[1] < s.By
+
+
+def test_pads_as_boxes_in_their_frames(
+    cfg: Settings, recorded: tuple[list[Sample], Recording]
+) -> None:
+    """Each pad a box under its Grid, in the pad's frame of /tf, following it."""
+    _, rec = recorded
+    frames = {t["child_frame_id"] for t in rec.messages["/tf"][0]["transforms"]}
+    assert "frame0" in frames  # the contacts' frame
+    pitch = cfg.tactile.texel_pitch_mm * 1e-3
+    pads = {e["id"]: e for e in rec.messages["/scene"][3]["entities"] if e["id"] != "contacts"}
+    assert set(pads) == {f"pads/{f}_{p}" for f in FINGERS for p in PADS}
+    for f in FINGERS:
+        for p in PADS:
+            e = pads[f"pads/{f}_{p}"]
+            assert e["frame_id"] == f"{f}_{p}_pad" and e["frame_id"] in frames
+            assert e["frame_locked"] is True
+            (cube,) = e["cubes"]
+            lay = cfg.tactile.proximal if p == "proximal" else cfg.tactile.distal
+            w, h = lay.cols * pitch, lay.rows * pitch
+            assert (cube["size"]["x"], cube["size"]["y"]) == pytest.approx((w, h))
+            c = cube["pose"]["position"]
+            assert (c["x"], c["y"]) == pytest.approx((w / 2, h / 2)) and c["z"] < 0  # below
+
+
+def test_the_objects_true_outline(cfg: Settings) -> None:
+    """In simulation (a ``sim`` message's truth): a closed line in frame 0, red once dropped."""
+    hand = HandFrames.of(cfg)
+    ring = [(30 * math.cos(a), 120 + 20 * math.sin(a)) for a in np.linspace(0, 6.2, 90)]
+    scene_cls = _proto_class("foxglove.SceneUpdate", fm.SceneUpdate.get_schema().data)
+    for dropped, red in ((False, 0.0), (True, 0.9)):
+        truth = {"outline": ring, "dropped": dropped}
+        msg = scene_cls.FromString(hand.scene(None, 7, 0.4, truth).encode())
+        _no_unknown_fields(msg)
+        (obj,) = [e for e in msg.entities if e.id == "object"]
+        assert obj.frame_id == "frame0" and obj.timestamp.ToNanoseconds() == 7
+        (line,) = obj.lines
+        assert line.type == 1  # LINE_LOOP: the outline closed
+        pts = [c for p in line.points for c in (p.x, p.y * 1e3, p.z * 1e3)]
+        assert pts == pytest.approx([c for y, z in ring for c in (0.0, y, z)])
+        assert line.color.r == pytest.approx(red, abs=0.2)
+        assert all(e.id != "contacts" for e in msg.entities)  # no sample: none drawn
+    no_outline = scene_cls.FromString(hand.scene(None, 7, 0.4, {"outline": []}).encode())
+    assert [e.id for e in no_outline.entities if e.id == "object"] == []
 
 
 def test_pads_as_grids(cfg: Settings, recorded: tuple[list[Sample], Recording]) -> None:
@@ -193,6 +244,6 @@ def test_an_export_without_frames_or_contacts(cfg: Settings, tmp_path: Path) -> 
     assert store.export_mcap(run_id, raw) == 3
     store.close()
     got = read(raw.getvalue())
-    (entity,) = got.messages["/contacts"][0]["entities"]
+    (entity,) = [e for e in got.messages["/scene"][0]["entities"] if e["id"] == "contacts"]
     assert "spheres" not in entity and "cylinders" not in entity
     assert got.metadata["object"] == {"name": "none (a real hand)"}

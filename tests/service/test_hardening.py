@@ -16,6 +16,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
+from sdh2svc.client import ApiError, InvalidRequest, NotFound
 from tests.live_service import LiveService, start_service
 
 EVIL = "http://evil.example"
@@ -37,7 +38,8 @@ def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
 
 
 def plain(svc: LiveService) -> httpx.AsyncClient:
-    """A client that sends what a browser's 'simple' request does: no JSON content type."""
+    """Raw HTTP, for what sdh2svc.client never sends: a browser's 'simple' request (no JSON
+    content type), foreign Origins and Hosts, hostile bodies."""
     return httpx.AsyncClient(base_url=svc.url, timeout=30.0)
 
 
@@ -124,7 +126,7 @@ def test_huge_body_refused_before_it_is_read(svc: LiveService) -> None:
 
 async def test_errors_never_echo_a_long_value(svc: LiveService) -> None:
     long = "x" * 300_000  # under the body limit, so that it reaches validation
-    async with svc.client() as c:
+    async with plain(svc) as c:  # hostile bodies, as sent
         for method, path, body in (
             ("PATCH", "/api/params", {"k": long}),
             ("PATCH", "/api/params", {long: 1}),
@@ -149,32 +151,37 @@ async def test_errors_never_echo_a_long_value(svc: LiveService) -> None:
 
 
 async def test_ids_and_offsets_beyond_range_are_422_not_500(svc: LiveService) -> None:
+    big = 9223372036854775808  # 2⁶³: beyond SQLite's integers
     async with svc.client() as c:
-        for path in ("/api/runs/9223372036854775808", "/api/runs/18446744073709551616",
-                     "/api/runs/0", "/api/runs/-1", "/api/runs/9223372036854775808/samples",
-                     "/api/runs/9223372036854775808/export"):  # fmt: skip
-            r = await c.get(path)
-            assert r.status_code == 422, (path, r.text)
-            assert "run_id" in r.json()["details"][0]
-        r = await c.get("/api/runs/9223372036854775807")
-        assert r.status_code == 404 and "no run" in r.json()["error"]
+        for call in (c.run(big), c.run(2**64), c.run(0), c.run(-1), c.samples(big),
+                     c.export_bytes(big, "csv")):  # fmt: skip
+            with pytest.raises(InvalidRequest) as bad:
+                await call
+            assert bad.value.status == 422 and "run_id" in bad.value.details[0]
+        with pytest.raises(NotFound, match="no run"):
+            await c.run(big - 1)
         for offset in (2**63, 2**64, -1):
-            r = await c.get("/api/runs/1/samples", params={"offset": offset})
-            assert r.status_code == 422 and "offset" in r.json()["details"][0]
+            with pytest.raises(InvalidRequest) as bad:
+                await c.samples(1, offset=offset)
+            assert bad.value.status == 422 and "offset" in bad.value.details[0]
 
 
 async def test_booleans_are_no_numbers(svc: LiveService) -> None:
     async with svc.client() as c:
-        r = await c.post("/api/runs", json={"params": {"cycles": True}})
-        assert r.status_code == 422 and "cycles = True" in r.json()["details"][0]
-        r = await c.patch("/api/params", json={"k": True})
-        assert r.status_code == 422 and "k = True" in r.json()["details"][0]
+        with pytest.raises(InvalidRequest) as bad:
+            await c.start_run({"cycles": True})
+        assert bad.value.status == 422 and "cycles = True" in bad.value.details[0]
+        with pytest.raises(InvalidRequest) as bad:
+            await c.patch_params({"k": True})
+        assert "k = True" in bad.value.details[0]
         spec = {"kind": "circle", "diameter_mm": True, "depth_mm": 10}
-        r = await c.put("/api/sim/object", json={"spec": spec})
-        assert r.status_code == 422 and "diameter_mm" in r.json()["details"][0]
-        r = await c.post("/api/runs", json={"params": {}, "paramz": {"cycles": 1}})
-        assert r.status_code == 422 and "paramz" in r.json()["details"][0]
-        assert (await c.get("/api/status")).json()["run"] is None
+        with pytest.raises(InvalidRequest) as bad:
+            await c.set_sim_object(spec=spec)
+        assert "diameter_mm" in bad.value.details[0]
+        async with plain(svc) as raw:  # a body the client would never send
+            r = await raw.post("/api/runs", json={"params": {}, "paramz": {"cycles": 1}})
+            assert r.status_code == 422 and "paramz" in r.json()["details"][0]
+        assert (await c.status())["run"] is None
 
 
 STAR = [[40.0 * c, 40.0 * s] for c, s in ((1, 0), (-0.809, 0.588), (0.309, -0.951),
@@ -206,12 +213,13 @@ async def test_object_specs_the_hand_cannot_hold_are_422(
     svc: LiveService, spec: dict[str, Any], fragment: str
 ) -> None:
     async with svc.client() as c:
-        r = await c.put("/api/sim/object", json={"spec": spec})
-        assert r.status_code == 422, r.text
-        assert r.json()["error"] == "invalid object spec"
-        assert any(fragment in d for d in r.json()["details"]), r.json()
-        r = await c.post("/api/runs", json={"object": spec})
-        assert r.status_code == 422 and (await c.get("/api/status")).json()["run"] is None
+        with pytest.raises(InvalidRequest) as bad:
+            await c.set_sim_object(spec=spec)
+        assert bad.value.status == 422 and bad.value.error == "invalid object spec"
+        assert any(fragment in d for d in bad.value.details), bad.value.details
+        with pytest.raises(InvalidRequest):
+            await c.start_run(object=spec)
+        assert (await c.status())["run"] is None
 
 
 async def test_a_fine_polygon_is_taken(svc: LiveService) -> None:
@@ -221,24 +229,24 @@ async def test_a_fine_polygon_is_taken(svc: LiveService) -> None:
             for k in range(64)]  # fmt: skip
     async with svc.client() as c:
         spec = {"kind": "polygon", "vertices_mm": ring, "depth_mm": 20, "name": "oval"}
-        r = await c.put("/api/sim/object", json={"spec": spec})
-        assert r.status_code == 200, r.text
-        assert r.json()["object"]["name"] == "oval"
-        truth = (await c.get("/api/status")).json()["object"]
+        assert (await c.set_sim_object(spec=spec))["object"]["name"] == "oval"
+        truth = (await c.status())["object"]
         assert truth["kind"] == "polygon" and len(truth["vertices_mm"]) == 64
-        assert (await c.put("/api/sim/object", json={"name": "egg"})).status_code == 200
+        await c.set_sim_object(name="egg")
 
 
 async def test_open_hand_route(svc: LiveService) -> None:
     async with svc.client() as c:
-        r = await c.post("/api/hand/open", json={})
-        assert r.status_code not in (404, 405, 415), r.text
-        assert "error" in r.json() or r.status_code == 202
-        assert (await c.post("/api/hand/open")).status_code == 415  # JSON, as every command
+        try:
+            assert (await c.open_hand()) == {"state": "opening"}
+        except ApiError as refused:  # the route is there: refused for the hand's state only
+            assert refused.status not in (404, 405, 415), refused
+    async with plain(svc) as raw:
+        assert (await raw.post("/api/hand/open")).status_code == 415  # JSON, as every command
 
 
 async def test_docs_are_served_from_the_package(svc: LiveService) -> None:
-    async with svc.client() as c:
+    async with plain(svc) as c:  # pages for a browser
         for page in ("/docs", "/redoc"):
             r = await c.get(page)
             assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
@@ -252,7 +260,7 @@ async def test_docs_are_served_from_the_package(svc: LiveService) -> None:
 
 
 async def test_openapi_lists_every_status_and_content_type(svc: LiveService) -> None:
-    async with svc.client() as c:
+    async with plain(svc) as c:
         paths = (await c.get("/openapi.json")).json()["paths"]
     error_schema = {"$ref": "#/components/schemas/ErrorBody"}
     expect = {

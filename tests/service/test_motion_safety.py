@@ -13,10 +13,12 @@ import asyncio
 import signal
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
+from sdh2svc.client import AsyncClient, Conflict, Unauthorized, run_state
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.sim.cable import Cable
@@ -61,20 +63,10 @@ async def _stop(svc: LiveService, sig: int = signal.SIGTERM) -> int:
     return await asyncio.to_thread(svc.stop, sig)
 
 
-async def _wait_phase(client: httpx.AsyncClient, phase: str, timeout_s: float = 60.0) -> dict:
-    async with asyncio.timeout(timeout_s):
-        while True:
-            st = (await client.get("/api/status")).json()
-            if st["run"] and st["run"]["state"] == phase:
-                return st
-            await asyncio.sleep(0.05)
-
-
 async def _start_grasp(svc: LiveService, sim: SimulatedHand) -> None:
     async with svc.client() as client:
-        r = await client.post("/api/runs", json={})
-        assert r.status_code == 201, r.text
-        await _wait_phase(client, "grasping")
+        await client.start_run()
+        await client.wait_status(run_state("grasping"))
     # let the fingers close for a while: they are moving when the fault comes
     start = _angles(sim)
     async with asyncio.timeout(30):
@@ -94,10 +86,8 @@ async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
         await asyncio.sleep(WATCH_S)
         assert _moved(_angles(sim), at_cut) <= STEP_DEG
         await cable.plug()  # the link comes back: the service stops all axes, nothing moves
-        async with svc.client() as client, asyncio.timeout(30):
-            while not (await client.get("/api/status")).json()["hand"]["connected"]["joints"]:
-                await asyncio.sleep(0.05)
-            st = (await client.get("/api/status")).json()
+        async with svc.client() as client:
+            st = await client.wait_status(lambda st: st["hand"]["connected"]["joints"], 30.0)
         assert st["last_run"]["status"] == "faulted", st["last_run"]
         await asyncio.sleep(WATCH_S / 2)
         assert _moved(_angles(sim), at_cut) <= STEP_DEG
@@ -120,9 +110,8 @@ async def test_kill_during_the_grasp_then_restart_leaves_the_fingers_still(
     again = await _serve(tmp_path, sim, cable)
     try:
         async with again.client() as client:
-            st = (await client.get("/api/status")).json()
-            assert st["hand"]["connected"]["joints"]
-            runs = (await client.get("/api/runs")).json()
+            assert (await client.status())["hand"]["connected"]["joints"]
+            runs = await client.runs()
         assert runs[0]["status"] == "interrupted"
         await asyncio.sleep(WATCH_S / 2)
         assert _moved(_angles(sim), at_kill) <= STEP_DEG
@@ -133,26 +122,23 @@ async def test_kill_during_the_grasp_then_restart_leaves_the_fingers_still(
 async def test_the_estop_latch_survives_a_restart(tmp_path: Path) -> None:
     svc = start_service(tmp_path, viewer=False, token="secret")
     try:
-        async with httpx.AsyncClient(base_url=svc.url) as anon:  # no token: stopping is allowed
-            r = await anon.post("/api/estop")
-            assert r.status_code == 200, r.text
+        async with AsyncClient(svc.url) as anon:  # no token: stopping is allowed
+            assert (await anon.estop())["estopped"] is True
     finally:
         svc.stop(signal.SIGKILL)  # the PC loses power, say
     again = start_service(tmp_path, viewer=False, token="secret")
     try:
-        async with again.client() as client:
-            st = (await client.get("/api/status")).json()
+        async with again.client() as client, AsyncClient(again.url) as anon:
+            st = await client.status()
             assert st["estopped"] and st["estop"]["since"]
-            r = await client.post("/api/runs", json={})
-            assert r.status_code == 409 and "e-stop" in r.json()["error"]
-            r = await client.post("/api/hand/open", json={})
-            assert r.status_code == 409
-            async with httpx.AsyncClient(base_url=again.url) as anon:
-                r = await anon.post("/api/estop/release", json={})
-                assert r.status_code == 401  # releasing needs the token
-            r = await client.post("/api/estop/release", json={})
-            assert r.status_code == 200 and r.json()["estopped"] is False
-            assert (await client.get("/api/status")).json()["estop"] is None
+            with pytest.raises(Conflict, match="e-stop"):
+                await client.start_run()
+            with pytest.raises(Conflict):
+                await client.open_hand()
+            with pytest.raises(Unauthorized):  # releasing needs the token
+                await anon.release_estop()
+            assert (await client.release_estop())["estopped"] is False
+            assert (await client.status())["estop"] is None
     finally:
         assert again.stop() == 0, "".join(again.log)
 
@@ -165,21 +151,18 @@ async def test_after_a_fault_open_hand_releases_the_object(tmp_path: Path) -> No
     svc = await asyncio.to_thread(start_service, tmp_path, viewer=False)
     try:
         async with svc.client() as client:
-            assert (await client.post("/api/runs", json={})).status_code == 201
-            await _wait_phase(client, "grasping")
-            r = await client.post("/api/hand/open", json={})
-            assert r.status_code == 409 and "stop it first" in r.json()["error"]
-            assert (await client.post("/api/estop")).status_code == 200
-            r = await client.post("/api/hand/open", json={})
-            assert r.status_code == 409 and "e-stop" in r.json()["error"]
-            assert (await client.post("/api/estop/release", json={})).status_code == 200
-            held = (await client.get("/api/status")).json()
+            await client.start_run()
+            await client.wait_status(run_state("grasping"))
+            with pytest.raises(Conflict, match="stop it first"):
+                await client.open_hand()
+            assert (await client.estop())["estopped"] is True
+            with pytest.raises(Conflict, match="e-stop"):
+                await client.open_hand()
+            assert (await client.release_estop())["estopped"] is False
+            held = await client.status()
             assert held["last_run"]["status"] == "e-stopped"
-            r = await client.post("/api/hand/open", json={})
-            assert r.status_code == 202, r.text
-            async with asyncio.timeout(60):
-                while (st := (await client.get("/api/status")).json())["hand"]["opening"]:
-                    await asyncio.sleep(0.05)
+            assert (await client.open_hand()) == {"state": "opening"}  # 202
+            st = await client.wait_status(lambda st: not st["hand"]["opening"])
             angles = st["hand"]["angles_deg"]
             assert max(abs(a - p) for a, p in zip(angles, cfg.run.preshape_deg, strict=True)) < 0.5
     finally:
@@ -201,17 +184,17 @@ async def test_a_huge_body_during_a_run_does_not_disturb_it(
 
     try:
         async with svc.client() as client:
-            assert (await client.post("/api/runs", json={})).status_code == 201
-            before = (await _wait_phase(client, "rolling"))["run"]["iteration"]
+            await client.start_run()
+            before = (await client.wait_status(run_state("rolling")))["run"]["iteration"]
             refused = await asyncio.to_thread(_send_huge, svc.url, chunks())
             assert refused in (413, "reset")
-            async with asyncio.timeout(30):
-                while (st := (await client.get("/api/status")).json())["run"]["iteration"] < (
-                    before + 60
-                ):
-                    assert st["run"]["state"] == "rolling", st["run"]
-                    await asyncio.sleep(0.1)
-            assert (await client.post("/api/runs/stop", json={})).status_code == 202
+
+            def rolled_on(st: dict[str, Any]) -> bool:
+                assert st["run"]["state"] == "rolling", st["run"]
+                return bool(st["run"]["iteration"] >= before + 60)
+
+            await client.wait_status(rolled_on, timeout=30.0, poll_s=0.1)
+            await client.stop_run()
     finally:
         assert await _stop(svc) == 0, "".join(svc.log)
 

@@ -73,8 +73,8 @@ def test_record_read_back_and_export(cfg: Settings, tmp_path: Path) -> None:
     buf = io.StringIO()
     assert store.export_csv(run_id, buf) == 40
     rows = list(csv.DictReader(io.StringIO(buf.getvalue())))
-    assert len(rows) == 40 and list(rows[0]) == list(Sample.columns())
-    assert float(rows[5]["F"]) == samples[5].F
+    assert len(rows) == 40 and list(rows[0]) == list(Sample.csv_header())
+    assert float(rows[5]["F [library force units]"]) == samples[5].F
 
     raw = io.BytesIO()
     n = store.export_mcap(run_id, raw)
