@@ -12,6 +12,7 @@ import httpx
 import numpy as np
 import pytest
 
+from sdh2svc.client import AsyncClient
 from sdh2svc.config import Settings, load_config
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.api.deps import Services
@@ -114,6 +115,17 @@ async def test_frames_paged_in_iteration_order(
     r = await c.get(f"/api/runs/{run_id}/frames", params={"from": 4, "to": 6})
     assert [f["iteration"] for f in r.json()["frames"]] == [4, 5, 6]
     assert r.json()["next"] is None and r.json()["from"] == 4
+
+
+async def test_the_client_reads_frames(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    c, _ = client
+    ac = AsyncClient("http://127.0.0.1", token=TOKEN)
+    await ac._http.aclose()
+    ac._http = c  # the app in process, no socket
+    page = await ac.frames(setup[1], 10, limit=5)
+    assert [f["iteration"] for f in page["frames"]] == [10, 11] and page["next"] is None
 
 
 async def test_frames_404_and_422(
