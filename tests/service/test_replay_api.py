@@ -150,7 +150,31 @@ async def test_frames_are_in_the_openapi_with_models(client: tuple[Any, Any]) ->
     assert ok["content"]["application/json"]["schema"]["$ref"].endswith("/FramePage")
     frame = doc["components"]["schemas"]["RecordedFrame"]["properties"]
     assert "base64" in frame["texels"]["description"]
-    assert {"put", "delete"} <= set(doc["paths"]["/api/viewer/replay"])
+    expect = {
+        ("get", "/api/runs/{run_id}/frames"): {200, 400, 404, 422},
+        ("put", "/api/viewer/replay"): {200, 400, 401, 403, 404, 409, 413, 415, 422},
+        ("delete", "/api/viewer/replay"): {200, 400, 401, 403, 409, 413, 415},
+    }
+    for (method, path), codes in expect.items():
+        responses = doc["paths"][path][method]["responses"]
+        assert {int(k) for k in responses} == codes, (method, path)
+        for code, resp in responses.items():
+            schema = resp["content"]["application/json"]["schema"]
+            ok = "/FramePage" if method == "get" else "/ReplayShown"
+            assert schema["$ref"].endswith("/ErrorBody" if int(code) >= 400 else ok)
+
+
+def test_frames_split_as_the_live_matrices(cfg: Settings) -> None:
+    shapes = matrix_shapes(cfg.tactile, cfg.axes)
+    ax = cfg.axes
+    for pad in ("finger1", "thumb", "finger2"):
+        assert shapes[getattr(ax, f"{pad}_proximal_matrix")] == (14, 6)
+        assert shapes[getattr(ax, f"{pad}_distal_matrix")] == (13, 6)
+    mats = frame_matrices(np.arange(486), shapes)
+    assert [m.shape for m in mats] == list(shapes)
+    assert mats[0][1, 0] == 6 and mats[1][0, 0] == shapes[0][0] * shapes[0][1]
+    with pytest.raises(ValueError, match="485 texels"):
+        frame_matrices(np.arange(485), shapes)
 
 
 async def test_replay_feed_shows_a_recorded_iteration_then_live(
