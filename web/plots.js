@@ -149,7 +149,6 @@ export class Plots {
     this.dirty = false;
     this.frame = 0;
     this.pinned = null; // the data index the replay scrubber shows (the cursor rests there)
-    this.hovering = false;
     this.pinning = false; // pin() moving the cursors: not the user's hover
     this.charts = PLOTS.map((p) => this.makeChart(p));
     // resized in the next frame, not in the observer's callback: no "ResizeObserver loop"
@@ -165,7 +164,7 @@ export class Plots {
     title.textContent = p.title;
     el.appendChild(title);
     const opts = {
-      width: Math.max(200, el.clientWidth - 4),
+      width: Math.max(200, el.clientWidth - 14),
       height: 150,
       legend: { live: true },
       cursor: { sync: { key: "sdh2" }, drag: { x: true, y: false } },
@@ -201,11 +200,7 @@ export class Plots {
     const chart = new uPlot(opts, [[], ...p.series.map(() => [])], el);
     chart._container = el;
     // the legend shows the values at the cursor; off the plot, the newest (or the pinned) ones
-    chart.over.addEventListener("mouseenter", () => { this.hovering = true; });
-    chart.over.addEventListener("mouseleave", () => {
-      this.hovering = false;
-      requestAnimationFrame(() => this.restLegends());
-    });
+    chart.over.addEventListener("mouseleave", () => requestAnimationFrame(() => this.restLegends()));
     return chart;
   }
 
@@ -246,10 +241,11 @@ export class Plots {
       const el = c._container;
       const title = el.querySelector(".plot-title");
       const legend = el.querySelector(".u-legend");
+      // the box's padding (4 + 4 px), the title's margin and uPlot's own few pixels
       const room = el.clientHeight - (title ? title.offsetHeight : 0) -
-        (legend ? legend.offsetHeight : 0) - 14;
+        (legend ? legend.offsetHeight : 0) - 20;
       c._legendH = legend ? legend.offsetHeight : 0;
-      const w = Math.max(200, el.clientWidth - 4);
+      const w = Math.max(200, el.clientWidth - 14); // inside the padding (6 + 6 px)
       const h = Math.max(80, Math.min(260, Math.floor(room)));
       if (Math.abs(w - c.width) > 2 || Math.abs(h - c.height) > 2) c.setSize({ width: w, height: h });
     }
@@ -257,8 +253,9 @@ export class Plots {
 
   /** Legends (and cursors) off the plots: at the pinned index in a replay, else the newest. */
   restLegends() {
-    if (this.hovering) return;
     const buf = this.current();
+    // a cursor the mouse put on a plot (uPlot parks it at left < 0 otherwise) stays
+    if (this.charts.some((c) => c.cursor.left >= 0 && c.cursor.left !== c._pinnedAt)) return;
     if (this.pinned !== null && this.replay) {
       this.pin(this.pinned);
       return;
@@ -277,9 +274,9 @@ export class Plots {
     this.pinning = true;
     try {
       for (const c of this.charts) {
-        if (this.hovering) break;
         const left = c.valToPos(x, "x");
         if (Number.isFinite(left)) c.setCursor({ left, top: c.bbox.height / devicePixelRatio / 2 }, true, false);
+        c._pinnedAt = c.cursor.left;
         c._container.dataset.cursorIteration = String(buf.samples[idx]?.iteration ?? x);
       }
     } finally {
