@@ -26,6 +26,18 @@ export class Replay {
     });
     this.playBtn.addEventListener("click", () => this.toggle());
     this.speedSel.addEventListener("change", () => this.setSpeed(Number(this.speedSel.value)));
+    // keys while a replay is shown (not while typing): space plays/pauses, ← → step (⇧: 10)
+    document.addEventListener("keydown", (ev) => {
+      // (a focused control has its own keys: the slider steps, a button clicks on space)
+      if (!this.active || ev.target.closest("input, select, textarea, button")) return;
+      const step = ev.shiftKey ? 10 : 1;
+      if (ev.key === " ") this.toggle();
+      else if (ev.key === "ArrowRight" || ev.key === "ArrowLeft") {
+        this.pause();
+        this.seek(this.index + (ev.key === "ArrowRight" ? step : -step));
+      } else return;
+      ev.preventDefault();
+    });
   }
 
   get active() {

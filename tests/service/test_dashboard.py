@@ -350,6 +350,11 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     shown = await page.evaluate(SHOWN)
     assert shown["pads"] == shown["sketch"] == shown["plots"][0] != str(it), shown
     assert shown["cursors"] == [shown["index"]] * len(PLOTS), shown
+    # the keys step it (with nothing focused): one iteration, ten with shift
+    await page.evaluate("document.activeElement.blur()")
+    await page.keyboard.press("ArrowRight")
+    await page.keyboard.press("Shift+ArrowLeft")
+    assert (await page.evaluate(SHOWN))["index"] == shown["index"] - 9
     await screenshot(page, "replay")
     for fmt in ("csv", "mcap"):
         href = await row.locator(f"a.export-{fmt}").get_attribute("href")
