@@ -10,6 +10,9 @@ whose joints moved are posed again, only pads whose counts changed are recoloure
 property is sent only when its value differs from the one last sent (every assignment is a
 message that viser's thread encodes and sends, holding the GIL the control loop needs). Nobody
 watching, nothing is drawn: the changes wait, and a browser that connects gets the latest state.
+While the dashboard replays a recorded run, :attr:`Viewer.replay`
+(:mod:`sdh2svc.service.replay_feed`) puts the iteration it shows in the place of the live
+messages, and the panel says so.
 
 Geometry. The scene is frame 0 of hand-model.md §2 (origin at Finger 1's proximal joint O, y0
 towards Finger 2, z0 along the straightened finger; x0 completes a right-handed frame and points
