@@ -177,10 +177,14 @@ document.addEventListener("keydown", (ev) => {
   if (ev.key === "Escape" && $("#params-drawer").classList.contains("open")) openDrawer(false);
 });
 
-// the header's height, for what sits below it (the drawer, the stage's height)
-new ResizeObserver(() => requestAnimationFrame(() => {
-  document.documentElement.style.setProperty("--header-h", `${$("#controls").offsetHeight}px`);
-})).observe($("#controls"));
+// the header's height (the drawer sits below it) and where the stage starts (below the header
+// and whichever banners show): the stage fills the rest of the first screen
+const layoutWatch = new ResizeObserver(() => requestAnimationFrame(() => {
+  const root = document.documentElement.style;
+  root.setProperty("--header-h", `${$("#controls").offsetHeight}px`);
+  root.setProperty("--stage-top", `${$(".stage").getBoundingClientRect().top + window.scrollY}px`);
+}));
+for (const sel of ["#controls", "#dead-banner", "#run-notice"]) layoutWatch.observe($(sel));
 
 async function applyParams(patch) {
   form.clearErrors();
