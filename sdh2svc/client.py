@@ -161,6 +161,10 @@ def _samples(run_id: int, offset: int, limit: int) -> _Call:
     return _Call("GET", f"/api/runs/{run_id}/samples", query={"offset": offset, "limit": limit})
 
 
+def _frames(run_id: int, first: int, limit: int) -> _Call:
+    return _Call("GET", f"/api/runs/{run_id}/frames", query={"from": first, "limit": limit})
+
+
 def _object(name: str | None, spec: Mapping[str, Any] | None) -> _Call:
     if (name is None) == (spec is None):
         raise ValueError("give an object's name or its spec")
@@ -293,6 +297,11 @@ class Client:
             if len(got) < page:
                 return
             offset += len(got)
+
+    def frames(self, run_id: int, first: int = 0, limit: int = 500) -> JSON:
+        """A page of a run's tactile frames from iteration ``first`` (docs/api.md; follow
+        ``next``); ``texels`` is base64 of little-endian uint16 counts."""
+        return cast(JSON, self._call(_frames(run_id, first, limit)))
 
     def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
         call = _export(run_id, format)
@@ -480,6 +489,9 @@ class AsyncClient:
             if len(got) < page:
                 return
             offset += len(got)
+
+    async def frames(self, run_id: int, first: int = 0, limit: int = 500) -> JSON:
+        return cast(JSON, await self._call(_frames(run_id, first, limit)))
 
     async def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
         call = _export(run_id, format)

@@ -100,7 +100,11 @@ export const api = {
   run: (id) => request("GET", `/api/runs/${id}`),
   samples: (id, offset, limit) =>
     request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}`),
+  frames: (id, from, limit) => request("GET", `/api/runs/${id}/frames?from=${from}&limit=${limit}`),
   exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,
+  showReplay: (runId, iteration) =>
+    request("PUT", "/api/viewer/replay", { run_id: runId, iteration }, { timeoutMs: 10000 }),
+  endReplay: () => request("DELETE", "/api/viewer/replay", {}, { timeoutMs: 5000 }),
   estop,
   release: () => request("POST", "/api/estop/release", {}),
   openHand: () => request("POST", "/api/hand/open", {}),
@@ -120,6 +124,37 @@ export async function allSamples(id, onProgress, pageSize = 5000) {
     offset += page.samples.length;
     if (onProgress) onProgress(offset, page.total);
     if (page.samples.length === 0 || offset >= page.total) break;
+  }
+  return out;
+}
+
+/** A recorded frame's texels (base64 of little-endian uint16) as matrices of rows, as a live
+ * `tactile` message carries them (`shapes`: rows × columns per matrix, in index order). */
+export function decodeFrame(b64, shapes) {
+  const bytes = atob(b64);
+  const counts = new Uint16Array(bytes.length >> 1);
+  for (let i = 0; i < counts.length; i++) {
+    counts[i] = bytes.charCodeAt(2 * i) | (bytes.charCodeAt(2 * i + 1) << 8);
+  }
+  const matrices = [];
+  let at = 0;
+  for (const [rows, cols] of shapes) {
+    const m = [];
+    for (let r = 0; r < rows; r++, at += cols) m.push(counts.subarray(at, at + cols));
+    matrices.push(m);
+  }
+  return matrices;
+}
+
+/** All tactile frames of a recorded run, page by page: Map iteration → matrices. */
+export async function allFrames(id, onProgress, pageSize = 2000) {
+  const out = new Map();
+  let from = 0;
+  while (from !== null && from !== undefined) {
+    const page = await api.frames(id, from, pageSize);
+    for (const f of page.frames) out.set(f.iteration, decodeFrame(f.texels, page.shapes));
+    if (onProgress) onProgress(out.size, page.total);
+    from = page.next;
   }
   return out;
 }

@@ -1,9 +1,11 @@
 // The sdh2svc dashboard: wires the REST API, the telemetry WebSocket, the plots, pads and sketch.
 
-import { api, allSamples, ApiError, getToken, setToken, Telemetry } from "/web/api.js";
+import { allFrames, allSamples, api, ApiError, getToken, setToken, Telemetry } from "/web/api.js";
+import { eventSentence, plainMessage } from "/web/events.js";
 import { ParamsForm } from "/web/params.js";
 import { Pads } from "/web/pads.js";
-import { Plots } from "/web/plots.js";
+import { MARKERS, Plots } from "/web/plots.js";
+import { Replay } from "/web/replay.js";
 import { configureHand, Sketch } from "/web/sketch.js";
 
 const $ = (sel) => document.querySelector(sel);
@@ -11,16 +13,10 @@ const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling"
 const CONTACT_STALE_MS = 1500;
 // How a run can end that needs a person to look (status.last_run.status, the `end` event).
 const NOTICE_STATUSES = new Set(["faulted", "dropped", "e-stopped", "stopped"]);
-// A fault's key (the part of a run's message before ": ") in plain words.
-const FAULT_WORDS = {
-  no_contact: "the grasp found nothing between the fingertips",
-  force_ceiling: "the grip force went too high",
-  stale_sensor: "the tactile frames stopped coming",
-  dropped: "both contacts were lost; the object is no longer held",
-  stuck: "the rolling reversed on every iteration (stuck)",
-  joint_error: "the joint controller failed",
-  sensor_error: "the tactile sensor's controller failed",
-};
+const TOAST_MS = { error: 15000, info: 4000 }; // how long a toast stays, unless renewed
+// The browser's note that a ResizeObserver's callback resized something: benign, never an error.
+const BENIGN_ERRORS = /ResizeObserver loop/;
+const VIEW_FEED_MS = 100; // the 3-D view follows the replay at most this often
 const STATUS_PROBE_TIMEOUT_MS = 3000; // a status poll without an answer by then: no service
 const SILENT_SOCKET_MS = 5000; // status messages come at 2 Hz: a socket this quiet is suspect
 
@@ -29,6 +25,7 @@ const sdh2 = (window.sdh2 = {
   samples: 0, tactile: 0, statusMsgs: 0, events: 0, lastError: null,
   ws: "connecting", connects: 0, dropped: 0, runState: null, replaying: null,
   serviceAlive: true, deadSince: null, notice: null, openRequests: 0,
+  replayIndex: null, viewerFeeds: 0, toasts: 0,
 });
 
 const state = {
@@ -53,10 +50,29 @@ let telemetry = null;
 
 // --- errors -----------------------------------------------------------------------------------
 
-function toast(message, { details = [], kind = "error", timeoutMs = 0 } = {}) {
+/**
+ * A toast under the page: errors stay TOAST_MS.error, notes TOAST_MS.info (or `timeoutMs`).
+ * `key` names the problem (the action that failed): clearToasts(key) removes it once that
+ * action succeeds. The same text again renews the toast it has (counted) instead of stacking.
+ */
+function toast(message, { details = [], kind = "error", timeoutMs = 0, key = "" } = {}) {
+  const host = $("#errors");
+  const expires = Date.now() + (timeoutMs || TOAST_MS[kind] || TOAST_MS.error);
+  for (const old of host.children) {
+    if (old.dataset.text === message && old.dataset.key === key) {
+      const n = Number(old.dataset.count || 1) + 1;
+      old.dataset.count = String(n);
+      old.dataset.expires = String(expires);
+      old.querySelector(".toast-text").textContent = `${message} (×${n})`;
+      return old;
+    }
+  }
   const box = document.createElement("div");
   box.className = `toast ${kind}`;
   box.setAttribute("role", kind === "error" ? "alert" : "status");
+  box.dataset.text = message;
+  box.dataset.key = key;
+  box.dataset.expires = String(expires);
   const text = document.createElement("div");
   text.className = "toast-text";
   text.textContent = message;
@@ -77,11 +93,25 @@ function toast(message, { details = [], kind = "error", timeoutMs = 0 } = {}) {
   close.title = "dismiss";
   close.addEventListener("click", () => box.remove());
   box.appendChild(close);
-  const host = $("#errors");
   host.appendChild(box);
   while (host.children.length > 6) host.firstElementChild.remove();
-  if (timeoutMs) setTimeout(() => box.remove(), timeoutMs);
+  sdh2.toasts = host.children.length;
   return box;
+}
+
+/** Remove the toasts whose time is up (`now`: a test may pass a later time). */
+function expireToasts(now = Date.now()) {
+  for (const box of [...$("#errors").children]) {
+    if (Number(box.dataset.expires) <= now) box.remove();
+  }
+  sdh2.toasts = $("#errors").children.length;
+}
+setInterval(() => expireToasts(), 1000);
+
+/** The problem `key` is gone: its toasts go too. */
+function clearToasts(key) {
+  for (const box of [...$("#errors").children]) if (box.dataset.key === key) box.remove();
+  sdh2.toasts = $("#errors").children.length;
 }
 
 function showError(e, context = "") {
@@ -90,33 +120,71 @@ function showError(e, context = "") {
   const full = context ? `${context}: ${msg}` : msg;
   sdh2.lastError = details.length ? `${full} — ${details.join("; ")}` : full;
   console.warn("sdh2svc:", sdh2.lastError);
-  toast(full, { details });
+  // no answer at all is the service's problem, whatever asked: cleared when it answers again
+  const key = e instanceof ApiError && e.status === 0 ? "service" : context;
+  toast(full, { details, key });
   if (e instanceof ApiError && e.status === 401) $("#token-field").hidden = false;
 }
 
 /** Run an async UI action; show its error instead of failing silently. */
 async function guard(context, fn) {
   try {
-    return await fn();
+    const out = await fn();
+    clearToasts(context);
+    return out;
   } catch (e) {
     showError(e, context);
     return undefined;
   }
 }
 
-window.addEventListener("error", (ev) => showError(ev.message || "script error", "dashboard"));
+window.addEventListener("error", (ev) => {
+  if (BENIGN_ERRORS.test(String(ev.message || ""))) {
+    ev.stopImmediatePropagation();
+    return;
+  }
+  showError(ev.message || "script error", "dashboard");
+});
 window.addEventListener("unhandledrejection", (ev) => showError(ev.reason, "dashboard"));
 
 // --- components -------------------------------------------------------------------------------
 
 const sketch = new Sketch($("#sketch"));
 const pads = new Pads($("#pads"));
-const plots = new Plots({ windowSize: 2000, onCursor: (s) => sketch.setOverride(s) });
+const replay = new Replay($("#replay-banner"), { onIndex: (i, s) => showReplayIndex(i, s) });
+// hovering a plot shows that iteration in the sketch; off the plots, a replay's own iteration
+const plots = new Plots({
+  windowSize: 2000,
+  onCursor: (s) => sketch.setOverride(s ?? (replay.active ? replay.samples[replay.index] : null)),
+});
 const form = new ParamsForm($("#params-form"), {
   onSubmit: (patch) => applyParams(patch),
 });
 
-// --- parameters -------------------------------------------------------------------------------
+// --- parameters (in a drawer: the plots and pads keep the screen) -----------------------------
+
+/** Open (or with false, close) the parameter drawer; none: toggle. */
+function openDrawer(open) {
+  const drawer = $("#params-drawer");
+  const want = open ?? !drawer.classList.contains("open");
+  drawer.classList.toggle("open", want);
+  drawer.setAttribute("aria-hidden", String(!want));
+  $("#params-toggle").setAttribute("aria-expanded", String(want));
+}
+$("#params-toggle").addEventListener("click", () => openDrawer());
+$("#params-close").addEventListener("click", () => openDrawer(false));
+document.addEventListener("keydown", (ev) => {
+  if (ev.key === "Escape" && $("#params-drawer").classList.contains("open")) openDrawer(false);
+});
+
+// the header's height (the drawer sits below it) and where the stage starts (below the header
+// and whichever banners show): the stage fills the rest of the first screen
+const layoutWatch = new ResizeObserver(() => requestAnimationFrame(() => {
+  const root = document.documentElement.style;
+  root.setProperty("--header-h", `${$("#controls").offsetHeight}px`);
+  root.setProperty("--stage-top", `${$(".stage").getBoundingClientRect().top + window.scrollY}px`);
+}));
+for (const sel of ["#controls", "#dead-banner", "#run-notice"]) layoutWatch.observe($(sel));
 
 async function applyParams(patch) {
   form.clearErrors();
@@ -128,9 +196,13 @@ async function applyParams(patch) {
     const now = await api.patchParams(patch);
     form.setValues(now, true);
     state.params = now;
+    clearToasts("parameters");
     toast(`Parameters applied: ${Object.keys(patch).join(", ")}`, { kind: "info", timeoutMs: 3000 });
   } catch (e) {
-    if (e instanceof ApiError && e.status === 422) form.showServerErrors(e.details, e.error);
+    if (e instanceof ApiError && e.status === 422) {
+      form.showServerErrors(e.details, e.error);
+      openDrawer(true);
+    }
     showError(e, "parameters");
   }
 }
@@ -142,6 +214,7 @@ async function startRun() {
   const { patch, blocked } = form.collect(true);
   if (blocked) {
     showError("fix the marked parameter fields first", "start");
+    openDrawer(true);
     return;
   }
   if (Object.keys(patch).length) body.params = patch;
@@ -149,12 +222,16 @@ async function startRun() {
   form.clearErrors();
   try {
     const r = await api.startRun(body);
+    clearToasts("start");
     toast(`Run ${r.run_id} started`, { kind: "info", timeoutMs: 3000 });
     plots.resetLive();
     state.liveRunId = r.run_id;
     if (plots.replaying) backToLive();
   } catch (e) {
-    if (e instanceof ApiError && e.status === 422) form.showServerErrors(e.details, e.error);
+    if (e instanceof ApiError && e.status === 422) {
+      form.showServerErrors(e.details, e.error);
+      openDrawer(true);
+    }
     showError(e, "start");
   }
 }
@@ -184,6 +261,7 @@ async function openHand() {
   updateControls();
   try {
     await api.openHand();
+    clearToasts("open hand");
     state.openAnsweredAt = Date.now();
     toast("Opening the hand…", { kind: "info", timeoutMs: 3000 });
   } catch (e) {
@@ -237,6 +315,7 @@ $("#object-select").addEventListener("change", async (ev) => {
     const r = await api.putSimObject(sel.value);
     const name = (r && (r.object?.name ?? r.name)) || sel.value;
     sel.dataset.current = name;
+    clearToasts("object");
     toast(`Object: ${name}`, { kind: "info", timeoutMs: 2500 });
   } catch (e) {
     showError(e, "object");
@@ -397,13 +476,6 @@ function updateControls() {
 
 // --- what happened to the last run, and what to do next ---------------------------------------
 
-function plainMessage(message) {
-  const m = String(message || "").trim();
-  const i = m.indexOf(": ");
-  if (i > 0 && FAULT_WORDS[m.slice(0, i)]) return `${FAULT_WORDS[m.slice(0, i)]} (${m.slice(i + 2)})`;
-  return FAULT_WORDS[m] || m;
-}
-
 function sentence(text) {
   const t = text.trim();
   return !t || /[.!?…]$/.test(t) ? t : `${t}.`;
@@ -539,6 +611,7 @@ function revive() {
   document.body.classList.remove("service-dead");
   $("#dead-banner").hidden = true;
   $("#run-state").title = "";
+  clearToasts("service");
   toast(`The service answers again (it was gone since ${hhmmss(live.since)}).`,
     { kind: "info", timeoutMs: 5000 });
   updateControls();
@@ -596,18 +669,54 @@ function setPose(angles) {
 
 // --- telemetry --------------------------------------------------------------------------------
 
+// What an event's sentence may quote: the samples of recent iterations (the reversal's own
+// comes right after it), α in force, the iteration of the run's previous reversal.
+const recent = { samples: new Map(), lastReversal: new Map(), pending: [] };
+
+function rememberSample(runId, s) {
+  recent.samples.set(s.iteration, s);
+  if (recent.samples.size > 400) recent.samples.delete(recent.samples.keys().next().value);
+  // a reversal waits for its iteration's sample (at most a moment): its margin is in it
+  while (recent.pending.length && recent.pending[0].iteration <= s.iteration) {
+    const p = recent.pending.shift();
+    clearTimeout(p.timer);
+    p.done();
+  }
+}
+
 function addEvent(m) {
   const li = document.createElement("li");
   li.className = m.kind;
-  const detail = m.detail && typeof m.detail === "object"
-    ? Object.entries(m.detail).map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`).join(" ")
-    : m.detail ?? "";
-  const text = `run ${m.run_id ?? "–"} · it ${m.iteration ?? "–"} · ${m.kind} ${detail}`;
-  li.textContent = text.length > 160 ? `${text.slice(0, 157)}…` : text;
-  li.title = text;
+  li.dataset.kind = m.kind;
   const ol = $("#events");
   ol.prepend(li);
   while (ol.children.length > 60) ol.lastElementChild.remove();
+  const write = () => {
+    const ctx = { alpha: state.params.alpha_deg, sample: recent.samples.get(m.iteration) };
+    if (m.kind === "reversal" && m.run_id != null && m.iteration != null) {
+      const prev = recent.lastReversal.get(m.run_id);
+      if (prev !== undefined) ctx.since = m.iteration - prev;
+      recent.lastReversal.set(m.run_id, m.iteration);
+    }
+    const where = m.run_id != null ? `run ${m.run_id}${m.iteration != null ? `, it ${m.iteration}` : ""}` : "hand";
+    li.textContent = `${eventSentence(m, ctx)} `;
+    const small = document.createElement("small");
+    small.textContent = `(${where})`;
+    li.appendChild(small);
+  };
+  if (m.kind === "reversal" && m.iteration != null && !recent.samples.has(m.iteration)) {
+    const p = { iteration: m.iteration, done: write, timer: 0 };
+    p.timer = setTimeout(() => {
+      recent.pending = recent.pending.filter((x) => x !== p);
+      write();
+    }, 500);
+    recent.pending.push(p);
+  } else {
+    write();
+  }
+  if (m.run_id != null && m.run_id === state.liveRunId && m.iteration != null && MARKERS[m.kind]) {
+    plots.markLive({ x: m.iteration, kind: m.kind, text: m.kind });
+  }
   eventNotice(m);
 }
 
@@ -653,13 +762,15 @@ function onMessage(m) {
         plots.resetLive();
       }
       plots.push(s, state.params);
+      rememberSample(m.run_id, s);
       state.lastSampleAt = Date.now();
       sketch.setContact(s);
       break;
     }
     case "tactile":
       sdh2.tactile += 1;
-      pads.update(m.matrices);
+      state.lastTactile = m.matrices;
+      if (!replay.active) pads.update(m.matrices); // a replay shows its own frames
       break;
     case "pose":
       setPose(m.angles_deg || []);
@@ -729,6 +840,7 @@ async function loadRuns() {
   runsLoading = (async () => {
     try {
       const runs = await api.runs();
+      clearToasts("run history");
       renderRuns(runs || []);
     } catch (e) {
       showError(e, "run history");
@@ -790,39 +902,132 @@ function renderRuns(runs) {
   }
 }
 
+const replayData = { runId: null, frames: new Map(), viewer: false };
+
+/** The scrubber moved to sample `idx`: the plots' cursors and legends, the pads, the sketch and
+ * (through the service) the 3-D view show that iteration. */
+function showReplayIndex(idx, s) {
+  sdh2.replayIndex = idx;
+  plots.pin(idx);
+  const it = s.iteration ?? idx;
+  const frame = replayData.frames.get(it);
+  if (frame) pads.update(frame, it);
+  else pads.update([], it);
+  sketch.setOverride(s);
+  feedViewer(replayData.runId, it);
+}
+
+// The 3-D view follows the scrubber: the newest iteration, at most every VIEW_FEED_MS, one
+// request at a time.
+const viewFeed = { want: null, busy: false, sentAt: 0, timer: 0 };
+
+function feedViewer(runId, iteration) {
+  if (!replayData.viewer) return;
+  viewFeed.want = { runId, iteration };
+  pumpViewFeed();
+}
+
+async function pumpViewFeed() {
+  if (viewFeed.busy || !viewFeed.want) return;
+  const wait = viewFeed.sentAt + VIEW_FEED_MS - Date.now();
+  if (wait > 0) {
+    clearTimeout(viewFeed.timer);
+    viewFeed.timer = setTimeout(pumpViewFeed, wait);
+    return;
+  }
+  const { runId, iteration } = viewFeed.want;
+  viewFeed.want = null;
+  viewFeed.busy = true;
+  viewFeed.sentAt = Date.now();
+  try {
+    await api.showReplay(runId, iteration);
+    sdh2.viewerFeeds += 1;
+    clearToasts("3-D view replay");
+  } catch (e) {
+    if (e instanceof ApiError && e.status === 409) replayData.viewer = false; // the view is off
+    else if (e instanceof ApiError && e.status === 0) console.warn("sdh2svc:", e.error); // busy
+    else showError(e, "3-D view replay");
+  } finally {
+    viewFeed.busy = false;
+  }
+  if (replayData.runId === null) endViewerReplay(); // back to live meanwhile
+  else pumpViewFeed();
+}
+
+function endViewerReplay() {
+  viewFeed.want = null;
+  clearTimeout(viewFeed.timer);
+  if (!replayData.viewer || viewFeed.busy) return;
+  replayData.viewer = false;
+  api.endReplay().catch((e) => showError(e, "3-D view replay"));
+}
+
 async function replayRun(r) {
   const banner = $("#replay-banner");
   banner.hidden = false;
   $("#replay-text").textContent = `Loading run ${r.id}…`;
   try {
-    const samples = await allSamples(r.id, (n, total) => {
-      $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} samples…`;
+    const [samples, run] = await Promise.all([
+      allSamples(r.id, (n, total) => {
+        $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} samples…`;
+      }),
+      api.run(r.id),
+    ]);
+    const frames = await allFrames(r.id, (n, total) => {
+      $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} tactile frames…`;
     });
     const params = (r.meta && r.meta.params) || state.params;
-    plots.showReplay(samples, params);
+    const events = (run && run.events) || [];
+    const markers = events
+      .filter((e) => MARKERS[e.kind] && e.iteration != null)
+      .map((e) => ({ x: e.iteration, kind: e.kind, text: eventSentence(e) }));
+    plots.showReplay(samples, params, markers);
     if (params && params.alpha_deg !== undefined) sketch.setAlpha(params.alpha_deg);
     state.replayId = r.id;
     sdh2.replaying = r.id;
-    $("#replay-text").textContent =
-      `Replaying run ${r.id} (${r.status}, ${samples.length} samples) — live data keeps recording.`;
+    replayData.runId = r.id;
+    replayData.frames = frames;
+    replayData.viewer = !$("#viewer").hidden && Boolean($("#viewer").dataset.url);
+    const reversals = markers.filter((m) => m.kind === "reversal").length;
+    $("#replay-text").textContent = `Run ${r.id} (${r.status}): ${samples.length} iterations, ` +
+      `${reversals} reversal${reversals === 1 ? "" : "s"}`;
     for (const tr of document.querySelectorAll("#runs tbody tr")) {
       tr.classList.toggle("replaying", tr.dataset.runId === String(r.id));
     }
+    replay.load(samples);
+    clearToasts(`replay run ${r.id}`);
+    window.scrollTo({ top: 0 }); // the stage: plots, pads and sketch follow the scrubber
   } catch (e) {
-    banner.hidden = true;
+    if (!replay.active) banner.hidden = true;
     showError(e, `replay run ${r.id}`);
   }
 }
 
 function backToLive() {
+  replay.clear();
+  replayData.runId = null;
+  replayData.frames = new Map();
+  endViewerReplay();
   plots.showLive();
   sketch.setOverride(null);
+  pads.update(state.lastTactile ?? [], null);
   if (state.params.alpha_deg !== undefined) sketch.setAlpha(state.params.alpha_deg);
   state.replayId = null;
   sdh2.replaying = null;
+  sdh2.replayIndex = null;
   $("#replay-banner").hidden = true;
   for (const tr of document.querySelectorAll("#runs tbody tr.replaying")) tr.classList.remove("replaying");
 }
+
+// a page closed mid-replay: the 3-D view goes live again (the service also times it out)
+window.addEventListener("pagehide", () => {
+  if (replayData.viewer && replayData.runId !== null) {
+    const headers = { "Content-Type": "application/json" };
+    const token = getToken();
+    if (token) headers.Authorization = `Bearer ${token}`;
+    fetch("/api/viewer/replay", { method: "DELETE", headers, body: "{}", keepalive: true });
+  }
+});
 
 $("#back-to-live").addEventListener("click", backToLive);
 $("#runs-refresh").addEventListener("click", () => loadRuns());
@@ -893,7 +1098,9 @@ async function init() {
   telemetry = new Telemetry({ onMessage, onState: onWsState });
   // onMessage: feed a telemetry message as if it came from the socket (tests);
   // status(): the last status rendered
-  window.sdh2debug = { telemetry, plots, pads, sketch, form, onMessage, status: () => state.status };
+  // replay: the scrubber; expireToasts(now): toasts past their time at `now` go
+  window.sdh2debug = { telemetry, plots, pads, sketch, form, onMessage, replay, expireToasts,
+    toast, status: () => state.status };
   telemetry.start();
 }
 

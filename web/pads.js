@@ -51,6 +51,7 @@ export class Pads {
     this.infos = [];
     this.latest = null;
     this.frame = 0;
+    this.container = container;
     container.innerHTML = "";
     SHAPES.forEach(([rows, cols], i) => {
       const fig = document.createElement("figure");
@@ -83,9 +84,12 @@ export class Pads {
     container.appendChild(scale);
   }
 
-  /** Keep the newest frame; draw it at the next animation frame. */
-  update(matrices) {
+  /** Keep the newest frame; draw it at the next animation frame. `iteration`: the recorded
+   * iteration it belongs to (a replay), or null (live); shown as the container's data-iteration. */
+  update(matrices, iteration = null) {
     this.latest = matrices;
+    if (iteration === null) delete this.container.dataset.iteration;
+    else this.container.dataset.iteration = String(iteration);
     if (this.frame) return;
     this.frame = requestAnimationFrame(() => {
       this.frame = 0;

@@ -9,6 +9,14 @@ const C = {
   a: "#1f77b4", b: "#d62728", d: "#2ca02c",
 };
 const DASH = [6, 4];
+// Event markers on the iteration axis: colour and dash per event kind.
+export const MARKERS = {
+  reversal: { color: "rgba(214,39,40,0.55)", dash: [] },
+  grasped: { color: "rgba(46,125,50,0.8)", dash: [4, 3] },
+  fault: { color: "rgba(198,40,40,0.95)", dash: [], width: 2 },
+  estop: { color: "rgba(198,40,40,0.95)", dash: [2, 2], width: 2 },
+  params: { color: "rgba(107,114,128,0.8)", dash: [2, 3] },
+};
 
 const num = (v) => (v === null || v === undefined || Number.isNaN(v) ? null : v);
 const field = (k) => (s) => num(s[k]);
@@ -87,6 +95,15 @@ class Buffers {
   clear() {
     this.samples = [];
     this.cols = PLOTS.map((p) => [[], ...p.series.map(() => [])]);
+    this.markers = []; // {x: iteration, kind, text}
+  }
+
+  mark(marker) {
+    if (MARKERS[marker.kind] && Number.isFinite(marker.x)) this.markers.push(marker);
+    const first = this.cols[0][0][0];
+    if (this.limit && first !== undefined && this.markers.length > 200) {
+      this.markers = this.markers.filter((m) => m.x >= first);
+    }
   }
 
   push(sample, params) {
@@ -104,6 +121,20 @@ class Buffers {
     }
   }
 
+  /** The data index of iteration `it` (the nearest at or before it), or -1. */
+  indexOf(it) {
+    const xs = this.cols[0][0];
+    let lo = 0;
+    let hi = xs.length - 1;
+    if (hi < 0 || it < xs[0]) return -1;
+    while (lo < hi) {
+      const mid = (lo + hi + 1) >> 1;
+      if (xs[mid] <= it) lo = mid;
+      else hi = mid - 1;
+    }
+    return lo;
+  }
+
   get length() {
     return this.samples.length;
   }
@@ -117,8 +148,11 @@ export class Plots {
     this.onCursor = onCursor;
     this.dirty = false;
     this.frame = 0;
+    this.pinned = null; // the data index the replay scrubber shows (the cursor rests there)
+    this.pinning = false; // pin() moving the cursors: not the user's hover
     this.charts = PLOTS.map((p) => this.makeChart(p));
-    const ro = new ResizeObserver(() => this.resize());
+    // resized in the next frame, not in the observer's callback: no "ResizeObserver loop"
+    const ro = new ResizeObserver(() => requestAnimationFrame(() => this.resize()));
     for (const p of PLOTS) ro.observe(document.getElementById(p.id));
   }
 
@@ -130,8 +164,8 @@ export class Plots {
     title.textContent = p.title;
     el.appendChild(title);
     const opts = {
-      width: Math.max(200, el.clientWidth - 4),
-      height: 190,
+      width: Math.max(200, el.clientWidth - 14),
+      height: 150,
       legend: { live: true },
       cursor: { sync: { key: "sdh2" }, drag: { x: true, y: false } },
       scales: { x: { time: false } },
@@ -154,28 +188,106 @@ export class Plots {
       hooks: {
         setCursor: [
           (u) => {
-            if (!this.onCursor) return;
+            if (!this.onCursor || this.pinning) return;
             const idx = u.cursor.idx;
             const buf = this.current();
             this.onCursor(idx == null ? null : buf.samples[idx] ?? null);
           },
         ],
+        draw: [(u) => this.drawMarkers(u)],
       },
     };
     const chart = new uPlot(opts, [[], ...p.series.map(() => [])], el);
     chart._container = el;
+    // the legend shows the values at the cursor; off the plot, the newest (or the pinned) ones
+    chart.over.addEventListener("mouseleave", () => requestAnimationFrame(() => this.restLegends()));
     return chart;
+  }
+
+  /** Vertical lines at the events' iterations (reversals, grasp, faults, …). */
+  drawMarkers(u) {
+    const buf = this.current();
+    const { ctx, bbox } = u;
+    const [lo, hi] = [u.scales.x.min, u.scales.x.max];
+    let drawn = 0;
+    let reversals = 0;
+    ctx.save();
+    for (const m of buf.markers) {
+      if (lo == null || m.x < lo || m.x > hi) continue;
+      const style = MARKERS[m.kind];
+      const x = Math.round(u.valToPos(m.x, "x", true)) + 0.5;
+      ctx.strokeStyle = style.color;
+      ctx.lineWidth = (style.width ?? 1) * devicePixelRatio;
+      ctx.setLineDash(style.dash.map((v) => v * devicePixelRatio));
+      ctx.beginPath();
+      ctx.moveTo(x, bbox.top);
+      ctx.lineTo(x, bbox.top + bbox.height);
+      ctx.stroke();
+      drawn += 1;
+      if (m.kind === "reversal") reversals += 1;
+    }
+    ctx.restore();
+    u._container.dataset.markers = String(drawn);
+    u._container.dataset.reversals = String(reversals);
   }
 
   current() {
     return this.replay ?? this.live;
   }
 
+  /** Each chart fills its box: the width, and the height left by its title and legend. */
   resize() {
     for (const c of this.charts) {
-      const w = Math.max(200, c._container.clientWidth - 4);
-      if (Math.abs(w - c.width) > 2) c.setSize({ width: w, height: 190 });
+      const el = c._container;
+      const title = el.querySelector(".plot-title");
+      const legend = el.querySelector(".u-legend");
+      // the box's padding (4 + 4 px), the title's margin and uPlot's own few pixels
+      const room = el.clientHeight - (title ? title.offsetHeight : 0) -
+        (legend ? legend.offsetHeight : 0) - 20;
+      c._legendH = legend ? legend.offsetHeight : 0;
+      const w = Math.max(200, el.clientWidth - 14); // inside the padding (6 + 6 px)
+      const h = Math.max(80, Math.min(260, Math.floor(room)));
+      if (Math.abs(w - c.width) > 2 || Math.abs(h - c.height) > 2) c.setSize({ width: w, height: h });
     }
+  }
+
+  /** Legends (and cursors) off the plots: at the pinned index in a replay, else the newest. */
+  restLegends() {
+    const buf = this.current();
+    // a cursor the mouse put on a plot (uPlot parks it at left < 0 otherwise) stays
+    if (this.charts.some((c) => c.cursor.left >= 0 && c.cursor.left !== c._pinnedAt)) return;
+    if (this.pinned !== null && this.replay) {
+      this.pin(this.pinned);
+      return;
+    }
+    const last = buf.length - 1;
+    for (const c of this.charts) if (last >= 0) c.setLegend({ idx: last }, false);
+  }
+
+  /** Put every chart's cursor on data index `idx` of the shown buffer (the replay scrubber);
+   * the legends show that iteration's values. */
+  pin(idx) {
+    this.pinned = idx;
+    const buf = this.current();
+    const x = buf.cols[0][0][idx];
+    if (x === undefined) return;
+    this.pinning = true;
+    try {
+      for (const c of this.charts) {
+        const left = c.valToPos(x, "x");
+        if (Number.isFinite(left)) c.setCursor({ left, top: c.bbox.height / devicePixelRatio / 2 }, true, false);
+        c._pinnedAt = c.cursor.left;
+        c._container.dataset.cursorIteration = String(buf.samples[idx]?.iteration ?? x);
+      }
+    } finally {
+      this.pinning = false;
+    }
+  }
+
+  /** An event of the live run at its iteration. */
+  markLive(marker) {
+    this.live.mark(marker);
+    if (!this.replay) this.schedule();
   }
 
   /** Append a live sample (params: the RollingParams in force). */
@@ -190,16 +302,20 @@ export class Plots {
     if (!this.replay) this.schedule();
   }
 
-  /** Show a recorded run instead of the live data. */
-  showReplay(samples, params) {
+  /** Show a recorded run instead of the live data; `markers`: its events ({x, kind, text}). */
+  showReplay(samples, params, markers = []) {
     const buf = new Buffers(0);
     for (const s of samples) buf.push(s, params || {});
+    for (const m of markers) buf.mark(m);
     this.replay = buf;
+    this.pinned = null;
     this.schedule();
   }
 
   showLive() {
     this.replay = null;
+    this.pinned = null;
+    for (const c of this.charts) delete c._container.dataset.cursorIteration;
     this.schedule();
   }
 
@@ -216,6 +332,11 @@ export class Plots {
       this.dirty = false;
       const buf = this.current();
       this.charts.forEach((c, i) => c.setData(buf.cols[i]));
+      this.restLegends();
+      // values that wrap the legend onto another line take room from the chart
+      if (this.charts.some((c) => c._container.querySelector(".u-legend")?.offsetHeight !== c._legendH)) {
+        this.resize();
+      }
     });
   }
 }

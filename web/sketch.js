@@ -100,7 +100,8 @@ export class Sketch {
     this.alpha = 22;
     this.override = null; // a Sample under the plot cursor (replay / inspection)
     this.frame = 0;
-    new ResizeObserver(() => this.fit()).observe(canvas);
+    // fitted in the next frame, not in the observer's callback: no "ResizeObserver loop"
+    new ResizeObserver(() => requestAnimationFrame(() => this.fit())).observe(canvas);
     this.fit();
   }
 
@@ -141,6 +142,8 @@ export class Sketch {
   /** Show one sample (angles and contacts) instead of the live state; null: back to live. */
   setOverride(sample) {
     this.override = sample;
+    if (sample && sample.iteration != null) this.canvas.dataset.iteration = String(sample.iteration);
+    else delete this.canvas.dataset.iteration;
     this.schedule();
   }
 

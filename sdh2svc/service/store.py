@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import sqlite3
 import threading
 import time
@@ -261,6 +262,54 @@ class RunStore:
             (run_id,),
         ):
             yield r["t"], r["iteration"], r["timestamp_ms"], np.frombuffer(r["texels"], "<u2")
+
+    # --- one iteration at a time (replay): by the indexes (run_id, iteration) and (run_id, t) ---
+
+    def sample_at(self, run_id: int, iteration: int) -> dict[str, Any] | None:
+        """The sample of one iteration, or None."""
+        r = self.db.execute(
+            "SELECT * FROM samples WHERE run_id = ? AND iteration = ? LIMIT 1", (run_id, iteration)
+        ).fetchone()
+        return None if r is None else {k: r[k] for k in SAMPLE_COLUMNS}
+
+    def framed_count(self, run_id: int) -> int:
+        """The run's frames linked to an iteration (those :meth:`frames_from` lists)."""
+        row = self.db.execute(
+            "SELECT COUNT(*) FROM frames WHERE run_id = ? AND iteration IS NOT NULL", (run_id,)
+        ).fetchone()
+        return int(row[0])
+
+    def frames_from(
+        self, run_id: int, first: int, last: int, limit: int
+    ) -> list[tuple[int, float, int, bytes]]:
+        """Up to ``limit`` frames of iterations ``first``…``last`` in iteration order, as
+        (iteration, t, timestamp_ms, texels as little-endian uint16 bytes).
+
+        A frame is recorded with its iteration's sample and the same ``t``, which grows with the
+        iteration: the sample index finds where ``first`` starts, the frame index (run, t)
+        reads on from there."""
+        start = self.db.execute(
+            "SELECT t FROM samples WHERE run_id = ? AND iteration >= ? ORDER BY iteration LIMIT 1",
+            (run_id, first),
+        ).fetchone()
+        t0 = start["t"] if start is not None and start["t"] is not None else -math.inf
+        rows = self.db.execute(
+            "SELECT iteration, t, timestamp_ms, texels FROM frames WHERE run_id = ? AND t >= ? "
+            "AND iteration BETWEEN ? AND ? ORDER BY t LIMIT ?",
+            (run_id, t0, first, last, limit),
+        ).fetchall()
+        return [(r[0], r[1], r[2], bytes(r[3])) for r in rows]
+
+    def frame_at(self, run_id: int, iteration: int, t: float | None = None) -> bytes | None:
+        """The texels (little-endian uint16 bytes) of one iteration's frame; ``t``, the
+        iteration's sample time, lets the frame index find it at once."""
+        t0 = -math.inf if t is None else t
+        r = self.db.execute(
+            "SELECT texels FROM frames WHERE run_id = ? AND t >= ? AND iteration = ? "
+            "ORDER BY t LIMIT 1",
+            (run_id, t0, iteration),
+        ).fetchone()
+        return None if r is None else bytes(r[0])
 
     # --- exports --------------------------------------------------------------------------------
 

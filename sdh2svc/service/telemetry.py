@@ -26,6 +26,7 @@ import numpy.typing as npt
 from sdh2svc.control.observer import EventKind
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.friction import pad_tangent
+from sdh2svc.model.hand import AxisMap, TactileConfig
 from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
 
 
@@ -250,3 +251,34 @@ def as_array(matrix: Any) -> npt.NDArray[np.float64]:
     if a.ndim != 2:
         raise ValueError(f"a tactile matrix has 2 dimensions, not {a.ndim}")
     return a
+
+
+# --- recorded frames: the same matrices as the live ``tactile`` message ------------------------
+
+_PADS = ("finger1_proximal", "finger1_distal", "thumb_proximal", "thumb_distal",
+         "finger2_proximal", "finger2_distal")  # fmt: skip
+
+
+def matrix_shapes(tactile: TactileConfig, axes: AxisMap) -> tuple[tuple[int, int], ...]:
+    """(rows, columns) of each tactile matrix, in matrix index order (a frame's flat texels
+    are these matrices one after the other, each row-major)."""
+    by_index = {}
+    for pad in _PADS:
+        lay = tactile.proximal if pad.endswith("proximal") else tactile.distal
+        by_index[getattr(axes, f"{pad}_matrix")] = (lay.rows, lay.cols)
+    return tuple(by_index[i] for i in range(len(by_index)))
+
+
+def frame_matrices(
+    texels: npt.NDArray[Any], shapes: tuple[tuple[int, int], ...]
+) -> tuple[npt.NDArray[Any], ...]:
+    """A recorded frame's flat texels as the matrices a live :class:`Tactile` carries
+    (ValueError when the count does not match ``shapes``)."""
+    flat = np.asarray(texels)
+    if flat.shape != (sum(r * c for r, c in shapes),):
+        raise ValueError(f"a frame of {flat.size} texels does not fit the matrices {shapes}")
+    out, start = [], 0
+    for rows, cols in shapes:
+        out.append(flat[start : start + rows * cols].reshape(rows, cols))
+        start += rows * cols
+    return tuple(out)

@@ -10,6 +10,9 @@ whose joints moved are posed again, only pads whose counts changed are recoloure
 property is sent only when its value differs from the one last sent (every assignment is a
 message that viser's thread encodes and sends, holding the GIL the control loop needs). Nobody
 watching, nothing is drawn: the changes wait, and a browser that connects gets the latest state.
+While the dashboard replays a recorded run, :attr:`Viewer.replay`
+(:mod:`sdh2svc.service.replay_feed`) puts the iteration it shows in the place of the live
+messages, and the panel says so.
 
 Geometry. The scene is frame 0 of hand-model.md §2 (origin at Finger 1's proximal joint O, y0
 towards Finger 2, z0 along the straightened finger; x0 completes a right-handed frame and points
@@ -64,6 +67,7 @@ from sdh2svc.model.urdf import (
     sdh2_urdf,
 )
 from sdh2svc.service.pacing import paced
+from sdh2svc.service.replay_feed import ReplayFeed
 from sdh2svc.service.telemetry import AnyMessage, SampleMsg, SampleView, as_array, sample_view
 
 _T = TypeVar("_T")
@@ -486,6 +490,7 @@ class Viewer:
         self._view: tuple[int, SampleView | None] = (-1, None)  # (sample's seq, its view)
         self.urdf: ViserUrdf | None = None
         self._urdf_axes: list[int] = []  # the wire axis of each of the URDF's actuated joints
+        self.replay = ReplayFeed(self._keep)  # a recorded iteration instead of the live state
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -535,7 +540,11 @@ class Viewer:
     # -- telemetry in: cheap ----------------------------------------------------------------
 
     def handle(self, msg: AnyMessage) -> None:
-        """Keep the latest message of each type and mark it for the next frame; no rendering."""
+        """Keep the latest message of each type and mark it for the next frame; no rendering
+        (while a replay is shown, through :attr:`replay`)."""
+        self.replay.live(msg)
+
+    def _keep(self, msg: AnyMessage) -> None:
         if isinstance(msg, dict):
             kind, key = msg.get("type"), _PAYLOAD.get(str(msg.get("type")))
             payload = msg.get(key) if key is not None else None
@@ -660,9 +669,10 @@ class Viewer:
     def _contact_sample(self) -> SampleView | None:
         """The latest sample, unless a newer status says no run is rolling: a finished run's
         contacts would otherwise linger through the release and the next grasp."""
-        run = (self._latest.get("status") or {}).get("run") or {}
+        status = self._latest.get("status") or {}
+        run = status.get("run") or {}
         newer = self._seq.get("status", 0) > self._seq.get("sample", 0)
-        if newer and run.get("state") not in (None, "rolling"):
+        if newer and not status.get("replay") and run.get("state") not in (None, "rolling"):
             return None
         return self._sample_view()
 
@@ -735,6 +745,8 @@ class Viewer:
             parts.append(f"it {run['iteration']}")
         if st.get("estopped"):
             parts.append("**E-STOP latched**")
+        if isinstance(replay := st.get("replay"), dict):
+            parts.append(f"replay of run {replay.get('run_id')}, it {replay.get('iteration')}")
         text = " · ".join(parts) + (f"\n\n{self._note}" if self._note else "")
         self._set(self.nodes["gui/state"], "content", text)
         self._sync_sliders(st.get("params") or {})

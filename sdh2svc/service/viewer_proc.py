@@ -48,6 +48,7 @@ from typing import Any
 
 from sdh2svc.config import Settings
 from sdh2svc.service.pacing import paced
+from sdh2svc.service.replay_feed import ReplayFeed
 from sdh2svc.service.telemetry import AnyMessage, SampleMsg, kind_of
 
 log = logging.getLogger(__name__)
@@ -176,6 +177,7 @@ class ViewerProcess:
         self._started = self._stopping = False
         self._bye = ""  # why the child is exiting, when it told us
         self.forwarded = 0  # messages pickled to the child (tests, diagnostics)
+        self.replay = ReplayFeed(self._keep)  # a recorded iteration instead of the live state
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -260,7 +262,11 @@ class ViewerProcess:
     # -- telemetry in: cheap ----------------------------------------------------------------
 
     def handle(self, msg: AnyMessage) -> None:
-        """Keep the latest message of each type, in arrival order; no pickling here."""
+        """Keep the latest message of each type, in arrival order; no pickling here (while a
+        replay is shown, through :attr:`replay`: the child draws what it is given)."""
+        self.replay.live(msg)
+
+    def _keep(self, msg: AnyMessage) -> None:
         kind = KINDS.get(kind_of(msg))
         if kind is None:
             return

@@ -4,10 +4,12 @@ Never downloads a browser: it launches /usr/bin/chromium (`.ci/run` installs it;
 these tests fail, they do not skip). Against a live ``sdh2svc serve --sim`` (the ``service``
 fixture): start a run on the egg, see the plots, heat maps and the 3-D view update, e-stop it,
 release; a bad parameter shows the server's 422 message next to its field; a recorded run
-replays and its exports download. A faulted run leaves a notice saying what happened and offering
-Open hand; a service that dies (or freezes) greys the dashboard out under a banner, and one that
-comes back restores it. Every mutating request the page makes carries a JSON body and its
-content type.
+replays with one scrubber driving plots, pads, sketch and the 3-D view, and its exports
+download. At 1024×768 the pads and plots fit the first screen (the parameters in a drawer);
+toasts expire, and clear once their problem is gone. A faulted run leaves a notice saying what
+happened and offering Open hand; a service that dies (or freezes) greys the dashboard out under
+a banner, and one that comes back restores it. Every mutating request the page makes carries a
+JSON body and its content type.
 """
 
 from __future__ import annotations
@@ -59,6 +61,16 @@ COUNT_COLOURED = """(sel) => {
   return n;
 }"""
 PLOTS = ("joints", "force", "sigma", "s", "omega", "lambda")
+# What the replay shows: the pads', the sketch's and each plot's iteration, the scrubber's label.
+SHOWN = """() => ({
+  pads: document.querySelector('#pads').dataset.iteration,
+  sketch: document.querySelector('#sketch').dataset.iteration,
+  plots: [...document.querySelectorAll('.plot')].map(p => p.dataset.cursorIteration),
+  cursors: window.sdh2debug.plots.charts.map(c => c.cursor.idx),
+  index: window.sdh2.replayIndex,
+  at: document.querySelector('#replay-at').textContent,
+  padInfo: document.querySelectorAll('#pads .pad-info')[1].textContent,
+})"""
 PAD_ZERO_RGB = [24, 27, 38]  # web/pads.js ZERO_COLOR: a taxel reading 0
 MUTATING = ("POST", "PUT", "PATCH")
 SCREENSHOTS = os.environ.get("SDH2SVC_SCREENSHOTS")  # a directory: the tests leave PNGs there
@@ -83,7 +95,7 @@ async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncItera
                 "window.sdh2 && window.sdh2.statusMsgs > 0 && window.sdh2.ws === 'open'",
                 timeout=30_000,
             )
-            await pg.wait_for_selector("#params-form input[name=k]")
+            await pg.wait_for_selector("#params-form input[name=k]", state="attached")
             yield pg
             assert errors == [], f"script errors on the dashboard: {errors}"
         finally:
@@ -152,6 +164,72 @@ async def test_layout_and_static_assets(service: LiveService, page: Any) -> None
     )
     assert await page.inner_text("#ws-state") == "live"
     assert (await counters(page))["lastError"] is None
+    await lab_screen_toasts_and_the_parameter_drawer(page)
+
+
+# The boxes of the control bar, the pads and the six plots (viewport pixels).
+BOXES = """() => {
+  const box = (e) => {
+    const r = e.getBoundingClientRect();
+    return [r.top, r.bottom, r.left, r.right];
+  };
+  return { header: box(document.querySelector('#controls')),
+           pads: box(document.querySelector('.pads-card')),
+           plots: [...document.querySelectorAll('.plot')].map(box),
+           canvases: [...document.querySelectorAll('.plot .uplot canvas')].map(box) };
+}"""
+
+
+# Every chart inside its plot's box.
+FITTED = """() => [...document.querySelectorAll('.plot')].every((p) => {
+  const r = p.getBoundingClientRect();
+  const c = p.querySelector('.uplot').getBoundingClientRect();
+  return c.right <= r.right && c.bottom <= r.bottom;
+})"""
+
+
+async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
+    """(In the layout test's page: no browser of its own.)"""
+    # at 1024×768 and 1280×800 the pads and all six plots are on the first screen
+    for width, height in ((1024, 768), (1280, 800)):
+        await page.set_viewport_size({"width": width, "height": height})
+        await page.evaluate("window.scrollTo(0, 0)")
+        await page.wait_for_function(FITTED)  # the charts follow their boxes' new sizes
+        b = await page.evaluate(BOXES)
+        top = b["header"][1]
+        assert top <= b["pads"][0] and b["pads"][1] <= height, (width, b)
+        for box in b["plots"] + b["canvases"]:
+            assert top <= box[0] and box[1] <= height and box[3] <= width, (width, b)
+        assert all(box[1] - box[0] >= 80 for box in b["canvases"]), b  # charts, not slivers
+    # the parameters are in a drawer, closed until asked for
+    k = page.locator("#params-form input[name=k]")
+    assert await k.is_hidden()
+    await page.click("#params-toggle")
+    await expect(k).to_be_visible()
+    await page.keyboard.press("Escape")
+    await expect(k).to_be_hidden()
+    await page.set_viewport_size({"width": 1500, "height": 1200})
+
+    # an error toast clears once its problem is gone (the run history loads again) …
+    await page.route("**/api/runs", lambda r: r.fulfill(status=500, json={"error": "db busy"}))
+    await page.click("#runs-refresh")
+    toast = page.locator("#errors .toast", has_text="run history: db busy")
+    await expect(toast).to_be_visible()
+    await page.unroute("**/api/runs")
+    await page.click("#runs-refresh")
+    await expect(toast).to_have_count(0)
+    # … and expires by itself (the dashboard's clock moved on a minute, no waiting)
+    await page.evaluate("window.sdh2debug.toast('something failed', {key: 'test'})")
+    await expect(page.locator("#errors .toast")).to_have_count(1)
+    await page.evaluate("window.sdh2debug.expireToasts(Date.now() + 60000)")
+    await expect(page.locator("#errors .toast")).to_have_count(0)
+    # the browser's benign ResizeObserver note is no error
+    await page.evaluate(
+        "window.dispatchEvent(new ErrorEvent('error', {message: "
+        "'ResizeObserver loop completed with undelivered notifications.'}))"
+    )
+    assert await page.locator("#errors .toast").count() == 0
+    await page.evaluate("window.sdh2.lastError = null")
 
     # in simulation, press-and-hold on a pad's cell presses the pad there; letting go lifts it
     sel = "#pads canvas[data-matrix='3']"
@@ -189,6 +267,19 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         sel = f"#pads canvas[data-matrix='{i}']"
         assert await page.evaluate(COUNT_PIXELS_NOT, [sel, PAD_ZERO_RGB]) > 0, f"pad {i} blank"
     assert await page.evaluate(COUNT_COLOURED, "#sketch") > 100
+    # the legends show the newest values without a hover
+    legend = await page.inner_text("#plot-lambda .u-legend")
+    assert re.search(r"Λ:?\s*\d", legend), legend
+
+    # events read as sentences; the first reversal is marked on the plots' iteration axis
+    await page.wait_for_selector("#events li.reversal", timeout=RUN_TIMEOUT_MS)
+    texts = await page.locator("#events li").all_inner_texts()
+    assert any(t.startswith("Grasped with F = ") for t in texts), texts
+    assert any(t.startswith("Reversed") for t in texts), texts
+    assert not any("{" in t or "=[" in t for t in texts), texts
+    await page.wait_for_function(
+        "Number(document.querySelector('#plot-sigma').dataset.reversals) >= 1"
+    )
 
     # e-stop mid-run: the run ends e-stopped, start is locked until the release
     await page.click("#estop")
@@ -226,20 +317,68 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         frame = page.frame_locator("#viewer")
         await frame.locator("canvas").first.wait_for(state="attached", timeout=60_000)
 
-    # the run is in the history: replay its plots, download its exports
+    # the run is in the history: replay it, download its exports
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
     await row.wait_for(timeout=15_000)
-    await row.locator("button.replay").click()
-    await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=30_000)
+    samples = httpx.get(f"{service.url}/api/runs/{run_id}/samples?limit=10000").json()["samples"]
+    async with page.expect_request(lambda r: r.url.endswith("/api/viewer/replay")) as fed:
+        await row.locator("button.replay").click()
+        await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=30_000)
+    if viewer is not None:  # the 3-D view is told which recorded iteration to show
+        req = await fed.value
+        assert req.method == "PUT" and json.loads(req.post_data or "") == {
+            "run_id": run_id, "iteration": samples[0]["iteration"]}  # fmt: skip
     assert await page.is_visible("#replay-banner")
     await page.wait_for_timeout(300)
     assert await page.evaluate(COUNT_COLOURED, "#plot-lambda .uplot canvas") > 50
+    # the run's reversals are marked on every plot
+    run = httpx.get(f"{service.url}/api/runs/{run_id}").json()
+    reversals = [e for e in run["events"] if e["kind"] == "reversal"]
+    assert reversals
+    for name in PLOTS:
+        marks = await page.get_attribute(f"#plot-{name}", "data-reversals")
+        assert marks == str(len(reversals)), name
+    # one scrubber: plots (cursor and legend), pads and sketch show the same iteration
+    i = len(samples) // 2
+    it = samples[i]["iteration"]
+    await page.evaluate(
+        f"(() => {{ const s = document.querySelector('#replay-scrubber'); s.value = '{i}';"
+        " s.dispatchEvent(new Event('input')); })()"
+    )
+    shown = await page.evaluate(SHOWN)
+    assert shown["pads"] == shown["sketch"] == str(it), shown
+    assert shown["plots"] == [str(it)] * len(PLOTS), shown
+    assert shown["cursors"] == [i] * len(PLOTS) and shown["index"] == i, shown
+    assert shown["at"].startswith(f"iteration {it} · "), shown
+    assert "no data" not in shown["padInfo"] and "max 0 · Σ 0" != shown["padInfo"], shown
+    legend = await page.inner_text("#plot-lambda .u-legend")  # the legend at the scrubber
+    assert re.search(rf"it:?\s*{it}(?!\d)", legend), legend
+    # play at 10×: everything moves on together
+    await page.select_option("#replay-speed", "10")
+    await page.click("#replay-play")
+    await page.wait_for_function(f"window.sdh2.replayIndex > {i + 5}", timeout=30_000)
+    await page.click("#replay-play")  # pause
+    shown = await page.evaluate(SHOWN)
+    assert shown["pads"] == shown["sketch"] == shown["plots"][0] != str(it), shown
+    assert shown["cursors"] == [shown["index"]] * len(PLOTS), shown
+    # the keys step it (with nothing focused): one iteration, ten with shift
+    await page.evaluate("document.activeElement.blur()")
+    await page.keyboard.press("ArrowRight")
+    await page.keyboard.press("Shift+ArrowLeft")
+    assert (await page.evaluate(SHOWN))["index"] == shown["index"] - 9
+    await screenshot(page, "replay")
     for fmt in ("csv", "mcap"):
         href = await row.locator(f"a.export-{fmt}").get_attribute("href")
         r = httpx.get(service.url + href, timeout=30.0)
         assert r.status_code == 200 and r.content, fmt
-    await page.click("#back-to-live")
+    if viewer is not None:  # the 3-D view goes live again with the dashboard
+        async with page.expect_request(lambda r: r.method == "DELETE") as ended:
+            await page.click("#back-to-live")
+        assert (await ended.value).url.endswith("/api/viewer/replay")
+    else:
+        await page.click("#back-to-live")
     assert await page.is_hidden("#replay-banner")
+    assert await page.get_attribute("#pads", "data-iteration") is None
     assert (await counters(page))["lastError"] is None
 
 
@@ -253,6 +392,7 @@ async def test_bad_parameter_shows_the_422_next_to_the_field(
     body = r.json()
     expected = next(d for d in body["details"] if d.startswith("k"))
 
+    await page.click("#params-toggle")  # the parameters' drawer
     await page.fill("#params-form input[name=k]", "0.5")
     # the client-side range check speaks at once …
     await page.wait_for_function(
@@ -305,6 +445,7 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
             # the status says a token is needed: the field shows; without it a change is refused
             assert await page.is_visible("#token-field")
             before = httpx.get(svc.url + "/api/params").json()
+            await page.click("#params-toggle")  # the parameters' drawer
             await page.fill("#params-form input[name=lambda_gain]", str(before["lambda_gain"] + 1))
             await page.click("#params-apply")
             await page.wait_for_function("window.sdh2.lastError !== null", timeout=10_000)

@@ -8,6 +8,7 @@ import math
 import time
 import urllib.request
 from collections.abc import AsyncIterator
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -23,12 +24,22 @@ from websockets.exceptions import InvalidStatus
 from websockets.typing import Origin, Subprotocol
 
 from sdh2svc.config import Settings
+from sdh2svc.control.sample import Sample
 from sdh2svc.model.geometry import pad_point_from_L, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, frame3_axes, pad_point
 from sdh2svc.service import viewer as viewer_module
 from sdh2svc.service import viewer_proc
 from sdh2svc.service.app import _start_viewer
-from sdh2svc.service.telemetry import Contact, SampleMsg, SampleView, contact_normal
+from sdh2svc.service.replay_feed import recorded_iteration
+from sdh2svc.service.store import Recorder as RunRecorder
+from sdh2svc.service.store import RunStore
+from sdh2svc.service.telemetry import (
+    Contact,
+    SampleMsg,
+    SampleView,
+    contact_normal,
+    matrix_shapes,
+)
 from sdh2svc.service.viewer import (
     BUTTONS,
     COMMANDS,
@@ -637,3 +648,61 @@ async def test_unknown_and_malformed_messages_are_harmless(viewer: Viewer) -> No
     viewer.handle({"type": "pose", "angles_deg": [90.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
     await next_frame(viewer, n)
     assert np.allclose(viewer.nodes["/f1/distal"].position, (0.0, 0.0, 86.5 * MM))
+
+
+# --- following the dashboard's replay ----------------------------------------------------------
+
+
+async def test_a_replayed_iteration_reaches_the_view_then_live_again(
+    cfg: Settings, viewer: Viewer, tmp_path: Path
+) -> None:
+    # one recorded iteration: Finger 1 straight, one full-scale cell on its distal pad
+    values: dict[str, Any] = dict.fromkeys(Sample.columns())
+    values.update({**SAMPLE, "phi2": 0.0, "phi3": 0.0, "t": 0.5, "iteration": 3})
+    store = RunStore(tmp_path / "runs.db")
+    run_id = store.create_run({})
+    rec = RunRecorder(store.path, run_id)
+    rec.sample(Sample(**values))
+    mats = [np.zeros(shape, dtype=np.uint16) for shape in matrix_shapes(cfg.tactile, cfg.axes)]
+    mats[cfg.axes.finger1_distal_matrix][12, 0] = 4095
+    rec.frame(0.5, 3, 0, np.concatenate([m.ravel() for m in mats]))
+    rec.close()
+    recorded = recorded_iteration(store, cfg, run_id, 3)
+    assert recorded is not None
+
+    x3 = cfg.hand.pad.tip_end_x3_mm
+    tip_local = np.array([x3, pad_y3(x3, cfg.hand.pad), 0.0]) * MM
+    straight = np.array([0.0, tip_local[1] / MM, 86.5 + x3]) * MM
+    status = {"type": "status", "status": {"run": None, "estopped": False}}
+    n = viewer.frames
+    viewer.handle({"type": "pose", "angles_deg": POSE})
+    viewer.handle({"type": "sample", "run_id": 1, "sample": SAMPLE})
+    viewer.handle(status)
+    await next_frame(viewer, n)
+    live_tip = world(viewer, "/f1/distal", tip_local)
+    assert not np.allclose(live_tip, straight, atol=1e-6)
+
+    n = viewer.frames
+    viewer.replay.show(recorded)
+    await next_frame(viewer, n)
+    assert np.allclose(world(viewer, "/f1/distal", tip_local), straight, atol=1e-9)
+    colors = np.asarray(viewer.nodes["/f1/distal/cells"].batched_colors)
+    assert tuple(colors[-6]) == tuple(tactile_colors(np.array([4095]))[0])
+    assert viewer.nodes["/contacts/A"].visible  # a replay's contacts stay, whatever the run
+    assert f"replay of run {run_id}, it 3" in viewer.nodes["gui/state"].content
+
+    # live telemetry meanwhile does not move the replayed hand
+    n = viewer.frames
+    viewer.handle({"type": "sample", "run_id": 1, "sample": {**SAMPLE, "phi2": -10.0}})
+    viewer.handle(status)
+    await next_frame(viewer, n)
+    assert np.allclose(world(viewer, "/f1/distal", tip_local), straight, atol=1e-9)
+
+    # live again: the latest live sample (φ2 = −10°) and pads, no replay in the panel
+    n = viewer.frames
+    viewer.replay.end()
+    await next_frame(viewer, n)
+    tip = world(viewer, "/f1/distal", tip_local)
+    assert not np.allclose(tip, straight, atol=1e-6) and not np.allclose(tip, live_tip, atol=1e-6)
+    assert "replay" not in viewer.nodes["gui/state"].content
+    store.close()

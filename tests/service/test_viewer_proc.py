@@ -27,6 +27,7 @@ from websockets.typing import Origin
 
 from sdh2svc.config import Settings
 from sdh2svc.service import viewer, viewer_proc
+from sdh2svc.service.replay_feed import Recorded
 from sdh2svc.service.viewer_proc import KINDS, ViewerError, ViewerProcess
 
 POSE = [90.0, -20.0, 30.0, -90.0, 0.0, -20.0, 30.0]
@@ -280,3 +281,22 @@ def test_child_exits_when_the_parent_is_killed(tmp_path: Path) -> None:
     while alive(child):
         assert time.monotonic() < deadline, "the view's process outlived its parent"
         time.sleep(0.05)
+
+
+async def test_a_replay_goes_to_the_child_as_its_latest_messages(cfg: Settings) -> None:
+    """The parent's feed: a replayed iteration replaces the latest live messages it forwards;
+    live ones wait, and come back when the replay ends (no child needed to see it)."""
+    vp = ViewerProcess(cfg, port=0)
+    live_sample = {"type": "sample", "run_id": 1, "sample": {"iteration": 1}}
+    vp.handle(live_sample)
+    vp.handle({"type": "status", "status": {"run": None}})
+    shown = {"type": "sample", "run_id": 2, "sample": {"iteration": 9}}
+    vp.replay.show(Recorded(2, 9, 0.2, (shown,)))  # type: ignore[arg-type]
+    assert vp._latest["sample"] is shown
+    assert vp._latest["status"].status["replay"] == {"run_id": 2, "iteration": 9, "t": 0.2}
+    newer = {"type": "sample", "run_id": 1, "sample": {"iteration": 2}}
+    vp.handle(newer)
+    assert vp._latest["sample"] is shown
+    vp.replay.end()
+    assert vp._latest["sample"] is newer
+    assert vp._latest["status"] == {"type": "status", "status": {"run": None}}

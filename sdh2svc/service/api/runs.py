@@ -1,10 +1,13 @@
-"""Runs: starting and stopping one on the hand, and reading the recorded ones.
+"""Runs: starting and stopping one on the hand, reading the recorded ones (samples, tactile
+frames, exports), and showing one recorded iteration in the 3-D view (the dashboard's replay).
 
-Reads of the run database happen on worker threads (sync routes) with their own connection, so
-a large export never takes time from the control loop."""
+Reads of the run database happen on worker threads (sync routes, or ``asyncio.to_thread``) with
+their own connection, so a large export never takes time from the control loop."""
 
 from __future__ import annotations
 
+import asyncio
+import base64
 import contextlib
 import io
 from collections.abc import Iterator
@@ -15,11 +18,12 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.config import Settings
-from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, RunId, St
+from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, RunId, St, Svc
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
+from sdh2svc.service.replay_feed import Recorded, recorded_iteration
 from sdh2svc.service.store import RunStore
-from sdh2svc.service.telemetry import clean_json
+from sdh2svc.service.telemetry import clean_json, matrix_shapes
 
 router = APIRouter()
 
@@ -92,6 +96,124 @@ def samples(
             "total": store.sample_count(run_id), "samples": store.samples(run_id, offset, limit),
         }  # fmt: skip
         return clean_json(page)  # type: ignore[no-any-return]
+
+
+FRAME_ENCODING = "base64-u16le"
+
+
+class RecordedFrame(BaseModel):
+    """One iteration's tactile frame."""
+
+    iteration: int = Field(description="the rolling iteration it was used in (count)")
+    t: float = Field(description="time since the run started, s (the iteration's sample's t)")
+    timestamp_ms: int = Field(description="the DSACON32m controller's clock, ms")
+    texels: str = Field(
+        description="raw counts (0…4095), base64 of little-endian uint16: the matrices of "
+        "`shapes` one after the other, each row-major (row 0 at the fingertip's side)"
+    )
+
+
+class FramePage(BaseModel):
+    """A page of a run's tactile frames, in iteration order."""
+
+    model_config = ConfigDict(populate_by_name=True)
+
+    run_id: int
+    from_: int = Field(alias="from", description="the first iteration asked for")
+    to: int | None = Field(description="the last iteration asked for (null: to the end)")
+    limit: int = Field(description="frames per page at most")
+    total: int = Field(description="the run's frames linked to an iteration")
+    next: int | None = Field(
+        description="`from` of the next page; null: this page reaches `to` or the end"
+    )
+    encoding: Literal["base64-u16le"] = Field(description="how `texels` is written")
+    shapes: list[tuple[int, int]] = Field(
+        description="(rows, columns) of each tactile matrix, in matrix index order"
+    )
+    frames: list[RecordedFrame]
+
+
+@router.get("/api/runs/{run_id}/frames", response_model=FramePage,
+            responses=responses(*READ, 404, 422))  # fmt: skip
+def frames(
+    cfg: Cfg,
+    run_id: RunId,
+    first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX)] = 0,
+    to: Annotated[int | None, Query(ge=0, le=SQL_INT_MAX)] = None,
+    limit: Annotated[int, Query(ge=1, le=2000)] = 500,
+) -> FramePage:
+    """The run's tactile frames of iterations `from`…`to`, `limit` at most; follow `next` for
+    the rest. Frames recorded without an iteration are not listed."""
+    last = SQL_INT_MAX if to is None else to
+    if last < first:
+        raise ServiceError(422, "invalid request", [f"to: must be at least from ({first})"])
+    with _store(cfg) as store:
+        _run_or_404(store, run_id)
+        rows = store.frames_from(run_id, first, last, limit + 1)
+        page = [
+            RecordedFrame(iteration=it, t=t, timestamp_ms=ts,
+                          texels=base64.b64encode(texels).decode("ascii"))
+            for it, t, ts, texels in rows[:limit]
+        ]  # fmt: skip
+        return FramePage(
+            run_id=run_id, from_=first, to=to, limit=limit, total=store.framed_count(run_id),
+            next=rows[limit][0] if len(rows) > limit else None, encoding=FRAME_ENCODING,
+            shapes=list(matrix_shapes(cfg.tactile, cfg.axes)), frames=page,
+        )  # fmt: skip
+
+
+class ReplayAt(BaseModel):
+    """Which recorded iteration the 3-D view is to show."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    run_id: int = Field(ge=1, le=SQL_INT_MAX, description="a run's id (GET /api/runs)")
+    iteration: int = Field(ge=0, le=SQL_INT_MAX, description="an iteration of that run")
+
+
+class ReplayShown(BaseModel):
+    """What the 3-D view shows: a recorded iteration, or (``replay`` null) the live hand."""
+
+    replay: dict[str, Any] | None = Field(
+        description="run_id, iteration and t (s since the run started) of the iteration shown"
+    )
+    live_again_in_s: float | None = Field(
+        description="without a newer PUT the view goes live again after this long"
+    )
+
+
+@router.put("/api/viewer/replay", response_model=ReplayShown, dependencies=[Auth],
+            responses=responses(*WRITE, 404, 409, 422))  # fmt: skip
+async def show_replay(svc: Svc, at: ReplayAt) -> ReplayShown:
+    """Show a recorded iteration in the 3-D view (its pose, contacts, cones and pads) instead of
+    the live hand: the dashboard's replay scrubber sends where it is. The view stays on it until
+    DELETE, or a minute without a newer one."""
+    view = _viewer(svc)
+
+    def read() -> Recorded | None:
+        with _store(svc.cfg) as store:
+            _run_or_404(store, at.run_id)
+            return recorded_iteration(store, svc.cfg, at.run_id, at.iteration)
+
+    rec = await asyncio.to_thread(read)
+    if rec is None:
+        raise ServiceError(404, f"run {at.run_id} has no iteration {at.iteration}")
+    view.replay.show(rec)
+    return ReplayShown(replay=clean_json(rec.where()), live_again_in_s=view.replay.ttl_s)
+
+
+@router.delete("/api/viewer/replay", response_model=ReplayShown, dependencies=[Auth],
+               responses=responses(*WRITE, 409), openapi_extra=EMPTY_BODY)  # fmt: skip
+async def end_replay(svc: Svc) -> ReplayShown:
+    """The 3-D view shows the live hand again."""
+    _viewer(svc).replay.end()
+    return ReplayShown(replay=None, live_again_in_s=None)
+
+
+def _viewer(svc: Any) -> Any:
+    if svc.viewer is None:
+        raise ServiceError(409, "the 3-D view is off on this service (started with --no-viewer)")
+    return svc.viewer
 
 
 @router.get("/api/runs/{run_id}/export", response_class=Response, responses=_EXPORT_RESPONSES)

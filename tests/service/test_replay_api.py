@@ -1,0 +1,246 @@
+"""The replay's routes in process (no hand, no browser): a run's tactile frames, paged; the 3-D
+view's feed of a recorded iteration, and live again."""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from sdh2svc.client import AsyncClient
+from sdh2svc.config import Settings, load_config
+from sdh2svc.control.sample import Sample
+from sdh2svc.service.api.deps import Services
+from sdh2svc.service.app import create_app
+from sdh2svc.service.hub import TelemetryHub
+from sdh2svc.service.replay_feed import Recorded, ReplayFeed
+from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.service.telemetry import (
+    SampleMsg,
+    Sim,
+    Status,
+    Tactile,
+    frame_matrices,
+    kind_of,
+    matrix_shapes,
+)
+
+ITERATIONS = 12
+TOKEN = "replay-test-token"
+
+
+def sample(i: int) -> Sample:
+    values: dict[str, Any] = dict.fromkeys(Sample.columns())
+    values.update(iteration=i, t=0.02 * i, phi2=10.0 + i, phi3=20.0, phi4=30.0, phi5=40.0,
+                  F1=1.0, F2=1.0, F=1.0, dF=0.0, Ay=20.0, Az=110.0, By=46.0, Bz=110.0,
+                  direction=1, stroke=0, half_strokes=0, frame_age_ms=1.0, joint_age_ms=1.0,
+                  latency_ms=1.0)  # fmt: skip
+    return Sample(**values)
+
+
+def texels(i: int, n: int) -> np.ndarray:
+    return (np.arange(n, dtype=np.uint16) * (i + 1)) % 4096
+
+
+class FakeView:
+    """A view's replay feed, recording what reaches its store."""
+
+    def __init__(self) -> None:
+        self.kept: list[Any] = []
+        self.replay = ReplayFeed(self.kept.append)
+
+
+@pytest.fixture
+def setup(tmp_path: Path) -> tuple[Settings, int, int]:
+    cfg = load_config(overrides=[f"storage.db_path={tmp_path / 'runs.db'}",
+                                 f"service.token={TOKEN}"], use_env=False)  # fmt: skip
+    store = RunStore(cfg.storage.db_path)
+    n = sum(r * c for r, c in matrix_shapes(cfg.tactile, cfg.axes))
+    run_id = store.create_run({"params": {}})
+    rec = Recorder(store.path, run_id)
+    for i in range(ITERATIONS):
+        s = sample(i)
+        rec.sample(s)
+        rec.frame(s.t, i, 1000 + i, texels(i, n))
+    rec.frame(0.5, None, 5000, texels(99, n))  # a frame without an iteration: not listed
+    rec.close()
+    store.finish_run(run_id, "completed", {})
+    store.close()
+    return cfg, run_id, n
+
+
+@pytest.fixture
+async def client(setup: tuple[Settings, int, int]) -> AsyncIterator[tuple[httpx.AsyncClient, Any]]:
+    cfg = setup[0]
+    services = Services(cfg, TelemetryHub(), station=None)  # type: ignore[arg-type]
+    services.viewer = FakeView()
+    app = create_app(services)
+    transport = httpx.ASGITransport(app=app)
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1",
+                                 headers=headers) as c:  # fmt: skip
+        yield c, services
+
+
+async def test_frames_paged_in_iteration_order(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    cfg, run_id, n = setup
+    c, _ = client
+    got: list[dict[str, Any]] = []
+    start: int | None = 0
+    pages = 0
+    while start is not None:
+        r = await c.get(f"/api/runs/{run_id}/frames", params={"from": start, "limit": 5})
+        assert r.status_code == 200, r.text
+        page = r.json()
+        assert page["total"] == ITERATIONS and page["encoding"] == "base64-u16le"
+        assert [tuple(s) for s in page["shapes"]] == list(matrix_shapes(cfg.tactile, cfg.axes))
+        got += page["frames"]
+        start = page["next"]
+        pages += 1
+    assert pages == 3
+    assert [f["iteration"] for f in got] == list(range(ITERATIONS))
+    for f in got:
+        counts = np.frombuffer(base64.b64decode(f["texels"]), "<u2")
+        assert np.array_equal(counts, texels(f["iteration"], n))
+        assert f["timestamp_ms"] == 1000 + f["iteration"]
+        assert f["t"] == pytest.approx(0.02 * f["iteration"])
+    # a window of iterations
+    r = await c.get(f"/api/runs/{run_id}/frames", params={"from": 4, "to": 6})
+    assert [f["iteration"] for f in r.json()["frames"]] == [4, 5, 6]
+    assert r.json()["next"] is None and r.json()["from"] == 4
+
+
+async def test_the_client_reads_frames(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    c, _ = client
+    ac = AsyncClient("http://127.0.0.1", token=TOKEN)
+    await ac._http.aclose()
+    ac._http = c  # the app in process, no socket
+    page = await ac.frames(setup[1], 10, limit=5)
+    assert [f["iteration"] for f in page["frames"]] == [10, 11] and page["next"] is None
+
+
+async def test_frames_404_and_422(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    c, _ = client
+    r = await c.get("/api/runs/999/frames")
+    assert r.status_code == 404 and "no run 999" in r.json()["error"]
+    for bad in ({"limit": 0}, {"limit": 2001}, {"from": -1}, {"from": 5, "to": 4},
+                {"from": "x"}):  # fmt: skip
+        r = await c.get(f"/api/runs/{setup[1]}/frames", params=bad)
+        assert r.status_code == 422, (bad, r.text)
+        assert r.json()["details"], bad
+    r = await c.get("/api/runs/0/frames")
+    assert r.status_code == 422
+
+
+async def test_frames_are_in_the_openapi_with_models(client: tuple[Any, Any]) -> None:
+    c, _ = client
+    doc = (await c.get("/openapi.json")).json()
+    ok = doc["paths"]["/api/runs/{run_id}/frames"]["get"]["responses"]["200"]
+    assert ok["content"]["application/json"]["schema"]["$ref"].endswith("/FramePage")
+    frame = doc["components"]["schemas"]["RecordedFrame"]["properties"]
+    assert "base64" in frame["texels"]["description"]
+    expect = {
+        ("get", "/api/runs/{run_id}/frames"): {200, 400, 404, 422},
+        ("put", "/api/viewer/replay"): {200, 400, 401, 403, 404, 409, 413, 415, 422},
+        ("delete", "/api/viewer/replay"): {200, 400, 401, 403, 409, 413, 415},
+    }
+    for (method, path), codes in expect.items():
+        responses = doc["paths"][path][method]["responses"]
+        assert {int(k) for k in responses} == codes, (method, path)
+        for code, resp in responses.items():
+            schema = resp["content"]["application/json"]["schema"]
+            ok = "/FramePage" if method == "get" else "/ReplayShown"
+            assert schema["$ref"].endswith("/ErrorBody" if int(code) >= 400 else ok)
+
+
+def test_frames_split_as_the_live_matrices(cfg: Settings) -> None:
+    shapes = matrix_shapes(cfg.tactile, cfg.axes)
+    ax = cfg.axes
+    for pad in ("finger1", "thumb", "finger2"):
+        assert shapes[getattr(ax, f"{pad}_proximal_matrix")] == (14, 6)
+        assert shapes[getattr(ax, f"{pad}_distal_matrix")] == (13, 6)
+    mats = frame_matrices(np.arange(486), shapes)
+    assert [m.shape for m in mats] == list(shapes)
+    assert mats[0][1, 0] == 6 and mats[1][0, 0] == shapes[0][0] * shapes[0][1]
+    with pytest.raises(ValueError, match="485 texels"):
+        frame_matrices(np.arange(485), shapes)
+
+
+async def test_replay_feed_shows_a_recorded_iteration_then_live(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    cfg, run_id, n = setup
+    c, services = client
+    view: FakeView = services.viewer
+    live_status = Status({"run": None, "estopped": False})
+    view.replay.live(live_status)
+    r = await c.put("/api/viewer/replay", json={"run_id": run_id, "iteration": 7})
+    assert r.status_code == 200, r.text
+    assert r.json()["replay"] == {"run_id": run_id, "iteration": 7, "t": pytest.approx(0.14)}
+    kinds = [kind_of(m) for m in view.kept]
+    assert kinds == ["status", "sample", "tactile", "sim", "status"]
+    s, tac, sim, st = view.kept[1:]
+    assert isinstance(s, SampleMsg) and s.sample == sample(7) and s.run_id == run_id
+    assert s.view is not None and s.view.phi_deg[0] == 17.0 and s.view.A is not None
+    shapes = matrix_shapes(cfg.tactile, cfg.axes)
+    assert isinstance(tac, Tactile)
+    want = frame_matrices(texels(7, n), shapes)
+    assert all(np.array_equal(a, b) for a, b in zip(tac.matrices, want, strict=True))
+    assert sim == Sim({})
+    assert st.status["replay"]["iteration"] == 7
+    # live messages wait; the status goes on, saying what is shown
+    view.kept.clear()
+    live = SampleMsg(None, sample(300))
+    view.replay.live(live)
+    view.replay.live(live_status)
+    assert [kind_of(m) for m in view.kept] == ["status"]
+    assert view.kept[0].status["replay"]["run_id"] == run_id
+    # live again: the latest live messages come back
+    view.kept.clear()
+    r = await c.request("DELETE", "/api/viewer/replay", json={})
+    assert r.status_code == 200 and r.json()["replay"] is None
+    assert view.kept == [live, live_status]
+    assert view.replay.showing is None
+
+
+async def test_replay_feed_refusals(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    c, services = client
+    run_id = setup[1]
+    r = await c.put("/api/viewer/replay", json={"run_id": run_id, "iteration": 500})
+    assert r.status_code == 404 and "no iteration 500" in r.json()["error"]
+    r = await c.put("/api/viewer/replay", json={"run_id": 77, "iteration": 1})
+    assert r.status_code == 404
+    r = await c.put("/api/viewer/replay", json={"run_id": run_id, "iteration": -1})
+    assert r.status_code == 422
+    r = await c.put("/api/viewer/replay", json={"run_id": run_id, "iteration": 1},
+                    headers={"Authorization": ""})  # fmt: skip
+    assert r.status_code == 401
+    services.viewer = None
+    r = await c.put("/api/viewer/replay", json={"run_id": run_id, "iteration": 1})
+    assert r.status_code == 409 and "3-D view is off" in r.json()["error"]
+
+
+async def test_replay_feed_goes_live_without_news() -> None:
+    kept: list[Any] = []
+    feed = ReplayFeed(kept.append, ttl_s=0.0)
+    live = SampleMsg(None, sample(1))
+    feed.live(live)
+    rec_msgs = (SampleMsg(3, sample(2)),)
+    feed.show(Recorded(3, 2, 0.04, rec_msgs))
+    assert feed.showing is not None
+    assert feed._timer is not None
+    feed._timer._run()  # the timer's moment (ttl 0): no sleeping on a clock
+    assert feed.showing is None and kept[-1] is live
