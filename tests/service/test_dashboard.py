@@ -234,6 +234,7 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
     # in simulation, press-and-hold on a pad's cell presses the pad there; letting go lifts it
     sel = "#pads canvas[data-matrix='3']"
     lit = f"(a) => ({COUNT_PIXELS_NOT})(a) > 0"
+    await page.locator(sel).scroll_into_view_if_needed()  # the steps above scrolled the page
     box = await page.locator(sel).bounding_box()
     assert box is not None and not await page.evaluate(lit, [sel, PAD_ZERO_RGB])
     await page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
