@@ -136,6 +136,7 @@ from sdh2svc.sim.world import HandWorld
 __all__ = [
     "DEFAULT_GRASPS",
     "POSE",
+    "PUBLISHED_LOOP_HZ",
     "VELOCITY",
     "VELOCITY_ACCELERATION",
     "Carry",
@@ -153,6 +154,9 @@ _ALL: Final = tuple(range(NUM_AXES))
 _EPS: Final = 1e-9  # deg: a shorter distance is no motion
 _LIMIT_TOL: Final = 1e-6  # deg: float32 round-off of a value sent exactly at a limit
 _PROPERTIES: Final = ("demo", "user_errors", "terminal", "debug")
+#: SCHUNK's benchmark loop over RS-232 on a real SDH2, cycles per second (SDHLibrary-CPP release
+#: notes 0.0.2.0, protocols.md §2.7): binary `pos` + `tvav`, ASCII `pos`, `v`, `vel`.
+PUBLISHED_LOOP_HZ: Final = {"binary": 75.0, "ascii": 30.0}
 
 
 @dataclass(frozen=True, slots=True)
