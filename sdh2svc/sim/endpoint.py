@@ -72,10 +72,10 @@ class Device(Protocol):
     """A byte-level device emulator, driven by an endpoint; ``now`` is the loop clock in s."""
 
     def connected(self, now: float) -> None:
-        """A host connected (TCP accept; pty: when the endpoint starts), after any boot delay."""
+        """A host connected (TCP accept; pty: a program opened it), after any boot delay."""
 
     def disconnected(self, now: float) -> None:
-        """The host went away (TCP close; pty: when the endpoint stops)."""
+        """The host went away (TCP close; pty: the last program closed it; the endpoint stops)."""
 
     def receive(self, data: bytes, now: float) -> None:
         """Bytes from the host, in whatever pieces they arrived."""
