@@ -383,20 +383,25 @@ class Endpoint(ABC):
         arrive = max(now, self._rx_free_at) + len(data) * self._pacer.byte_time
         self._rx_free_at = arrive
         if arrive <= now:
-            self._deliver(data, self._link_id)
+            self._deliver(data)
         else:  # strictly later than the piece before, so pieces arrive in order
-            self._require_loop().call_at(arrive, self._deliver, data, self._link_id)
+            self._require_loop().call_at(arrive, self._deliver, data)
 
-    def _deliver(self, data: bytes, link: int) -> None:
-        """Bytes that have crossed the line; a host that has gone meanwhile took them along."""
-        if link != self._link_id or self._state != "running":
+    def _deliver(self, data: bytes) -> None:
+        """Bytes that have crossed the line. A host that closed the port meanwhile still sent
+        them (a serial port drains its output on close: SDHLibrary's last word, a power-off, is
+        written just before it closes)."""
+        if self._state != "running":
             return
         if self._unplugged(self._now()):  # the cable came out while they were on the way
             self.stats.faults[FaultKind.MUTED_RX_BYTE] += len(data)
             return
         self.stats.bytes_rx += len(data)
+        now = self._now()
         try:
-            self.device.receive(data, self._now())
+            self.device.receive(data, now)
+            if not self._device_connected:  # the host has gone: what it asked for goes nowhere
+                self.device.disconnected(now)
         except Exception as exc:  # keep serving; the transport callback is no place to raise
             logger.exception("device.receive() failed")
             self._device_error = self._device_error or exc

@@ -558,6 +558,8 @@ class Sdh2Emulator:
             self._busy_until = ready
             self._inbox.append((ready, event, self._generation))
         self._process(now)
+        if self._inbox and self._wake is not None:
+            self._wake()  # the clock sees them through, should the host be gone by then
 
     def next_packet(self, now: float) -> bytes | None:
         self._process(now)
@@ -589,10 +591,14 @@ class Sdh2Emulator:
 
     def step(self, now: float) -> float | None:
         """Bring the servo model and the world to ``now``; when the servo must next step on its
-        own (None: not before a command)."""
+        own or a command's processing ends (None: not before a command)."""
         self._process(now)
         self._advance(now)
-        return self._due()
+        due = self._due()
+        if self._inbox:
+            ready = self._inbox[0][0]
+            return ready if due is None else min(due, ready)
+        return due
 
     def _process(self, now: float) -> None:
         """Execute the commands whose processing time is over, each at its own ready time."""

@@ -122,21 +122,21 @@ async def ask(conn: tuple[asyncio.StreamReader, asyncio.StreamWriter], line: byt
 
 @pytest.mark.parametrize("mode", ["move", "velocity"])
 def test_motion_goes_on_after_the_host_disconnects(tmp_path: Path, mode: str) -> None:
-    """A move (or a velocity) started by a host that then disconnects carries on, the world
-    stepping on the controller's own clock; the next host finds the joints where they went."""
+    """A host starts a move (or a velocity) and closes the port at once, as SDHLibrary does
+    after its last command: the command still crosses the line, and the motion carries on, the
+    world stepping on the controller's own clock; the next host finds the joints on their way."""
 
     async def body(hand: SimulatedHand) -> None:
         url = hand.urls("sdh")[0]
         conn = await raw_sdh(url)
         if mode == "move":
             await ask(conn, b"p=0,-40,40,-40,40,-40,40")
-            assert (await ask(conn, b"m")).startswith(b"M=")
+            conn[1].write(b"m\r\n")
         else:
             await ask(conn, b"con=1")
-            await ask(conn, b"v=0,-10,10,0,0,0,0")
-        await asyncio.sleep(0.1)
+            conn[1].write(b"v=0,-10,10,0,0,0,0\r\n")
         conn[1].close()
-        await asyncio.sleep(0.05)  # the host is gone: nobody asks the controller anything
+        await asyncio.sleep(0.15)  # the host is gone: nobody asks the controller anything
         assert not hand.endpoints["sdh"][0]._host_present()
         seen = []
         for _ in range(3):
