@@ -546,6 +546,8 @@ class Sdh2Emulator:
         self._process(now)
         self._advance(now)
         self._reset_link()
+        if self._inbox and self._wake is not None:
+            self._wake()  # commands still in process: no host is left to ask for them
 
     def receive(self, data: bytes, now: float) -> None:
         self._process(now)
@@ -558,8 +560,6 @@ class Sdh2Emulator:
             self._busy_until = ready
             self._inbox.append((ready, event, self._generation))
         self._process(now)
-        if self._inbox and self._wake is not None:
-            self._wake()  # the clock sees them through, should the host be gone by then
 
     def next_packet(self, now: float) -> bytes | None:
         self._process(now)
