@@ -10,7 +10,7 @@ Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, 
 :class:`DsaconOptions` field (or argument) that controls it:
 
 * Power-on: the controller clock starts at :meth:`DsaconEmulator.power_on`, or at the first call
-  of any method (a pty endpoint: when it starts; TCP: at the first host connection). ``boot_s``
+  of any method (over a pty or TCP: when the first host opens the port). ``boot_s``
   (default 0; 8.0 like the real unit, §1.1): deaf and mute until then, except ``ESC [ 5 n`` three
   times, at boot_s − 1.0, − 0.59 and − 0.18 s (within 0.82 s; exact offsets [U]). Noise still
   unsent when the boot ends (nobody was listening) is dropped.

@@ -4,12 +4,17 @@ An emulator is a sans-I/O :class:`Device`: it is handed bytes and asked for whol
 with the event loop's time, so it runs unchanged on a virtual clock. An endpoint owns the I/O and
 the timing around it:
 
-* the line is modelled as one UART at ``baud`` (10 bits per byte, 8N1): a packet's bytes are
-  released in small chunks as they fall due, and the device is asked for the next packet only when
-  the line is idle, so packets never interleave and streams are line-limited. With
-  ``whole_packets=True`` (fast mode) each packet is released in one piece at the moment its last
-  byte has left the UART: the same line time and rate, only its first bytes do not reach the host
-  early (a cable pulled mid-packet still delivers the bytes already sent);
+* the line is modelled as one full-duplex UART at ``baud`` (10 bits per byte, 8N1). Device→host:
+  a packet's bytes are released in small chunks as they fall due, and the device is asked for the
+  next packet only when the line is idle, so packets never interleave and streams are
+  line-limited. With ``whole_packets=True`` (fast mode) each packet is released in one piece at
+  the moment its last byte has left the UART: the same line time and rate, only its first bytes do
+  not reach the host early (a cable pulled mid-packet still delivers the bytes already sent).
+  Host→device: each piece the host writes reaches the device when its last byte has crossed the
+  line (after the pieces before it), so a command costs its line time before the firmware sees it;
+* a line forgets: the device's output goes nowhere while no host has the port open (TCP: no
+  client; pty: nobody has the slave open, seen through inotify), and a host that opens it finds
+  no stale bytes;
 * faults from :class:`~sdh2svc.sim.faults.FaultConfig` corrupt, drop or cut device→host bytes,
   keep the device deaf and mute while it "boots", and :meth:`Endpoint.disconnect` pulls the cable;
 * the host reaches it through an ordinary pyserial URL (:attr:`Endpoint.url`): a pty slave path or
@@ -23,10 +28,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import logging
 import math
 import os
 import socket
+import struct
 import termios
 from abc import ABC, abstractmethod
 from collections import Counter
@@ -65,10 +72,10 @@ class Device(Protocol):
     """A byte-level device emulator, driven by an endpoint; ``now`` is the loop clock in s."""
 
     def connected(self, now: float) -> None:
-        """A host connected (TCP accept; pty: when the endpoint starts), after any boot delay."""
+        """A host connected (TCP accept; pty: a program opened it), after any boot delay."""
 
     def disconnected(self, now: float) -> None:
-        """The host went away (TCP close; pty: when the endpoint stops)."""
+        """The host went away (TCP close; pty: the last program closed it; the endpoint stops)."""
 
     def receive(self, data: bytes, now: float) -> None:
         """Bytes from the host, in whatever pieces they arrived."""
@@ -157,11 +164,13 @@ class LinkPacer:
         self._size = 0
         self.free_at = -math.inf  # when the line went (or goes) idle
 
-    def begin(self, now: float, size: int) -> None:
-        """Start a packet of ``size`` bytes; the line must be idle."""
-        # Never before the line is free; from where the last packet ended if that was recent.
-        back_to_back = now - self.free_at <= self.max_catchup_s
-        self._t0 = self.free_at if back_to_back else now
+    def begin(self, now: float, size: int, ready: float = -math.inf) -> None:
+        """Start a packet of ``size`` bytes that the device had ready at ``ready`` (if known);
+        the line must be idle."""
+        # Never before the line is free nor before the packet was ready; from there if that
+        # was recent (a late wake-up), else now.
+        start = max(self.free_at, ready)
+        self._t0 = start if now - start <= self.max_catchup_s else now
         self._size = size
         self.free_at = self._t0 + size * self.byte_time
 
@@ -219,6 +228,9 @@ class Endpoint(ABC):
         self._device_connected = False
         self._link_id = 0  # bumped whenever the host side changes; in-flight packets die with it
         self._device_error: Exception | None = None  # first exception from device.receive()
+        self._rx_free_at = -math.inf  # when the host→device line is idle again
+        self._poked_at = math.inf  # first change the transmitter was told of since it looked
+        self._ready_at = -math.inf  # the earliest the next packet can have been ready
 
     # -- public API --------------------------------------------------------------------------
 
@@ -331,6 +343,7 @@ class Endpoint(ABC):
         return now < self._unplugged_until
 
     def _poke(self) -> None:
+        self._poked_at = min(self._poked_at, self._now())
         self._changed.set()
 
     def _finish_boot(self, now: float) -> None:
@@ -358,7 +371,8 @@ class Endpoint(ABC):
         self._poke()
 
     def _on_rx(self, data: bytes) -> None:
-        """Bytes from the host: dropped while deaf, else faulted and handed to the device."""
+        """Bytes from the host: dropped while deaf, else faulted and handed to the device once
+        they have crossed the line (their line time after the line is free)."""
         now = self._now()
         if not self._booted or self._unplugged(now):
             self.stats.faults[FaultKind.MUTED_RX_BYTE] += len(data)
@@ -366,9 +380,28 @@ class Endpoint(ABC):
         data = self._injector.apply_rx(data)
         if not data:
             return
+        arrive = max(now, self._rx_free_at) + len(data) * self._pacer.byte_time
+        self._rx_free_at = arrive
+        if arrive <= now:
+            self._deliver(data)
+        else:  # strictly later than the piece before, so pieces arrive in order
+            self._require_loop().call_at(arrive, self._deliver, data)
+
+    def _deliver(self, data: bytes) -> None:
+        """Bytes that have crossed the line. A host that closed the port meanwhile still sent
+        them (a serial port drains its output on close: SDHLibrary's last word, a power-off, is
+        written just before it closes)."""
+        if self._state != "running":
+            return
+        if self._unplugged(self._now()):  # the cable came out while they were on the way
+            self.stats.faults[FaultKind.MUTED_RX_BYTE] += len(data)
+            return
         self.stats.bytes_rx += len(data)
+        now = self._now()
         try:
             self.device.receive(data, now)
+            if not self._device_connected:  # the host has gone: what it asked for goes nowhere
+                self.device.disconnected(now)
         except Exception as exc:  # keep serving; the transport callback is no place to raise
             logger.exception("device.receive() failed")
             self._device_error = self._device_error or exc
@@ -382,11 +415,13 @@ class Endpoint(ABC):
                 self._finish_boot(self._now())
         while True:
             self._changed.clear()  # before polling, so input arriving later wakes us
+            self._poked_at = math.inf
             now = self._now()
             listening = self._host_present()
             packet = self.device.next_packet(now) if listening else None
             if packet is not None:
-                await self._transmit(packet)
+                await self._transmit(packet, self._ready_at)
+                self._ready_at = -math.inf  # the next one may have been ready all along
                 continue
             wakeup = self.device.next_wakeup(now) if listening else None
             if wakeup is not None and wakeup <= now:
@@ -394,6 +429,8 @@ class Endpoint(ABC):
             await self._wait_change(wakeup)
 
     async def _wait_change(self, deadline: float | None) -> None:
+        """Sleep until something changes or ``deadline``; note when that was (the next packet
+        cannot have been ready earlier, so a late wake-up does not move it earlier still)."""
         loop = self._require_loop()
         timer = None if deadline is None else loop.call_at(deadline, self._changed.set)
         try:
@@ -401,12 +438,13 @@ class Endpoint(ABC):
         finally:
             if timer is not None:
                 timer.cancel()
+        self._ready_at = min(self._poked_at, math.inf if deadline is None else deadline)
 
-    async def _transmit(self, packet: bytes) -> None:
+    async def _transmit(self, packet: bytes, ready: float) -> None:
         out = self._injector.apply_tx(packet)
         self.stats.packets_tx += 1
         link = self._link_id
-        self._pacer.begin(self._now(), len(out))
+        self._pacer.begin(self._now(), len(out), ready)
         self._tx, self._tx_sent, self._tx_link = out, 0, link
         try:
             while self._tx_sent < len(out):
@@ -476,10 +514,12 @@ class PtyEndpoint(Endpoint):
     """Serves the device on a fresh pty; the host opens :attr:`path`.
 
     The endpoint keeps its own slave fd open for its whole life, so master reads never fail with
-    EIO between hosts and a host's HUPCL does not hang up the line. A pty cannot tell when a host
-    opens or closes the slave, so the device is "connected" from start to stop; what it sends
-    while nobody reads queues in the pty (stale bytes the next host's open flushes) until the pty
-    is full, after which the line stalls (backpressure) rather than losing bytes.
+    EIO between hosts and a host's HUPCL does not hang up the line. It watches the slave's device
+    node (inotify: opens and last closes) to know whether a host has it open: the device is
+    "connected" while one has, and otherwise its output goes nowhere and whatever the last host
+    left unread is flushed, as on a serial port nobody reads — the next host finds no stale
+    bytes. Where inotify is missing the device is connected from start to stop and unread output
+    queues in the pty until it is full, after which the line stalls (backpressure).
     """
 
     def __init__(
@@ -492,6 +532,8 @@ class PtyEndpoint(Endpoint):
         self._path = ""
         self._pending = bytearray()  # written by the line, not yet taken by the pty
         self._writer_armed = False
+        self._watch: _OpenWatch | None = None  # opens of the slave by hosts (None: can't tell)
+        self._opens = 0
 
     @property
     def path(self) -> str:
@@ -513,18 +555,48 @@ class PtyEndpoint(Endpoint):
             os.close(slave)
             raise
         self._master, self._slave = master, slave
+        self._watch = _OpenWatch.create(self._path)
+        if self._watch is not None:
+            self._require_loop().add_reader(self._watch.fd, self._on_watch)
         self._require_loop().add_reader(master, self._on_readable)
 
     async def _close(self) -> None:
-        self._require_loop().remove_reader(self._master)
+        loop = self._require_loop()
+        loop.remove_reader(self._master)
+        if self._watch is not None:
+            loop.remove_reader(self._watch.fd)
+            self._watch.close()
+            self._watch = None
         self._arm_writer(False)
         self._pending.clear()
         os.close(self._master)
         os.close(self._slave)
         self._master = self._slave = -1
 
+    @property
+    def host_open(self) -> bool:
+        """Whether a host has the slave open (always True where that can't be seen)."""
+        return self._watch is None or self._opens > 0
+
     def _host_present(self) -> bool:
-        return True
+        return self.host_open
+
+    def _on_watch(self) -> None:
+        """Opens and last closes of the slave: (dis)connect the device, forget unread bytes."""
+        assert self._watch is not None
+        for delta in self._watch.read():
+            was = self._opens > 0
+            self._opens = max(0, self._opens + delta)
+            if (self._opens > 0) != was:
+                self._forget()
+                self._set_host(not was)
+
+    def _forget(self) -> None:
+        """Drop what the device sent that no host has read (a serial port keeps nothing)."""
+        self._pending.clear()
+        self._arm_writer(False)
+        with contextlib.suppress(termios.error):
+            termios.tcflush(self._slave, termios.TCIFLUSH)
 
     def _sink_ready(self) -> bool:
         return not self._pending
@@ -537,6 +609,8 @@ class PtyEndpoint(Endpoint):
         self._flush()
 
     def _on_readable(self) -> None:
+        if self._watch is not None:
+            self._on_watch()  # a host that opened and wrote at once: connect it first
         try:
             data = os.read(self._master, _READ_SIZE)
         except (BlockingIOError, InterruptedError):
@@ -566,6 +640,53 @@ class PtyEndpoint(Endpoint):
         elif not on and self._writer_armed:
             self._require_loop().remove_writer(self._master)
         self._writer_armed = on
+
+
+class _OpenWatch:
+    """Counts opens and last closes of a device node through Linux's inotify (ctypes: the
+    standard library has no binding). :meth:`read` yields +1 per open, −1 per close."""
+
+    _IN_CLOSE_WRITE, _IN_CLOSE_NOWRITE, _IN_OPEN, _IN_Q_OVERFLOW = 0x08, 0x10, 0x20, 0x4000
+    _EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (then len bytes of name)
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+
+    @classmethod
+    def create(cls, path: str) -> _OpenWatch | None:
+        """A watch on ``path``, or None where inotify is unavailable."""
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        except (OSError, AttributeError):
+            return None
+        if fd < 0:
+            return None
+        mask = cls._IN_OPEN | cls._IN_CLOSE_WRITE | cls._IN_CLOSE_NOWRITE
+        if libc.inotify_add_watch(fd, os.fsencode(path), mask) < 0:
+            os.close(fd)
+            return None
+        return cls(fd)
+
+    def read(self) -> list[int]:
+        try:
+            buf = os.read(self.fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            return []
+        out, pos = [], 0
+        while pos + self._EVENT.size <= len(buf):
+            _wd, mask, _cookie, size = self._EVENT.unpack_from(buf, pos)
+            pos += self._EVENT.size + size
+            if mask & self._IN_OPEN:
+                out.append(1)
+            if mask & (self._IN_CLOSE_WRITE | self._IN_CLOSE_NOWRITE):
+                out.append(-1)
+            if mask & self._IN_Q_OVERFLOW:
+                logger.warning("pty open/close events lost; host presence may be wrong")
+        return out
+
+    def close(self) -> None:
+        os.close(self.fd)
 
 
 # -- TCP ---------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from sdh2svc.sim.endpoint import Device, Endpoint, PtyEndpoint, TcpEndpoint, Uni
 from sdh2svc.sim.faults import FaultConfig
 from sdh2svc.sim.hand import HandModel, PhysicsWorld
 from sdh2svc.sim.objects import Shape
-from sdh2svc.sim.sdh2 import Sdh2Emulator
+from sdh2svc.sim.sdh2 import Sdh2Emulator, Sdh2Options
 from sdh2svc.sim.simconfig import SimConfig
 
 log = logging.getLogger(__name__)
@@ -68,6 +68,50 @@ def _say(message: str) -> None:
         log.info("%s", message)
     else:
         print(f"sdh2svc sim: {message}", file=sys.stderr, flush=True)
+
+
+class ServoClock:
+    """The joint controller's own clock: steps its servo, and with it the world, whenever a
+    motion needs it, whether or not a host is connected — a move or a velocity goes on after the
+    host has gone, as the firmware's does."""
+
+    def __init__(self, sdh: Sdh2Emulator) -> None:
+        self.sdh = sdh
+        self._wakeup: asyncio.Future[None] | None = None
+        sdh.attach_clock(self.wake)
+
+    def start(self) -> asyncio.Task[None]:
+        task = asyncio.create_task(self.run(), name="sdh2-servo-clock")
+        task.add_done_callback(_log_crash)
+        return task
+
+    def wake(self) -> None:
+        """A command started a motion (or brought its next step forward): look again."""
+        if self._wakeup is not None and not self._wakeup.done():
+            self._wakeup.set_result(None)
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            due = self.sdh.step(loop.time())
+            self._wakeup = fut = loop.create_future()
+            timer = None if due is None else loop.call_at(due, _resolve, fut)
+            try:
+                await fut
+            finally:
+                self._wakeup = None
+                if timer is not None:
+                    timer.cancel()
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+def _log_crash(task: asyncio.Task[None]) -> None:
+    if not task.cancelled() and (exc := task.exception()) is not None:
+        log.error("the servo clock crashed", exc_info=exc)
 
 
 class SharedDevice:
@@ -124,16 +168,18 @@ class SimulatedHand:
     sdh: Sdh2Emulator
     endpoints: dict[str, list[Endpoint]] = field(default_factory=dict)
     _assistant: asyncio.Task[None] | None = None  # the LabAssistant's polling task
+    _clock: asyncio.Task[None] | None = None  # the joint controller's servo clock
 
     def urls(self, device: str) -> list[str]:
         return [ep.url for ep in self.endpoints.get(device, [])]
 
     async def stop(self) -> None:
-        task, self._assistant = self._assistant, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        for task in (self._assistant, self._clock):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        self._assistant = self._clock = None
         for eps in self.endpoints.values():
             for ep in eps:
                 with contextlib.suppress(Exception):
@@ -164,8 +210,11 @@ async def start_simulated_hand(
     world = PhysicsWorld(model, sim, obj)
     masks = [layout.valid() for layout in (model.tactile.proximal, model.tactile.distal) * 3]
     dsa = DsaconEmulator(world, options=DsaconOptions(boot_s=links.dsa_boot_s), static_masks=masks)
-    sdh = Sdh2Emulator(world)
+    latency = Sdh2Options(ascii_latency_s=links.sdh_ascii_latency_ms / 1000,
+                          binary_latency_s=links.sdh_binary_latency_ms / 1000)  # fmt: skip
+    sdh = Sdh2Emulator(world, options=latency)
     hand = SimulatedHand(world, dsa, sdh)
+    hand._clock = ServoClock(sdh).start()
     faults = FaultConfig(bit_error_rate=links.bit_error_rate, seed=sim.seed)
     ports = {
         "dsa": links.dsa_tcp_port if dsa_port is None else dsa_port,

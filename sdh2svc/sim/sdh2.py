@@ -95,8 +95,17 @@ Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, 
   ``vp`` and ``a``, leave the ``p`` targets alone and reply ``SELGRIP=<T>,<id>`` /
   ``GRIP=<T>,<close>``. Current-limit juggling is not modelled. ``pos_save=`` and ``ref=`` are
   checked (0/1, 0/1/2) and echoed at once; no reference move is made.
-* Catching up: a TCP endpoint stops asking for wake-ups while no host is connected; the servo
-  then catches up at the next call in at most ``max_catchup_steps`` (2000) evenly spaced steps.
+* Processing time (§2.7): a command is executed, and its reply built, ``ascii_latency_s`` or
+  ``binary_latency_s`` after its last byte arrived (0 by default; the simulated hand takes them
+  from ``config/sim.toml``, calibrated so that the vendor's benchmark loop runs at its published
+  rate). The firmware takes one command at a time: one that arrives while another is processed
+  waits its turn. A command received before a host disconnect still takes effect; its reply is
+  dropped.
+* Its own clock: :meth:`Sdh2Emulator.attach_clock` hands the servo ticks to an outside clock
+  (the simulated hand's, :mod:`sdh2svc.sim.lab`), so motion goes on while no host is connected;
+  :meth:`~Sdh2Emulator.next_wakeup` then asks only for replies. Without one, an endpoint's
+  wake-ups step the servo; a TCP endpoint stops asking while no host is connected and the servo
+  catches up at the next call in at most ``max_catchup_steps`` (2000) evenly spaced steps.
 """
 
 from __future__ import annotations
@@ -127,6 +136,7 @@ from sdh2svc.sim.world import HandWorld
 __all__ = [
     "DEFAULT_GRASPS",
     "POSE",
+    "PUBLISHED_LOOP_HZ",
     "VELOCITY",
     "VELOCITY_ACCELERATION",
     "Carry",
@@ -144,6 +154,9 @@ _ALL: Final = tuple(range(NUM_AXES))
 _EPS: Final = 1e-9  # deg: a shorter distance is no motion
 _LIMIT_TOL: Final = 1e-6  # deg: float32 round-off of a value sent exactly at a limit
 _PROPERTIES: Final = ("demo", "user_errors", "terminal", "debug")
+#: SCHUNK's benchmark loop over RS-232 on a real SDH2, cycles per second (SDHLibrary-CPP release
+#: notes 0.0.2.0, protocols.md §2.7): binary `pos` + `tvav`, ASCII `pos`, `v`, `vel`.
+PUBLISHED_LOOP_HZ: Final = {"binary": 75.0, "ascii": 30.0}
 
 
 @dataclass(frozen=True, slots=True)
@@ -219,6 +232,8 @@ class Sdh2Options:
     grasp_velocity: float = 40.0
     grip_max_velocity: float = 100.0
     max_catchup_steps: int = 2000
+    ascii_latency_s: float = 0.0
+    binary_latency_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("min_angle_deg", "max_angle_deg", "velocity_limit", "acceleration_limit",
@@ -241,6 +256,8 @@ class Sdh2Options:
             raise ValueError("at least one grasp is needed")
         if self.max_catchup_steps < 1:
             raise ValueError("max_catchup_steps must be >= 1")
+        if not min(self.ascii_latency_s, self.binary_latency_s) >= 0.0:
+            raise ValueError("processing latencies must be >= 0")
         self.reply_fmt.format(1.0)  # fails early on a bad format
 
 
@@ -457,6 +474,11 @@ class Sdh2Emulator:
         self._world = world
         self._parser = HostStreamParser()
         self._outbox: deque[bytes] = deque()
+        # received commands being processed: (ready time, event, link generation), in order
+        self._inbox: deque[tuple[float, HostEvent, int]] = deque()
+        self._busy_until = -math.inf  # when the firmware finishes the last command it took
+        self._generation = 0  # bumped at every (dis)connect: replies for a gone host are dropped
+        self._wake: Callable[[], None] | None = None  # the outside clock, if any
         self._t: float | None = None  # time the servo model has advanced to
         self._next_tick = -math.inf
         self._move: _Move | None = None
@@ -516,21 +538,31 @@ class Sdh2Emulator:
     # -- Device protocol -------------------------------------------------------------------------
 
     def connected(self, now: float) -> None:
+        self._process(now)
         self._advance(now)
         self._reset_link()
 
     def disconnected(self, now: float) -> None:
+        self._process(now)
         self._advance(now)
         self._reset_link()
+        if self._inbox and self._wake is not None:
+            self._wake()  # commands still in process: no host is left to ask for them
 
     def receive(self, data: bytes, now: float) -> None:
+        self._process(now)
         self._advance(now)
+        o = self.options
         for event in self._parser.feed(data):
-            reply = self._handle(event)
-            if reply:
-                self._outbox.append(reply)
+            binary = isinstance(event, BinaryRequest)
+            latency = o.binary_latency_s if binary else o.ascii_latency_s
+            ready = max(now, self._busy_until) + latency
+            self._busy_until = ready
+            self._inbox.append((ready, event, self._generation))
+        self._process(now)
 
     def next_packet(self, now: float) -> bytes | None:
+        self._process(now)
         self._advance(now)
         if not self._outbox:
             return None
@@ -540,8 +572,48 @@ class Sdh2Emulator:
         return packet
 
     def next_wakeup(self, now: float) -> float | None:
+        self._process(now)
         self._advance(now)
-        return now if self._outbox else self._due()
+        if self._outbox:
+            return now
+        ready = self._inbox[0][0] if self._inbox else None
+        due = None if self._wake is not None else self._due()
+        if ready is None or due is None:
+            return due if ready is None else ready
+        return min(ready, due)
+
+    # -- the outside clock -----------------------------------------------------------------------
+
+    def attach_clock(self, wake: Callable[[], None]) -> None:
+        """From now on an outside clock steps the servo (:meth:`step`); ``wake`` is called
+        whenever a command may have brought the next step forward (e.g. started a motion)."""
+        self._wake = wake
+
+    def step(self, now: float) -> float | None:
+        """Bring the servo model and the world to ``now``; when the servo must next step on its
+        own or a command's processing ends (None: not before a command)."""
+        self._process(now)
+        self._advance(now)
+        due = self._due()
+        if self._inbox:
+            ready = self._inbox[0][0]
+            return ready if due is None else min(due, ready)
+        return due
+
+    def _process(self, now: float) -> None:
+        """Execute the commands whose processing time is over, each at its own ready time."""
+        inbox = self._inbox
+        while inbox and inbox[0][0] <= now:
+            ready, event, generation = inbox.popleft()
+            self._advance(ready)
+            wake = self._wake
+            due = self._due() if wake is not None else None
+            reply = self._handle(event)
+            if reply and generation == self._generation:
+                self._outbox.append(reply)
+            new = self._due() if wake is not None else None
+            if wake is not None and new is not None and (due is None or new < due):
+                wake()  # a motion started, or its next step came forward
 
     # -- event dispatch --------------------------------------------------------------------------
 
@@ -656,6 +728,7 @@ class Sdh2Emulator:
     def _reset_link(self) -> None:
         self._parser.reset()
         self._outbox.clear()
+        self._generation += 1
 
     # -- vector commands -------------------------------------------------------------------------
 

@@ -21,6 +21,8 @@ class LinksConfig(Frozen):
     baud: Annotated[int, Field(ge=300, le=4_000_000)]
     dsa_boot_s: Annotated[float, Field(ge=0.0, le=60.0)]
     bit_error_rate: Annotated[float, Field(ge=0.0, le=0.1)]
+    sdh_ascii_latency_ms: Annotated[float, Field(ge=0.0, le=100.0)]
+    sdh_binary_latency_ms: Annotated[float, Field(ge=0.0, le=100.0)]
 
 
 class SimConfig(Frozen):

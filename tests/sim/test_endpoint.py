@@ -235,8 +235,9 @@ def test_virtual_clock_packet_goes_out_in_line_rate_chunks() -> None:
         dev = ToyDevice()
         ep = MemoryEndpoint(dev, on_output=lambda data, now: chunks.append((now, len(data))))
         async with ep:
-            t0 = asyncio.get_running_loop().time()
             ep.write(b"blob 1000\n")
+            # the device hears the request once its 10 bytes have crossed the line
+            t0 = asyncio.get_running_loop().time() + 10 * BYTE_TIME
             await asyncio.sleep(1.0)
         assert ep.output == b"B" * 999 + b"\n"
         sent = 0
