@@ -9,6 +9,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from mcap_check import read
 from test_store import _samples
@@ -18,6 +19,9 @@ from sdh2svc.connect import Bench, Simulated
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.sample import Sample
 from sdh2svc.service import headless
+from sdh2svc.service.api.deps import Services
+from sdh2svc.service.app import create_app
+from sdh2svc.service.hub import TelemetryHub
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.replay_feed import recorded_iteration
 from sdh2svc.service.store import SCHEMA, TRUTH_COLUMNS, Recorder, RunStore
@@ -209,3 +213,43 @@ def test_an_older_database_without_the_truth_opens(cfg: Settings, tmp_path: Path
                                                            False, 0), strict=True))]  # fmt: skip
     finally:
         store.close()
+
+
+async def test_the_truth_api_pages_in_iteration_order(sim_run: SimRun, tmp_path: Path) -> None:
+    cfg = sim_run.cfg
+    run_id = sim_run.summary["run_id"]
+    app = create_app(Services(cfg, TelemetryHub(), station=None))  # type: ignore[arg-type]
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as c:
+        got: list[dict[str, Any]] = []
+        start: int | None = 0
+        while start is not None:
+            r = await c.get(f"/api/runs/{run_id}/truth", params={"from": start, "limit": 60})
+            assert r.status_code == 200, r.text
+            page = r.json()
+            assert page["total"] == sim_run.summary["iterations"]
+            assert page["outline"]["object"] == "rubber"
+            assert len(page["outline"]["points"]) == OUTLINE_POINTS
+            got += page["truth"]
+            start = page["next"]
+        assert (await c.get("/api/runs/999/truth")).status_code == 404
+        assert (await c.get(f"/api/runs/{run_id}/truth", params={"limit": 0})).status_code == 422
+    store = _store(sim_run)
+    try:
+        assert got == store.truth(run_id)
+        outline = store.outline(run_id)
+        assert outline is not None
+        assert page["outline"]["points"] == outline["points"]
+    finally:
+        store.close()
+    # a run without truth: none, and no outline
+    db = tmp_path / "real.sqlite"
+    store = RunStore(db)
+    real_id = store.create_run({})
+    store.close()
+    app = create_app(Services(load_config(overrides=[f"storage.db_path='{db}'"], use_env=False),
+                              TelemetryHub(), station=None))  # type: ignore[arg-type]  # fmt: skip
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as c:
+        page = (await c.get(f"/api/runs/{real_id}/truth")).json()
+    assert page["outline"] is None and page["truth"] == [] and page["next"] is None
