@@ -252,7 +252,7 @@ export class Sketch {
         ctx.fillText(name, x + (name === "A" ? -16 : 8) * dpr, y - 6 * dpr);
       }
     }
-    this.drawLegend(ctx, dpr, angles, contact, shown);
+    this.drawLegend(ctx, dpr, angles, contact, shown, truth);
   }
 
   drawFrame(ctx, px, s, dpr) {
@@ -378,7 +378,7 @@ export class Sketch {
     ctx.setLineDash([]);
   }
 
-  drawLegend(ctx, dpr, angles, contact, shown) {
+  drawLegend(ctx, dpr, angles, contact, shown, truth) {
     const lines = [];
     if (shown) lines.push(`inspecting iteration ${shown.iteration}`);
     if (angles) lines.push(`φ2…φ5 = ${angles.map((a) => a.toFixed(1)).join(", ")}°`);
