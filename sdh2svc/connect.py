@@ -32,6 +32,17 @@ from sdh2svc.sim.press import Press
 
 
 @dataclass(frozen=True, slots=True)
+class ObjectNow:
+    """The object as the physics last stepped (:meth:`Bench.object_now`)."""
+
+    pose: tuple[float, float, float]  # centre y, z (mm) and angle ψ (rad), frame 0
+    held: bool  # by the fingers (not the fixture)
+    dropped: bool
+    in_fixture: bool
+    slips: int  # slip onsets so far
+
+
+@dataclass(frozen=True, slots=True)
 class Real:
     """A real hand: its DSACON32m (tactile) and SDH2 (joints) lines, device paths or URLs."""
 
@@ -116,6 +127,14 @@ class Bench:
     def contacts_now(self) -> tuple[ContactTruth, ...]:
         """The true contacts as last stepped; like :meth:`object_pose`, steps nothing."""
         return self.sim.world.contacts_now()
+
+    def object_now(self) -> ObjectNow:
+        """The object's pose and state as last stepped; like :meth:`object_pose`, steps nothing
+        (a run recorded with its truth stays bit for bit the run without)."""
+        st = self.sim.world._physics.state  # what Truth reads, without PhysicsWorld.flush
+        pose = (float(st.pose[0]), float(st.pose[1]), float(st.pose[2]))
+        held = not st.dropped and not st.held_by_fixture
+        return ObjectNow(pose, held, st.dropped, st.held_by_fixture, st.slips)
 
 
 @dataclass(frozen=True, slots=True)

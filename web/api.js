@@ -101,6 +101,7 @@ export const api = {
   samples: (id, offset, limit) =>
     request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}`),
   frames: (id, from, limit) => request("GET", `/api/runs/${id}/frames?from=${from}&limit=${limit}`),
+  truth: (id, from, limit) => request("GET", `/api/runs/${id}/truth?from=${from}&limit=${limit}`),
   exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,
   showReplay: (runId, iteration) =>
     request("PUT", "/api/viewer/replay", { run_id: runId, iteration }, { timeoutMs: 10000 }),
@@ -157,6 +158,21 @@ export async function allFrames(id, onProgress, pageSize = 2000) {
     from = page.next;
   }
   return out;
+}
+
+/** A recorded run's truth (simulation), page by page: `{outline, rows: Map iteration → row}`;
+ * a real hand's run: outline null, no rows. */
+export async function allTruth(id, pageSize = 10000) {
+  const rows = new Map();
+  let outline = null;
+  let from = 0;
+  while (from !== null && from !== undefined) {
+    const page = await api.truth(id, from, pageSize);
+    outline = page.outline;
+    for (const r of page.truth) rows.set(r.iteration, r);
+    from = page.next;
+  }
+  return { outline, rows };
 }
 
 /**

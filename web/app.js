@@ -1,12 +1,14 @@
 // The sdh2svc dashboard: wires the REST API, the telemetry WebSocket, the plots, pads and sketch.
 
-import { allFrames, allSamples, api, ApiError, getToken, setToken, Telemetry } from "/web/api.js";
+import {
+  allFrames, allSamples, allTruth, api, ApiError, getToken, setToken, Telemetry,
+} from "/web/api.js";
 import { eventSentence, plainMessage } from "/web/events.js";
 import { ParamsForm } from "/web/params.js";
 import { Pads } from "/web/pads.js";
 import { MARKERS, Plots } from "/web/plots.js";
 import { Replay } from "/web/replay.js";
-import { configureHand, Sketch } from "/web/sketch.js";
+import { configureHand, placedTruth, Sketch } from "/web/sketch.js";
 
 const $ = (sel) => document.querySelector(sel);
 const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling", "releasing"]);
@@ -155,7 +157,10 @@ const replay = new Replay($("#replay-banner"), { onIndex: (i, s) => showReplayIn
 // hovering a plot shows that iteration in the sketch; off the plots, a replay's own iteration
 const plots = new Plots({
   windowSize: 2000,
-  onCursor: (s) => sketch.setOverride(s ?? (replay.active ? replay.samples[replay.index] : null)),
+  onCursor: (s) => {
+    const shown = s ?? (replay.active ? replay.samples[replay.index] : null);
+    sketch.setOverride(shown, replay.active ? replayTruth(shown) : null);
+  },
 });
 const form = new ParamsForm($("#params-form"), {
   onSubmit: (patch) => applyParams(patch),
@@ -902,7 +907,15 @@ function renderRuns(runs) {
   }
 }
 
-const replayData = { runId: null, frames: new Map(), viewer: false };
+const replayData = { runId: null, frames: new Map(), truth: null, viewer: false };
+
+/** The sim truth recorded with sample `s` of the replayed run, as the live `sim` message's
+ * (null: none recorded, e.g. a real hand's run). */
+function replayTruth(s) {
+  const t = replayData.truth;
+  const row = s && t && t.outline ? t.rows.get(s.iteration) : undefined;
+  return row ? placedTruth(t.outline, row) : null;
+}
 
 /** The scrubber moved to sample `idx`: the plots' cursors and legends, the pads, the sketch and
  * (through the service) the 3-D view show that iteration. */
@@ -913,7 +926,7 @@ function showReplayIndex(idx, s) {
   const frame = replayData.frames.get(it);
   if (frame) pads.update(frame, it);
   else pads.update([], it);
-  sketch.setOverride(s);
+  sketch.setOverride(s, replayTruth(s));
   feedViewer(replayData.runId, it);
 }
 
@@ -976,6 +989,7 @@ async function replayRun(r) {
     const frames = await allFrames(r.id, (n, total) => {
       $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} tactile frames…`;
     });
+    const truth = await allTruth(r.id);
     const params = (r.meta && r.meta.params) || state.params;
     const events = (run && run.events) || [];
     const markers = events
@@ -987,6 +1001,7 @@ async function replayRun(r) {
     sdh2.replaying = r.id;
     replayData.runId = r.id;
     replayData.frames = frames;
+    replayData.truth = truth;
     replayData.viewer = !$("#viewer").hidden && Boolean($("#viewer").dataset.url);
     const reversals = markers.filter((m) => m.kind === "reversal").length;
     $("#replay-text").textContent = `Run ${r.id} (${r.status}): ${samples.length} iterations, ` +
@@ -1007,6 +1022,7 @@ function backToLive() {
   replay.clear();
   replayData.runId = null;
   replayData.frames = new Map();
+  replayData.truth = null;
   endViewerReplay();
   plots.showLive();
   sketch.setOverride(null);

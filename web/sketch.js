@@ -91,6 +91,19 @@ export function padNormalAt(f, P) {
 const rotate = ([x, y], a) => [x * Math.cos(a) - y * Math.sin(a), x * Math.sin(a) + y * Math.cos(a)];
 const isNum = (v) => typeof v === "number" && Number.isFinite(v);
 
+/** A recorded iteration's truth (GET /api/runs/{id}/truth: the run's `outline`, one of its
+ * `truth` rows) as the live `sim` message's: the outline placed at the iteration's y, z, ψ. */
+export function placedTruth(outline, row) {
+  const c = Math.cos(row.psi);
+  const s = Math.sin(row.psi);
+  return {
+    object: outline.object, size_mm: outline.size_mm, held: row.held, dropped: row.dropped,
+    in_fixture: row.in_fixture, pose: [row.y, row.z, row.psi], slips: row.slips,
+    outline: outline.points.map(([x, y]) => [row.y + c * x - s * y, row.z + s * x + c * y]),
+    contacts: [],
+  };
+}
+
 export class Sketch {
   constructor(canvas) {
     this.canvas = canvas;
@@ -99,6 +112,7 @@ export class Sketch {
     this.truth = null; // sim truth
     this.alpha = 22;
     this.override = null; // a Sample under the plot cursor (replay / inspection)
+    this.overrideTruth = null; // the sim truth recorded with it (a replay in simulation)
     this.frame = 0;
     // fitted in the next frame, not in the observer's callback: no "ResizeObserver loop"
     new ResizeObserver(() => requestAnimationFrame(() => this.fit())).observe(canvas);
@@ -139,11 +153,16 @@ export class Sketch {
     }
   }
 
-  /** Show one sample (angles and contacts) instead of the live state; null: back to live. */
-  setOverride(sample) {
+  /** Show one sample (angles and contacts) and the truth recorded with it (null: none) instead
+   * of the live state; null: back to live. */
+  setOverride(sample, truth = null) {
     this.override = sample;
+    this.overrideTruth = sample ? truth : null;
     if (sample && sample.iteration != null) this.canvas.dataset.iteration = String(sample.iteration);
     else delete this.canvas.dataset.iteration;
+    // the recorded object's pose shown (y, z mm; ψ rad), for tests and the curious
+    if (this.overrideTruth) this.canvas.dataset.objectPose = this.overrideTruth.pose.join(",");
+    else delete this.canvas.dataset.objectPose;
     this.schedule();
   }
 
@@ -179,17 +198,18 @@ export class Sketch {
       ? [shown.phi2, shown.phi3, shown.phi4, shown.phi5]
       : this.angles;
     const contact = shown ?? this.contact;
+    const truth = shown ? this.overrideTruth : this.truth;
 
     // the true object (simulation only), behind the fingers
-    if (!shown && this.truth && Array.isArray(this.truth.outline) && this.truth.outline.length > 2) {
+    if (truth && Array.isArray(truth.outline) && truth.outline.length > 2) {
       ctx.beginPath();
-      this.truth.outline.forEach((p, i) => {
+      truth.outline.forEach((p, i) => {
         const [x, y] = px(p);
         if (i === 0) ctx.moveTo(x, y);
         else ctx.lineTo(x, y);
       });
       ctx.closePath();
-      ctx.fillStyle = this.truth.dropped ? "rgba(214,39,40,0.15)" : "rgba(255,193,7,0.28)";
+      ctx.fillStyle = truth.dropped ? "rgba(214,39,40,0.15)" : "rgba(255,193,7,0.28)";
       ctx.fill();
       ctx.strokeStyle = "#b8860b";
       ctx.lineWidth = 1.5 * dpr;
@@ -232,7 +252,7 @@ export class Sketch {
         ctx.fillText(name, x + (name === "A" ? -16 : 8) * dpr, y - 6 * dpr);
       }
     }
-    this.drawLegend(ctx, dpr, angles, contact, shown);
+    this.drawLegend(ctx, dpr, angles, contact, shown, truth);
   }
 
   drawFrame(ctx, px, s, dpr) {
@@ -358,7 +378,7 @@ export class Sketch {
     ctx.setLineDash([]);
   }
 
-  drawLegend(ctx, dpr, angles, contact, shown) {
+  drawLegend(ctx, dpr, angles, contact, shown, truth) {
     const lines = [];
     if (shown) lines.push(`inspecting iteration ${shown.iteration}`);
     if (angles) lines.push(`φ2…φ5 = ${angles.map((a) => a.toFixed(1)).join(", ")}°`);
@@ -370,8 +390,8 @@ export class Sketch {
       const wb = isNum(contact.omega_B) ? contact.omega_B.toFixed(1) : "–";
       lines.push(`ωA = ${wa}°, ωB = ${wb}° (cone 90 ± ${this.alpha}°)`);
     }
-    if (!shown && this.truth) {
-      const t = this.truth;
+    if (truth) {
+      const t = truth;
       lines.push(`object ${t.object ?? "?"}: ${t.dropped ? "dropped" : t.held ? "held" : "not held"}`);
     }
     ctx.fillStyle = "#333";

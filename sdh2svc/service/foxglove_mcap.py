@@ -8,8 +8,9 @@ Channels (log times: the run's start plus each record's own time ``t``):
   thumb at the run's pre-shape, where a run holds them).
 * ``/scene`` — ``foxglove.SceneUpdate``: the six pads as boxes in their URDF frames (``pads/<pad>``,
   following ``/tf``), and in ``frame0`` the contact points A, B, the segment AB and the friction
-  cones of half-angle α about each pad's normal (``contacts``); live, in simulation, the object's
-  true outline too (``object``: the recording holds no truth per iteration).
+  cones of half-angle α about each pad's normal (``contacts``); in simulation the object's true
+  outline too (``object``: live from the ``sim`` messages, in a file from the truth recorded with
+  each iteration), red once it has dropped.
 * ``/tactile/<finger>_<proximal|distal>`` — each pad as ``foxglove.Grid`` (raw counts, uint16) in
   its URDF frame, cells of the texel pitch.
 * ``/events`` — ``foxglove.Log``, one per run event.
@@ -45,6 +46,7 @@ from sdh2svc.model.urdf import (
     pad_matrix,
     to_xml,
 )
+from sdh2svc.service.telemetry import recorded_truth
 
 Json = dict[str, Any]
 _MM = 1e-3
@@ -368,8 +370,13 @@ def write_mcap(
     samples: Iterable[Mapping[str, Any]],
     events: Iterable[Mapping[str, Any]],
     frames: Iterable[Frame],
+    outline: Mapping[str, Any] | None = None,
+    truth: Iterable[Mapping[str, Any]] = (),
 ) -> int:
-    """Write one run (its row, samples, events, frames) to ``out``; returns the message count."""
+    """Write one run (its row, samples, events, frames) to ``out``; returns the message count.
+
+    ``outline`` and ``truth``: the simulated object's (``RunStore.outline``, ``RunStore.truth``),
+    drawn in each iteration's scene where recorded."""
     hand = HandFrames.of(cfg)
     meta = run.get("meta") or {}
     alpha = math.radians((meta.get("params") or {}).get("alpha_deg", cfg.rolling.alpha_deg))
@@ -397,11 +404,14 @@ def write_mcap(
         w.add_message(ch, log_time=ns, publish_time=ns, data=data, sequence=n)
         n += 1
 
+    by_iteration = {row["iteration"]: row for row in truth} if outline is not None else {}
     for s in samples:
         ns = t0_ns + round(s["t"] * 1e9)
         put(ch_samples, ns, sample_json(s))
         put(ch_tf, ns, hand.transforms(s, ns).encode())
-        put(ch_scene, ns, hand.scene(s, ns, alpha).encode())
+        row = by_iteration.get(s["iteration"])
+        obj = recorded_truth(outline, row) if outline is not None and row is not None else None
+        put(ch_scene, ns, hand.scene(s, ns, alpha, obj).encode())
     for e in events:
         ns = t0_ns + round(e["t"] * 1e9)
         put(ch_log, ns, log_message(e, ns).encode())

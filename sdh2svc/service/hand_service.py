@@ -30,13 +30,19 @@ from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import RunStore
-from sdh2svc.service.telemetry import Event, Pose, SampleMsg, Sim, Status, Tactile
+from sdh2svc.service.telemetry import (
+    OUTLINE_POINTS,
+    Event,
+    Pose,
+    SampleMsg,
+    Sim,
+    Status,
+    Tactile,
+)
 from sdh2svc.sim.objects import PRESETS, ObjectSpec, Shape, get_object, parse_object
 from sdh2svc.sim.press import Press
 
 log = logging.getLogger(__name__)
-
-_OUTLINE_POINTS = 90  # of the true object outline sent to viewers
 
 
 class ServiceError(Exception):
@@ -463,7 +469,7 @@ class HandService:
             if j.last_actual is not None:
                 self.hub.publish(Pose(tuple(j.last_actual)))
             if (bench := self.bench) is not None:
-                self.hub.publish(Sim(bench.truth().scene(bench.outline, _OUTLINE_POINTS)))
+                self.hub.publish(Sim(bench.truth().scene(bench.outline, OUTLINE_POINTS)))
 
 
 class _RunTelemetry(BaseObserver):

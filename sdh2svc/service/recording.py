@@ -2,8 +2,10 @@
 
 Used by ``sdh2svc run`` (:mod:`sdh2svc.service.headless`) and by the service
 (:mod:`sdh2svc.service.hand_service`): both create the run's database row, record every sample,
-event and frame, and finish the row with the summary. On a simulated hand (a bench), the summary
-also holds the simulation's truth as the run let go.
+event and frame, and finish the row with the summary. On a simulated hand (a bench), the run
+also records the simulation's truth: the object's outline once (its own frame), its pose and
+state with every sample (as the physics last stepped: reading it steps nothing, so the run is
+the one it would have been unrecorded), and in the summary the truth as the run let go.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.service.telemetry import outline_points
 
 
 class RecordedRun:
@@ -47,6 +50,10 @@ class RecordedRun:
             **(meta or {}),
         }
         self.run_id = store.create_run(full_meta)
+        if bench is not None:
+            obj, pts = bench.obj, outline_points(bench.outline.perimeter_points)
+            name = obj.name or obj.kind  # as the truth names it
+            store.set_outline(self.run_id, name, float(obj.size_mm), pts.tolist())
         self._rec = Recorder(store.path, self.run_id)
         self._truth: dict[str, Any] = {}
         self._observer: RunObserver = observer or BaseObserver()
@@ -57,6 +64,9 @@ class RecordedRun:
 
     def sample(self, s: Sample) -> None:
         self._rec.sample(s)
+        if self.bench is not None:
+            o = self.bench.object_now()
+            self._rec.truth(s.iteration, s.t, o.pose, o.held, o.dropped, o.in_fixture, o.slips)
         self._observer.sample(s)
 
     def event(self, e: Event) -> None:

@@ -32,6 +32,7 @@ from sdh2svc.service.telemetry import (
     frame_matrices,
     kind_of,
     matrix_shapes,
+    recorded_truth,
     to_json,
 )
 
@@ -53,9 +54,10 @@ class Recorded:
 
 
 def recorded_iteration(store: RunStore, cfg: Settings, run_id: int, it: int) -> Recorded | None:
-    """Iteration ``it`` of run ``run_id`` as a sample (with what the view draws of it) and its
-    tactile frame; None when the run has no sample of that iteration. No truth is recorded per
-    iteration: an empty ``sim`` hides the live object's outline."""
+    """Iteration ``it`` of run ``run_id`` as a sample (with what the view draws of it), its
+    tactile frame and, when recorded (simulation), the object's truth as a ``sim`` message; a run
+    without it gets an empty ``sim``, which hides the live object's outline. None when the run has
+    no sample of that iteration."""
     row = store.sample_at(run_id, it)
     if row is None:
         return None
@@ -66,7 +68,8 @@ def recorded_iteration(store: RunStore, cfg: Settings, run_id: int, it: int) -> 
         shapes = matrix_shapes(cfg.tactile, cfg.axes)
         mats = frame_matrices(np.frombuffer(texels, "<u2"), shapes)
         msgs.append(Tactile(it, sample.t, mats))
-    msgs.append(Sim({}))
+    truth, outline = store.truth_at(run_id, it), store.outline(run_id)
+    msgs.append(Sim(recorded_truth(outline, truth) if truth and outline else {}))
     return Recorded(run_id, it, sample.t, tuple(msgs))
 
 

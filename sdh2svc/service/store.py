@@ -1,5 +1,8 @@
 """Every run in a real SQLite file: metadata and parameters, one row per iteration, the events,
-the raw tactile frames — and exports to CSV and MCAP.
+the raw tactile frames, in simulation the object's truth (its outline once, in its own frame;
+its pose and state per iteration) — and exports to CSV and MCAP.
+
+An older file gets the tables and columns it lacks when it is opened (:func:`connect`).
 
 Durability: :class:`Recorder` writes from its own thread in small transactions, at least every
 ``flush_s`` (50 ms); SQLite in WAL mode keeps every committed transaction through a ``kill -9``
@@ -29,6 +32,10 @@ if TYPE_CHECKING:
 SAMPLE_COLUMNS = Sample.columns()
 _ROWS_PER_INSERT = 200  # rows in one multi-row INSERT (within SQLite's variable limit)
 _QUOTED = ", ".join(f'"{c}"' for c in SAMPLE_COLUMNS)
+#: A recorded iteration's truth (simulation): the object's centre y, z (mm, frame 0), its angle
+#: ψ (rad), whether held by the fingers, dropped or still in the fixture, and its slips so far.
+TRUTH_COLUMNS = ("iteration", "t", "y", "z", "psi", "held", "dropped", "in_fixture", "slips")
+_TRUTH_BOOLS = ("held", "dropped", "in_fixture")
 
 SCHEMA = f"""
 CREATE TABLE IF NOT EXISTS runs (
@@ -59,6 +66,25 @@ CREATE TABLE IF NOT EXISTS frames (
     texels BLOB NOT NULL
 );
 CREATE INDEX IF NOT EXISTS frames_run ON frames(run_id, t);
+CREATE TABLE IF NOT EXISTS truth (
+    run_id INTEGER NOT NULL REFERENCES runs(id),
+    iteration INTEGER NOT NULL,
+    t REAL,
+    y REAL NOT NULL,
+    z REAL NOT NULL,
+    psi REAL NOT NULL,
+    held INTEGER NOT NULL,
+    dropped INTEGER NOT NULL,
+    in_fixture INTEGER NOT NULL,
+    slips INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS truth_run ON truth(run_id, iteration);
+CREATE TABLE IF NOT EXISTS outlines (
+    run_id INTEGER PRIMARY KEY REFERENCES runs(id),
+    object TEXT NOT NULL,
+    size_mm REAL NOT NULL,
+    points TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS estop (
     id INTEGER PRIMARY KEY CHECK (id = 1),
     since TEXT NOT NULL,
@@ -311,6 +337,52 @@ class RunStore:
         ).fetchone()
         return None if r is None else bytes(r[0])
 
+    # --- the simulation's truth: the outline once per run, the object per iteration -----------
+
+    def set_outline(
+        self, run_id: int, obj: str, size_mm: float, points: list[tuple[float, float]]
+    ) -> None:
+        """The run's object: its name, size and outline (object frame, mm; once per run)."""
+        with self._lock, self.db:
+            self.db.execute(
+                "INSERT OR REPLACE INTO outlines (run_id, object, size_mm, points) "
+                "VALUES (?, ?, ?, ?)",
+                (run_id, obj, size_mm, json.dumps([[float(x), float(y)] for x, y in points])),
+            )
+
+    def outline(self, run_id: int) -> dict[str, Any] | None:
+        """The run's object (``object``, ``size_mm``, ``points``: its outline in its own frame,
+        mm); None for a run without truth (a real hand's)."""
+        r = self.db.execute(
+            "SELECT object, size_mm, points FROM outlines WHERE run_id = ?", (run_id,)
+        ).fetchone()
+        if r is None:
+            return None
+        return {"object": r["object"], "size_mm": r["size_mm"], "points": json.loads(r["points"])}
+
+    def truth_count(self, run_id: int) -> int:
+        row = self.db.execute("SELECT COUNT(*) FROM truth WHERE run_id = ?", (run_id,)).fetchone()
+        return int(row[0])
+
+    def truth(self, run_id: int, first: int = 0, limit: int = 10**9) -> list[dict[str, Any]]:
+        """Up to ``limit`` iterations' truth from iteration ``first`` on, in iteration order
+        (:data:`TRUTH_COLUMNS`)."""
+        rows = self.db.execute(
+            f"SELECT {', '.join(TRUTH_COLUMNS)} FROM truth WHERE run_id = ? AND iteration >= ? "
+            "ORDER BY iteration LIMIT ?",
+            (run_id, first, limit),
+        ).fetchall()
+        return [_truth_dict(r) for r in rows]
+
+    def truth_at(self, run_id: int, iteration: int) -> dict[str, Any] | None:
+        """One iteration's truth, or None (not recorded: a real hand, or an older run)."""
+        r = self.db.execute(
+            f"SELECT {', '.join(TRUTH_COLUMNS)} FROM truth WHERE run_id = ? AND iteration = ? "
+            "LIMIT 1",
+            (run_id, iteration),
+        ).fetchone()
+        return None if r is None else _truth_dict(r)
+
     # --- exports --------------------------------------------------------------------------------
 
     def export_csv(self, run_id: int, out: IO[str]) -> int:
@@ -330,8 +402,9 @@ class RunStore:
     def export_mcap(self, run_id: int, out: IO[bytes], cfg: Settings | None = None) -> int:
         """The run as Foxglove-native MCAP (:mod:`sdh2svc.service.foxglove_mcap`): samples,
         the hand's transforms, contacts and friction cones, the pads as grids, events as logs,
-        the run's metadata and the URDF. ``cfg``: the configuration the run was recorded with
-        (default: the packaged one). Returns the message count."""
+        the run's metadata and the URDF; in simulation the object's true outline. ``cfg``: the
+        configuration the run was recorded with (default: the packaged one). Returns the message
+        count."""
         from sdh2svc.config import default_config
         from sdh2svc.service.foxglove_mcap import write_mcap
 
@@ -340,7 +413,15 @@ class RunStore:
         return write_mcap(
             out, cfg or default_config(), run, t0,
             self.samples(run_id, 0, 10**9), self.events(run_id), self.frames(run_id),
+            self.outline(run_id), self.truth(run_id),
         )  # fmt: skip
+
+
+def _truth_dict(r: sqlite3.Row) -> dict[str, Any]:
+    d = {k: r[k] for k in TRUTH_COLUMNS}
+    for k in _TRUTH_BOOLS:
+        d[k] = bool(d[k])
+    return d
 
 
 def _epoch_ns(iso: str) -> int:
@@ -351,11 +432,12 @@ def _epoch_ns(iso: str) -> int:
 
 
 class Recorder:
-    """Writes one run's samples, events and frames from a background thread, in small batches.
+    """Writes one run's samples, events, frames and truth from a background thread, in small
+    batches.
 
     ``sample``/``event``/``frame`` never block the control loop: they only append to a buffer
     (a deque: no lock, no wake-up of the thread). The thread takes whatever is buffered at least
-    every ``flush_s`` and commits it, a table's consecutive rows in one multi-row ``INSERT``;
+    every ``flush_s`` and commits it, each table's rows in multi-row ``INSERT`` statements;
     :meth:`close` flushes the rest. Waking the thread per row, or stepping SQLite per row, would
     hand the interpreter lock over per row: in fast mode, where the loop never idles, that cost
     the loop ≈ 20 % of its speed.
@@ -380,6 +462,14 @@ class Recorder:
         blob = np.ascontiguousarray(texels, dtype="<u2").tobytes()
         self._buf.append(("f", (self.run_id, t, iteration, timestamp_ms, blob)))
 
+    def truth(
+        self, iteration: int, t: float, pose: tuple[float, float, float], held: bool,
+        dropped: bool, in_fixture: bool, slips: int,
+    ) -> None:  # fmt: skip
+        """One iteration's truth (simulation; see :data:`TRUTH_COLUMNS`)."""
+        row = (self.run_id, iteration, t, *pose, held, dropped, in_fixture, slips)
+        self._buf.append(("o", row))
+
     def close(self) -> None:
         self._closing.set()
         self._thread.join()
@@ -390,6 +480,7 @@ class Recorder:
             "s": ("samples", f'"run_id", {_QUOTED}', len(SAMPLE_COLUMNS) + 1),
             "e": ("events", "run_id, t, iteration, kind, detail", 5),
             "f": ("frames", "run_id, t, iteration, timestamp_ms, texels", 5),
+            "o": ("truth", f"run_id, {', '.join(TRUTH_COLUMNS)}", len(TRUTH_COLUMNS) + 1),
         }
         max_vars = db.getlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER)
         per_stmt = {
@@ -418,12 +509,14 @@ class Recorder:
                 while buf:
                     batch.append(buf.popleft())
                 if batch:
-                    with db:  # one transaction; each run of one table's rows in few statements
-                        start = 0
-                        for i in range(1, len(batch) + 1):
-                            if i == len(batch) or batch[i][0] != batch[start][0]:
-                                insert(batch[start][0], [row for _, row in batch[start:i]])
-                                start = i
+                    # one transaction; each table's rows (in their order) in few statements:
+                    # the tables' rows come interleaved (a sample, its truth, its frame, …)
+                    by_table: dict[str, list[tuple[Any, ...]]] = {}
+                    for kind, row in batch:
+                        by_table.setdefault(kind, []).append(row)
+                    with db:
+                        for kind, rows in by_table.items():
+                            insert(kind, rows)
                     self.committed += len(batch)
                 if done and not buf:
                     break

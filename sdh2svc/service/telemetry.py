@@ -253,6 +253,34 @@ def as_array(matrix: Any) -> npt.NDArray[np.float64]:
     return a
 
 
+# --- recorded truth: the same ``sim`` message as live ----------------------------------------
+
+OUTLINE_POINTS = 90  # of the object's true outline, live and recorded
+
+
+def outline_points(perimeter: npt.NDArray[Any], points: int = OUTLINE_POINTS) -> npt.NDArray[Any]:
+    """``points`` of an outline's perimeter (object frame), picked as the live ``sim`` message
+    picks them (:meth:`sdh2svc.sim.hand.Truth.scene`)."""
+    return perimeter[:: max(1, len(perimeter) // points)]
+
+
+def recorded_truth(outline: Mapping[str, Any], row: Mapping[str, Any]) -> dict[str, Any]:
+    """A recorded iteration's truth as the live ``sim`` message's (``Truth.scene``): the run's
+    outline (``RunStore.outline``: object frame) placed at the iteration's pose (a
+    ``RunStore.truth`` row), hand frame, mm. No contacts: the recording holds none."""
+    y, z, psi = float(row["y"]), float(row["z"]), float(row["psi"])
+    pts = np.asarray(outline["points"], dtype=float).reshape(-1, 2)
+    c, s = math.cos(psi), math.sin(psi)
+    world = np.column_stack([y + c * pts[:, 0] - s * pts[:, 1],
+                             z + s * pts[:, 0] + c * pts[:, 1]])  # fmt: skip
+    return {
+        "object": outline["object"], "size_mm": outline["size_mm"], "held": bool(row["held"]),
+        "dropped": bool(row["dropped"]), "in_fixture": bool(row["in_fixture"]),
+        "pose": [y, z, psi], "slips": int(row["slips"]), "outline": np.round(world, 2).tolist(),
+        "contacts": [],
+    }  # fmt: skip
+
+
 # --- recorded frames: the same matrices as the live ``tactile`` message ------------------------
 
 _PADS = ("finger1_proximal", "finger1_distal", "thumb_proximal", "thumb_distal",

@@ -65,6 +65,7 @@ PLOTS = ("joints", "force", "sigma", "s", "omega", "lambda")
 SHOWN = """() => ({
   pads: document.querySelector('#pads').dataset.iteration,
   sketch: document.querySelector('#sketch').dataset.iteration,
+  objectPose: document.querySelector('#sketch').dataset.objectPose,
   plots: [...document.querySelectorAll('.plot')].map(p => p.dataset.cursorIteration),
   cursors: window.sdh2debug.plots.charts.map(c => c.cursor.idx),
   index: window.sdh2.replayIndex,
@@ -349,6 +350,10 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     shown = await page.evaluate(SHOWN)
     assert shown["pads"] == shown["sketch"] == str(it), shown
     assert shown["plots"] == [str(it)] * len(PLOTS), shown
+    # in simulation the sketch draws the object where the recording has it at that iteration
+    truth = httpx.get(f"{service.url}/api/runs/{run_id}/truth?from={it}&limit=1").json()["truth"]
+    assert [float(v) for v in shown["objectPose"].split(",")] == [
+        truth[0]["y"], truth[0]["z"], truth[0]["psi"]], shown  # fmt: skip
     assert shown["cursors"] == [i] * len(PLOTS) and shown["index"] == i, shown
     assert shown["at"].startswith(f"iteration {it} · "), shown
     assert "no data" not in shown["padInfo"] and "max 0 · Σ 0" != shown["padInfo"], shown

@@ -1,5 +1,6 @@
 """Runs: starting and stopping one on the hand, reading the recorded ones (samples, tactile
-frames, exports), and showing one recorded iteration in the 3-D view (the dashboard's replay).
+frames, the simulation's truth, exports), and showing one recorded iteration in the 3-D view
+(the dashboard's replay).
 
 Reads of the run database happen on worker threads (sync routes, or ``asyncio.to_thread``) with
 their own connection, so a large export never takes time from the control loop."""
@@ -159,6 +160,66 @@ def frames(
             run_id=run_id, from_=first, to=to, limit=limit, total=store.framed_count(run_id),
             next=rows[limit][0] if len(rows) > limit else None, encoding=FRAME_ENCODING,
             shapes=list(matrix_shapes(cfg.tactile, cfg.axes)), frames=page,
+        )  # fmt: skip
+
+
+class RecordedTruth(BaseModel):
+    """One iteration's truth in simulation: the object as the physics last stepped."""
+
+    iteration: int = Field(description="the rolling iteration (count)")
+    t: float | None = Field(description="time since the run started, s (the sample's t)")
+    y: float = Field(description="the object's centre, frame 0's y, mm")
+    z: float = Field(description="the object's centre, frame 0's z, mm")
+    psi: float = Field(description="the object's angle ψ, rad")
+    held: bool = Field(description="held by the fingers")
+    dropped: bool = Field(description="dropped")
+    in_fixture: bool = Field(description="still held by the fixture")
+    slips: int = Field(description="slip onsets so far (count)")
+
+
+class RecordedOutline(BaseModel):
+    """The run's object: its outline in its own frame (placed at an iteration's y, z, ψ:
+    x' = y + x·cos ψ − y·sin ψ, and so on, as the live `sim` message's outline)."""
+
+    object: str
+    size_mm: float
+    points: list[tuple[float, float]] = Field(description="the outline, object frame, mm")
+
+
+class TruthPage(BaseModel):
+    """A page of a run's truth (simulation only: a real hand's run has none), in iteration
+    order."""
+
+    model_config = ConfigDict(populate_by_name=True)
+
+    run_id: int
+    from_: int = Field(alias="from", description="the first iteration asked for")
+    limit: int = Field(description="iterations per page at most")
+    total: int = Field(description="the run's iterations with truth")
+    next: int | None = Field(description="`from` of the next page; null: this page is the last")
+    outline: RecordedOutline | None = Field(description="the object; null: no truth recorded")
+    truth: list[RecordedTruth]
+
+
+@router.get("/api/runs/{run_id}/truth", response_model=TruthPage,
+            responses=responses(*READ, 404, 422))  # fmt: skip
+def truth(
+    cfg: Cfg,
+    run_id: RunId,
+    first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX)] = 0,
+    limit: Annotated[int, Query(ge=1, le=10000)] = 2000,
+) -> TruthPage:
+    """In simulation, the object's true pose and state at each iteration from `from` on,
+    `limit` at most, and its outline; follow `next` for the rest."""
+    with _store(cfg) as store:
+        _run_or_404(store, run_id)
+        rows = store.truth(run_id, first, limit + 1)
+        outline = store.outline(run_id)
+        return TruthPage(
+            run_id=run_id, from_=first, limit=limit, total=store.truth_count(run_id),
+            next=rows[limit]["iteration"] if len(rows) > limit else None,
+            outline=None if outline is None else RecordedOutline(**outline),
+            truth=[RecordedTruth(**r) for r in rows[:limit]],
         )  # fmt: skip
 
 
