@@ -4,12 +4,13 @@ this process on the virtual clock (the app over ASGI; the hand in fast mode)."""
 from __future__ import annotations
 
 import contextlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import httpx
 import numpy as np
 
+from sdh2svc.bus.tactile import Subscription
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Real, Simulated, Where, simulated_hand
 from sdh2svc.service.app import Services, close_services, create_app, open_services
@@ -27,6 +28,15 @@ async def service(cfg: Settings, where: Where) -> AsyncIterator[tuple[httpx.Asyn
             yield c, services
     finally:
         await close_services(services)
+
+
+async def within(sub: Subscription, n: int, ok: Callable[[np.ndarray], bool]) -> np.ndarray:
+    """The first of the next ``n`` frames whose matrix 2 is ``ok``; fails if none is."""
+    for _ in range(n):
+        m = (await sub.next_frame()).matrices[2]
+        if ok(m):
+            return m
+    raise AssertionError(f"not within {n} frames")
 
 
 def test_a_press_through_the_api_reads_in_the_next_frames(tmp_path: Path) -> None:
@@ -54,17 +64,14 @@ def test_a_press_through_the_api_reads_in_the_next_frames(tmp_path: Path) -> Non
                                                      "force_n": 2})  # fmt: skip
             assert r.status_code == 202, r.text
             assert r.json() == {**PRESS, "radius_mm": 3.0, "duration_s": 1.0}  # the defaults
-            # the frame on the line as the press began may have been read before it
-            pressed = (await sub.next_frame()).matrices[2]
-            if not pressed.any():
-                pressed = (await sub.next_frame()).matrices[2]
-            assert pressed.any()
+            # frames already sampled or on the line when the press began do not show it (how
+            # many depends on where the request fell in the frame period): within 5 frames
+            pressed = await within(sub, 5, lambda m: m.any())
             row, col = np.unravel_index(int(pressed.argmax()), pressed.shape)
             assert (row, col) in ((6, 2), (7, 2), (6, 3), (7, 3))  # 24 mm along, 10 across
             r = await c.request("DELETE", "/api/sim/press", json={})
             assert r.status_code == 200 and r.json() == {"released": 1}
-            await sub.next_frame()  # (the same: perhaps read before the release)
-            assert not (await sub.next_frame()).matrices[2].any()
+            await within(sub, 5, lambda m: not m.any())
             sub.close()
 
     run_fast(main())
