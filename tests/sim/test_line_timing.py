@@ -15,6 +15,7 @@ import pytest
 import serial_asyncio
 
 import sdh2svc.bus  # noqa: F401  (registers unix:// with pyserial)
+from bench.links import vendor_loop  # the benchmark's loop, measured here on virtual time
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.config import load_config
 from sdh2svc.connect import hand_model
@@ -73,23 +74,6 @@ def test_host_bytes_take_their_line_time_and_the_firmware_its_processing_time() 
     assert t1 - t0 == pytest.approx(5 * BYTE_TIME + latency + 47 * BYTE_TIME, abs=1e-9)
     # the second command was in after 10 bytes; its processing began when the first's ended
     assert t2 - t0 == pytest.approx(5 * BYTE_TIME + 2 * latency + 47 * BYTE_TIME, abs=1e-9)
-
-
-async def vendor_loop(link: JointLink, n: int) -> float:
-    """SCHUNK's benchmark cycle (protocols.md §2.7), iterations per second of the loop's clock:
-    binary `pos` + `tvav`; ASCII `pos`, `v`, `vel`."""
-    await link.set_controller(1)
-    zeros = [0.0] * 7
-    loop = asyncio.get_running_loop()
-    t0 = loop.time()
-    for _ in range(n):
-        await link.get_actual()
-        if link.binary:
-            await link.tvav(zeros)
-        else:
-            await link.set_velocities(zeros)
-            await link.get_velocity()
-    return n / (loop.time() - t0)
 
 
 def test_joint_loop_runs_at_the_real_hands_rates(tmp_path: Path) -> None:
