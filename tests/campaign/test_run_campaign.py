@@ -281,11 +281,17 @@ def test_watching_the_truth_leaves_the_run_as_it_is_unwatched(one_worker: Path,
 
 
 def test_no_ray_cluster_at_the_address_is_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'sdh2svc[cluster]'"
                               "): the --ray path is not tested here")  # fmt: skip
     assert not ray.is_initialized()
+    # "auto" finds no cluster, whatever else runs on this machine (Ray looks for any running
+    # GCS process, e.g. one still shutting down after the local-Ray test)
+    from ray._private import services
+
+    monkeypatch.setattr(services, "find_gcs_addresses", lambda: [])
+    monkeypatch.setattr(services, "find_bootstrap_address", lambda temp_dir: None)
     path = tmp_path / "s.json"
     tiny_suite(("rubber", 1)).dump(path)
     args = ["campaign", "run", str(path), "--out", str(tmp_path / "o"), "--quiet"]
