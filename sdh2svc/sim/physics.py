@@ -97,6 +97,12 @@ class PhysicsConfig(Frozen):
 
 _ZERO3 = (0.0, 0.0, 0.0)
 MAX_HALVINGS = 3  # a substep without a balance is retried in halves down to 1/8 of its length
+# The sampled surfaces make the contact forces jump by one sample's share as a sample enters or
+# leaves a contact; on a thin object's few contact samples that can leave no exact balance
+# anywhere, while the grip holds it as firmly as before. So before an object is called dropped,
+# a pose whose force and moment residuals are within this fraction of the grip (Σ normal forces;
+# N and N·mm) counts as a balance. Measured on bench-v1's soft thin sticks: residuals of 0.8 %.
+LOOSE_BALANCE = 0.01
 
 # Surfaces, in a fixed order; a surface is a sampled curve in the frame of one link.
 DISTAL1, PROXIMAL1, DISTAL2, PROXIMAL2, PALM = range(5)
@@ -210,6 +216,14 @@ def _along(dq: tuple[float, ...], ref: tuple[float, ...]) -> float | None:
 def _norm3(v: Sequence[float]) -> float:
     a, b, c = v
     return math.sqrt(a * a + b * b + c * c)
+
+
+def _nearly_balanced(ev: _Eval, x: np.ndarray, start: np.ndarray) -> bool:
+    """Within :data:`LOOSE_BALANCE` of the grip, close to where the object was (5 mm, 10°)."""
+    grip = sum(c[2] for c in ev.contacts.values())
+    moved = np.abs(x - start)
+    near = moved[0] < 5.0 and moved[1] < 5.0 and moved[2] < math.radians(10.0)
+    return grip > 0.0 and near and max(abs(v) for v in ev.residual) <= LOOSE_BALANCE * grip
 
 
 def _solve3(J: Mat3, r: Sequence[float]) -> Vec3:
@@ -691,8 +705,11 @@ class ContactPhysics:
                 if not self._solve(world, None):
                     self._drop()
             return
-        if not self._solve(world, dq):
-            self._halve_or_drop(prev, pose, halvings)
+        if self._solve(world, dq):
+            return
+        if halvings >= MAX_HALVINGS and self._solve(world, dq, loose=True):
+            return
+        self._halve_or_drop(prev, pose, halvings)
 
     def _halve_or_drop(self, prev: HandPose, pose: HandPose, halvings: int) -> None:
         """No balance found at ``pose``: try the way from ``prev`` in halves before calling the
@@ -729,11 +746,12 @@ class ContactPhysics:
                         psi + a1 * dpsi + curve * (dpsi - a2 * mpsi))  # fmt: skip
         return y + a1 * dy, z + a1 * dz, psi + a1 * dpsi
 
-    def _solve(self, world: _World, dq: tuple[float, ...] | None) -> bool:
+    def _solve(self, world: _World, dq: tuple[float, ...] | None, loose: bool = False) -> bool:
         """Find the balancing pose: first with every contact sticking, then with the contacts
         whose friction would exceed μ·N sliding at μ·N (an active set, grown until consistent).
         False (nothing changed but the solver's caches) if there is none with both distal pads
-        pressing."""
+        pressing. ``loose``: the last resort before a drop, a balance within
+        :data:`LOOSE_BALANCE` of the grip is one (see there)."""
         st = self.state
         slip: dict[int, float] = {}
         x0 = self._predict(dq)
@@ -742,6 +760,8 @@ class ContactPhysics:
             x, ev, converged = self._newton(x0, world, pulls, slip)
             if not converged:  # a kink (contact appearing, friction switching): MINPACK's hybrid
                 x, ev, converged = self._hybrid(st.pose.copy(), world, pulls, slip)
+            if not converged and loose:
+                converged = _nearly_balanced(ev, x, st.pose)
             over = {
                 j: math.copysign(1.0, c[3])
                 for j, c in ev.contacts.items()
