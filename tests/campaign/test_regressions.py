@@ -45,3 +45,12 @@ def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) ->
     assert row["success"], (baseline, row["failure"], row["message"])
     assert row["strokes"] == row["cycles"] and not row["dropped"]
     assert min(row["half_stroke_rotation_deg"]) >= MIN_HALF_STROKE_DEG
+
+
+def test_a_firmly_held_thin_stick_is_not_dropped_by_the_sampled_surfaces() -> None:
+    # A 2.4 mm foam stick (μ 0.98) held at 1.5 N per pad, both contacts sticking: the sampled
+    # surfaces' force jumps left no exact balance, and the world called it dropped at iteration
+    # 47 (bench-v1 at the real hand's line timing). A balance within 1 % of the grip holds it.
+    row = run("stick-334")
+    assert not row["dropped"], row["message"]
+    assert row["success"], (row["failure"], row["message"])
