@@ -325,12 +325,8 @@ class Client:
     def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
         """Wait until the run has ended; answers ``status()["last_run"]`` (id, status,
         message). TimeoutError after ``timeout`` seconds."""
-        deadline = time.monotonic() + timeout
-        while (end := _ended(self.status(), run_id)) is None:
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"run {run_id} has not ended within {timeout} s")
-            time.sleep(poll_s)
-        return end
+        st = self.wait_status(lambda st: _ended(st, run_id) is not None, timeout, poll_s)
+        return cast(JSON, _ended(st, run_id))
 
     def wait_status(self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05) -> JSON:
         """Poll the status until ``ok(status)`` holds (e.g. :func:`run_state` ``("rolling")``);
@@ -514,12 +510,8 @@ class AsyncClient:
         return path
 
     async def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
-        deadline = time.monotonic() + timeout
-        while (end := _ended(await self.status(), run_id)) is None:
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"run {run_id} has not ended within {timeout} s")
-            await asyncio.sleep(poll_s)
-        return end
+        st = await self.wait_status(lambda st: _ended(st, run_id) is not None, timeout, poll_s)
+        return cast(JSON, _ended(st, run_id))
 
     async def wait_status(
         self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05

@@ -24,22 +24,11 @@ from typing import Any
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus
 from sdh2svc.config import Settings
-from sdh2svc.sim.hand import HandModel, Truth
+from sdh2svc.sim.hand import HandModel, ObjectNow, Truth
 from sdh2svc.sim.lab import SimulatedHand, start_simulated_hand
 from sdh2svc.sim.objects import Outline, Shape
 from sdh2svc.sim.physics import ContactTruth
 from sdh2svc.sim.press import Press
-
-
-@dataclass(frozen=True, slots=True)
-class ObjectNow:
-    """The object as the physics last stepped (:meth:`Bench.object_now`)."""
-
-    pose: tuple[float, float, float]  # centre y, z (mm) and angle ψ (rad), frame 0
-    held: bool  # by the fingers (not the fixture)
-    dropped: bool
-    in_fixture: bool
-    slips: int  # slip onsets so far
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,10 +120,7 @@ class Bench:
     def object_now(self) -> ObjectNow:
         """The object's pose and state as last stepped; like :meth:`object_pose`, steps nothing
         (a run recorded with its truth stays bit for bit the run without)."""
-        st = self.sim.world._physics.state  # what Truth reads, without PhysicsWorld.flush
-        pose = (float(st.pose[0]), float(st.pose[1]), float(st.pose[2]))
-        held = not st.dropped and not st.held_by_fixture
-        return ObjectNow(pose, held, st.dropped, st.held_by_fixture, st.slips)
+        return self.sim.world.object_now()
 
 
 @dataclass(frozen=True, slots=True)

@@ -65,6 +65,17 @@ class HandModel:
 
 
 @dataclass(frozen=True, slots=True)
+class ObjectNow:
+    """The object as the physics last stepped (:meth:`Bench.object_now`)."""
+
+    pose: tuple[float, float, float]  # centre y, z (mm) and angle ψ (rad), frame 0
+    held: bool  # by the fingers (not the fixture)
+    dropped: bool
+    in_fixture: bool
+    slips: int  # slip onsets so far
+
+
+@dataclass(frozen=True, slots=True)
 class Truth:
     """What really happens, for tests and the simulator's telemetry."""
 
@@ -290,6 +301,14 @@ class PhysicsWorld:
         mid-run leaves the run exactly as it would have been unobserved."""
         pose = self._physics.state.pose
         return float(pose[0]), float(pose[1]), float(pose[2])
+
+    def object_now(self) -> ObjectNow:
+        """The object's pose and state as the physics last stepped; like :meth:`object_pose`,
+        steps nothing (a run recorded with its truth stays bit for bit the run without)."""
+        st = self._physics.state
+        pose = (float(st.pose[0]), float(st.pose[1]), float(st.pose[2]))
+        held = not st.dropped and not st.held_by_fixture
+        return ObjectNow(pose, held, st.dropped, st.held_by_fixture, st.slips)
 
     def contacts_now(self) -> tuple[ContactTruth, ...]:
         """The contacts as the physics last stepped; like :meth:`object_pose`, steps nothing."""
