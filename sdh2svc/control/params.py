@@ -70,6 +70,10 @@ class RollingParams(Frozen):
         description="the pads' wedge, (ωA + ωB)/2 − 90°, a plan may not widen beyond this "
         "(not in the thesis; 0: off)"
     )
+    force_reverse: Annotated[float, Field(ge=0.0, le=20.0)] = Field(
+        description="× Fd: F above this and not falling reverses the rotation (a contact is "
+        "sliding or the pads wedge the object; not in the thesis; 20: off)"
+    )
     cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
         description="back-and-forth strokes before the run ends"
     )

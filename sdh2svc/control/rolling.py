@@ -64,6 +64,7 @@ class Reversal(StrEnum):
     IK_UNREACHABLE = "ik_unreachable"  # Finger 1 cannot reach Ad
     CONTACT_EDGE = "contact_edge"  # a contact sits on the pad's first or last row
     CONTACT_LOST = "contact_lost"  # F1 or F2 at or below the contact threshold
+    FORCE = "force"  # F above force_reverse × Fd and not falling
 
 
 @dataclass(frozen=True, slots=True)
@@ -204,7 +205,8 @@ def _finger1_step(cfg: _Config, pose: HandPose) -> float:
     return max(abs(cfg.ik.solution.proximal - pose.phi2), abs(cfg.ik.solution.distal - pose.phi3))
 
 
-_WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE, Reversal.WEDGE)
+_WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE, Reversal.WEDGE,
+             Reversal.FORCE)  # fmt: skip
 
 
 def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> RollState:
@@ -278,6 +280,8 @@ def step(
         return reverse(Reversal.CONTACT_LOST)
     if (c1.at_edge or c2.at_edge) and waived is None:
         return reverse(Reversal.CONTACT_EDGE)
+    if F > params.force_reverse * params.grasp_force and dF >= 0.0 and waived is None:
+        return reverse(Reversal.FORCE)
     assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
 

@@ -703,7 +703,9 @@ class ContactPhysics:
                 st.held_by_fixture = False
                 self._anchor(ev, st.pose, carry=False)
                 if not self._solve(world, None):
-                    self._drop()
+                    # the person lets go only once the fingers hold the object: two pads
+                    # touching two corners lightly, or in no balance, cannot yet
+                    st.held_by_fixture, st.anchors, st.slipping = True, {}, set()
             return
         if self._solve(world, dq):
             return
