@@ -88,6 +88,11 @@ def grasp_step(
     """The increments of one grasp frame: each finger closes (proximal in, distal out by the
     same angle, so the pad keeps its orientation) and, once both contacts are present, turns
     its distal joint against the pads' wedge. Every increment is within ±``max_step_deg``."""
+    lim = law.max_step_deg
+
+    def clip(x: float) -> float:
+        return max(-lim, min(lim, x))
+
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
     a1 = a2 = 0.0
     wedge_deg: float | None = None
@@ -97,12 +102,11 @@ def grasp_step(
         wedge_deg = math.degrees(wedge(wa, wb))
         if law.align_gain > 0 and min(abs(sa), abs(sb)) > 0.2:  # else AB lies along a tangent
             # turning a pad pressed on a corner squeezes: none at 2·Fd, where the fingers open
-            room = max(0.0, min(1.0, 2.0 - (c1.force + c2.force) / 2 / law.grasp_force))
-            gain = law.align_gain * room
-            a1, a2 = -gain * wedge_deg / sa, -gain * wedge_deg / sb
-    lim = law.max_step_deg
-
-    def clip(x: float) -> float:
-        return max(-lim, min(lim, x))
+            # (after the step limit: a wide wedge asks for more than a step, and scaling that
+            # request first would leave the full step until F nearly reaches 2·Fd)
+            room = max(0.0, min(1.0, 3.0 - 2.0 * (c1.force + c2.force) / 2 / law.grasp_force))
+            gain = law.align_gain
+            a1 = room * clip(-gain * wedge_deg / sa)
+            a2 = room * clip(-gain * wedge_deg / sb)
 
     return GraspStep((s1, clip(-s1 + a1), s2, clip(-s2 + a2)), wedge_deg)
