@@ -69,17 +69,43 @@ def _omega(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: P
     return omega(finger, prox + dist, mine.x3_mm, here, other_point, ctx.geom.pad)
 
 
-def _slope(finger: Finger, pose: HandPose, mine: ContactEstimate, other: ContactEstimate,
-           ctx: ModelContext) -> tuple[float, float]:  # fmt: skip
-    """ω at ``finger``'s contact (rad) and its change per radian of the finger's distal joint."""
+def _other_point(finger: Finger, pose: HandPose, other: ContactEstimate,
+                 ctx: ModelContext) -> Point:  # fmt: skip
+    """The other finger's contact point."""
     assert other.r_mm is not None and other.theta_rad is not None
     o = Finger.TWO if finger is Finger.ONE else Finger.ONE
     oprox, odist = pose.finger(o)
-    other_point = contact_point(o, oprox, odist, other.r_mm, other.theta_rad, ctx.geom)
+    return contact_point(o, oprox, odist, other.r_mm, other.theta_rad, ctx.geom)
+
+
+def _slope(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: Point,
+           ctx: ModelContext) -> tuple[float, float]:  # fmt: skip
+    """ω at ``finger``'s contact (rad) and its change per radian of the finger's distal joint."""
     w = _omega(finger, pose, mine, other_point, ctx)
     prox, dist = pose.finger(finger)
     turned = pose.with_finger(finger, prox, dist + _EPS)
     return w, (_omega(finger, turned, mine, other_point, ctx) - w) / _EPS  # ≈ ±1
+
+
+def _pivot(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: Point,
+           ctx: ModelContext) -> float:  # fmt: skip
+    """The proximal turn per radian of distal turn that keeps the contact's distance to the
+    other contact (to first order): the pad then turns about its contact instead of its joint,
+    and aligning it does not squeeze the object. 0 where the proximal joint cannot help
+    (it would move the contact across AB rather than along it)."""
+    assert mine.r_mm is not None and mine.theta_rad is not None
+    prox, dist = pose.finger(finger)
+    r, th, g = mine.r_mm, mine.theta_rad, ctx.geom
+    p = contact_point(finger, prox, dist, r, th, g)
+    pd = contact_point(finger, prox, dist + _EPS, r, th, g)
+    pp = contact_point(finger, prox + _EPS, dist, r, th, g)
+    n = math.hypot(other_point.y - p.y, other_point.z - p.z)
+    uy, uz = (other_point.y - p.y) / n, (other_point.z - p.z) / n
+    gd = uy * (pd.y - p.y) + uz * (pd.z - p.z)
+    gp = uy * (pp.y - p.y) + uz * (pp.z - p.z)
+    if abs(gp) < 0.2 * math.hypot(pp.y - p.y, pp.z - p.z):
+        return 0.0
+    return -gd / gp
 
 
 def grasp_step(
@@ -94,19 +120,25 @@ def grasp_step(
         return max(-lim, min(lim, x))
 
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
-    a1 = a2 = 0.0
+    a1 = a2 = p1 = p2 = 0.0
     wedge_deg: float | None = None
     if c1.r_mm is not None and c2.r_mm is not None:
-        wa, sa = _slope(Finger.ONE, pose, c1, c2, ctx)
-        wb, sb = _slope(Finger.TWO, pose, c2, c1, ctx)
+        b_point = _other_point(Finger.ONE, pose, c2, ctx)
+        a_point = _other_point(Finger.TWO, pose, c1, ctx)
+        wa, sa = _slope(Finger.ONE, pose, c1, b_point, ctx)
+        wb, sb = _slope(Finger.TWO, pose, c2, a_point, ctx)
         wedge_deg = math.degrees(wedge(wa, wb))
         if law.align_gain > 0 and min(abs(sa), abs(sb)) > 0.2:  # else AB lies along a tangent
-            # turning a pad pressed on a corner squeezes: none at 2·Fd, where the fingers open
-            # (after the step limit: a wide wedge asks for more than a step, and scaling that
-            # request first would leave the full step until F nearly reaches 2·Fd)
-            room = max(0.0, min(1.0, 3.0 - 2.0 * (c1.force + c2.force) / 2 / law.grasp_force))
-            gain = law.align_gain
-            a1 = room * clip(-gain * wedge_deg / sa)
-            a2 = room * clip(-gain * wedge_deg / sb)
+            # each pad turns about its contact (the proximal joint follows): turning about the
+            # joint would press the pad into the object. What squeezing remains (the contact
+            # rolls along the pad), the room takes out: none at 2·Fd, where the fingers open.
+            # Below Fd the fingers close first: a pivot only keeps the distance to first
+            # order, and turning on while the grip is still forming can hold it open.
+            f = (c1.force + c2.force) / 2 / law.grasp_force
+            room = 0.0 if f < 1.0 else max(0.0, min(1.0, 2.0 - f))
+            a1 = room * clip(-law.align_gain * wedge_deg / sa)
+            a2 = room * clip(-law.align_gain * wedge_deg / sb)
+            p1 = a1 * _pivot(Finger.ONE, pose, c1, b_point, ctx)
+            p2 = a2 * _pivot(Finger.TWO, pose, c2, a_point, ctx)
 
-    return GraspStep((s1, clip(-s1 + a1), s2, clip(-s2 + a2)), wedge_deg)
+    return GraspStep((clip(s1 + p1), clip(-s1 + a1), clip(s2 + p2), clip(-s2 + a2)), wedge_deg)
