@@ -10,10 +10,14 @@ Fd − F. Two additions:
 * **The pads' wedge.** Closing with the distal links held parallel presses a contact wherever
   the pad happens to meet the object; on the pads' arcs (a large object held high, a corner)
   the two pad normals are tilted apart, (ωA + ωB)/2 − 90° (the wedge) is as large as the
-  friction cone, and the rolling cannot start: both directions leave a cone. Once both contacts
-  are present, both distal joints also turn their pads so that the wedge shrinks by a fraction
-  ``align_gain`` per frame, each pad by the same change of its ω, so that the object's tilt
-  against the pads, ωA − ωB, is left as it is.
+  friction cone, and the rolling cannot start: both directions leave a cone. Once the grip
+  holds (F ≥ Fd), both pads turn so that the wedge shrinks by a fraction ``align_gain`` per
+  frame, each pad by the same change of its ω, so that the object's tilt against the pads,
+  ωA − ωB, is left as it is. Each pad turns about its contact, not its joint: the proximal
+  joint follows so that the contact keeps its distance to the other one (to first order).
+  Turned about the joint, a pad pressed on a rigid object squeezes it: F rose to ≈ 2·Fd
+  during the turn, and the rubber and the fingers' yield under that force put Λ at grasp
+  2–4 mm short on wide objects.
 """
 
 from __future__ import annotations
@@ -132,13 +136,13 @@ def grasp_step(
             # each pad turns about its contact (the proximal joint follows): turning about the
             # joint would press the pad into the object. What squeezing remains (the contact
             # rolls along the pad), the room takes out: none at 2·Fd, where the fingers open.
-            # Below Fd the fingers close first: a pivot only keeps the distance to first
-            # order, and turning on while the grip is still forming can hold it open.
+            # Below Fd a pad turns about its joint: the squeeze it adds helps the grip form.
             f = (c1.force + c2.force) / 2 / law.grasp_force
-            room = 0.0 if f < 1.0 else max(0.0, min(1.0, 2.0 - f))
+            room = max(0.0, min(1.0, 2.0 - f))
             a1 = room * clip(-law.align_gain * wedge_deg / sa)
             a2 = room * clip(-law.align_gain * wedge_deg / sb)
-            p1 = a1 * _pivot(Finger.ONE, pose, c1, b_point, ctx)
-            p2 = a2 * _pivot(Finger.TWO, pose, c2, a_point, ctx)
+            if f >= 1.0:
+                p1 = a1 * _pivot(Finger.ONE, pose, c1, b_point, ctx)
+                p2 = a2 * _pivot(Finger.TWO, pose, c2, a_point, ctx)
 
     return GraspStep((clip(s1 + p1), clip(-s1 + a1), clip(s2 + p2), clip(-s2 + a2)), wedge_deg)

@@ -22,8 +22,10 @@ The fingers are position-controlled bodies; the object is free. Each step finds 
   at the previous step, capped at μ·N. Inside the cap the contact sticks, so the object rolls on
   the pad without slipping; at the cap it slides and a slip is recorded.
 * The object starts held by a *fixture* (a person's hand placing it between the fingertips) and
-  is released once both distal pads press it; a step without a force balance, or with no contact
-  force left on a distal pad, means the object is no longer held: it is dropped.
+  is released once both distal pads press it and hold it (a balance exists without the
+  fixture; a person does not let go of an object the fingers touch on two corners but cannot
+  yet hold); a step without a force balance, or with no contact force left on a distal pad,
+  means the object is no longer held: it is dropped.
 
 Joint torques from the contact forces are checked against the motor limits: a joint whose next
 step would need more torque stalls at its last angle (the firmware's "blocked"), so a finger

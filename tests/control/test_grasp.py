@@ -50,15 +50,17 @@ def test_near_fd_the_closing_speed_keeps_its_floor(cfg: Settings) -> None:
     assert above.d_phi[0] < 0 and above.d_phi[2] < 0  # above Fd the fingers open
 
 
-def test_the_pads_turn_against_their_wedge_keeping_the_tilt(cfg: Settings) -> None:
+def test_the_pads_turn_about_their_contacts_against_their_wedge(cfg: Settings) -> None:
     ctx = cfg.model_context()
-    c1, c2 = contacts(cfg, 300.0)  # a light touch: no squeeze holds the turn back
-    g = grasp_step(WEDGED, c1, c2, law(align_gain=0.5), ctx)
-    plain = grasp_step(WEDGED, c1, c2, law(align_gain=0.0), ctx)
+    c1, c2 = contacts(cfg, 300.0)
+    held = law(grasp_force=(c1.force + c2.force) / 2)  # F = Fd: held, the pads may turn
+    g = grasp_step(WEDGED, c1, c2, held, ctx)
+    plain = grasp_step(WEDGED, c1, c2, law(grasp_force=held.grasp_force, align_gain=0.0), ctx)
     assert g.wedge_deg is not None and abs(g.wedge_deg) > 5.0
-    assert g.d_phi[0] == plain.d_phi[0] and g.d_phi[2] == plain.d_phi[2]  # proximal as before
-    turned = HandPose(WEDGED.phi2, WEDGED.phi3 + rad(g.d_phi[1] - plain.d_phi[1]),
-                      WEDGED.phi4, WEDGED.phi5 + rad(g.d_phi[3] - plain.d_phi[3]))  # fmt: skip
+    turned = HandPose(WEDGED.phi2 + rad(g.d_phi[0] - plain.d_phi[0]),
+                      WEDGED.phi3 + rad(g.d_phi[1] - plain.d_phi[1]),
+                      WEDGED.phi4 + rad(g.d_phi[2] - plain.d_phi[2]),
+                      WEDGED.phi5 + rad(g.d_phi[3] - plain.d_phi[3]))  # fmt: skip
     before = observe(WEDGED, frame(20.0, 300.0), frame(20.0, 300.0), ctx)
     after = observe(turned, frame(20.0, 300.0), frame(20.0, 300.0), ctx)
     w0 = (before.omega_A + before.omega_B) / 2 - math.pi / 2
@@ -66,7 +68,21 @@ def test_the_pads_turn_against_their_wedge_keeping_the_tilt(cfg: Settings) -> No
     assert abs(w1) < abs(w0)  # the wedge shrank
     tilt0, tilt1 = before.omega_A - before.omega_B, after.omega_A - after.omega_B
     assert tilt1 == pytest.approx(tilt0, abs=rad(1.0))  # the tilt is nearly kept
+    # each pad turned about its contact: the proximal joint followed, and |AB| is kept
+    assert g.d_phi[0] != plain.d_phi[0] and g.d_phi[2] != plain.d_phi[2]
+    joint_only = HandPose(WEDGED.phi2, turned.phi3, WEDGED.phi4, turned.phi5)
+    squeezed = observe(joint_only, frame(20.0, 300.0), frame(20.0, 300.0), ctx)
+    assert abs(after.Lambda - before.Lambda) < 0.1 * abs(squeezed.Lambda - before.Lambda)
     assert all(abs(d) <= 1.0 + 1e-12 for d in g.d_phi)
+
+
+def test_below_fd_the_fingers_close_before_the_pads_turn(cfg: Settings) -> None:
+    ctx = cfg.model_context()
+    c1, c2 = contacts(cfg, 300.0)
+    g = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force * 1.5), ctx)
+    plain = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force * 1.5, align_gain=0.0), ctx)
+    assert g.wedge_deg is not None and abs(g.wedge_deg) > 5.0
+    assert g.d_phi == plain.d_phi and g.d_phi[0] > 0
 
 
 def test_a_squeeze_at_twice_fd_stops_the_turn(cfg: Settings) -> None:

@@ -358,3 +358,28 @@ def test_a_plan_that_widens_the_wedge_beyond_its_limit_reverses(cfg: Settings) -
     # the way back is waived like a cone's
     r = step(replace(RUNNING, direction=wider, waived=Reversal.WEDGE), wedged, m, m, p, ctx)
     assert r.reversal is None
+
+
+@pytest.mark.parametrize(
+    ("level", "prev_F_delta", "reverses"),
+    [
+        (2.2, 0.3, True),  # above force_reverse × Fd and rising
+        (2.2, 0.0, True),  # above and steady: the opening did not bring it back
+        (2.2, -0.3, False),  # above but falling: the opening works, go on
+        (1.8, 0.3, False),  # high but below force_reverse: the force band opens
+    ],
+)
+def test_a_force_above_its_limit_and_not_falling_reverses(
+    cfg: Settings, level: float, prev_F_delta: float, reverses: bool
+) -> None:
+    ctx = cfg.model_context()
+    base = params(cfg, force_reverse=2.0)
+    F = step(RUNNING, MIRROR, frame(20.0), frame(20.0), base, ctx).F
+    p = base.model_copy(update={"grasp_force": F / level})
+    r = step(replace(RUNNING, F_prev=F - prev_F_delta), MIRROR, frame(20.0), frame(20.0), p, ctx)
+    assert (r.reversal is Reversal.FORCE) is reverses
+    assert (r.targets is None) is reverses
+    if reverses:  # and the way back is not refused by the same force at once
+        assert r.state.waived is Reversal.FORCE
+        back = step(r.state, MIRROR, frame(20.0), frame(20.0), p, ctx)
+        assert back.reversal is None and back.targets is not None
