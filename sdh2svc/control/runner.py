@@ -278,8 +278,12 @@ class Runner:
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
                 settle_until = settle_until or loop.time() + run.grasp_settle_s
+            if settle_until is not None:
+                # (once held, F may dip below Fd while the pads turn: the settling ends the
+                # grasp, not the timeout; the rolling's force band takes F back to Fd)
                 wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
-                if wedge_ok or law.align_gain == 0 or loop.time() >= settle_until:
+                settled = F >= fd and (wedge_ok or law.align_gain == 0)
+                if settled or loop.time() >= settle_until:
                     self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
                     return
             else:

@@ -493,6 +493,8 @@ class ContactPhysics:
             # and the same weighted by the overlap (only its normal part is used)
             sums_pw, back = (np.array((pw, pw * overlap)) @ sub).tolist()
             Fy, Fz, pxn, Py, Pz, total, Ty, Tz, S = sums_pw
+            if total <= 0.0:  # the yielding finger left every sample: no contact here
+                continue
             N = math.hypot(Fy, Fz)
             # Σ arm × f with arm = point − c, f = p·w·ds·n
             moment += pxn - (cy * Fz - cz * Fy)

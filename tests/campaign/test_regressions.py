@@ -54,3 +54,19 @@ def test_a_firmly_held_thin_stick_is_not_dropped_by_the_sampled_surfaces() -> No
     row = run("stick-334")
     assert not row["dropped"], row["message"]
     assert row["success"], (row["failure"], row["message"])
+
+
+def test_a_contact_sliding_along_the_object_reverses_before_the_force_ceiling() -> None:
+    # A long rounded box with friction below the cone α assumes (μ 0.30): contact A slid along
+    # the object for 60 iterations while Λ opened, and F climbed to the ceiling (3 × Fd). F above
+    # force_reverse × Fd and not falling reverses instead.
+    row = run("rounded-221")
+    assert row["success"], (row["failure"], row["message"])
+    assert row["f_max"] <= 2.5 * row["fd"]
+
+
+def test_the_placing_hand_lets_go_only_once_the_fingers_hold_the_object() -> None:
+    # A triangle touched on two corners by the pads at 0.05 and 0.01 N: the placing hand let go
+    # at first touch, no balance existed, and the object fell before the grasp began.
+    row = run("polygon-313")
+    assert not row["dropped"], row["message"]
