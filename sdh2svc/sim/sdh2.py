@@ -584,7 +584,8 @@ class Sdh2Emulator:
         if self._outbox:
             return now
         ready = self._inbox[0][0] if self._inbox else None
-        due = None if self._wake is not None else self._due()
+        clocked = self._wake is not None or self._clock_now is not None
+        due = None if clocked else self._due()
         if ready is None or due is None:
             return due if ready is None else ready
         return min(ready, due)
@@ -601,7 +602,7 @@ class Sdh2Emulator:
         does not wake at every tick: whoever reads the emulator or its world first calls
         :meth:`observe`, which steps every tick and processes every command due by then, each
         at its own time — what a clock that woke at each of those moments would have done."""
-        self._wake = _no_wake
+        self._wake = None  # nothing to wake: it catches up when observed
         self._clock_now = now
 
     def observe(self) -> None:
@@ -1185,10 +1186,6 @@ class Sdh2Emulator:
         if self._con == POSE:
             return self._move is not None and self._ax.in_move[i]
         return self._ax.rvel[i] != 0.0 or self._ax.velocity[i] != 0.0
-
-
-def _no_wake() -> None:
-    """A lazy clock's wake-up: nothing to do, it catches up when the emulator is observed."""
 
 
 def _ramp(r0: float, goal: float, accel: float, dt: float) -> tuple[float, float]:
