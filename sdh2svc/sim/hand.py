@@ -15,6 +15,9 @@ physical state (a tactile frame, :meth:`~PhysicsWorld.truth`, :attr:`~PhysicsWor
 power change, :meth:`~PhysicsWorld.flush`). The torque limit is checked at every tick against the
 last step's contact torques, which are never more than one substep behind: a finger pressing a
 stiff object stops within 0.25° of where its torque reached the limit, as with coarse ticks.
+Every read of the physical state from outside the joint emulator's stepping first calls
+:attr:`PhysicsWorld.before_read`, so that a lazy servo clock (fast mode, :mod:`sdh2svc.sim.lab`)
+can step the ticks due by then before anything is read.
 
 The rolling plane model assumes axis 0 (φ1) at 90°, the fingers facing each other. The third
 (middle) finger stands outside that plane: its joints follow their references like the others but

@@ -103,7 +103,11 @@ Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, 
   dropped.
 * Its own clock: :meth:`Sdh2Emulator.attach_clock` hands the servo ticks to an outside clock
   (the simulated hand's, :mod:`sdh2svc.sim.lab`), so motion goes on while no host is connected;
-  :meth:`~Sdh2Emulator.next_wakeup` then asks only for replies. Without one, an endpoint's
+  :meth:`~Sdh2Emulator.next_wakeup` then asks only for replies. A lazy outside clock
+  (:meth:`~Sdh2Emulator.attach_lazy_clock`, fast mode) wakes for no tick: whoever reads the
+  emulator or its world first calls :meth:`~Sdh2Emulator.observe`, which steps every tick and
+  processes every command due by then at its own time — the same steps at the same times as a
+  clock that wakes at each, without an event-loop wake-up per tick. Without one, an endpoint's
   wake-ups step the servo; a TCP endpoint stops asking while no host is connected and the servo
   catches up at the next call in at most ``max_catchup_steps`` (2000) evenly spaced steps.
 """
