@@ -87,9 +87,10 @@ class ServoClock:
         self.lazy = lazy
         self._wakeup: asyncio.Future[None] | None = None
         if lazy:
+            if world is None:
+                raise ValueError("a lazy servo clock needs the world, to catch up when it is read")
             sdh.attach_lazy_clock(asyncio.get_running_loop().time)
-            if world is not None:
-                world.before_read = sdh.observe
+            world.before_read = sdh.observe
         else:
             sdh.attach_clock(self.wake)
 
