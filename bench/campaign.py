@@ -5,22 +5,27 @@ Printed: runs per hour per core (from the CPU time the runs took, and from the w
 1-worker campaign), the simulated-time ratio of a whole run (simulated seconds, start-up to
 release, per wall second and per CPU second, summed over the cases), and the parallel
 efficiency from 1 to 2 workers (the 2-worker throughput / twice the 1-worker one; target
-≥ 0.85). Every case's CPU time is taken in the process that ran it. Wall-clock figures count
-whatever else the machine runs meanwhile (its load average is printed): run it when nothing
-else does; the CPU-time figures are far less disturbed.
+≥ 0.85), and the event loop's work per simulated second in the first case (iterations, and the
+callbacks it ran by source). Every case's CPU time is taken in the process that ran it.
+Wall-clock figures count whatever else the machine runs meanwhile (its load average is printed):
+run it when nothing else does; the CPU-time figures are far less disturbed.
 """
 
 from __future__ import annotations
 
+import asyncio
 import os
+import selectors
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from sdh2svc.campaign import run as camp
 from sdh2svc.campaign.case import load_suite
+from sdh2svc.sim import clock
 
 
 def timed_case(case_json: str, *args: Any) -> dict[str, Any]:
@@ -63,6 +68,45 @@ def _makespan(rows: Sequence[dict[str, Any]], workers: int) -> float:
     return max(free)
 
 
+def _source(handle: asyncio.Handle) -> str:
+    """What a ready callback is: the task it steps (its coroutine's name) or the function."""
+    cb: Any = handle._callback  # type: ignore[attr-defined]
+    owner = getattr(cb, "__self__", None)
+    if isinstance(owner, asyncio.Task):
+        return "task " + getattr(owner.get_coro(), "__qualname__", "?")
+    return getattr(cb, "__qualname__", repr(cb))
+
+
+def loop_events(case_index: int = 0) -> tuple[float, int, Counter[str]]:
+    """One smoke case on a virtual-clock loop that counts its iterations and the callbacks
+    it runs by source: (simulated s, iterations, callbacks by source)."""
+    count: Counter[str] = Counter()
+    iterations = 0
+    loop_cls = clock.VirtualTimeLoop
+    stock, stock_io = loop_cls._run_once, loop_cls._process_events
+
+    def counted(self: clock.VirtualTimeLoop) -> None:
+        nonlocal iterations
+        iterations += 1
+        count.update(_source(h) for h in self._ready)  # queued before this iteration
+        timers = [h for h in self._scheduled if not h._cancelled]
+        stock(self)
+        count.update("timer " + _source(h) for h in timers if not h._scheduled)  # those it ran
+
+    def io(self: clock.VirtualTimeLoop, events: list[tuple[selectors.SelectorKey, int]]) -> None:
+        count["socket readable"] += len(events)
+        stock_io(self, events)
+
+    loop_cls._run_once, loop_cls._process_events = counted, io  # type: ignore[method-assign, assignment]
+    try:
+        case = load_suite("smoke").cases[case_index]
+        with tempfile.TemporaryDirectory() as tmp:
+            row = camp.run_case(case.model_dump_json(), (), None, tmp)
+    finally:
+        loop_cls._run_once, loop_cls._process_events = stock, stock_io  # type: ignore[method-assign]
+    return row.get("sim_s") or 0.0, iterations, count
+
+
 def run() -> dict[str, float]:
     print(f"campaign (smoke suite; load average before: {_load()})")
     t1, rows1 = _campaign(1)
@@ -99,4 +143,9 @@ def run() -> dict[str, float]:
           f"suite order to the first free worker): {eff_cpu:.2f}")  # fmt: skip
     if sim2 != sim:
         print(f"  (!) the 2-worker campaign simulated {sim2:.1f} s, not {sim:.1f} s")
+    sim_e, iterations, count = loop_events()
+    out["loop_iterations_per_sim_s"] = iterations / sim_e
+    top = ", ".join(f"{name} {n / sim_e:.0f}" for name, n in count.most_common(10))
+    print(f"  event loop, first case: {iterations / sim_e:.0f} iterations per simulated second; "
+          f"callbacks per simulated second by source: {top}")  # fmt: skip
     return out

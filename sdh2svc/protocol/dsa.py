@@ -1239,8 +1239,9 @@ def _as_texels(values: npt.ArrayLike) -> npt.NDArray[np.uint16]:
         return arr.astype(np.uint16)
     if arr.dtype.kind not in "iu":
         raise ValueError(f"texels must be integers, got dtype {arr.dtype}")
-    lo, hi = int(arr.min()), int(arr.max())
-    if lo < 0 or hi > TEXEL_MAX:
+    # (unsigned values cannot be below 0: one reduction, not two, for every frame)
+    if int(arr.max()) > TEXEL_MAX or (arr.dtype.kind == "i" and int(arr.min()) < 0):
+        lo, hi = int(arr.min()), int(arr.max())
         raise ValueError(f"texel values must be in 0…{TEXEL_MAX}, got {lo}…{hi}")
     return arr.astype(np.uint16, copy=False)
 
@@ -1253,7 +1254,11 @@ def rle_encode(values: npt.ArrayLike, *, breaks: Iterable[int] = ()) -> bytes:
     boundaries is [U]; pass texel indices in ``breaks`` (e.g. :func:`texel_offsets` for matrices,
     or every row start) to force a new run there (§1.10 gives the resulting sizes).
     """
-    v = _as_texels(values)
+    return _rle_words(_as_texels(values), breaks)
+
+
+def _rle_words(v: npt.NDArray[np.uint16], breaks: Iterable[int]) -> bytes:
+    """:func:`rle_encode` of texels already checked (:func:`_as_texels`)."""
     n = v.size
     if n == 0:
         return b""
@@ -1265,10 +1270,12 @@ def rle_encode(values: npt.ArrayLike, *, breaks: Iterable[int] = ()) -> bytes:
             raise ValueError(f"RLE breaks must lie in 0…{n}")
         starts[b[b < n]] = True
     first = np.flatnonzero(starts)
-    lengths = np.diff(np.append(first, n))
+    lengths = np.empty_like(first)  # np.diff(np.append(first, n)), without their overhead
+    np.subtract(first[1:], first[:-1], out=lengths[:-1])
+    lengths[-1] = n - first[-1]
     nwords = (lengths + _RUN_MAX - 1) // _RUN_MAX
     counts = np.full(int(nwords.sum()), _RUN_MAX, dtype=np.uint16)
-    counts[np.cumsum(nwords) - 1] = lengths - _RUN_MAX * (nwords - 1)
+    counts[nwords.cumsum() - 1] = lengths - _RUN_MAX * (nwords - 1)
     words = (counts << 12) | np.repeat(v[first], nwords)
     return words.astype("<u2").tobytes()
 
@@ -1300,7 +1307,7 @@ def encode_frame_payload(
     ts = _check_int("timestamp_ms", timestamp_ms, 0, 0xFFFF_FFFF)
     values = _as_texels(texels)
     head = _FRAME_HEAD.pack(ts, _FLAG_RLE if rle else 0)
-    data = rle_encode(values, breaks=rle_breaks) if rle else values.astype("<u2").tobytes()
+    data = _rle_words(values, rle_breaks) if rle else values.astype("<u2").tobytes()
     return head + data
 
 

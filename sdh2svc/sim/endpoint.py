@@ -446,6 +446,7 @@ class Endpoint(ABC):
         link = self._link_id
         self._pacer.begin(self._now(), len(out), ready)
         self._tx, self._tx_sent, self._tx_link = out, 0, link
+        waited = False
         try:
             while self._tx_sent < len(out):
                 await self._until_writable(link)
@@ -456,9 +457,11 @@ class Endpoint(ABC):
                 self._release_due(now)
                 if self._tx_sent < len(out):
                     await asyncio.sleep(self._pacer.wake_at(now, self._tx_sent) - now)
+                    waited = True
         finally:
             self._tx = None
-        await asyncio.sleep(0)  # let the host run between packets even when nothing waited
+        if not waited:  # let the host run between packets (a paced packet has waited its line
+            await asyncio.sleep(0)  # time, and the host cannot answer within the same instant)
 
     def _release_due(self, now: float) -> None:
         """Hand the host the bytes of the packet on the line that have left the UART by now."""

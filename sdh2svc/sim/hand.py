@@ -15,6 +15,9 @@ physical state (a tactile frame, :meth:`~PhysicsWorld.truth`, :attr:`~PhysicsWor
 power change, :meth:`~PhysicsWorld.flush`). The torque limit is checked at every tick against the
 last step's contact torques, which are never more than one substep behind: a finger pressing a
 stiff object stops within 0.25° of where its torque reached the limit, as with coarse ticks.
+Every read of the physical state from outside the joint emulator's stepping first calls
+:attr:`PhysicsWorld.before_read`, so that a lazy servo clock (fast mode, :mod:`sdh2svc.sim.lab`)
+can step the ticks due by then before anything is read.
 
 The rolling plane model assumes axis 0 (φ1) at 90°, the fingers facing each other. The third
 (middle) finger stands outside that plane: its joints follow their references like the others but
@@ -25,7 +28,7 @@ it. Any pad, its two included, reads what a person presses on it (:mod:`sdh2svc.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -137,6 +140,9 @@ class PhysicsWorld:
         self._tau: list[tuple[int, float]] | None = None
         self._blocked: set[int] = set()
         self._seed = sim.seed
+        # called before the physical state is read from outside the servo's own stepping: a
+        # lazy servo clock catches up first (sim.lab.ServoClock)
+        self.before_read: Callable[[], None] = _nothing
         self.presses = Presses(layouts, model.tactile.texel_pitch_mm, sim.sensor.spread_mm)
         a, phys = self.axes, sim.physics
         self._physical_axes = (a.phi2, a.phi3, a.phi4, a.phi5)  # the joints the physics sees
@@ -161,25 +167,27 @@ class PhysicsWorld:
         if type(powered) is not tuple or powered != on:  # (the emulator passes a tuple of bools)
             on = tuple(bool(p) for p in powered)
             if on != self._powered:
-                self.flush()  # the physics catches up before the servos' pull changes
+                self._flush()  # the physics catches up before the servos' pull changes
                 self._powered = on
         target = self._target(reference_deg, on)
         lead = self._lead(target)
         if lead >= self._max_lead_deg:
             # Catch up to the pose last reported first, so that the torque limit is checked
             # against contacts less than one substep behind the joints, never more.
-            self.flush()
+            self._flush()
             target = self._target(reference_deg, on)
             lead = self._lead(target)
         self._angles = target
         if lead >= self._max_lead_deg:
-            self.flush()  # a single tick moved a whole substep
+            self._flush()  # a single tick moved a whole substep
         return tuple(target)
 
     def tactile_frame(
         self, now: float, sensitivity: Sequence[float], threshold: Sequence[int]
     ) -> np.ndarray:
-        phys = self.physics
+        self.before_read()
+        self._flush()
+        phys = self._physics
         pressed = self.presses.pressure(now)
         return self.sensor.frame(
             now, phys.pressures(), phys.width_mm, sensitivity, threshold, pressed
@@ -196,6 +204,10 @@ class PhysicsWorld:
 
     def flush(self) -> None:
         """Step the contact physics to the joints' actual pose (a no-op if it stands there)."""
+        self.before_read()
+        self._flush()
+
+    def _flush(self) -> None:
         if self._lead(self._angles) > 0.0:
             self._physics.step(self._pose())
             self._tau = None
@@ -212,6 +224,7 @@ class PhysicsWorld:
     def place(self, obj: Shape, *, height_mm: float | None = None,
               angle_deg: float | None = None) -> None:  # fmt: skip
         """Put ``obj`` between the fingertips, held by the fixture until the fingers grasp it."""
+        self.before_read()  # the joints where they are now: the new world starts there
         s, sim = self.model, self.sim
         self.obj = obj
         self.outline = outline = Outline(obj)
@@ -299,12 +312,14 @@ class PhysicsWorld:
         """The object's pose (y, z mm; ψ rad) as the physics last stepped — at most one substep
         behind the joints. Unlike :meth:`truth` it steps nothing, so an observer that reads it
         mid-run leaves the run exactly as it would have been unobserved."""
+        self.before_read()
         pose = self._physics.state.pose
         return float(pose[0]), float(pose[1]), float(pose[2])
 
     def object_now(self) -> ObjectNow:
         """The object's pose and state as the physics last stepped; like :meth:`object_pose`,
         steps nothing (a run recorded with its truth stays bit for bit the run without)."""
+        self.before_read()
         st = self._physics.state
         pose = (float(st.pose[0]), float(st.pose[1]), float(st.pose[2]))
         held = not st.dropped and not st.held_by_fixture
@@ -312,6 +327,7 @@ class PhysicsWorld:
 
     def contacts_now(self) -> tuple[ContactTruth, ...]:
         """The contacts as the physics last stepped; like :meth:`object_pose`, steps nothing."""
+        self.before_read()
         return tuple(self._physics.contacts())
 
     def truth(self) -> Truth:
@@ -332,3 +348,7 @@ class PhysicsWorld:
             rotation_range_deg=rng,
             blocked_axes=tuple(sorted(self._blocked)),
         )
+
+
+def _nothing() -> None:
+    """No servo clock to catch up with."""

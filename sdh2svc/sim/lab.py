@@ -73,12 +73,26 @@ def _say(message: str) -> None:
 class ServoClock:
     """The joint controller's own clock: steps its servo, and with it the world, whenever a
     motion needs it, whether or not a host is connected — a move or a velocity goes on after the
-    host has gone, as the firmware's does."""
+    host has gone, as the firmware's does.
 
-    def __init__(self, sdh: Sdh2Emulator) -> None:
+    With ``lazy`` (a virtual clock: fast mode) it wakes for no tick: the emulator and the world
+    catch up with it whenever they are read (:meth:`Sdh2Emulator.attach_lazy_clock`), stepping
+    the same ticks at the same times. The ticks are the servo's physics and nobody sees one
+    before something reads the hand, so the run is the same; what goes is an event-loop wake-up
+    per 5 ms tick."""
+
+    def __init__(self, sdh: Sdh2Emulator, world: PhysicsWorld | None = None, *,
+                 lazy: bool = False) -> None:  # fmt: skip
         self.sdh = sdh
+        self.lazy = lazy
         self._wakeup: asyncio.Future[None] | None = None
-        sdh.attach_clock(self.wake)
+        if lazy:
+            if world is None:
+                raise ValueError("a lazy servo clock needs the world, to catch up when it is read")
+            sdh.attach_lazy_clock(asyncio.get_running_loop().time)
+            world.before_read = sdh.observe
+        else:
+            sdh.attach_clock(self.wake)
 
     def start(self) -> asyncio.Task[None]:
         task = asyncio.create_task(self.run(), name="sdh2-servo-clock")
@@ -94,6 +108,8 @@ class ServoClock:
         loop = asyncio.get_running_loop()
         while True:
             due = self.sdh.step(loop.time())
+            if self.lazy:
+                return  # powered on; the rest is caught up when read
             self._wakeup = fut = loop.create_future()
             timer = None if due is None else loop.call_at(due, _resolve, fut)
             try:
@@ -214,7 +230,7 @@ async def start_simulated_hand(
                           binary_latency_s=links.sdh_binary_latency_ms / 1000)  # fmt: skip
     sdh = Sdh2Emulator(world, options=latency)
     hand = SimulatedHand(world, dsa, sdh)
-    hand._clock = ServoClock(sdh).start()
+    hand._clock = ServoClock(sdh, world, lazy=unix_dir is not None).start()
     faults = FaultConfig(bit_error_rate=links.bit_error_rate, seed=sim.seed)
     ports = {
         "dsa": links.dsa_tcp_port if dsa_port is None else dsa_port,

@@ -103,7 +103,11 @@ Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, 
   dropped.
 * Its own clock: :meth:`Sdh2Emulator.attach_clock` hands the servo ticks to an outside clock
   (the simulated hand's, :mod:`sdh2svc.sim.lab`), so motion goes on while no host is connected;
-  :meth:`~Sdh2Emulator.next_wakeup` then asks only for replies. Without one, an endpoint's
+  :meth:`~Sdh2Emulator.next_wakeup` then asks only for replies. A lazy outside clock
+  (:meth:`~Sdh2Emulator.attach_lazy_clock`, fast mode) wakes for no tick: whoever reads the
+  emulator or its world first calls :meth:`~Sdh2Emulator.observe`, which steps every tick and
+  processes every command due by then at its own time — the same steps at the same times as a
+  clock that wakes at each, without an event-loop wake-up per tick. Without one, an endpoint's
   wake-ups step the servo; a TCP endpoint stops asking while no host is connected and the servo
   catches up at the next call in at most ``max_catchup_steps`` (2000) evenly spaced steps.
 """
@@ -479,6 +483,7 @@ class Sdh2Emulator:
         self._busy_until = -math.inf  # when the firmware finishes the last command it took
         self._generation = 0  # bumped at every (dis)connect: replies for a gone host are dropped
         self._wake: Callable[[], None] | None = None  # the outside clock, if any
+        self._clock_now: Callable[[], float] | None = None  # a lazy outside clock's time
         self._t: float | None = None  # time the servo model has advanced to
         self._next_tick = -math.inf
         self._move: _Move | None = None
@@ -510,29 +515,35 @@ class Sdh2Emulator:
     @property
     def controller(self) -> int:
         """Current controller (0 pose, 1 velocity, 2 velocity with acceleration ramp)."""
+        self.observe()
         return self._con
 
     @property
     def actual_deg(self) -> Vec:
         """Joint angles as the world last reported them."""
+        self.observe()
         return tuple(self._ax.actual)
 
     @property
     def reference_deg(self) -> Vec:
         """The servo references the world was last asked to follow."""
+        self.observe()
         return tuple(self._ax.ref)
 
     @property
     def target_deg(self) -> Vec:
+        self.observe()
         return tuple(self._ax.target)
 
     @property
     def powered(self) -> tuple[bool, ...]:
+        self.observe()
         return tuple(self._ax.powered)
 
     @property
     def moving(self) -> bool:
         """Whether the servo model needs ticks (a move runs or a velocity is non-zero)."""
+        self.observe()
         return self._active()
 
     # -- Device protocol -------------------------------------------------------------------------
@@ -577,7 +588,8 @@ class Sdh2Emulator:
         if self._outbox:
             return now
         ready = self._inbox[0][0] if self._inbox else None
-        due = None if self._wake is not None else self._due()
+        clocked = self._wake is not None or self._clock_now is not None
+        due = None if clocked else self._due()
         if ready is None or due is None:
             return due if ready is None else ready
         return min(ready, due)
@@ -588,6 +600,28 @@ class Sdh2Emulator:
         """From now on an outside clock steps the servo (:meth:`step`); ``wake`` is called
         whenever a command may have brought the next step forward (e.g. started a motion)."""
         self._wake = wake
+
+    def attach_lazy_clock(self, now: Callable[[], float]) -> None:
+        """From now on the servo steps on an outside clock that tells the time (``now``) but
+        does not wake at every tick: whoever reads the emulator or its world first calls
+        :meth:`observe`, which steps every tick and processes every command due by then, each
+        at its own time — what a clock that woke at each of those moments would have done."""
+        self._wake = None  # nothing to wake: it catches up when observed
+        self._clock_now = now
+
+    def observe(self) -> None:
+        """With a lazy clock: catch up with it (:meth:`catch_up`); else nothing."""
+        if self._clock_now is not None:
+            self.catch_up(self._clock_now())
+
+    def catch_up(self, now: float) -> None:
+        """Process the commands whose processing ends by ``now`` and step the servo ticks due
+        by then, each at its own time; unlike :meth:`step`, no step at ``now`` itself (an
+        observer between ticks sees the last one, as with a clock that wakes at each)."""
+        if self._t is None:
+            return  # not powered on yet: the clock's first step does that
+        self._process(now)
+        self._ticks(now)
 
     def step(self, now: float) -> float | None:
         """Bring the servo model and the world to ``now``; when the servo must next step on its
@@ -1032,13 +1066,22 @@ class Sdh2Emulator:
             return
         if now <= self._t:
             return
-        stride = max(self.options.tick_s, (now - self._t) / self.options.max_catchup_steps)
+        self._ticks(now)
+        if now > self._t:
+            self._step(now)
+
+    def _ticks(self, now: float) -> None:
+        """Step every tick (and a move's end) due by ``now``. A lazy clock's ticks keep their
+        grid however long the gap; otherwise a long one is crossed in at most
+        ``max_catchup_steps`` evenly spaced steps."""
+        assert self._t is not None
+        tick = self.options.tick_s
+        if self._clock_now is None:
+            tick = max(tick, (now - self._t) / self.options.max_catchup_steps)
         while (due := self._due()) is not None and due <= now:
             self._step(due)
             while self._next_tick <= due:
-                self._next_tick += stride
-        if now > self._t:
-            self._step(now)
+                self._next_tick += tick
 
     def _power_on(self, now: float) -> None:
         ax = self._ax
