@@ -67,8 +67,9 @@ class Recognition:
 
     ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b); box
     (side lengths a ≥ b); stick (length, diameter); polygon (circumradius, mean side length).
-    ``axis``: the inclination of AB at the grasp (σ₀, deg): the reconstructed outline's
-    orientation is ``axis + rotation`` (:func:`outline`).
+    ``axis``: the direction of the outline's first axis (``size_a``'s) at the grasp, deg: σ₀,
+    the inclination of AB at the grasp, or σ₀ + 90° for an ellipse held across its minor axis;
+    the reconstructed outline's orientation is ``axis + rotation`` (:func:`outline`).
     """
 
     kind1: ContactKind | None = None  # Finger 1's contact (None: no contact)
@@ -80,7 +81,7 @@ class Recognition:
     size_a: float | None = None
     size_b: float | None = None
     rotation: float = 0.0  # the object's rotation since the grasp (rolling kinematics), deg
-    axis: float | None = None  # σ at the grasp, deg
+    axis: float | None = None  # the outline's first axis at the grasp, deg
 
 
 @dataclass(frozen=True, slots=True)
@@ -364,6 +365,7 @@ class Recognizer:
         self._prev: Observation | None = None
         self._psi = 0.0
         self._axis: float | None = None
+        self._lam0 = 0.0  # Λ at the grasp
         m = self.model
         self._tracks = (_ContactTrack(Finger.ONE, m), _ContactTrack(Finger.TWO, m))
         self._ev = _Evidence()
@@ -377,7 +379,7 @@ class Recognizer:
             self.last = replace(self.last, kind1=None, kind2=None, radius1=None, radius2=None)
             return self.last
         if self._axis is None:
-            self._axis = obs.sigma
+            self._axis, self._lam0 = obs.sigma, obs.Lambda
         if self._prev is not None:
             d = rolling_turn(self._prev, obs.pose, self.ctx)
             if d is not None and self._prev.sigma is not None:
@@ -404,9 +406,15 @@ class Recognizer:
             size_a=a,
             size_b=b,
             rotation=math.degrees(self._psi),
-            axis=math.degrees(self._axis),
+            axis=math.degrees(self._axis) + self._across(cls, a, b),
         )
         return self.last
+
+    def _across(self, cls: ObjectClass | None, a: float | None, b: float | None) -> float:
+        """90° for an ellipse grasped across its minor axis (Λ₀ nearer 2b than 2a), else 0."""
+        if cls is not ObjectClass.ELLIPSE or a is None or b is None:
+            return 0.0
+        return 90.0 if abs(self._lam0 - 2 * b) < abs(self._lam0 - 2 * a) else 0.0
 
     def _kinds(self, lam: float) -> list[tuple[ContactKind | None, float | None]]:
         t1, t2 = self._tracks

@@ -249,6 +249,18 @@ def test_the_rubber_shows_flat_faces_and_edges(thesis_runs: dict[str, Any]) -> N
     assert sum(k is t for k, t in pairs) >= 0.75 * len(pairs)
 
 
+@pytest.mark.parametrize("name", ["rubber", "egg", "cylinder"])
+def test_the_live_outline_touches_the_contacts(thesis_runs: dict[str, Any], name: str) -> None:
+    rows = thesis_runs[name]
+    _, recs = recognise(rows)
+    obs, rec = rows[-1][0], recs[-1]
+    assert rec.object_class is not None and obs.points is not None
+    pts = outline(rec, obs.points.A, obs.points.B, n=400)
+    assert pts.shape == (400, 2)
+    for p in (obs.points.A, obs.points.B):
+        assert float(np.min(np.hypot(*(pts - np.asarray(p)).T))) < 0.5
+
+
 def test_the_summary_is_json(thesis_runs: dict[str, Any]) -> None:
     rec, recs = recognise(thesis_runs["egg"])
     s = json.loads(json.dumps(rec.summary()))
