@@ -18,8 +18,15 @@ How (rolling kinematics, no model of the object):
   κ·ds: the slope of ν − ψ against the pad's curved distance L over the last iterations is the
   object's local curvature there. No relative turn while the contact travels: a **flat** face;
   a relative turn while the contact stays put (a pivot): an **edge** or corner; in between a
-  **curved** surface of radius 1/κ. Without motion the last label stands.
-* **Class and sizes** from what the contacts were over the run (see :func:`classify`).
+  **curved** surface of radius 1/κ. A small learned model (multinomial logistic,
+  :class:`Softmax`) weighs this against the pressure footprint and the other contact
+  (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide.
+* **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
+  second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
+
+The learned parts are fitted by ``python -m experiments.recognition.fit`` and shipped in
+``recognition_model.json`` beside this module. The raw counts are taken for the contract's
+sake: everything used from them is already in the observation's contact estimates.
 """
 
 from __future__ import annotations
