@@ -5,17 +5,49 @@ Pure and sans-I/O like :mod:`sdh2svc.control.rolling`: a :class:`Recognizer` per
 each iteration's :class:`~sdh2svc.model.observe.Observation` and the two distal pads' raw counts
 and returns a :class:`Recognition`. The runner calls it after the rolling step; what it returns
 goes into the run's :class:`~sdh2svc.control.sample.Sample`, telemetry and recordings.
+
+How (rolling kinematics, no model of the object):
+
+* **Rotation.** The object is rigid and rolls on the pads without slipping, so its material
+  points at A and B move as the pads' material points there: between two iterations the pad
+  points under the old contacts move by δA, δB (forward kinematics of the new pose at the old
+  virtual joints), and the object turns by dψ = (AB × (δB − δA)) / |AB|².
+* **Contact kind and radius.** At a contact the object's normal is the pad's, ν (frame 0, from
+  the pose and where on the pad the contact is). Rolling moves the contact along the pad by as
+  much as along the object, and turns the object's normal relative to the object by
+  κ·ds: the slope of ν − ψ against the pad's curved distance L over the last iterations is the
+  object's local curvature there. No relative turn while the contact travels: a **flat** face;
+  a relative turn while the contact stays put (a pivot): an **edge** or corner; in between a
+  **curved** surface of radius 1/κ. A small learned model (multinomial logistic,
+  :class:`Softmax`) weighs this against the pressure footprint and the other contact
+  (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide.
+* **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
+  second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
+
+The learned parts are fitted by ``python -m experiments.recognition.fit`` and shipped in
+``recognition_model.json`` beside this module. The raw counts are taken for the contract's
+sake: everything used from them is already in the observation's contact estimates.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+import math
+from collections import deque
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
+from functools import lru_cache
+from importlib import resources
 from typing import Any
 
 import numpy as np
 
+from sdh2svc.model.contact import ContactEstimate
+from sdh2svc.model.geometry import pad_slope
+from sdh2svc.model.kinematics import Finger, HandPose, frame3_axes, hand_points
 from sdh2svc.model.observe import ModelContext, Observation
+
+MODEL_FILE = "recognition_model.json"
 
 
 class ContactKind(StrEnum):
@@ -42,6 +74,9 @@ class Recognition:
 
     ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b); box
     (side lengths a ≥ b); stick (length, diameter); polygon (circumradius, mean side length).
+    ``axis``: the direction of the outline's first axis (``size_a``'s) at the grasp, deg: σ₀,
+    the inclination of AB at the grasp, or σ₀ + 90° for an ellipse held across its minor axis;
+    the reconstructed outline's orientation is ``axis + rotation`` (:func:`outline`).
     """
 
     kind1: ContactKind | None = None  # Finger 1's contact (None: no contact)
@@ -53,22 +88,503 @@ class Recognition:
     size_a: float | None = None
     size_b: float | None = None
     rotation: float = 0.0  # the object's rotation since the grasp (rolling kinematics), deg
+    axis: float | None = None  # the outline's first axis at the grasp, deg
+
+
+@dataclass(frozen=True, slots=True)
+class Softmax:
+    """A multinomial logistic model: standardised features (``mean``, ``scale``), optionally
+    with their pairwise products appended (``quadratic``), then ``weights`` · z + ``bias``."""
+
+    mean: np.ndarray
+    scale: np.ndarray
+    weights: np.ndarray  # (classes, features)
+    bias: np.ndarray
+    quadratic: bool = False
+
+    @classmethod
+    def load(cls, data: dict[str, Any]) -> Softmax:
+        return cls(
+            np.asarray(data["mean"], float),
+            np.asarray(data["scale"], float),
+            np.asarray(data["weights"], float),
+            np.asarray(data["bias"], float),
+            bool(data.get("quadratic", False)),
+        )
+
+    def dump(self) -> dict[str, Any]:
+        return {
+            "mean": self.mean.tolist(),
+            "scale": self.scale.tolist(),
+            "weights": self.weights.tolist(),
+            "bias": self.bias.tolist(),
+            "quadratic": self.quadratic,
+        }
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        z = (expand(x) if self.quadratic else x) - self.mean
+        s = self.weights @ (z / self.scale) + self.bias
+        e = np.exp(s - s.max())
+        p: np.ndarray = e / e.sum()
+        return p
+
+
+def expand(x: np.ndarray) -> np.ndarray:
+    """``x`` followed by the products of every pair of its entries (with themselves)."""
+    i, j = _pairs(x.shape[-1])
+    out: np.ndarray = np.concatenate([x, x[..., i] * x[..., j]], axis=-1)
+    return out
+
+
+@lru_cache(maxsize=8)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    i, j = np.triu_indices(n)
+    return i, j
+
+
+@dataclass(frozen=True, slots=True)
+class RecognitionModel:
+    """The estimators' parameters (fitted by ``python -m experiments.recognition.fit``)."""
+
+    window: int = 20  # iterations in the curvature regression
+    min_travel_mm: float = 0.3  # contact travel below which a relative turn is a pivot
+    min_turn_deg: float = 0.6  # relative turn below which a travelling contact is flat
+    edge_radius_mm: float = 4.0  # a curved contact sharper than this is an edge
+    flat_radius_mm: float = 150.0  # flatter than this is a flat face
+    circle_tol: float = 0.2  # |R − Λ/2| / (Λ/2) of a circle's contacts
+    stick_ratio: float = 0.2  # a stick's ends: R below this × Λ
+    parallel_deg: float = 6.0  # a box's two faces: pad normals antiparallel within this
+    smoothing: float = 0.0  # of the kind's probabilities per iteration (exponential, 0: none)
+    kind: Softmax | None = None  # contact kind from contact_features (else the rules above)
+    object_class: Softmax | None = None  # class from class_features (else classify's rules)
+
+    @classmethod
+    def load(cls, data: dict[str, Any]) -> RecognitionModel:
+        kw = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
+        for key in ("kind", "object_class"):
+            if kw.get(key) is not None:
+                kw[key] = Softmax.load(kw[key])
+        return cls(**kw)
+
+    def dump(self) -> dict[str, Any]:
+        out = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        for key in ("kind", "object_class"):
+            if out[key] is not None:
+                out[key] = out[key].dump()
+        return out
+
+
+KINDS = (ContactKind.FLAT, ContactKind.EDGE, ContactKind.CURVED)  # the kind model's order
+CLASSES = tuple(ObjectClass)  # the class model's order
+
+
+@lru_cache(maxsize=1)
+def packaged_model() -> RecognitionModel:
+    """The shipped parameters (the package's ``control/recognition_model.json``)."""
+    try:
+        text = resources.files("sdh2svc.control").joinpath(MODEL_FILE).read_text()
+    except FileNotFoundError:
+        return RecognitionModel()
+    return RecognitionModel.load(json.loads(text))
+
+
+def pad_normal_angle(finger: Finger, pose: HandPose, x3: float, ctx: ModelContext) -> float:
+    """Direction (frame 0, rad) of the pad's tangent at frame-3 x ``x3``: the object's surface
+    direction there; it turns with the object's normal."""
+    prox, dist = pose.finger(finger)
+    ex, ey = frame3_axes(finger, prox + dist)
+    m = pad_slope(x3, ctx.geom.pad)
+    return math.atan2(ex.z + m * ey.z, ex.y + m * ey.y)
+
+
+def rolling_turn(prev: Observation, pose: HandPose, ctx: ModelContext) -> float | None:
+    """dψ (rad) of a rigid object rolling without slip from ``prev`` to ``pose``: the pad
+    points under the previous contacts move by δA, δB; dψ = (AB × (δB − δA)) / |AB|²."""
+    pts, vj1, vj2 = prev.points, prev.contact1.virtual_joint, prev.contact2.virtual_joint
+    if pts is None or vj1 is None or vj2 is None:
+        return None
+    now = hand_points(pose, vj1, vj2, ctx.geom)
+    dy, dz = pts.B.y - pts.A.y, pts.B.z - pts.A.z
+    vy = (now.B.y - pts.B.y) - (now.A.y - pts.A.y)
+    vz = (now.B.z - pts.B.z) - (now.A.z - pts.A.z)
+    d2 = dy * dy + dz * dz
+    return (dy * vz - dz * vy) / d2 if d2 > 1e-9 else None
+
+
+MAX_RADIUS_MM = 1000.0  # a kinematic radius beyond this (or a curvature ≤ 0) is flat
+
+
+class _ContactTrack:
+    """One pad's recent (L, ν − ψ): the kinematic curvature, the rules' kind, the features."""
+
+    def __init__(self, finger: Finger, model: RecognitionModel) -> None:
+        self.finger = finger
+        self.model = model
+        # Finger 2 is mirrored: ν − ψ turns the other way for the same curvature
+        self.sign = -1.0 if finger is Finger.ONE else 1.0
+        self.L: deque[float] = deque(maxlen=model.window)
+        self.rel: deque[float] = deque(maxlen=model.window)
+        self.kind: ContactKind | None = None
+        self.radius: float | None = None
+        self.kinematic_radius = MAX_RADIUS_MM
+        self.features: list[float] | None = None  # see contact_features
+        self.p: np.ndarray | None = None  # the kind model's smoothed probabilities
+
+    def lost(self) -> None:
+        self.L.clear()
+        self.rel.clear()
+        self.kind, self.radius, self.features, self.p = None, None, None, None
+
+    def update(self, c: ContactEstimate, nu: float, psi: float) -> None:
+        assert c.L_mm is not None
+        self.L.append(c.L_mm)
+        self.rel.append(nu - psi)
+        if len(self.L) < 3:
+            return
+        # the window's regression in plain Python: 20 numbers, numpy's per-call cost dominates
+        xs, ys = self.L, self.rel
+        n = len(xs)
+        mx, my = sum(xs) / n, sum(ys) / n
+        sxx = sum((x - mx) * (x - mx) for x in xs)
+        sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True))
+        travel, turn = max(xs) - min(xs), math.degrees(max(ys) - min(ys))
+        kappa = self.sign * sxy / sxx if sxx > 1e-9 else 0.0
+        self.kinematic_radius = min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
+        main = max(c.blobs, key=lambda b: b.pressure_sum_n_per_mm2)
+        d = c.depth
+        self.features = [
+            math.log(max(self.kinematic_radius, 0.5)),
+            math.log(travel + 0.05),
+            math.log(turn + 0.05),
+            d.footprint_sd_mm or 0.0,
+            float(main.last_row - main.first_row + 1),
+            float(c.n_cells),
+            math.log(d.compression_mm + 0.01),
+            d.band_mm,
+            c.force,
+            c.L_mm,
+        ]
+        self.kind, self.radius = self._rules(travel, turn, kappa)
+
+    def _rules(
+        self, travel: float, turn: float, kappa: float
+    ) -> tuple[ContactKind | None, float | None]:
+        """The kind without a learned model: a pivot is an edge, no relative turn is flat."""
+        m = self.model
+        if travel < m.min_travel_mm:
+            return (
+                (ContactKind.EDGE, None) if turn > 2 * m.min_turn_deg else (self.kind, self.radius)
+            )
+        if turn < m.min_turn_deg or kappa <= 1.0 / m.flat_radius_mm:
+            return ContactKind.FLAT, None
+        if kappa >= 1.0 / m.edge_radius_mm:
+            return ContactKind.EDGE, None
+        return ContactKind.CURVED, 1.0 / kappa
+
+
+def contact_features(me: list[float], other: list[float], lam: float) -> np.ndarray:
+    """The kind model's input for one contact: its own track's features, the other contact's
+    first four (radius, travel, turn, footprint), the radius against Λ/2, and log Λ."""
+    return np.array([*me, me[0] - math.log(lam / 2), *other[:4], math.log(lam)])
+
+
+class _LogHistogram:
+    """Counts of log values in fixed bins: quantiles in constant time however long the run."""
+
+    LO, HI, BINS = -4.0, 2.0, 120  # log(radius / (Λ/2)): 0.018 … 7.4, bins of 5 %
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS, dtype=np.int64)
+        self.n = 0
+
+    def add(self, value: float) -> None:
+        x = (math.log(max(value, 1e-9)) - self.LO) / (self.HI - self.LO) * self.BINS
+        self.counts[min(self.BINS - 1, max(0, int(x)))] += 1
+        self.n += 1
+
+    def quantiles(self, qs: tuple[float, ...]) -> list[float]:
+        """The log values at the quantiles ``qs`` (0…1; bin centres; 0 while empty)."""
+        if self.n == 0:
+            return [0.0] * len(qs)
+        cum = np.cumsum(self.counts)
+        idx = np.searchsorted(cum, [q * self.n for q in qs])
+        width = (self.HI - self.LO) / self.BINS
+        return [self.LO + (int(i) + 0.5) * width for i in idx]
+
+
+@dataclass
+class _Evidence:
+    """What the run has shown so far, for the class."""
+
+    n: int = 0  # iterations with both contacts labelled
+    flat: int = 0  # contact-iterations by kind (both fingers)
+    edge: int = 0
+    curved: int = 0
+    both_flat: int = 0
+    both_edge: int = 0
+    parallel: int = 0  # of both_flat: the pad normals antiparallel
+    radii: _LogHistogram = field(default_factory=_LogHistogram)  # curved: radius / (Λ/2)
+    lam_min: float = math.inf
+    lam_max: float = 0.0
+    lam_sum: float = 0.0
+    lam_n: int = 0
+    psi_min: float = 0.0  # rad
+    psi_max: float = 0.0
+    # dσ against dψ over the run (Σ dψ·dσ, Σ dψ²): a circle rolls with σ still (slope 0), a
+    # stick's contacts stay at its ends, so AB turns with it (slope 1)
+    s_ps: float = 0.0
+    s_pp: float = 0.0
+
+
+def class_features(ev: _Evidence) -> np.ndarray:
+    """The class model's input: the shares of each contact kind and of both-flat (parallel or
+    not) and both-edge iterations, the curved radii against Λ/2 (median, spread), Λ's spread
+    and size, how far the object turned, and how σ turned with it."""
+    total = max(1, ev.flat + ev.edge + ev.curved)
+    n = max(1, ev.n)
+    q25, q50, q75 = ev.radii.quantiles((0.25, 0.5, 0.75))
+    lam_mean = ev.lam_sum / max(1, ev.lam_n)
+    return np.array(
+        [
+            ev.flat / total,
+            ev.edge / total,
+            ev.curved / total,
+            ev.both_flat / n,
+            ev.parallel / n,
+            ev.both_edge / n,
+            q50,
+            q75 - q25,
+            math.log((ev.lam_max - ev.lam_min) / lam_mean + 0.01),
+            math.log(lam_mean),
+            math.log(math.degrees(ev.psi_max - ev.psi_min) + 0.5),
+            max(-2.0, min(2.0, ev.s_ps / ev.s_pp)) if ev.s_pp > 0 else 0.0,
+        ]
+    )
 
 
 class Recognizer:
     """One run's recognition: feed it every rolling iteration, in order."""
 
-    def __init__(self, ctx: ModelContext) -> None:
+    def __init__(self, ctx: ModelContext, model: RecognitionModel | None = None) -> None:
         self.ctx = ctx
+        self.model = model or packaged_model()
         self.last = Recognition()
+        self._prev: Observation | None = None
+        self._psi = 0.0
+        self._axis: float | None = None
+        self._lam0 = 0.0  # Λ at the grasp
+        m = self.model
+        self._tracks = (_ContactTrack(Finger.ONE, m), _ContactTrack(Finger.TWO, m))
+        self._ev = _Evidence()
 
     def update(self, obs: Observation, counts1: np.ndarray, counts2: np.ndarray) -> Recognition:
         """This iteration's estimate (the state carried from the iterations before)."""
-        raise NotImplementedError
+        if obs.points is None or obs.Lambda is None or obs.sigma is None:
+            self._prev = None
+            for t in self._tracks:
+                t.lost()
+            self.last = replace(self.last, kind1=None, kind2=None, radius1=None, radius2=None)
+            return self.last
+        if self._axis is None:
+            self._axis, self._lam0 = obs.sigma, obs.Lambda
+        if self._prev is not None:
+            d = rolling_turn(self._prev, obs.pose, self.ctx)
+            if d is not None and self._prev.sigma is not None:
+                self._psi += d
+                ds = (obs.sigma - self._prev.sigma + math.pi) % (2 * math.pi) - math.pi
+                self._ev.s_ps += d * ds
+                self._ev.s_pp += d * d
+        self._prev = obs
+        ev = self._ev
+        ev.psi_min, ev.psi_max = min(ev.psi_min, self._psi), max(ev.psi_max, self._psi)
+        for track, c in zip(self._tracks, (obs.contact1, obs.contact2), strict=True):
+            assert c.x3_mm is not None
+            track.update(c, pad_normal_angle(track.finger, obs.pose, c.x3_mm, self.ctx), self._psi)
+        (k1, r1), (k2, r2) = self._kinds(obs.Lambda)
+        self._gather(obs, k1, k2, r1, r2)
+        cls, conf, a, b = self._classify()
+        self.last = Recognition(
+            kind1=k1,
+            kind2=k2,
+            radius1=r1,
+            radius2=r2,
+            object_class=cls,
+            confidence=conf,
+            size_a=a,
+            size_b=b,
+            rotation=math.degrees(self._psi),
+            axis=math.degrees(self._axis) + self._across(cls, a, b),
+        )
+        return self.last
+
+    def _across(self, cls: ObjectClass | None, a: float | None, b: float | None) -> float:
+        """90° for an ellipse grasped across its minor axis (Λ₀ nearer 2b than 2a), else 0."""
+        if cls is not ObjectClass.ELLIPSE or a is None or b is None:
+            return 0.0
+        return 90.0 if abs(self._lam0 - 2 * b) < abs(self._lam0 - 2 * a) else 0.0
+
+    def _kinds(self, lam: float) -> list[tuple[ContactKind | None, float | None]]:
+        t1, t2 = self._tracks
+        model = self.model.kind
+        if model is None or t1.features is None or t2.features is None:
+            return [(t1.kind, t1.radius), (t2.kind, t2.radius)]
+        out: list[tuple[ContactKind | None, float | None]] = []
+        for me, other in ((t1, t2), (t2, t1)):
+            assert me.features is not None and other.features is not None
+            p = model.probabilities(contact_features(me.features, other.features, lam))
+            a = self.model.smoothing
+            me.p = p if me.p is None or a <= 0.0 else a * me.p + (1.0 - a) * p
+            kind = KINDS[int(np.argmax(me.p))]
+            out.append((kind, me.kinematic_radius if kind is ContactKind.CURVED else None))
+        return out
+
+    def _gather(
+        self,
+        obs: Observation,
+        k1: ContactKind | None,
+        k2: ContactKind | None,
+        r1: float | None,
+        r2: float | None,
+    ) -> None:
+        ev = self._ev
+        lam = float(obs.Lambda or 0.0)
+        ev.lam_min, ev.lam_max = min(ev.lam_min, lam), max(ev.lam_max, lam)
+        ev.lam_sum += lam
+        ev.lam_n += 1
+        if k1 is None or k2 is None:
+            return
+        ev.n += 1
+        for k, r in ((k1, r1), (k2, r2)):
+            if k is ContactKind.FLAT:
+                ev.flat += 1
+            elif k is ContactKind.EDGE:
+                ev.edge += 1
+            else:
+                ev.curved += 1
+                assert r is not None
+                ev.radii.add(r / (lam / 2))
+        ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
+        if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
+            ev.both_flat += 1
+            n1 = pad_normal_angle(Finger.ONE, obs.pose, obs.contact1.x3_mm or 0.0, self.ctx)
+            n2 = pad_normal_angle(Finger.TWO, obs.pose, obs.contact2.x3_mm or 0.0, self.ctx)
+            gap = abs((math.degrees(n1 - n2) + 90.0) % 180.0 - 90.0)
+            if gap < self.model.parallel_deg:
+                ev.parallel += 1
+
+    def _classify(self) -> tuple[ObjectClass | None, float, float | None, float | None]:
+        ev, model = self._ev, self.model.object_class
+        if model is None or ev.n == 0:
+            return classify(ev, self.model)
+        p = model.probabilities(class_features(ev))
+        i = int(np.argmax(p))
+        a, b = sizes(CLASSES[i], ev)
+        return CLASSES[i], float(p[i]), a, b
 
     def summary(self) -> dict[str, Any]:
         """The run's estimate for its summary: class, confidence, sizes, rotation (JSON)."""
-        raise NotImplementedError
+        r = self.last
+        ev = self._ev
+        total = max(1, ev.flat + ev.edge + ev.curved)
+        return {
+            "object_class": r.object_class.value if r.object_class else None,
+            "confidence": r.confidence,
+            "size_a_mm": r.size_a,
+            "size_b_mm": r.size_b,
+            "rotation_deg": r.rotation,
+            "contacts": {
+                "flat": ev.flat / total,
+                "edge": ev.edge / total,
+                "curved": ev.curved / total,
+            },
+        }
+
+
+def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
+    """size_a, size_b of a class from the run's Λ and curved radii (see :class:`Recognition`;
+    a box's second side and a polygon's side length are not measured: None)."""
+    if ev.lam_n == 0:
+        return None, None
+    lam_mean = ev.lam_sum / ev.lam_n
+    r_med = math.exp(ev.radii.quantiles((0.5,))[0]) * lam_mean / 2 if ev.radii.n else None
+    if cls is ObjectClass.CIRCLE:
+        return lam_mean / 2, None
+    if cls is ObjectClass.ELLIPSE:
+        return ev.lam_max / 2, ev.lam_min / 2
+    if cls is ObjectClass.STICK:
+        return ev.lam_max, max(2 * r_med, 1.0) if r_med is not None else None
+    if cls is ObjectClass.BOX:
+        return lam_mean, None
+    return ev.lam_max / 2, None
+
+
+def classify(
+    ev: _Evidence, m: RecognitionModel
+) -> tuple[ObjectClass | None, float, float | None, float | None]:
+    """Class, confidence and sizes by rules, without a learned model (None before a label)."""
+    total = ev.flat + ev.edge + ev.curved
+    if total == 0 or ev.lam_n == 0:
+        return None, 0.0, None, None
+    lam_mean = ev.lam_sum / ev.lam_n
+    f_flat, f_edge, f_curved = ev.flat / total, ev.edge / total, ev.curved / total
+    r_med = math.exp(ev.radii.quantiles((0.5,))[0]) if ev.radii.n else 1.0  # radius / (Λ/2)
+    if f_curved >= max(f_flat, f_edge):
+        if r_med < m.stick_ratio * 2:
+            cls, conf = ObjectClass.STICK, f_curved
+        elif abs(r_med - 1.0) < m.circle_tol and (ev.lam_max - ev.lam_min) / lam_mean < 0.05:
+            cls, conf = ObjectClass.CIRCLE, f_curved
+        else:
+            cls, conf = ObjectClass.ELLIPSE, f_curved
+    elif f_edge > 0.8:
+        cls, conf = ObjectClass.STICK, f_edge
+    elif ev.both_flat and ev.parallel / ev.both_flat > 0.5:
+        cls, conf = ObjectClass.BOX, ev.parallel / ev.both_flat
+    else:
+        cls, conf = ObjectClass.POLYGON, 1.0 - f_curved
+    return (cls, conf, *sizes(cls, ev))
+
+
+def _template(rec: Recognition) -> np.ndarray | None:
+    """The class's outline around its centre, x along the object's axis (m × 2, mm)."""
+    a, b = rec.size_a, rec.size_b
+    if rec.object_class is None or a is None:
+        return None
+    t = np.linspace(0.0, 2 * math.pi, 96, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)], axis=1)
+    if rec.object_class is ObjectClass.CIRCLE:
+        return a * circle
+    if rec.object_class is ObjectClass.ELLIPSE:
+        return np.stack([a * np.cos(t), (b or a) * np.sin(t)], axis=1)
+    if rec.object_class is ObjectClass.STICK:
+        r = max((b or 2.0) / 2, 0.5)
+        half = max(a / 2 - r, 0.0)
+        ends = [
+            (half + r * np.cos(u), r * np.sin(u))
+            for u in np.linspace(-math.pi / 2, math.pi / 2, 24)
+        ]
+        ends += [
+            (-half - r * np.cos(u), -r * np.sin(u))
+            for u in np.linspace(-math.pi / 2, math.pi / 2, 24)
+        ]
+        return np.asarray(ends)
+    if rec.object_class is ObjectClass.BOX:
+        w, h = a / 2, (b or a) / 2
+        return np.array([[-w, -h], [w, -h], [w, h], [-w, h]])
+    k = 6  # a polygon of unknown corners: a hexagon of the circumradius
+    u = np.linspace(0.0, 2 * math.pi, k, endpoint=False)
+    return a * np.stack([np.cos(u), np.sin(u)], axis=1)
+
+
+def _chord(poly: np.ndarray, offset: float) -> tuple[float, float] | None:
+    """The x-range where the line y = offset crosses the convex polygon ``poly``."""
+    p, q = poly, np.roll(poly, -1, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (offset - p[:, 1]) / (q[:, 1] - p[:, 1])
+    hit = (s >= 0.0) & (s <= 1.0) & np.isfinite(s)
+    if hit.sum() < 2:
+        return None
+    xs = p[hit, 0] + s[hit] * (q[hit, 0] - p[hit, 0])
+    return float(xs.min()), float(xs.max())
 
 
 def outline(
@@ -76,5 +592,65 @@ def outline(
 ) -> np.ndarray:
     """The reconstructed outline in the hand's y0z0 plane (``n`` × 2, mm), placed so that it
     touches the contacts ``a`` (on Finger 1) and ``b`` (on Finger 2) and turned by
-    ``rec.rotation``; empty (0 × 2) while no class is known."""
-    raise NotImplementedError
+    ``rec.rotation``; empty (0 × 2) while no class is known.
+
+    The class's outline, turned to ``axis + rotation``, is placed on the chord parallel to AB
+    of AB's length nearest its centre (scaled a little if no chord is that long), so that the
+    chord's ends are A and B."""
+    shape = _template(rec)
+    if shape is None:
+        return np.zeros((0, 2))
+    ab = np.subtract(b, a)
+    lam = float(np.hypot(*ab))
+    if lam < 1e-6:
+        return np.zeros((0, 2))
+    along = math.atan2(ab[1], ab[0])
+    turn = math.radians((rec.axis or 0.0) + rec.rotation)
+    placed = _place(shape, turn - along, lam)
+    if placed is None:  # the turn and the sizes disagree with AB: the shape along AB instead
+        placed = _place(shape, 0.0, lam)
+    if placed is None:
+        return np.zeros((0, 2))
+    ux, uy = ab / lam
+    world = np.stack(
+        [placed[:, 0] * ux - placed[:, 1] * uy, placed[:, 0] * uy + placed[:, 1] * ux], 1
+    )
+    return _resample(world + np.asarray(a, dtype=float), n)
+
+
+def _place(shape: np.ndarray, rel: float, lam: float) -> np.ndarray | None:
+    """``shape`` turned by ``rel`` against AB (along x) with the chord of length Λ parallel to
+    x nearest its centre starting at the origin; None if that needs a scale outside
+    :data:`_SCALE`."""
+    c, s = math.cos(rel), math.sin(rel)
+    local = shape @ np.array([[c, s], [-s, c]])
+    lo, hi = float(local[:, 1].min()), float(local[:, 1].max())
+    best: tuple[float, float, float, float] | None = None  # (badness, offset, x0, length)
+    for off in np.linspace(lo, hi, 201)[1:-1]:
+        ch = _chord(local, float(off))
+        if ch is None:
+            continue
+        length = ch[1] - ch[0]
+        bad = abs(length - lam) + 1e-3 * abs(off)
+        if best is None or bad < best[0]:
+            best = (bad, float(off), ch[0], length)
+    if best is None or not _SCALE[0] <= lam / best[3] <= _SCALE[1]:
+        return None
+    _, off, x0, length = best
+    placed: np.ndarray = (local - np.array([x0, off])) * (lam / length)
+    return placed
+
+
+_SCALE = (0.8, 1.25)  # how far outline() may stretch the estimated sizes to touch A and B
+
+
+def _resample(poly: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points evenly along the closed polygon's perimeter (its corners kept near)."""
+    closed = np.vstack([poly, poly[:1]])
+    seg = np.hypot(*np.diff(closed, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    u = np.linspace(0.0, s[-1], n, endpoint=False)
+    return np.stack([np.interp(u, s, closed[:, 0]), np.interp(u, s, closed[:, 1])], axis=1)
+
+
+__all__ = ["ContactKind", "ObjectClass", "Recognition", "Recognizer", "outline"]
