@@ -1,0 +1,148 @@
+"""Finger 2's route: its move per iteration (hand-model §8 step 4; thesis §5.2's future work).
+
+``rolling.route = "thesis"``: the thesis's fixed coupling, φ4 − Δφ, φ5 + k·Δφ.
+
+``rolling.route = "workspace"``: a few moves of the same length in the (φ4, φ5) plane, the
+thesis's turned by up to ±:data:`TURNS`, are each carried through the rest of the iteration by
+the model alone (B by FK, dσ, σd = σ + λ·dσ, A on the circle of radius Λad, Finger 1's IK,
+ωA and ωB) and the one that turns AB furthest in the stroke's sense wins, among those that keep
+Finger 1 and Finger 2 inside their joint limits by :data:`LIMIT_MARGIN`, both ω inside their
+cones by :data:`CONE_MARGIN` and the pads' wedge within its limit. The thesis's single line
+through joint space ends its stroke where the first of these limits binds; choosing the move
+afresh each iteration follows that limit's edge instead and turns on. With no such move (the
+end of a stroke) it is the thesis's move, so the rolling step's checks reverse as before.
+
+Pure: numbers in, a move out; the same inputs always give the same move.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from sdh2svc.control.params import RollingParams
+from sdh2svc.model.friction import cone_margin, omega, wedge
+from sdh2svc.model.kinematics import (
+    Finger,
+    FingerLimits,
+    HandPose,
+    Point,
+    contact_point,
+    finger_ik,
+    segment,
+)
+from sdh2svc.model.observe import ModelContext, Observation
+
+# The turns of the thesis's direction tried in the (φ4, φ5) plane, either way (0 is the thesis's
+# own): 90° moves one joint alone when k ≫ 1 would not.
+TURNS = (math.radians(30.0), math.radians(60.0), math.radians(90.0))
+# How far inside its cone a planned ω must stay: a rolling contact drifts from the plan by
+# ≈ 0.3° per iteration and sensor noise moves the measured ω by a few tenths (rolling.py).
+CONE_MARGIN = math.radians(2.0)
+# How far inside the joint limits a planned joint must stay: the servo overshoots a little, and
+# Finger 1's IK turns steep near its limits.
+LIMIT_MARGIN = math.radians(3.0)
+
+
+@dataclass(frozen=True, slots=True)
+class Move:
+    """Finger 2's change of φ4 and φ5 for one full iteration (radians)."""
+
+    d4: float
+    d5: float
+
+
+def thesis_move(direction: int, p: RollingParams) -> Move:
+    """The thesis's route: φ4 − Δφ, φ5 + k·Δφ (Δφ's sign times the current direction)."""
+    dphi = direction * p.delta_phi
+    return Move(-dphi, p.k * dphi)
+
+
+def _shrunk(lim: FingerLimits, m: float) -> FingerLimits:
+    return FingerLimits(lim.proximal_min + m, lim.proximal_max - m,
+                        lim.distal_min + m, lim.distal_max - m)  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class Predictor:
+    """The rest of the iteration for a candidate move, by the model alone."""
+
+    pose: HandPose
+    obs: Observation
+    lam_ad: float
+    alpha: float  # the cones' half-angle this iteration (rad)
+    params: RollingParams
+    ctx: ModelContext
+
+    def turn(self, move: Move) -> float | None:
+        """σd − σ for ``move`` (rad), or None when its configuration leaves a joint limit, a
+        cone or the wedge limit by the margins."""
+        pose, obs, ctx, p = self.pose, self.obs, self.ctx, self.params
+        c1, c2, pts, sigma = obs.contact1, obs.contact2, obs.points, obs.sigma
+        assert pts is not None and sigma is not None
+        assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
+        assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
+        phi4, phi5 = pose.phi4 + move.d4, pose.phi5 + move.d5
+        if not _shrunk(ctx.limits2, LIMIT_MARGIN).contains(phi4, phi5):
+            return None
+        B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
+        sigma_d = sigma + p.lambda_gain * (segment(pts.A, B)[1] - sigma)
+        A = Point(B.y - self.lam_ad * math.cos(sigma_d), B.z - self.lam_ad * math.sin(sigma_d))
+        ik = finger_ik(Finger.ONE, A, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), ctx.geom,
+                       _shrunk(ctx.limits1, LIMIT_MARGIN))  # fmt: skip
+        if ik.solution is None:
+            return None
+        pad = ctx.geom.pad
+        wa = omega(Finger.ONE, ik.solution.proximal + ik.solution.distal, c1.x3_mm, A, B, pad)
+        wb = omega(Finger.TWO, phi4 + phi5, c2.x3_mm, B, A, pad)
+        if min(cone_margin(wa, self.alpha), cone_margin(wb, self.alpha)) < CONE_MARGIN:
+            return None
+        if p.wedge_limit > 0.0 and abs(wedge(wa, wb)) > p.wedge_limit - CONE_MARGIN:
+            return None
+        return sigma_d - sigma
+
+
+def candidates(base: Move) -> list[Move]:
+    """``base`` and the moves of its length turned by ±TURNS in the (φ4, φ5) plane."""
+    out = [base]
+    for a in TURNS:
+        for t in (a, -a):
+            c, s = math.cos(t), math.sin(t)
+            out.append(Move(c * base.d4 - s * base.d5, s * base.d4 + c * base.d5))
+    return out
+
+
+def workspace_move(direction: int, pred: Predictor) -> Move:
+    """The candidate that turns AB furthest in the thesis move's sense within the margins; the
+    thesis's move when none does (or when the thesis's move turns AB by nothing, so that the
+    stroke's sense is unknown)."""
+    base = thesis_move(direction, pred.params)
+    ref = _sense(base, pred)
+    if ref == 0.0:
+        return base
+    best, best_turn = base, 0.0
+    for move in candidates(base):
+        t = pred.turn(move)
+        if t is not None and t * ref > best_turn:
+            best, best_turn = move, t * ref
+    return best
+
+
+def _sense(base: Move, pred: Predictor) -> float:
+    """+1 or −1: the sense in which the thesis's move turns AB (σ of A→Bd against σ); 0 when
+    it does not."""
+    obs, pose, ctx = pred.obs, pred.pose, pred.ctx
+    c2, pts, sigma = obs.contact2, obs.points, obs.sigma
+    assert pts is not None and sigma is not None
+    assert c2.r_mm is not None and c2.theta_rad is not None
+    B = contact_point(Finger.TWO, pose.phi4 + base.d4, pose.phi5 + base.d5, c2.r_mm,
+                      c2.theta_rad, ctx.geom)  # fmt: skip
+    d = segment(pts.A, B)[1] - sigma
+    return 0.0 if d == 0.0 else math.copysign(1.0, d)
+
+
+def finger2_move(direction: int, pred: Predictor) -> Move:
+    """Finger 2's move for this iteration under ``rolling.route``."""
+    if pred.params.route == "workspace" and pred.params.mode == "two-finger":
+        return workspace_move(direction, pred)
+    return thesis_move(direction, pred.params)
