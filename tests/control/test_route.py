@@ -69,8 +69,9 @@ def test_candidates_keep_the_thesis_length(cfg: Settings) -> None:
 
 def test_the_workspace_route_turns_ab_at_least_as_far(cfg: Settings, ctx: ModelContext) -> None:
     """Where the thesis's move is allowed, the chosen move's predicted turn of AB is as large
-    (in the same sense), and strictly larger here: the thesis's direction is not the best."""
-    p = workspace(cfg)
+    (in the same sense), and strictly larger here, where Finger 1 may take any step: the
+    thesis's direction is not the best."""
+    p = workspace(cfg, finger1_max_step_deg=10.0)
     obs = observe(TILTED, frame(20.0), frame(24.0), ctx)
     assert obs.Lambda is not None
     pred = Predictor(TILTED, obs, obs.Lambda, p.alpha, p, ctx)
@@ -99,6 +100,7 @@ def test_workspace_route_stays_inside_limits_and_cones(
     """Over random poses and contacts: a commanded target lies inside the joint limits, its plan
     inside both cones; a move other than the thesis's keeps the route's margins."""
     ctx, p = cfg.model_context(), workspace(cfg)
+    lim2 = ctx.limits2
     hp = HandPose.from_degrees(*pose)
     state = RollState(direction=direction, iteration=iteration)
     r = step(state, hp, frame(S1), frame(S2), p, ctx)
@@ -117,17 +119,18 @@ def test_workspace_route_stays_inside_limits_and_cones(
     move = workspace_move(direction, pred)
     if move == thesis_move(direction, p):
         return
+    # a move of its own: planned from inside the route's margins, and keeping them
+    assert pred.now().inside()
     phi4, phi5 = hp.phi4 + move.d4, hp.phi5 + move.d5
-    lim2 = ctx.limits2
-    assert lim2.proximal_min + LIMIT_MARGIN <= phi4 <= lim2.proximal_max - LIMIT_MARGIN
-    assert lim2.distal_min + LIMIT_MARGIN <= phi5 <= lim2.distal_max - LIMIT_MARGIN
+    room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
+               phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
+    assert room >= LIMIT_MARGIN - 1e-12
+    assert pred.turn(move) is not None  # the margins kept (cones, wedge, Finger 1's joints, reach)
+    # …and it turns AB the way the thesis's move does
     c2 = obs.contact2
     assert c2.r_mm is not None and c2.theta_rad is not None
-    B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
-    turn = pred.turn(move)
-    assert turn is not None  # feasible with the margins (cones, wedge, both fingers' limits)
-    # …and it turns AB the way the thesis's move does
     base = thesis_move(direction, p)
+    B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
     Bt = contact_point(Finger.TWO, hp.phi4 + base.d4, hp.phi5 + base.d5, c2.r_mm,
                        c2.theta_rad, ctx.geom)  # fmt: skip
     sense = segment(obs.points.A, Bt)[1] - obs.sigma
