@@ -24,7 +24,8 @@ class RollingParams(Frozen):
         default="thesis",
         description="Finger 2's move per iteration in two-finger mode: thesis: φ4 − Δφ, φ5 + k·Δφ; "
         "workspace: the move, of the same length, whose predicted configuration turns the object "
-        "most within the joint limits and the cones (control/route.py; not in the thesis)",
+        "most within the joint limits, Finger 1's reach and the cones, while the grip holds "
+        "(control/route.py; not in the thesis)",
     )
     delta_phi_deg: Annotated[float, Field(ge=-5.0, le=5.0)] = Field(
         description="Δφ, Finger 2's step per iteration; its sign is the first rotation direction"

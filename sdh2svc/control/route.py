@@ -11,9 +11,9 @@ take of it), among those that keep both fingers :data:`LIMIT_MARGIN` inside thei
 Finger 1 :data:`REACH_MARGIN_MM` short of stretched, both ω :data:`CONE_MARGIN` inside their
 cones and the pads' wedge as far inside its limit. The thesis's single line through joint space
 ends its stroke where the first of these limits binds; choosing the move afresh each iteration
-follows that limit's edge instead and turns on. Where no move keeps the margins, or the hand is
-already within one of them, it is the thesis's move, so that near the limits the rolling step's
-checks reverse as they do on the thesis's route.
+follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
+already within one of them, or the grip is outside :data:`GRIP_BAND`, it is the thesis's move, so
+that near the limits the rolling step's checks reverse as they do on the thesis's route.
 
 Pure: numbers in, a move out; the same inputs always give the same move.
 """
