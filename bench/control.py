@@ -40,11 +40,11 @@ class _Samples(BaseObserver):
         self.samples.append(sample)
 
 
-def _frame(S: float) -> np.ndarray:
+def _frame(S: float, amplitude: int = 1500) -> np.ndarray:
     m = np.zeros((13, 6), dtype=np.uint16)
     j = int(S // 3.4)
     w = S / 3.4 - j
-    m[j, 1:5], m[j + 1, 1:5] = round(1500 * (1 - w)), round(1500 * w)
+    m[j, 1:5], m[j + 1, 1:5] = round(amplitude * (1 - w)), round(amplitude * w)
     return m
 
 
@@ -63,6 +63,13 @@ def run() -> dict[str, float]:
           " (target ≤ 200 µs)")  # fmt: skip
     out["recognition_median_us"] = float(np.median(rec_us))
     out["recognition_p99_us"] = percentile(rec_us, 99)
+    # rolling.route = "workspace" with a grip inside its band: every candidate move is predicted
+    ws = cfg.rolling.model_copy(update={"route": "workspace"})
+    g1, g2 = _frame(20.0, 3000), _frame(22.0, 3000)
+    samples = time_calls(lambda: step(RollState(), pose, g1, g2, ws, ctx), 5000)
+    print(f"  … route=workspace    {summary_us(samples)}")
+    out |= {"step_workspace_median_us": float(np.median(samples)),
+            "step_workspace_p99_us": percentile(samples, 99)}  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         db = f"storage.db_path='{Path(tmp) / 'bench.sqlite'}'"
         rt = load_config(overrides=[db, "rolling.cycles=1", "sim.object='egg'"], use_env=False)

@@ -20,6 +20,13 @@ class RollingParams(Frozen):
     mode: Literal["two-finger", "one-finger"] = Field(
         description="two-finger: thesis §3.4–3.5; one-finger: §3.3, Finger 2 holds still"
     )
+    route: Literal["thesis", "workspace"] = Field(
+        default="thesis",
+        description="Finger 2's move per iteration in two-finger mode: thesis: φ4 − Δφ, φ5 + k·Δφ; "
+        "workspace: the move, of the same length, whose predicted configuration turns the object "
+        "most within the joint limits, Finger 1's reach and the cones, while the grip holds "
+        "(control/route.py; not in the thesis)",
+    )
     delta_phi_deg: Annotated[float, Field(ge=-5.0, le=5.0)] = Field(
         description="Δφ, Finger 2's step per iteration; its sign is the first rotation direction"
     )

@@ -28,6 +28,7 @@ from enum import StrEnum
 import numpy as np
 
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.route import Move, Predictor, finger2_move
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import cone_margin, inside_cone, omega, wedge
 from sdh2svc.model.kinematics import (
@@ -167,6 +168,7 @@ class _Route:
     lam_ad: float
     params: RollingParams
     ctx: ModelContext
+    move: Move  # Finger 2's full step (control/route.py)
 
     def configure(self, scale: float) -> _Config | None:
         """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
@@ -177,8 +179,7 @@ class _Route:
         assert c1.r_mm is not None and c1.theta_rad is not None
         assert c2.r_mm is not None and c2.theta_rad is not None
         if p.mode == "two-finger":
-            dphi = scale * self.state.direction * p.delta_phi
-            phi4d, phi5d = pose.phi4 - dphi, pose.phi5 + p.k * dphi
+            phi4d, phi5d = pose.phi4 + scale * self.move.d4, pose.phi5 + scale * self.move.d5
             if not self.ctx.limits2.contains(phi4d, phi5d):
                 return None
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
@@ -286,7 +287,8 @@ def step(
     assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
 
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
-    route = _Route(state, pose, obs, lam_ad, params, ctx)
+    move = finger2_move(state.direction, Predictor(pose, obs, lam_ad, alpha, params, ctx))
+    route = _Route(state, pose, obs, lam_ad, params, ctx, move)
     cfg = route.configure(1.0)
     if cfg is None:
         return reverse(Reversal.WORKSPACE, Plan(lam_ad))

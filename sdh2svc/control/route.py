@@ -1,0 +1,203 @@
+"""Finger 2's route: its move per iteration (hand-model §8 step 4; thesis §5.2's future work).
+
+``rolling.route = "thesis"``: the thesis's fixed coupling, φ4 − Δφ, φ5 + k·Δφ.
+
+``rolling.route = "workspace"``: a few moves of the same length in the (φ4, φ5) plane, the
+thesis's turned by up to ±:data:`TURNS`, are each carried through the rest of the iteration by
+the model alone (B by FK, dσ, σd = σ + λ·dσ, A on the circle of radius Λad, Finger 1's IK,
+ωA and ωB), and the one that turns AB furthest in the stroke's sense per iteration wins (a move
+Finger 1 cannot follow within ``finger1_max_step`` counts at the fraction the rolling step will
+take of it), among those that keep both fingers :data:`LIMIT_MARGIN` inside their joint limits,
+Finger 1 :data:`REACH_MARGIN_MM` short of stretched, both ω :data:`CONE_MARGIN` inside their
+cones and the pads' wedge as far inside its limit. The thesis's single line through joint space
+ends its stroke where the first of these limits binds; choosing the move afresh each iteration
+follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
+already within one of them, or the grip is outside :data:`GRIP_BAND`, it is the thesis's move, so
+that near the limits the rolling step's checks reverse as they do on the thesis's route.
+
+Pure: numbers in, a move out; the same inputs always give the same move.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from sdh2svc.control.params import RollingParams
+from sdh2svc.model.friction import cone_margin, omega, wedge
+from sdh2svc.model.kinematics import (
+    Finger,
+    FingerLimits,
+    HandPose,
+    Point,
+    contact_point,
+    finger_ik,
+    segment,
+)
+from sdh2svc.model.observe import ModelContext, Observation
+
+# The turns of the thesis's direction tried in the (φ4, φ5) plane, either way (0 is the thesis's
+# own): 90° moves one joint alone when k ≫ 1 would not.
+TURNS = (math.radians(30.0), math.radians(60.0), math.radians(90.0))
+# How far inside its cone a planned ω must stay: a rolling contact drifts from the plan by
+# ≈ 0.3° per iteration and sensor noise moves the measured ω by a few tenths (rolling.py).
+CONE_MARGIN = math.radians(2.0)
+# How far inside the joint limits a planned joint must stay: the servo overshoots a little, and
+# Finger 1's IK turns steep near its limits.
+LIMIT_MARGIN = math.radians(3.0)
+# How far inside Finger 1's reach (|OA| ≤ l1 + r1) a planned A must stay: near the stretched
+# finger its IK is singular, a step needs large joint moves and Λ's own correction (ΔΛ) or the
+# contact rolling a little can put A out of reach both ways.
+REACH_MARGIN_MM = 2.0
+# The grip the route plans within, × Fd: outside it the thesis's move, slower, while Λ's
+# correction brings the force back. On the thesis's route the lowest F after the grasp stays
+# above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs.
+GRIP_BAND = (0.5, 2.0)
+
+
+@dataclass(frozen=True, slots=True)
+class Move:
+    """Finger 2's change of φ4 and φ5 for one full iteration (radians)."""
+
+    d4: float
+    d5: float
+
+
+def thesis_move(direction: int, p: RollingParams) -> Move:
+    """The thesis's route: φ4 − Δφ, φ5 + k·Δφ (Δφ's sign times the current direction)."""
+    dphi = direction * p.delta_phi
+    return Move(-dphi, p.k * dphi)
+
+
+def _limit_room(lim: FingerLimits, proximal: float, distal: float) -> float:
+    """How far (rad) the nearer joint is from its limit; negative outside."""
+    return min(proximal - lim.proximal_min, lim.proximal_max - proximal,
+               distal - lim.distal_min, lim.distal_max - distal)  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class Margins:
+    """How far a configuration is from each limit the route keeps off (rad; reach in mm)."""
+
+    cone_A: float
+    cone_B: float
+    wedge: float  # room to the wedge limit (inf without one)
+    joints1: float
+    joints2: float
+    reach: float  # l1 + r1 − |OA|: how far Finger 1 is from stretched
+
+    def inside(self) -> bool:
+        """Whether every margin is at least the route's (CONE_MARGIN, LIMIT_MARGIN, …)."""
+        return (min(self.cone_A, self.cone_B, self.wedge) >= CONE_MARGIN
+                and min(self.joints1, self.joints2) >= LIMIT_MARGIN
+                and self.reach >= REACH_MARGIN_MM)  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class Predictor:
+    """The rest of the iteration for a candidate move, by the model alone."""
+
+    pose: HandPose
+    obs: Observation
+    lam_ad: float
+    alpha: float  # the cones' half-angle this iteration (rad)
+    params: RollingParams
+    ctx: ModelContext
+
+    def margins(self, phi: tuple[float, float, float, float], A: Point, wa: float,
+                wb: float) -> Margins:  # fmt: skip
+        """The margins of the configuration φ2…φ5 with contact A and friction angles ωA, ωB."""
+        c1, p, ctx = self.obs.contact1, self.params, self.ctx
+        assert c1.r_mm is not None
+        wedge_room = (p.wedge_limit - abs(wedge(wa, wb))) if p.wedge_limit > 0.0 else math.inf
+        return Margins(
+            cone_margin(wa, self.alpha), cone_margin(wb, self.alpha), wedge_room,
+            _limit_room(ctx.limits1, phi[0], phi[1]), _limit_room(ctx.limits2, phi[2], phi[3]),
+            ctx.geom.proximal_length_mm + c1.r_mm - math.hypot(A.y, A.z),
+        )  # fmt: skip
+
+    def grip_holds(self) -> bool:
+        """Whether F is within GRIP_BAND × Fd."""
+        F = (self.obs.contact1.force + self.obs.contact2.force) / 2
+        fd = self.params.grasp_force
+        return GRIP_BAND[0] * fd <= F <= GRIP_BAND[1] * fd
+
+    def now(self) -> Margins:
+        obs, pose = self.obs, self.pose
+        assert obs.points is not None and obs.omega_A is not None and obs.omega_B is not None
+        return self.margins((pose.phi2, pose.phi3, pose.phi4, pose.phi5), obs.points.A,
+                            obs.omega_A, obs.omega_B)  # fmt: skip
+
+    def turn(self, move: Move) -> float | None:
+        """σd − σ for ``move`` (rad), scaled down as the rolling step will if Finger 1 cannot
+        follow in one iteration (``finger1_max_step``); None when its configuration breaks the
+        route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
+        pose, obs, ctx, p = self.pose, self.obs, self.ctx, self.params
+        c1, c2, pts, sigma = obs.contact1, obs.contact2, obs.points, obs.sigma
+        assert pts is not None and sigma is not None
+        assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
+        assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
+        phi4, phi5 = pose.phi4 + move.d4, pose.phi5 + move.d5
+        B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
+        sigma_d = sigma + p.lambda_gain * (segment(pts.A, B)[1] - sigma)
+        A = Point(B.y - self.lam_ad * math.cos(sigma_d), B.z - self.lam_ad * math.sin(sigma_d))
+        ik = finger_ik(Finger.ONE, A, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), ctx.geom,
+                       ctx.limits1)  # fmt: skip
+        if ik.solution is None:
+            return None
+        phi2, phi3 = ik.solution.proximal, ik.solution.distal
+        pad = ctx.geom.pad
+        wa = omega(Finger.ONE, phi2 + phi3, c1.x3_mm, A, B, pad)
+        wb = omega(Finger.TWO, phi4 + phi5, c2.x3_mm, B, A, pad)
+        if not self.margins((phi2, phi3, phi4, phi5), A, wa, wb).inside():
+            return None
+        need = max(abs(phi2 - pose.phi2), abs(phi3 - pose.phi3))
+        return (sigma_d - sigma) * min(1.0, p.finger1_max_step / need) if need > 0 else 0.0
+
+
+def candidates(base: Move) -> list[Move]:
+    """``base`` and the moves of its length turned by ±TURNS in the (φ4, φ5) plane."""
+    out = [base]
+    for a in TURNS:
+        for t in (a, -a):
+            c, s = math.cos(t), math.sin(t)
+            out.append(Move(c * base.d4 - s * base.d5, s * base.d4 + c * base.d5))
+    return out
+
+
+def workspace_move(direction: int, pred: Predictor) -> Move:
+    """The candidate that turns AB furthest in the thesis move's sense within the margins; the
+    thesis's move when none does (or when the thesis's move turns AB by nothing, so that the
+    stroke's sense is unknown)."""
+    base = thesis_move(direction, pred.params)
+    ref = _sense(base, pred)
+    if ref == 0.0:
+        return base
+    if not pred.now().inside() or not pred.grip_holds():  # the thesis's move, and its checks
+        return base
+    best, best_turn = base, 0.0
+    for move in candidates(base):
+        t = pred.turn(move)
+        if t is not None and t * ref > best_turn:
+            best, best_turn = move, t * ref
+    return best
+
+
+def _sense(base: Move, pred: Predictor) -> float:
+    """+1 or −1: the sense in which the thesis's move turns AB (σ of A→Bd against σ); 0 when
+    it does not."""
+    obs, pose, ctx = pred.obs, pred.pose, pred.ctx
+    c2, pts, sigma = obs.contact2, obs.points, obs.sigma
+    assert pts is not None and sigma is not None
+    assert c2.r_mm is not None and c2.theta_rad is not None
+    B = contact_point(Finger.TWO, pose.phi4 + base.d4, pose.phi5 + base.d5, c2.r_mm,
+                      c2.theta_rad, ctx.geom)  # fmt: skip
+    d = segment(pts.A, B)[1] - sigma
+    return 0.0 if d == 0.0 else math.copysign(1.0, d)
+
+
+def finger2_move(direction: int, pred: Predictor) -> Move:
+    """Finger 2's move for this iteration under ``rolling.route``."""
+    if pred.params.route == "workspace" and pred.params.mode == "two-finger":
+        return workspace_move(direction, pred)
+    return thesis_move(direction, pred.params)

@@ -1,0 +1,171 @@
+"""Finger 2's route (control/route.py): the thesis's coupling and the workspace route."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sdh2svc.campaign.case import Case
+from sdh2svc.campaign.run import run_case
+from sdh2svc.config import Settings
+from sdh2svc.control.params import RollingParams
+from sdh2svc.control.rolling import RollState, step
+from sdh2svc.control.route import (
+    LIMIT_MARGIN,
+    Move,
+    Predictor,
+    candidates,
+    thesis_move,
+    workspace_move,
+)
+from sdh2svc.model.friction import cone_margin
+from sdh2svc.model.kinematics import Finger, HandPose, contact_point, segment
+from sdh2svc.model.observe import ModelContext, observe
+from sdh2svc.sim.objects import get_object
+
+rad = math.radians
+TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))
+FIRM = 3000.0  # a frame amplitude whose force (≈ 0.9 × Fd) is within the route's grip band
+
+
+def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
+    """A distal frame whose pressure centroid is exactly S (two neighbouring rows)."""
+    m = np.zeros((13, 6), dtype=np.uint16)
+    j = min(int(S // 3.4), 11)
+    w = S / 3.4 - j
+    m[j, 1:5] = round(amplitude * (1 - w))
+    m[j + 1, 1:5] = round(amplitude * w)
+    return m
+
+
+@pytest.fixture(scope="module")
+def ctx(cfg: Settings) -> ModelContext:
+    return cfg.model_context()
+
+
+def workspace(cfg: Settings, **kw: object) -> RollingParams:
+    return cfg.rolling.model_copy(update={"route": "workspace", **kw})
+
+
+def test_the_default_route_is_the_thesis_coupling(cfg: Settings, ctx: ModelContext) -> None:
+    assert cfg.rolling.route == "thesis"
+    p = cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0})  # the full step
+    r = step(RollState(), TILTED, frame(20.0), frame(24.0), p, ctx)
+    assert r.targets is not None
+    assert r.targets.phi4 == pytest.approx(TILTED.phi4 - rad(0.25))
+    assert thesis_move(-1, cfg.rolling) == Move(rad(0.25), -2 * rad(0.25))
+
+
+def test_candidates_keep_the_thesis_length(cfg: Settings) -> None:
+    base = thesis_move(1, cfg.rolling)
+    moves = candidates(base)
+    assert moves[0] == base and len(moves) == 7
+    for m in moves:
+        assert math.hypot(m.d4, m.d5) == pytest.approx(math.hypot(base.d4, base.d5))
+
+
+def test_the_workspace_route_turns_ab_at_least_as_far(cfg: Settings, ctx: ModelContext) -> None:
+    """Where the thesis's move is allowed, the chosen move's predicted turn of AB is as large
+    (in the same sense), and strictly larger here, where Finger 1 may take any step: the
+    thesis's direction is not the best."""
+    p = workspace(cfg, finger1_max_step_deg=10.0)
+    obs = observe(TILTED, frame(20.0, FIRM), frame(24.0, FIRM), ctx)
+    assert obs.Lambda is not None
+    pred = Predictor(TILTED, obs, obs.Lambda, p.alpha, p, ctx)
+    base = thesis_move(1, p)
+    t_base, move = pred.turn(base), workspace_move(1, pred)
+    t_move = pred.turn(move)
+    assert t_base is not None and t_move is not None
+    assert t_move * t_base > 0 and abs(t_move) > 1.2 * abs(t_base)
+
+
+@pytest.mark.parametrize("amplitude", [1000.0, 8000.0], ids=["loose", "squeezed"])
+def test_outside_the_grip_band_it_is_the_thesis_move(
+    cfg: Settings, ctx: ModelContext, amplitude: float
+) -> None:
+    p = workspace(cfg, finger1_max_step_deg=10.0)
+    obs = observe(TILTED, frame(20.0, amplitude), frame(24.0, amplitude), ctx)
+    assert obs.Lambda is not None
+    pred = Predictor(TILTED, obs, obs.Lambda, p.alpha, p, ctx)
+    assert not pred.grip_holds()
+    assert workspace_move(1, pred) == thesis_move(1, p)
+
+
+# (φ2…φ5 in degrees, S1, S2, frame amplitude): anywhere, or near a mirror grasp with a firm
+# grip (where the workspace route plans moves of its own about one time in five)
+anywhere = st.tuples(st.tuples(*(st.floats(-80.0, 80.0) for _ in range(4))), st.floats(2.0, 38.0),
+                     st.floats(2.0, 38.0), st.floats(800.0, 7000.0))  # fmt: skip
+grasps = st.builds(
+    lambda a2, a3, d4, d5, S, dS, amp: ((a2, a3, a2 + d4, a3 + d5), S, S + dS, amp),
+    st.floats(-40.0, 30.0),
+    st.floats(-10.0, 60.0),
+    st.floats(-5.0, 5.0),
+    st.floats(-5.0, 5.0),
+    st.floats(5.0, 34.0),
+    st.floats(-4.0, 4.0),
+    st.floats(2000.0, 6000.0),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(case=st.one_of(anywhere, grasps), direction=st.sampled_from((1, -1)),
+       iteration=st.sampled_from((0, 5)))  # fmt: skip
+def test_workspace_route_stays_inside_limits_and_cones(
+    cfg: Settings,
+    case: tuple[tuple[float, float, float, float], float, float, float],
+    direction: int,
+    iteration: int,
+) -> None:
+    """Over random poses and contacts: a commanded target lies inside the joint limits, its plan
+    inside both cones; a move other than the thesis's keeps the route's margins."""
+    pose, S1, S2, amplitude = case
+    ctx, p = cfg.model_context(), workspace(cfg)
+    lim2 = ctx.limits2
+    hp = HandPose.from_degrees(*pose)
+    state = RollState(direction=direction, iteration=iteration)
+    r = step(state, hp, frame(S1, amplitude), frame(S2, amplitude), p, ctx)
+    if r.targets is not None:
+        t = r.targets
+        assert ctx.limits1.contains(t.phi2, t.phi3) and ctx.limits2.contains(t.phi4, t.phi5)
+        assert r.plan is not None and r.plan.omega_A_d is not None
+        assert r.plan.omega_B_d is not None
+        alpha = max(p.alpha, r.state.alpha_held)
+        assert cone_margin(r.plan.omega_A_d, alpha) > 0.0
+        assert cone_margin(r.plan.omega_B_d, alpha) > 0.0
+    obs = r.obs
+    if obs.Lambda is None or obs.points is None or obs.sigma is None:
+        return
+    pred = Predictor(hp, obs, obs.Lambda, max(p.alpha, r.state.alpha_held), p, ctx)
+    move = workspace_move(direction, pred)
+    if move == thesis_move(direction, p):
+        return
+    # a move of its own: planned from inside the route's margins, and keeping them
+    assert pred.now().inside()
+    phi4, phi5 = hp.phi4 + move.d4, hp.phi5 + move.d5
+    room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
+               phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
+    assert room >= LIMIT_MARGIN - 1e-12
+    assert pred.turn(move) is not None  # the margins kept (cones, wedge, Finger 1's joints, reach)
+    # …and it turns AB the way the thesis's move does
+    c2 = obs.contact2
+    assert c2.r_mm is not None and c2.theta_rad is not None
+    base = thesis_move(direction, p)
+    B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
+    Bt = contact_point(Finger.TWO, hp.phi4 + base.d4, hp.phi5 + base.d5, c2.r_mm,
+                       c2.theta_rad, ctx.geom)  # fmt: skip
+    sense = segment(obs.points.A, Bt)[1] - obs.sigma
+    assert (segment(obs.points.A, B)[1] - obs.sigma) * sense > 0.0
+
+
+def test_a_simulated_run_on_a_thesis_object_completes_with_the_workspace_route() -> None:
+    """The thesis's rubber, one stroke on the simulated hand (fast mode, virtual clock)."""
+    case = Case(id="rubber-ws", family="thesis", object=get_object("rubber"), height_mm=125.0,
+                seed=1, true_width_mm=60.5)  # fmt: skip
+    row = run_case(case.model_dump_json(), ['rolling.route="workspace"', "rolling.cycles=1"])
+    assert row["status"] == "completed", row.get("traceback")
+    assert row["success"] and not row["dropped"]
+    assert row["strokes"] == 1
