@@ -6,14 +6,18 @@ dict and converts no matrix: the JSON form is made once, at delivery (:func:`enc
 WebSocket clients; the 3-D view takes the values themselves, and its process gets them pickled
 (a tactile frame's matrices as arrays: bytes and shape, never lists).
 
-What the view draws of a sample — the contact points A, B with their pad normals and ω — is
-:class:`SampleView`, made here once per forwarded sample (:func:`sample_view`), so the view
-draws the contacts as given and never works out a pad's geometry itself.
+What the view draws of a sample — the contact points A, B with their pad normals and ω, and the
+reconstructed outline — is :class:`SampleView`, made here once per forwarded sample
+(:func:`sample_view`), so the view draws the contacts as given and never works out a pad's
+geometry itself. The reconstructed outline (:func:`estimate_outline`) is the recognition's own
+(:func:`sdh2svc.control.recognition.outline`) from the sample's fields, the same for the
+dashboard (a ``sample`` message's ``estimate_outline``), the 3-D view and Foxglove.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -24,10 +28,15 @@ import numpy as np
 import numpy.typing as npt
 
 from sdh2svc.control.observer import EventKind
+from sdh2svc.control.recognition import outline
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.friction import pad_tangent
 from sdh2svc.model.hand import AxisMap, TactileConfig
 from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
+
+log = logging.getLogger(__name__)
+
+ESTIMATE_POINTS = 48  # of the reconstructed outline, everywhere it is drawn
 
 
 class Kind(StrEnum):
@@ -68,7 +77,8 @@ class Status:
 @dataclass(frozen=True, slots=True)
 class SampleMsg:
     """One rolling iteration's :class:`Sample` of run ``run_id``; ``view``, when made, is what
-    the 3-D view draws of it (not in the JSON form)."""
+    the 3-D view draws of it (not in the JSON form). The JSON form's sample also carries
+    ``estimate_outline``: the reconstructed outline, y0z0 mm (``[]``: no class yet)."""
 
     run_id: int | None
     sample: Sample
@@ -80,7 +90,9 @@ class SampleMsg:
 
     def json(self) -> dict[str, Any]:
         s = self.sample
-        fields = dict(zip(s.columns(), s.row(), strict=True))
+        fields: dict[str, Any] = dict(zip(s.columns(), s.row(), strict=True))
+        est = self.view.estimate if self.view is not None else _points(estimate_outline(s))
+        fields["estimate_outline"] = [[y, z] for y, z in est]
         return {"type": "sample", "run_id": self.run_id, "sample": fields}
 
 
@@ -195,12 +207,14 @@ class Contact:
 
 @dataclass(frozen=True, slots=True)
 class SampleView:
-    """A sample as the 3-D view draws it: φ2…φ5 (degrees; None: not in the sample) and the
-    contacts A (Finger 1) and B (Finger 2)."""
+    """A sample as the 3-D view draws it: φ2…φ5 (degrees; None: not in the sample), the
+    contacts A (Finger 1) and B (Finger 2), and the reconstructed outline (:func:`estimate_outline`:
+    (y, z) points, mm; empty without a class)."""
 
     phi_deg: tuple[float | None, float | None, float | None, float | None]
     A: Contact | None
     B: Contact | None
+    estimate: tuple[tuple[float, float], ...] = ()
 
 
 def contact_normal(
@@ -241,7 +255,43 @@ def sample_view(s: Sample | Mapping[str, Any], geom: HandGeometry) -> SampleView
     phis = (_num(s, "phi2"), _num(s, "phi3"), _num(s, "phi4"), _num(s, "phi5"))
     A = _contact(s, Finger.ONE, ("Ay", "Az", "phi2", "phi3", "omega_A"), geom)
     B = _contact(s, Finger.TWO, ("By", "Bz", "phi4", "phi5", "omega_B"), geom)
-    return SampleView(phis, A, B)
+    return SampleView(phis, A, B, _points(estimate_outline(s)))
+
+
+def _points(pts: npt.NDArray[np.float64]) -> tuple[tuple[float, float], ...]:
+    return tuple((y, z) for y, z in pts.tolist())
+
+
+_NO_OUTLINE: npt.NDArray[np.float64] = np.zeros((0, 2))
+_outline_failures = 0
+
+
+def estimate_outline(
+    s: Sample | Mapping[str, Any], points: int = ESTIMATE_POINTS
+) -> npt.NDArray[np.float64]:
+    """The object as the recognition reconstructed it at sample ``s`` (a :class:`Sample`, or its
+    JSON form or a recorded row): ``points`` × 2, y0z0 mm, touching A and B, turned by the
+    estimated rotation (:func:`sdh2svc.control.recognition.outline`); empty (0 × 2) without a
+    class or a contact. Never raises: what cannot be drawn is not drawn (logged rarely)."""
+    global _outline_failures
+    try:
+        if not isinstance(s, Sample):
+            row: dict[str, Any] = {c: s.get(c) for c in Sample.columns()}
+            s = Sample(**row)
+        rec, ay, az, by, bz = s.recognition(), s.Ay, s.Az, s.By, s.Bz
+        if rec is None or rec.object_class is None or ay is None or az is None:
+            return _NO_OUTLINE
+        if by is None or bz is None:
+            return _NO_OUTLINE
+        pts = np.asarray(outline(rec, (ay, az), (by, bz), points), dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1:] != (2,) or not np.isfinite(pts).all():
+            return _NO_OUTLINE
+        return np.round(pts, 2)
+    except Exception:
+        _outline_failures += 1
+        if _outline_failures in (1, 100) or _outline_failures % 10000 == 0:
+            log.exception("the reconstructed outline failed (%d times)", _outline_failures)
+        return _NO_OUTLINE
 
 
 def as_array(matrix: Any) -> npt.NDArray[np.float64]:

@@ -48,7 +48,8 @@ def test_each_message_encodes_as_its_documented_dict() -> None:
         (Hello({"sim": True}), {"type": "hello", "status": {"sim": True}}),
         (Status({"run": None}), {"type": "status", "status": {"run": None}}),
         (SampleMsg(3, s), {"type": "sample", "run_id": 3,
-                           "sample": dict(zip(Sample.columns(), s.row(), strict=True))}),
+                           "sample": {**dict(zip(Sample.columns(), s.row(), strict=True)),
+                                      "estimate_outline": []}}),
         (Event(3, 1.5, 9, "reversal", {"why": "S1"}), {"type": "event", "run_id": 3, "t": 1.5,
                                                        "iteration": 9, "kind": "reversal",
                                                        "detail": {"why": "S1"}}),
@@ -104,3 +105,35 @@ def test_a_frame_reaches_the_views_process_as_arrays(dtype: type) -> None:
     assert all(np.array_equal(a, b) for a, b in zip(back.matrices, mats, strict=True))
     view = SampleView((None, None, None, None), None, None)
     assert pickle.loads(pickle.dumps(view)) == view
+
+
+def test_the_reconstructed_outline_is_the_recognitions_sent_with_the_sample(
+    cfg: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One outline, made by recognition.outline from the sample's fields: in the JSON form
+    (dashboard), in the view (3-D) and from a recorded row (replay) alike."""
+    from sdh2svc.control.recognition import ObjectClass
+    from sdh2svc.service import telemetry
+
+    calls: list[tuple[Any, ...]] = []
+
+    def square(rec: Any, a: Any, b: Any, n: int = 64) -> np.ndarray:
+        calls.append((rec.object_class, rec.size_a, rec.rotation, a, b, n))
+        return np.array([[0.0, 0.0], [rec.size_a, 0.0], [rec.size_a, rec.size_a]])
+
+    monkeypatch.setattr(telemetry, "outline", square)
+    s = a_sample(Ay=1.0, Az=2.0, By=3.0, Bz=4.0, contact1_kind="flat", contact2_kind="edge",
+                 object_class="box", class_confidence=0.5, size_a=10.0, size_b=5.0,
+                 rotation_est=30.0)  # fmt: skip
+    want = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]]
+    assert SampleMsg(1, s).json()["sample"]["estimate_outline"] == want
+    assert calls[-1] == (ObjectClass.BOX, 10.0, 30.0, (1.0, 2.0), (3.0, 4.0), 48)
+    view = SampleMsg(1, s).with_view(cfg.hand).view
+    assert view is not None and [list(p) for p in view.estimate] == want
+    row = dict(zip(Sample.columns(), s.row(), strict=True))  # a recorded row, the JSON form
+    assert telemetry.estimate_outline(row).tolist() == want
+    # no class, no contact, or an outline that fails: nothing drawn, nothing raised
+    assert SampleMsg(1, a_sample(object_class=None)).json()["sample"]["estimate_outline"] == []
+    assert telemetry.estimate_outline({**row, "By": None}).shape == (0, 2)
+    monkeypatch.setattr(telemetry, "outline", lambda *a: 1 / 0)
+    assert telemetry.estimate_outline(s).shape == (0, 2)
