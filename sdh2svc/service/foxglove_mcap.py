@@ -8,7 +8,8 @@ Channels (log times: the run's start plus each record's own time ``t``):
   thumb at the run's pre-shape, where a run holds them).
 * ``/scene`` — ``foxglove.SceneUpdate``: the six pads as boxes in their URDF frames (``pads/<pad>``,
   following ``/tf``), and in ``frame0`` the contact points A, B, the segment AB and the friction
-  cones of half-angle α about each pad's normal (``contacts``); in simulation the object's true
+  cones of half-angle α about each pad's normal, and the object as the recognition reconstructed
+  it, a closed blue line, once it has a class (``contacts``); in simulation the object's true
   outline too (``object``: live from the ``sim`` messages, in a file from the truth recorded with
   each iteration), red once it has dropped.
 * ``/tactile/<finger>_<proximal|distal>`` — each pad as ``foxglove.Grid`` (raw counts, uint16) in
@@ -46,10 +47,11 @@ from sdh2svc.model.urdf import (
     pad_matrix,
     to_xml,
 )
-from sdh2svc.service.telemetry import recorded_truth
+from sdh2svc.service.telemetry import estimate_outline, recorded_truth
 
 Json = dict[str, Any]
 _MM = 1e-3
+ESTIMATE_RGBA = (0.15, 0.75, 0.92, 1.0)  # the reconstructed outline (the 3-D view's colour)
 PAD_BOX_MM = 1.5  # the pads' boxes' thickness (display: under the Grid, which lies at z = 0)
 
 SAMPLE_SCHEMA = "sdh2svc.Sample"  # the /samples channel's schema name
@@ -205,7 +207,8 @@ class HandFrames:
         return out
 
     def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneEntity:
-        """A, B, the segment AB and the friction cones, in frame 0 (metres)."""
+        """A, B, the segment AB, the friction cones and the reconstructed outline
+        (:func:`~sdh2svc.service.telemetry.estimate_outline`), in frame 0 (metres)."""
         spheres, lines, cones = [], [], []
         pts = {}
         for name, finger, (py, pz), (cy, cz), psi in (
@@ -236,6 +239,16 @@ class HandFrames:
                         for q in (pts["A"], pts["B"])
                     ],
                     color=_rgba(1.0, 0.8, 0.1, 1.0),
+                )
+            )
+        est = estimate_outline(s)
+        if len(est) >= 2:
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineLoop,
+                    thickness=1.2 * _MM,
+                    points=[fm.Point3(x=0.0, y=y * _MM, z=z * _MM) for y, z in est.tolist()],
+                    color=_rgba(*ESTIMATE_RGBA),
                 )
             )
         return fm.SceneEntity(

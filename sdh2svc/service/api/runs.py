@@ -24,7 +24,7 @@ from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
 from sdh2svc.service.store import RunStore
-from sdh2svc.service.telemetry import clean_json, matrix_shapes
+from sdh2svc.service.telemetry import clean_json, estimate_outline, matrix_shapes
 
 router = APIRouter()
 
@@ -83,18 +83,29 @@ def get_run(cfg: Cfg, run_id: RunId) -> dict[str, Any]:
         return clean_json(run)  # type: ignore[no-any-return]
 
 
+OUTLINE_DOC = (
+    "with each sample its `estimate_outline`: the object as the recognition reconstructed it, "
+    "[[y, z], …] mm in frame 0 (empty while no class is known), as in the live `sample` message"
+)
+
+
 @router.get("/api/runs/{run_id}/samples", responses=responses(*READ, 404, 422))
 def samples(
     cfg: Cfg,
     run_id: RunId,
     offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX)] = 0,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+    outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> dict[str, Any]:
     with _store(cfg) as store:
         _run_or_404(store, run_id)
+        rows = store.samples(run_id, offset, limit)
+        if outline:  # as the live `sample` message carries it
+            for row in rows:
+                row["estimate_outline"] = estimate_outline(row).tolist()
         page = {
             "run_id": run_id, "offset": offset, "limit": limit,
-            "total": store.sample_count(run_id), "samples": store.samples(run_id, offset, limit),
+            "total": store.sample_count(run_id), "samples": rows,
         }  # fmt: skip
         return clean_json(page)  # type: ignore[no-any-return]
 
