@@ -99,7 +99,7 @@ export const api = {
   runs: () => request("GET", "/api/runs"),
   run: (id) => request("GET", `/api/runs/${id}`),
   samples: (id, offset, limit) =>
-    request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}`),
+    request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}&outline=true`),
   frames: (id, from, limit) => request("GET", `/api/runs/${id}/frames?from=${from}&limit=${limit}`),
   truth: (id, from, limit) => request("GET", `/api/runs/${id}/truth?from=${from}&limit=${limit}`),
   exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,

@@ -6,6 +6,7 @@ import {
 import { eventSentence, plainMessage } from "/web/events.js";
 import { ParamsForm } from "/web/params.js";
 import { Pads } from "/web/pads.js";
+import { showObject } from "/web/readout.js";
 import { MARKERS, Plots } from "/web/plots.js";
 import { Replay } from "/web/replay.js";
 import { configureHand, placedTruth, Sketch } from "/web/sketch.js";
@@ -153,6 +154,7 @@ window.addEventListener("unhandledrejection", (ev) => showError(ev.reason, "dash
 
 const sketch = new Sketch($("#sketch"));
 const pads = new Pads($("#pads"));
+const readout = $("#object-readout");
 const replay = new Replay($("#replay-banner"), { onIndex: (i, s) => showReplayIndex(i, s) });
 // hovering a plot shows that iteration in the sketch; off the plots, a replay's own iteration
 const plots = new Plots({
@@ -769,7 +771,9 @@ function onMessage(m) {
       plots.push(s, state.params);
       rememberSample(m.run_id, s);
       state.lastSampleAt = Date.now();
+      state.lastSample = s;
       sketch.setContact(s);
+      if (!replay.active) showObject(readout, s); // a replay shows its own iteration's
       break;
     }
     case "tactile":
@@ -927,6 +931,7 @@ function showReplayIndex(idx, s) {
   if (frame) pads.update(frame, it);
   else pads.update([], it);
   sketch.setOverride(s, replayTruth(s));
+  showObject(readout, s);
   feedViewer(replayData.runId, it);
 }
 
@@ -1026,6 +1031,7 @@ function backToLive() {
   endViewerReplay();
   plots.showLive();
   sketch.setOverride(null);
+  showObject(readout, state.lastSample ?? null);
   pads.update(state.lastTactile ?? [], null);
   if (state.params.alpha_deg !== undefined) sketch.setAlpha(state.params.alpha_deg);
   state.replayId = null;

@@ -66,6 +66,8 @@ SHOWN = """() => ({
   pads: document.querySelector('#pads').dataset.iteration,
   sketch: document.querySelector('#sketch').dataset.iteration,
   objectPose: document.querySelector('#sketch').dataset.objectPose,
+  readout: document.querySelector('#object-readout').dataset.iteration,
+  readoutClass: document.querySelector('#object-readout').dataset.class,
   plots: [...document.querySelectorAll('.plot')].map(p => p.dataset.cursorIteration),
   cursors: window.sdh2debug.plots.charts.map(c => c.cursor.idx),
   index: window.sdh2.replayIndex,
@@ -269,6 +271,9 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         sel = f"#pads canvas[data-matrix='{i}']"
         assert await page.evaluate(COUNT_PIXELS_NOT, [sel, PAD_ZERO_RGB]) > 0, f"pad {i} blank"
     assert await page.evaluate(COUNT_COLOURED, "#sketch") > 100
+    # the object readout follows the live samples (the recognition's estimate)
+    await page.wait_for_function("Number(document.querySelector('#object-readout')"
+                                 ".dataset.iteration) > 0")  # fmt: skip
     # the legends show the newest values without a hover
     legend = await page.inner_text("#plot-lambda .u-legend")
     assert re.search(r"Λ:?\s*\d", legend), legend
@@ -322,7 +327,8 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     # the run is in the history: replay it, download its exports
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
     await row.wait_for(timeout=15_000)
-    samples = httpx.get(f"{service.url}/api/runs/{run_id}/samples?limit=10000").json()["samples"]
+    samples = httpx.get(f"{service.url}/api/runs/{run_id}/samples",
+                        params={"limit": 10000, "outline": "true"}).json()["samples"]  # fmt: skip
     async with page.expect_request(lambda r: r.url.endswith("/api/viewer/replay")) as fed:
         await row.locator("button.replay").click()
         await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=30_000)
@@ -349,8 +355,12 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     )
     await page.evaluate(seek)
     shown = await page.evaluate(SHOWN)
-    assert shown["pads"] == shown["sketch"] == str(it), shown
+    assert shown["pads"] == shown["sketch"] == shown["readout"] == str(it), shown
     assert shown["plots"] == [str(it)] * len(PLOTS), shown
+    # … and the readout and the sketch that iteration's recognition, its outline as recorded
+    assert shown["readoutClass"] == (samples[i]["object_class"] or ""), shown
+    drawn = "document.querySelector('#sketch').dataset.estimatePoints"  # on the next frame
+    await page.wait_for_function(f"{drawn} === '{len(samples[i]['estimate_outline'])}'")
     # in simulation the sketch draws the object where the recording has it at that iteration
     truth = httpx.get(f"{service.url}/api/runs/{run_id}/truth?from={it}&limit=1").json()["truth"]
     assert [float(v) for v in shown["objectPose"].split(",")] == [
