@@ -325,6 +325,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 f"  F mean {f['mean']:.2f} (sd {f['sd'] or 0:.2f}, {f['min']:.2f}…{f['max']:.2f})"
                 f", loop {summary['loop_hz'] or 0:.1f} Hz"
             )
+        if summary.get("recognition"):
+            print(f"  recognition: {summary['recognition']}")
         if "truth" in summary:
             print(f"  simulation truth: {summary['truth']}")
     return Exit.OK if summary["status"] == "completed" else Exit.FAILED
