@@ -932,7 +932,40 @@ function showReplayIndex(idx, s) {
   else pads.update([], it);
   sketch.setOverride(s, replayTruth(s));
   showObject(readout, s);
+  feedOutline(idx);
   feedViewer(replayData.runId, it);
+}
+
+// The sketch's reconstructed outline in a replay: the shown iteration's, made by the service
+// (control.recognition.outline, milliseconds each: asked for one at a time, the newest wanted,
+// kept with the sample once had).
+const outlineFeed = { want: null, busy: false };
+
+async function feedOutline(idx) {
+  outlineFeed.want = idx;
+  if (outlineFeed.busy) return;
+  outlineFeed.busy = true;
+  try {
+    while (outlineFeed.want !== null) {
+      const i = outlineFeed.want;
+      outlineFeed.want = null;
+      const runId = replayData.runId;
+      const s = replay.samples[i];
+      if (runId === null || !s || s.estimate_outline !== undefined) continue;
+      if (!s.object_class) {
+        s.estimate_outline = []; // no class: nothing reconstructed
+        continue;
+      }
+      const got = (await api.samples(runId, i, 1, true)).samples[0];
+      if (replayData.runId !== runId) continue; // back to live (or another run) meanwhile
+      s.estimate_outline = got && got.iteration === s.iteration ? got.estimate_outline : [];
+      if (replay.index === i) sketch.setOverride(s, replayTruth(s));
+    }
+  } catch (e) {
+    showError(e, "replay outline");
+  } finally {
+    outlineFeed.busy = false;
+  }
 }
 
 // The 3-D view follows the scrubber: the newest iteration, at most every VIEW_FEED_MS, one

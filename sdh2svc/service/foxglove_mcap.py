@@ -27,7 +27,7 @@ import json
 import math
 import types
 import typing
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from typing import IO, Any
 
@@ -47,7 +47,12 @@ from sdh2svc.model.urdf import (
     pad_matrix,
     to_xml,
 )
-from sdh2svc.service.telemetry import estimate_outline, recorded_truth
+from sdh2svc.service.telemetry import (
+    ESTIMATE_PERIOD_S,
+    OutlineEvery,
+    estimate_outline,
+    recorded_truth,
+)
 
 Json = dict[str, Any]
 _MM = 1e-3
@@ -123,9 +128,13 @@ class HandFrames:
     cfg: Settings
     desc: HandDescription
     held: Mapping[str, float]  # the joints a sample does not carry (φ1, thumb), rad
+    # a sample's reconstructed outline (telemetry.estimate_outline, or one made less often)
+    estimate: Callable[[Mapping[str, Any]], np.ndarray] = estimate_outline
 
     @classmethod
-    def of(cls, cfg: Settings) -> HandFrames:
+    def of(
+        cls, cfg: Settings, estimate: Callable[[Mapping[str, Any]], np.ndarray] = estimate_outline
+    ) -> HandFrames:
         desc = describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
         pre = cfg.run.preshape_deg
         ax = cfg.axes
@@ -134,7 +143,7 @@ class HandFrames:
             "thumb_proximal": pre[ax.thumb_proximal],
             "thumb_distal": pre[ax.thumb_distal],
         }
-        return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()})
+        return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()}, estimate)
 
     def transforms(self, s: Mapping[str, Any], ns: int) -> fm.FrameTransforms:
         """The links at a sample's φ2…φ5 (the other joints held)."""
@@ -208,7 +217,7 @@ class HandFrames:
 
     def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneEntity:
         """A, B, the segment AB, the friction cones and the reconstructed outline
-        (:func:`~sdh2svc.service.telemetry.estimate_outline`), in frame 0 (metres)."""
+        (:attr:`estimate`), in frame 0 (metres)."""
         spheres, lines, cones = [], [], []
         pts = {}
         for name, finger, (py, pz), (cy, cz), psi in (
@@ -241,7 +250,7 @@ class HandFrames:
                     color=_rgba(1.0, 0.8, 0.1, 1.0),
                 )
             )
-        est = estimate_outline(s)
+        est = self.estimate(s)
         if len(est) >= 2:
             lines.append(
                 fm.LinePrimitive(
@@ -389,8 +398,10 @@ def write_mcap(
     """Write one run (its row, samples, events, frames) to ``out``; returns the message count.
 
     ``outline`` and ``truth``: the simulated object's (``RunStore.outline``, ``RunStore.truth``),
-    drawn in each iteration's scene where recorded."""
-    hand = HandFrames.of(cfg)
+    drawn in each iteration's scene where recorded. The reconstructed outline is drawn at most
+    every :data:`~sdh2svc.service.telemetry.ESTIMATE_PERIOD_S` of the run (it costs
+    milliseconds)."""
+    hand = HandFrames.of(cfg, OutlineEvery(ESTIMATE_PERIOD_S))
     meta = run.get("meta") or {}
     alpha = math.radians((meta.get("params") or {}).get("alpha_deg", cfg.rolling.alpha_deg))
     w = Writer(out)

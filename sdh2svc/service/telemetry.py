@@ -11,7 +11,9 @@ reconstructed outline — is :class:`SampleView`, made here once per forwarded s
 (:func:`sample_view`), so the view draws the contacts as given and never works out a pad's
 geometry itself. The reconstructed outline (:func:`estimate_outline`) is the recognition's own
 (:func:`sdh2svc.control.recognition.outline`) from the sample's fields, the same for the
-dashboard (a ``sample`` message's ``estimate_outline``), the 3-D view and Foxglove.
+dashboard (a ``sample`` message's ``estimate_outline``), the 3-D view and Foxglove. It costs
+milliseconds, so the live views share one, made at most every :data:`ESTIMATE_PERIOD_S` of the
+run's time (:data:`live_outline`); a recorded iteration gets its own.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, 
 log = logging.getLogger(__name__)
 
 ESTIMATE_POINTS = 48  # of the reconstructed outline, everywhere it is drawn
+ESTIMATE_PERIOD_S = 0.1  # live views: the reconstructed outline at most this often (run time)
+_NO_OUTLINE: npt.NDArray[np.float64] = np.zeros((0, 2))
 
 
 class Kind(StrEnum):
@@ -85,13 +89,17 @@ class SampleMsg:
     view: SampleView | None = None
     type: ClassVar[Kind] = Kind.SAMPLE
 
-    def with_view(self, geom: HandGeometry) -> SampleMsg:
-        return self if self.view is not None else replace(self, view=sample_view(self.sample, geom))
+    def with_view(self, geom: HandGeometry, *, live: bool = True) -> SampleMsg:
+        """With what the view draws of it (``live``: the live views' shared outline,
+        :data:`live_outline`; else this sample's own)."""
+        if self.view is not None:
+            return self
+        return replace(self, view=sample_view(self.sample, geom, live=live))
 
     def json(self) -> dict[str, Any]:
         s = self.sample
         fields: dict[str, Any] = dict(zip(s.columns(), s.row(), strict=True))
-        est = self.view.estimate if self.view is not None else _points(estimate_outline(s))
+        est = self.view.estimate if self.view is not None else _points(live_outline(s))
         fields["estimate_outline"] = [[y, z] for y, z in est]
         return {"type": "sample", "run_id": self.run_id, "sample": fields}
 
@@ -249,20 +257,57 @@ def _contact(
     return Contact(at, normal, w)
 
 
-def sample_view(s: Sample | Mapping[str, Any], geom: HandGeometry) -> SampleView:
+def sample_view(
+    s: Sample | Mapping[str, Any], geom: HandGeometry, *, live: bool = True
+) -> SampleView:
     """What the view draws of ``s`` (a :class:`Sample` or its JSON form; a missing or
-    non-finite field is None)."""
+    non-finite field is None); ``live``: the live views' outline (:data:`live_outline`), else
+    the sample's own."""
     phis = (_num(s, "phi2"), _num(s, "phi3"), _num(s, "phi4"), _num(s, "phi5"))
     A = _contact(s, Finger.ONE, ("Ay", "Az", "phi2", "phi3", "omega_A"), geom)
     B = _contact(s, Finger.TWO, ("By", "Bz", "phi4", "phi5", "omega_B"), geom)
-    return SampleView(phis, A, B, _points(estimate_outline(s)))
+    est = live_outline(s) if live else estimate_outline(s)
+    return SampleView(phis, A, B, _points(est))
 
 
 def _points(pts: npt.NDArray[np.float64]) -> tuple[tuple[float, float], ...]:
     return tuple((y, z) for y, z in pts.tolist())
 
 
-_NO_OUTLINE: npt.NDArray[np.float64] = np.zeros((0, 2))
+class OutlineEvery:
+    """:func:`estimate_outline` of a stream of samples: the same sample's again at once, a
+    later one's only when its run time ``t`` is ``period_s`` past the last one made and of the
+    same class (else made again: a newer class, another run); in between the last one. Between
+    two makings the contacts move a fraction of a millimetre; an outline costs milliseconds
+    (``recognition.outline``)."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.made = 0  # outlines made (tests, diagnostics)
+        self._last: object = None
+        self._t = -math.inf
+        self._cls: Any = None
+        self._pts = _NO_OUTLINE
+
+    def __call__(self, s: Sample | Mapping[str, Any]) -> npt.NDArray[np.float64]:
+        if s is self._last:
+            return self._pts
+        t = _num(s, "t")
+        cls = s.object_class if isinstance(s, Sample) else s.get("object_class")
+        if cls is None:
+            return _NO_OUTLINE
+        if t is not None and cls == self._cls and 0.0 < t - self._t < self.period_s:
+            return self._pts
+        self._last, self._cls, self._t = s, cls, (t if t is not None else -math.inf)
+        self._pts = estimate_outline(s)
+        self.made += 1
+        return self._pts
+
+
+#: The live views' (the hub's JSON, the 3-D view, Foxglove) one outline of the running run.
+live_outline = OutlineEvery(ESTIMATE_PERIOD_S)
+
+
 _outline_failures = 0
 
 

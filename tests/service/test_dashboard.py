@@ -327,8 +327,7 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     # the run is in the history: replay it, download its exports
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
     await row.wait_for(timeout=15_000)
-    samples = httpx.get(f"{service.url}/api/runs/{run_id}/samples",
-                        params={"limit": 10000, "outline": "true"}).json()["samples"]  # fmt: skip
+    samples = httpx.get(f"{service.url}/api/runs/{run_id}/samples?limit=10000").json()["samples"]
     async with page.expect_request(lambda r: r.url.endswith("/api/viewer/replay")) as fed:
         await row.locator("button.replay").click()
         await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=30_000)
@@ -359,8 +358,11 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     assert shown["plots"] == [str(it)] * len(PLOTS), shown
     # … and the readout and the sketch that iteration's recognition, its outline as recorded
     assert shown["readoutClass"] == (samples[i]["object_class"] or ""), shown
-    drawn = "document.querySelector('#sketch').dataset.estimatePoints"  # on the next frame
-    await page.wait_for_function(f"{drawn} === '{len(samples[i]['estimate_outline'])}'")
+    est = httpx.get(f"{service.url}/api/runs/{run_id}/samples",
+                    params={"offset": i, "limit": 1, "outline": "true"}).json()  # fmt: skip
+    drawn = "document.querySelector('#sketch').dataset.estimatePoints"  # once the page has it
+    n_est = len(est["samples"][0]["estimate_outline"])
+    await page.wait_for_function(f"{drawn} === '{n_est}'", timeout=10_000)
     # in simulation the sketch draws the object where the recording has it at that iteration
     truth = httpx.get(f"{service.url}/api/runs/{run_id}/truth?from={it}&limit=1").json()["truth"]
     assert [float(v) for v in shown["objectPose"].split(",")] == [

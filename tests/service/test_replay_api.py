@@ -272,10 +272,13 @@ async def test_the_runs_recognition_in_its_summary_and_samples(
     monkeypatch.setattr(telemetry, "outline", lambda rec, a, b, n: np.array([a, b, a]))
     plain = (await c.get(f"/api/runs/{run_id}/samples")).json()["samples"]
     assert "estimate_outline" not in plain[0]
-    page = (await c.get(f"/api/runs/{run_id}/samples", params={"outline": "true"})).json()
+    asked = {"outline": "true", "limit": 100}
+    page = (await c.get(f"/api/runs/{run_id}/samples", params=asked)).json()
     outlines = [s["estimate_outline"] for s in page["samples"]]
     assert outlines[:ITERATIONS] == [[]] * ITERATIONS  # no class: nothing reconstructed
     assert outlines[ITERATIONS] == [[20.0, 110.0], [46.0, 110.0], [20.0, 110.0]]
+    r = await c.get(f"/api/runs/{run_id}/samples", params={**asked, "limit": 101})
+    assert r.status_code == 422 and "at most 100" in r.json()["details"][0]
 
     doc = (await c.get("/openapi.json")).json()
     ok = doc["paths"]["/api/runs/{run_id}"]["get"]["responses"]["200"]

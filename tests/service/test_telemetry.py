@@ -122,6 +122,7 @@ def test_the_reconstructed_outline_is_the_recognitions_sent_with_the_sample(
         return np.array([[0.0, 0.0], [rec.size_a, 0.0], [rec.size_a, rec.size_a]])
 
     monkeypatch.setattr(telemetry, "outline", square)
+    monkeypatch.setattr(telemetry, "live_outline", telemetry.OutlineEvery(0.1))
     s = a_sample(Ay=1.0, Az=2.0, By=3.0, Bz=4.0, contact1_kind="flat", contact2_kind="edge",
                  object_class="box", class_confidence=0.5, size_a=10.0, size_b=5.0,
                  rotation_est=30.0)  # fmt: skip
@@ -137,3 +138,25 @@ def test_the_reconstructed_outline_is_the_recognitions_sent_with_the_sample(
     assert telemetry.estimate_outline({**row, "By": None}).shape == (0, 2)
     monkeypatch.setattr(telemetry, "outline", lambda *a: 1 / 0)
     assert telemetry.estimate_outline(s).shape == (0, 2)
+
+
+def test_the_live_views_share_an_outline_made_at_most_every_period(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The outline costs milliseconds: the hub's JSON, the 3-D view and Foxglove take one of the
+    same sample, and a later sample's only once ESTIMATE_PERIOD_S of the run has passed."""
+    from sdh2svc.service import telemetry
+
+    monkeypatch.setattr(telemetry, "outline", lambda rec, a, b, n: np.array([a, b, (0.0, 0.0)]))
+    every = telemetry.OutlineEvery(0.1)
+    est = {"Ay": 1.0, "Az": 2.0, "By": 3.0, "Bz": 4.0, "object_class": "box", "size_a": 10.0,
+           "size_b": 5.0, "rotation_est": 3.0}  # fmt: skip
+    samples = [a_sample(t=0.02 * i, **{**est, "Ay": 1.0 + i}) for i in range(12)]
+    for s in samples:
+        for _consumer in range(3):
+            got = every(s)
+    assert every.made == 3  # t = 0, 0.10, 0.20 (0.02 steps: a made one serves five)
+    assert got[0, 0] == 1.0 + 10  # the last made: t = 0.20
+    assert every(a_sample(t=0.0, **est)).tolist()[0] == [1.0, 2.0]  # back in time: a new run
+    assert every(a_sample(t=0.01, **{**est, "object_class": "circle"})).shape == (3, 2)
+    assert every.made == 5 and every(a_sample(t=0.02, **{**est, "object_class": None})).size == 0

@@ -367,6 +367,7 @@ async def test_the_reconstructed_outline_is_drawn_while_a_class_is_known(
     viewer: Viewer, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(telemetry, "outline", _ring)
+    monkeypatch.setattr(telemetry, "live_outline", telemetry.OutlineEvery(0.1))
     est = {"object_class": "circle", "class_confidence": 0.9, "size_a": 30.0, "rotation_est": 4.0}
     n = viewer.frames
     viewer.handle({"type": "sample", "sample": {**SAMPLE, **est}})

@@ -143,9 +143,11 @@ def get_run(cfg: Cfg, run_id: RunId) -> dict[str, Any]:
         return clean_json(run)  # type: ignore[no-any-return]
 
 
+MAX_OUTLINES = 100  # samples per page with their outlines (each costs milliseconds to make)
 OUTLINE_DOC = (
     "with each sample its `estimate_outline`: the object as the recognition reconstructed it, "
-    "[[y, z], …] mm in frame 0 (empty while no class is known), as in the live `sample` message"
+    "[[y, z], …] mm in frame 0 (empty while no class is known), as in the live `sample` "
+    f"message; `limit` then at most {MAX_OUTLINES}"
 )
 
 
@@ -157,6 +159,8 @@ def samples(
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
     outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> dict[str, Any]:
+    if outline and limit > MAX_OUTLINES:
+        raise ServiceError(422, "invalid request", [f"limit: at most {MAX_OUTLINES} with outline"])
     with _store(cfg) as store:
         _run_or_404(store, run_id)
         rows = store.samples(run_id, offset, limit)
