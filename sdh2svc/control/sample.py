@@ -108,6 +108,11 @@ class Sample:
     rotation_est: float | None = _est(
         "the object's estimated rotation since the grasp (rolling kinematics)", "deg"
     )
+    axis_est: float | None = _est(
+        "inclination σ of AB at the grasp: the reconstructed outline turns to axis_est + "
+        "rotation_est",
+        "deg",
+    )
 
     @classmethod
     def columns(cls) -> tuple[str, ...]:
@@ -182,6 +187,7 @@ class Sample:
             object_class=_enum(ObjectClass, self.object_class),
             confidence=self.class_confidence or 0.0,
             size_a=self.size_a, size_b=self.size_b, rotation=self.rotation_est,
+            axis=self.axis_est,
         )  # fmt: skip
 
 
@@ -202,5 +208,5 @@ def _recognized(rec: Recognition | None) -> dict[str, Any]:
         "radius1": rec.radius1, "radius2": rec.radius2,
         "object_class": None if rec.object_class is None else rec.object_class.value,
         "class_confidence": rec.confidence, "size_a": rec.size_a, "size_b": rec.size_b,
-        "rotation_est": rec.rotation,
+        "rotation_est": rec.rotation, "axis_est": rec.axis,
     }  # fmt: skip

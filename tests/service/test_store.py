@@ -143,7 +143,7 @@ def test_an_older_database_gets_new_sample_columns(tmp_path: Path) -> None:
 
 
 RECOGNITION = ("contact1_kind", "contact2_kind", "radius1", "radius2", "object_class",
-               "class_confidence", "size_a", "size_b", "rotation_est")  # fmt: skip
+               "class_confidence", "size_a", "size_b", "rotation_est", "axis_est")  # fmt: skip
 
 
 def test_the_recognition_round_trips_and_an_older_database_reads_as_none(
@@ -159,7 +159,7 @@ def test_the_recognition_round_trips_and_an_older_database_reads_as_none(
     old_sample = _samples(cfg, 1)[0]
     with contextlib.closing(sqlite3.connect(path)) as old:
         old_schema = SCHEMA.replace("".join(f', "{c}"' for c in RECOGNITION), "")
-        assert '"rotation_est"' not in old_schema
+        assert '"rotation_est"' not in old_schema and '"axis_est"' not in old_schema
         old.executescript(old_schema)
         old.execute("INSERT INTO runs (started_at, status, meta) VALUES ('x', 'completed', '{}')")
         cols, marks = ", ".join(f'"{c}"' for c in older), ", ".join("?" * len(older))
@@ -170,7 +170,7 @@ def test_the_recognition_round_trips_and_an_older_database_reads_as_none(
     (row,) = store.samples(1)
     assert Sample(**row) == old_sample and Sample(**row).recognition() is None
     rec = Recognition(ContactKind.EDGE, ContactKind.CURVED, None, 18.0, ObjectClass.POLYGON,
-                      0.9, 31.0, 20.5, -12.25)  # fmt: skip
+                      0.9, 31.0, 20.5, -12.25, 8.5)  # fmt: skip
     r = step(RollState(), HandPose(*(math.radians(a) for a in (-20, 30, -20, 30))),
              _frame(20.0), _frame(20.0), cfg.rolling, cfg.model_context())  # fmt: skip
     new = Sample.from_step(r, HandPose(0, 0, 0, 0), 0.0, 1.0, 1.0, 1.0, rec)
