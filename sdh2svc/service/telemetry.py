@@ -39,7 +39,7 @@ from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, 
 log = logging.getLogger(__name__)
 
 ESTIMATE_POINTS = 48  # of the reconstructed outline, everywhere it is drawn
-ESTIMATE_PERIOD_S = 0.1  # live views: the reconstructed outline at most this often (run time)
+ESTIMATE_PERIOD_S = 0.2  # live views: the reconstructed outline at most this often (run time)
 _NO_OUTLINE: npt.NDArray[np.float64] = np.zeros((0, 2))
 
 
