@@ -327,7 +327,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             )
         if (rec := summary.get("recognition")) and rec.get("object_class"):
             sizes = ", ".join(f"{rec[k]:.1f}" for k in ("size_a_mm", "size_b_mm") if rec.get(k))
-            print(f"  recognised a {rec['object_class']} ({rec.get('confidence', 0):.0%}; "
+            cls = rec["object_class"]
+            print(f"  recognised {'an' if cls[0] in 'aeiou' else 'a'} {cls} "
+                  f"({rec.get('confidence', 0):.0%}; "
                   f"{sizes} mm), turned {rec.get('rotation_deg') or 0:.1f}°")  # fmt: skip
         if "truth" in summary:
             print(f"  simulation truth: {summary['truth']}")

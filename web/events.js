@@ -34,7 +34,8 @@ function recognised(r) {
   if (!r || !r.object_class) return "";
   const conf = Number.isFinite(r.confidence) ? ` (${Math.round(100 * r.confidence)} %)` : "";
   const turn = Number.isFinite(r.rotation_deg) ? `, turned ${r.rotation_deg.toFixed(1)}°` : "";
-  return `; recognised a ${r.object_class}${conf}${turn}`;
+  const a = /^[aeiou]/.test(r.object_class) ? "an" : "a";
+  return `; recognised ${a} ${r.object_class}${conf}${turn}`;
 }
 
 const PARAM_NAMES = {
