@@ -364,7 +364,7 @@ def _ring(rec: Any, a: tuple[float, float], b: tuple[float, float], n: int = 64)
 
 
 async def test_the_reconstructed_outline_is_drawn_while_a_class_is_known(
-    viewer: Viewer, monkeypatch: pytest.MonkeyPatch
+    viewer: Viewer, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     monkeypatch.setattr(telemetry, "outline", _ring)
     monkeypatch.setattr(telemetry, "live_outline", telemetry.OutlineEvery(0.1))
@@ -381,6 +381,25 @@ async def test_the_reconstructed_outline_is_drawn_while_a_class_is_known(
     viewer.handle({"type": "sample", "sample": {**SAMPLE, **est, "object_class": None}})
     await next_frame(viewer, n)
     assert not node.visible  # no class: nothing reconstructed
+
+    # a replayed iteration shows the outline recorded with it (its own, not the live one's)
+    values: dict[str, Any] = dict.fromkeys(Sample.columns())
+    values.update({**SAMPLE, **est, "size_a": 12.0, "t": 0.5, "iteration": 3})
+    store = RunStore(tmp_path / "runs.db")
+    run_id = store.create_run({})
+    rec = RunRecorder(store.path, run_id)
+    rec.sample(Sample(**values))
+    rec.close()
+    recorded = recorded_iteration(store, viewer.settings, run_id, 3)
+    store.close()
+    assert recorded is not None
+    n = viewer.frames
+    viewer.replay.show(recorded)
+    await next_frame(viewer, n)
+    assert node.visible
+    radius = np.ptp(node.points[:, 0, 1]) / 2 / MM
+    assert radius == pytest.approx(12.0, abs=0.2)
+    viewer.replay.end()
 
 
 # --- (d) GUI → on_command --------------------------------------------------------------------
