@@ -84,6 +84,51 @@ class Recognition:
 
 
 @dataclass(frozen=True, slots=True)
+class Softmax:
+    """A multinomial logistic model: standardised features (``mean``, ``scale``), optionally
+    with their pairwise products appended (``quadratic``), then ``weights`` · z + ``bias``."""
+
+    mean: np.ndarray
+    scale: np.ndarray
+    weights: np.ndarray  # (classes, features)
+    bias: np.ndarray
+    quadratic: bool = False
+
+    @classmethod
+    def load(cls, data: dict[str, Any]) -> Softmax:
+        return cls(
+            np.asarray(data["mean"], float),
+            np.asarray(data["scale"], float),
+            np.asarray(data["weights"], float),
+            np.asarray(data["bias"], float),
+            bool(data.get("quadratic", False)),
+        )
+
+    def dump(self) -> dict[str, Any]:
+        return {
+            "mean": self.mean.tolist(),
+            "scale": self.scale.tolist(),
+            "weights": self.weights.tolist(),
+            "bias": self.bias.tolist(),
+            "quadratic": self.quadratic,
+        }
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        z = (expand(x) if self.quadratic else x) - self.mean
+        s = self.weights @ (z / self.scale) + self.bias
+        e = np.exp(s - s.max())
+        p: np.ndarray = e / e.sum()
+        return p
+
+
+def expand(x: np.ndarray) -> np.ndarray:
+    """``x`` followed by the products of every pair of its entries (with themselves)."""
+    i, j = np.triu_indices(x.shape[-1])
+    out: np.ndarray = np.concatenate([x, x[..., i] * x[..., j]], axis=-1)
+    return out
+
+
+@dataclass(frozen=True, slots=True)
 class RecognitionModel:
     """The estimators' parameters (fitted by ``python -m experiments.recognition.fit``)."""
 
@@ -95,10 +140,27 @@ class RecognitionModel:
     circle_tol: float = 0.2  # |R − Λ/2| / (Λ/2) of a circle's contacts
     stick_ratio: float = 0.2  # a stick's ends: R below this × Λ
     parallel_deg: float = 6.0  # a box's two faces: pad normals antiparallel within this
+    kind: Softmax | None = None  # contact kind from contact_features (else the rules above)
+    object_class: Softmax | None = None  # class from class_features (else classify's rules)
 
     @classmethod
     def load(cls, data: dict[str, Any]) -> RecognitionModel:
-        return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+        kw = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
+        for key in ("kind", "object_class"):
+            if kw.get(key) is not None:
+                kw[key] = Softmax.load(kw[key])
+        return cls(**kw)
+
+    def dump(self) -> dict[str, Any]:
+        out = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        for key in ("kind", "object_class"):
+            if out[key] is not None:
+                out[key] = out[key].dump()
+        return out
+
+
+KINDS = (ContactKind.FLAT, ContactKind.EDGE, ContactKind.CURVED)  # the kind model's order
+CLASSES = tuple(ObjectClass)  # the class model's order
 
 
 @lru_cache(maxsize=1)
@@ -134,8 +196,11 @@ def rolling_turn(prev: Observation, pose: HandPose, ctx: ModelContext) -> float 
     return (dy * vz - dz * vy) / d2 if d2 > 1e-9 else None
 
 
+MAX_RADIUS_MM = 1000.0  # a kinematic radius beyond this (or a curvature ≤ 0) is flat
+
+
 class _ContactTrack:
-    """One pad's recent (L, ν − ψ): the contact's kind and local radius."""
+    """One pad's recent (L, ν − ψ): the kinematic curvature, the rules' kind, the features."""
 
     def __init__(self, finger: Finger, model: RecognitionModel) -> None:
         self.finger = finger
@@ -146,11 +211,13 @@ class _ContactTrack:
         self.rel: deque[float] = deque(maxlen=model.window)
         self.kind: ContactKind | None = None
         self.radius: float | None = None
+        self.kinematic_radius = MAX_RADIUS_MM
+        self.features: list[float] | None = None  # see contact_features
 
     def lost(self) -> None:
         self.L.clear()
         self.rel.clear()
-        self.kind, self.radius = None, None
+        self.kind, self.radius, self.features = None, None, None
 
     def update(self, c: ContactEstimate, nu: float, psi: float) -> None:
         assert c.L_mm is not None
@@ -158,24 +225,48 @@ class _ContactTrack:
         self.rel.append(nu - psi)
         if len(self.L) < 3:
             return
-        m = self.model
         x, y = np.fromiter(self.L, float), np.fromiter(self.rel, float)
         travel, turn = float(x.max() - x.min()), math.degrees(float(y.max() - y.min()))
-        if travel < m.min_travel_mm:
-            if turn > 2 * m.min_turn_deg:
-                self.kind, self.radius = ContactKind.EDGE, None
-            return
-        if turn < m.min_turn_deg:
-            self.kind, self.radius = ContactKind.FLAT, None
-            return
         xc, yc = x - x.mean(), y - y.mean()
-        kappa = self.sign * float(xc @ yc) / float(xc @ xc)
-        if kappa <= 1.0 / m.flat_radius_mm:
-            self.kind, self.radius = ContactKind.FLAT, None
-        elif kappa >= 1.0 / m.edge_radius_mm:
-            self.kind, self.radius = ContactKind.EDGE, None
-        else:
-            self.kind, self.radius = ContactKind.CURVED, 1.0 / kappa
+        sxx = float(xc @ xc)
+        kappa = self.sign * float(xc @ yc) / sxx if sxx > 1e-9 else 0.0
+        self.kinematic_radius = min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
+        main = max(c.blobs, key=lambda b: b.pressure_sum_n_per_mm2)
+        d = c.depth
+        self.features = [
+            math.log(max(self.kinematic_radius, 0.5)),
+            math.log(travel + 0.05),
+            math.log(turn + 0.05),
+            d.footprint_sd_mm or 0.0,
+            float(main.last_row - main.first_row + 1),
+            float(c.n_cells),
+            math.log(d.compression_mm + 0.01),
+            d.band_mm,
+            c.force,
+            c.L_mm,
+        ]
+        self.kind, self.radius = self._rules(travel, turn, kappa)
+
+    def _rules(
+        self, travel: float, turn: float, kappa: float
+    ) -> tuple[ContactKind | None, float | None]:
+        """The kind without a learned model: a pivot is an edge, no relative turn is flat."""
+        m = self.model
+        if travel < m.min_travel_mm:
+            return (
+                (ContactKind.EDGE, None) if turn > 2 * m.min_turn_deg else (self.kind, self.radius)
+            )
+        if turn < m.min_turn_deg or kappa <= 1.0 / m.flat_radius_mm:
+            return ContactKind.FLAT, None
+        if kappa >= 1.0 / m.edge_radius_mm:
+            return ContactKind.EDGE, None
+        return ContactKind.CURVED, 1.0 / kappa
+
+
+def contact_features(me: list[float], other: list[float], lam: float) -> np.ndarray:
+    """The kind model's input for one contact: its own track's features, the other contact's
+    first four (radius, travel, turn, footprint), the radius against Λ/2, and log Λ."""
+    return np.array([*me, me[0] - math.log(lam / 2), *other[:4], math.log(lam)])
 
 
 @dataclass
@@ -187,12 +278,41 @@ class _Evidence:
     edge: int = 0
     curved: int = 0
     both_flat: int = 0
+    both_edge: int = 0
     parallel: int = 0  # of both_flat: the pad normals antiparallel
-    radii: list[float] | None = None
+    radii: list[float] | None = None  # curved contacts' radius / (Λ/2)
     lam_min: float = math.inf
     lam_max: float = 0.0
     lam_sum: float = 0.0
     lam_n: int = 0
+    psi_min: float = 0.0  # rad
+    psi_max: float = 0.0
+
+
+def class_features(ev: _Evidence) -> np.ndarray:
+    """The class model's input: the shares of each contact kind and of both-flat (parallel or
+    not) and both-edge iterations, the curved radii against Λ/2 (median, spread), Λ's spread
+    and size, and how far the object turned."""
+    total = max(1, ev.flat + ev.edge + ev.curved)
+    n = max(1, ev.n)
+    r = np.log(np.asarray(ev.radii)) if ev.radii else np.zeros(1)
+    q25, q50, q75 = np.percentile(r, (25, 50, 75))
+    lam_mean = ev.lam_sum / max(1, ev.lam_n)
+    return np.array(
+        [
+            ev.flat / total,
+            ev.edge / total,
+            ev.curved / total,
+            ev.both_flat / n,
+            ev.parallel / n,
+            ev.both_edge / n,
+            float(q50),
+            float(q75 - q25),
+            math.log((ev.lam_max - ev.lam_min) / lam_mean + 0.01),
+            math.log(lam_mean),
+            math.log(math.degrees(ev.psi_max - ev.psi_min) + 0.5),
+        ]
+    )
 
 
 class Recognizer:
@@ -205,10 +325,8 @@ class Recognizer:
         self._prev: Observation | None = None
         self._psi = 0.0
         self._axis: float | None = None
-        self._tracks = (
-            _ContactTrack(Finger.ONE, self.model),
-            _ContactTrack(Finger.TWO, self.model),
-        )
+        m = self.model
+        self._tracks = (_ContactTrack(Finger.ONE, m), _ContactTrack(Finger.TWO, m))
         self._ev = _Evidence(radii=[])
 
     def update(self, obs: Observation, counts1: np.ndarray, counts2: np.ndarray) -> Recognition:
@@ -226,17 +344,19 @@ class Recognizer:
             if d is not None:
                 self._psi += d
         self._prev = obs
+        ev = self._ev
+        ev.psi_min, ev.psi_max = min(ev.psi_min, self._psi), max(ev.psi_max, self._psi)
         for track, c in zip(self._tracks, (obs.contact1, obs.contact2), strict=True):
             assert c.x3_mm is not None
             track.update(c, pad_normal_angle(track.finger, obs.pose, c.x3_mm, self.ctx), self._psi)
-        t1, t2 = self._tracks
-        self._gather(obs, t1, t2)
-        cls, conf, a, b = classify(self._ev, self.model)
+        (k1, r1), (k2, r2) = self._kinds(obs.Lambda)
+        self._gather(obs, k1, k2, r1, r2)
+        cls, conf, a, b = self._classify()
         self.last = Recognition(
-            kind1=t1.kind,
-            kind2=t2.kind,
-            radius1=t1.radius,
-            radius2=t2.radius,
+            kind1=k1,
+            kind2=k2,
+            radius1=r1,
+            radius2=r2,
             object_class=cls,
             confidence=conf,
             size_a=a,
@@ -246,31 +366,61 @@ class Recognizer:
         )
         return self.last
 
-    def _gather(self, obs: Observation, t1: _ContactTrack, t2: _ContactTrack) -> None:
+    def _kinds(self, lam: float) -> list[tuple[ContactKind | None, float | None]]:
+        t1, t2 = self._tracks
+        model = self.model.kind
+        if model is None or t1.features is None or t2.features is None:
+            return [(t1.kind, t1.radius), (t2.kind, t2.radius)]
+        out: list[tuple[ContactKind | None, float | None]] = []
+        for me, other in ((t1, t2), (t2, t1)):
+            assert me.features is not None and other.features is not None
+            p = model.probabilities(contact_features(me.features, other.features, lam))
+            kind = KINDS[int(np.argmax(p))]
+            out.append((kind, me.kinematic_radius if kind is ContactKind.CURVED else None))
+        return out
+
+    def _gather(
+        self,
+        obs: Observation,
+        k1: ContactKind | None,
+        k2: ContactKind | None,
+        r1: float | None,
+        r2: float | None,
+    ) -> None:
         ev = self._ev
         lam = float(obs.Lambda or 0.0)
         ev.lam_min, ev.lam_max = min(ev.lam_min, lam), max(ev.lam_max, lam)
         ev.lam_sum += lam
         ev.lam_n += 1
-        if t1.kind is None or t2.kind is None:
+        if k1 is None or k2 is None:
             return
         ev.n += 1
-        for t in (t1, t2):
-            if t.kind is ContactKind.FLAT:
+        for k, r in ((k1, r1), (k2, r2)):
+            if k is ContactKind.FLAT:
                 ev.flat += 1
-            elif t.kind is ContactKind.EDGE:
+            elif k is ContactKind.EDGE:
                 ev.edge += 1
             else:
                 ev.curved += 1
-                assert ev.radii is not None and t.radius is not None
-                ev.radii.append(t.radius / (lam / 2))
-        if t1.kind is ContactKind.FLAT and t2.kind is ContactKind.FLAT:
+                assert ev.radii is not None and r is not None
+                ev.radii.append(r / (lam / 2))
+        ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
+        if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
             ev.both_flat += 1
             n1 = pad_normal_angle(Finger.ONE, obs.pose, obs.contact1.x3_mm or 0.0, self.ctx)
             n2 = pad_normal_angle(Finger.TWO, obs.pose, obs.contact2.x3_mm or 0.0, self.ctx)
             gap = abs((math.degrees(n1 - n2) + 90.0) % 180.0 - 90.0)
             if gap < self.model.parallel_deg:
                 ev.parallel += 1
+
+    def _classify(self) -> tuple[ObjectClass | None, float, float | None, float | None]:
+        ev, model = self._ev, self.model.object_class
+        if model is None or ev.n == 0:
+            return classify(ev, self.model)
+        p = model.probabilities(class_features(ev))
+        i = int(np.argmax(p))
+        a, b = sizes(CLASSES[i], ev)
+        return CLASSES[i], float(p[i]), a, b
 
     def summary(self) -> dict[str, Any]:
         """The run's estimate for its summary: class, confidence, sizes, rotation (JSON)."""
@@ -291,29 +441,48 @@ class Recognizer:
         }
 
 
+def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
+    """size_a, size_b of a class from the run's Λ and curved radii (see :class:`Recognition`;
+    a box's second side and a polygon's side length are not measured: None)."""
+    if ev.lam_n == 0:
+        return None, None
+    lam_mean = ev.lam_sum / ev.lam_n
+    r_med = float(np.median(ev.radii)) * lam_mean / 2 if ev.radii else None
+    if cls is ObjectClass.CIRCLE:
+        return lam_mean / 2, None
+    if cls is ObjectClass.ELLIPSE:
+        return ev.lam_max / 2, ev.lam_min / 2
+    if cls is ObjectClass.STICK:
+        return ev.lam_max, max(2 * r_med, 1.0) if r_med is not None else None
+    if cls is ObjectClass.BOX:
+        return lam_mean, None
+    return ev.lam_max / 2, None
+
+
 def classify(
     ev: _Evidence, m: RecognitionModel
 ) -> tuple[ObjectClass | None, float, float | None, float | None]:
-    """Class, confidence and sizes from the run's contacts so far (None before any label)."""
+    """Class, confidence and sizes by rules, without a learned model (None before a label)."""
     total = ev.flat + ev.edge + ev.curved
     if total == 0 or ev.lam_n == 0:
         return None, 0.0, None, None
     lam_mean = ev.lam_sum / ev.lam_n
     f_flat, f_edge, f_curved = ev.flat / total, ev.edge / total, ev.curved / total
-    radii = np.asarray(ev.radii or [1.0])
-    r_med = float(np.median(radii))  # local radius / (Λ/2)
+    r_med = float(np.median(ev.radii)) if ev.radii else 1.0  # local radius / (Λ/2)
     if f_curved >= max(f_flat, f_edge):
         if r_med < m.stick_ratio * 2:
-            return ObjectClass.STICK, f_curved, ev.lam_max, 2 * r_med * lam_mean / 2
-        spread = (ev.lam_max - ev.lam_min) / lam_mean
-        if abs(r_med - 1.0) < m.circle_tol and spread < 0.05:
-            return ObjectClass.CIRCLE, f_curved, lam_mean / 2, None
-        return ObjectClass.ELLIPSE, f_curved, ev.lam_max / 2, ev.lam_min / 2
-    if f_edge > 0.8:
-        return ObjectClass.STICK, f_edge, ev.lam_max, None
-    if ev.both_flat and ev.parallel / ev.both_flat > 0.5:
-        return ObjectClass.BOX, ev.parallel / ev.both_flat, lam_mean, None
-    return ObjectClass.POLYGON, 1.0 - f_curved, lam_mean / 2, None
+            cls, conf = ObjectClass.STICK, f_curved
+        elif abs(r_med - 1.0) < m.circle_tol and (ev.lam_max - ev.lam_min) / lam_mean < 0.05:
+            cls, conf = ObjectClass.CIRCLE, f_curved
+        else:
+            cls, conf = ObjectClass.ELLIPSE, f_curved
+    elif f_edge > 0.8:
+        cls, conf = ObjectClass.STICK, f_edge
+    elif ev.both_flat and ev.parallel / ev.both_flat > 0.5:
+        cls, conf = ObjectClass.BOX, ev.parallel / ev.both_flat
+    else:
+        cls, conf = ObjectClass.POLYGON, 1.0 - f_curved
+    return (cls, conf, *sizes(cls, ev))
 
 
 def _template(rec: Recognition) -> np.ndarray | None:

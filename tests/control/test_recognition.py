@@ -5,6 +5,7 @@ reconstructed outline."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,23 +21,23 @@ from sdh2svc.control.recognition import (
     classify,
     outline,
 )
+from sdh2svc.model.contact import NO_CONTACT, Blob, ContactEstimate
 from sdh2svc.model.kinematics import Finger
 
 MODEL = RecognitionModel()
 
 
-class _C:
-    """The two fields of a ContactEstimate a track reads."""
-
-    def __init__(self, L: float) -> None:
-        self.L_mm = L
+def _C(L: float) -> ContactEstimate:
+    """A contact at pad distance L (only L matters to the rules)."""
+    blob = Blob(20.0, 8.0, 12, 0.01, 1.0, 0.1, 4, 6)
+    return replace(NO_CONTACT, present=True, L_mm=L, S_mm=20.0, blobs=(blob,), n_cells=12)
 
 
 def trace(track: _ContactTrack, L: np.ndarray, rel: np.ndarray) -> list[ContactKind | None]:
     """Feed a track the pad distances L (mm) and the relative turns ν − ψ (rad); its labels."""
     out = []
     for x, y in zip(L, rel, strict=True):
-        track.update(_C(float(x)), float(y), 0.0)  # type: ignore[arg-type]
+        track.update(_C(float(x)), float(y), 0.0)
         out.append(track.kind)
     return out
 

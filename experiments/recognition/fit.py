@@ -1,0 +1,148 @@
+"""Fit the recognizer's two small models on captured campaign cases, and ship them.
+
+    python -m experiments.recognition.fit /tmp/recog/fit.jsonl /tmp/recog/fit2.jsonl
+
+(the captures of :mod:`experiments.recognition.capture` for generator seeds 1701 and 1703;
+the held-out test suite is seed 1702). Writes ``sdh2svc/control/recognition_model.json``:
+
+1. **contact kind** — a multinomial logistic model on each contact's features
+   (:func:`~sdh2svc.control.recognition.contact_features`, with their pairwise products),
+   labelled by the truth (:func:`experiments.recognition.truth.feature`) at every second
+   iteration with both contacts;
+2. **object class** — a linear multinomial logistic model on the run's evidence
+   (:func:`~sdh2svc.control.recognition.class_features`) as the recognizer with model 1 has
+   gathered it at the end of every half stroke and at the run's end, labelled by the case's
+   family (:func:`experiments.recognition.truth.true_class`).
+
+Both are fitted by L-BFGS on the cross-entropy with an L2 penalty; the features are
+standardised over the fit set. Deterministic: the same captures give the same file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from experiments.recognition.evaluate import Case, context, load_cases
+from experiments.recognition.truth import true_class
+from sdh2svc.control.recognition import (
+    CLASSES,
+    KINDS,
+    RecognitionModel,
+    Recognizer,
+    Softmax,
+    class_features,
+    contact_features,
+    expand,
+)
+
+OUT = Path(__file__).resolve().parents[2] / "sdh2svc" / "control" / "recognition_model.json"
+L2_KIND, L2_CLASS = 1e-3, 1e-2
+EVERY = 2  # iterations between kind samples
+
+
+def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool) -> Softmax:
+    """Multinomial logistic regression (L-BFGS, L2 on the weights)."""
+    F = expand(X) if quadratic else X
+    mean, scale = F.mean(axis=0), F.std(axis=0) + 1e-9
+    Z = (F - mean) / scale
+    n, f = Z.shape
+    Y = np.eye(k)[y]
+
+    def loss(w: np.ndarray) -> tuple[float, np.ndarray]:
+        W, b = w[: k * f].reshape(k, f), w[k * f :]
+        S = Z @ W.T + b
+        S -= S.max(axis=1, keepdims=True)
+        P = np.exp(S)
+        P /= P.sum(axis=1, keepdims=True)
+        value = -float(np.mean(np.log(P[np.arange(n), y] + 1e-12))) + l2 * float(np.sum(W * W))
+        G = (P - Y) / n
+        return value, np.concatenate([(G.T @ Z + 2 * l2 * W).ravel(), G.sum(axis=0)])
+
+    res = minimize(
+        loss, np.zeros(k * f + k), jac=True, method="L-BFGS-B", options={"maxiter": 1000}
+    )
+    W, b = res.x[: k * f].reshape(k, f), res.x[k * f :]
+    return Softmax(mean, scale, W, b, quadratic)
+
+
+def replay(
+    cases: list[Case], model: RecognitionModel, visit: Callable[[Case, int, Recognizer], None]
+) -> None:
+    ctx = context()
+    for case in cases:
+        rec = Recognizer(ctx, model)
+        for i, s in enumerate(case.steps):
+            rec.update(s.obs, s.m1, s.m2)
+            visit(case, i, rec)
+
+
+def kind_samples(cases: list[Case], model: RecognitionModel) -> tuple[np.ndarray, np.ndarray]:
+    X: list[np.ndarray] = []
+    y: list[int] = []
+
+    def visit(case: Case, i: int, rec: Recognizer) -> None:
+        s = case.steps[i]
+        t1, t2 = rec._tracks
+        lam = s.obs.Lambda
+        if i % EVERY or lam is None or t1.features is None or t2.features is None:
+            return
+        for truth, me, other in ((s.truth[0], t1, t2), (s.truth[1], t2, t1)):
+            if truth is not None:
+                assert me.features is not None and other.features is not None
+                X.append(contact_features(me.features, other.features, lam))
+                y.append(KINDS.index(truth[0]))
+
+    replay(cases, model, visit)
+    return np.asarray(X), np.asarray(y)
+
+
+def class_samples(cases: list[Case], model: RecognitionModel) -> tuple[np.ndarray, np.ndarray]:
+    X: list[np.ndarray] = []
+    y: list[int] = []
+
+    def visit(case: Case, i: int, rec: Recognizer) -> None:
+        steps = case.steps
+        end = i == len(steps) - 1
+        if rec._ev.n and (end or steps[i + 1].half_strokes != steps[i].half_strokes):
+            X.append(class_features(rec._ev))
+            y.append(CLASSES.index(true_class(case.family, case.spec)))
+
+    replay(cases, model, visit)
+    return np.asarray(X), np.asarray(y)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("captures", nargs="+")
+    ap.add_argument("--out", default=str(OUT))
+    a = ap.parse_args()
+    ctx = context()
+    cases = [c for path in a.captures for c in load_cases(path, ctx)]
+    print(f"{len(cases)} cases, {sum(len(c.steps) for c in cases)} iterations")
+    base = RecognitionModel()
+    X, y = kind_samples(cases, base)
+    kind = fit_softmax(X, y, len(KINDS), L2_KIND, quadratic=True)
+    acc = np.mean([np.argmax(kind.probabilities(x)) == t for x, t in zip(X, y, strict=True)])
+    print(f"contact kind: {len(y)} samples, {acc:.3f} right on the fit set")
+    with_kind = replace(base, kind=kind)
+    X, y = class_samples(cases, with_kind)
+    cls = fit_softmax(X, y, len(CLASSES), L2_CLASS, quadratic=False)
+    acc = np.mean([np.argmax(cls.probabilities(x)) == t for x, t in zip(X, y, strict=True)])
+    print(f"object class: {len(y)} samples, {acc:.3f} right on the fit set")
+    data = {
+        "_comment": "fitted by python -m experiments.recognition.fit (see its docstring)",
+        **replace(with_kind, object_class=cls).dump(),
+    }
+    Path(a.out).write_text(json.dumps(data, indent=None, separators=(",", ":")) + "\n")
+    print(f"wrote {a.out} ({Path(a.out).stat().st_size // 1024} KiB)")
+
+
+if __name__ == "__main__":
+    main()
