@@ -20,6 +20,7 @@ from bench.common import percentile, summary_us, time_calls
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Simulated
 from sdh2svc.control.observer import BaseObserver
+from sdh2svc.control.recognition import Recognizer
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.kinematics import HandPose
@@ -57,6 +58,11 @@ def run() -> dict[str, float]:
     print(f"  control step (pure)  {summary_us(samples)}")
     out: dict[str, float] = {"step_median_us": float(np.median(samples)),
                              "step_p99_us": percentile(samples, 99)}  # fmt: skip
+    rec_us = _recognition_us(cfg)
+    print(f"  recognition (Recognizer.update over a recorded 1-stroke egg run) {summary_us(rec_us)}"
+          " (target ≤ 200 µs)")  # fmt: skip
+    out["recognition_median_us"] = float(np.median(rec_us))
+    out["recognition_p99_us"] = percentile(rec_us, 99)
     with tempfile.TemporaryDirectory() as tmp:
         db = f"storage.db_path='{Path(tmp) / 'bench.sqlite'}'"
         rt = load_config(overrides=[db, "rolling.cycles=1", "sim.object='egg'"], use_env=False)
@@ -101,6 +107,38 @@ def run() -> dict[str, float]:
         out["fast_ratio_cpu"] = sim_s / cpu
         out["fast_rolling_ratio"] = rolling_s / wall  # the figure printed before session 5
         out["fast_runs_per_hour_per_core"] = 3600 / cpu
+    return out
+
+
+def _recognition_us(cfg: Settings, repeats: int = 5) -> list[float]:
+    """Recognizer.update's time per iteration, over the iterations of a recorded fast egg run
+    (its observations and distal matrices, as the runner handed them to the rolling step)."""
+    import sdh2svc.control.runner as runner_mod
+
+    seen: list[tuple[Any, np.ndarray, np.ndarray]] = []
+    real = getattr(runner_mod, "step")  # noqa: B009 (patched below)
+
+    def recording(state, pose, m1, m2, params, ctx):  # type: ignore[no-untyped-def]
+        r = real(state, pose, m1, m2, params, ctx)
+        seen.append((r.obs, m1.copy(), m2.copy()))
+        return r
+
+    with tempfile.TemporaryDirectory() as tmp:
+        db = f"storage.db_path='{Path(tmp) / 'rec.sqlite'}'"
+        run_cfg = load_config(overrides=[db, "rolling.cycles=1", "sim.object='egg'"], use_env=False)
+        setattr(runner_mod, "step", recording)  # noqa: B010
+        try:
+            run_fast(run_once(run_cfg, Simulated(fast=True)))
+        finally:
+            setattr(runner_mod, "step", real)  # noqa: B010
+    ctx = cfg.model_context()
+    out: list[float] = []
+    for _ in range(repeats):
+        rec = Recognizer(ctx)
+        for obs, m1, m2 in seen:
+            t0 = time.perf_counter_ns()
+            rec.update(obs, m1, m2)
+            out.append((time.perf_counter_ns() - t0) / 1000.0)
     return out
 
 

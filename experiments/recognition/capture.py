@@ -27,12 +27,21 @@ from typing import Any
 import sdh2svc.control.runner as runner_mod
 from sdh2svc.campaign.case import Case
 from sdh2svc.campaign.run import TruthProbe, case_settings, load_suite, measure
+from sdh2svc.control.runner import RunFault
+from sdh2svc.control.safety import Fault
 
 DISTAL = ("distal1", "distal2")
 
 
-def capture_case(case: Case, workdir: Path, overrides: list[str] | None = None) -> dict[str, Any]:
-    """One campaign run of ``case`` with every iteration's inputs and truth."""
+class _Enough(RunFault):
+    pass
+
+
+def capture_case(
+    case: Case, workdir: Path, overrides: list[str] | None = None, max_iterations: int | None = None
+) -> dict[str, Any]:
+    """One campaign run of ``case`` with every iteration's inputs and truth (stopped after
+    ``max_iterations`` rolling iterations if given: then the run is not judged)."""
     from sdh2svc.connect import Simulated
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
@@ -71,6 +80,8 @@ def capture_case(case: Case, workdir: Path, overrides: list[str] | None = None) 
                 "truth": truth,
             }
         )
+        if max_iterations is not None and len(its) >= max_iterations:
+            raise _Enough(Fault.STUCK, "enough iterations captured")
         return r
 
     setattr(runner_mod, "step", step)  # noqa: B010

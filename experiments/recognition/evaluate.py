@@ -187,9 +187,20 @@ def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
         ok = by_class.setdefault(r["class"], [0, 0])
         ok[0] += r["class_first_stroke"] == r["class"]
         ok[1] += 1
+    size_err: dict[str, list[float]] = {}
+    for r in rows:  # the sizes at the run's end, where its class is right
+        if r["class_end"] != r["class"] or not r["sizes_end"]:
+            continue
+        for name, want, got in zip(("a", "b"), r["sizes"], r["sizes_end"], strict=True):
+            if want is not None and got is not None:
+                size_err.setdefault(f"{r['class']} {name}", []).append(abs(got / want - 1.0))
     return {
         "cases": len(rows),
         "cases_with_a_stroke": len(stroked),
+        "class_at_end": sum(r["class_end"] == r["class"] for r in rows) / max(1, len(rows)),
+        "size_median_rel_err_where_class_right": {
+            k: f"{np.median(v):.3f} (n={len(v)})" for k, v in sorted(size_err.items())
+        },
         "class_after_first_stroke": cls_ok / max(1, len(stroked)),
         "class_by_true_class": {k: f"{a}/{b}" for k, (a, b) in sorted(by_class.items())},
         "contact_kind": kinds_ok / max(1, kinds_n),

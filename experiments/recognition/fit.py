@@ -9,10 +9,10 @@ the held-out test suite is seed 1702). Writes ``sdh2svc/control/recognition_mode
    (:func:`~sdh2svc.control.recognition.contact_features`, with their pairwise products),
    labelled by the truth (:func:`experiments.recognition.truth.feature`) at every second
    iteration with both contacts;
-2. **object class** — a linear multinomial logistic model on the run's evidence
-   (:func:`~sdh2svc.control.recognition.class_features`) as the recognizer with model 1 has
-   gathered it at the end of every half stroke and at the run's end, labelled by the case's
-   family (:func:`experiments.recognition.truth.true_class`).
+2. **object class** — a multinomial logistic model on the run's evidence
+   (:func:`~sdh2svc.control.recognition.class_features`, with their pairwise products) as
+   the recognizer with model 1 has gathered it at the end of every half stroke and at the
+   run's end, labelled by the case's family (:func:`experiments.recognition.truth.true_class`).
 
 Both are fitted by L-BFGS on the cross-entropy with an L2 penalty; the features are
 standardised over the fit set. Deterministic: the same captures give the same file.
@@ -43,7 +43,7 @@ from sdh2svc.control.recognition import (
 )
 
 OUT = Path(__file__).resolve().parents[2] / "sdh2svc" / "control" / "recognition_model.json"
-L2_KIND, L2_CLASS = 1e-3, 1e-2
+L2_KIND, L2_CLASS = 1e-3, 1e-1
 EVERY = 2  # iterations between kind samples
 
 
@@ -133,7 +133,7 @@ def main() -> None:
     print(f"contact kind: {len(y)} samples, {acc:.3f} right on the fit set")
     with_kind = replace(base, kind=kind)
     X, y = class_samples(cases, with_kind)
-    cls = fit_softmax(X, y, len(CLASSES), L2_CLASS, quadratic=False)
+    cls = fit_softmax(X, y, len(CLASSES), L2_CLASS, quadratic=True)
     acc = np.mean([np.argmax(cls.probabilities(x)) == t for x, t in zip(X, y, strict=True)])
     print(f"object class: {len(y)} samples, {acc:.3f} right on the fit set")
     data = {

@@ -18,8 +18,15 @@ How (rolling kinematics, no model of the object):
   κ·ds: the slope of ν − ψ against the pad's curved distance L over the last iterations is the
   object's local curvature there. No relative turn while the contact travels: a **flat** face;
   a relative turn while the contact stays put (a pivot): an **edge** or corner; in between a
-  **curved** surface of radius 1/κ. Without motion the last label stands.
-* **Class and sizes** from what the contacts were over the run (see :func:`classify`).
+  **curved** surface of radius 1/κ. A small learned model (multinomial logistic,
+  :class:`Softmax`) weighs this against the pressure footprint and the other contact
+  (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide.
+* **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
+  second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
+
+The learned parts are fitted by ``python -m experiments.recognition.fit`` and shipped in
+``recognition_model.json`` beside this module. The raw counts are taken for the contract's
+sake: everything used from them is already in the observation's contact estimates.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from __future__ import annotations
 import json
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from functools import lru_cache
 from importlib import resources
@@ -67,8 +74,9 @@ class Recognition:
 
     ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b); box
     (side lengths a ≥ b); stick (length, diameter); polygon (circumradius, mean side length).
-    ``axis``: the inclination of AB at the grasp (σ₀, deg): the reconstructed outline's
-    orientation is ``axis + rotation`` (:func:`outline`).
+    ``axis``: the direction of the outline's first axis (``size_a``'s) at the grasp, deg: σ₀,
+    the inclination of AB at the grasp, or σ₀ + 90° for an ellipse held across its minor axis;
+    the reconstructed outline's orientation is ``axis + rotation`` (:func:`outline`).
     """
 
     kind1: ContactKind | None = None  # Finger 1's contact (None: no contact)
@@ -80,7 +88,7 @@ class Recognition:
     size_a: float | None = None
     size_b: float | None = None
     rotation: float = 0.0  # the object's rotation since the grasp (rolling kinematics), deg
-    axis: float | None = None  # σ at the grasp, deg
+    axis: float | None = None  # the outline's first axis at the grasp, deg
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,9 +131,15 @@ class Softmax:
 
 def expand(x: np.ndarray) -> np.ndarray:
     """``x`` followed by the products of every pair of its entries (with themselves)."""
-    i, j = np.triu_indices(x.shape[-1])
+    i, j = _pairs(x.shape[-1])
     out: np.ndarray = np.concatenate([x, x[..., i] * x[..., j]], axis=-1)
     return out
+
+
+@lru_cache(maxsize=8)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    i, j = np.triu_indices(n)
+    return i, j
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +154,7 @@ class RecognitionModel:
     circle_tol: float = 0.2  # |R − Λ/2| / (Λ/2) of a circle's contacts
     stick_ratio: float = 0.2  # a stick's ends: R below this × Λ
     parallel_deg: float = 6.0  # a box's two faces: pad normals antiparallel within this
+    smoothing: float = 0.0  # of the kind's probabilities per iteration (exponential, 0: none)
     kind: Softmax | None = None  # contact kind from contact_features (else the rules above)
     object_class: Softmax | None = None  # class from class_features (else classify's rules)
 
@@ -213,11 +228,12 @@ class _ContactTrack:
         self.radius: float | None = None
         self.kinematic_radius = MAX_RADIUS_MM
         self.features: list[float] | None = None  # see contact_features
+        self.p: np.ndarray | None = None  # the kind model's smoothed probabilities
 
     def lost(self) -> None:
         self.L.clear()
         self.rel.clear()
-        self.kind, self.radius, self.features = None, None, None
+        self.kind, self.radius, self.features, self.p = None, None, None, None
 
     def update(self, c: ContactEstimate, nu: float, psi: float) -> None:
         assert c.L_mm is not None
@@ -225,11 +241,14 @@ class _ContactTrack:
         self.rel.append(nu - psi)
         if len(self.L) < 3:
             return
-        x, y = np.fromiter(self.L, float), np.fromiter(self.rel, float)
-        travel, turn = float(x.max() - x.min()), math.degrees(float(y.max() - y.min()))
-        xc, yc = x - x.mean(), y - y.mean()
-        sxx = float(xc @ xc)
-        kappa = self.sign * float(xc @ yc) / sxx if sxx > 1e-9 else 0.0
+        # the window's regression in plain Python: 20 numbers, numpy's per-call cost dominates
+        xs, ys = self.L, self.rel
+        n = len(xs)
+        mx, my = sum(xs) / n, sum(ys) / n
+        sxx = sum((x - mx) * (x - mx) for x in xs)
+        sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True))
+        travel, turn = max(xs) - min(xs), math.degrees(max(ys) - min(ys))
+        kappa = self.sign * sxy / sxx if sxx > 1e-9 else 0.0
         self.kinematic_radius = min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
         main = max(c.blobs, key=lambda b: b.pressure_sum_n_per_mm2)
         d = c.depth
@@ -269,6 +288,30 @@ def contact_features(me: list[float], other: list[float], lam: float) -> np.ndar
     return np.array([*me, me[0] - math.log(lam / 2), *other[:4], math.log(lam)])
 
 
+class _LogHistogram:
+    """Counts of log values in fixed bins: quantiles in constant time however long the run."""
+
+    LO, HI, BINS = -4.0, 2.0, 120  # log(radius / (Λ/2)): 0.018 … 7.4, bins of 5 %
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS, dtype=np.int64)
+        self.n = 0
+
+    def add(self, value: float) -> None:
+        x = (math.log(max(value, 1e-9)) - self.LO) / (self.HI - self.LO) * self.BINS
+        self.counts[min(self.BINS - 1, max(0, int(x)))] += 1
+        self.n += 1
+
+    def quantiles(self, qs: tuple[float, ...]) -> list[float]:
+        """The log values at the quantiles ``qs`` (0…1; bin centres; 0 while empty)."""
+        if self.n == 0:
+            return [0.0] * len(qs)
+        cum = np.cumsum(self.counts)
+        idx = np.searchsorted(cum, [q * self.n for q in qs])
+        width = (self.HI - self.LO) / self.BINS
+        return [self.LO + (int(i) + 0.5) * width for i in idx]
+
+
 @dataclass
 class _Evidence:
     """What the run has shown so far, for the class."""
@@ -280,23 +323,26 @@ class _Evidence:
     both_flat: int = 0
     both_edge: int = 0
     parallel: int = 0  # of both_flat: the pad normals antiparallel
-    radii: list[float] | None = None  # curved contacts' radius / (Λ/2)
+    radii: _LogHistogram = field(default_factory=_LogHistogram)  # curved: radius / (Λ/2)
     lam_min: float = math.inf
     lam_max: float = 0.0
     lam_sum: float = 0.0
     lam_n: int = 0
     psi_min: float = 0.0  # rad
     psi_max: float = 0.0
+    # dσ against dψ over the run (Σ dψ·dσ, Σ dψ²): a circle rolls with σ still (slope 0), a
+    # stick's contacts stay at its ends, so AB turns with it (slope 1)
+    s_ps: float = 0.0
+    s_pp: float = 0.0
 
 
 def class_features(ev: _Evidence) -> np.ndarray:
     """The class model's input: the shares of each contact kind and of both-flat (parallel or
     not) and both-edge iterations, the curved radii against Λ/2 (median, spread), Λ's spread
-    and size, and how far the object turned."""
+    and size, how far the object turned, and how σ turned with it."""
     total = max(1, ev.flat + ev.edge + ev.curved)
     n = max(1, ev.n)
-    r = np.log(np.asarray(ev.radii)) if ev.radii else np.zeros(1)
-    q25, q50, q75 = np.percentile(r, (25, 50, 75))
+    q25, q50, q75 = ev.radii.quantiles((0.25, 0.5, 0.75))
     lam_mean = ev.lam_sum / max(1, ev.lam_n)
     return np.array(
         [
@@ -306,11 +352,12 @@ def class_features(ev: _Evidence) -> np.ndarray:
             ev.both_flat / n,
             ev.parallel / n,
             ev.both_edge / n,
-            float(q50),
-            float(q75 - q25),
+            q50,
+            q75 - q25,
             math.log((ev.lam_max - ev.lam_min) / lam_mean + 0.01),
             math.log(lam_mean),
             math.log(math.degrees(ev.psi_max - ev.psi_min) + 0.5),
+            max(-2.0, min(2.0, ev.s_ps / ev.s_pp)) if ev.s_pp > 0 else 0.0,
         ]
     )
 
@@ -325,9 +372,10 @@ class Recognizer:
         self._prev: Observation | None = None
         self._psi = 0.0
         self._axis: float | None = None
+        self._lam0 = 0.0  # Λ at the grasp
         m = self.model
         self._tracks = (_ContactTrack(Finger.ONE, m), _ContactTrack(Finger.TWO, m))
-        self._ev = _Evidence(radii=[])
+        self._ev = _Evidence()
 
     def update(self, obs: Observation, counts1: np.ndarray, counts2: np.ndarray) -> Recognition:
         """This iteration's estimate (the state carried from the iterations before)."""
@@ -338,11 +386,14 @@ class Recognizer:
             self.last = replace(self.last, kind1=None, kind2=None, radius1=None, radius2=None)
             return self.last
         if self._axis is None:
-            self._axis = obs.sigma
+            self._axis, self._lam0 = obs.sigma, obs.Lambda
         if self._prev is not None:
             d = rolling_turn(self._prev, obs.pose, self.ctx)
-            if d is not None:
+            if d is not None and self._prev.sigma is not None:
                 self._psi += d
+                ds = (obs.sigma - self._prev.sigma + math.pi) % (2 * math.pi) - math.pi
+                self._ev.s_ps += d * ds
+                self._ev.s_pp += d * d
         self._prev = obs
         ev = self._ev
         ev.psi_min, ev.psi_max = min(ev.psi_min, self._psi), max(ev.psi_max, self._psi)
@@ -362,9 +413,15 @@ class Recognizer:
             size_a=a,
             size_b=b,
             rotation=math.degrees(self._psi),
-            axis=math.degrees(self._axis),
+            axis=math.degrees(self._axis) + self._across(cls, a, b),
         )
         return self.last
+
+    def _across(self, cls: ObjectClass | None, a: float | None, b: float | None) -> float:
+        """90° for an ellipse grasped across its minor axis (Λ₀ nearer 2b than 2a), else 0."""
+        if cls is not ObjectClass.ELLIPSE or a is None or b is None:
+            return 0.0
+        return 90.0 if abs(self._lam0 - 2 * b) < abs(self._lam0 - 2 * a) else 0.0
 
     def _kinds(self, lam: float) -> list[tuple[ContactKind | None, float | None]]:
         t1, t2 = self._tracks
@@ -375,7 +432,9 @@ class Recognizer:
         for me, other in ((t1, t2), (t2, t1)):
             assert me.features is not None and other.features is not None
             p = model.probabilities(contact_features(me.features, other.features, lam))
-            kind = KINDS[int(np.argmax(p))]
+            a = self.model.smoothing
+            me.p = p if me.p is None or a <= 0.0 else a * me.p + (1.0 - a) * p
+            kind = KINDS[int(np.argmax(me.p))]
             out.append((kind, me.kinematic_radius if kind is ContactKind.CURVED else None))
         return out
 
@@ -402,8 +461,8 @@ class Recognizer:
                 ev.edge += 1
             else:
                 ev.curved += 1
-                assert ev.radii is not None and r is not None
-                ev.radii.append(r / (lam / 2))
+                assert r is not None
+                ev.radii.add(r / (lam / 2))
         ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
         if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
             ev.both_flat += 1
@@ -447,7 +506,7 @@ def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
     if ev.lam_n == 0:
         return None, None
     lam_mean = ev.lam_sum / ev.lam_n
-    r_med = float(np.median(ev.radii)) * lam_mean / 2 if ev.radii else None
+    r_med = math.exp(ev.radii.quantiles((0.5,))[0]) * lam_mean / 2 if ev.radii.n else None
     if cls is ObjectClass.CIRCLE:
         return lam_mean / 2, None
     if cls is ObjectClass.ELLIPSE:
@@ -468,7 +527,7 @@ def classify(
         return None, 0.0, None, None
     lam_mean = ev.lam_sum / ev.lam_n
     f_flat, f_edge, f_curved = ev.flat / total, ev.edge / total, ev.curved / total
-    r_med = float(np.median(ev.radii)) if ev.radii else 1.0  # local radius / (Λ/2)
+    r_med = math.exp(ev.radii.quantiles((0.5,))[0]) if ev.radii.n else 1.0  # radius / (Λ/2)
     if f_curved >= max(f_flat, f_edge):
         if r_med < m.stick_ratio * 2:
             cls, conf = ObjectClass.STICK, f_curved

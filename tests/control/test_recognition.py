@@ -4,25 +4,31 @@ reconstructed outline."""
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 
-from sdh2svc.config import Settings
+from sdh2svc.config import Settings, default_config
 from sdh2svc.control.recognition import (
     ContactKind,
     ObjectClass,
     Recognition,
     RecognitionModel,
+    Recognizer,
     _ContactTrack,
     _Evidence,
     classify,
     outline,
 )
 from sdh2svc.model.contact import NO_CONTACT, Blob, ContactEstimate
-from sdh2svc.model.kinematics import Finger
+from sdh2svc.model.kinematics import Finger, HandPose
+from sdh2svc.model.observe import observe
 
 MODEL = RecognitionModel()
 
@@ -86,7 +92,7 @@ def evidence(
     radius: float | None = None,
     parallel: bool = True,
 ) -> _Evidence:
-    ev = _Evidence(radii=[])
+    ev = _Evidence()
     for k1, k2 in kinds:
         ev.n += 1
         ev.lam_min, ev.lam_max = min(ev.lam_min, lam), max(ev.lam_max, lam)
@@ -95,8 +101,8 @@ def evidence(
         for k in (k1, k2):
             setattr(ev, k.value, getattr(ev, k.value) + 1)
             if k is ContactKind.CURVED:
-                assert ev.radii is not None and radius is not None
-                ev.radii.append(radius / (lam / 2))
+                assert radius is not None
+                ev.radii.add(radius / (lam / 2))
         if k1 is k2 is ContactKind.FLAT:
             ev.both_flat += 1
             ev.parallel += parallel
@@ -157,3 +163,117 @@ def test_the_packaged_model_loads(cfg: Settings) -> None:
     from sdh2svc.control.recognition import packaged_model
 
     assert isinstance(packaged_model(), RecognitionModel)
+
+
+# --- fast simulated runs of the thesis's objects (200 iterations each), against their truth
+
+
+@pytest.fixture(scope="module")
+def thesis_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[tuple[Any, ...]]]:
+    """rubber, egg and cylinder, 200 iterations each (two half strokes and more), run as a
+    campaign runs them: every iteration's observation, matrices, true ψ and truth per pad."""
+    from experiments.recognition.capture import capture_case
+    from experiments.recognition.truth import feature, spec_of
+    from sdh2svc.campaign.run import load_suite
+
+    ctx = default_config().model_context()
+    suite = {c.id: c for c in load_suite("thesis").cases}
+    out: dict[str, list[tuple[Any, ...]]] = {}
+    for name in ("rubber", "egg", "cylinder"):
+        raw = capture_case(suite[name], tmp_path_factory.mktemp(name), [], max_iterations=200)
+        spec = spec_of(raw)
+        rows = []
+        for it in raw["iterations"]:
+            m1, m2 = np.asarray(it["m1"]), np.asarray(it["m2"])
+            tr = it["truth"]
+            truth = [
+                feature(spec, tuple(tr[p]["object_point"])) if p in tr else None
+                for p in ("distal1", "distal2")
+            ]
+            obs = observe(HandPose(*it["pose"]), m1, m2, ctx)
+            rows.append((obs, m1, m2, tr["object_pose"][2], truth))
+        out[name] = rows
+    return out
+
+
+def recognise(rows: list[tuple[Any, ...]]) -> tuple[Recognizer, list[Recognition]]:
+    rec = Recognizer(default_config().model_context())
+    return rec, [rec.update(obs, m1, m2) for obs, m1, m2, *_ in rows]
+
+
+@pytest.mark.parametrize("name", ["rubber", "egg", "cylinder"])
+def test_the_rotation_follows_the_true_rotation(thesis_runs: dict[str, Any], name: str) -> None:
+    rows = thesis_runs[name]
+    _, recs = recognise(rows)
+    both = [i for i, r in enumerate(rows) if r[0].Lambda is not None]
+    i0 = both[0]
+    true = np.degrees([rows[i][3] - rows[i0][3] for i in both])
+    est = np.array([recs[i].rotation - recs[i0].rotation for i in both])
+    span = float(true.max() - true.min())
+    assert span > 5.0  # the stroke turned it
+    assert abs(float(est.max() - est.min()) - span) <= 0.2 * span
+    assert float(np.max(np.abs(est - true))) <= 0.2 * span
+
+
+@pytest.mark.parametrize(("name", "share"), [("egg", 0.9), ("cylinder", 0.8)])
+def test_the_egg_and_the_cylinder_roll_on_curved_contacts(
+    thesis_runs: dict[str, Any], name: str, share: float
+) -> None:
+    """Mostly curved contacts (the foam cylinder's soft face reads flat at times), and the
+    kinematic radius of curvature within 20 % of the truth's (median over the iterations)."""
+    rows = thesis_runs[name]
+    _, recs = recognise(rows)
+    kinds = [k for r in recs for k in (r.kind1, r.kind2) if k is not None]
+    assert kinds.count(ContactKind.CURVED) >= share * len(kinds)
+    for pad in (0, 1):
+        got = [
+            ((r.radius1, r.radius2)[pad], t[pad][1])
+            for r, (*_, t) in zip(recs, rows, strict=True)
+            if (r.radius1, r.radius2)[pad] is not None and t[pad] is not None
+        ]
+        assert len(got) > 100
+        assert np.median([g / want for g, want in got]) == pytest.approx(1.0, abs=0.2)
+
+
+def test_the_rubber_shows_flat_faces_and_edges(thesis_runs: dict[str, Any]) -> None:
+    """The rubber rolls over its edges: flat and edge contacts, and most iterations right."""
+    rows = thesis_runs["rubber"]
+    _, recs = recognise(rows)
+    pairs = [
+        (k, t[0])
+        for r, (*_, tt) in zip(recs, rows, strict=True)
+        for k, t in ((r.kind1, tt[0]), (r.kind2, tt[1]))
+        if k is not None and t is not None
+    ]
+    assert {ContactKind.FLAT, ContactKind.EDGE} <= {k for k, _ in pairs}
+    assert sum(k is t for k, t in pairs) >= 0.75 * len(pairs)
+
+
+@pytest.mark.parametrize("name", ["rubber", "egg", "cylinder"])
+def test_the_live_outline_touches_the_contacts(thesis_runs: dict[str, Any], name: str) -> None:
+    rows = thesis_runs[name]
+    _, recs = recognise(rows)
+    obs, rec = rows[-1][0], recs[-1]
+    assert rec.object_class is not None and obs.points is not None
+    pts = outline(rec, obs.points.A, obs.points.B, n=400)
+    assert pts.shape == (400, 2)
+    for p in (obs.points.A, obs.points.B):
+        assert float(np.min(np.hypot(*(pts - np.asarray(p)).T))) < 0.5
+
+
+def test_the_summary_is_json(thesis_runs: dict[str, Any]) -> None:
+    rec, recs = recognise(thesis_runs["egg"])
+    s = json.loads(json.dumps(rec.summary()))
+    assert s["object_class"] == recs[-1].object_class
+    assert s["rotation_deg"] == pytest.approx(recs[-1].rotation)
+    assert 0.0 <= s["confidence"] <= 1.0
+
+
+def test_importing_the_recognizer_loads_neither_config_nor_sim() -> None:
+    code = (
+        "import sys, sdh2svc.control.recognition as r\n"
+        "r.packaged_model()\n"
+        "bad = [m for m in sys.modules if m.startswith('sdh2svc.sim') or m == 'sdh2svc.config']\n"
+        "assert not bad, sorted(bad)\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
