@@ -325,6 +325,12 @@ def cmd_run(args: argparse.Namespace) -> int:
                 f"  F mean {f['mean']:.2f} (sd {f['sd'] or 0:.2f}, {f['min']:.2f}…{f['max']:.2f})"
                 f", loop {summary['loop_hz'] or 0:.1f} Hz"
             )
+        if (rec := summary.get("recognition")) and rec.get("object_class"):
+            sizes = ", ".join(f"{rec[k]:.1f}" for k in ("size_a_mm", "size_b_mm") if rec.get(k))
+            cls = rec["object_class"]
+            print(f"  recognised {'an' if cls[0] in 'aeiou' else 'a'} {cls} "
+                  f"({rec.get('confidence', 0):.0%}; "
+                  f"{sizes} mm), turned {rec.get('rotation_deg') or 0:.1f}°")  # fmt: skip
         if "truth" in summary:
             print(f"  simulation truth: {summary['truth']}")
     return Exit.OK if summary["status"] == "completed" else Exit.FAILED

@@ -98,8 +98,8 @@ export const api = {
   stopRun: () => request("POST", "/api/runs/stop", {}),
   runs: () => request("GET", "/api/runs"),
   run: (id) => request("GET", `/api/runs/${id}`),
-  samples: (id, offset, limit) =>
-    request("GET", `/api/runs/${id}/samples?offset=${offset}&limit=${limit}`),
+  samples: (id, offset, limit, outline = false) => request("GET",
+    `/api/runs/${id}/samples?offset=${offset}&limit=${limit}${outline ? "&outline=true" : ""}`),
   frames: (id, from, limit) => request("GET", `/api/runs/${id}/frames?from=${from}&limit=${limit}`),
   truth: (id, from, limit) => request("GET", `/api/runs/${id}/truth?from=${from}&limit=${limit}`),
   exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,

@@ -6,6 +6,7 @@ import {
 import { eventSentence, plainMessage } from "/web/events.js";
 import { ParamsForm } from "/web/params.js";
 import { Pads } from "/web/pads.js";
+import { showObject } from "/web/readout.js";
 import { MARKERS, Plots } from "/web/plots.js";
 import { Replay } from "/web/replay.js";
 import { configureHand, placedTruth, Sketch } from "/web/sketch.js";
@@ -153,6 +154,7 @@ window.addEventListener("unhandledrejection", (ev) => showError(ev.reason, "dash
 
 const sketch = new Sketch($("#sketch"));
 const pads = new Pads($("#pads"));
+const readout = $("#object-readout");
 const replay = new Replay($("#replay-banner"), { onIndex: (i, s) => showReplayIndex(i, s) });
 // hovering a plot shows that iteration in the sketch; off the plots, a replay's own iteration
 const plots = new Plots({
@@ -769,7 +771,9 @@ function onMessage(m) {
       plots.push(s, state.params);
       rememberSample(m.run_id, s);
       state.lastSampleAt = Date.now();
+      state.lastSample = s;
       sketch.setContact(s);
+      if (!replay.active) showObject(readout, s); // a replay shows its own iteration's
       break;
     }
     case "tactile":
@@ -927,7 +931,41 @@ function showReplayIndex(idx, s) {
   if (frame) pads.update(frame, it);
   else pads.update([], it);
   sketch.setOverride(s, replayTruth(s));
+  showObject(readout, s);
+  feedOutline(idx);
   feedViewer(replayData.runId, it);
+}
+
+// The sketch's reconstructed outline in a replay: the shown iteration's, made by the service
+// (control.recognition.outline, milliseconds each: asked for one at a time, the newest wanted,
+// kept with the sample once had).
+const outlineFeed = { want: null, busy: false };
+
+async function feedOutline(idx) {
+  outlineFeed.want = idx;
+  if (outlineFeed.busy) return;
+  outlineFeed.busy = true;
+  try {
+    while (outlineFeed.want !== null) {
+      const i = outlineFeed.want;
+      outlineFeed.want = null;
+      const runId = replayData.runId;
+      const s = replay.samples[i];
+      if (runId === null || !s || s.estimate_outline !== undefined) continue;
+      if (!s.object_class) {
+        s.estimate_outline = []; // no class: nothing reconstructed
+        continue;
+      }
+      const got = (await api.samples(runId, i, 1, true)).samples[0];
+      if (replayData.runId !== runId) continue; // back to live (or another run) meanwhile
+      s.estimate_outline = got && got.iteration === s.iteration ? got.estimate_outline : [];
+      if (replay.index === i) sketch.setOverride(s, replayTruth(s));
+    }
+  } catch (e) {
+    showError(e, "replay outline");
+  } finally {
+    outlineFeed.busy = false;
+  }
 }
 
 // The 3-D view follows the scrubber: the newest iteration, at most every VIEW_FEED_MS, one
@@ -1026,6 +1064,7 @@ function backToLive() {
   endViewerReplay();
   plots.showLive();
   sketch.setOverride(null);
+  showObject(readout, state.lastSample ?? null);
   pads.update(state.lastTactile ?? [], null);
   if (state.params.alpha_deg !== undefined) sketch.setAlpha(state.params.alpha_deg);
   state.replayId = null;

@@ -29,6 +29,15 @@ const END_WORDS = {
   dropped: "lost the object", interrupted: "was interrupted",
 };
 
+/** What the recognition made of the run's object (the `end` event's `recognition`), or "". */
+function recognised(r) {
+  if (!r || !r.object_class) return "";
+  const conf = Number.isFinite(r.confidence) ? ` (${Math.round(100 * r.confidence)} %)` : "";
+  const turn = Number.isFinite(r.rotation_deg) ? `, turned ${r.rotation_deg.toFixed(1)}°` : "";
+  const a = /^[aeiou]/.test(r.object_class) ? "an" : "a";
+  return `; recognised ${a} ${r.object_class}${conf}${turn}`;
+}
+
 const PARAM_NAMES = {
   delta_phi_deg: ["Δφ", "°"], k: ["k", ""], lambda_gain: ["λ", ""], d_sigma_deg: ["dσ", "°"],
   alpha_deg: ["α", "°"], grasp_force: ["Fd", ""], cycles: ["cycles", ""],
@@ -146,7 +155,7 @@ export function eventSentence(m, ctx = {}) {
     case "end": {
       const why = plainMessage(d.message);
       const how = END_WORDS[d.status] ?? `ended (${d.status ?? "no status"})`;
-      return `Run ${run} ${how}${why ? `: ${why}` : ""}`;
+      return `Run ${run} ${how}${why ? `: ${why}` : ""}${recognised(d.recognition)}`;
     }
     case "open":
       return "Opening the hand";

@@ -218,6 +218,21 @@ export class Sketch {
       ctx.setLineDash([]);
     }
 
+    // the object as the recognition reconstructs it (sent with the sample: the server's
+    // control.recognition.outline, never worked out here), over the true one
+    const est = contact && Array.isArray(contact.estimate_outline) ? contact.estimate_outline : [];
+    if (est.length > 2) {
+      ctx.beginPath();
+      est.forEach((p, i) => (i ? ctx.lineTo(...px(p)) : ctx.moveTo(...px(p))));
+      ctx.closePath();
+      ctx.fillStyle = "rgba(11,111,168,0.08)";
+      ctx.fill();
+      ctx.strokeStyle = "#0b6fa8";
+      ctx.lineWidth = 2 * dpr;
+      ctx.stroke();
+    }
+    this.canvas.dataset.estimatePoints = String(est.length);
+
     let frames = null;
     if (angles) {
       const [p2, p3, p4, p5] = angles.map((a) => a * D2R);

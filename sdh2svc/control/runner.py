@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import statistics
 from collections.abc import Callable, Sequence
@@ -28,12 +29,19 @@ from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.recognition import Recognition, Recognizer
 from sdh2svc.control.rolling import RollState, StepResult, grip_force, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.kinematics import HandPose
+from sdh2svc.model.observe import ModelContext, Observation
 from sdh2svc.protocol.sdh import NUM_AXES
+
+log = logging.getLogger(__name__)
+
+#: Makes a run's recognizer (the tests' doubles; by default :class:`Recognizer`).
+RecognizerFactory = Callable[[ModelContext], Recognizer]
 
 
 class Phase(StrEnum):
@@ -77,6 +85,7 @@ class RunResult:
     latencies_ms: list[float] = field(default_factory=list)
     rolling_s: float = 0.0
     frames_skipped: int = 0  # fresh frames no rolling iteration ran on
+    recognition: dict[str, Any] | None = None  # Recognizer.summary(); None: no estimate
 
     def summary(self) -> dict[str, Any]:
         f, lat = self.forces, sorted(self.latencies_ms)
@@ -96,7 +105,7 @@ class RunResult:
             "sigma_range_deg": (max(self.sigmas) - min(self.sigmas)) if self.sigmas else None,
             "loop_hz": self.iterations / self.rolling_s if self.rolling_s > 0 else None,
             "latency_ms": {"p50": pct(0.5), "p99": pct(0.99)},
-            "frames_skipped": self.frames_skipped,
+            "frames_skipped": self.frames_skipped, "recognition": self.recognition,
         }  # fmt: skip
 
 
@@ -111,6 +120,7 @@ class Runner:
         *,
         params: RollingParams | None = None,
         observer: RunObserver | None = None,
+        recognizer: RecognizerFactory = Recognizer,
     ) -> None:
         self.config, self.joints, self.tactile = config, joints, tactile
         self.ctx = config.ctx
@@ -127,6 +137,9 @@ class Runner:
         self._m1, self._m2 = self._axes.finger1_distal_matrix, self._axes.finger2_distal_matrix
         self._last_seq: int | None = None
         self._estopping = False
+        self._make_recognizer = recognizer
+        # the run's recognition; None once it failed (the rolling goes on without an estimate)
+        self._recognizer: Recognizer | None = None
 
     # --- control from outside ---------------------------------------------------------------
 
@@ -165,6 +178,7 @@ class Runner:
         sub = self.tactile.subscribe({self._m1, self._m2}, self.config.run.tactile_rate_hz)
         watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
         self.joints.start_polling()  # iterations take the newest angles, not a round trip
+        self._recognizer = self._new_recognizer()
         try:
             self._set_phase(Phase.CONNECTING)
             self._event(EventKind.START, {"params": self.params.model_dump()})
@@ -204,7 +218,8 @@ class Runner:
         self.result.status, self.result.message = status, message
         self.result.strokes = self.state.strokes
         self._set_phase(phase)
-        self._event(EventKind.END, {"status": status, "message": message})
+        rec = self.result.recognition
+        self._event(EventKind.END, {"status": status, "message": message, "recognition": rec})
 
     async def _halt(self) -> None:
         """Hold where the hand is: stop every axis, targets = actual angles."""
@@ -319,6 +334,7 @@ class Runner:
             await self._roll_loop(sub)
         finally:
             self.result.rolling_s = loop.time() - t_start
+            self.result.recognition = self._recognition_summary()
 
     async def _roll_loop(self, sub: Subscription) -> None:
         loop = asyncio.get_running_loop()
@@ -353,6 +369,35 @@ class Runner:
             self.state = r.state
             self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
 
+    def _new_recognizer(self) -> Recognizer | None:
+        try:
+            return self._make_recognizer(self.ctx)
+        except Exception:
+            log.exception("recognition could not start: the run goes on without an estimate")
+            return None
+
+    def _recognize(self, obs: Observation, frame: TactileFrame) -> Recognition | None:
+        """This iteration's recognition; its failure must never stop the rolling: logged once,
+        and the run goes on without an estimate."""
+        if self._recognizer is None:
+            return None
+        m = frame.matrices
+        try:
+            return self._recognizer.update(obs, m[self._m1], m[self._m2])
+        except Exception:
+            log.exception("recognition failed: the run goes on without an estimate")
+            self._recognizer = None
+            return None
+
+    def _recognition_summary(self) -> dict[str, Any] | None:
+        if self._recognizer is None:
+            return None
+        try:
+            return self._recognizer.summary()
+        except Exception:
+            log.exception("recognition's summary failed: the run's summary has none")
+            return None
+
     def _newest_angles(self) -> tuple[tuple[float, ...], float]:
         """The newest joint angles and their age in ms; stale ones are a fault, as a stale frame."""
         reading = self.joints.take_reading()
@@ -373,6 +418,7 @@ class Runner:
         t = frame.arrival - self._t0
         res = self.result
         res.iterations += 1
+        rec = self._recognize(r.obs, frame)
         if res.lambda_initial_mm is None and r.obs.Lambda is not None:
             res.lambda_initial_mm = r.obs.Lambda
         res.forces.append(r.F)
@@ -385,7 +431,7 @@ class Runner:
             detail = {"reason": why, "stroke": st.strokes, "half_strokes": st.half_strokes}
             self._event(EventKind.REVERSAL, detail, st.iteration)
         if self.observer is not None:
-            sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms)
+            sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms, rec)
             self.observer.sample(sample)
             self.observer.frame(t, sample.iteration, frame)
 

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
+from enum import StrEnum
+from typing import Any, TypeVar
 
+from sdh2svc.control.recognition import ContactKind, ObjectClass, Recognition
 from sdh2svc.control.rolling import StepResult
 from sdh2svc.model.kinematics import HandPose, Point
 
@@ -21,10 +23,19 @@ def _yz(p: Point | None) -> tuple[float | None, float | None]:
     return (None, None) if p is None else (p.y, p.z)
 
 
-def _doc(text: str, unit: str | None = None) -> Any:
+_E = TypeVar("_E", bound=StrEnum)
+
+
+def _doc(text: str, unit: str | None = None, *, optional: bool = False) -> Any:
     """A field's description and its unit (None: a count, a sign or a name), for the MCAP
-    export's schema, the CSV export's header and the API's docs."""
-    return field(metadata={"doc": f"{text}, {unit}" if unit else text, "unit": unit})
+    export's schema, the CSV export's header and the API's docs; ``optional``: None unless
+    given (the recognition's fields)."""
+    meta = {"doc": f"{text}, {unit}" if unit else text, "unit": unit}
+    return field(default=None, metadata=meta) if optional else field(metadata=meta)
+
+
+def _est(text: str, unit: str | None = None) -> Any:
+    return _doc(text, unit, optional=True)
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +85,34 @@ class Sample:
         "age of the actual joint angles φ2…φ5 when the iteration took them", "ms"
     )
     latency_ms: float = _doc("time from the frame's arrival to the targets on the joint line", "ms")
+    # recognition while rolling (control.recognition), from the tactile frames and angles only
+    contact1_kind: str | None = _est(
+        "what touches Finger 1's distal pad: flat | edge | curved (null: no contact or estimate)"
+    )
+    contact2_kind: str | None = _est("what touches Finger 2's distal pad: flat | edge | curved")
+    radius1: float | None = _est("local radius of curvature at Finger 1's curved contact", "mm")
+    radius2: float | None = _est("local radius of curvature at Finger 2's curved contact", "mm")
+    object_class: str | None = _est(
+        "the object's estimated class: box | polygon | ellipse | circle | stick (null: undecided)"
+    )
+    class_confidence: float | None = _est("confidence in object_class, 0…1")
+    size_a: float | None = _est(
+        "estimated size a: circle radius, ellipse semi-axis a, box side a, stick length, "
+        "polygon circumradius",
+        "mm",
+    )
+    size_b: float | None = _est(
+        "estimated size b: ellipse semi-axis b, box side b, stick diameter, polygon mean side",
+        "mm",
+    )
+    rotation_est: float | None = _est(
+        "the object's estimated rotation since the grasp (rolling kinematics)", "deg"
+    )
+    axis_est: float | None = _est(
+        "inclination σ of AB at the grasp: the reconstructed outline turns to axis_est + "
+        "rotation_est",
+        "deg",
+    )
 
     @classmethod
     def columns(cls) -> tuple[str, ...]:
@@ -106,8 +145,10 @@ class Sample:
         frame_age_ms: float,
         joint_age_ms: float,
         latency_ms: float,
+        rec: Recognition | None = None,
     ) -> Sample:
-        """The sample of one iteration; ``pose`` are the actual angles it started from."""
+        """The sample of one iteration; ``pose`` are the actual angles it started from, ``rec``
+        what the recognition made of it (None: no estimate, its fields null)."""
         obs, plan, tg = r.obs, r.plan, r.targets
         pts = obs.points
         ay, az = _yz(pts.A if pts else None)
@@ -131,4 +172,41 @@ class Sample:
             half_strokes=r.state.half_strokes,
             reversal=r.reversal.value if r.reversal else None,
             frame_age_ms=frame_age_ms, joint_age_ms=joint_age_ms, latency_ms=latency_ms,
+            **_recognized(rec),
         )  # fmt: skip
+
+    def recognition(self) -> Recognition | None:
+        """The recognition this sample recorded (None: none); the inverse of ``from_step``'s
+        ``rec``, for whoever draws it (the reconstructed outline)."""
+        if self.rotation_est is None:
+            return None
+        return Recognition(
+            kind1=_enum(ContactKind, self.contact1_kind),
+            kind2=_enum(ContactKind, self.contact2_kind),
+            radius1=self.radius1, radius2=self.radius2,
+            object_class=_enum(ObjectClass, self.object_class),
+            confidence=self.class_confidence or 0.0,
+            size_a=self.size_a, size_b=self.size_b, rotation=self.rotation_est,
+            axis=self.axis_est,
+        )  # fmt: skip
+
+
+def _enum(kind: type[_E], value: str | None) -> _E | None:
+    try:
+        return None if value is None else kind(value)
+    except ValueError:  # a value this version does not know: as if undecided
+        return None
+
+
+def _recognized(rec: Recognition | None) -> dict[str, Any]:
+    """The Sample's recognition fields of ``rec`` (all null without one)."""
+    if rec is None:
+        return {}
+    return {
+        "contact1_kind": None if rec.kind1 is None else rec.kind1.value,
+        "contact2_kind": None if rec.kind2 is None else rec.kind2.value,
+        "radius1": rec.radius1, "radius2": rec.radius2,
+        "object_class": None if rec.object_class is None else rec.object_class.value,
+        "class_confidence": rec.confidence, "size_a": rec.size_a, "size_b": rec.size_b,
+        "rotation_est": rec.rotation, "axis_est": rec.axis,
+    }  # fmt: skip

@@ -49,7 +49,15 @@ from sdh2svc.service.foxglove_mcap import (
     sample_json,
     sample_schema,
 )
-from sdh2svc.service.telemetry import AnyMessage, Event, Pose, SampleMsg, Sim, Tactile
+from sdh2svc.service.telemetry import (
+    AnyMessage,
+    Event,
+    Pose,
+    SampleMsg,
+    Sim,
+    Tactile,
+    live_outline,
+)
 
 __all__ = ["URDF_URI", "FoxgloveLive", "FoxgloveStartError"]
 
@@ -79,7 +87,7 @@ class FoxgloveLive:
 
     def __init__(self, cfg: Settings, *, host: str, port: int, max_hz: float) -> None:
         self.host, self.port = host, port
-        self._hand = HandFrames.of(cfg)
+        self._hand = HandFrames.of(cfg, live_outline)  # the live views' one outline
         self._alpha = math.radians(cfg.rolling.alpha_deg)
         self._period_s = 1.0 / max_hz
         self._last_3d = -math.inf  # when /tf and /scene were last fed (monotonic)

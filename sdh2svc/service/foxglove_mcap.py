@@ -8,7 +8,8 @@ Channels (log times: the run's start plus each record's own time ``t``):
   thumb at the run's pre-shape, where a run holds them).
 * ``/scene`` — ``foxglove.SceneUpdate``: the six pads as boxes in their URDF frames (``pads/<pad>``,
   following ``/tf``), and in ``frame0`` the contact points A, B, the segment AB and the friction
-  cones of half-angle α about each pad's normal (``contacts``); in simulation the object's true
+  cones of half-angle α about each pad's normal, and the object as the recognition reconstructed
+  it, a closed blue line, once it has a class (``contacts``); in simulation the object's true
   outline too (``object``: live from the ``sim`` messages, in a file from the truth recorded with
   each iteration), red once it has dropped.
 * ``/tactile/<finger>_<proximal|distal>`` — each pad as ``foxglove.Grid`` (raw counts, uint16) in
@@ -26,7 +27,7 @@ import json
 import math
 import types
 import typing
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from typing import IO, Any
 
@@ -46,10 +47,16 @@ from sdh2svc.model.urdf import (
     pad_matrix,
     to_xml,
 )
-from sdh2svc.service.telemetry import recorded_truth
+from sdh2svc.service.telemetry import (
+    ESTIMATE_PERIOD_S,
+    OutlineEvery,
+    estimate_outline,
+    recorded_truth,
+)
 
 Json = dict[str, Any]
 _MM = 1e-3
+ESTIMATE_RGBA = (0.15, 0.75, 0.92, 1.0)  # the reconstructed outline (the 3-D view's colour)
 PAD_BOX_MM = 1.5  # the pads' boxes' thickness (display: under the Grid, which lies at z = 0)
 
 SAMPLE_SCHEMA = "sdh2svc.Sample"  # the /samples channel's schema name
@@ -121,9 +128,13 @@ class HandFrames:
     cfg: Settings
     desc: HandDescription
     held: Mapping[str, float]  # the joints a sample does not carry (φ1, thumb), rad
+    # a sample's reconstructed outline (telemetry.estimate_outline, or one made less often)
+    estimate: Callable[[Mapping[str, Any]], np.ndarray] = estimate_outline
 
     @classmethod
-    def of(cls, cfg: Settings) -> HandFrames:
+    def of(
+        cls, cfg: Settings, estimate: Callable[[Mapping[str, Any]], np.ndarray] = estimate_outline
+    ) -> HandFrames:
         desc = describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
         pre = cfg.run.preshape_deg
         ax = cfg.axes
@@ -132,7 +143,7 @@ class HandFrames:
             "thumb_proximal": pre[ax.thumb_proximal],
             "thumb_distal": pre[ax.thumb_distal],
         }
-        return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()})
+        return cls(cfg, desc, {k: math.radians(v) for k, v in held.items()}, estimate)
 
     def transforms(self, s: Mapping[str, Any], ns: int) -> fm.FrameTransforms:
         """The links at a sample's φ2…φ5 (the other joints held)."""
@@ -205,7 +216,8 @@ class HandFrames:
         return out
 
     def contacts(self, s: Mapping[str, Any], ns: int, alpha: float) -> fm.SceneEntity:
-        """A, B, the segment AB and the friction cones, in frame 0 (metres)."""
+        """A, B, the segment AB, the friction cones and the reconstructed outline
+        (:attr:`estimate`), in frame 0 (metres)."""
         spheres, lines, cones = [], [], []
         pts = {}
         for name, finger, (py, pz), (cy, cz), psi in (
@@ -236,6 +248,16 @@ class HandFrames:
                         for q in (pts["A"], pts["B"])
                     ],
                     color=_rgba(1.0, 0.8, 0.1, 1.0),
+                )
+            )
+        est = self.estimate(s)
+        if len(est) >= 2:
+            lines.append(
+                fm.LinePrimitive(
+                    type=fm.LinePrimitiveLineType.LineLoop,
+                    thickness=1.2 * _MM,
+                    points=[fm.Point3(x=0.0, y=y * _MM, z=z * _MM) for y, z in est.tolist()],
+                    color=_rgba(*ESTIMATE_RGBA),
                 )
             )
         return fm.SceneEntity(
@@ -376,8 +398,10 @@ def write_mcap(
     """Write one run (its row, samples, events, frames) to ``out``; returns the message count.
 
     ``outline`` and ``truth``: the simulated object's (``RunStore.outline``, ``RunStore.truth``),
-    drawn in each iteration's scene where recorded."""
-    hand = HandFrames.of(cfg)
+    drawn in each iteration's scene where recorded. The reconstructed outline is drawn at most
+    every :data:`~sdh2svc.service.telemetry.ESTIMATE_PERIOD_S` of the run (it costs
+    milliseconds)."""
+    hand = HandFrames.of(cfg, OutlineEvery(ESTIMATE_PERIOD_S))
     meta = run.get("meta") or {}
     alpha = math.radians((meta.get("params") or {}).get("alpha_deg", cfg.rolling.alpha_deg))
     w = Writer(out)

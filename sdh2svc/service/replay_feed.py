@@ -62,7 +62,7 @@ def recorded_iteration(store: RunStore, cfg: Settings, run_id: int, it: int) -> 
     if row is None:
         return None
     sample = Sample(**row)
-    msgs: list[Message] = [SampleMsg(run_id, sample).with_view(cfg.hand)]
+    msgs: list[Message] = [SampleMsg(run_id, sample).with_view(cfg.hand, live=False)]
     texels = store.frame_at(run_id, it, sample.t)
     if texels is not None:
         shapes = matrix_shapes(cfg.tactile, cfg.axes)

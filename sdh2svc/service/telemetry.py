@@ -6,14 +6,20 @@ dict and converts no matrix: the JSON form is made once, at delivery (:func:`enc
 WebSocket clients; the 3-D view takes the values themselves, and its process gets them pickled
 (a tactile frame's matrices as arrays: bytes and shape, never lists).
 
-What the view draws of a sample — the contact points A, B with their pad normals and ω — is
-:class:`SampleView`, made here once per forwarded sample (:func:`sample_view`), so the view
-draws the contacts as given and never works out a pad's geometry itself.
+What the view draws of a sample — the contact points A, B with their pad normals and ω, and the
+reconstructed outline — is :class:`SampleView`, made here once per forwarded sample
+(:func:`sample_view`), so the view draws the contacts as given and never works out a pad's
+geometry itself. The reconstructed outline (:func:`estimate_outline`) is the recognition's own
+(:func:`sdh2svc.control.recognition.outline`) from the sample's fields, the same for the
+dashboard (a ``sample`` message's ``estimate_outline``), the 3-D view and Foxglove. It costs
+milliseconds, so the live views share one, made at most every :data:`ESTIMATE_PERIOD_S` of the
+run's time (:data:`live_outline`); a recorded iteration gets its own.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -24,10 +30,17 @@ import numpy as np
 import numpy.typing as npt
 
 from sdh2svc.control.observer import EventKind
+from sdh2svc.control.recognition import outline
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.friction import pad_tangent
 from sdh2svc.model.hand import AxisMap, TactileConfig
 from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
+
+log = logging.getLogger(__name__)
+
+ESTIMATE_POINTS = 48  # of the reconstructed outline, everywhere it is drawn
+ESTIMATE_PERIOD_S = 0.2  # live views: the reconstructed outline at most this often (run time)
+_NO_OUTLINE: npt.NDArray[np.float64] = np.zeros((0, 2))
 
 
 class Kind(StrEnum):
@@ -68,19 +81,26 @@ class Status:
 @dataclass(frozen=True, slots=True)
 class SampleMsg:
     """One rolling iteration's :class:`Sample` of run ``run_id``; ``view``, when made, is what
-    the 3-D view draws of it (not in the JSON form)."""
+    the 3-D view draws of it (not in the JSON form). The JSON form's sample also carries
+    ``estimate_outline``: the reconstructed outline, y0z0 mm (``[]``: no class yet)."""
 
     run_id: int | None
     sample: Sample
     view: SampleView | None = None
     type: ClassVar[Kind] = Kind.SAMPLE
 
-    def with_view(self, geom: HandGeometry) -> SampleMsg:
-        return self if self.view is not None else replace(self, view=sample_view(self.sample, geom))
+    def with_view(self, geom: HandGeometry, *, live: bool = True) -> SampleMsg:
+        """With what the view draws of it (``live``: the live views' shared outline,
+        :data:`live_outline`; else this sample's own)."""
+        if self.view is not None:
+            return self
+        return replace(self, view=sample_view(self.sample, geom, live=live))
 
     def json(self) -> dict[str, Any]:
         s = self.sample
-        fields = dict(zip(s.columns(), s.row(), strict=True))
+        fields: dict[str, Any] = dict(zip(s.columns(), s.row(), strict=True))
+        est = self.view.estimate if self.view is not None else _points(live_outline(s))
+        fields["estimate_outline"] = [[y, z] for y, z in est]
         return {"type": "sample", "run_id": self.run_id, "sample": fields}
 
 
@@ -195,12 +215,14 @@ class Contact:
 
 @dataclass(frozen=True, slots=True)
 class SampleView:
-    """A sample as the 3-D view draws it: φ2…φ5 (degrees; None: not in the sample) and the
-    contacts A (Finger 1) and B (Finger 2)."""
+    """A sample as the 3-D view draws it: φ2…φ5 (degrees; None: not in the sample), the
+    contacts A (Finger 1) and B (Finger 2), and the reconstructed outline (:func:`estimate_outline`:
+    (y, z) points, mm; empty without a class)."""
 
     phi_deg: tuple[float | None, float | None, float | None, float | None]
     A: Contact | None
     B: Contact | None
+    estimate: tuple[tuple[float, float], ...] = ()
 
 
 def contact_normal(
@@ -235,13 +257,86 @@ def _contact(
     return Contact(at, normal, w)
 
 
-def sample_view(s: Sample | Mapping[str, Any], geom: HandGeometry) -> SampleView:
+def sample_view(
+    s: Sample | Mapping[str, Any], geom: HandGeometry, *, live: bool = True
+) -> SampleView:
     """What the view draws of ``s`` (a :class:`Sample` or its JSON form; a missing or
-    non-finite field is None)."""
+    non-finite field is None); ``live``: the live views' outline (:data:`live_outline`), else
+    the sample's own."""
     phis = (_num(s, "phi2"), _num(s, "phi3"), _num(s, "phi4"), _num(s, "phi5"))
     A = _contact(s, Finger.ONE, ("Ay", "Az", "phi2", "phi3", "omega_A"), geom)
     B = _contact(s, Finger.TWO, ("By", "Bz", "phi4", "phi5", "omega_B"), geom)
-    return SampleView(phis, A, B)
+    est = live_outline(s) if live else estimate_outline(s)
+    return SampleView(phis, A, B, _points(est))
+
+
+def _points(pts: npt.NDArray[np.float64]) -> tuple[tuple[float, float], ...]:
+    return tuple((y, z) for y, z in pts.tolist())
+
+
+class OutlineEvery:
+    """:func:`estimate_outline` of a stream of samples: the same sample's again at once, a
+    later one's only when its run time ``t`` is ``period_s`` past the last one made and of the
+    same class (else made again: a newer class, another run); in between the last one. Between
+    two makings the contacts move a fraction of a millimetre; an outline costs milliseconds
+    (``recognition.outline``)."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.made = 0  # outlines made (tests, diagnostics)
+        self._last: object = None
+        self._t = -math.inf
+        self._cls: Any = None
+        self._pts = _NO_OUTLINE
+
+    def __call__(self, s: Sample | Mapping[str, Any]) -> npt.NDArray[np.float64]:
+        if s is self._last:
+            return self._pts
+        t = _num(s, "t")
+        cls = s.object_class if isinstance(s, Sample) else s.get("object_class")
+        if cls is None:
+            return _NO_OUTLINE
+        if t is not None and cls == self._cls and 0.0 < t - self._t < self.period_s:
+            return self._pts
+        self._last, self._cls, self._t = s, cls, (t if t is not None else -math.inf)
+        self._pts = estimate_outline(s)
+        self.made += 1
+        return self._pts
+
+
+#: The live views' (the hub's JSON, the 3-D view, Foxglove) one outline of the running run.
+live_outline = OutlineEvery(ESTIMATE_PERIOD_S)
+
+
+_outline_failures = 0
+
+
+def estimate_outline(
+    s: Sample | Mapping[str, Any], points: int = ESTIMATE_POINTS
+) -> npt.NDArray[np.float64]:
+    """The object as the recognition reconstructed it at sample ``s`` (a :class:`Sample`, or its
+    JSON form or a recorded row): ``points`` × 2, y0z0 mm, touching A and B, turned by the
+    estimated rotation (:func:`sdh2svc.control.recognition.outline`); empty (0 × 2) without a
+    class or a contact. Never raises: what cannot be drawn is not drawn (logged rarely)."""
+    global _outline_failures
+    try:
+        if not isinstance(s, Sample):
+            row: dict[str, Any] = {c: s.get(c) for c in Sample.columns()}
+            s = Sample(**row)
+        rec, ay, az, by, bz = s.recognition(), s.Ay, s.Az, s.By, s.Bz
+        if rec is None or rec.object_class is None or ay is None or az is None:
+            return _NO_OUTLINE
+        if by is None or bz is None:
+            return _NO_OUTLINE
+        pts = np.asarray(outline(rec, (ay, az), (by, bz), points), dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1:] != (2,) or not np.isfinite(pts).all():
+            return _NO_OUTLINE
+        return np.round(pts, 2)
+    except Exception:
+        _outline_failures += 1
+        if _outline_failures in (1, 100) or _outline_failures % 10000 == 0:
+            log.exception("the reconstructed outline failed (%d times)", _outline_failures)
+        return _NO_OUTLINE
 
 
 def as_array(matrix: Any) -> npt.NDArray[np.float64]:

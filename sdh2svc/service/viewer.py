@@ -1,4 +1,5 @@
-"""Live viser 3-D view of the hand: pose, tactile pads, contacts A and B, friction cones, object.
+"""Live viser 3-D view of the hand: pose, tactile pads, contacts A and B, friction cones, object
+(in simulation the true outline) and the object as the recognition reconstructed it.
 
 The view consumes the telemetry messages of docs/api.md (``sample``, ``tactile``, ``pose``,
 ``sim``, ``status``/``hello``), typed (:mod:`sdh2svc.service.telemetry`) or in their JSON form.
@@ -95,6 +96,7 @@ YELLOW = (230, 190, 40)
 RED = (230, 40, 40)
 OUTLINE_HELD = (255, 150, 40)
 OUTLINE_DROPPED = (230, 40, 40)
+ESTIMATE = (40, 190, 235)  # the reconstructed outline (recognition), over the true one
 
 # Raw counts → colour: dark (unloaded) → blue → cyan → yellow → red at full scale.
 _CMAP_T = np.array([0.0, 0.05, 0.3, 0.6, 1.0])
@@ -581,6 +583,7 @@ class Viewer:
         parts = [
             ({"pose", "sample"}, self._render_hand),
             ({"sample", "status"}, self._render_contacts),
+            ({"sample", "status"}, self._render_estimate),
             ({"tactile"}, self._render_pads),
             ({"sim"}, self._render_truth),
             ({"status"}, self._render_status),
@@ -703,6 +706,20 @@ class Viewer:
             self._set(
                 seg, "points", np.array([[[0.0, A.at.y, A.at.z], [0.0, B.at.y, B.at.z]]]) * MM
             )
+
+    def _render_estimate(self) -> None:
+        """The object as the recognition reconstructed it (the sample's, made by
+        :func:`~sdh2svc.service.telemetry.estimate_outline`); hidden without a class, and when
+        the contacts are (no run rolling)."""
+        s = self._contact_sample()
+        node = self.nodes["/object/estimate"]
+        pts = np.asarray(s.estimate if s is not None else (), dtype=float)
+        if pts.ndim != 2 or pts.shape[0] < 2 or pts.shape[1] != 2:
+            self._set(node, "visible", False)
+            return
+        p3 = np.column_stack([np.zeros(len(pts)), pts]) * MM
+        self._set(node, "points", np.stack([p3, np.roll(p3, -1, axis=0)], axis=1))
+        self._set(node, "visible", True)
 
     def _render_pads(self) -> None:
         mats = self._latest.get("tactile")
@@ -980,6 +997,9 @@ class Viewer:
         )
         self.nodes["/object/outline"] = sc.add_line_segments(
             "/object/outline", none, OUTLINE_HELD, thickness=1.0 * MM, visible=False
+        )
+        self.nodes["/object/estimate"] = sc.add_line_segments(
+            "/object/estimate", none, ESTIMATE, thickness=1.4 * MM, visible=False
         )
 
     def _build_gui(self) -> None:

@@ -12,8 +12,8 @@ loop (no threads, never a blocking write). On it:
 
 * parent → child: ``("telemetry", [msg, …])`` the changed latest messages in arrival order,
   typed (:mod:`sdh2svc.service.telemetry`): a sample with what the view draws of it (its
-  contacts and their pad normals, made here once), a tactile frame's matrices as arrays (pickled
-  as bytes and shape);
+  contacts and their pad normals, the reconstructed outline, made here once), a tactile frame's
+  matrices as arrays (pickled as bytes and shape);
   ``("result", id, error | None)`` a GUI command's outcome; ``("stop",)``.
 * child → parent: ``("ready", url)`` or ``("error", text)`` once at start-up;
   ``("watched", bool)`` as browsers come and go; ``("command", id, kind, args)`` from the GUI

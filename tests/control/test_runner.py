@@ -18,6 +18,7 @@ from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Simulated, connect_hand
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
+from sdh2svc.control.sample import Sample
 from sdh2svc.protocol.sdh import AxisState
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.lab import SimulatedHand
@@ -45,6 +46,10 @@ class Seen(BaseObserver):
     def __init__(self) -> None:
         self.events: list[tuple[str, dict[str, Any]]] = []
         self.hooks: list[Callable[[Event], None]] = []
+        self.samples: list[Sample] = []
+
+    def sample(self, sample: Sample) -> None:
+        self.samples.append(sample)
 
     def event(self, event: Event) -> None:
         self.events.append((event.kind, event.detail))
@@ -70,7 +75,7 @@ def test_full_run_completes_its_strokes_without_a_drop(
 ) -> None:
     cfg = cfg_with(tmp_path, f"sim.object={obj!r}", *extra)
 
-    async def main() -> tuple[Any, list, Any]:
+    async def main() -> tuple[Any, list, Any, list[Sample]]:
         async with rig(cfg, tmp_path) as (hand, runner):
             truth: list[Any] = []
 
@@ -80,9 +85,9 @@ def test_full_run_completes_its_strokes_without_a_drop(
 
             seen(runner).hooks.append(snapshot)
             result = await runner.run()
-            return result, seen(runner).events, truth[0]
+            return result, seen(runner).events, truth[0], seen(runner).samples
 
-    result, events, truth = fast(main)
+    result, events, truth, samples = fast(main)
     phases = [d["phase"] for k, d in events if k == "phase"]
     assert phases == ["connecting", "pre-shape", "grasping", "rolling", "releasing", "done"]
     assert result.status == "completed" and result.strokes == cfg.rolling.cycles
@@ -95,6 +100,15 @@ def test_full_run_completes_its_strokes_without_a_drop(
     # one iteration per fresh tactile frame: none skipped, none used twice
     assert result.frames_skipped == 0
     assert result.iterations == pytest.approx(result.rolling_s * cfg.run.tactile_rate_hz, rel=0.05)
+    # the recognition ran on every iteration: its estimate in the samples and the summary
+    assert len(samples) == result.iterations
+    assert all(s.rotation_est is not None for s in samples)
+    both = sum(s.contact1_kind is not None and s.contact2_kind is not None for s in samples)
+    assert both >= 0.9 * len(samples)
+    assert samples[-1].object_class is not None
+    summary = result.summary()["recognition"]
+    assert summary["object_class"] == samples[-1].object_class
+    assert [d["recognition"] for k, d in events if k == "end"] == [summary]
 
 
 def test_force_ceiling_stops_and_opens_the_hand(tmp_path: Path) -> None:

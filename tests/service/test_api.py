@@ -197,6 +197,13 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
             [s["iteration"] for s in page["samples"][5:8]]  # fmt: skip
         run = await c.run(run_id)
         assert run["status"] == "stopped" and run["meta"]["object"]["name"] == "egg"
+        # the recognition's estimate: in every sample (its outline with the live ones), the
+        # summary, and the end event
+        assert all(s["rotation_est"] is not None and isinstance(s["estimate_outline"], list)
+                   for s in seen)  # fmt: skip
+        rec = run["summary"]["recognition"]
+        assert rec["object_class"] == page["samples"][-1]["object_class"]
+        assert run["events"][-1]["detail"]["recognition"] == rec
         kinds = [e["kind"] for e in run["events"]]
         assert "params" in kinds and "grasped" in kinds and kinds[-1] == "end"
 

@@ -66,6 +66,8 @@ SHOWN = """() => ({
   pads: document.querySelector('#pads').dataset.iteration,
   sketch: document.querySelector('#sketch').dataset.iteration,
   objectPose: document.querySelector('#sketch').dataset.objectPose,
+  readout: document.querySelector('#object-readout').dataset.iteration,
+  readoutClass: document.querySelector('#object-readout').dataset.class,
   plots: [...document.querySelectorAll('.plot')].map(p => p.dataset.cursorIteration),
   cursors: window.sdh2debug.plots.charts.map(c => c.cursor.idx),
   index: window.sdh2.replayIndex,
@@ -269,6 +271,9 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         sel = f"#pads canvas[data-matrix='{i}']"
         assert await page.evaluate(COUNT_PIXELS_NOT, [sel, PAD_ZERO_RGB]) > 0, f"pad {i} blank"
     assert await page.evaluate(COUNT_COLOURED, "#sketch") > 100
+    # the object readout follows the live samples (the recognition's estimate)
+    await page.wait_for_function("Number(document.querySelector('#object-readout')"
+                                 ".dataset.iteration) > 0")  # fmt: skip
     # the legends show the newest values without a hover
     legend = await page.inner_text("#plot-lambda .u-legend")
     assert re.search(r"Λ:?\s*\d", legend), legend
@@ -349,8 +354,15 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     )
     await page.evaluate(seek)
     shown = await page.evaluate(SHOWN)
-    assert shown["pads"] == shown["sketch"] == str(it), shown
+    assert shown["pads"] == shown["sketch"] == shown["readout"] == str(it), shown
     assert shown["plots"] == [str(it)] * len(PLOTS), shown
+    # … and the readout and the sketch that iteration's recognition, its outline as recorded
+    assert shown["readoutClass"] == (samples[i]["object_class"] or ""), shown
+    est = httpx.get(f"{service.url}/api/runs/{run_id}/samples",
+                    params={"offset": i, "limit": 1, "outline": "true"}).json()  # fmt: skip
+    drawn = "document.querySelector('#sketch').dataset.estimatePoints"  # once the page has it
+    n_est = len(est["samples"][0]["estimate_outline"])
+    await page.wait_for_function(f"{drawn} === '{n_est}'", timeout=10_000)
     # in simulation the sketch draws the object where the recording has it at that iteration
     truth = httpx.get(f"{service.url}/api/runs/{run_id}/truth?from={it}&limit=1").json()["truth"]
     assert [float(v) for v in shown["objectPose"].split(",")] == [

@@ -247,3 +247,33 @@ def test_an_export_without_frames_or_contacts(cfg: Settings, tmp_path: Path) -> 
     (entity,) = [e for e in got.messages["/scene"][0]["entities"] if e["id"] == "contacts"]
     assert "spheres" not in entity and "cylinders" not in entity
     assert got.metadata["object"] == {"name": "none (a real hand)"}
+
+
+def test_the_reconstructed_outline_is_a_line_in_the_contacts(
+    cfg: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The recognition's outline (telemetry.estimate_outline) as a closed line beside AB, only
+    once a class is known."""
+    from google.protobuf.json_format import MessageToDict
+
+    from sdh2svc.service import telemetry
+
+    def tri(rec: Any, a: Any, b: Any, n: int = 64) -> np.ndarray:
+        return np.array([a, b, (a[0], a[1] + rec.size_a)])
+
+    def lines(row: dict[str, Any]) -> list[dict[str, Any]]:
+        schema = fm.SceneUpdate.get_schema()
+        msg = fm.SceneUpdate(entities=[hand.contacts(row, 0, 0.4)])
+        decoded = _proto_class(schema.name, schema.data).FromString(msg.encode())
+        return MessageToDict(decoded, preserving_proto_field_name=True)["entities"][0]["lines"]
+
+    monkeypatch.setattr(telemetry, "outline", tri)
+    s = _samples(cfg, 1)[0]
+    row = dict(zip(Sample.columns(), s.row(), strict=True))
+    hand = HandFrames.of(cfg)
+    assert len(lines(row)) == 1  # AB only: no class, no estimate
+    row.update(object_class="circle", class_confidence=0.8, size_a=25.0, rotation_est=3.0)
+    _ab, est = lines(row)
+    assert est["type"] == "LINE_LOOP"
+    got = [c for p in est["points"] for c in (p.get("y", 0.0) * 1e3, p["z"] * 1e3)]
+    assert got == pytest.approx([s.Ay, s.Az, s.By, s.Bz, s.Ay, s.Az + 25.0], abs=0.006)  # 0.01 mm

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 from collections.abc import AsyncIterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -244,3 +245,44 @@ async def test_replay_feed_goes_live_without_news() -> None:
     assert feed._timer is not None
     feed._timer._run()  # the timer's moment (ttl 0): no sleeping on a clock
     assert feed.showing is None and kept[-1] is live
+
+
+async def test_the_runs_recognition_in_its_summary_and_samples(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    """GET /api/runs/{id} gives the summary's recognition (documented: RunDetail → RunSummary →
+    RecognitionSummary); the samples, with ``outline=true``, their reconstructed outlines."""
+    from sdh2svc.service import telemetry
+
+    cfg, run_id, _ = setup
+    c, _ = client
+    rec = {"object_class": "ellipse", "confidence": 0.9, "size_a_mm": 30.0, "size_b_mm": 20.0,
+           "rotation_deg": 41.5, "contacts": {"flat": 0.0, "edge": 0.1, "curved": 0.9}}  # fmt: skip
+    store = RunStore(cfg.storage.db_path)
+    store.finish_run(run_id, "completed", {"status": "completed", "recognition": rec})
+    recorder = Recorder(store.path, run_id)
+    recorder.sample(replace(sample(ITERATIONS), object_class="ellipse", size_a=30.0,
+                            size_b=20.0, rotation_est=41.5))  # fmt: skip
+    recorder.close()
+    store.close()
+    r = await c.get(f"/api/runs/{run_id}")
+    assert r.status_code == 200 and r.json()["summary"]["recognition"] == rec
+
+    monkeypatch.setattr(telemetry, "outline", lambda rec, a, b, n: np.array([a, b, a]))
+    plain = (await c.get(f"/api/runs/{run_id}/samples")).json()["samples"]
+    assert "estimate_outline" not in plain[0]
+    asked = {"outline": "true", "limit": 100}
+    page = (await c.get(f"/api/runs/{run_id}/samples", params=asked)).json()
+    outlines = [s["estimate_outline"] for s in page["samples"]]
+    assert outlines[:ITERATIONS] == [[]] * ITERATIONS  # no class: nothing reconstructed
+    assert outlines[ITERATIONS] == [[20.0, 110.0], [46.0, 110.0], [20.0, 110.0]]
+    r = await c.get(f"/api/runs/{run_id}/samples", params={**asked, "limit": 101})
+    assert r.status_code == 422 and "at most 100" in r.json()["details"][0]
+
+    doc = (await c.get("/openapi.json")).json()
+    ok = doc["paths"]["/api/runs/{run_id}"]["get"]["responses"]["200"]
+    assert ok["content"]["application/json"]["schema"]["$ref"].endswith("/RunDetail")
+    schemas = doc["components"]["schemas"]
+    assert set(rec) <= set(schemas["RecognitionSummary"]["properties"])
+    assert "recognition" in schemas["RunSummary"]["properties"]

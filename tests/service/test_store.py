@@ -140,3 +140,51 @@ def test_an_older_database_gets_new_sample_columns(tmp_path: Path) -> None:
     db = connect(path)
     assert {row[1] for row in db.execute("PRAGMA table_info(samples)")} >= set(SAMPLE_COLUMNS)
     db.close()
+
+
+RECOGNITION = ("contact1_kind", "contact2_kind", "radius1", "radius2", "object_class",
+               "class_confidence", "size_a", "size_b", "rotation_est", "axis_est")  # fmt: skip
+
+
+def test_the_recognition_round_trips_and_an_older_database_reads_as_none(
+    cfg: Settings, tmp_path: Path
+) -> None:
+    """A file made before the recognition's columns: its samples read back without an estimate;
+    a new run in it records and exports the estimate."""
+    from sdh2svc.control.recognition import ContactKind, ObjectClass, Recognition
+
+    assert SAMPLE_COLUMNS[-len(RECOGNITION) :] == RECOGNITION
+    older = SAMPLE_COLUMNS[: -len(RECOGNITION)]
+    path = tmp_path / "old.sqlite"
+    old_sample = _samples(cfg, 1)[0]
+    with contextlib.closing(sqlite3.connect(path)) as old:
+        old_schema = SCHEMA.replace("".join(f', "{c}"' for c in RECOGNITION), "")
+        assert '"rotation_est"' not in old_schema and '"axis_est"' not in old_schema
+        old.executescript(old_schema)
+        old.execute("INSERT INTO runs (started_at, status, meta) VALUES ('x', 'completed', '{}')")
+        cols, marks = ", ".join(f'"{c}"' for c in older), ", ".join("?" * len(older))
+        sql = f"INSERT INTO samples (run_id, {cols}) VALUES (1, {marks})"
+        old.execute(sql, old_sample.row()[: len(older)])
+        old.commit()
+    store = RunStore(path)
+    (row,) = store.samples(1)
+    assert Sample(**row) == old_sample and Sample(**row).recognition() is None
+    rec = Recognition(ContactKind.EDGE, ContactKind.CURVED, None, 18.0, ObjectClass.POLYGON,
+                      0.9, 31.0, 20.5, -12.25, 8.5)  # fmt: skip
+    r = step(RollState(), HandPose(*(math.radians(a) for a in (-20, 30, -20, 30))),
+             _frame(20.0), _frame(20.0), cfg.rolling, cfg.model_context())  # fmt: skip
+    new = Sample.from_step(r, HandPose(0, 0, 0, 0), 0.0, 1.0, 1.0, 1.0, rec)
+    run_id = store.create_run({})
+    recorder = Recorder(path, run_id)
+    recorder.sample(new)
+    recorder.close()
+    (back,) = store.samples(run_id)
+    assert Sample(**back) == new and Sample(**back).recognition() == rec
+    assert (back["object_class"], back["contact1_kind"], back["rotation_est"]) == (
+        "polygon", "edge", -12.25)  # fmt: skip
+    buf = io.StringIO()
+    store.export_csv(run_id, buf)
+    (line,) = csv.DictReader(io.StringIO(buf.getvalue()))
+    assert line["object_class"] == "polygon" and float(line["rotation_est [deg]"]) == -12.25
+    assert line["radius1 [mm]"] == "" and float(line["radius2 [mm]"]) == 18.0
+    store.close()

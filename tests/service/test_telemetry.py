@@ -48,7 +48,8 @@ def test_each_message_encodes_as_its_documented_dict() -> None:
         (Hello({"sim": True}), {"type": "hello", "status": {"sim": True}}),
         (Status({"run": None}), {"type": "status", "status": {"run": None}}),
         (SampleMsg(3, s), {"type": "sample", "run_id": 3,
-                           "sample": dict(zip(Sample.columns(), s.row(), strict=True))}),
+                           "sample": {**dict(zip(Sample.columns(), s.row(), strict=True)),
+                                      "estimate_outline": []}}),
         (Event(3, 1.5, 9, "reversal", {"why": "S1"}), {"type": "event", "run_id": 3, "t": 1.5,
                                                        "iteration": 9, "kind": "reversal",
                                                        "detail": {"why": "S1"}}),
@@ -104,3 +105,58 @@ def test_a_frame_reaches_the_views_process_as_arrays(dtype: type) -> None:
     assert all(np.array_equal(a, b) for a, b in zip(back.matrices, mats, strict=True))
     view = SampleView((None, None, None, None), None, None)
     assert pickle.loads(pickle.dumps(view)) == view
+
+
+def test_the_reconstructed_outline_is_the_recognitions_sent_with_the_sample(
+    cfg: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One outline, made by recognition.outline from the sample's fields: in the JSON form
+    (dashboard), in the view (3-D) and from a recorded row (replay) alike."""
+    from sdh2svc.control.recognition import ObjectClass
+    from sdh2svc.service import telemetry
+
+    calls: list[tuple[Any, ...]] = []
+
+    def square(rec: Any, a: Any, b: Any, n: int = 64) -> np.ndarray:
+        calls.append((rec.object_class, rec.size_a, rec.rotation, a, b, n))
+        return np.array([[0.0, 0.0], [rec.size_a, 0.0], [rec.size_a, rec.size_a]])
+
+    monkeypatch.setattr(telemetry, "outline", square)
+    monkeypatch.setattr(telemetry, "live_outline", telemetry.OutlineEvery(0.1))
+    s = a_sample(Ay=1.0, Az=2.0, By=3.0, Bz=4.0, contact1_kind="flat", contact2_kind="edge",
+                 object_class="box", class_confidence=0.5, size_a=10.0, size_b=5.0,
+                 rotation_est=30.0)  # fmt: skip
+    want = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]]
+    assert SampleMsg(1, s).json()["sample"]["estimate_outline"] == want
+    assert calls[-1] == (ObjectClass.BOX, 10.0, 30.0, (1.0, 2.0), (3.0, 4.0), 48)
+    view = SampleMsg(1, s).with_view(cfg.hand).view
+    assert view is not None and [list(p) for p in view.estimate] == want
+    row = dict(zip(Sample.columns(), s.row(), strict=True))  # a recorded row, the JSON form
+    assert telemetry.estimate_outline(row).tolist() == want
+    # no class, no contact, or an outline that fails: nothing drawn, nothing raised
+    assert SampleMsg(1, a_sample(object_class=None)).json()["sample"]["estimate_outline"] == []
+    assert telemetry.estimate_outline({**row, "By": None}).shape == (0, 2)
+    monkeypatch.setattr(telemetry, "outline", lambda *a: 1 / 0)
+    assert telemetry.estimate_outline(s).shape == (0, 2)
+
+
+def test_the_live_views_share_an_outline_made_at_most_every_period(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The outline costs milliseconds: the hub's JSON, the 3-D view and Foxglove take one of the
+    same sample, and a later sample's only once ESTIMATE_PERIOD_S of the run has passed."""
+    from sdh2svc.service import telemetry
+
+    monkeypatch.setattr(telemetry, "outline", lambda rec, a, b, n: np.array([a, b, (0.0, 0.0)]))
+    every = telemetry.OutlineEvery(0.1)
+    est = {"Ay": 1.0, "Az": 2.0, "By": 3.0, "Bz": 4.0, "object_class": "box", "size_a": 10.0,
+           "size_b": 5.0, "rotation_est": 3.0}  # fmt: skip
+    samples = [a_sample(t=0.02 * i, **{**est, "Ay": 1.0 + i}) for i in range(12)]
+    for s in samples:
+        for _consumer in range(3):
+            got = every(s)
+    assert every.made == 3  # t = 0, 0.10, 0.20 (0.02 steps: a made one serves five)
+    assert got[0, 0] == 1.0 + 10  # the last made: t = 0.20
+    assert every(a_sample(t=0.0, **est)).tolist()[0] == [1.0, 2.0]  # back in time: a new run
+    assert every(a_sample(t=0.01, **{**est, "object_class": "circle"})).shape == (3, 2)
+    assert every.made == 5 and every(a_sample(t=0.02, **{**est, "object_class": None})).size == 0

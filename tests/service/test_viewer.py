@@ -27,8 +27,8 @@ from sdh2svc.config import Settings
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.geometry import pad_point_from_L, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, frame3_axes, pad_point
+from sdh2svc.service import telemetry, viewer_proc
 from sdh2svc.service import viewer as viewer_module
-from sdh2svc.service import viewer_proc
 from sdh2svc.service.app import _start_viewer
 from sdh2svc.service.replay_feed import recorded_iteration
 from sdh2svc.service.store import Recorder as RunRecorder
@@ -354,6 +354,52 @@ async def test_sim_outline(viewer: Viewer) -> None:
     assert node.points.shape == (24, 2, 3)
     assert np.allclose(node.points[:, 0, 1:], np.array(outline) * MM, atol=1e-6)
     assert np.allclose(node.points[:, :, 0], 0.0)
+
+
+def _ring(rec: Any, a: tuple[float, float], b: tuple[float, float], n: int = 64) -> np.ndarray:
+    """A stand-in for recognition.outline: a circle of radius size_a through A and B's middle."""
+    t = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    c = ((a[0] + b[0]) / 2, (a[1] + b[1]) / 2)
+    return np.column_stack([c[0] + rec.size_a * np.cos(t), c[1] + rec.size_a * np.sin(t)])
+
+
+async def test_the_reconstructed_outline_is_drawn_while_a_class_is_known(
+    viewer: Viewer, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setattr(telemetry, "outline", _ring)
+    monkeypatch.setattr(telemetry, "live_outline", telemetry.OutlineEvery(0.1))
+    est = {"object_class": "circle", "class_confidence": 0.9, "size_a": 30.0, "rotation_est": 4.0}
+    n = viewer.frames
+    viewer.handle({"type": "sample", "sample": {**SAMPLE, **est}})
+    await next_frame(viewer, n)
+    node = viewer.nodes["/object/estimate"]
+    assert node.visible and node.points.shape == (telemetry.ESTIMATE_POINTS, 2, 3)
+    assert np.allclose(node.points[:, 0, 1:], _ring(SimpleNamespace(size_a=30.0), (-8.0, 140.0),
+                       (74.0, 140.0), telemetry.ESTIMATE_POINTS) * MM, atol=1e-5)  # fmt: skip
+    assert tuple(np.asarray(node.colors).ravel()[:3]) == viewer_module.ESTIMATE
+    n = viewer.frames
+    viewer.handle({"type": "sample", "sample": {**SAMPLE, **est, "object_class": None}})
+    await next_frame(viewer, n)
+    assert not node.visible  # no class: nothing reconstructed
+
+    # a replayed iteration shows the outline recorded with it (its own, not the live one's)
+    values: dict[str, Any] = dict.fromkeys(Sample.columns())
+    values.update({**SAMPLE, **est, "size_a": 12.0, "t": 0.5, "iteration": 3})
+    store = RunStore(tmp_path / "runs.db")
+    run_id = store.create_run({})
+    rec = RunRecorder(store.path, run_id)
+    rec.sample(Sample(**values))
+    rec.close()
+    recorded = recorded_iteration(store, viewer.settings, run_id, 3)
+    store.close()
+    assert recorded is not None
+    n = viewer.frames
+    viewer.replay.show(recorded)
+    await next_frame(viewer, n)
+    assert node.visible
+    radius = np.ptp(node.points[:, 0, 1]) / 2 / MM
+    assert radius == pytest.approx(12.0, abs=0.2)
+    viewer.replay.end()
 
 
 # --- (d) GUI → on_command --------------------------------------------------------------------

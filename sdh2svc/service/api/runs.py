@@ -24,7 +24,7 @@ from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
 from sdh2svc.service.store import RunStore
-from sdh2svc.service.telemetry import clean_json, matrix_shapes
+from sdh2svc.service.telemetry import clean_json, estimate_outline, matrix_shapes
 
 router = APIRouter()
 
@@ -75,12 +75,80 @@ def list_runs(cfg: Cfg) -> list[dict[str, Any]]:
         return clean_json(store.runs())  # type: ignore[no-any-return]
 
 
-@router.get("/api/runs/{run_id}", responses=responses(*READ, 404, 422))
+class RecognitionSummary(BaseModel):
+    """What the recognition made of the run's object, from the tactile frames and joint angles
+    only (``control.recognition.Recognizer.summary``); null when it had no estimate."""
+
+    model_config = ConfigDict(extra="allow")
+
+    object_class: str | None = Field(
+        None, description="box | polygon | ellipse | circle | stick; null: undecided"
+    )
+    confidence: float | None = Field(None, description="in object_class, 0…1")
+    size_a_mm: float | None = Field(
+        None, description="circle radius; ellipse semi-axis a; box side a; stick length; "
+        "polygon circumradius, mm",
+    )  # fmt: skip
+    size_b_mm: float | None = Field(
+        None, description="ellipse semi-axis b; box side b; stick diameter; polygon mean side, mm"
+    )
+    rotation_deg: float | None = Field(
+        None, description="the object's rotation since the grasp (rolling kinematics), deg"
+    )
+    contacts: dict[str, float] | None = Field(
+        None, description="the share of contact iterations labelled flat, edge and curved"
+    )
+
+
+class RunSummary(BaseModel):
+    """A finished run's summary (as ``sdh2svc run --json`` prints it); among its fields:"""
+
+    model_config = ConfigDict(extra="allow")
+
+    status: str = Field(description="completed | stopped | faulted | dropped | e-stopped")
+    strokes: int | None = Field(None, description="back-and-forth strokes completed")
+    iterations: int | None = Field(None, description="rolling iterations")
+    recognition: RecognitionSummary | None = Field(
+        None, description="the recognition's estimate of the object (null: none)"
+    )
+    truth: dict[str, Any] | None = Field(
+        None, description="in simulation, the truth as the run let go (never seen by the run)"
+    )
+
+
+class RunDetail(BaseModel):
+    """One recorded run."""
+
+    model_config = ConfigDict(extra="allow")
+
+    id: int
+    started_at: str
+    ended_at: str | None
+    status: str = Field(description="running, a run's end status, or interrupted")
+    iterations: int
+    meta: dict[str, Any] = Field(description="parameters, object, the hand's description")
+    summary: RunSummary | None = Field(description="null while running")
+    events: list[dict[str, Any]] = Field(description="{t, iteration, kind, detail}, in order")
+
+
+_RUN_RESPONSES = {200: {"model": RunDetail, "description": "the run"}, **responses(*READ, 404, 422)}
+
+
+@router.get("/api/runs/{run_id}", responses=_RUN_RESPONSES)
 def get_run(cfg: Cfg, run_id: RunId) -> dict[str, Any]:
+    """One run: its metadata, summary (with the recognition's estimate) and events."""
     with _store(cfg) as store:
         run = _run_or_404(store, run_id)
         run["events"] = store.events(run_id)
         return clean_json(run)  # type: ignore[no-any-return]
+
+
+MAX_OUTLINES = 100  # samples per page with their outlines (each costs milliseconds to make)
+OUTLINE_DOC = (
+    "with each sample its `estimate_outline`: the object as the recognition reconstructed it, "
+    "[[y, z], …] mm in frame 0 (empty while no class is known), as in the live `sample` "
+    f"message; `limit` then at most {MAX_OUTLINES}"
+)
 
 
 @router.get("/api/runs/{run_id}/samples", responses=responses(*READ, 404, 422))
@@ -89,12 +157,19 @@ def samples(
     run_id: RunId,
     offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX)] = 0,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+    outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> dict[str, Any]:
+    if outline and limit > MAX_OUTLINES:
+        raise ServiceError(422, "invalid request", [f"limit: at most {MAX_OUTLINES} with outline"])
     with _store(cfg) as store:
         _run_or_404(store, run_id)
+        rows = store.samples(run_id, offset, limit)
+        if outline:  # as the live `sample` message carries it
+            for row in rows:
+                row["estimate_outline"] = estimate_outline(row).tolist()
         page = {
             "run_id": run_id, "offset": offset, "limit": limit,
-            "total": store.sample_count(run_id), "samples": store.samples(run_id, offset, limit),
+            "total": store.sample_count(run_id), "samples": rows,
         }  # fmt: skip
         return clean_json(page)  # type: ignore[no-any-return]
 
