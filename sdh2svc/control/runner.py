@@ -283,6 +283,9 @@ class Runner:
             max_step_deg=self.config.safety.max_step_deg,
         )
         settle_until: float | None = None
+        # the timeout counts from the first touch once there is one: a small object is far
+        # from the pre-shape, and the closing takes most of the timeout before it touches
+        touched: float | None = None
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
@@ -302,7 +305,10 @@ class Runner:
                     self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
                     return
             else:
-                _raise(safety.grasp_timeout(F, fd, loop.time(), started, run))
+                if touched is None and max(c1.force, c2.force) > self.params.contact_force_min:
+                    touched = loop.time()
+                since = started if touched is None else touched
+                _raise(safety.grasp_timeout(F, fd, loop.time(), since, run))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(self._clamp(want, actual))

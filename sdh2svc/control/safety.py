@@ -152,7 +152,8 @@ def rolling_step(r: StepResult, grasp_force: float, safety: SafetyConfig) -> Vio
 def grasp_timeout(
     F: float, grasp_force: float, now: float, started: float, run: RunConfig
 ) -> Violation | None:
-    """Still under Fd ``run.grasp_timeout_s`` after the grasp ``started`` (clock seconds)."""
+    """Still under Fd ``run.grasp_timeout_s`` after ``started`` (clock seconds): the grasp's
+    start, or the first touch once a pad has touched."""
     if F < grasp_force and now > started + run.grasp_timeout_s:
         msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
         return Violation(Fault.NO_CONTACT, msg)
