@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -26,20 +25,11 @@ from sdh2svc.model.friction import cone_margin
 from sdh2svc.model.kinematics import Finger, HandPose, contact_point, segment
 from sdh2svc.model.observe import ModelContext, observe
 from sdh2svc.sim.objects import get_object
+from tests.control.test_rolling import frame
 
 rad = math.radians
 TILTED = HandPose(rad(-20), rad(30), rad(-14), rad(26))
 FIRM = 3000.0  # a frame amplitude whose force (≈ 0.9 × Fd) is within the route's grip band
-
-
-def frame(S: float, amplitude: float = 1000.0) -> np.ndarray:
-    """A distal frame whose pressure centroid is exactly S (two neighbouring rows)."""
-    m = np.zeros((13, 6), dtype=np.uint16)
-    j = min(int(S // 3.4), 11)
-    w = S / 3.4 - j
-    m[j, 1:5] = round(amplitude * (1 - w))
-    m[j + 1, 1:5] = round(amplitude * w)
-    return m
 
 
 @pytest.fixture(scope="module")
