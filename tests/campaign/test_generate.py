@@ -228,9 +228,9 @@ def test_every_smoke_case_overrides_a_valid_configuration() -> None:
 
 def fixture_lets_go(case: Case) -> bool:
     """Close both coupled fingers from the pre-shape as the grasp does (proximal +δ, distal −δ)
-    on the simulated world of this case: does the placing fixture let go, i.e. do both distal
-    pads press the object before one finger has pushed it out of the fixture? (Whether the
-    fingers then hold it is the run's result, not the placement's.)"""
+    on the simulated world of this case: do both distal pads press the object before one
+    finger has pushed it out of the fixture? (Whether the fixture then lets go — the fingers
+    can hold it — and whether they roll it is the run's result, not the placement's.)"""
     cfg = load_config(overrides=case.overrides(default_config().sim.sensor.gain_vs_library),
                       use_env=False)  # fmt: skip
     world = PhysicsWorld(hand_model(cfg), cfg.sim, case.object)
@@ -244,7 +244,10 @@ def fixture_lets_go(case: Case) -> bool:
             q[prox] += 0.1
             q[dist] -= 0.1
         world.move_joints(t, q, [True] * 7)
-        if not world.physics.state.held_by_fixture:  # only when both distal pads press
+        if not world.physics.state.held_by_fixture:  # only when both distal pads hold it
+            return True
+        pressing = {c.surface for c in world.physics.contacts() if c.normal_force_n > 0.0}
+        if {"distal1", "distal2"} <= pressing:
             return True
     return False
 
