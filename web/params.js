@@ -18,6 +18,8 @@ const LABELS = {
   force_band_high: "force band high (× Fd)",
   delta_lambda_inc_mm: "ΔΛ_inc (mm)",
   delta_lambda_dec_mm: "ΔΛ_dec (mm)",
+  force_reverse: "force reverse (× Fd)",
+  route: "Finger 2's route",
   cycles: "cycles (strokes)",
 };
 
