@@ -397,11 +397,13 @@ class Recognizer:
         self._prev = obs
         ev = self._ev
         ev.psi_min, ev.psi_max = min(ev.psi_min, self._psi), max(ev.psi_max, self._psi)
+        nus = []  # each pad's surface direction at its contact
         for track, c in zip(self._tracks, (obs.contact1, obs.contact2), strict=True):
             assert c.x3_mm is not None
-            track.update(c, pad_normal_angle(track.finger, obs.pose, c.x3_mm, self.ctx), self._psi)
+            nus.append(pad_normal_angle(track.finger, obs.pose, c.x3_mm, self.ctx))
+            track.update(c, nus[-1], self._psi)
         (k1, r1), (k2, r2) = self._kinds(obs.Lambda)
-        self._gather(obs, k1, k2, r1, r2)
+        self._gather(obs.Lambda, nus, k1, k2, r1, r2)
         cls, conf, a, b = self._classify()
         self.last = Recognition(
             kind1=k1,
@@ -440,14 +442,14 @@ class Recognizer:
 
     def _gather(
         self,
-        obs: Observation,
+        lam: float,
+        nus: list[float],
         k1: ContactKind | None,
         k2: ContactKind | None,
         r1: float | None,
         r2: float | None,
     ) -> None:
         ev = self._ev
-        lam = float(obs.Lambda or 0.0)
         ev.lam_min, ev.lam_max = min(ev.lam_min, lam), max(ev.lam_max, lam)
         ev.lam_sum += lam
         ev.lam_n += 1
@@ -466,9 +468,7 @@ class Recognizer:
         ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
         if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
             ev.both_flat += 1
-            n1 = pad_normal_angle(Finger.ONE, obs.pose, obs.contact1.x3_mm or 0.0, self.ctx)
-            n2 = pad_normal_angle(Finger.TWO, obs.pose, obs.contact2.x3_mm or 0.0, self.ctx)
-            gap = abs((math.degrees(n1 - n2) + 90.0) % 180.0 - 90.0)
+            gap = abs((math.degrees(nus[0] - nus[1]) + 90.0) % 180.0 - 90.0)
             if gap < self.model.parallel_deg:
                 ev.parallel += 1
 
@@ -575,16 +575,18 @@ def _template(rec: Recognition) -> np.ndarray | None:
     return a * np.stack([np.cos(u), np.sin(u)], axis=1)
 
 
-def _chord(poly: np.ndarray, offset: float) -> tuple[float, float] | None:
-    """The x-range where the line y = offset crosses the convex polygon ``poly``."""
+def _chords(poly: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The x-range where each line y = offset crosses the convex polygon ``poly`` (NaN where
+    it crosses fewer than two edges), all offsets at once."""
     p, q = poly, np.roll(poly, -1, axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = (offset - p[:, 1]) / (q[:, 1] - p[:, 1])
+        s = (offsets[:, None] - p[:, 1]) / (q[:, 1] - p[:, 1])
+        xs = p[:, 0] + s * (q[:, 0] - p[:, 0])
     hit = (s >= 0.0) & (s <= 1.0) & np.isfinite(s)
-    if hit.sum() < 2:
-        return None
-    xs = p[hit, 0] + s[hit] * (q[hit, 0] - p[hit, 0])
-    return float(xs.min()), float(xs.max())
+    enough = hit.sum(axis=1) >= 2
+    lo = np.where(hit, xs, np.inf).min(axis=1)
+    hi = np.where(hit, xs, -np.inf).max(axis=1)
+    return np.where(enough, lo, np.nan), np.where(enough, hi, np.nan)
 
 
 def outline(
@@ -625,18 +627,16 @@ def _place(shape: np.ndarray, rel: float, lam: float) -> np.ndarray | None:
     c, s = math.cos(rel), math.sin(rel)
     local = shape @ np.array([[c, s], [-s, c]])
     lo, hi = float(local[:, 1].min()), float(local[:, 1].max())
-    best: tuple[float, float, float, float] | None = None  # (badness, offset, x0, length)
-    for off in np.linspace(lo, hi, 201)[1:-1]:
-        ch = _chord(local, float(off))
-        if ch is None:
-            continue
-        length = ch[1] - ch[0]
-        bad = abs(length - lam) + 1e-3 * abs(off)
-        if best is None or bad < best[0]:
-            best = (bad, float(off), ch[0], length)
-    if best is None or not _SCALE[0] <= lam / best[3] <= _SCALE[1]:
+    offsets = np.linspace(lo, hi, 201)[1:-1]
+    x0s, x1s = _chords(local, offsets)
+    lengths = x1s - x0s
+    bad = np.abs(lengths - lam) + 1e-3 * np.abs(offsets)
+    if np.isnan(bad).all():
         return None
-    _, off, x0, length = best
+    k = int(np.nanargmin(bad))  # the first of equals, as a scan would keep it
+    off, x0, length = float(offsets[k]), float(x0s[k]), float(lengths[k])
+    if not _SCALE[0] <= lam / length <= _SCALE[1]:
+        return None
     placed: np.ndarray = (local - np.array([x0, off])) * (lam / length)
     return placed
 
