@@ -28,9 +28,10 @@ from enum import StrEnum
 import numpy as np
 
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.plan import finger1_to, omegas, sigma_desired
 from sdh2svc.control.route import Move, Predictor, finger2_move
 from sdh2svc.model.contact import ContactEstimate
-from sdh2svc.model.friction import cone_margin, inside_cone, omega, wedge
+from sdh2svc.model.friction import cone_margin, inside_cone, wedge
 from sdh2svc.model.kinematics import (
     Finger,
     HandPoints,
@@ -39,8 +40,6 @@ from sdh2svc.model.kinematics import (
     IKResult,
     Point,
     contact_point,
-    finger_ik,
-    segment,
 )
 from sdh2svc.model.observe import ModelContext, Observation, observe
 
@@ -174,26 +173,21 @@ class _Route:
         """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
         Finger 2's next angles leave its joint limits."""
         p, pose, obs, geom = self.params, self.pose, self.obs, self.ctx.geom
-        c1, c2 = obs.contact1, obs.contact2
+        c2 = obs.contact2
         assert obs.points is not None and obs.sigma is not None
-        assert c1.r_mm is not None and c1.theta_rad is not None
         assert c2.r_mm is not None and c2.theta_rad is not None
         if p.mode == "two-finger":
             phi4d, phi5d = pose.phi4 + scale * self.move.d4, pose.phi5 + scale * self.move.d5
             if not self.ctx.limits2.contains(phi4d, phi5d):
                 return None
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
-            d_sigma = segment(obs.points.A, B_d)[1] - obs.sigma  # eq 3.13, sign typo fixed
-            sigma_d = obs.sigma + p.lambda_gain * d_sigma
+            sigma_d = sigma_desired(obs, B_d, p.lambda_gain)
         else:
             phi4d, phi5d, B_d = pose.phi4, pose.phi5, obs.points.B
             sigma_d = obs.sigma + scale * self.state.direction * p.d_sigma
-        lam = self.lam_ad
-        A_d = Point(B_d.y - lam * math.cos(sigma_d), B_d.z - lam * math.sin(sigma_d))
-        ik = finger_ik(Finger.ONE, A_d, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), geom,
-                       self.ctx.limits1)  # fmt: skip
+        A_d, ik = finger1_to(obs, B_d, sigma_d, self.lam_ad, self.ctx)
         step = scale * (abs(p.delta_phi) if p.mode == "two-finger" else abs(p.d_sigma))
-        return _Config(phi4d, phi5d, Plan(lam, sigma_d, A_d, B_d), ik, step)
+        return _Config(phi4d, phi5d, Plan(self.lam_ad, sigma_d, A_d, B_d), ik, step)
 
 
 # A slower plan may still need a little more than Finger 1's step (the step's scaling is linear,
@@ -309,9 +303,7 @@ def step(
         limits = ik.failure is IKFailure.JOINT_LIMITS
         return reverse(Reversal.WORKSPACE if limits else Reversal.IK_UNREACHABLE, plan)
     phi2d, phi3d = ik.solution.proximal, ik.solution.distal
-    pad = ctx.geom.pad
-    wa = omega(Finger.ONE, phi2d + phi3d, c1.x3_mm, A_d, B_d, pad)
-    wb = omega(Finger.TWO, phi4d + phi5d, c2.x3_mm, B_d, A_d, pad)
+    wa, wb = omegas(obs, (phi2d, phi3d, phi4d, phi5d), A_d, B_d, ctx)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
     if _cone_refuses(wa, waived, alpha):
         return reverse(Reversal.CONE_A, plan)

@@ -24,14 +24,14 @@ import math
 from dataclasses import dataclass
 
 from sdh2svc.control.params import RollingParams
-from sdh2svc.model.friction import cone_margin, omega, wedge
+from sdh2svc.control.plan import finger1_to, omegas, sigma_desired
+from sdh2svc.model.friction import cone_margin, wedge
 from sdh2svc.model.kinematics import (
     Finger,
     FingerLimits,
     HandPose,
     Point,
     contact_point,
-    finger_ik,
     segment,
 )
 from sdh2svc.model.observe import ModelContext, Observation
@@ -133,22 +133,16 @@ class Predictor:
         follow in one iteration (``finger1_max_step``); None when its configuration breaks the
         route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
         pose, obs, ctx, p = self.pose, self.obs, self.ctx, self.params
-        c1, c2, pts, sigma = obs.contact1, obs.contact2, obs.points, obs.sigma
-        assert pts is not None and sigma is not None
-        assert c1.r_mm is not None and c1.theta_rad is not None and c1.x3_mm is not None
-        assert c2.r_mm is not None and c2.theta_rad is not None and c2.x3_mm is not None
+        c2, sigma = obs.contact2, obs.sigma
+        assert sigma is not None and c2.r_mm is not None and c2.theta_rad is not None
         phi4, phi5 = pose.phi4 + move.d4, pose.phi5 + move.d5
         B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
-        sigma_d = sigma + p.lambda_gain * (segment(pts.A, B)[1] - sigma)
-        A = Point(B.y - self.lam_ad * math.cos(sigma_d), B.z - self.lam_ad * math.sin(sigma_d))
-        ik = finger_ik(Finger.ONE, A, c1.r_mm, c1.theta_rad, (pose.phi2, pose.phi3), ctx.geom,
-                       ctx.limits1)  # fmt: skip
+        sigma_d = sigma_desired(obs, B, p.lambda_gain)
+        A, ik = finger1_to(obs, B, sigma_d, self.lam_ad, ctx)
         if ik.solution is None:
             return None
         phi2, phi3 = ik.solution.proximal, ik.solution.distal
-        pad = ctx.geom.pad
-        wa = omega(Finger.ONE, phi2 + phi3, c1.x3_mm, A, B, pad)
-        wb = omega(Finger.TWO, phi4 + phi5, c2.x3_mm, B, A, pad)
+        wa, wb = omegas(obs, (phi2, phi3, phi4, phi5), A, B, ctx)
         if not self.margins((phi2, phi3, phi4, phi5), A, wa, wb).inside():
             return None
         need = max(abs(phi2 - pose.phi2), abs(phi3 - pose.phi3))
