@@ -1692,6 +1692,26 @@ def _list_reasons(run: Run) -> str:
     return ", ".join(f"{why} × {n}" for why, n in c.most_common())
 
 
+def _wide_cone_text(res: ReadingResults, key: str = "α = 45°") -> str:
+    """Where the wide-cone reading's first unintended reversal falls, from the report's grasp."""
+    if (key, MAIN_LENGTH, 5.0) not in res:
+        return ""
+    first = {
+        ln: (run, ur[0])
+        for ln in STICKS_READ
+        if (ur := backward_stretches(run := res[(key, ln, 5.0)][0]))
+    }
+    spans = "; ".join(f"{_rng(stretch_span(r, s), 1)}° ({ln:g} mm)" for ln, (r, s) in first.items())
+    at0 = [ln for ln, (r, s) in first.items() if near_zero(r, s)]
+    return (
+        f" With {key}, k = 5 reverses on {_list(_reversing(res, key, 5.0)) or 'no'} mm sticks, "
+        f"k = 2 on {_list(_reversing(res, key, 2.0)) or 'none'}; from the report's grasp the "
+        f"first unintended reversal spans σ {spans or '—'}: it begins where ωB nears its "
+        f"limit and comes within {ZERO_BAND_DEG:g}° of zero inclination on "
+        f"{_list(at0) + ' mm' if at0 else 'no stick'}."
+    )
+
+
 def _reversing(res: ReadingResults, key: str, k: float) -> list[float]:
     """The sticks on which a reading's run with this k has an unintended reversal."""
     return [ln for ln in STICKS_READ if (key, ln, k) in res and res[(key, ln, k)][1].backward]
@@ -1748,19 +1768,9 @@ def _readings_findings(
         f"{ALPHA_DEG:g}°. Past that point the two joints turn the stick opposite ways; with "
         "k = 5 the distal term (×4) wins and σ runs backwards, with k = 2 (×1) it only offsets "
         "part of the proximal term, σ slows and may stall — the shape of the thesis's two "
-        "statements. Readings that let ωB get there: a wide cone (α = 45°: k = 5 reverses on "
-        + (_list(_reversing(res, "α = 45°", 5.0)) or "none")
-        + " mm, k = 2 on "
-        + (_list(_reversing(res, "α = 45°", 2.0)) or "none")
-        + ") or no cone test on ωB. From the report's grasp the first unintended reversal "
-        "with α = 45° spans σ "
-        + "; ".join(
-            f"{_rng(stretch_span(res[('α = 45°', ln, 5.0)][0], first), 1)}° ({ln:g} mm)"
-            for ln in STICKS_READ
-            if (first := next(iter(backward_stretches(res[("α = 45°", ln, 5.0)][0])), None))
-        )
-        + ": it starts where ωB nears its limit, and reaches zero inclination only on the "
-        "shortest stick.\n"
+        "statements. Readings that let ωB get there: a wide cone or no cone test on ωB."
+        + _wide_cone_text(res)
+        + "\n"
     )
     if scans:
         out.append(
@@ -1806,22 +1816,28 @@ def _readings_findings(
     pairs = [f"{key} on {ln:g} mm" for key, ln in both]
     least = min(
         [res[(key, ln, 5.0)][1].omega_dev_deg for key, ln in both]
-        + [sc.least_dev_deg for sc in (scans or {}).values()]
+        + [sc.least_dev_deg for sc in (scans or {}).values()],
+        default=math.inf,
     )
+    if good:
+        out.append(f"**Reproduces both statements: {', '.join(good)}.**\n")
+        return "\n".join(out)
+    shown = math.isfinite(least)
     out.append(
-        (
-            "**No reading the text supports reproduces both statements on the 98.46 mm "
-            "stick** from the report's grasp. The runs here that show both — "
-            + ("; ".join(pairs) or "none")
-            + ", and the grasps in the scan — all let ω leave the 22° cone of Table 8 (each "
-            f"k = 5 run reaches abs(ω − 90°) ≥ {least:.1f}°). The one "
-            "mechanism found that gives the shape of the thesis's two statements is the stick "
-            "turning past perpendicular to Finger 2's virtual link, which needs exactly that "
-            "(a wider α, or no test on ωB): a reading the surviving text neither states nor "
-            "excludes. Whether the thesis's program did so cannot be checked.\n"
+        "**No reading the text supports reproduces both statements on the 98.46 mm stick** "
+        "from the report's grasp."
+        + (
+            " The runs here that show both — "
+            + "; ".join(pairs + (["the grasps in the scan"] if scans else []))
+            + f" — all let ω leave the {ALPHA_DEG:g}° cone of Table 8 (each k = 5 run reaches "
+            f"abs(ω − 90°) ≥ {least:.1f}°)."
+            if shown
+            else ""
         )
-        if not good
-        else f"**Reproduces both statements: {', '.join(good)}.**\n"
+        + " The one mechanism found that gives the shape of the thesis's two statements is the "
+        "stick turning past perpendicular to Finger 2's virtual link, which needs ωB to leave "
+        "that cone (a wider α, or no test on ωB): a reading the surviving text neither states "
+        "nor excludes. Whether the thesis's program did so cannot be checked.\n"
     )
     return "\n".join(out)
 
