@@ -15,6 +15,12 @@ IK puts A on the circle of radius Λ around Bd at inclination σd; the configura
 if both fingers are within their joint limits, Finger 1 reaches Ad, and ωA, ωB are inside
 90° ± α; otherwise the rotation reverses (Δφ → −Δφ) and nothing is commanded that iteration.
 
+Other readings of what the thesis's lost program may have done (eq 3.13's printed "+", σ's
+angle convention, Finger 2's route, Finger 1's IK branch or a clipped IK, σ carried from the
+command, a flat pad, the cone on ωA only, eq 3.9's exact "=", Δφ, λ, α) are options of
+:class:`Params` (defaults: hand-model.md's reading) and are run and judged in the report's
+*Other readings* section (``READINGS``).
+
 Writes ``report.md`` (the plots next to the thesis's captions and statements, every figure
 computed here) and the PNG plots into ``experiments/sticks/`` (or ``--out``).
 """
@@ -1453,6 +1459,7 @@ class ReadingRun:
     sigma_deg: tuple[float, float]
     ab_error_mm: float  # max | |AB| − length |
     omega_dev_deg: float  # the largest |ω − 90°| of ωA, ωB over the run's configurations
+    reasons: tuple[int, int, int]  # reversals at cone A, at cone B, at the workspace or IK
 
 
 def read_run(run: Run, ctx: ModelContext) -> ReadingRun:
@@ -1472,6 +1479,11 @@ def read_run(run: Run, ctx: ModelContext) -> ReadingRun:
         sigma_deg=(min(sig), max(sig)),
         ab_error_mm=max(abs(m[1] - run.grasp.length) for m in true),
         omega_dev_deg=math.degrees(max(dev)),
+        reasons=(
+            sum(it.reversal is Reversal.CONE_A for it in run.reversals),
+            sum(it.reversal is Reversal.CONE_B for it in run.reversals),
+            sum(it.reversal not in (Reversal.CONE_A, Reversal.CONE_B) for it in run.reversals),
+        ),
     )
 
 
@@ -1605,7 +1617,9 @@ def _readings_section(
         f"that comes within {ZERO_BAND_DEG:g}° of σ = 0 and k = 2 shows none. The thesis's "
         "other statements must still hold: |AB| constant (§3.3.2) and every configuration "
         "inside the cone (2f; Fig 31: “the extreme configurations just before the forces "
-        "exceed the friction cone”).\n",
+        "exceed the friction cone”). Where the runs reverse is shown too: §3.3.2's “ωΑ is the "
+        "one that tends to get out of its range” is said of one finger, and hand-model's "
+        "own runs reverse at both cones, so it is not a criterion.\n",
         "| reading | what the program does | the thesis's text | supported |",
         "|---|---|---|---|",
     ]
@@ -1620,8 +1634,9 @@ def _readings_section(
         "ω is measured on the pad's profile whatever the program tested.\n",
         "| reading | "
         + " | ".join(f"{ln:g} mm, k = {k:g}" for ln in STICKS_READ for k in KS)
-        + " | max ‖AB‖ − Λ | max abs(ω − 90°) | reproduces on | verdict |",
-        "|---|" + "---|" * (2 * len(STICKS_READ)) + "---|---|---|---|",
+        + " | max ‖AB‖ − Λ | max abs(ω − 90°) | reversals at cone A / cone B / workspace "
+        "| reproduces on | verdict |",
+        "|---|" + "---|" * (2 * len(STICKS_READ)) + "---|---|---|---|---|",
     ]
     good = []
     for rd in readings:
@@ -1633,7 +1648,9 @@ def _readings_section(
             f"| {rd.key} | "
             + " | ".join(_cell(rr[(ln, k)]) for ln in STICKS_READ for k in KS)
             + f" | {max(r.ab_error_mm for r in rr.values()):.1e} mm | "
-            f"{max(r.omega_dev_deg for r in rr.values()):.1f}° | {on} | "
+            f"{max(r.omega_dev_deg for r in rr.values()):.1f}° | "
+            + " / ".join(str(sum(r.reasons[i] for r in rr.values())) for i in range(3))
+            + f" | {on} | "
             + ("**reproduces Figs 31.d and 32.d**" if ok else why)
             + " |"
         )
