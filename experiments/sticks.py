@@ -1693,11 +1693,21 @@ def _readings_summary(
         if ex is not None and ex.reproducing
         else ""
     )
+    others = READINGS[1:]
+    elsewhere = [
+        f"{rd.key} on the {ln:g} mm stick"
+        for rd in others
+        for ln in STICKS_READ
+        if rd.supported and reproduces(res[(rd.key, ln, 5.0)][1], res[(rd.key, ln, 2.0)][1])
+    ]
     return (
         f"**Fig 31.d is not reproduced.** Neither the hand model's equations nor any of the "
-        f"{len(READINGS) - 1} other readings of the thesis's program tried (section *Other "
-        "readings*) that the text supports gives k = 5 an unintended reversal near zero "
-        "inclination and k = 2 none on the 98.46 mm stick from the report's grasp. The "
+        f"{len(others)} other readings of the thesis's program tried (section *Other "
+        f"readings*; {sum(rd.supported for rd in others)} of them supported by its text) "
+        "gives k = 5 an unintended reversal near zero inclination and k = 2 none on the "
+        "98.46 mm stick from the report's grasp"
+        + (f" (a supported one does elsewhere: {'; '.join(elsewhere)})" if elsewhere else "")
+        + ". The "
         "thesis's k-dependence does appear, by the mechanism that section derives, when the "
         "stick may turn more than 90° from Finger 2's virtual link — possible only if ωB "
         f"leaves Table 8's 22° cone, which the text does not say.{tail}\n"
@@ -1749,9 +1759,9 @@ def _readings_findings(
             f"*Readings that change nothing.* {', '.join(same)}: σ's series on every stick and "
             "k is hand-model's within 1e-11 rad (eq 3.3's atan differs from atan2 only past "
             "σ = ±90°; measured from B to A, dσ jumps by 2π where the stick is level, and λ = 5 "
-            "turns that into 10π; a clipped IK is only ever asked for configurations that then "
-            "leave the cone, so the clipped ones are never commanded — only the reversal's "
-            "reason changes).\n"
+            "turns that into 10π; in these runs every configuration a clipped IK gives is then "
+            "refused at the cone, so none is commanded — only the reversal's reason changes, "
+            "ik_unreachable becoming cone_A or cone_B).\n"
         )
     eq39 = "eq 3.9 “=”, root tried last"
     if eq39 in keys:
