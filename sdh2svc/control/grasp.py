@@ -18,6 +18,10 @@ Fd − F. Two additions:
   Turned about the joint, a pad pressed on a rigid object squeezes it: F rose to ≈ 2·Fd
   during the turn, and the rubber and the fingers' yield under that force put Λ at grasp
   2–4 mm short on wide objects.
+* **The first pad to touch waits for the other** (closes at the speed floor until the other pad
+  touches too): closing on at full speed, it pushes the object before the other pad holds it —
+  a soft object is pressed a millimetre deep by the time the other finger arrives, and the
+  person (or fixture) placing it takes it back; a light object is pushed off its place.
 """
 
 from __future__ import annotations
@@ -124,6 +128,11 @@ def grasp_step(
         return max(-lim, min(lim, x))
 
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
+    if c1.present != c2.present:  # the first to touch waits for the other (module docstring)
+        if c1.present:
+            s1 = min(s1, law.min_velocity_deg_s * law.period_s)
+        else:
+            s2 = min(s2, law.min_velocity_deg_s * law.period_s)
     a1 = a2 = p1 = p2 = 0.0
     wedge_deg: float | None = None
     if c1.r_mm is not None and c2.r_mm is not None:

@@ -302,6 +302,7 @@ class Runner:
                 wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
                 settled = F >= fd and (wedge_ok or law.align_gain == 0)
                 if settled or loop.time() >= settle_until:
+                    _raise(safety.grasp_lost(c1.present, c2.present))
                     self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
                     return
             else:

@@ -132,6 +132,16 @@ def dropped(contact1: bool, contact2: bool) -> Violation | None:
     return None
 
 
+def grasp_lost(contact1: bool, contact2: bool) -> Violation | None:
+    """A pad without its contact as the grasp ends: the pads' turn against their wedge rolled
+    the contact off a pad's end, or the object was never held. The rolling would start from
+    one contact or none; this is a grasp that failed, not a grasp."""
+    if not (contact1 and contact2):
+        lost = "both contacts" if not (contact1 or contact2) else "a contact"
+        return Violation(Fault.NO_CONTACT, f"no grasp: {lost} lost as the grasp settled")
+    return None
+
+
 def stuck(consecutive: int, last: str | None, safety: SafetyConfig) -> Violation | None:
     """More reversals in a row than allowed (``last``: the latest one's reason)."""
     if consecutive > safety.max_consecutive_reversals:

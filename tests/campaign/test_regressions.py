@@ -41,6 +41,13 @@ def run(case_id: str) -> dict[str, Any]:
         # an 18 mm circle far from the pre-shape: the fingers touched it after 17 s of closing,
         # and the grasp's 20 s ran out before F reached Fd (the timeout now counts from the touch)
         ("circle-087", "faulted: no_contact"),
+        # a foam triangle: the first pad to touch closed on at full speed and pressed it 1 mm
+        # deep before the other arrived; the placing hand took it back (no grasp in 20 s)
+        ("polygon-313", "faulted: no_contact"),
+        # a triangle tipping over a corner: the rotation reversed between two refused
+        # directions (workspace one way, a cone the other) until stuck; another move of the
+        # same length turns it on
+        ("polygon-061", "faulted: stuck"),
     ],
 )
 def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) -> None:
@@ -73,3 +80,13 @@ def test_the_placing_hand_lets_go_only_once_the_fingers_hold_the_object() -> Non
     # at first touch, no balance existed, and the object fell before the grasp began.
     row = run("polygon-313")
     assert not row["dropped"], row["message"]
+
+
+def test_a_grasp_that_loses_a_contact_as_it_settles_is_no_grasp() -> None:
+    # A 97 mm pentagon touched at both pads' ends with a wedge wider than its friction angle:
+    # turning the pads against the wedge rolled both contacts off the pads' ends, and the grasp
+    # ended "grasped" with F = 0; the rolling then reported a drop of an object the placing hand
+    # still held. It is a grasp that failed.
+    row = run("polygon-037")
+    assert row["status"] == "faulted" and row["fault"] == "no_contact", row["message"]
+    assert "settled" in row["message"] and not row["dropped"]

@@ -40,6 +40,21 @@ def test_no_contact_closes_at_full_speed_keeping_the_pads_orientation(cfg: Setti
     assert g.wedge_deg is None
 
 
+@pytest.mark.parametrize("first", [0, 1])
+def test_the_first_pad_to_touch_waits_for_the_other(cfg: Settings, first: int) -> None:
+    ctx = cfg.model_context()
+    empty = ctx.contact(np.zeros((13, 6), np.uint16))
+    touch = ctx.contact(frame(20.0, 100.0))
+    assert touch.present and touch.force < 2.0  # a light first touch, far below Fd
+    pair = (touch, empty) if first == 0 else (empty, touch)
+    g = grasp_step(PARALLEL, *pair, law(align_gain=0.0), ctx)
+    waiting, closing = (g.d_phi[0], g.d_phi[2]) if first == 0 else (g.d_phi[2], g.d_phi[0])
+    assert waiting == pytest.approx(0.5 / 30)  # the speed floor, not Fd − F's 3 °/s
+    assert closing == pytest.approx(3.0 / 30)  # the other finger comes on at full speed
+    both = grasp_step(PARALLEL, touch, touch, law(align_gain=0.0), ctx)
+    assert both.d_phi[0] == both.d_phi[2] > 0.5 / 30  # both touching: each by its own force
+
+
 def test_near_fd_the_closing_speed_keeps_its_floor(cfg: Settings) -> None:
     ctx = cfg.model_context()
     c1, c2 = contacts(cfg, 1000.0)

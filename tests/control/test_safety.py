@@ -73,6 +73,14 @@ def test_grasp_timeout_only_under_fd_and_after_the_timeout(cfg: Settings) -> Non
     assert safety.grasp_timeout(2.0, 2.0, 500.0, 100.0, run) is None  # held: no timeout
 
 
+def test_a_grasp_ends_only_with_both_contacts() -> None:
+    assert safety.grasp_lost(True, True) is None
+    v = safety.grasp_lost(True, False)
+    assert v == Violation(Fault.NO_CONTACT, "no grasp: a contact lost as the grasp settled")
+    v = safety.grasp_lost(False, False)
+    assert v is not None and "both contacts" in v.message and v.fault is Fault.NO_CONTACT
+
+
 def test_closed_empty_on_either_proximal_joint(cfg: Settings) -> None:
     run, axes = cfg.run.model_copy(update={"grasp_max_close_deg": 10.0}), cfg.axes
     wire = [0.0] * 7
