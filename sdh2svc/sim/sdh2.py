@@ -415,17 +415,15 @@ class _Move:
     duration: float = field(init=False, repr=False, compare=False)
     spans: Vec = field(init=False, repr=False, compare=False)  # span(i) of every axis
     coasting: tuple[bool, ...] = field(init=False, repr=False, compare=False)  # carry time > 0
+    end: float = field(init=False, repr=False, compare=False)  # t0 + duration
 
     def __post_init__(self) -> None:
         duration = max(self.profile.duration, max(c.time for c in self.carry))
         object.__setattr__(self, "duration", duration)
+        object.__setattr__(self, "end", self.t0 + duration)
         ends = zip(self.goal, self.start, self.carry, strict=True)
         object.__setattr__(self, "spans", tuple(g - s - c.distance for g, s, c in ends))
         object.__setattr__(self, "coasting", tuple(c.time > 0.0 for c in self.carry))
-
-    @property
-    def end(self) -> float:
-        return self.t0 + self.duration
 
     def span(self, i: int) -> float:
         """What the coordinated profile covers on axis i (the rest is the carry's)."""
