@@ -6,7 +6,9 @@ Printed: runs per hour per core (from the CPU time the runs took, and from the w
 release, per wall second and per CPU second, summed over the cases), and the parallel
 efficiency from 1 to 2 workers (the 2-worker throughput / twice the 1-worker one; target
 ≥ 0.85), and the event loop's work per simulated second in the first case (iterations, and the
-callbacks it ran by source). Every case's CPU time is taken in the process that ran it.
+callbacks it ran by source), and where the CPU of the first two cases goes by layer (sampled:
+the innermost frame of sdh2svc's own code at each tick of the process's CPU clock).
+Every case's CPU time is taken in the process that ran it.
 Wall-clock figures count whatever else the machine runs meanwhile (its load average is printed):
 run it when nothing else does; the CPU-time figures are far less disturbed.
 """
@@ -16,11 +18,13 @@ from __future__ import annotations
 import asyncio
 import os
 import selectors
+import signal
 import tempfile
 import time
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from sdh2svc.campaign import run as camp
@@ -107,6 +111,55 @@ def loop_events(case_index: int = 0) -> tuple[float, int, Counter[str]]:
     return row.get("sim_s") or 0.0, iterations, count
 
 
+# sdh2svc's files by layer, for cpu_by_layer (the first matching prefix wins)
+LAYERS = (
+    ("physics", ("sim/physics.py", "sim/objects.py")),
+    ("sensor model", ("sim/sensor.py", "sim/press.py")),
+    ("emulators", ("sim/sdh2.py", "sim/dsacon.py", "sim/hand.py", "sim/lab.py", "sim/world.py")),
+    ("endpoints (line timing)", ("sim/endpoint.py", "sim/faults.py", "sim/cable.py")),
+    ("event loop", ("sim/clock.py",)),
+    ("drivers", ("bus/",)),
+    ("codecs", ("protocol/",)),
+    ("control and model", ("control/", "model/")),
+)
+
+
+def _layer(frame: FrameType | None) -> str:
+    """The layer of the innermost frame in sdh2svc's code (asyncio's own: the event loop)."""
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if (k := name.rfind("/sdh2svc/")) >= 0:
+            rel = name[k + len("/sdh2svc/") :]
+            for layer, prefixes in LAYERS:
+                if rel.startswith(prefixes):
+                    return layer
+            return "recorder, campaign, start-up"
+        frame = frame.f_back
+    return "event loop"
+
+
+def cpu_by_layer(cases: int = 2, tick_s: float = 0.0005) -> Counter[str]:
+    """Samples of the CPU clock by layer over the first ``cases`` smoke cases (run in this
+    process); empty where the CPU-time timer is missing (not Linux or macOS)."""
+    count: Counter[str] = Counter()
+    if not hasattr(signal, "setitimer"):
+        return count
+
+    def tick(_sig: int, frame: FrameType | None) -> None:
+        count[_layer(frame)] += 1
+
+    stock = signal.signal(signal.SIGPROF, tick)
+    signal.setitimer(signal.ITIMER_PROF, tick_s, tick_s)
+    try:
+        for case in load_suite("smoke").cases[:cases]:
+            with tempfile.TemporaryDirectory() as tmp:
+                camp.run_case(case.model_dump_json(), (), None, tmp)
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0.0, 0.0)
+        signal.signal(signal.SIGPROF, stock)
+    return count
+
+
 def run() -> dict[str, float]:
     print(f"campaign (smoke suite; load average before: {_load()})")
     t1, rows1 = _campaign(1)
@@ -148,4 +201,9 @@ def run() -> dict[str, float]:
     top = ", ".join(f"{name} {n / sim_e:.0f}" for name, n in count.most_common(10))
     print(f"  event loop, first case: {iterations / sim_e:.0f} iterations per simulated second; "
           f"callbacks per simulated second by source: {top}")  # fmt: skip
+    layers = cpu_by_layer()
+    total = sum(layers.values())
+    if total:
+        shares = ", ".join(f"{name} {100 * n / total:.0f} %" for name, n in layers.most_common())
+        print(f"  CPU by layer, first two cases ({total} samples): {shares}")
     return out

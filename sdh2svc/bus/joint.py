@@ -465,6 +465,7 @@ class JointLink:
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[None]] = set()
         self._sent_at = math.nan  # loop time the last request went on the line
+        self._bare: dict[tuple[str, bool, bool], _Request] = {}  # requests without values
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -596,6 +597,17 @@ class JointLink:
             self._check_angle(axis, vals[0])
 
     def _request(
+        self, keyword: str, values: float | Sequence[float] | None = None, axis: int | None = None
+    ) -> _Request:
+        if values is None and axis is None:  # `pos`, `m`, …: the same request every time
+            key = (keyword, self.binary, self.binary_crc)
+            req = self._bare.get(key)
+            if req is None:
+                req = self._bare[key] = self._new_request(keyword)
+            return req
+        return self._new_request(keyword, values, axis)
+
+    def _new_request(
         self, keyword: str, values: float | Sequence[float] | None = None, axis: int | None = None
     ) -> _Request:
         kw = keyword.lower()

@@ -140,8 +140,8 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
                 handle._scheduled = False
             ready = self._ready
             selector = self._selector
-            if ready or self._stopping:
-                event_list = selector.select(0)
+            if ready or self._stopping:  # select(0), without its wrapper (most iterations)
+                event_list = selector._poll() if _EPOLL else selector.select(0)
             elif scheduled:
                 when = scheduled[0]._when
                 event_list = selector.select(min(max(0, when - self._vtime), _MAX_TIMEOUT))

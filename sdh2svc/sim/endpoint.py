@@ -446,16 +446,16 @@ class Endpoint(ABC):
         link = self._link_id
         self._pacer.begin(self._now(), len(out), ready)
         self._tx, self._tx_sent, self._tx_link = out, 0, link
-        waited = False
+        waited, size = False, len(out)
         try:
-            while self._tx_sent < len(out):
+            while self._tx_sent < size:
                 await self._until_writable(link)
                 now = self._now()
                 if link != self._link_id:
                     self._pacer.abort(now)
                     return
                 self._release_due(now)
-                if self._tx_sent < len(out):
+                if self._tx_sent < size:
                     await asyncio.sleep(self._pacer.wake_at(now, self._tx_sent) - now)
                     waited = True
         finally:

@@ -248,6 +248,7 @@ class Outline:
         self.edges = np.roll(self.vertices, -1, axis=0) - self.vertices
         lengths = np.linalg.norm(self.edges, axis=1)
         self._closed = len(self.vertices) >= 3
+        self._edge0_sq = float(self.edges[0] @ self.edges[0])  # a stick's squared length
         with np.errstate(invalid="ignore", divide="ignore"):
             normals = np.stack([self.edges[:, 1], -self.edges[:, 0]], axis=1)
             self.normals = normals / lengths[:, None]
@@ -304,13 +305,13 @@ class Outline:
         v, e = self.vertices, self.edges
         n = len(v)
         if n == 1:
-            return np.asarray(np.linalg.norm(p - v[0], axis=1) - self.radius)
+            return _row_norms(p - v[0]) - self.radius
         if not self._closed:  # a segment (stick)
             rel = p - v[0]
-            t = np.clip(rel @ e[0] / float(e[0] @ e[0]), 0.0, 1.0)
-            return np.asarray(np.linalg.norm(rel - t[:, None] * e[0], axis=1) - self.radius)
+            t = _clip01(rel @ e[0] / self._edge0_sq)
+            return _row_norms(rel - t[:, None] * e[0]) - self.radius
         side = p @ self.normals.T - self.offsets  # (N, E) signed distance to each edge's line
-        outside = np.max(side, axis=1)
+        outside = np.maximum.reduce(side, axis=1)
         d = outside.copy()
         out = outside > 0.0
         if self.radius > 0.0 and out.any():  # exact distance to the core outside it
@@ -343,7 +344,7 @@ class Outline:
         # a polygon's edges moved out by r: the first of their half-planes the ray leaves
         dn = d @ self.normals.T
         room = self.offsets + r - p @ self.normals.T
-        t_edges = np.divide(room, dn, out=np.full_like(room, np.inf), where=dn > 0.0)
+        t_edges = np.divide(room, dn, out=np.full(room.shape, np.inf), where=dn > 0.0)
         if r <= 0.0:
             return np.asarray(t_edges.min(axis=1))
         k = np.argmin(t_edges, axis=1)
@@ -405,6 +406,19 @@ class Outline:
             return np.asarray(outside)  # as for any polygon: exact inside, positive outside
         corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
         return np.asarray(np.where(outside > 0.0, corner, outside) - self.radius)
+
+
+def _row_norms(q: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(q, axis=1)`` for real (N, 2) rows: the same operations, without its
+    Python-level argument handling (this runs at every physics evaluation)."""
+    out: np.ndarray = np.sqrt(np.add.reduce(q * q, axis=1))
+    return out
+
+
+def _clip01(x: np.ndarray) -> np.ndarray:
+    """``np.clip(x, 0.0, 1.0)`` without np.clip's own overhead (the same values)."""
+    out: np.ndarray = np.minimum(np.maximum(x, 0.0), 1.0)
+    return out
 
 
 def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> np.ndarray:

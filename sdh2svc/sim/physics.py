@@ -375,7 +375,9 @@ class ContactPhysics:
         self._to_object = np.zeros((4, 9))  # see _depths
         self._frame_rows: list[tuple[tuple[float, float], ...]] = []
         self._world_circles: list[tuple[float, float, float]] = []
-        self._circles = []  # each surface's bounding circle in its link frame: (a, b, radius)
+        # each surface's bounding circle in its link frame, (a, b), and the squared distance
+        # within which the object's centre must come for the surface to touch it
+        self._circles: list[tuple[float, float, float]] = []
         self._local_cols = [_local_columns(surf) for surf in self.surfaces]
         self._e_hint: dict[int, float] = {}  # each surface's last finger yield, Newton's start
         self._prefilter = isinstance(spec, Polygon)  # a box has a cheap closed form
@@ -386,7 +388,9 @@ class ContactPhysics:
         for surf in self.surfaces:
             mid = (surf.local.min(axis=0) + surf.local.max(axis=0)) / 2
             rad = float(np.max(np.linalg.norm(surf.local - mid, axis=1)))
-            self._circles.append((float(mid[0]), float(mid[1]), rad))
+            # with the object's reach: how close (squared) its centre must be to matter
+            lim = (outline.bound_radius + rad) ** 2
+            self._circles.append((float(mid[0]), float(mid[1]), lim))
         self._torques: tuple[_Eval, tuple[float, ...] | None, dict[str, float]] | None = None
         self._substep(pose)
 
@@ -401,8 +405,8 @@ class ContactPhysics:
             return self._world
         rows = link_frame_rows(pose, self.geom)
         circles = []
-        for (ma, mb, rad), (o, ex, ey) in zip(self._circles, rows, strict=True):
-            circles.append((o[0] + ma * ex[0] + mb * ey[0], o[1] + ma * ex[1] + mb * ey[1], rad))
+        for (ma, mb, lim), (o, ex, ey) in zip(self._circles, rows, strict=True):
+            circles.append((o[0] + ma * ex[0] + mb * ey[0], o[1] + ma * ex[1] + mb * ey[1], lim))
         self._frame_rows = rows
         self._world_key, self._world_circles = key, circles
         self._world = [None] * len(self.surfaces)
@@ -463,8 +467,8 @@ class ContactPhysics:
         wds, kw, reach = self._wds, self._kw, self.outline.bound_radius
         near_j = tuple([
             j
-            for j, (my, mz, rad) in enumerate(self._world_circles)
-            if (cy - my) ** 2 + (cz - mz) ** 2 <= (reach + rad) ** 2
+            for j, (my, mz, lim) in enumerate(self._world_circles)
+            if (cy - my) ** 2 + (cz - mz) ** 2 <= lim
         ])  # the others are nowhere near the object  # fmt: skip
         # all nearby surfaces' samples at once, then each surface's share of those inside
         inside, depth, starts, cols_all = self._inside(near_j, cy, cz, cos_p, sin_p, reach * reach)

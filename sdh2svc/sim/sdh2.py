@@ -415,17 +415,15 @@ class _Move:
     duration: float = field(init=False, repr=False, compare=False)
     spans: Vec = field(init=False, repr=False, compare=False)  # span(i) of every axis
     coasting: tuple[bool, ...] = field(init=False, repr=False, compare=False)  # carry time > 0
+    end: float = field(init=False, repr=False, compare=False)  # t0 + duration
 
     def __post_init__(self) -> None:
         duration = max(self.profile.duration, max(c.time for c in self.carry))
         object.__setattr__(self, "duration", duration)
+        object.__setattr__(self, "end", self.t0 + duration)
         ends = zip(self.goal, self.start, self.carry, strict=True)
         object.__setattr__(self, "spans", tuple(g - s - c.distance for g, s, c in ends))
         object.__setattr__(self, "coasting", tuple(c.time > 0.0 for c in self.carry))
-
-    @property
-    def end(self) -> float:
-        return self.t0 + self.duration
 
     def span(self, i: int) -> float:
         """What the coordinated profile covers on axis i (the rest is the carry's)."""
@@ -1171,20 +1169,22 @@ class Sdh2Emulator:
         """Take the world's angles; detect blocked axes and release velocity-mode blocks."""
         ax, margin = self._ax, self.options.blocked_margin_deg
         was, vel, powered, ref = ax.actual, ax.actual_vel, ax.powered, ax.ref
+        blocked, rvel = ax.blocked, ax.rvel
         for i in _ALL:
+            a = actual[i]
             if dt > 0.0:
-                vel[i] = (actual[i] - was[i]) / dt
-            was[i] = actual[i]
+                vel[i] = (a - was[i]) / dt
+            was[i] = a
             if not powered[i]:
-                ref[i], ax.rvel[i] = actual[i], 0.0  # limp: the reference follows the joint
+                ref[i], rvel[i] = a, 0.0  # limp: the reference follows the joint
                 continue
-            lag = ref[i] - actual[i]
-            if ax.blocked[i]:
+            lag = ref[i] - a
+            if blocked[i]:
                 if self._con != POSE and abs(lag) <= margin / 2:
-                    ax.blocked[i] = 0  # the obstacle gave way
+                    blocked[i] = 0  # the obstacle gave way
             elif abs(lag) > margin and self._axis_moving(i):
-                ax.blocked[i] = 1 if lag > 0.0 else -1
-                ax.rvel[i] = 0.0
+                blocked[i] = 1 if lag > 0.0 else -1
+                rvel[i] = 0.0
 
     def _axis_moving(self, i: int) -> bool:
         if self._con == POSE:

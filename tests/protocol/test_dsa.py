@@ -169,6 +169,20 @@ def test_golden_all_zero_rle_frame() -> None:
     assert not frame.texels.any()
 
 
+def test_crc_check_value_and_remembered_crcs() -> None:
+    """Short byte strings' CRCs are remembered: the same value by any path, also after the
+    memory was cleared for being full."""
+    from sdh2svc.protocol import crc
+
+    assert crc16(b"123456789") == crc16(b"123456789") == 0x6EB4
+    assert crc16(bytearray(b"123456789")) == crc16(memoryview(b"123456789")) == 0x6EB4
+    assert crc16(b"6789", crc16(b"12345")) == 0x6EB4  # chained: not from the memory
+    frames = [bytes([k & 0xFF, k >> 8, 7]) for k in range(crc._SEEN_MAX + 10)]
+    assert [crc16(f) for f in frames] == [crc16(bytearray(f)) for f in frames]
+    assert len(crc._SEEN) <= crc._SEEN_MAX
+    assert crc16(b"123456789") == 0x6EB4
+
+
 def test_crc_covers_id_length_payload_not_preamble() -> None:
     wire = dsa.query_matrix_info(5)
     assert int.from_bytes(wire[-2:], "little") == crc16(wire[3:-2])
