@@ -19,7 +19,10 @@ How (rolling kinematics, no model of the object):
   object's local curvature there. No relative turn while the contact travels: a **flat** face;
   a relative turn while the contact stays put (a pivot): an **edge** or corner; in between a
   **curved** surface of radius 1/κ. A small learned model (multinomial logistic,
-  :class:`Softmax`) weighs this against the pressure footprint and the other contact
+  :class:`Softmax`) weighs this against how well ν − ψ fits a line over the window (a
+  transition does not), the pressure footprint, how soft the object reads over the run (the
+  pad rubber's compression against Hertz's F^⅔: a soft object takes part of the squeeze, and
+  its flat face wraps the pad like a curved one) and the other contact
   (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide.
 * **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
   second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
