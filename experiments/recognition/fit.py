@@ -1,9 +1,10 @@
 """Fit the recognizer's two small models on captured campaign cases, and ship them.
 
-    python -m experiments.recognition.fit /tmp/recog/fit.jsonl /tmp/recog/fit2.jsonl
+    python -m experiments.recognition.fit /tmp/recog/fit.jsonl /tmp/recog/fit2.jsonl \
+        /tmp/recog/fit3.jsonl
 
-(the captures of :mod:`experiments.recognition.capture` for generator seeds 1701 and 1703;
-the held-out test suite is seed 1702). Writes ``sdh2svc/control/recognition_model.json``:
+(the captures of :mod:`experiments.recognition.capture` for generator seeds 1701, 1703 and
+1704; the held-out test suite is seed 1702). Writes ``sdh2svc/control/recognition_model.json``:
 
 1. **contact kind** — a multinomial logistic model on each contact's features
    (:func:`~sdh2svc.control.recognition.contact_features`, with their pairwise products),
