@@ -9,6 +9,7 @@ frame), its surface parameter and normal force. The object's spec is stored with
 which feature touches each pad is computed offline (:mod:`experiments.recognition.truth`).
 
     python -m experiments.recognition.capture --seed 1701 --n 60 --out /tmp/recog/fit.jsonl
+    (and --seed 1703 → fit2.jsonl, --seed 1704 → fit3.jsonl: the other fit suites)
     python -m experiments.recognition.capture --seed 1702 --n 60 --out /tmp/recog/test.jsonl
     python -m experiments.recognition.capture --suite thesis --out /tmp/recog/thesis.jsonl
 

@@ -19,7 +19,10 @@ How (rolling kinematics, no model of the object):
   object's local curvature there. No relative turn while the contact travels: a **flat** face;
   a relative turn while the contact stays put (a pivot): an **edge** or corner; in between a
   **curved** surface of radius 1/κ. A small learned model (multinomial logistic,
-  :class:`Softmax`) weighs this against the pressure footprint and the other contact
+  :class:`Softmax`) weighs this against how well ν − ψ fits a line over the window (a
+  transition does not), the pressure footprint, how soft the object reads over the run (the
+  pad rubber's compression against Hertz's F^⅔: a soft object takes part of the squeeze, and
+  its flat face wraps the pad like a curved one) and the other contact
   (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide.
 * **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
   second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
@@ -229,6 +232,14 @@ class _ContactTrack:
         self.kinematic_radius = MAX_RADIUS_MM
         self.features: list[float] | None = None  # see contact_features
         self.p: np.ndarray | None = None  # the kind model's smoothed probabilities
+        # the run's mean of log(rubber compression / F^⅔): Hertz's compression grows as F^⅔
+        # against a rigid body; a soft object takes its part of the squeeze, the pad less
+        self._soft_sum, self._soft_n = 0.0, 0
+
+    @property
+    def softness(self) -> float:
+        """The run's mean log(compression / F^⅔) at this pad (0 before a firm contact)."""
+        return self._soft_sum / self._soft_n if self._soft_n else 0.0
 
     def lost(self) -> None:
         self.L.clear()
@@ -247,11 +258,17 @@ class _ContactTrack:
         mx, my = sum(xs) / n, sum(ys) / n
         sxx = sum((x - mx) * (x - mx) for x in xs)
         sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True))
+        syy = sum((y - my) * (y - my) for y in ys)
         travel, turn = max(xs) - min(xs), math.degrees(max(ys) - min(ys))
         kappa = self.sign * sxy / sxx if sxx > 1e-9 else 0.0
+        # what the line leaves of ν − ψ: small on one feature, large across a transition
+        resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n)) if sxx > 1e-9 else 0.0
         self.kinematic_radius = min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
         main = max(c.blobs, key=lambda b: b.pressure_sum_n_per_mm2)
         d = c.depth
+        if c.force > 0.05:
+            self._soft_sum += math.log(d.compression_mm + 0.01) - math.log(c.force) * 2 / 3
+            self._soft_n += 1
         self.features = [
             math.log(max(self.kinematic_radius, 0.5)),
             math.log(travel + 0.05),
@@ -263,6 +280,8 @@ class _ContactTrack:
             d.band_mm,
             c.force,
             c.L_mm,
+            math.log(resid + 0.05),
+            self.softness,
         ]
         self.kind, self.radius = self._rules(travel, turn, kappa)
 
@@ -334,12 +353,40 @@ class _Evidence:
     # stick's contacts stay at its ends, so AB turns with it (slope 1)
     s_ps: float = 0.0
     s_pp: float = 0.0
+    # Λ against ψ (Σψ, Σψ², ΣψΛ; ΣΛ and the count above): the caliper width's slope as the
+    # object turns: nil for a circle, a cos 2θ for an ellipse, a box's other side at a corner
+    p_sum: float = 0.0
+    pp_sum: float = 0.0
+    pl_sum: float = 0.0
+
+    def add_width(self, lam: float, psi: float) -> None:
+        """One iteration's Λ (mm) at the object's rotation ψ (rad)."""
+        self.lam_min, self.lam_max = min(self.lam_min, lam), max(self.lam_max, lam)
+        self.lam_sum += lam
+        self.lam_n += 1
+        self.p_sum += psi
+        self.pp_sum += psi * psi
+        self.pl_sum += psi * lam
 
 
-def class_features(ev: _Evidence) -> np.ndarray:
+def caliper_slope(ev: _Evidence) -> float:
+    """dΛ/dψ over the run relative to Λ's mean (least squares; 0 before the object turned)."""
+    n = ev.lam_n
+    if n < 3:
+        return 0.0
+    vpp = ev.pp_sum - ev.p_sum * ev.p_sum / n
+    if vpp < 1e-8:
+        return 0.0
+    slope = (ev.pl_sum - ev.p_sum * ev.lam_sum / n) / vpp
+    return slope / (ev.lam_sum / n)
+
+
+def class_features(ev: _Evidence, softness: float = 0.0) -> np.ndarray:
     """The class model's input: the shares of each contact kind and of both-flat (parallel or
-    not) and both-edge iterations, the curved radii against Λ/2 (median, spread), Λ's spread
-    and size, how far the object turned, and how σ turned with it."""
+    not) and both-edge iterations, the curved radii against Λ/2 (median, how far from 1,
+    spread), Λ's spread and size, how far the object turned, how σ turned with it, how Λ
+    changed with it (:func:`caliper_slope`), and how soft the object reads
+    (:attr:`_ContactTrack.softness`)."""
     total = max(1, ev.flat + ev.edge + ev.curved)
     n = max(1, ev.n)
     q25, q50, q75 = ev.radii.quantiles((0.25, 0.5, 0.75))
@@ -353,11 +400,14 @@ def class_features(ev: _Evidence) -> np.ndarray:
             ev.parallel / n,
             ev.both_edge / n,
             q50,
+            abs(q50),
             q75 - q25,
             math.log((ev.lam_max - ev.lam_min) / lam_mean + 0.01),
             math.log(lam_mean),
             math.log(math.degrees(ev.psi_max - ev.psi_min) + 0.5),
             max(-2.0, min(2.0, ev.s_ps / ev.s_pp)) if ev.s_pp > 0 else 0.0,
+            math.log(abs(caliper_slope(ev)) + 0.01),
+            softness,
         ]
     )
 
@@ -450,9 +500,7 @@ class Recognizer:
         r2: float | None,
     ) -> None:
         ev = self._ev
-        ev.lam_min, ev.lam_max = min(ev.lam_min, lam), max(ev.lam_max, lam)
-        ev.lam_sum += lam
-        ev.lam_n += 1
+        ev.add_width(lam, self._psi)
         if k1 is None or k2 is None:
             return
         ev.n += 1
@@ -476,10 +524,14 @@ class Recognizer:
         ev, model = self._ev, self.model.object_class
         if model is None or ev.n == 0:
             return classify(ev, self.model)
-        p = model.probabilities(class_features(ev))
+        p = model.probabilities(class_features(ev, self.softness()))
         i = int(np.argmax(p))
         a, b = sizes(CLASSES[i], ev)
         return CLASSES[i], float(p[i]), a, b
+
+    def softness(self) -> float:
+        """Both pads' :attr:`_ContactTrack.softness`, averaged."""
+        return sum(t.softness for t in self._tracks) / 2
 
     def summary(self) -> dict[str, Any]:
         """The run's estimate for its summary: class, confidence, sizes, rotation (JSON)."""

@@ -23,10 +23,13 @@ from sdh2svc.control.recognition import (
     Recognizer,
     _ContactTrack,
     _Evidence,
+    caliper_slope,
+    class_features,
     classify,
     outline,
 )
 from sdh2svc.model.contact import NO_CONTACT, Blob, ContactEstimate
+from sdh2svc.model.depth import NO_DEPTH
 from sdh2svc.model.kinematics import Finger, HandPose
 from sdh2svc.model.observe import observe
 
@@ -129,6 +132,47 @@ def test_the_class_of_an_ellipse() -> None:
     got = classify(ev, MODEL)
     assert got[0] is ObjectClass.ELLIPSE
     assert got[2] == pytest.approx(26.5) and got[3] == pytest.approx(19.5)
+
+
+def widths(lam: np.ndarray, psi: np.ndarray) -> _Evidence:
+    ev = _Evidence()
+    for w, p in zip(lam, psi, strict=True):
+        ev.add_width(float(w), float(p))
+    return ev
+
+
+def test_the_caliper_slope_tells_a_box_from_a_circle() -> None:
+    """Λ against ψ: a circle's width stays while it turns; a 60 × 22 box held across its long
+    side and tipped onto its corners widens as a·cos ψ + b·sin ψ (relative slope ≈ b/a); an
+    ellipse's as 2·√(a²cos²ψ + b²sin²ψ), flat at its axis."""
+    psi = np.radians(np.linspace(0.0, 15.0, 120))
+    assert caliper_slope(widths(np.full(psi.size, 68.0), psi)) == pytest.approx(0.0, abs=1e-9)
+    box = 60.0 * np.cos(psi) + 22.0 * np.sin(psi)
+    want = np.polyfit(psi, box, 1)[0] / box.mean()
+    assert caliper_slope(widths(box, psi)) == pytest.approx(want, rel=1e-6)
+    assert 0.2 < want < 22.0 / 60.0
+    ellipse = 2 * np.hypot(26.5 * np.cos(psi), 19.5 * np.sin(psi))
+    assert abs(caliper_slope(widths(ellipse, psi))) < 0.5 * want
+    assert caliper_slope(widths(box[:2], psi[:2])) == 0.0  # too few to tell
+    # the class model sees its size: the circle's far below the box's
+    f_circle = class_features(widths(np.full(psi.size, 68.0), psi))
+    f_box = class_features(widths(box, psi))
+    assert f_box[-2] > f_circle[-2] + 2.0
+
+
+def test_a_soft_object_reads_soft() -> None:
+    """The rubber's compression at a given force: a rigid object presses it as Hertz says
+    (∝ F^⅔), a soft one takes part of the squeeze."""
+    out = {}
+    for name, compression in (("rigid", 0.8), ("foam", 0.2)):
+        track = _ContactTrack(Finger.TWO, MODEL)
+        for i, force in enumerate((1.0, 2.0, 4.0)):
+            c = compression * force ** (2 / 3)
+            depth = replace(NO_DEPTH, compression_mm=c)
+            track.update(replace(_C(20.0 + i), force=force, depth=depth), 0.3, 0.0)
+        out[name] = track.softness
+    assert out["rigid"] == pytest.approx(math.log(0.8), abs=0.02)
+    assert out["foam"] < out["rigid"] - 1.0
 
 
 @pytest.mark.parametrize(
