@@ -53,6 +53,13 @@ REACH_MARGIN_MM = 2.0
 # correction brings the force back. On the thesis's route the lowest F after the grasp stays
 # above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs.
 GRIP_BAND = (0.5, 2.0)
+# How far from either end of its pad's range a contact must be for the route to plan (mm; the
+# pad-edge check reverses at half a row, 1.7 mm). The model holds the contacts fixed on the pads,
+# but a rolling contact travels along its pad by ρ·Δω: the route's longer strokes carry it to the
+# pad's end, and there, choosing the move that turns AB furthest, the way back need not carry it
+# off again, so both directions stop at the edge within a few iterations. Near the edge the
+# thesis's move and its coupling bring it back.
+EDGE_MARGIN_MM = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,13 +89,14 @@ class Margins:
     cone_A: float
     cone_B: float
     wedge: float  # room to the wedge limit (inf without one)
+    hold: float  # how far the steadier contact's ω is inside the lowest friction angle expected
     joints1: float
     joints2: float
     reach: float  # l1 + r1 − |OA|: how far Finger 1 is from stretched
 
     def inside(self) -> bool:
         """Whether every margin is at least the route's (CONE_MARGIN, LIMIT_MARGIN, …)."""
-        return (min(self.cone_A, self.cone_B, self.wedge) >= CONE_MARGIN
+        return (min(self.cone_A, self.cone_B, self.wedge) >= CONE_MARGIN and self.hold >= 0.0
                 and min(self.joints1, self.joints2) >= LIMIT_MARGIN
                 and self.reach >= REACH_MARGIN_MM)  # fmt: skip
 
@@ -110,8 +118,13 @@ class Predictor:
         c1, p, ctx = self.obs.contact1, self.params, self.ctx
         assert c1.r_mm is not None
         wedge_room = (p.wedge_limit - abs(wedge(wa, wb))) if p.wedge_limit > 0.0 else math.inf
+        # one contact within the lowest friction angle the lab expects (wedge_limit) holds the
+        # object while the other slides back into its cone; with both beyond it, both may slide
+        # where α overestimates the friction, and the route stays at a cone's edge for long
+        steadier = min(abs(wa - math.pi / 2), abs(wb - math.pi / 2))
+        hold = (p.wedge_limit - steadier) if p.wedge_limit > 0.0 else math.inf
         return Margins(
-            cone_margin(wa, self.alpha), cone_margin(wb, self.alpha), wedge_room,
+            cone_margin(wa, self.alpha), cone_margin(wb, self.alpha), wedge_room, hold,
             _limit_room(ctx.limits1, phi[0], phi[1]), _limit_room(ctx.limits2, phi[2], phi[3]),
             ctx.geom.proximal_length_mm + c1.r_mm - math.hypot(A.y, A.z),
         )  # fmt: skip
@@ -121,6 +134,15 @@ class Predictor:
         F = (self.obs.contact1.force + self.obs.contact2.force) / 2
         fd = self.params.grasp_force
         return GRIP_BAND[0] * fd <= F <= GRIP_BAND[1] * fd
+
+    def edge_room(self) -> float:
+        """How far (mm) the nearer contact's centroid is from its pad's first or last row."""
+        span = (self.ctx.distal.rows - 1) * self.ctx.pitch_mm
+        room = math.inf
+        for c in (self.obs.contact1, self.obs.contact2):
+            if c.S_mm is not None:
+                room = min(room, c.S_mm, span - c.S_mm)
+        return room
 
     def now(self) -> Margins:
         obs, pose = self.obs, self.pose
@@ -167,8 +189,8 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
     ref = _sense(base, pred)
     if ref == 0.0:
         return base
-    if not pred.now().inside() or not pred.grip_holds():  # the thesis's move, and its checks
-        return base
+    if not pred.now().inside() or not pred.grip_holds() or pred.edge_room() < EDGE_MARGIN_MM:
+        return base  # the thesis's move, and its checks
     best, best_turn = base, 0.0
     for move in candidates(base):
         t = pred.turn(move)
