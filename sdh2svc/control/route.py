@@ -102,6 +102,17 @@ class Margins:
 
 
 @dataclass(frozen=True, slots=True)
+class Prediction:
+    """The configuration a candidate move leads to, by the model (radians, mm)."""
+
+    phi: tuple[float, float, float, float]  # φ2…φ5
+    A: Point
+    sigma_d: float
+    omega_A: float
+    omega_B: float
+
+
+@dataclass(frozen=True, slots=True)
 class Predictor:
     """The rest of the iteration for a candidate move, by the model alone."""
 
@@ -150,10 +161,8 @@ class Predictor:
         return self.margins((pose.phi2, pose.phi3, pose.phi4, pose.phi5), obs.points.A,
                             obs.omega_A, obs.omega_B)  # fmt: skip
 
-    def turn(self, move: Move) -> float | None:
-        """σd − σ for ``move`` (rad), scaled down as the rolling step will if Finger 1 cannot
-        follow in one iteration (``finger1_max_step``); None when its configuration breaks the
-        route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
+    def predict(self, move: Move) -> Prediction | None:
+        """The configuration ``move`` leads to by the model; None when Finger 1 cannot reach it."""
         pose, obs, ctx, p = self.pose, self.obs, self.ctx, self.params
         c2, sigma = obs.contact2, obs.sigma
         assert sigma is not None and c2.r_mm is not None and c2.theta_rad is not None
@@ -163,12 +172,22 @@ class Predictor:
         A, ik = finger1_to(obs, B, sigma_d, self.lam_ad, ctx)
         if ik.solution is None:
             return None
-        phi2, phi3 = ik.solution.proximal, ik.solution.distal
-        wa, wb = omegas(obs, (phi2, phi3, phi4, phi5), A, B, ctx)
-        if not self.margins((phi2, phi3, phi4, phi5), A, wa, wb).inside():
+        phi = (ik.solution.proximal, ik.solution.distal, phi4, phi5)
+        wa, wb = omegas(obs, phi, A, B, ctx)
+        return Prediction(phi, A, sigma_d, wa, wb)
+
+    def turn(self, move: Move) -> float | None:
+        """σd − σ for ``move`` (rad), scaled down as the rolling step will if Finger 1 cannot
+        follow in one iteration (``finger1_max_step``); None when its configuration breaks the
+        route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
+        pose, obs = self.pose, self.obs
+        assert obs.sigma is not None
+        pr = self.predict(move)
+        if pr is None or not self.margins(pr.phi, pr.A, pr.omega_A, pr.omega_B).inside():
             return None
-        need = max(abs(phi2 - pose.phi2), abs(phi3 - pose.phi3))
-        return (sigma_d - sigma) * min(1.0, p.finger1_max_step / need) if need > 0 else 0.0
+        need = max(abs(pr.phi[0] - pose.phi2), abs(pr.phi[1] - pose.phi3))
+        scale = min(1.0, self.params.finger1_max_step / need) if need > 0 else 0.0
+        return (pr.sigma_d - obs.sigma) * scale
 
 
 def candidates(base: Move) -> list[Move]:
