@@ -15,6 +15,12 @@ IK puts A on the circle of radius Λ around Bd at inclination σd; the configura
 if both fingers are within their joint limits, Finger 1 reaches Ad, and ωA, ωB are inside
 90° ± α; otherwise the rotation reverses (Δφ → −Δφ) and nothing is commanded that iteration.
 
+Other readings of what the thesis's lost program may have done (eq 3.13's printed "+", σ's
+angle convention, Finger 2's route, Finger 1's IK branch or a clipped IK, σ carried from the
+command, a flat pad, the cone on ωA only, eq 3.9's exact "=", Δφ, λ, α) are options of
+:class:`Params` (defaults: hand-model.md's reading) and are run and judged in the report's
+*Other readings* section (``READINGS``).
+
 Writes ``report.md`` (the plots next to the thesis's captions and statements, every figure
 computed here) and the PNG plots into ``experiments/sticks/`` (or ``--out``).
 """
@@ -24,10 +30,11 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
+import random
 import sys
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import matplotlib
@@ -44,12 +51,16 @@ from sdh2svc.model.kinematics import (
     HandPoints,
     HandPose,
     IKFailure,
+    IKSolution,
     Point,
     contact_point,
     distal_joint,
     finger_ik,
+    frame3_axes,
+    ik_branches,
     pad_point,
     segment,
+    wrap_angle,
 )
 from sdh2svc.model.observe import ModelContext
 
@@ -199,6 +210,10 @@ def mirror_grasp(length: float, ctx: ModelContext, x3: float, psi: float) -> Gra
 
 @dataclass(frozen=True, slots=True)
 class Params:
+    """One run's parameters. Every field after ``max_iterations`` is a reading of what the
+    thesis's own program may have done (its code is lost); the defaults are hand-model.md's
+    reading, and each other value is tried in the report's *Other readings* section."""
+
     k: float
     delta_phi: float = math.radians(DELTA_PHI_DEG)
     lambda_gain: float = LAMBDA_GAIN
@@ -208,9 +223,30 @@ class Params:
     printed_eq313: bool = False  # eq 3.13 as printed, σ(Ac→Bd) + σ(Ac→Bc): a check only
     # Ad by the thesis's quadratic and root test (eqs 3.6–3.9) comparing inclinations within this
     # tolerance, instead of the closed form: a check only. ``root_last_wins``: when both roots
-    # pass, the one tried last is kept (a loop over i = 1, 2 without a break).
+    # pass, the one tried last is kept (a loop over i = 1, 2 without a break). ``root_nomatch``:
+    # what Ad is when neither passes — "closed" (the closed form), "last_tried" / "first_tried"
+    # (the loop's variable keeps the root tried last, z02, or first, z01), "stale" (Az keeps its
+    # previous value, Ay by eq 3.8).
     root_tol_deg: float | None = None
     root_last_wins: bool = True
+    root_nomatch: str = "closed"
+    # σ as the program measured it: "atan2" (A→B, hand-model §6), "atan" (eq 3.3 literally,
+    # values in (−90°, 90°)), "atan2_BA" (from B to A, in (−180°, 180°]: its cut is at σ = 0)
+    sigma_from: str = "atan2"
+    # Finger 2's route: "thesis" (φ4 − Δφ, φ5 + kΔφ), "k_proximal" (φ4 − kΔφ, φ5 + Δφ),
+    # "same_sense" (φ4 − Δφ, φ5 − kΔφ: φ5 counted the other way)
+    route: str = "thesis"
+    first_direction: int = 1  # +1: the first half stroke has Δφ > 0
+    # Finger 1's IK: "nearest" (the branch nearest to now), "branch+" (φ2 = β − o always),
+    # "branch-" (φ2 = β + o always); ``ik_clip``: acos's argument clipped to [−1, 1] (MATLAB's
+    # real(acos)), so an unreachable Ad stretches the finger towards it instead of reversing
+    ik: str = "nearest"
+    ik_clip: bool = False
+    # the next iteration's Ac and σc: "reached" (FK of the commanded angles) or "commanded"
+    # (Ad and σd carried over, as a program that never re-measures would)
+    sigma_source: str = "reached"
+    flat_pad: bool = False  # ω against the distal link's axis, not the pad profile's tangent
+    cone_A_only: bool = False  # the cone test on ωA only
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,10 +284,22 @@ class Run:
         return [it for it in self.iterations if it.reversal is not None]
 
 
+def _omega(
+    finger: Finger, psi: float, x3: float, here: Point, other: Point, ctx: ModelContext, flat: bool
+) -> float:
+    """ω at ``here``: against the pad's tangent (hand-model §6) or, ``flat``, the distal link's
+    axis ex3 (a pad without its arc)."""
+    if not flat:
+        return omega(finger, psi, x3, here, other, ctx.geom.pad)
+    t = frame3_axes(finger, psi)[0]
+    vy, vz = other.y - here.y, other.z - here.z
+    return math.acos(max(-1.0, min(1.0, (t.y * vy + t.z * vz) / math.hypot(vy, vz))))
+
+
 def _measure(
-    pose: HandPose, g: Grasp, ctx: ModelContext
+    pose: HandPose, g: Grasp, ctx: ModelContext, flat: bool = False
 ) -> tuple[HandPoints, float, float, float, float]:
-    geom, pad = ctx.geom, ctx.geom.pad
+    geom = ctx.geom
     c1, c2 = g.contact1, g.contact2
     A = contact_point(Finger.ONE, pose.phi2, pose.phi3, c1.r, c1.theta, geom)
     B = contact_point(Finger.TWO, pose.phi4, pose.phi5, c2.r, c2.theta, geom)
@@ -259,71 +307,142 @@ def _measure(
         A, B, distal_joint(Finger.ONE, pose.phi2, geom), distal_joint(Finger.TWO, pose.phi4, geom)
     )
     lam, sigma = segment(A, B)
-    wa = omega(Finger.ONE, pose.phi2 + pose.phi3, c1.x3, A, B, pad)
-    wb = omega(Finger.TWO, pose.phi4 + pose.phi5, c2.x3, B, A, pad)
+    wa = _omega(Finger.ONE, pose.phi2 + pose.phi3, c1.x3, A, B, ctx, flat)
+    wb = _omega(Finger.TWO, pose.phi4 + pose.phi5, c2.x3, B, A, ctx, flat)
     return pts, lam, sigma, wa, wb
 
 
-def thesis_root(B: Point, lam: float, sigma_d: float, tol: float, last_wins: bool) -> Point | None:
-    """Ad by eqs 3.6–3.9: the two roots z01, z02 of the circle of radius Λ around B, each with
-    its y by eq 3.8 (the left semicircle), kept if its inclination is σd within ``tol`` (rad)."""
+def inclination(A: Point, B: Point, how: str = "atan2") -> float:
+    """σ of AB as a program measures it (``Params.sigma_from``). atan's branch cut is where
+    By = Ay (σ = ±90°); atan2's from B to A is where the stick is level (σ_BA = ±180°)."""
+    dy, dz = B.y - A.y, B.z - A.z
+    if how == "atan":
+        return math.atan(dz / dy)
+    if how == "atan2_BA":
+        return math.atan2(-dz, -dy)
+    return math.atan2(dz, dy)
+
+
+def thesis_roots(B: Point, lam: float, sigma_d: float) -> tuple[Point, Point]:
+    """A1 and A3 of eqs 3.6–3.8: the roots z01, z02 of the circle of radius Λ around B, each with
+    its y by eq 3.8 (the left semicircle)."""
     t2 = math.tan(sigma_d) ** 2
     root = math.sqrt(lam**2 * t2 + lam**2 * t2**2)
+    zs = ((B.z + B.z * t2 - root) / (1 + t2), (B.z + B.z * t2 + root) / (1 + t2))
+    return tuple(Point(B.y - math.sqrt(max(lam**2 - (z - B.z) ** 2, 0.0)), z) for z in zs)  # type: ignore[return-value]
+
+
+def thesis_root(B: Point, lam: float, sigma_d: float, tol: float, last_wins: bool) -> Point | None:
+    """Ad by eqs 3.6–3.9: the root whose inclination is σd within ``tol`` (rad), or None."""
     chosen: Point | None = None
-    for z in ((B.z + B.z * t2 - root) / (1 + t2), (B.z + B.z * t2 + root) / (1 + t2)):
-        y = B.y - math.sqrt(max(lam**2 - (z - B.z) ** 2, 0.0))
-        if abs(math.atan((B.z - z) / (B.y - y)) - sigma_d) <= tol:
-            chosen = Point(y, z)
+    for A in thesis_roots(B, lam, sigma_d):
+        if abs(math.atan((B.z - A.z) / (B.y - A.y)) - sigma_d) <= tol:
+            chosen = A
             if not last_wins:
                 break
     return chosen
 
 
-def _desired_A(B: Point, lam: float, sigma_d: float, p: Params) -> Point:
-    closed = Point(B.y - lam * math.cos(sigma_d), B.z - lam * math.sin(sigma_d))
+def _desired_A(B: Point, lam: float, sigma_d: float, p: Params, az_var: float) -> Point:
+    """Ad for σd as the program measures σ; ``az_var``: the z of the Ad computed last (what a
+    root test that matches neither root leaves in its variable, ``root_nomatch="stale"``)."""
+    u = -1.0 if p.sigma_from == "atan2_BA" else 1.0  # σ_BA points from B to A
+    closed = Point(B.y - u * lam * math.cos(sigma_d), B.z - u * lam * math.sin(sigma_d))
     if p.root_tol_deg is None:
         return closed
-    tol = math.radians(p.root_tol_deg)
-    return thesis_root(B, lam, sigma_d, tol, p.root_last_wins) or closed
+    got = thesis_root(B, lam, sigma_d, math.radians(p.root_tol_deg), p.root_last_wins)
+    if got is not None or p.root_nomatch == "closed":
+        return got or closed
+    if p.root_nomatch in ("last_tried", "first_tried"):
+        return thesis_roots(B, lam, sigma_d)[p.root_nomatch == "last_tried"]
+    return Point(B.y - math.sqrt(max(lam**2 - (az_var - B.z) ** 2, 0.0)), az_var)  # stale
+
+
+def _route(pose: HandPose, dphi: float, p: Params) -> tuple[float, float]:
+    """Finger 2's next φ4, φ5 (eqs 3.11–3.12 and the ``Params.route`` readings)."""
+    if p.route == "k_proximal":
+        return pose.phi4 - p.k * dphi, pose.phi5 + dphi
+    if p.route == "same_sense":
+        return pose.phi4 - dphi, pose.phi5 - p.k * dphi
+    return pose.phi4 - dphi, pose.phi5 + p.k * dphi
+
+
+def _ik1(
+    A_d: Point, c1: PadContact, pose: HandPose, p: Params, ctx: ModelContext
+) -> tuple[float, float] | Reversal:
+    """Finger 1's angles for Ad (``Params.ik``, ``Params.ik_clip``), or why the route reverses."""
+    geom, lim = ctx.geom, ctx.limits1
+    if p.ik == "nearest" and not p.ik_clip:
+        ik = finger_ik(Finger.ONE, A_d, c1.r, c1.theta, (pose.phi2, pose.phi3), geom, lim)
+        if ik.solution is None:
+            ws = ik.failure is IKFailure.JOINT_LIMITS
+            return Reversal.WORKSPACE if ws else Reversal.IK_UNREACHABLE
+        return ik.solution.proximal, ik.solution.distal
+    if p.ik_clip:  # acos's argument clipped: the nearest reachable elbow angle
+        l1, d = geom.proximal_length_mm, math.hypot(A_d.y, A_d.z)
+        o = math.acos(max(-1.0, min(1.0, (l1 * l1 + d * d - c1.r**2) / (2.0 * l1 * d))))
+        beta = math.atan2(A_d.y, A_d.z)
+        sols = []
+        for branch, prox in ((1, beta - o), (-1, beta + o)):
+            C = Point(l1 * math.sin(prox), l1 * math.cos(prox))
+            dist = wrap_angle(math.atan2(-(A_d.z - C.z), A_d.y - C.y) - prox + c1.theta)
+            sols.append(IKSolution(wrap_angle(prox), dist, branch))
+    else:
+        sols = list(ik_branches(Finger.ONE, A_d, c1.r, c1.theta, geom))
+        if not sols:
+            return Reversal.IK_UNREACHABLE
+    if p.ik != "nearest":
+        sols = [s for s in sols if s.branch == (1 if p.ik == "branch+" else -1)] or sols[:1]
+    valid = [s for s in sols if lim.contains(s.proximal, s.distal)]
+    if not valid:
+        return Reversal.WORKSPACE
+    best = min(
+        valid,
+        key=lambda s: (
+            abs(wrap_angle(s.proximal - pose.phi2)) + abs(wrap_angle(s.distal - pose.phi3))
+        ),
+    )
+    return best.proximal, best.distal
 
 
 def simulate(g: Grasp, p: Params, ctx: ModelContext) -> Run:
     """The two-finger algorithm of §3.4.1 on a stick with fixed contacts and constant Λ = length."""
-    geom, pad = ctx.geom, ctx.geom.pad
-    c1, c2, lam = g.contact1, g.contact2, g.length
+    geom = ctx.geom
+    c2, lam = g.contact2, g.length
     run = Run(g, p)
-    pose, direction, last_reversed = g.pose, 1, False
+    pose, direction, last_reversed = g.pose, p.first_direction, False
+    carried: tuple[Point, float] | None = None  # Ad, σd of the last command (sigma_source)
+    az_var = _measure(pose, g, ctx)[0].A.z
     for i in range(p.max_iterations):
-        pts, Lambda, sigma, wa, wb = _measure(pose, g, ctx)
+        pts, Lambda, sigma, wa, wb = _measure(pose, g, ctx, p.flat_pad)
+        A_c = pts.A if carried is None else carried[0]
+        sigma_c = inclination(A_c, pts.B, p.sigma_from) if carried is None else carried[1]
         dphi = direction * p.delta_phi
-        phi4d, phi5d = pose.phi4 - dphi, pose.phi5 + p.k * dphi  # eqs 3.11, 3.12
+        phi4d, phi5d = _route(pose, dphi, p)  # eqs 3.11, 3.12
         reason: Reversal | None = None
         target = sigma_d = wa_d = wb_d = None
         if not ctx.limits2.contains(phi4d, phi5d):
             reason = Reversal.WORKSPACE
         else:
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r, c2.theta, geom)
-            d_sigma = segment(pts.A, B_d)[1] - sigma  # eq 3.13, sign typo fixed
+            d_sigma = inclination(A_c, B_d, p.sigma_from) - sigma_c  # eq 3.13, sign typo fixed
             if p.printed_eq313:
-                d_sigma += 2.0 * sigma
-            sigma_d = sigma + p.lambda_gain * d_sigma  # eq 3.14
-            A_d = _desired_A(B_d, lam, sigma_d, p)
-            ik = finger_ik(
-                Finger.ONE, A_d, c1.r, c1.theta, (pose.phi2, pose.phi3), geom, ctx.limits1
-            )
-            if ik.solution is None:
-                limits = ik.failure is IKFailure.JOINT_LIMITS
-                reason = Reversal.WORKSPACE if limits else Reversal.IK_UNREACHABLE
+                d_sigma += 2.0 * sigma_c
+            sigma_d = sigma_c + p.lambda_gain * d_sigma  # eq 3.14
+            A_d = _desired_A(B_d, lam, sigma_d, p, az_var)
+            az_var = A_d.z
+            ik = _ik1(A_d, g.contact1, pose, p, ctx)
+            if isinstance(ik, Reversal):
+                reason = ik
             else:
-                phi2d, phi3d = ik.solution.proximal, ik.solution.distal
-                wa_d = omega(Finger.ONE, phi2d + phi3d, c1.x3, A_d, B_d, pad)
-                wb_d = omega(Finger.TWO, phi4d + phi5d, c2.x3, B_d, A_d, pad)
+                cand = HandPose(ik[0], ik[1], phi4d, phi5d)
+                _, _, _, wa_d, wb_d = _measure(cand, g, ctx, p.flat_pad)
                 if not inside_cone(wa_d, p.alpha):
                     reason = Reversal.CONE_A
-                elif not inside_cone(wb_d, p.alpha):
+                elif not p.cone_A_only and not inside_cone(wb_d, p.alpha):
                     reason = Reversal.CONE_B
                 else:
-                    target = HandPose(phi2d, phi3d, phi4d, phi5d)
+                    target = cand
         run.iterations.append(
             Iteration(
                 i, direction, pose, pts, Lambda, sigma, wa, wb, target, reason, sigma_d, wa_d, wb_d
@@ -331,6 +450,9 @@ def simulate(g: Grasp, p: Params, ctx: ModelContext) -> Run:
         )
         if target is not None:
             pose, last_reversed = target, False  # no servo: the next iteration starts there
+            if p.sigma_source == "commanded":
+                assert sigma_d is not None
+                carried = (A_d, sigma_d)
             continue
         if last_reversed:
             run.end = "stuck"  # both directions refused
@@ -377,11 +499,17 @@ def intended(it: Iteration) -> int:
 
 
 def sigma_steps(run: Run) -> list[tuple[Iteration, float]]:
-    """Each commanded iteration with σ's change it made along its intended direction, degrees."""
+    """Each commanded iteration with σ's change it made along its intended direction, degrees.
+
+    A route read otherwise than eqs 3.11–3.12 (``Params.route``) whose Δφ > 0 turns the stick
+    anticlockwise from the grasp has that sense taken as the intended one: a sign convention,
+    not a reversal."""
     its, out = run.iterations, []
     for a, b in itertools.pairwise(its):
         if a.target is not None:
             out.append((a, math.degrees(b.sigma - a.sigma) * intended(a)))
+    if run.params.route != "thesis" and out and out[0][1] < 0.0:
+        out = [(a, -d) for a, d in out]
     return out
 
 
@@ -758,6 +886,8 @@ def plot_inclination(runs: Sequence[Run], path: Path, title: str) -> None:
         )
         for s in backward_stretches(run):
             ax.axvspan(s.first, s.last + 1, color=RED, alpha=0.2)
+        for s in stalls(run):
+            ax.axvspan(s.first, s.last + 1, color="0.5", alpha=0.2)
     ax.set_xlabel("iteration")
     ax.set_ylabel("σ (deg)")
     ax.set_title(title)
@@ -800,6 +930,8 @@ def write_report(
     cfg: Settings,
     out: Path,
     roots: dict[tuple[float, bool, float, float], Summary] | None = None,
+    readings: ReadingResults | None = None,
+    rscans: dict[tuple[str, float], ReadingScan] | None = None,
 ) -> Path:
     S = {key: summarise(r) for key, r in runs.items()}
     main5, main2 = S[(MAIN_LENGTH, 5.0)], S[(MAIN_LENGTH, 2.0)]
@@ -820,6 +952,8 @@ def write_report(
         "script; the thesis's words are quotes. The thesis's figures were lost in the text "
         "extraction, so each plot stands next to the caption and statements it reproduces.\n"
     )
+    if readings:
+        add(_readings_summary(readings, rscans))
     add("## What is simulated\n")
     add(
         "The thesis's simulation (§3.4.1 steps 1–2f) with the project's pure hand model "
@@ -1123,11 +1257,17 @@ def write_report(
     )
     if roots:
         add(_roots_section(roots))
+    if readings:
+        add(_readings_section(readings, rscans, ctx))
     add("## Plots\n")
     for k in KS:
         add(f"![{MAIN_LENGTH:g} mm, k = {k:g}]({_png(MAIN_LENGTH, k)})\n")
     for length in LENGTHS[1:]:
         add(f"![{length:g} mm, σ]({_png(length)})\n")
+    if readings:
+        add(f"![98.46 mm, eq 3.9 with an exact “=”, the root tried last kept]({_EQ39_PNG})\n")
+    if rscans and rscans[("α = 45°", MAIN_LENGTH)].example is not None:
+        add(f"![98.46 mm, α = 45°, a grasp that shows both statements]({_ALPHA45_PNG})\n")
     path = out / "report.md"
     path.write_text("\n".join(L), encoding="utf-8")
     return path
@@ -1201,6 +1341,557 @@ def _roots_section(roots: dict[tuple[float, bool, float, float], Summary]) -> st
         else f"\n{verdict}.\n"
     )
     return "\n".join(rows)
+
+
+# --- other readings of the thesis's program ---------------------------------------------------
+
+ZERO_BAND_DEG = 2.0  # "around the zero inclination": within 2° of σ = 0 (σ spans ~ −3 … +8°)
+STICKS_READ = (98.46, 62.038, 119.405, 73.8)  # Figs 31–32, 34, 33, §3.3.2
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One reading of what the thesis's MATLAB-style program may have done: ``Params``
+    overrides, the thesis's words it rests on (or that speak against it), and whether the text
+    supports it."""
+
+    key: str
+    what: str
+    overrides: tuple[tuple[str, object], ...]
+    text: str
+    supported: bool
+
+    def params(self, k: float) -> Params:
+        return Params(k, **dict(self.overrides))  # type: ignore[arg-type]
+
+
+_EQ39 = (
+    "eq 3.9 prints an exact test: “IF tan−1((Bz0 − Az0i)/(By0 − Ay0)) = σd THEN Az0 = Az0i, "
+    "i=1,2”; what the program did when neither root passes is not written"
+)
+READINGS: tuple[Reading, ...] = (
+    Reading("hand-model", "hand-model.md's equations (the report above)", (),
+            "eqs 3.11–3.14, 3.3 as restated in hand-model.md", True),
+    Reading("eq 3.13 “+”", "dσ = σ(Ac→Bd) + σ(Ac→Bc), as printed", (("printed_eq313", True),),
+            "against: “we calculate the difference between the inclination of the segments "
+            "AcBd(red) and the inclination of AcBc”", False),
+    Reading("σ by atan", "σ = atan((Bz − Az)/(By − Ay)), eq 3.3 literally: values in "
+            "(−90°, 90°), its branch cut where By = Ay (σ = ±90°), far from σ = 0",
+            (("sigma_from", "atan"),), "eq 3.3: “σAB = tan−1((Bz0 − Az0)/(By0 − Ay0))”", True),
+    Reading("σ from B to A", "σ = atan2(Az − Bz, Ay − By): its cut (±180°) is at σ = 0; dσ "
+            "jumps by 2π there, but λ = 5 is an integer, so σd moves by 10π — the same "
+            "direction", (("sigma_from", "atan2_BA"),),
+            "against: eq 3.3 measures from A to B", False),
+    Reading("k on φ4", "φ4 − kΔφ, φ5 + Δφ", (("route", "k_proximal"),),
+            "against: “The angle of the proximal articulation φ4 will change at a lower rhythm "
+            "than φ5”", False),
+    Reading("φ5 the other way", "φ4 − Δφ, φ5 − kΔφ (φ5 counted in the other sense)",
+            (("route", "same_sense"),),
+            "against: “closing its proximal articulation and opening its upper articulation to "
+            "increase the object's inclination”", False),
+    Reading("anticlockwise first", "the first half stroke with Δφ < 0",
+            (("first_direction", -1),),
+            "§3.4.2 does not say; one finger went “first at the direction that decreases its "
+            "inclination” (§3.3.2)", True),
+    Reading("IK β − o", "Finger 1's elbow by one fixed formula, φ2 = β − o",
+            (("ik", "branch+"),), "§2.12: one geometric solution, c and o by the law of "
+            "cosines", True),
+    Reading("IK β + o", "the other fixed elbow, φ2 = β + o", (("ik", "branch-"),),
+            "§2.12 (as above); the grasp is on the β − o elbow", True),
+    Reading("IK clipped", "acos's argument clipped to [−1, 1] (MATLAB's real(acos)): an "
+            "unreachable Ad stretches Finger 1 towards it", (("ik_clip", True),),
+            "partly against: 2f commands only “if the new configuration is inside the "
+            "fingers' workspace”", False),
+    Reading("IK clipped, A carried", "as above, and the next iteration's Ac, σc are the "
+            "commanded Ad, σd, not re-measured", (("ik_clip", True), ("sigma_source",
+                                                                      "commanded")),
+            "for: steps 2b and 2f recompute “B, D” and “C” by direct kinematics, never A",
+            True),
+    Reading("flat pad", "ω against the distal link's axis, not the pad's tangent",
+            (("flat_pad", True),), "against: eq 2.29 subtracts tan−1(A'y3(L1)), the pad's "
+            "slope", False),
+    Reading("cone on ωA only", "the cone tested on ωA alone", (("cone_A_only", True),),
+            "partly for: “ωΑ is the one that tends to get out of its range” (§3.3.2); against: "
+            "eqs 2.25–2.26 “must be met” for ωA and ωB, and 2f", False),
+    Reading("Δφ = 1°", "Finger 2's step 1°", (("delta_phi", math.radians(1.0)),),
+            "§3.4.2 gives no Δφ; Table 8 (0.25°) is chapter 4's", True),
+    Reading("λ = 1", "Finger 1 reinforces once", (("lambda_gain", 1.0),),
+            "§3.4.2 gives no λ; Table 8 (5) is chapter 4's", True),
+    Reading("λ = 10", "Finger 1 reinforces ten times", (("lambda_gain", 10.0),),
+            "(as above)", True),
+    Reading("α = 30°", "a wider friction cone", (("alpha", math.radians(30.0)),),
+            "§3.4.2 gives no α; Table 8's 22° is chapter 4's “typical small value”", True),
+    Reading("α = 45°", "a much wider friction cone", (("alpha", math.radians(45.0)),),
+            "(as above)", True),
+    Reading("eq 3.9 “=”, root tried last", "Ad by eqs 3.6–3.9 with an exact “=”; when neither "
+            "root passes, the loop's variable keeps z02, the root tried last",
+            (("root_tol_deg", 0.0), ("root_nomatch", "last_tried")), "for: " + _EQ39, True),
+    Reading("eq 3.9 “=”, root tried first", "as above, keeping z01",
+            (("root_tol_deg", 0.0), ("root_nomatch", "first_tried")), "for: " + _EQ39, True),
+    Reading("eq 3.9 “=”, Az unchanged", "as above; Az keeps its previous value (an IF "
+            "without ELSE), Ay by eq 3.8", (("root_tol_deg", 0.0), ("root_nomatch", "stale")),
+            "for: " + _EQ39, True),
+)  # fmt: skip
+
+
+def stretch_span(run: Run, s: Stretch) -> tuple[float, float]:
+    """σ's range (deg) over a stretch, from its first iteration to where its last one took σ."""
+    sig = [math.degrees(it.sigma) for it in run.iterations[s.first : s.last + 2]]
+    return min(sig), max(sig)
+
+
+def near_zero(run: Run, s: Stretch, band: float = ZERO_BAND_DEG) -> bool:
+    lo, hi = stretch_span(run, s)
+    return lo <= band and hi >= -band
+
+
+@dataclass(frozen=True, slots=True)
+class ReadingRun:
+    """What one reading's run shows (the report's detectors; ω measured on the pad's profile)."""
+
+    end: str
+    backward: int  # unintended reversals (N, X)
+    backward_near0: int  # of them, within ZERO_BAND_DEG of σ = 0
+    stalls: int
+    back_steps: int  # commanded iterations moving σ backwards at all
+    back_steps_near0: int  # of them, starting within ZERO_BAND_DEG of σ = 0
+    max_back_deg: float  # the largest single backward step (0 if none)
+    sigma_deg: tuple[float, float]
+    ab_error_mm: float  # max | |AB| − length |
+    omega_dev_deg: float  # the largest |ω − 90°| of ωA, ωB over the run's configurations
+    reasons: tuple[int, int, int]  # reversals at cone A, at cone B, at the workspace or IK
+
+
+def read_run(run: Run, ctx: ModelContext) -> ReadingRun:
+    ur = backward_stretches(run)
+    steps = [(it, d) for it, d in sigma_steps(run) if d < 0.0]
+    true = [_measure(it.pose, run.grasp, ctx) for it in run.iterations]
+    dev = [max(abs(m[3] - math.pi / 2), abs(m[4] - math.pi / 2)) for m in true]
+    sig = [math.degrees(it.sigma) for it in run.iterations]
+    return ReadingRun(
+        end=run.end,
+        backward=len(ur),
+        backward_near0=sum(near_zero(run, s) for s in ur),
+        stalls=len(stalls(run)),
+        back_steps=len(steps),
+        back_steps_near0=sum(abs(math.degrees(it.sigma)) <= ZERO_BAND_DEG for it, _ in steps),
+        max_back_deg=max((-d for _, d in steps), default=0.0),
+        sigma_deg=(min(sig), max(sig)),
+        ab_error_mm=max(abs(m[1] - run.grasp.length) for m in true),
+        omega_dev_deg=math.degrees(max(dev)),
+        reasons=(
+            sum(it.reversal is Reversal.CONE_A for it in run.reversals),
+            sum(it.reversal is Reversal.CONE_B for it in run.reversals),
+            sum(it.reversal not in (Reversal.CONE_A, Reversal.CONE_B) for it in run.reversals),
+        ),
+    )
+
+
+def reproduces(r5: ReadingRun, r2: ReadingRun) -> bool:
+    """The thesis's two statements on one stick: k = 5 reverses unintentionally near σ = 0
+    (N, X), k = 2 does not reverse."""
+    return r5.backward_near0 > 0 and r2.backward == 0
+
+
+ReadingResults = dict[tuple[str, float, float], tuple[Run, ReadingRun]]
+
+
+def reading_runs(cfg: Settings, readings: Sequence[Reading] = READINGS) -> ReadingResults:
+    """Every reading on the four sticks for k = 5 and 2, from the report's grasp."""
+    ctx = cfg.model_context()
+    grasps = {ln: grasp_from_settings(ln, cfg) for ln in STICKS_READ}
+    out = {}
+    for rd, ln, k in itertools.product(readings, STICKS_READ, KS):
+        run = simulate(grasps[ln], rd.params(k), ctx)
+        out[(rd.key, ln, k)] = (run, read_run(run, ctx))
+    return out
+
+
+# readings that let ωB go far enough for the distal term to change sign, scanned over grasps
+SCAN_READINGS: tuple[Reading, ...] = (
+    *(
+        Reading(f"α = {a:g}°", "", (("alpha", math.radians(a)),), "", True)
+        for a in (22, 35, 40, 45)
+    ),
+    next(rd for rd in READINGS if rd.key == "cone on ωA only"),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class ReadingScan:
+    """Mirror grasps inside the 22° cone run under one reading (k = 5 and 2, 3 reversals)."""
+
+    grasps: int
+    reproducing: int  # k = 5 reverses near σ = 0, k = 2 does not
+    k2_stall: int  # of them, k = 2 stalls
+    example: Grasp | None  # the first reproducing grasp
+    least_dev_deg: float  # over them, the smallest of k = 5's largest |ω − 90°|
+
+
+def reading_scan(
+    ctx: ModelContext, rd: Reading, length: float, grasps: Sequence[Grasp]
+) -> ReadingScan:
+    alpha, n, rep, k2s = math.radians(ALPHA_DEG), 0, 0, 0
+    example, least = None, math.inf
+    for g in grasps:
+        _, _, _, wa, wb = _measure(g.pose, g, ctx)
+        if not (inside_cone(wa, alpha) and inside_cone(wb, alpha)):
+            continue
+        n += 1
+        r5, r2 = (
+            read_run(simulate(g, replace(rd.params(k), reversals=3, max_iterations=2000), ctx), ctx)
+            for k in KS
+        )
+        if reproduces(r5, r2):
+            rep += 1
+            k2s += r2.stalls > 0
+            example = example or g
+            least = min(least, r5.omega_dev_deg)
+    return ReadingScan(n, rep, k2s, example, least)
+
+
+def reading_scans(ctx: ModelContext) -> dict[tuple[str, float], ReadingScan]:
+    out = {}
+    for ln in STICKS_READ:
+        grasps = mirror_grasps(ln, ctx)
+        for rd in SCAN_READINGS:
+            out[(rd.key, ln)] = reading_scan(ctx, rd, ln, grasps)
+    return out
+
+
+def exact_match_rate(n: int = 4000, seed: int = 0) -> float:
+    """How often the correct root passes eq 3.9's test with an exact “=” in floating point:
+    B, Λ (60–120 mm) and σd (±10°, not 0) drawn at random."""
+    rng = random.Random(seed)
+    hits = 0
+    for _ in range(n):
+        B = Point(rng.uniform(80.0, 130.0), rng.uniform(100.0, 150.0))
+        sd = math.radians(rng.choice((-1.0, 1.0)) * rng.uniform(0.01, 10.0))
+        hits += thesis_root(B, rng.uniform(60.0, 120.0), sd, 0.0, False) is not None
+    return hits / n
+
+
+def _cell(r: ReadingRun) -> str:
+    end = "" if r.end == "done" else f" ({r.end})"
+    return (
+        f"{r.backward} ({r.backward_near0}) · {r.stalls} · {r.back_steps} "
+        f"({r.back_steps_near0}){end}"
+    )
+
+
+def _verdict(rd: Reading, rr: dict[tuple[float, float], ReadingRun]) -> tuple[bool, str, str]:
+    """Whether a reading reproduces §3.4.2 on the 98.46 mm stick as the thesis would have it,
+    the sticks it reproduces on, and why not."""
+    on = [ln for ln in STICKS_READ if reproduces(rr[(ln, 5.0)], rr[(ln, 2.0)])]
+    err = max(r.ab_error_mm for r in rr.values())
+    alpha = math.degrees(rd.params(5.0).alpha)
+    dev = max(r.omega_dev_deg for r in rr.values())
+    why = [
+        w
+        for w, bad in (
+            ("not supported by the text", not rd.supported),
+            (f"ω leaves 90° ± {alpha:g}°", dev >= alpha),
+            ("|AB| not constant", err >= 1e-6),
+            ("does not reproduce on the 98.46 mm stick", MAIN_LENGTH not in on),
+        )
+        if bad
+    ]
+    return not why, _list(on) + " mm" if on else "—", "; ".join(why)
+
+
+def _readings_section(
+    res: ReadingResults,
+    scans: dict[tuple[str, float], ReadingScan] | None,
+    ctx: ModelContext,
+    readings: Sequence[Reading] = READINGS,
+) -> str:
+    rows = [
+        "## Other readings of the thesis's program\n",
+        "The thesis's program is lost, so each place where its text leaves the computation "
+        "open, or prints something the restatement corrected, is tried as an option of "
+        "`simulate` (`Params`, `READINGS` in the script), everything else as above: the same "
+        f"grasp, stop rule and detectors (N = {BACKWARD_ITERATIONS}, X = {BACKWARD_DEG}°), σ "
+        "measured A→B on the configuration reached, whatever the program measured. A reading "
+        "is *supported* when the text speaks for it or leaves the point open (the quote says "
+        "which). It *reproduces* §3.4.2 on a stick when k = 5 shows an unintended reversal "
+        f"that comes within {ZERO_BAND_DEG:g}° of σ = 0 and k = 2 shows none. The thesis's "
+        "other statements must still hold: |AB| constant (§3.3.2) and every configuration "
+        "inside the cone (2f; Fig 31: “the extreme configurations just before the forces "
+        "exceed the friction cone”). Where the runs reverse is shown too: §3.3.2's “ωΑ is the "
+        "one that tends to get out of its range” is said of one finger, and hand-model's "
+        "own runs reverse at both cones, so it is not a criterion.\n",
+        "| reading | what the program does | the thesis's text | supported |",
+        "|---|---|---|---|",
+    ]
+    rows += [
+        f"| {rd.key} | {rd.what} | {rd.text} | {'yes' if rd.supported else 'no'} |"
+        for rd in readings
+    ]
+    rows += [
+        "",
+        "Each cell: unintended reversals (of them near σ = 0) · stalls · iterations with σ "
+        f"backwards (of them within {ZERO_BAND_DEG:g}° of σ = 0), and the end if not *done*. "
+        "ω is measured on the pad's profile whatever the program tested.\n",
+        "| reading | "
+        + " | ".join(f"{ln:g} mm, k = {k:g}" for ln in STICKS_READ for k in KS)
+        + " | max ‖AB‖ − Λ | max abs(ω − 90°) | reversals at cone A / cone B / workspace "
+        "| reproduces on | verdict |",
+        "|---|" + "---|" * (2 * len(STICKS_READ)) + "---|---|---|---|---|",
+    ]
+    good = []
+    for rd in readings:
+        rr = {(ln, k): res[(rd.key, ln, k)][1] for ln in STICKS_READ for k in KS}
+        ok, on, why = _verdict(rd, rr)
+        if ok:
+            good.append(rd.key)
+        rows.append(
+            f"| {rd.key} | "
+            + " | ".join(_cell(rr[(ln, k)]) for ln in STICKS_READ for k in KS)
+            + f" | {max(r.ab_error_mm for r in rr.values()):.1e} mm | "
+            f"{max(r.omega_dev_deg for r in rr.values()):.1f}° | "
+            + " / ".join(str(sum(r.reasons[i] for r in rr.values())) for i in range(3))
+            + f" | {on} | "
+            + ("**reproduces Figs 31.d and 32.d**" if ok else why)
+            + " |"
+        )
+    rows.append("")
+    rows.append(_readings_findings(res, scans, ctx, readings, good))
+    return "\n".join(rows)
+
+
+def _same_as_model(res: ReadingResults, key: str) -> bool:
+    """A reading's σ series equals hand-model's on every stick and k (within 1e-11 rad)."""
+    pairs = [
+        (res[(key, ln, k)][0].iterations, res[("hand-model", ln, k)][0].iterations)
+        for ln in STICKS_READ
+        for k in KS
+    ]
+    return all(
+        len(a) == len(b) and all(abs(x.sigma - y.sigma) < 1e-11 for x, y in zip(a, b, strict=True))
+        for a, b in pairs
+    )
+
+
+def _readings_summary(
+    res: ReadingResults, scans: dict[tuple[str, float], ReadingScan] | None
+) -> str:
+    """The verdict on the other readings, for the top of the report."""
+    good = [
+        rd.key
+        for rd in READINGS
+        if _verdict(rd, {(ln, k): res[(rd.key, ln, k)][1] for ln in STICKS_READ for k in KS})[0]
+    ]
+    if good:
+        return (
+            f"**Fig 31.d reproduced under another reading of the thesis's program: "
+            f"{', '.join(good)}** (see *Other readings of the thesis's program*).\n"
+        )
+    ex = scans.get(("α = 45°", MAIN_LENGTH)) if scans else None
+    tail = (
+        f" With a friction angle of 45° instead, {ex.reproducing} of {ex.grasps} mirror grasps "
+        "of the 98.46 mm stick show both statements (plotted at the end)."
+        if ex is not None and ex.reproducing
+        else ""
+    )
+    others = READINGS[1:]
+    elsewhere = [
+        f"{rd.key} on the {ln:g} mm stick"
+        for rd in others
+        for ln in STICKS_READ
+        if rd.supported and reproduces(res[(rd.key, ln, 5.0)][1], res[(rd.key, ln, 2.0)][1])
+    ]
+    return (
+        f"**Fig 31.d is not reproduced.** Neither the hand model's equations nor any of the "
+        f"{len(others)} other readings of the thesis's program tried (section *Other "
+        f"readings*; {sum(rd.supported for rd in others)} of them supported by its text) "
+        "gives k = 5 an unintended reversal near zero inclination and k = 2 none on the "
+        "98.46 mm stick from the report's grasp"
+        + (f" (a supported one does elsewhere: {'; '.join(elsewhere)})" if elsewhere else "")
+        + ". The "
+        "thesis's k-dependence does appear, by the mechanism that section derives, when the "
+        "stick may turn more than 90° from Finger 2's virtual link — possible only if ωB "
+        f"leaves Table 8's 22° cone, which the text does not say.{tail}\n"
+    )
+
+
+def _list_reasons(run: Run) -> str:
+    c = Counter(str(it.reversal) for it in run.reversals)
+    return ", ".join(f"{why} × {n}" for why, n in c.most_common())
+
+
+def _wide_cone_text(res: ReadingResults, key: str = "α = 45°") -> str:
+    """Where the wide-cone reading's first unintended reversal falls, from the report's grasp."""
+    if (key, MAIN_LENGTH, 5.0) not in res:
+        return ""
+    first = {
+        ln: (run, ur[0])
+        for ln in STICKS_READ
+        if (ur := backward_stretches(run := res[(key, ln, 5.0)][0]))
+    }
+    spans = "; ".join(f"{_rng(stretch_span(r, s), 1)}° ({ln:g} mm)" for ln, (r, s) in first.items())
+    at0 = [ln for ln, (r, s) in first.items() if near_zero(r, s)]
+    return (
+        f" With {key}, k = 5 reverses on {_list(_reversing(res, key, 5.0)) or 'no'} mm sticks, "
+        f"k = 2 on {_list(_reversing(res, key, 2.0)) or 'none'}; from the report's grasp the "
+        f"first unintended reversal spans σ {spans or '—'}: it begins where ωB nears its "
+        f"limit and comes within {ZERO_BAND_DEG:g}° of zero inclination on "
+        f"{_list(at0) + ' mm' if at0 else 'no stick'}."
+    )
+
+
+def _reversing(res: ReadingResults, key: str, k: float) -> list[float]:
+    """The sticks on which a reading's run with this k has an unintended reversal."""
+    return [ln for ln in STICKS_READ if (key, ln, k) in res and res[(key, ln, k)][1].backward]
+
+
+def _readings_findings(
+    res: ReadingResults,
+    scans: dict[tuple[str, float], ReadingScan] | None,
+    ctx: ModelContext,
+    readings: Sequence[Reading],
+    good: Sequence[str],
+) -> str:
+    keys = [rd.key for rd in readings]
+    out = []
+    same = [k for k in keys if k != "hand-model" and _same_as_model(res, k)]
+    if same:
+        out.append(
+            f"*Readings that change nothing.* {', '.join(same)}: σ's series on every stick and "
+            "k is hand-model's within 1e-11 rad (eq 3.3's atan differs from atan2 only past "
+            "σ = ±90°; measured from B to A, dσ jumps by 2π where the stick is level, and λ = 5 "
+            "turns that into 10π; in these runs every configuration a clipped IK gives is then "
+            "refused at the cone, so none is commanded — only the reversal's reason changes, "
+            "ik_unreachable becoming cone_A or cone_B).\n"
+        )
+    eq39 = "eq 3.9 “=”, root tried last"
+    if eq39 in keys:
+        r5, r2 = res[(eq39, MAIN_LENGTH, 5.0)][1], res[(eq39, MAIN_LENGTH, 2.0)][1]
+        f5 = res[("eq 3.9 “=”, root tried first", MAIN_LENGTH, 5.0)][1]
+        out.append(
+            "*Eq 3.9's exact “=”.* The correct root passes an exact floating-point comparison "
+            f"in {100 * exact_match_rate():.0f} % of cases (4000 random B, Λ, σd), so what the "
+            "program keeps when neither passes decides the run. Keeping z02 (the root tried "
+            "last) puts A on the mirror root whenever σd > 0: σ can never rise past level "
+            f"(98.46 mm: σ {_rng(r5.sigma_deg)}° for k = 5, {_rng(r2.sigma_deg)}° for k = 2) "
+            "and, once an anticlockwise half stroke reaches σ = 0, zig-zags there between 0 and "
+            f"−λ·dσ every iteration: {r5.back_steps_near0} backward iterations near σ = 0 for "
+            f"k = 5, the largest {r5.max_back_deg:.2f}°; {r2.back_steps_near0} for k = 2, the "
+            f"largest {r2.max_back_deg:.2f}°. This is the only reading whose “disorders” sit "
+            "exactly at zero inclination, and k = 2's are about half as large, but each "
+            "backward run lasts one iteration (below N), so the detectors see a stall for both "
+            "k rather than a reversal for k = 5, and the stick never turns to the other side. "
+            "Keeping z01 instead holds "
+            f"σ at or above level with the same zig-zag (k = 5: σ {_rng(f5.sigma_deg)}°); "
+            "keeping the previous Az makes A slide at a constant height, and most runs end "
+            "stuck.\n"
+        )
+    lo, hi = link_normal_range(ctx, sensor=False)
+    out.append(
+        "*What produces the thesis's k-dependence.* In the first-order rate above, the distal "
+        "term (k − 1)·r2·cos(ψ' − θ2 − σ) changes sign once the stick is more than 90° from "
+        "Finger 2's virtual link D→B. The link is "
+        f"{lo:.1f} … {hi:.1f}° from the pad's normal, so that needs |ωB − 90°| ≥ "
+        f"{90 - hi:.1f} … {90 - lo:.1f}° on the far side: never inside Table 8's α = "
+        f"{ALPHA_DEG:g}°. Past that point the two joints turn the stick opposite ways; with "
+        "k = 5 the distal term (×4) wins and σ runs backwards, with k = 2 (×1) it only offsets "
+        "part of the proximal term, σ slows and may stall — the shape of the thesis's two "
+        "statements. Readings that let ωB get there: a wide cone or no cone test on ωB."
+        + _wide_cone_text(res)
+        + "\n"
+    )
+    if scans:
+        out.append(
+            "Where it comes depends on the grasp, which the thesis does not give. Over the "
+            "mirror grasps of *Every other grasp* (inside the 22° cone at the start), the "
+            "grasps on which k = 5 reverses near σ = 0 and k = 2 does not (of them, with a "
+            "k = 2 stall):\n"
+        )
+        out.append(
+            "| reading | "
+            + " | ".join(f"{ln:g} mm" for ln in STICKS_READ)
+            + " |\n|---|"
+            + "---|" * len(STICKS_READ)
+        )
+        for rd in SCAN_READINGS:
+            cells = [scans[(rd.key, ln)] for ln in STICKS_READ]
+            out.append(
+                f"| {rd.key} | "
+                + " | ".join(f"{s.reproducing} of {s.grasps} ({s.k2_stall})" for s in cells)
+                + " |"
+            )
+        ex = scans.get(("α = 45°", MAIN_LENGTH))
+        if ex is not None and ex.example is not None:
+            g = ex.example
+            why = {
+                k: _list_reasons(simulate(g, Params(k, alpha=math.radians(45.0)), ctx)) for k in KS
+            }
+            out.append(
+                f"\nThe first such grasp on the 98.46 mm stick with α = 45° (S1 = S2 = "
+                f"{g.contact1.S:.1f} mm, ψ1 = {math.degrees(g.pose.phi2 + g.pose.phi3):.1f}°) "
+                f"is plotted below ({_ALPHA45_PNG}): k = 5 rocks the stick about zero "
+                "inclination and runs backwards in every half stroke, k = 2 turns it further "
+                "and stalls near the top. It shows both statements, but with a friction angle "
+                "the thesis never states (twice Table 8's), and its reversals are not all at the "
+                f"cone as Fig 31's caption has them (k = 5: {why[5.0]}; k = 2: {why[2.0]}).\n"
+            )
+    both = [
+        (rd.key, ln)
+        for rd in readings
+        for ln in STICKS_READ
+        if reproduces(res[(rd.key, ln, 5.0)][1], res[(rd.key, ln, 2.0)][1])
+    ]
+    pairs = [f"{key} on {ln:g} mm" for key, ln in both]
+    least = min(
+        [res[(key, ln, 5.0)][1].omega_dev_deg for key, ln in both]
+        + [sc.least_dev_deg for sc in (scans or {}).values()],
+        default=math.inf,
+    )
+    if good:
+        out.append(f"**Reproduces both statements: {', '.join(good)}.**\n")
+        return "\n".join(out)
+    shown = math.isfinite(least)
+    out.append(
+        "**No reading the text supports reproduces both statements on the 98.46 mm stick** "
+        "from the report's grasp."
+        + (
+            " The runs here that show both — "
+            + "; ".join(pairs + (["the grasps in the scan"] if scans else []))
+            + f" — all let ω leave the {ALPHA_DEG:g}° cone of Table 8 (each k = 5 run reaches "
+            f"abs(ω − 90°) ≥ {least:.1f}°)."
+            if shown
+            else ""
+        )
+        + " The one mechanism found that gives the shape of the thesis's two statements is the "
+        "stick turning past perpendicular to Finger 2's virtual link, which needs ωB to leave "
+        "that cone (a wider α, or no test on ωB): a reading the surviving text neither states "
+        "nor excludes. Whether the thesis's program did so cannot be checked.\n"
+    )
+    return "\n".join(out)
+
+
+_ALPHA45_PNG = "stick_98_46_alpha45_sigma.png"
+_EQ39_PNG = "stick_98_46_eq39_sigma.png"
+
+
+def plot_readings(
+    res: ReadingResults,
+    scans: dict[tuple[str, float], ReadingScan],
+    ctx: ModelContext,
+    out: Path,
+) -> None:
+    """σ on the 98.46 mm stick under eq 3.9's exact “=” (the report's grasp), and with α = 45°
+    from the first mirror grasp that shows both statements."""
+    eq39 = [res[("eq 3.9 “=”, root tried last", MAIN_LENGTH, k)][0] for k in KS]
+    title = "Stick 98.46 mm, eq 3.9 with an exact “=” (root tried last kept): σ"
+    plot_inclination(eq39, out / _EQ39_PNG, title)
+    g = scans[("α = 45°", MAIN_LENGTH)].example
+    if g is not None:
+        runs = [simulate(g, Params(k, alpha=math.radians(45.0)), ctx) for k in KS]
+        title = (
+            f"Stick 98.46 mm, α = 45°, S1 = S2 = {g.contact1.S:.1f} mm, ψ1 = "
+            f"{math.degrees(g.pose.phi2 + g.pose.phi3):.1f}°: σ (reversals red, stalls grey)"
+        )
+        plot_inclination(runs, out / _ALPHA45_PNG, title)
 
 
 def link_normal_range(ctx: ModelContext, sensor: bool, n: int = 400) -> tuple[float, float]:
@@ -1297,7 +1988,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     scans += [scan_grasps(free, k, ctx, "any") for k in KS]
     g = grasp_from_settings(MAIN_LENGTH, cfg)
     printed = {k: simulate(g, Params(k, printed_eq313=True), ctx) for k in KS}
-    path = write_report(runs, scans, printed, ctx, cfg, out, root_test_runs(cfg))
+    readings = reading_runs(cfg)
+    rscans = reading_scans(ctx)
+    plot_readings(readings, rscans, ctx, out)
+    path = write_report(runs, scans, printed, ctx, cfg, out, root_test_runs(cfg), readings, rscans)
     print(f"wrote {path}")
     return 0
 

@@ -66,6 +66,17 @@ def _stats(values: Sequence[float]) -> str:
 RIGID_N_PER_MM3 = 0.5  # objects at least this stiff (2.5 × the pads' rubber) count as rigid
 LAMBDA_TOLERANCE_MM = 1.7  # the texel uncertainty (thesis §4.2.2: ±1.7 mm per sensor)
 GAIN_BANDS = ((0.5, 0.75), (0.75, 1.0), (1.0, 1.25), (1.25, 1.5))
+CREEP_BANDS = ((0.05, 0.1125), (0.1125, 0.175), (0.175, 0.2375), (0.2375, 0.3))  # the generator's
+
+
+def _sensor(r: Row, key: str) -> float | None:
+    import json
+
+    try:
+        value = json.loads(r["spec"])["sensor"][key]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return None if value is None else float(value)
 
 
 def _stiffness(r: Row) -> float | None:
@@ -101,6 +112,16 @@ def _headline(rows: Sequence[Row]) -> list[str]:
         band = [r for r in rows if lo <= r["gain_factor"] < hi or (last and r["gain_factor"] == hi)]
         bands.append(f"×{lo}–{hi}: {_share(band, lambda r: r['success'])}")
     lines.append("* success by the sensor's gain factor: " + ", ".join(bands))
+    creep = [(r, _sensor(r, "creep_gain")) for r in rows]
+    bands = []
+    for lo, hi in CREEP_BANDS:
+        last = hi == CREEP_BANDS[-1][1]
+        band = [r for r, c in creep if c is not None and (lo <= c < hi or (last and c == hi))]
+        if band:
+            bands.append(f"{lo}–{hi}: {_share(band, lambda r: r['success'])}")
+    if bands:
+        lines.append("* success by the sensor's creep gain (the share of a load that creeps in): "
+                     + ", ".join(bands))  # fmt: skip
     return lines
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.plan import finger1_to, omegas, sigma_desired
-from sdh2svc.control.route import Move, Predictor, finger2_move
+from sdh2svc.control.route import Move, Predictor, candidates, finger2_move
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import cone_margin, inside_cone, wedge
 from sdh2svc.model.kinematics import (
@@ -40,6 +40,7 @@ from sdh2svc.model.kinematics import (
     IKResult,
     Point,
     contact_point,
+    segment,
 )
 from sdh2svc.model.observe import ModelContext, Observation, observe
 
@@ -283,9 +284,28 @@ def step(
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
     move = finger2_move(state.direction, Predictor(pose, obs, lam_ad, alpha, params, ctx))
     route = _Route(state, pose, obs, lam_ad, params, ctx, move)
+    reason, plan, cfg = _attempt(route, waived, alpha)
+    if reason is not None and state.consecutive_reversals >= ESCAPE_AFTER:
+        reason, plan, cfg = _escape(route, waived, alpha, (reason, plan, cfg))
+    if reason is not None or cfg is None:
+        return reverse(reason or Reversal.WORKSPACE, plan)
+    assert cfg.ik.solution is not None
+    nxt = replace(state, F_prev=F, iteration=state.iteration + 1,
+                  travel=state.travel + cfg.travel)  # fmt: skip
+    targets = HandPose(cfg.ik.solution.proximal, cfg.ik.solution.distal, cfg.phi4d, cfg.phi5d)
+    return StepResult(nxt, targets, None, obs, F, dF, plan)
+
+
+_Attempt = tuple[Reversal | None, Plan, _Config | None]
+
+
+def _attempt(route: _Route, waived: Reversal | None, alpha: float) -> _Attempt:
+    """Steps 4–7 for the route's move: the configuration to command, or why the rotation
+    reverses instead (with the plan as far as it was worked out)."""
+    params, pose, obs = route.params, route.pose, route.obs
     cfg = route.configure(1.0)
     if cfg is None:
-        return reverse(Reversal.WORKSPACE, Plan(lam_ad))
+        return Reversal.WORKSPACE, Plan(route.lam_ad), None
     if cfg.ik.solution is not None:  # Finger 1 can follow at most its step per iteration
         need = _finger1_step(cfg, pose)
         if need > params.finger1_max_step:
@@ -295,23 +315,58 @@ def step(
                 # still too far at a fraction of the step: Λ's own correction needs it, near a
                 # stretched Finger 1 (singular); the servo could not follow
                 if _finger1_step(cfg, pose) > FOLLOW_SLACK * params.finger1_max_step:
-                    return reverse(Reversal.WORKSPACE, cfg.plan)
-    plan, ik, phi4d, phi5d = cfg.plan, cfg.ik, cfg.phi4d, cfg.phi5d
-    A_d, B_d = plan.A_d, plan.B_d
-    assert A_d is not None and B_d is not None
+                    return Reversal.WORKSPACE, cfg.plan, None
+    plan, ik = cfg.plan, cfg.ik
+    assert plan.A_d is not None and plan.B_d is not None
     if ik.solution is None:
         limits = ik.failure is IKFailure.JOINT_LIMITS
-        return reverse(Reversal.WORKSPACE if limits else Reversal.IK_UNREACHABLE, plan)
-    phi2d, phi3d = ik.solution.proximal, ik.solution.distal
-    wa, wb = omegas(obs, (phi2d, phi3d, phi4d, phi5d), A_d, B_d, ctx)
+        return (Reversal.WORKSPACE if limits else Reversal.IK_UNREACHABLE), plan, None
+    phi = (ik.solution.proximal, ik.solution.distal, cfg.phi4d, cfg.phi5d)
+    wa, wb = omegas(obs, phi, plan.A_d, plan.B_d, route.ctx)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
     if _cone_refuses(wa, waived, alpha):
-        return reverse(Reversal.CONE_A, plan)
+        return Reversal.CONE_A, plan, None
     if _cone_refuses(wb, waived, alpha):
-        return reverse(Reversal.CONE_B, plan)
+        return Reversal.CONE_B, plan, None
     if _wedge_refuses(wa, wb, obs, waived, params):
-        return reverse(Reversal.WEDGE, plan)
-    nxt = replace(state, F_prev=F, iteration=state.iteration + 1,
-                  travel=state.travel + cfg.travel)  # fmt: skip
-    targets = HandPose(phi2d, phi3d, phi4d, phi5d)
-    return StepResult(nxt, targets, None, obs, F, dF, plan)
+        return Reversal.WEDGE, plan, None
+    return None, plan, cfg
+
+
+# Reversals in a row without a half stroke after which a refused move looks for another way.
+ESCAPE_AFTER = 2
+
+
+def _escape(route: _Route, waived: Reversal | None, alpha: float, refused: _Attempt) -> _Attempt:
+    """When the rotation has reversed without travelling, both directions along the thesis's
+    line through joint space are blocked (a cone one way and Finger 1's reach the other, or
+    the same cone both ways, where the pad turns about as fast as AB). Finger 2 then tries the
+    moves of the same length turned away from its route (control/route.py's candidates,
+    nearest first) and takes the first that passes every check and still turns AB the
+    stroke's way; none: the refusal stands."""
+    if route.params.mode != "two-finger" or route.obs.sigma is None:
+        return refused
+    sense = _turn_sense(route)
+    if sense == 0.0:
+        return refused
+    for move in candidates(route.move)[1:]:
+        reason, plan, cfg = _attempt(replace(route, move=move), waived, alpha)
+        if (
+            reason is None
+            and plan.sigma_d is not None
+            and (plan.sigma_d - route.obs.sigma) * sense > 0.0
+        ):
+            return reason, plan, cfg
+    return refused
+
+
+def _turn_sense(route: _Route) -> float:
+    """+1 or −1: the way the route's own move turns AB (σ of A→Bd against σ; λ only scales
+    it), whether or not Finger 2 may make it; 0 when it does not turn AB."""
+    obs, pose, move, c2 = route.obs, route.pose, route.move, route.obs.contact2
+    assert obs.points is not None and obs.sigma is not None
+    assert c2.r_mm is not None and c2.theta_rad is not None
+    B_d = contact_point(Finger.TWO, pose.phi4 + move.d4, pose.phi5 + move.d5, c2.r_mm,
+                        c2.theta_rad, route.ctx.geom)  # fmt: skip
+    d = segment(obs.points.A, B_d)[1] - obs.sigma
+    return 0.0 if d == 0.0 else math.copysign(1.0, d)

@@ -383,3 +383,29 @@ def test_a_force_above_its_limit_and_not_falling_reverses(
         assert r.state.waived is Reversal.FORCE
         back = step(r.state, MIRROR, frame(20.0), frame(20.0), p, ctx)
         assert back.reversal is None and back.targets is not None
+
+
+def test_a_blocked_way_looks_for_another_move_once_the_rotation_dithers(cfg: Settings) -> None:
+    """Finger 1 nearly stretched, its contact near the pad's tip (the end of a stroke on
+    bench-v1's polygon-061): along the thesis's route Finger 1 cannot reach Ad, and the
+    thesis's rule reverses. Once the rotation has reversed twice without travelling, Finger 2
+    takes the nearest move of the same length that passes every check and turns AB the
+    route's way."""
+    ctx, p = cfg.model_context(), params(cfg)
+    pose = HandPose(rad(1.26), rad(-16.49), rad(-8.14), rad(11.41))
+    m1, m2 = frame(38.0), frame(26.84)
+    fresh = step(RollState(iteration=3), pose, m1, m2, p, ctx)
+    assert fresh.reversal is Reversal.IK_UNREACHABLE
+    dithering = RollState(iteration=3, consecutive_reversals=2)
+    r = step(dithering, pose, m1, m2, p, ctx)
+    assert r.reversal is None and r.targets is not None
+    d4, d5 = r.targets.phi4 - pose.phi4, r.targets.phi5 - pose.phi5
+    assert math.hypot(d4, d5) == pytest.approx(math.hypot(p.delta_phi, p.k * p.delta_phi))
+    assert (d4, d5) != pytest.approx((-p.delta_phi, p.k * p.delta_phi))  # not the route's
+    c2 = r.obs.contact2
+    B_d = contact_point(Finger.TWO, pose.phi4 - p.delta_phi, pose.phi5 + p.k * p.delta_phi,
+                        c2.r_mm, c2.theta_rad, ctx.geom)  # fmt: skip
+    route_turn = segment(r.obs.points.A, B_d)[1] - r.obs.sigma
+    assert (r.plan.sigma_d - r.obs.sigma) * route_turn > 0  # the stroke's way
+    assert r.plan.omega_A_d is not None and r.plan.omega_B_d is not None  # every check ran
+    assert r.state.travel > 0 and r.state.consecutive_reversals == 2

@@ -239,3 +239,139 @@ def test_the_root_test_candidate_is_reported(cfg: Settings) -> None:
     text = st._roots_section(st.root_test_runs(cfg, (0.1, 5.0)))
     assert "| 0.1° | last | 5 |" in text and "| 5° | first | 2 |" in text
     assert "does not explain Fig 31.d" in text or "k = 5 shows an unintended reversal" in text
+
+
+# --- other readings of the thesis's program (Params options) ----------------------------------
+
+
+@pytest.fixture(scope="module")
+def grasps(cfg: Settings) -> dict[float, st.Grasp]:
+    return {ln: st.grasp_from_settings(ln, cfg) for ln in st.STICKS_READ}
+
+
+def _sigmas(run: st.Run) -> list[float]:
+    return [it.sigma for it in run.iterations]
+
+
+def _same_sigma(a: st.Run, b: st.Run) -> bool:
+    return len(a.iterations) == len(b.iterations) and all(
+        abs(x - y) < 1e-11 for x, y in zip(_sigmas(a), _sigmas(b), strict=True)
+    )
+
+
+def _reading(key: str) -> st.Reading:
+    return next(rd for rd in st.READINGS if rd.key == key)
+
+
+def test_sigma_conventions_change_nothing_for_these_sticks(
+    grasps: dict[float, st.Grasp], ctx: ModelContext
+) -> None:
+    """atan (eq 3.3) cuts at σ = ±90°, atan2 from B to A at σ = 0 — where dσ jumps by 2π, which
+    λ = 5 turns into 10π: both runs are hand-model's."""
+    A, B = Point(0.0, 100.0), Point(98.0, 100.0 + 1e-9)
+    assert st.inclination(A, B, "atan") == pytest.approx(st.inclination(A, B))
+    assert st.inclination(A, B, "atan2_BA") == pytest.approx(-math.pi)  # the cut, at σ = 0
+    assert st.inclination(A, Point(98.0, 100.0 - 1e-9), "atan2_BA") == pytest.approx(math.pi)
+    g = grasps[98.46]
+    for k in st.KS:
+        base = st.simulate(g, st.Params(k), ctx)
+        for how in ("atan", "atan2_BA"):
+            assert _same_sigma(st.simulate(g, st.Params(k, sigma_from=how), ctx), base)
+
+
+def test_route_readings_step_the_joints_as_named(
+    grasps: dict[float, st.Grasp], ctx: ModelContext
+) -> None:
+    g, dphi = grasps[98.46], math.radians(st.DELTA_PHI_DEG)
+    for route, d4, d5 in (("k_proximal", -5 * dphi, dphi), ("same_sense", -dphi, -5 * dphi)):
+        it = st.simulate(g, st.Params(5.0, route=route), ctx).iterations[0]
+        assert it.target is not None
+        assert it.target.phi4 - it.pose.phi4 == pytest.approx(d4)
+        assert it.target.phi5 - it.pose.phi5 == pytest.approx(d5)
+    # φ5 the other way: the thesis's statements mirrored — k = 2 reverses near σ = 0, k = 5 not
+    r5, r2 = (st.read_run(st.simulate(g, st.Params(k, route="same_sense"), ctx), ctx)
+              for k in st.KS)  # fmt: skip
+    assert r2.backward_near0 > 0 and r5.backward == 0 and r5.stalls > 0
+
+
+def test_anticlockwise_first(grasps: dict[float, st.Grasp], ctx: ModelContext) -> None:
+    run = st.simulate(grasps[98.46], st.Params(5.0, first_direction=-1), ctx)
+    first, turn = run.iterations[0], run.reversals[0]
+    assert first.direction == -1 and turn.sigma > first.sigma
+    assert st.summarise(run).backward_steps == 0
+
+
+def test_ik_branch_readings(grasps: dict[float, st.Grasp], ctx: ModelContext) -> None:
+    """The grasp sits on the β − o elbow: that formula is hand-model's, the other one is
+    refused at once in both directions."""
+    g = grasps[98.46]
+    base = st.simulate(g, st.Params(5.0), ctx)
+    assert _same_sigma(st.simulate(g, st.Params(5.0, ik="branch+"), ctx), base)
+    other = st.simulate(g, st.Params(5.0, ik="branch-"), ctx)
+    assert other.end == "stuck" and all(it.target is None for it in other.iterations)
+
+
+def test_clipped_ik_changes_only_the_reversal_reason(
+    grasps: dict[float, st.Grasp], ctx: ModelContext
+) -> None:
+    g = grasps[62.038]
+    base = st.simulate(g, st.Params(5.0), ctx)
+    assert any(it.reversal is Reversal.IK_UNREACHABLE for it in base.reversals)
+    for extra in ({}, {"sigma_source": "commanded"}):
+        run = st.simulate(g, st.Params(5.0, ik_clip=True, **extra), ctx)  # type: ignore[arg-type]
+        assert _same_sigma(run, base)
+        assert not any(it.reversal is Reversal.IK_UNREACHABLE for it in run.reversals)
+
+
+def test_flat_pad_and_cone_on_A_only_let_the_stick_leave_the_cone(
+    grasps: dict[float, st.Grasp], ctx: ModelContext
+) -> None:
+    g = grasps[119.405]
+    flat = st.simulate(g, st.Params(5.0, flat_pad=True), ctx)
+    base = st.simulate(g, st.Params(5.0), ctx)
+    assert flat.iterations[0].omega_A != pytest.approx(base.iterations[0].omega_A)
+    assert st.read_run(flat, ctx).omega_dev_deg > st.ALPHA_DEG  # on the pad's real profile
+    # no test on ωB: k = 5 runs backwards through zero inclination, k = 2 does not
+    r5, r2 = (st.read_run(st.simulate(g, st.Params(k, cone_A_only=True), ctx), ctx)
+              for k in st.KS)  # fmt: skip
+    assert st.reproduces(r5, r2) and r5.omega_dev_deg > st.ALPHA_DEG
+
+
+def test_eq39_with_an_exact_equality(grasps: dict[float, st.Grasp], ctx: ModelContext) -> None:
+    assert st.exact_match_rate(n=500) < 0.2  # the correct root rarely passes "="
+    g = grasps[98.46]
+    for k in st.KS:
+        # z02 kept: σ never rises past level and zig-zags there
+        last = st.simulate(g, st.Params(k, root_tol_deg=0.0, root_nomatch="last_tried"), ctx)
+        assert max(_sigmas(last)) < 1e-9
+        assert st.read_run(last, ctx).back_steps_near0 > 0
+    # the previous Az kept: A slides at a constant height between the rare matches
+    stale = st.simulate(g, st.Params(2.0, root_tol_deg=0.0, root_nomatch="stale"), ctx)
+    zs = [st._measure(it.target, g, ctx)[0].A.z for it in stale.iterations if it.target]
+    same = sum(abs(a - b) < 1e-9 for a, b in itertools.pairwise(zs))
+    assert same >= 0.8 * (len(zs) - 1)
+
+
+def test_a_wide_cone_turns_the_distal_term_round(
+    grasps: dict[float, st.Grasp], ctx: ModelContext
+) -> None:
+    """α = 45° on the 62 mm stick: k = 5 reverses near σ = 0 and k = 2 does not, where the
+    route's first-order rate changes sign (the distal term beyond 90° from D→B)."""
+    g = grasps[62.038]
+    p5 = st.Params(5.0, alpha=math.radians(45.0))
+    run5 = st.simulate(g, p5, ctx)
+    run2 = st.simulate(g, st.Params(2.0, alpha=math.radians(45.0)), ctx)
+    assert st.reproduces(st.read_run(run5, ctx), st.read_run(run2, ctx))
+    s = st.backward_stretches(run5)[0]
+    rates = [st.route_rate(it, g, p5, ctx) for it in run5.iterations[s.first : s.last + 1]]
+    assert min(rates) < 0.0
+
+
+def test_readings_section(cfg: Settings, ctx: ModelContext) -> None:
+    keys = ("hand-model", "eq 3.9 “=”, root tried last", "eq 3.9 “=”, root tried first")
+    readings = [_reading(k) for k in keys]
+    res = st.reading_runs(cfg, readings)
+    text = st._readings_section(res, None, ctx, readings)
+    assert "## Other readings of the thesis's program" in text
+    assert "| hand-model | 0 (0) · 0 · 0 (0) |" in text
+    assert "*Eq 3.9's exact “=”.*" in text and "**No reading the text supports" in text
