@@ -55,11 +55,13 @@ REACH_MARGIN_MM = 2.0
 GRIP_BAND = (0.5, 2.0)
 # How far from either end of its pad's range a contact must be for the route to plan (mm; the
 # pad-edge check reverses at half a row, 1.7 mm). The model holds the contacts fixed on the pads,
-# but a rolling contact travels along its pad by ρ·Δω: the route's longer strokes carry it to the
-# pad's end, and there, choosing the move that turns AB furthest, the way back need not carry it
-# off again, so both directions stop at the edge within a few iterations. Near the edge the
-# thesis's move and its coupling bring it back.
-EDGE_MARGIN_MM = 5.0
+# but a rolling contact travels along its pad by ρ times the object's turn against the pad: the
+# route's longer strokes carry it towards the pad's ends. Beyond the flat part of the pad (S ≈
+# 15–30 mm) a corner lodges on the curved tip or against the base and stays there whichever way
+# the fingers turn (bench-v1's polygon-151 and stick-100: S at 39.2 mm in both directions, every
+# later half stroke < 1°). From 8 mm off either end (5 mm left polygon-151 and polygon-229 stuck
+# there) the thesis's move and its checks end the stroke as on the thesis's route.
+EDGE_MARGIN_MM = 8.0
 
 
 @dataclass(frozen=True, slots=True)

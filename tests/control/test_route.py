@@ -104,6 +104,25 @@ def test_near_a_pads_end_it_is_the_thesis_move(
     assert workspace_move(1, pred) != thesis_move(1, p)
 
 
+@pytest.mark.parametrize(("S1", "S2"), [(20.6, 33.5), (33.3, 24.0)], ids=["finger2", "finger1"])
+def test_within_8_mm_of_a_pads_end_it_is_the_thesis_move(
+    cfg: Settings, ctx: ModelContext, monkeypatch: pytest.MonkeyPatch, S1: float, S2: float
+) -> None:
+    """A contact 7.3–7.5 mm from its pad's end, off the pad's flat part: the thesis's move. With
+    5 mm the route planned a move of its own there, and its long strokes lodged a corner at the
+    pad's end, where every later half stroke turned the object by < 1° (bench-v1's polygon-151,
+    stick-100) or both directions refused (polygon-229)."""
+    p = workspace(cfg)
+    hp = HandPose.from_degrees(-23.3, 28.1, -24.6, 29.1)
+    obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
+    assert obs.Lambda is not None
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    assert 5.0 < pred.edge_room() < EDGE_MARGIN_MM
+    assert workspace_move(1, pred) == thesis_move(1, p)
+    monkeypatch.setattr(route, "EDGE_MARGIN_MM", 5.0)
+    assert workspace_move(1, pred) != thesis_move(1, p)
+
+
 def _lean(pred: Predictor, move: Move) -> float:
     """The smaller |ω − 90°| of the configuration ``move`` leads to (rad)."""
     pr = pred.predict(move)
