@@ -53,15 +53,16 @@ REACH_MARGIN_MM = 2.0
 # correction brings the force back. On the thesis's route the lowest F after the grasp stays
 # above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs.
 GRIP_BAND = (0.5, 2.0)
-# How far from either end of its pad's range a contact must be for the route to plan (mm; the
+# How far from the ends of its pad's range a contact must be for the route to plan (mm; the
 # pad-edge check reverses at half a row, 1.7 mm). The model holds the contacts fixed on the pads,
-# but a rolling contact travels along its pad by ρ times the object's turn against the pad: the
-# route's longer strokes carry it towards the pad's ends. Beyond the flat part of the pad (S ≈
-# 15–30 mm) a corner lodges on the curved tip or against the base and stays there whichever way
-# the fingers turn (bench-v1's polygon-151 and stick-100: S at 39.2 mm in both directions, every
-# later half stroke < 1°). From 8 mm off either end (5 mm left polygon-151 and polygon-229 stuck
-# there) the thesis's move and its checks end the stroke as on the thesis's route.
-EDGE_MARGIN_MM = 8.0
+# but the route's longer strokes carry them towards the pads' ends. Towards the base (S large)
+# the pad is flat from S ≈ 31 mm on: there a corner does not travel as the finger turns (its
+# radius is ≈ 0), stays lodged whichever way the fingers turn, and every later half stroke turns
+# the object by < 1° (bench-v1's polygon-151, stick-100, rounded-221: S at 39.2 mm in both
+# directions). Towards the tip the pad curves (R = 60 mm) and carries the contact back as the
+# finger turns. Within these margins the thesis's move and its checks end the stroke.
+EDGE_MARGIN_MM = 8.0  # from the base end, on the flat part
+TIP_MARGIN_MM = 5.0  # from the tip end, on the arc
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,12 +150,14 @@ class Predictor:
         return GRIP_BAND[0] * fd <= F <= GRIP_BAND[1] * fd
 
     def edge_room(self) -> float:
-        """How far (mm) the nearer contact's centroid is from its pad's first or last row."""
+        """How far (mm) the nearer contact's centroid is inside the part of its pad the route
+        plans in: TIP_MARGIN_MM off the first row (the tip), EDGE_MARGIN_MM off the last (the
+        base); negative outside."""
         span = (self.ctx.distal.rows - 1) * self.ctx.pitch_mm
         room = math.inf
         for c in (self.obs.contact1, self.obs.contact2):
             if c.S_mm is not None:
-                room = min(room, c.S_mm, span - c.S_mm)
+                room = min(room, c.S_mm - TIP_MARGIN_MM, span - EDGE_MARGIN_MM - c.S_mm)
         return room
 
     def now(self) -> Margins:
@@ -210,7 +213,7 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
     ref = _sense(base, pred)
     if ref == 0.0:
         return base
-    if not pred.now().inside() or not pred.grip_holds() or pred.edge_room() < EDGE_MARGIN_MM:
+    if not pred.now().inside() or not pred.grip_holds() or pred.edge_room() < 0.0:
         return base  # the thesis's move, and its checks
     best, best_turn = base, 0.0
     for move in candidates(base):

@@ -15,7 +15,6 @@ from sdh2svc.control import route
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.route import (
-    EDGE_MARGIN_MM,
     LIMIT_MARGIN,
     Move,
     Predictor,
@@ -98,7 +97,7 @@ def test_near_a_pads_end_it_is_the_thesis_move(
     obs = observe(hp, frame(20.6, FIRM), frame(36.5, FIRM), ctx)
     assert obs.Lambda is not None
     pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
-    assert pred.edge_room() < EDGE_MARGIN_MM
+    assert pred.edge_room() < 0.0
     assert workspace_move(1, pred) == thesis_move(1, p)
     monkeypatch.setattr(route, "EDGE_MARGIN_MM", 0.0)  # without the margin: a move of its own
     assert workspace_move(1, pred) != thesis_move(1, p)
@@ -117,7 +116,7 @@ def test_within_8_mm_of_a_pads_end_it_is_the_thesis_move(
     obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
     assert obs.Lambda is not None
     pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
-    assert 5.0 < pred.edge_room() < EDGE_MARGIN_MM
+    assert -3.0 < pred.edge_room() < 0.0  # 5–8 mm from the base end
     assert workspace_move(1, pred) == thesis_move(1, p)
     monkeypatch.setattr(route, "EDGE_MARGIN_MM", 5.0)
     assert workspace_move(1, pred) != thesis_move(1, p)
@@ -219,7 +218,7 @@ def test_workspace_route_stays_inside_limits_and_cones(
     if move == thesis_move(direction, p):
         return
     # a move of its own: planned from inside the route's margins, and keeping them
-    assert pred.now().inside() and pred.edge_room() >= EDGE_MARGIN_MM
+    assert pred.now().inside() and pred.edge_room() >= 0.0
     phi4, phi5 = hp.phi4 + move.d4, hp.phi5 + move.d5
     room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
                phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
