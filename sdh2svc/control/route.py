@@ -9,10 +9,12 @@ the model alone (B by FK, dσ, σd = σ + λ·dσ, A on the circle of radius Λa
 Finger 1 cannot follow within ``finger1_max_step`` counts at the fraction the rolling step will
 take of it), among those that keep both fingers :data:`LIMIT_MARGIN` inside their joint limits,
 Finger 1 :data:`REACH_MARGIN_MM` short of stretched, both ω :data:`CONE_MARGIN` inside their
-cones and the pads' wedge as far inside its limit. The thesis's single line through joint space
+cones, the pads' wedge as far inside its limit and one contact within the lowest friction angle
+expected (``wedge_limit``). The thesis's single line through joint space
 ends its stroke where the first of these limits binds; choosing the move afresh each iteration
 follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
-already within one of them, or the grip is outside :data:`GRIP_BAND`, it is the thesis's move, so
+already within one of them, the grip is outside :data:`GRIP_BAND` or a contact is near its pad's
+end (:data:`EDGE_MARGIN_MM`, :data:`TIP_MARGIN_MM`), it is the thesis's move, so
 that near the limits the rolling step's checks reverse as they do on the thesis's route.
 
 Pure: numbers in, a move out; the same inputs always give the same move.
