@@ -9,10 +9,12 @@ the model alone (B by FK, dσ, σd = σ + λ·dσ, A on the circle of radius Λa
 Finger 1 cannot follow within ``finger1_max_step`` counts at the fraction the rolling step will
 take of it), among those that keep both fingers :data:`LIMIT_MARGIN` inside their joint limits,
 Finger 1 :data:`REACH_MARGIN_MM` short of stretched, both ω :data:`CONE_MARGIN` inside their
-cones and the pads' wedge as far inside its limit. The thesis's single line through joint space
+cones, the pads' wedge as far inside its limit and one contact within the lowest friction angle
+expected (``wedge_limit``). The thesis's single line through joint space
 ends its stroke where the first of these limits binds; choosing the move afresh each iteration
 follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
-already within one of them, or the grip is outside :data:`GRIP_BAND`, it is the thesis's move, so
+already within one of them, the grip is outside :data:`GRIP_BAND` or a contact is near its pad's
+end (:data:`EDGE_MARGIN_MM`, :data:`TIP_MARGIN_MM`), it is the thesis's move, so
 that near the limits the rolling step's checks reverse as they do on the thesis's route.
 
 Pure: numbers in, a move out; the same inputs always give the same move.
@@ -53,6 +55,16 @@ REACH_MARGIN_MM = 2.0
 # correction brings the force back. On the thesis's route the lowest F after the grasp stays
 # above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs.
 GRIP_BAND = (0.5, 2.0)
+# How far from the ends of its pad's range a contact must be for the route to plan (mm; the
+# pad-edge check reverses at half a row, 1.7 mm). The model holds the contacts fixed on the pads,
+# but the route's longer strokes carry them towards the pads' ends. Towards the base (S large)
+# the pad is flat from S ≈ 31 mm on: there a corner does not travel as the finger turns (its
+# radius is ≈ 0), stays lodged whichever way the fingers turn, and every later half stroke turns
+# the object by < 1° (bench-v1's polygon-151, stick-100, rounded-221: S at 39.2 mm in both
+# directions). Towards the tip the pad curves (R = 60 mm) and carries the contact back as the
+# finger turns. Within these margins the thesis's move and its checks end the stroke.
+EDGE_MARGIN_MM = 8.0  # from the base end, on the flat part
+TIP_MARGIN_MM = 5.0  # from the tip end, on the arc
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,15 +94,27 @@ class Margins:
     cone_A: float
     cone_B: float
     wedge: float  # room to the wedge limit (inf without one)
+    hold: float  # how far the steadier contact's ω is inside the lowest friction angle expected
     joints1: float
     joints2: float
     reach: float  # l1 + r1 − |OA|: how far Finger 1 is from stretched
 
     def inside(self) -> bool:
         """Whether every margin is at least the route's (CONE_MARGIN, LIMIT_MARGIN, …)."""
-        return (min(self.cone_A, self.cone_B, self.wedge) >= CONE_MARGIN
+        return (min(self.cone_A, self.cone_B, self.wedge) >= CONE_MARGIN and self.hold >= 0.0
                 and min(self.joints1, self.joints2) >= LIMIT_MARGIN
                 and self.reach >= REACH_MARGIN_MM)  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class Prediction:
+    """The configuration a candidate move leads to, by the model (radians, mm)."""
+
+    phi: tuple[float, float, float, float]  # φ2…φ5
+    A: Point
+    sigma_d: float
+    omega_A: float
+    omega_B: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,8 +134,13 @@ class Predictor:
         c1, p, ctx = self.obs.contact1, self.params, self.ctx
         assert c1.r_mm is not None
         wedge_room = (p.wedge_limit - abs(wedge(wa, wb))) if p.wedge_limit > 0.0 else math.inf
+        # one contact within the lowest friction angle the lab expects (wedge_limit) holds the
+        # object while the other slides back into its cone; with both beyond it, both may slide
+        # where α overestimates the friction, and the route stays at a cone's edge for long
+        steadier = min(abs(wa - math.pi / 2), abs(wb - math.pi / 2))
+        hold = (p.wedge_limit - steadier) if p.wedge_limit > 0.0 else math.inf
         return Margins(
-            cone_margin(wa, self.alpha), cone_margin(wb, self.alpha), wedge_room,
+            cone_margin(wa, self.alpha), cone_margin(wb, self.alpha), wedge_room, hold,
             _limit_room(ctx.limits1, phi[0], phi[1]), _limit_room(ctx.limits2, phi[2], phi[3]),
             ctx.geom.proximal_length_mm + c1.r_mm - math.hypot(A.y, A.z),
         )  # fmt: skip
@@ -122,16 +151,25 @@ class Predictor:
         fd = self.params.grasp_force
         return GRIP_BAND[0] * fd <= F <= GRIP_BAND[1] * fd
 
+    def edge_room(self) -> float:
+        """How far (mm) the nearer contact's centroid is inside the part of its pad the route
+        plans in: TIP_MARGIN_MM off the first row (the tip), EDGE_MARGIN_MM off the last (the
+        base); negative outside."""
+        span = (self.ctx.distal.rows - 1) * self.ctx.pitch_mm
+        room = math.inf
+        for c in (self.obs.contact1, self.obs.contact2):
+            if c.S_mm is not None:
+                room = min(room, c.S_mm - TIP_MARGIN_MM, span - EDGE_MARGIN_MM - c.S_mm)
+        return room
+
     def now(self) -> Margins:
         obs, pose = self.obs, self.pose
         assert obs.points is not None and obs.omega_A is not None and obs.omega_B is not None
         return self.margins((pose.phi2, pose.phi3, pose.phi4, pose.phi5), obs.points.A,
                             obs.omega_A, obs.omega_B)  # fmt: skip
 
-    def turn(self, move: Move) -> float | None:
-        """σd − σ for ``move`` (rad), scaled down as the rolling step will if Finger 1 cannot
-        follow in one iteration (``finger1_max_step``); None when its configuration breaks the
-        route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
+    def predict(self, move: Move) -> Prediction | None:
+        """The configuration ``move`` leads to by the model; None when Finger 1 cannot reach it."""
         pose, obs, ctx, p = self.pose, self.obs, self.ctx, self.params
         c2, sigma = obs.contact2, obs.sigma
         assert sigma is not None and c2.r_mm is not None and c2.theta_rad is not None
@@ -141,12 +179,22 @@ class Predictor:
         A, ik = finger1_to(obs, B, sigma_d, self.lam_ad, ctx)
         if ik.solution is None:
             return None
-        phi2, phi3 = ik.solution.proximal, ik.solution.distal
-        wa, wb = omegas(obs, (phi2, phi3, phi4, phi5), A, B, ctx)
-        if not self.margins((phi2, phi3, phi4, phi5), A, wa, wb).inside():
+        phi = (ik.solution.proximal, ik.solution.distal, phi4, phi5)
+        wa, wb = omegas(obs, phi, A, B, ctx)
+        return Prediction(phi, A, sigma_d, wa, wb)
+
+    def turn(self, move: Move) -> float | None:
+        """σd − σ for ``move`` (rad), scaled down as the rolling step will if Finger 1 cannot
+        follow in one iteration (``finger1_max_step``); None when its configuration breaks the
+        route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
+        pose, obs = self.pose, self.obs
+        assert obs.sigma is not None
+        pr = self.predict(move)
+        if pr is None or not self.margins(pr.phi, pr.A, pr.omega_A, pr.omega_B).inside():
             return None
-        need = max(abs(phi2 - pose.phi2), abs(phi3 - pose.phi3))
-        return (sigma_d - sigma) * min(1.0, p.finger1_max_step / need) if need > 0 else 0.0
+        need = max(abs(pr.phi[0] - pose.phi2), abs(pr.phi[1] - pose.phi3))
+        scale = min(1.0, self.params.finger1_max_step / need) if need > 0 else 0.0
+        return (pr.sigma_d - obs.sigma) * scale
 
 
 def candidates(base: Move) -> list[Move]:
@@ -167,8 +215,8 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
     ref = _sense(base, pred)
     if ref == 0.0:
         return base
-    if not pred.now().inside() or not pred.grip_holds():  # the thesis's move, and its checks
-        return base
+    if not pred.now().inside() or not pred.grip_holds() or pred.edge_room() < 0.0:
+        return base  # the thesis's move, and its checks
     best, best_turn = base, 0.0
     for move in candidates(base):
         t = pred.turn(move)

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from sdh2svc.campaign.case import Case
 from sdh2svc.campaign.run import run_case
 from sdh2svc.config import Settings
+from sdh2svc.control import route
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.route import (
@@ -85,6 +86,89 @@ def test_outside_the_grip_band_it_is_the_thesis_move(
     assert workspace_move(1, pred) == thesis_move(1, p)
 
 
+def test_near_a_pads_end_it_is_the_thesis_move(
+    cfg: Settings, ctx: ModelContext, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Finger 2's contact 4.3 mm from its pad's end: the thesis's move, whose way back carries
+    the contact off the edge (bench-v1's ellipse-302, polygon-229, stick-100: the route's own
+    way back left the contact there and every later half stroke turned the object by < 1°)."""
+    p = workspace(cfg)
+    hp = HandPose.from_degrees(-23.3, 28.1, -24.6, 29.1)
+    obs = observe(hp, frame(20.6, FIRM), frame(36.5, FIRM), ctx)
+    assert obs.Lambda is not None
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    assert pred.edge_room() < 0.0
+    assert workspace_move(1, pred) == thesis_move(1, p)
+    monkeypatch.setattr(route, "EDGE_MARGIN_MM", 0.0)  # without the margin: a move of its own
+    assert workspace_move(1, pred) != thesis_move(1, p)
+
+
+@pytest.mark.parametrize(("S1", "S2"), [(20.6, 33.5), (33.3, 24.0)], ids=["finger2", "finger1"])
+def test_within_8_mm_of_a_pads_end_it_is_the_thesis_move(
+    cfg: Settings, ctx: ModelContext, monkeypatch: pytest.MonkeyPatch, S1: float, S2: float
+) -> None:
+    """A contact 7.3–7.5 mm from its pad's end, off the pad's flat part: the thesis's move. With
+    5 mm the route planned a move of its own there, and its long strokes lodged a corner at the
+    pad's end, where every later half stroke turned the object by < 1° (bench-v1's polygon-151,
+    stick-100) or both directions refused (polygon-229)."""
+    p = workspace(cfg)
+    hp = HandPose.from_degrees(-23.3, 28.1, -24.6, 29.1)
+    obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
+    assert obs.Lambda is not None
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    assert -3.0 < pred.edge_room() < 0.0  # 5–8 mm from the base end
+    assert workspace_move(1, pred) == thesis_move(1, p)
+    monkeypatch.setattr(route, "EDGE_MARGIN_MM", 5.0)
+    assert workspace_move(1, pred) != thesis_move(1, p)
+
+
+def _lean(pred: Predictor, move: Move) -> float:
+    """The smaller |ω − 90°| of the configuration ``move`` leads to (rad)."""
+    pr = pred.predict(move)
+    assert pr is not None
+    return min(abs(pr.omega_A - math.pi / 2), abs(pr.omega_B - math.pi / 2))
+
+
+# (φ2…φ5 in degrees, S1, S2): ωA ≈ 102.5°, ωB ≈ 74.8°, where the route's furthest turn would
+# lean both contacts beyond 16° (ωA ≈ 107.9°, ωB ≈ 72.0°)
+LEANING = ((-2.23, 11.99, -1.87, 8.3), 20.75, 28.25)
+# ωA, ωB 18.8° and 17.9° off their pad normals: inside the 22° cones, beyond 16°
+BOTH_LEAN = ((-18.45, 27.62, -17.24, 31.13), 28.55, 12.11)
+
+
+def test_a_move_of_its_own_keeps_one_contact_within_the_lowest_friction_angle(
+    cfg: Settings, ctx: ModelContext
+) -> None:
+    """The route dwells at a cone's edge; where the object's friction is below α (bench-v1's
+    polygon-151, μ = 0.34) both contacts then slide and the object falls. One contact within
+    ``wedge_limit`` (the lowest friction angle the lab expects) holds it."""
+    pose, S1, S2 = LEANING
+    hp = HandPose.from_degrees(*pose)
+    obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
+    assert obs.Lambda is not None
+    p = workspace(cfg)
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    assert _lean(pred, workspace_move(1, pred)) <= p.wedge_limit
+    free = workspace(cfg, wedge_limit_deg=0.0)  # no wedge limit: no lowest friction angle
+    pred_free = Predictor(hp, obs, obs.Lambda, free.alpha, free, ctx)
+    assert _lean(pred_free, workspace_move(1, pred_free)) > p.wedge_limit
+
+
+def test_with_both_contacts_beyond_the_lowest_friction_angle_it_is_the_thesis_move(
+    cfg: Settings, ctx: ModelContext
+) -> None:
+    pose, S1, S2 = BOTH_LEAN
+    hp = HandPose.from_degrees(*pose)
+    obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
+    assert obs.Lambda is not None and obs.omega_A is not None and obs.omega_B is not None
+    p = workspace(cfg)
+    assert min(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2)) > p.wedge_limit
+    assert max(cone_margin(obs.omega_A, p.alpha), cone_margin(obs.omega_B, p.alpha)) > 0.0
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    assert not pred.now().inside()
+    assert workspace_move(1, pred) == thesis_move(1, p)
+
+
 # (φ2…φ5 in degrees, S1, S2, frame amplitude): anywhere, or near a mirror grasp with a firm
 # grip (where the workspace route plans moves of its own about one time in five)
 anywhere = st.tuples(st.tuples(*(st.floats(-80.0, 80.0) for _ in range(4))), st.floats(2.0, 38.0),
@@ -134,12 +218,13 @@ def test_workspace_route_stays_inside_limits_and_cones(
     if move == thesis_move(direction, p):
         return
     # a move of its own: planned from inside the route's margins, and keeping them
-    assert pred.now().inside()
+    assert pred.now().inside() and pred.edge_room() >= 0.0
     phi4, phi5 = hp.phi4 + move.d4, hp.phi5 + move.d5
     room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
                phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
     assert room >= LIMIT_MARGIN - 1e-12
-    assert pred.turn(move) is not None  # the margins kept (cones, wedge, Finger 1's joints, reach)
+    # the margins kept (cones, wedge, one contact within wedge_limit, Finger 1's joints, reach)
+    assert pred.turn(move) is not None
     # …and it turns AB the way the thesis's move does
     c2 = obs.contact2
     assert c2.r_mm is not None and c2.theta_rad is not None
