@@ -29,7 +29,7 @@ import numpy as np
 
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.plan import finger1_to, omegas, sigma_desired
-from sdh2svc.control.route import Move, Predictor, candidates, finger2_move
+from sdh2svc.control.route import Move, Predictor, candidates, finger2_move, turn_sense
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import cone_margin, inside_cone, wedge
 from sdh2svc.model.kinematics import (
@@ -40,7 +40,6 @@ from sdh2svc.model.kinematics import (
     IKResult,
     Point,
     contact_point,
-    segment,
 )
 from sdh2svc.model.observe import ModelContext, Observation, observe
 
@@ -346,7 +345,7 @@ def _escape(route: _Route, waived: Reversal | None, alpha: float, refused: _Atte
     stroke's way; none: the refusal stands."""
     if route.params.mode != "two-finger" or route.obs.sigma is None:
         return refused
-    sense = _turn_sense(route)
+    sense = turn_sense(route.move, route.pose, route.obs, route.ctx)
     if sense == 0.0:
         return refused
     for move in candidates(route.move)[1:]:
@@ -358,15 +357,3 @@ def _escape(route: _Route, waived: Reversal | None, alpha: float, refused: _Atte
         ):
             return reason, plan, cfg
     return refused
-
-
-def _turn_sense(route: _Route) -> float:
-    """+1 or −1: the way the route's own move turns AB (σ of A→Bd against σ; λ only scales
-    it), whether or not Finger 2 may make it; 0 when it does not turn AB."""
-    obs, pose, move, c2 = route.obs, route.pose, route.move, route.obs.contact2
-    assert obs.points is not None and obs.sigma is not None
-    assert c2.r_mm is not None and c2.theta_rad is not None
-    B_d = contact_point(Finger.TWO, pose.phi4 + move.d4, pose.phi5 + move.d5, c2.r_mm,
-                        c2.theta_rad, route.ctx.geom)  # fmt: skip
-    d = segment(obs.points.A, B_d)[1] - obs.sigma
-    return 0.0 if d == 0.0 else math.copysign(1.0, d)

@@ -212,7 +212,7 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
     thesis's move when none does (or when the thesis's move turns AB by nothing, so that the
     stroke's sense is unknown)."""
     base = thesis_move(direction, pred.params)
-    ref = _sense(base, pred)
+    ref = turn_sense(base, pred.pose, pred.obs, pred.ctx)
     if ref == 0.0:
         return base
     if not pred.now().inside() or not pred.grip_holds() or pred.edge_room() < 0.0:
@@ -225,14 +225,13 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
     return best
 
 
-def _sense(base: Move, pred: Predictor) -> float:
-    """+1 or −1: the sense in which the thesis's move turns AB (σ of A→Bd against σ); 0 when
-    it does not."""
-    obs, pose, ctx = pred.obs, pred.pose, pred.ctx
+def turn_sense(move: Move, pose: HandPose, obs: Observation, ctx: ModelContext) -> float:
+    """+1 or −1: the sense in which ``move`` turns AB (σ of A→Bd against σ; λ only scales it),
+    whether or not Finger 2 may make it; 0 when it does not turn AB."""
     c2, pts, sigma = obs.contact2, obs.points, obs.sigma
     assert pts is not None and sigma is not None
     assert c2.r_mm is not None and c2.theta_rad is not None
-    B = contact_point(Finger.TWO, pose.phi4 + base.d4, pose.phi5 + base.d5, c2.r_mm,
+    B = contact_point(Finger.TWO, pose.phi4 + move.d4, pose.phi5 + move.d5, c2.r_mm,
                       c2.theta_rad, ctx.geom)  # fmt: skip
     d = segment(pts.A, B)[1] - sigma
     return 0.0 if d == 0.0 else math.copysign(1.0, d)
