@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -69,23 +70,31 @@ GAIN_BANDS = ((0.5, 0.75), (0.75, 1.0), (1.0, 1.25), (1.25, 1.5))
 CREEP_BANDS = ((0.05, 0.1125), (0.1125, 0.175), (0.175, 0.2375), (0.2375, 0.3))  # the generator's
 
 
-def _sensor(r: Row, key: str) -> float | None:
-    import json
-
+def _spec_value(r: Row, *path: str) -> float | None:
+    """A number from the case's spec (JSON), e.g. ``("sensor", "creep_gain")``; None if absent."""
     try:
-        value = json.loads(r["spec"])["sensor"][key]
+        value: Any = json.loads(r["spec"])
+        for key in path:
+            value = value[key]
+        return None if value is None else float(value)
     except (KeyError, TypeError, ValueError):
         return None
-    return None if value is None else float(value)
 
 
-def _stiffness(r: Row) -> float | None:
-    import json
+Band = tuple[float, float]
 
-    try:
-        return float(json.loads(r["spec"])["object"]["material"]["stiffness_n_per_mm3"])
-    except (KeyError, TypeError, ValueError):
-        return None
+
+def _band_rows(
+    rows: Sequence[Row], value: Callable[[Row], float | None], bands: Sequence[Band]
+) -> list[tuple[float, float, list[Row]]]:
+    """Each band's rows by ``value`` (lo ≤ v < hi, the last band closed at hi); rows without a
+    value in none."""
+    out = []
+    for lo, hi in bands:
+        last = hi == bands[-1][1]
+        out.append((lo, hi, [r for r in rows if (v := value(r)) is not None
+                             and (lo <= v < hi or (last and v == hi))]))  # fmt: skip
+    return out
 
 
 def _share(rows: Sequence[Row], ok: Callable[[Row], bool]) -> str:
@@ -95,8 +104,10 @@ def _share(rows: Sequence[Row], ok: Callable[[Row], bool]) -> str:
 
 
 def _headline(rows: Sequence[Row]) -> list[str]:
-    """The controller's targets: no drop, Λ at grasp on rigid objects, success per gain band."""
-    rigid = [r for r in rows if (_stiffness(r) or 0.0) >= RIGID_N_PER_MM3
+    """The controller's targets: no drop, Λ at grasp on rigid objects, success per gain and
+    creep band."""
+    stiffness = ("object", "material", "stiffness_n_per_mm3")
+    rigid = [r for r in rows if (_spec_value(r, *stiffness) or 0.0) >= RIGID_N_PER_MM3
              and r["lambda_error_mm"] is not None]  # fmt: skip
     lines = [
         "",
@@ -106,19 +117,15 @@ def _headline(rows: Sequence[Row]) -> list[str]:
         f"iteration), rigid objects (≥ {RIGID_N_PER_MM3} N/mm³) that reached an iteration: "
         f"{_share(rigid, lambda r: abs(r['lambda_error_mm']) <= LAMBDA_TOLERANCE_MM)}",
     ]
-    bands = []
-    for lo, hi in GAIN_BANDS:
-        last = hi == GAIN_BANDS[-1][1]
-        band = [r for r in rows if lo <= r["gain_factor"] < hi or (last and r["gain_factor"] == hi)]
-        bands.append(f"×{lo}–{hi}: {_share(band, lambda r: r['success'])}")
-    lines.append("* success by the sensor's gain factor: " + ", ".join(bands))
-    creep = [(r, _sensor(r, "creep_gain")) for r in rows]
-    bands = []
-    for lo, hi in CREEP_BANDS:
-        last = hi == CREEP_BANDS[-1][1]
-        band = [r for r, c in creep if c is not None and (lo <= c < hi or (last and c == hi))]
-        if band:
-            bands.append(f"{lo}–{hi}: {_share(band, lambda r: r['success'])}")
+
+    def ok(r: Row) -> bool:
+        return bool(r["success"])
+
+    gain = _band_rows(rows, lambda r: r["gain_factor"], GAIN_BANDS)
+    lines.append("* success by the sensor's gain factor: "
+                 + ", ".join(f"×{lo}–{hi}: {_share(b, ok)}" for lo, hi, b in gain))  # fmt: skip
+    creep = _band_rows(rows, lambda r: _spec_value(r, "sensor", "creep_gain"), CREEP_BANDS)
+    bands = [f"{lo}–{hi}: {_share(b, ok)}" for lo, hi, b in creep if b]
     if bands:
         lines.append("* success by the sensor's creep gain (the share of a load that creeps in): "
                      + ", ".join(bands))  # fmt: skip

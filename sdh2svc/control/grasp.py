@@ -128,11 +128,11 @@ def grasp_step(
         return max(-lim, min(lim, x))
 
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
-    if c1.present != c2.present:  # the first to touch waits for the other (module docstring)
-        if c1.present:
-            s1 = min(s1, law.min_velocity_deg_s * law.period_s)
-        else:
-            s2 = min(s2, law.min_velocity_deg_s * law.period_s)
+    floor = law.min_velocity_deg_s * law.period_s  # the first to touch waits for the other
+    if c1.present and not c2.present:
+        s1 = min(s1, floor)
+    elif c2.present and not c1.present:
+        s2 = min(s2, floor)
     a1 = a2 = p1 = p2 = 0.0
     wedge_deg: float | None = None
     if c1.r_mm is not None and c2.r_mm is not None:

@@ -100,15 +100,17 @@ class FaultInjector:
         # the device→host fault sequence.
         self._tx_rng = random.Random(f"{config.seed}:tx")
         self._rx_rng = random.Random(f"{config.seed}:rx")
-        # every rate 0: apply_tx passes packets through, drawing nothing
+        # every rate 0: apply_tx passes packets through, drawing nothing (its count's key is
+        # there all the same, as where bytes may drop)
         self._clean = not (config.truncate_packet_rate or config.bit_error_rate
                            or config.drop_byte_rate)  # fmt: skip
+        if self._clean:
+            self.counts[FaultKind.DROP_BYTE] += 0
 
     def apply_tx(self, packet: bytes) -> FaultedPacket:
         """Truncate, flip bits and mark dropped bytes in one device→host packet."""
         cfg, rng = self.config, self._tx_rng
         if self._clean:  # no rate set: nothing to draw, nothing dropped (the usual case)
-            self.counts[FaultKind.DROP_BYTE] += 0  # (the key, as below)
             return FaultedPacket(packet)
         if packet and cfg.truncate_packet_rate and rng.random() < cfg.truncate_packet_rate:
             cut = rng.randrange(len(packet))
