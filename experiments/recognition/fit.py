@@ -1,30 +1,38 @@
-"""Fit the recognizer's two small models on captured campaign cases, and ship them.
+"""Fit the recognizer's three small models on captured campaign cases, and ship them.
 
     python -m experiments.recognition.fit /tmp/recog/fit.jsonl /tmp/recog/fit2.jsonl \
         /tmp/recog/fit3.jsonl
 
 (the captures of :mod:`experiments.recognition.capture` for generator seeds 1701, 1703 and
-1704; the held-out test suite is seed 1702). Writes ``sdh2svc/control/recognition_model.json``:
+1704; the held-out test suite is seed 1702). Writes ``sdh2svc/control/recognition_model.json``,
+its three models fitted in turn:
 
 1. **contact kind** — a multinomial logistic model on each contact's features
    (:func:`~sdh2svc.control.recognition.contact_features`, with their pairwise products),
    labelled by the truth (:func:`experiments.recognition.truth.feature`) at every second
    iteration with both contacts;
-2. **object class** — a multinomial logistic model on the run's evidence
+2. **radius** — a linear model (the same features and pairwise products) of log(true radius /
+   kinematic radius) where the truth and model 1 both say curved, fitted robustly (Huber's
+   loss on the log ratio: the target counts radii within 20 %, so the bulk matters and not the
+   outliers); its Huber width and L2 penalty chosen by 5-fold cross-validation by case
+   (:func:`choose_radius`);
+3. **object class** — a multinomial logistic model on the run's evidence
    (:func:`~sdh2svc.control.recognition.class_features`, with their pairwise products) as
-   the recognizer with model 1 has gathered it at the end of every half stroke, of the first
+   the recognizer with models 1 and 2 has gathered it at the end of every half stroke, of the first
    full stroke and of the run, labelled by the case's family
    (:func:`experiments.recognition.truth.true_class`); its L2 penalty chosen by 5-fold
    cross-validation by case on the fit suites (:func:`choose_l2`).
 
-Both are fitted by L-BFGS on the cross-entropy with an L2 penalty; the features are
-standardised over the fit set. Deterministic: the same captures give the same file.
+1 and 3 are fitted by L-BFGS on the cross-entropy with an L2 penalty, 2 by iteratively
+reweighted least squares; the features are standardised over the fit set. Deterministic: the
+same captures give the same file.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -37,6 +45,8 @@ from experiments.recognition.truth import true_class
 from sdh2svc.control.recognition import (
     CLASSES,
     KINDS,
+    ContactKind,
+    Linear,
     RecognitionModel,
     Recognizer,
     Softmax,
@@ -49,7 +59,8 @@ OUT = Path(__file__).resolve().parents[2] / "sdh2svc" / "control" / "recognition
 L2_KIND = 0.03  # fitted on seed 1701, right most often on seed 1703 (1e-3 … 0.1)
 L2_CLASS_GRID = (0.01, 0.03, 0.1, 0.3, 1.0)  # ascending: a tie goes to the stronger penalty
 FOLDS = 5
-EVERY = 2  # iterations between kind samples
+RADIUS_GRID = tuple((d, l2) for d in (0.03, 0.05, 0.1) for l2 in (3.0, 10.0, 30.0))
+EVERY = 2  # iterations between kind and radius samples
 
 
 def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool) -> Softmax:
@@ -75,6 +86,28 @@ def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool
     )
     W, b = res.x[: k * f].reshape(k, f), res.x[k * f :]
     return Softmax(mean, scale, W, b, quadratic)
+
+
+def fit_huber(X: np.ndarray, y: np.ndarray, l2: float, delta: float) -> Linear:
+    """Ridge regression with Huber's loss (width ``delta``) by iteratively reweighted least
+    squares, on the features and their pairwise products."""
+    F = expand(X)
+    mean, scale = F.mean(axis=0), F.std(axis=0) + 1e-9
+    Z = (F - mean) / scale
+    w, bias, weight = np.zeros(Z.shape[1]), float(np.mean(y)), np.ones(len(y))
+    for _ in range(8):
+        bias = float(np.average(y, weights=weight))
+        Zw = Z * weight[:, None]
+        w = np.linalg.solve(Z.T @ Zw + l2 * np.eye(Z.shape[1]), Zw.T @ (y - bias))
+        r = np.abs(Z @ w + bias - y)
+        weight = np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
+    return Linear(mean, scale, w, bias, quadratic=True)
+
+
+def _predict(m: Linear, X: np.ndarray) -> np.ndarray:
+    """:meth:`Linear.predict` for many samples at once."""
+    out: np.ndarray = ((expand(X) - m.mean) / m.scale) @ m.weights + m.bias
+    return out
 
 
 def replay(
@@ -106,6 +139,56 @@ def kind_samples(cases: list[Case], model: RecognitionModel) -> tuple[np.ndarray
 
     replay(cases, model, visit)
     return np.asarray(X), np.asarray(y)
+
+
+def radius_samples(
+    cases: list[Case], model: RecognitionModel
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the truth and the kind model both say curved: the contact's features, log(true
+    radius / kinematic radius), and the sample's case."""
+    X: list[np.ndarray] = []
+    y: list[float] = []
+    group: list[int] = []
+    index = {id(case): i for i, case in enumerate(cases)}
+    curved = KINDS.index(ContactKind.CURVED)
+
+    def visit(case: Case, i: int, rec: Recognizer) -> None:
+        s = case.steps[i]
+        t1, t2 = rec._tracks
+        lam = s.obs.Lambda
+        if i % EVERY or lam is None or t1.features is None or t2.features is None:
+            return
+        for truth, me, other in ((s.truth[0], t1, t2), (s.truth[1], t2, t1)):
+            if truth is None or truth[0] is not ContactKind.CURVED or me.p is None:
+                continue
+            if int(np.argmax(me.p)) != curved:
+                continue
+            assert me.features is not None and other.features is not None and truth[1]
+            X.append(contact_features(me.features, other.features, lam))
+            y.append(math.log(truth[1] / me.kinematic_radius))
+            group.append(index[id(case)])
+
+    replay(cases, model, visit)
+    return np.asarray(X), np.asarray(y), np.asarray(group)
+
+
+def choose_radius(X: np.ndarray, y: np.ndarray, group: np.ndarray) -> tuple[float, float]:
+    """The radius model's (Huber width, L2) by 5-fold cross-validation over cases: the most
+    radii within 20 % of the truth (ties: the first in RADIUS_GRID)."""
+    order = np.random.default_rng(0).permutation(np.unique(group))
+    best = (-1.0, RADIUS_GRID[0])
+    for delta, l2 in RADIUS_GRID:
+        right = 0
+        for fold in np.array_split(order, FOLDS):
+            test = np.isin(group, fold)
+            m = fit_huber(X[~test], y[~test], l2, delta)
+            err = _predict(m, X[test]) - y[test]
+            right += int(np.sum(np.abs(np.exp(err) - 1.0) <= 0.2))
+        acc = right / len(y)
+        print(f"  radius Huber {delta:g}, L2 {l2:g}: {acc:.3f} within 20 % (5-fold by case)")
+        if acc > best[0]:
+            best = (acc, (delta, l2))
+    return best[1]
 
 
 def class_samples(
@@ -168,6 +251,15 @@ def main() -> None:
     acc = np.mean([np.argmax(kind.probabilities(x)) == t for x, t in zip(X, y, strict=True)])
     print(f"contact kind: {len(y)} samples, {acc:.3f} right on the fit set")
     with_kind = replace(base, kind=kind)
+    X, y, group = radius_samples(cases, with_kind)
+    delta, l2 = choose_radius(X, y, group)
+    radius = fit_huber(X, y, l2, delta)
+    err = np.exp(_predict(radius, X) - y) - 1.0
+    print(
+        f"radius: {len(y)} samples, {np.mean(np.abs(err) <= 0.2):.3f} within 20 % on the fit "
+        f"set (kinematic alone {np.mean(np.abs(np.exp(-y) - 1.0) <= 0.2):.3f})"
+    )
+    with_kind = replace(with_kind, radius=radius)
     X, y, group, first = class_samples(cases, with_kind)
     cls = fit_softmax(X, y, len(CLASSES), choose_l2(X, y, group, first), quadratic=True)
     acc = np.mean([np.argmax(cls.probabilities(x)) == t for x, t in zip(X, y, strict=True)])

@@ -132,6 +132,41 @@ class Softmax:
         return p
 
 
+@dataclass(frozen=True, slots=True)
+class Linear:
+    """A linear model on standardised features (``mean``, ``scale``), optionally with their
+    pairwise products appended (``quadratic``): ``weights`` · z + ``bias``."""
+
+    mean: np.ndarray
+    scale: np.ndarray
+    weights: np.ndarray  # (features,)
+    bias: float
+    quadratic: bool = False
+
+    @classmethod
+    def load(cls, data: dict[str, Any]) -> Linear:
+        return cls(
+            np.asarray(data["mean"], float),
+            np.asarray(data["scale"], float),
+            np.asarray(data["weights"], float),
+            float(data["bias"]),
+            bool(data.get("quadratic", False)),
+        )
+
+    def dump(self) -> dict[str, Any]:
+        return {
+            "mean": self.mean.tolist(),
+            "scale": self.scale.tolist(),
+            "weights": self.weights.tolist(),
+            "bias": self.bias,
+            "quadratic": self.quadratic,
+        }
+
+    def predict(self, x: np.ndarray) -> float:
+        z = (expand(x) if self.quadratic else x) - self.mean
+        return float(self.weights @ (z / self.scale)) + self.bias
+
+
 def expand(x: np.ndarray) -> np.ndarray:
     """``x`` followed by the products of every pair of its entries (with themselves)."""
     i, j = _pairs(x.shape[-1])
@@ -160,6 +195,9 @@ class RecognitionModel:
     smoothing: float = 0.0  # of the kind's probabilities per iteration (exponential, 0: none)
     kind: Softmax | None = None  # contact kind from contact_features (else the rules above)
     object_class: Softmax | None = None  # class from class_features (else classify's rules)
+    # log(true radius / kinematic radius) at a curved contact, from contact_features: the
+    # window's line is biased on large radii (a few mm of travel per degree) and soft objects
+    radius: Linear | None = None
 
     @classmethod
     def load(cls, data: dict[str, Any]) -> RecognitionModel:
@@ -167,11 +205,13 @@ class RecognitionModel:
         for key in ("kind", "object_class"):
             if kw.get(key) is not None:
                 kw[key] = Softmax.load(kw[key])
+        if kw.get("radius") is not None:
+            kw["radius"] = Linear.load(kw["radius"])
         return cls(**kw)
 
     def dump(self) -> dict[str, Any]:
         out = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        for key in ("kind", "object_class"):
+        for key in ("kind", "object_class", "radius"):
             if out[key] is not None:
                 out[key] = out[key].dump()
         return out
@@ -483,12 +523,20 @@ class Recognizer:
         out: list[tuple[ContactKind | None, float | None]] = []
         for me, other in ((t1, t2), (t2, t1)):
             assert me.features is not None and other.features is not None
-            p = model.probabilities(contact_features(me.features, other.features, lam))
+            x = contact_features(me.features, other.features, lam)
+            p = model.probabilities(x)
             a = self.model.smoothing
             me.p = p if me.p is None or a <= 0.0 else a * me.p + (1.0 - a) * p
             kind = KINDS[int(np.argmax(me.p))]
-            out.append((kind, me.kinematic_radius if kind is ContactKind.CURVED else None))
+            out.append((kind, self._radius(me, x) if kind is ContactKind.CURVED else None))
         return out
+
+    def _radius(self, track: _ContactTrack, x: np.ndarray) -> float:
+        """A curved contact's radius: the kinematic one, corrected by the radius model."""
+        fit = self.model.radius
+        if fit is None:
+            return track.kinematic_radius
+        return min(track.kinematic_radius * math.exp(fit.predict(x)), MAX_RADIUS_MM)
 
     def _gather(
         self,
