@@ -33,7 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -50,6 +50,7 @@ from sdh2svc.control.recognition import (
     RecognitionModel,
     Recognizer,
     Softmax,
+    _ContactTrack,
     class_features,
     contact_features,
     expand,
@@ -101,7 +102,7 @@ def fit_huber(X: np.ndarray, y: np.ndarray, l2: float, delta: float) -> Linear:
         w = np.linalg.solve(Z.T @ Zw + l2 * np.eye(Z.shape[1]), Zw.T @ (y - bias))
         r = np.abs(Z @ w + bias - y)
         weight = np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
-    return Linear(mean, scale, w, bias, quadratic=True)
+    return Linear(mean, scale, w, np.asarray(bias), quadratic=True)
 
 
 def _predict(m: Linear, X: np.ndarray) -> np.ndarray:
@@ -121,21 +122,30 @@ def replay(
             visit(case, i, rec)
 
 
+def _contacts(
+    case: Case, i: int, rec: Recognizer
+) -> Iterator[tuple[tuple[ContactKind, float | None], np.ndarray, _ContactTrack]]:
+    """At every EVERY-th iteration with both contacts tracked: each contact with a truth, its
+    features (:func:`contact_features`) and its track."""
+    s = case.steps[i]
+    t1, t2 = rec._tracks
+    lam = s.obs.Lambda
+    if i % EVERY or lam is None or t1.features is None or t2.features is None:
+        return
+    for truth, me, other in ((s.truth[0], t1, t2), (s.truth[1], t2, t1)):
+        if truth is not None:
+            assert me.features is not None and other.features is not None
+            yield truth, contact_features(me.features, other.features, lam), me
+
+
 def kind_samples(cases: list[Case], model: RecognitionModel) -> tuple[np.ndarray, np.ndarray]:
     X: list[np.ndarray] = []
     y: list[int] = []
 
     def visit(case: Case, i: int, rec: Recognizer) -> None:
-        s = case.steps[i]
-        t1, t2 = rec._tracks
-        lam = s.obs.Lambda
-        if i % EVERY or lam is None or t1.features is None or t2.features is None:
-            return
-        for truth, me, other in ((s.truth[0], t1, t2), (s.truth[1], t2, t1)):
-            if truth is not None:
-                assert me.features is not None and other.features is not None
-                X.append(contact_features(me.features, other.features, lam))
-                y.append(KINDS.index(truth[0]))
+        for truth, x, _ in _contacts(case, i, rec):
+            X.append(x)
+            y.append(KINDS.index(truth[0]))
 
     replay(cases, model, visit)
     return np.asarray(X), np.asarray(y)
@@ -153,20 +163,12 @@ def radius_samples(
     curved = KINDS.index(ContactKind.CURVED)
 
     def visit(case: Case, i: int, rec: Recognizer) -> None:
-        s = case.steps[i]
-        t1, t2 = rec._tracks
-        lam = s.obs.Lambda
-        if i % EVERY or lam is None or t1.features is None or t2.features is None:
-            return
-        for truth, me, other in ((s.truth[0], t1, t2), (s.truth[1], t2, t1)):
-            if truth is None or truth[0] is not ContactKind.CURVED or me.p is None:
-                continue
-            if int(np.argmax(me.p)) != curved:
-                continue
-            assert me.features is not None and other.features is not None and truth[1]
-            X.append(contact_features(me.features, other.features, lam))
-            y.append(math.log(truth[1] / me.kinematic_radius))
-            group.append(index[id(case)])
+        for truth, x, me in _contacts(case, i, rec):
+            if truth[0] is ContactKind.CURVED and me.p is not None and np.argmax(me.p) == curved:
+                assert truth[1] is not None
+                X.append(x)
+                y.append(math.log(truth[1] / me.kinematic_radius))
+                group.append(index[id(case)])
 
     replay(cases, model, visit)
     return np.asarray(X), np.asarray(y), np.asarray(group)

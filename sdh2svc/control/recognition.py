@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from functools import lru_cache
 from importlib import resources
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -95,18 +95,18 @@ class Recognition:
 
 
 @dataclass(frozen=True, slots=True)
-class Softmax:
-    """A multinomial logistic model: standardised features (``mean``, ``scale``), optionally
-    with their pairwise products appended (``quadratic``), then ``weights`` · z + ``bias``."""
+class _Affine:
+    """Standardised features (``mean``, ``scale``), optionally with their pairwise products
+    appended (``quadratic``), then ``weights`` · z + ``bias``."""
 
     mean: np.ndarray
     scale: np.ndarray
-    weights: np.ndarray  # (classes, features)
-    bias: np.ndarray
+    weights: np.ndarray  # (outputs, features) or (features,)
+    bias: np.ndarray  # (outputs,) or a scalar
     quadratic: bool = False
 
     @classmethod
-    def load(cls, data: dict[str, Any]) -> Softmax:
+    def load(cls, data: dict[str, Any]) -> Self:
         return cls(
             np.asarray(data["mean"], float),
             np.asarray(data["scale"], float),
@@ -124,47 +124,29 @@ class Softmax:
             "quadratic": self.quadratic,
         }
 
-    def probabilities(self, x: np.ndarray) -> np.ndarray:
+    def scores(self, x: np.ndarray) -> np.ndarray:
         z = (expand(x) if self.quadratic else x) - self.mean
-        s = self.weights @ (z / self.scale) + self.bias
+        out: np.ndarray = self.weights @ (z / self.scale) + self.bias
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class Softmax(_Affine):
+    """A multinomial logistic model."""
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        s = self.scores(x)
         e = np.exp(s - s.max())
         p: np.ndarray = e / e.sum()
         return p
 
 
 @dataclass(frozen=True, slots=True)
-class Linear:
-    """A linear model on standardised features (``mean``, ``scale``), optionally with their
-    pairwise products appended (``quadratic``): ``weights`` · z + ``bias``."""
-
-    mean: np.ndarray
-    scale: np.ndarray
-    weights: np.ndarray  # (features,)
-    bias: float
-    quadratic: bool = False
-
-    @classmethod
-    def load(cls, data: dict[str, Any]) -> Linear:
-        return cls(
-            np.asarray(data["mean"], float),
-            np.asarray(data["scale"], float),
-            np.asarray(data["weights"], float),
-            float(data["bias"]),
-            bool(data.get("quadratic", False)),
-        )
-
-    def dump(self) -> dict[str, Any]:
-        return {
-            "mean": self.mean.tolist(),
-            "scale": self.scale.tolist(),
-            "weights": self.weights.tolist(),
-            "bias": self.bias,
-            "quadratic": self.quadratic,
-        }
+class Linear(_Affine):
+    """A linear model (one output)."""
 
     def predict(self, x: np.ndarray) -> float:
-        z = (expand(x) if self.quadratic else x) - self.mean
-        return float(self.weights @ (z / self.scale)) + self.bias
+        return float(self.scores(x))
 
 
 def expand(x: np.ndarray) -> np.ndarray:

@@ -220,7 +220,7 @@ def test_the_radius_model_scales_the_kinematic_radius() -> None:
     from sdh2svc.control.recognition import Linear
 
     n = 18
-    lin = Linear(np.zeros(n), np.ones(n), np.zeros(n), math.log(0.8))
+    lin = Linear(np.zeros(n), np.ones(n), np.zeros(n), np.asarray(math.log(0.8)))
     track = _ContactTrack(Finger.ONE, MODEL)
     track.kinematic_radius = 50.0
     rec = Recognizer(default_config().model_context(), replace(MODEL, radius=lin))
