@@ -23,7 +23,9 @@ How (rolling kinematics, no model of the object):
   transition does not), the pressure footprint, how soft the object reads over the run (the
   pad rubber's compression against Hertz's F^⅔: a soft object takes part of the squeeze, and
   its flat face wraps the pad like a curved one) and the other contact
-  (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide.
+  (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide. A curved
+  contact's radius is the kinematic one times a learned correction (:class:`Linear`, on the
+  same features), which undoes the window's bias on large radii and soft objects.
 * **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
   second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
 
