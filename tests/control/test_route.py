@@ -223,7 +223,7 @@ def test_workspace_route_stays_inside_limits_and_cones(
     room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
                phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
     assert room >= LIMIT_MARGIN - 1e-12
-    # the margins kept (cones, wedge, one contact within wedge_limit, Finger 1's joints, reach)
+    # the margins kept (cones, wedge, both contacts within wedge_limit, Finger 1's joints, reach)
     assert pred.turn(move) is not None
     # …and it turns AB the way the thesis's move does
     c2 = obs.contact2
