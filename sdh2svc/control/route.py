@@ -9,7 +9,7 @@ the model alone (B by FK, dσ, σd = σ + λ·dσ, A on the circle of radius Λa
 Finger 1 cannot follow within ``finger1_max_step`` counts at the fraction the rolling step will
 take of it), among those that keep both fingers :data:`LIMIT_MARGIN` inside their joint limits,
 Finger 1 :data:`REACH_MARGIN_MM` short of stretched, both ω :data:`CONE_MARGIN` inside their
-cones, the pads' wedge as far inside its limit and one contact within the lowest friction angle
+cones, the pads' wedge as far inside its limit and both contacts within the lowest friction angle
 expected (``wedge_limit``). The thesis's single line through joint space
 ends its stroke where the first of these limits binds; choosing the move afresh each iteration
 follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
@@ -94,7 +94,7 @@ class Margins:
     cone_A: float
     cone_B: float
     wedge: float  # room to the wedge limit (inf without one)
-    hold: float  # how far the steadier contact's ω is inside the lowest friction angle expected
+    hold: float  # how far the more leaning contact's ω is inside the lowest friction angle expected
     joints1: float
     joints2: float
     reach: float  # l1 + r1 − |OA|: how far Finger 1 is from stretched
@@ -134,11 +134,14 @@ class Predictor:
         c1, p, ctx = self.obs.contact1, self.params, self.ctx
         assert c1.r_mm is not None
         wedge_room = (p.wedge_limit - abs(wedge(wa, wb))) if p.wedge_limit > 0.0 else math.inf
-        # one contact within the lowest friction angle the lab expects (wedge_limit) holds the
-        # object while the other slides back into its cone; with both beyond it, both may slide
-        # where α overestimates the friction, and the route stays at a cone's edge for long
-        steadier = min(abs(wa - math.pi / 2), abs(wb - math.pi / 2))
-        hold = (p.wedge_limit - steadier) if p.wedge_limit > 0.0 else math.inf
+        # both contacts within the lowest friction angle the lab expects (wedge_limit): the
+        # route dwells at the edge of what it allows, where α (the thesis's cone, a stroke's
+        # end) overestimates a slippery object's friction. One contact beyond it there slides
+        # along its pad while the other holds, the object turns back about the holding contact,
+        # and the slide ends at the pad's base end or in a drop (bench-v1's rounded-221, μ = 0.30:
+        # S2 24 → 39 mm in 80 iterations at ωB − 90° = 17.4°; polygon-151, μ = 0.34, 84 g).
+        leaning = max(abs(wa - math.pi / 2), abs(wb - math.pi / 2))
+        hold = (p.wedge_limit - leaning) if p.wedge_limit > 0.0 else math.inf
         return Margins(
             cone_margin(wa, self.alpha), cone_margin(wb, self.alpha), wedge_room, hold,
             _limit_room(ctx.limits1, phi[0], phi[1]), _limit_room(ctx.limits2, phi[2], phi[3]),

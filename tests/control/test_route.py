@@ -20,6 +20,7 @@ from sdh2svc.control.route import (
     Predictor,
     candidates,
     thesis_move,
+    turn_sense,
     workspace_move,
 )
 from sdh2svc.model.friction import cone_margin
@@ -136,12 +137,12 @@ LEANING = ((-2.23, 11.99, -1.87, 8.3), 20.75, 28.25)
 BOTH_LEAN = ((-18.45, 27.62, -17.24, 31.13), 28.55, 12.11)
 
 
-def test_a_move_of_its_own_keeps_one_contact_within_the_lowest_friction_angle(
+def test_a_move_of_its_own_keeps_the_contacts_within_the_lowest_friction_angle(
     cfg: Settings, ctx: ModelContext
 ) -> None:
     """The route dwells at a cone's edge; where the object's friction is below α (bench-v1's
-    polygon-151, μ = 0.34) both contacts then slide and the object falls. One contact within
-    ``wedge_limit`` (the lowest friction angle the lab expects) holds it."""
+    polygon-151, μ = 0.34) the contacts then slide and the object falls. ``wedge_limit`` is the
+    lowest friction angle the lab expects; without it the route leans both beyond it."""
     pose, S1, S2 = LEANING
     hp = HandPose.from_degrees(*pose)
     obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
@@ -152,6 +153,45 @@ def test_a_move_of_its_own_keeps_one_contact_within_the_lowest_friction_angle(
     free = workspace(cfg, wedge_limit_deg=0.0)  # no wedge limit: no lowest friction angle
     pred_free = Predictor(hp, obs, obs.Lambda, free.alpha, free, ctx)
     assert _lean(pred_free, workspace_move(1, pred_free)) > p.wedge_limit
+
+
+# (φ2…φ5 in degrees, S1, S2): ωA 14.2° and ωB 0.2° off their pad normals; the furthest turn
+# inside the cones (by CONE_MARGIN) leans A 17.0° off with B at 2.1°
+ONE_LEANS = ((-6.66, 29.0, -11.03, 24.16), 20.21, 21.15)
+
+
+def test_a_move_of_its_own_keeps_both_contacts_within_the_lowest_friction_angle(
+    cfg: Settings, ctx: ModelContext
+) -> None:
+    """With one contact holding, the other beyond the object's friction angle slides along its
+    pad while the route dwells there: bench-v1's rounded-221 (μ = 0.30, 16.7°) had Finger 2's
+    contact at 17.4° for 80 iterations, S2 24 → 39 mm, ψ falling back, and every later half
+    stroke turned < 1° at the pad's base end; polygon-151 (μ = 0.34, 84 g) dropped. The route
+    gives up the further turn that leans one contact beyond ``wedge_limit``."""
+    pose, S1, S2 = ONE_LEANS
+    hp = HandPose.from_degrees(*pose)
+    obs = observe(hp, frame(S1, FIRM), frame(S2, FIRM), ctx)
+    assert obs.Lambda is not None and obs.sigma is not None
+    sigma, p = obs.sigma, workspace(cfg)
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    base = thesis_move(-1, p)
+    move = workspace_move(-1, pred)
+    assert move != base and pred.now().inside()
+    sense = turn_sense(base, hp, obs, ctx)
+
+    def turn_and_leans(m: Move) -> tuple[float, float, float]:
+        pr = pred.predict(m)
+        assert pr is not None
+        wa, wb = abs(pr.omega_A - math.pi / 2), abs(pr.omega_B - math.pi / 2)
+        return (pr.sigma_d - sigma) * sense, min(wa, wb), max(wa, wb)
+
+    turned, _, leans = turn_and_leans(move)
+    assert turned > 0.0 and leans <= p.wedge_limit
+    # a further turn that leans one contact beyond it while the other holds, inside the cones
+    further = [m for m in candidates(base) if turn_and_leans(m)[0] > turned]
+    one_leans = [m for m in further if turn_and_leans(m)[1] < rad(3) < p.wedge_limit
+                 < turn_and_leans(m)[2] < p.alpha - route.CONE_MARGIN]  # fmt: skip
+    assert one_leans
 
 
 def test_with_both_contacts_beyond_the_lowest_friction_angle_it_is_the_thesis_move(
@@ -223,7 +263,7 @@ def test_workspace_route_stays_inside_limits_and_cones(
     room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
                phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
     assert room >= LIMIT_MARGIN - 1e-12
-    # the margins kept (cones, wedge, one contact within wedge_limit, Finger 1's joints, reach)
+    # the margins kept (cones, wedge, both contacts within wedge_limit, Finger 1's joints, reach)
     assert pred.turn(move) is not None
     # …and it turns AB the way the thesis's move does
     c2 = obs.contact2
