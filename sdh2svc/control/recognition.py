@@ -239,6 +239,9 @@ def rolling_turn(prev: Observation, pose: HandPose, ctx: ModelContext) -> float 
 
 
 MAX_RADIUS_MM = 1000.0  # a kinematic radius beyond this (or a curvature ≤ 0) is flat
+# the radius model's correction stays within ×/÷ 10: its fit suites need at most ≈ ×9 (99.8 % of
+# them within ×/÷ 7), and far outside them its pairwise products extrapolate without bound
+MAX_LOG_CORRECTION = math.log(10.0)
 
 
 class _ContactTrack:
@@ -520,7 +523,8 @@ class Recognizer:
         fit = self.model.radius
         if fit is None:
             return track.kinematic_radius
-        return min(track.kinematic_radius * math.exp(fit.predict(x)), MAX_RADIUS_MM)
+        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x), MAX_LOG_CORRECTION))
+        return min(track.kinematic_radius * math.exp(log_ratio), MAX_RADIUS_MM)
 
     def _gather(
         self,

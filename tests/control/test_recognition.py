@@ -226,6 +226,10 @@ def test_the_radius_model_scales_the_kinematic_radius() -> None:
     rec = Recognizer(default_config().model_context(), replace(MODEL, radius=lin))
     assert rec._radius(track, np.zeros(n)) == pytest.approx(40.0)
     assert Recognizer(default_config().model_context(), MODEL)._radius(track, np.zeros(n)) == 50.0
+    # far outside the fit suites (a real pad's odd reading): bounded, never an overflow
+    wild = Linear(np.zeros(n), np.ones(n), np.zeros(n), np.asarray(800.0))
+    rec = Recognizer(default_config().model_context(), replace(MODEL, radius=wild))
+    assert rec._radius(track, np.zeros(n)) == pytest.approx(500.0)
 
 
 # --- fast simulated runs of the thesis's objects (200 iterations each), against their truth
