@@ -64,11 +64,15 @@ RADIUS_GRID = tuple((d, l2) for d in (0.03, 0.05, 0.1) for l2 in (3.0, 10.0, 30.
 EVERY = 2  # iterations between kind and radius samples
 
 
+def _standardised(F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The features' means and scales over the fit set, and the features standardised."""
+    mean, scale = F.mean(axis=0), F.std(axis=0) + 1e-9
+    return mean, scale, (F - mean) / scale
+
+
 def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool) -> Softmax:
     """Multinomial logistic regression (L-BFGS, L2 on the weights)."""
-    F = expand(X) if quadratic else X
-    mean, scale = F.mean(axis=0), F.std(axis=0) + 1e-9
-    Z = (F - mean) / scale
+    mean, scale, Z = _standardised(expand(X) if quadratic else X)
     n, f = Z.shape
     Y = np.eye(k)[y]
 
@@ -92,10 +96,9 @@ def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool
 def fit_huber(X: np.ndarray, y: np.ndarray, l2: float, delta: float) -> Linear:
     """Ridge regression with Huber's loss (width ``delta``) by iteratively reweighted least
     squares, on the features and their pairwise products."""
-    F = expand(X)
-    mean, scale = F.mean(axis=0), F.std(axis=0) + 1e-9
-    Z = (F - mean) / scale
-    w, bias, weight = np.zeros(Z.shape[1]), float(np.mean(y)), np.ones(len(y))
+    mean, scale, Z = _standardised(expand(X))
+    w: np.ndarray = np.zeros(Z.shape[1])
+    bias, weight = float(np.mean(y)), np.ones(len(y))
     for _ in range(8):
         bias = float(np.average(y, weights=weight))
         Zw = Z * weight[:, None]
@@ -103,12 +106,6 @@ def fit_huber(X: np.ndarray, y: np.ndarray, l2: float, delta: float) -> Linear:
         r = np.abs(Z @ w + bias - y)
         weight = np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
     return Linear(mean, scale, w, np.asarray(bias), quadratic=True)
-
-
-def _predict(m: Linear, X: np.ndarray) -> np.ndarray:
-    """:meth:`Linear.predict` for many samples at once."""
-    out: np.ndarray = ((expand(X) - m.mean) / m.scale) @ m.weights + m.bias
-    return out
 
 
 def replay(
@@ -184,7 +181,7 @@ def choose_radius(X: np.ndarray, y: np.ndarray, group: np.ndarray) -> tuple[floa
         for fold in np.array_split(order, FOLDS):
             test = np.isin(group, fold)
             m = fit_huber(X[~test], y[~test], l2, delta)
-            err = _predict(m, X[test]) - y[test]
+            err = m.scores(X[test]) - y[test]
             right += int(np.sum(np.abs(np.exp(err) - 1.0) <= 0.2))
         acc = right / len(y)
         print(f"  radius Huber {delta:g}, L2 {l2:g}: {acc:.3f} within 20 % (5-fold by case)")
@@ -256,7 +253,7 @@ def main() -> None:
     X, y, group = radius_samples(cases, with_kind)
     delta, l2 = choose_radius(X, y, group)
     radius = fit_huber(X, y, l2, delta)
-    err = np.exp(_predict(radius, X) - y) - 1.0
+    err = np.exp(radius.scores(X) - y) - 1.0
     print(
         f"radius: {len(y)} samples, {np.mean(np.abs(err) <= 0.2):.3f} within 20 % on the fit "
         f"set (kinematic alone {np.mean(np.abs(np.exp(-y) - 1.0) <= 0.2):.3f})"

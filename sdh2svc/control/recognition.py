@@ -127,8 +127,9 @@ class _Affine:
         }
 
     def scores(self, x: np.ndarray) -> np.ndarray:
+        """The outputs for one sample (features on the last axis) or many (one per row)."""
         z = (expand(x) if self.quadratic else x) - self.mean
-        out: np.ndarray = self.weights @ (z / self.scale) + self.bias
+        out: np.ndarray = (z / self.scale) @ self.weights.T + self.bias
         return out
 
 
@@ -186,19 +187,21 @@ class RecognitionModel:
     @classmethod
     def load(cls, data: dict[str, Any]) -> RecognitionModel:
         kw = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
-        for key in ("kind", "object_class"):
+        for key, kind in _LEARNED.items():
             if kw.get(key) is not None:
-                kw[key] = Softmax.load(kw[key])
-        if kw.get("radius") is not None:
-            kw["radius"] = Linear.load(kw["radius"])
+                kw[key] = kind.load(kw[key])
         return cls(**kw)
 
     def dump(self) -> dict[str, Any]:
         out = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        for key in ("kind", "object_class", "radius"):
+        for key in _LEARNED:
             if out[key] is not None:
                 out[key] = out[key].dump()
         return out
+
+
+# RecognitionModel's learned parts, by field
+_LEARNED: dict[str, type[_Affine]] = {"kind": Softmax, "object_class": Softmax, "radius": Linear}
 
 
 KINDS = (ContactKind.FLAT, ContactKind.EDGE, ContactKind.CURVED)  # the kind model's order
