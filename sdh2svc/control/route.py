@@ -51,6 +51,13 @@ LIMIT_MARGIN = math.radians(3.0)
 # finger its IK is singular, a step needs large joint moves and Λ's own correction (ΔΛ) or the
 # contact rolling a little can put A out of reach both ways.
 REACH_MARGIN_MM = 2.0
+# Within REACH_MARGIN_MM of stretched, while the grip is firm (F ≥ force_band_low × Fd), the
+# route follows Finger 1's reach edge, with moves that spend none of the reach left, down to
+# this margin; closer, the thesis's move. The IK's joint change per mm of |OA| grows as
+# 1/√margin (≈ 7°/mm at 1 mm, 16°/mm at 0.2 mm): each iteration's small shortfall of the
+# fingers against their targets there swings the grip, and on the way back from such a stroke
+# end F fell to 0.2 × Fd (bench-v1's circle-027, polygon-319).
+REACH_FLOOR_MM = 1.0
 # The grip the route plans within, × Fd: outside it the thesis's move, slower, while Λ's
 # correction brings the force back. On the thesis's route the lowest F after the grasp stays
 # above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs.
@@ -99,11 +106,12 @@ class Margins:
     joints2: float
     reach: float  # l1 + r1 − |OA|: how far Finger 1 is from stretched
 
-    def inside(self) -> bool:
-        """Whether every margin is at least the route's (CONE_MARGIN, LIMIT_MARGIN, …)."""
+    def inside(self, reach: float = REACH_MARGIN_MM) -> bool:
+        """Whether every margin is at least the route's (CONE_MARGIN, LIMIT_MARGIN, …), Finger 1's
+        reach at least ``reach`` mm."""
         return (min(self.cone_A, self.cone_B, self.wedge) >= CONE_MARGIN and self.hold >= 0.0
                 and min(self.joints1, self.joints2) >= LIMIT_MARGIN
-                and self.reach >= REACH_MARGIN_MM)  # fmt: skip
+                and self.reach >= reach)  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,6 +162,11 @@ class Predictor:
         fd = self.params.grasp_force
         return GRIP_BAND[0] * fd <= F <= GRIP_BAND[1] * fd
 
+    def firm(self) -> bool:
+        """Whether F is at least the force band's low end (``force_band_low`` × Fd)."""
+        F = (self.obs.contact1.force + self.obs.contact2.force) / 2
+        return F >= self.params.force_band_low * self.params.grasp_force
+
     def edge_room(self) -> float:
         """How far (mm) the nearer contact's centroid is inside the part of its pad the route
         plans in: TIP_MARGIN_MM off the first row (the tip), EDGE_MARGIN_MM off the last (the
@@ -186,14 +199,15 @@ class Predictor:
         wa, wb = omegas(obs, phi, A, B, ctx)
         return Prediction(phi, A, sigma_d, wa, wb)
 
-    def turn(self, move: Move) -> float | None:
+    def turn(self, move: Move, reach: float = REACH_MARGIN_MM) -> float | None:
         """σd − σ for ``move`` (rad), scaled down as the rolling step will if Finger 1 cannot
         follow in one iteration (``finger1_max_step``); None when its configuration breaks the
-        route's margins (:meth:`Margins.inside`) or Finger 1 cannot reach it."""
+        route's margins (:meth:`Margins.inside`, Finger 1's reach at least ``reach`` mm) or
+        Finger 1 cannot reach it."""
         pose, obs = self.pose, self.obs
         assert obs.sigma is not None
         pr = self.predict(move)
-        if pr is None or not self.margins(pr.phi, pr.A, pr.omega_A, pr.omega_B).inside():
+        if pr is None or not self.margins(pr.phi, pr.A, pr.omega_A, pr.omega_B).inside(reach):
             return None
         need = max(abs(pr.phi[0] - pose.phi2), abs(pr.phi[1] - pose.phi3))
         scale = min(1.0, self.params.finger1_max_step / need) if need > 0 else 0.0
@@ -213,16 +227,22 @@ def candidates(base: Move) -> list[Move]:
 def workspace_move(direction: int, pred: Predictor) -> Move:
     """The candidate that turns AB furthest in the thesis move's sense within the margins; the
     thesis's move when none does (or when the thesis's move turns AB by nothing, so that the
-    stroke's sense is unknown)."""
+    stroke's sense is unknown). Within REACH_MARGIN_MM of Finger 1's stretch, while the grip is
+    firm, the candidates must keep the reach the finger has left (down to REACH_FLOOR_MM)."""
     base = thesis_move(direction, pred.params)
     ref = turn_sense(base, pred.pose, pred.obs, pred.ctx)
     if ref == 0.0:
         return base
-    if not pred.now().inside() or not pred.grip_holds() or pred.edge_room() < 0.0:
-        return base  # the thesis's move, and its checks
+    now, reach = pred.now(), REACH_MARGIN_MM
+    if not now.inside():
+        if not (now.inside(REACH_FLOOR_MM) and pred.firm()):
+            return base  # the thesis's move, and its checks
+        reach = now.reach  # on the reach edge: spend none of it
+    if not pred.grip_holds() or pred.edge_room() < 0.0:
+        return base
     best, best_turn = base, 0.0
     for move in candidates(base):
-        t = pred.turn(move)
+        t = pred.turn(move, reach)
         if t is not None and t * ref > best_turn:
             best, best_turn = move, t * ref
     return best

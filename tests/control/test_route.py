@@ -16,6 +16,8 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.route import (
     LIMIT_MARGIN,
+    REACH_FLOOR_MM,
+    REACH_MARGIN_MM,
     Move,
     Predictor,
     candidates,
@@ -257,14 +259,20 @@ def test_workspace_route_stays_inside_limits_and_cones(
     move = workspace_move(direction, pred)
     if move == thesis_move(direction, p):
         return
-    # a move of its own: planned from inside the route's margins, and keeping them
-    assert pred.now().inside() and pred.edge_room() >= 0.0
+    # a move of its own: planned from inside the route's margins, and keeping them; within
+    # REACH_MARGIN_MM of Finger 1's stretch only while the grip is firm, spending none of it
+    now = pred.now()
+    assert now.inside(REACH_FLOOR_MM) and pred.edge_room() >= 0.0
+    reach = REACH_MARGIN_MM
+    if not now.inside():
+        assert pred.firm() and now.reach < REACH_MARGIN_MM
+        reach = now.reach
     phi4, phi5 = hp.phi4 + move.d4, hp.phi5 + move.d5
     room = min(phi4 - lim2.proximal_min, lim2.proximal_max - phi4,
                phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
     assert room >= LIMIT_MARGIN - 1e-12
     # the margins kept (cones, wedge, both contacts within wedge_limit, Finger 1's joints, reach)
-    assert pred.turn(move) is not None
+    assert pred.turn(move, reach) is not None
     # …and it turns AB the way the thesis's move does
     c2 = obs.contact2
     assert c2.r_mm is not None and c2.theta_rad is not None
@@ -284,3 +292,27 @@ def test_a_simulated_run_on_a_thesis_object_completes_with_the_workspace_route()
     assert row["status"] == "completed", row.get("traceback")
     assert row["success"] and not row["dropped"]
     assert row["strokes"] == 1
+
+
+@pytest.mark.parametrize(("amplitude", "follows"), [(4000.0, True), (2000.0, False)])
+def test_the_route_follows_finger1s_reach_edge_only_while_the_grip_is_firm(
+    cfg: Settings, amplitude: float, follows: bool
+) -> None:
+    """Stretched fingers leave Finger 1 between REACH_FLOOR_MM and REACH_MARGIN_MM of its reach:
+    with F ≥ force_band_low × Fd the route plans a move that spends none of the reach left; with
+    F below that it leaves the stroke to the thesis's move."""
+    ctx, p = cfg.model_context(), workspace(cfg)
+    hp = HandPose.from_degrees(0.0, 0.0, 0.0, 0.0)
+    r = step(RollState(direction=-1), hp, frame(20.0, amplitude), frame(20.0, amplitude), p, ctx)
+    obs = r.obs
+    assert obs.Lambda is not None
+    pred = Predictor(hp, obs, obs.Lambda, p.alpha, p, ctx)
+    now = pred.now()
+    assert REACH_FLOOR_MM <= now.reach < REACH_MARGIN_MM and now.inside(REACH_FLOOR_MM)
+    assert pred.grip_holds() and pred.firm() == follows
+    move = workspace_move(-1, pred)
+    assert (move != thesis_move(-1, p)) == follows
+    if follows:
+        pr = pred.predict(move)
+        assert pr is not None
+        assert pred.margins(pr.phi, pr.A, pr.omega_A, pr.omega_B).reach >= now.reach
