@@ -8,10 +8,11 @@ the model alone (B by FK, dσ, σd = σ + λ·dσ, A on the circle of radius Λa
 ωA and ωB), and the one that turns AB furthest in the stroke's sense per iteration wins (a move
 Finger 1 cannot follow within ``finger1_max_step`` counts at the fraction the rolling step will
 take of it), among those that keep both fingers :data:`LIMIT_MARGIN` inside their joint limits,
-Finger 1 :data:`REACH_MARGIN_MM` short of stretched, both ω :data:`CONE_MARGIN` inside their
-cones, the pads' wedge as far inside its limit and both contacts within the lowest friction angle
-expected (``wedge_limit``). The thesis's single line through joint space
-ends its stroke where the first of these limits binds; choosing the move afresh each iteration
+Finger 1 :data:`REACH_MARGIN_MM` short of stretched (while the grip is firm, closer: moves
+that spend none of the reach left, down to :data:`REACH_FLOOR_MM`), both ω :data:`CONE_MARGIN`
+inside their cones, the pads' wedge as far inside its limit and both contacts within the lowest
+friction angle expected (``wedge_limit``). The thesis's single line through joint space ends its
+stroke where the first of these limits binds; choosing the move afresh each iteration
 follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
 already within one of them, the grip is outside :data:`GRIP_BAND` or a contact is near its pad's
 end (:data:`EDGE_MARGIN_MM`, :data:`TIP_MARGIN_MM`), it is the thesis's move, so
