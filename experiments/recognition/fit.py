@@ -171,15 +171,21 @@ def radius_samples(
     return np.asarray(X), np.asarray(y), np.asarray(group)
 
 
+def case_folds(group: np.ndarray) -> Iterator[np.ndarray]:
+    """FOLDS test masks over the samples, each holding out whole cases (the same split for
+    every call on the same ``group``)."""
+    order = np.random.default_rng(0).permutation(np.unique(group))
+    for fold in np.array_split(order, FOLDS):
+        yield np.isin(group, fold)
+
+
 def choose_radius(X: np.ndarray, y: np.ndarray, group: np.ndarray) -> tuple[float, float]:
     """The radius model's (Huber width, L2) by 5-fold cross-validation over cases: the most
     radii within 20 % of the truth (ties: the first in RADIUS_GRID)."""
-    order = np.random.default_rng(0).permutation(np.unique(group))
     best = (-1.0, RADIUS_GRID[0])
     for delta, l2 in RADIUS_GRID:
         right = 0
-        for fold in np.array_split(order, FOLDS):
-            test = np.isin(group, fold)
+        for test in case_folds(group):
             m = fit_huber(X[~test], y[~test], l2, delta)
             err = m.scores(X[test]) - y[test]
             right += int(np.sum(np.abs(np.exp(err) - 1.0) <= 0.2))
@@ -219,12 +225,10 @@ def class_samples(
 def choose_l2(X: np.ndarray, y: np.ndarray, group: np.ndarray, first: np.ndarray) -> float:
     """The class model's L2 by 5-fold cross-validation over cases: the most right at the
     first full stroke (ties: the stronger penalty)."""
-    order = np.random.default_rng(0).permutation(np.unique(group))
     best = (-1.0, 0.0)
     for l2 in L2_CLASS_GRID:
         right = 0
-        for fold in np.array_split(order, FOLDS):
-            test = np.isin(group, fold)
+        for test in case_folds(group):
             m = fit_softmax(X[~test], y[~test], len(CLASSES), l2, quadratic=True)
             sel = test & first
             guesses = [int(np.argmax(m.probabilities(x))) for x in X[sel]]

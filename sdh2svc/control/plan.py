@@ -6,9 +6,15 @@ from __future__ import annotations
 
 import math
 
+from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import omega
 from sdh2svc.model.kinematics import Finger, IKResult, Point, finger_ik, segment
 from sdh2svc.model.observe import ModelContext, Observation
+
+
+def grip_force(c1: ContactEstimate, c2: ContactEstimate) -> float:
+    """F, the grip's force (eq 3.16) in the controller's force (:attr:`ContactEstimate.force`)."""
+    return (c1.force + c2.force) / 2
 
 
 def sigma_desired(obs: Observation, B_d: Point, lambda_gain: float) -> float:

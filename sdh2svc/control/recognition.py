@@ -126,9 +126,12 @@ class _Affine:
             "quadratic": self.quadratic,
         }
 
-    def scores(self, x: np.ndarray) -> np.ndarray:
-        """The outputs for one sample (features on the last axis) or many (one per row)."""
-        z = (expand(x) if self.quadratic else x) - self.mean
+    def scores(self, x: np.ndarray, expanded: np.ndarray | None = None) -> np.ndarray:
+        """The outputs for one sample (features on the last axis) or many (one per row);
+        ``expanded``: ``expand(x)``, when the caller has it already."""
+        if self.quadratic:
+            x = expand(x) if expanded is None else expanded
+        z = x - self.mean
         out: np.ndarray = (z / self.scale) @ self.weights.T + self.bias
         return out
 
@@ -137,8 +140,8 @@ class _Affine:
 class Softmax(_Affine):
     """A multinomial logistic model."""
 
-    def probabilities(self, x: np.ndarray) -> np.ndarray:
-        s = self.scores(x)
+    def probabilities(self, x: np.ndarray, expanded: np.ndarray | None = None) -> np.ndarray:
+        s = self.scores(x, expanded)
         e = np.exp(s - s.max())
         p: np.ndarray = e / e.sum()
         return p
@@ -148,8 +151,8 @@ class Softmax(_Affine):
 class Linear(_Affine):
     """A linear model (one output)."""
 
-    def predict(self, x: np.ndarray) -> float:
-        return float(self.scores(x))
+    def predict(self, x: np.ndarray, expanded: np.ndarray | None = None) -> float:
+        return float(self.scores(x, expanded))
 
 
 def expand(x: np.ndarray) -> np.ndarray:
@@ -514,19 +517,22 @@ class Recognizer:
         for me, other in ((t1, t2), (t2, t1)):
             assert me.features is not None and other.features is not None
             x = contact_features(me.features, other.features, lam)
-            p = model.probabilities(x)
+            # the kind and radius models take the same features' pairwise products: expand once
+            xx = expand(x) if model.quadratic else None
+            p = model.probabilities(x, xx)
             a = self.model.smoothing
             me.p = p if me.p is None or a <= 0.0 else a * me.p + (1.0 - a) * p
             kind = KINDS[int(np.argmax(me.p))]
-            out.append((kind, self._radius(me, x) if kind is ContactKind.CURVED else None))
+            out.append((kind, self._radius(me, x, xx) if kind is ContactKind.CURVED else None))
         return out
 
-    def _radius(self, track: _ContactTrack, x: np.ndarray) -> float:
-        """A curved contact's radius: the kinematic one, corrected by the radius model."""
+    def _radius(self, track: _ContactTrack, x: np.ndarray, xx: np.ndarray | None = None) -> float:
+        """A curved contact's radius: the kinematic one, corrected by the radius model (``xx``:
+        ``expand(x)`` if already worked out)."""
         fit = self.model.radius
         if fit is None:
             return track.kinematic_radius
-        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x), MAX_LOG_CORRECTION))
+        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x, xx), MAX_LOG_CORRECTION))
         return min(track.kinematic_radius * math.exp(log_ratio), MAX_RADIUS_MM)
 
     def _gather(

@@ -28,9 +28,8 @@ from enum import StrEnum
 import numpy as np
 
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.plan import finger1_to, omegas, sigma_desired
+from sdh2svc.control.plan import finger1_to, grip_force, omegas, sigma_desired
 from sdh2svc.control.route import Move, Predictor, candidates, finger2_move, turn_sense
-from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import cone_margin, inside_cone, wedge
 from sdh2svc.model.kinematics import (
     Finger,
@@ -240,11 +239,6 @@ def _cone_refuses(w_d: float, waived: Reversal | None, alpha: float) -> bool:
     if inside_cone(w_d, alpha):
         return False
     return waived is None or cone_margin(w_d, alpha) < -RETREAT_LIMIT
-
-
-def grip_force(c1: ContactEstimate, c2: ContactEstimate) -> float:
-    """F, the grip's force (eq 3.16) in the controller's force (:attr:`ContactEstimate.force`)."""
-    return (c1.force + c2.force) / 2
 
 
 def step(

@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.plan import finger1_to, omegas, sigma_desired
+from sdh2svc.control.plan import finger1_to, grip_force, omegas, sigma_desired
 from sdh2svc.model.friction import cone_margin, wedge
 from sdh2svc.model.kinematics import (
     Finger,
@@ -159,13 +159,12 @@ class Predictor:
 
     def grip_holds(self) -> bool:
         """Whether F is within GRIP_BAND × Fd."""
-        F = (self.obs.contact1.force + self.obs.contact2.force) / 2
-        fd = self.params.grasp_force
+        F, fd = grip_force(self.obs.contact1, self.obs.contact2), self.params.grasp_force
         return GRIP_BAND[0] * fd <= F <= GRIP_BAND[1] * fd
 
     def firm(self) -> bool:
         """Whether F is at least the force band's low end (``force_band_low`` × Fd)."""
-        F = (self.obs.contact1.force + self.obs.contact2.force) / 2
+        F = grip_force(self.obs.contact1, self.obs.contact2)
         return F >= self.params.force_band_low * self.params.grasp_force
 
     def edge_room(self) -> float:

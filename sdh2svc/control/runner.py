@@ -29,8 +29,9 @@ from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.plan import grip_force
 from sdh2svc.control.recognition import Recognition, Recognizer
-from sdh2svc.control.rolling import RollState, StepResult, grip_force, step
+from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
