@@ -14,9 +14,10 @@ turns A around B by dσ per iteration.
 Additions to the thesis (explained here and in config/default.toml), for objects nobody tuned it
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
 route; a reversal at a cone, the pad's edge or the wedge commits to the way back
-(:attr:`RollState.waived`); the cones are as wide as the grasp held
-(:attr:`RollState.alpha_held`); a plan that widens the pads' wedge beyond its limit reverses;
-a plan Finger 1 cannot follow reverses; Finger 1's step limit; the force band.
+(:attr:`RollState.waived`), and the pad's edge never refuses a way back; the cones are as
+wide as the grasp held (:attr:`RollState.alpha_held`); a plan that widens the pads' wedge
+beyond its limit reverses; a plan Finger 1 cannot follow reverses; Finger 1's step limit; the
+force band.
 """
 
 from __future__ import annotations
@@ -233,6 +234,16 @@ def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | No
     return planned > abs(wedge(obs.omega_A, obs.omega_B))
 
 
+def _on_way_back(state: RollState, p: RollingParams) -> bool:
+    """Whether the rotation reversed (for any reason) less than WAY_BACK half strokes ago. The
+    pad's edge does not refuse the way back from any reversal, not only from its own: that way
+    retraces the travel that carried the contact to the edge. Otherwise a stroke that ends at
+    Finger 1's reach (or a joint limit) with a contact near its pad's end flickering onto the
+    edge row is refused both ways in turn — the reach one way, the edge the other — and the run
+    stops as stuck (bench-v1's circle-327 on the workspace route, a 94 mm circle)."""
+    return state.consecutive_reversals > 0 and state.travel < WAY_BACK * p.min_half_stroke
+
+
 def _cone_refuses(w_d: float, waived: Reversal | None, alpha: float) -> bool:
     """Whether the planned ω ``w_d`` reverses the rotation: it leaves the cone (thesis), unless
     on the way back (``waived``) ω stays within RETREAT_LIMIT beyond it."""
@@ -267,7 +278,7 @@ def step(
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
         return reverse(Reversal.CONTACT_LOST)
-    if (c1.at_edge or c2.at_edge) and waived is None:
+    if (c1.at_edge or c2.at_edge) and not _on_way_back(state, params):
         return reverse(Reversal.CONTACT_EDGE)
     if F > params.force_reverse * params.grasp_force and dF >= 0.0 and waived is None:
         return reverse(Reversal.FORCE)

@@ -231,8 +231,15 @@ def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
     # the way back from a cone passes the edge too
     back = replace(r.state, waived=Reversal.CONE_A)
     assert step(back, MIRROR, edge, edge, p, ctx).reversal is None
-    # nothing waived: the edge refuses
-    assert step(replace(back, waived=None), MIRROR, edge, edge, p, ctx).reversal is not None
+    # the way back from a reversal that waives nothing (Finger 1's reach, a joint limit) passes
+    # the edge as well: it retraces the travel that carried the contact there
+    reach = replace(back, waived=None)
+    assert step(reach, MIRROR, edge, edge, p, ctx).reversal is None
+    # before any reversal, and once the way back is travelled, the edge refuses
+    assert step(replace(reach, consecutive_reversals=0), MIRROR, edge, edge, p,
+                ctx).reversal is Reversal.CONTACT_EDGE  # fmt: skip
+    far = replace(reach, travel=WAY_BACK * p.min_half_stroke)
+    assert step(far, MIRROR, edge, edge, p, ctx).reversal is Reversal.CONTACT_EDGE
 
 
 def test_a_half_stroke_counts_only_after_finger2_travelled(cfg: Settings) -> None:
