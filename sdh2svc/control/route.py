@@ -14,9 +14,10 @@ inside their cones, the pads' wedge as far inside its limit and both contacts wi
 friction angle expected (``wedge_limit``). The thesis's single line through joint space ends its
 stroke where the first of these limits binds; choosing the move afresh each iteration
 follows that limit's edge instead and turns on. Where no move keeps the margins, the hand is
-already within one of them, the grip is outside :data:`GRIP_BAND` or a contact is near its pad's
-end (:data:`EDGE_MARGIN_MM`, :data:`TIP_MARGIN_MM`), it is the thesis's move, so
-that near the limits the rolling step's checks reverse as they do on the thesis's route.
+already within one of them or a contact is near its pad's end (:data:`EDGE_MARGIN_MM`,
+:data:`TIP_MARGIN_MM`), it is the thesis's move, so that near the limits the rolling step's
+checks reverse as they do on the thesis's route; while the grip is outside :data:`GRIP_BAND`,
+the chosen move at half its length.
 
 Pure: numbers in, a move out; the same inputs always give the same move.
 """
@@ -59,9 +60,14 @@ REACH_MARGIN_MM = 2.0
 # fingers against their targets there swings the grip, and on the way back from such a stroke
 # end F fell to 0.2 × Fd (bench-v1's circle-027, polygon-319).
 REACH_FLOOR_MM = 1.0
-# The grip the route plans within, × Fd: outside it the thesis's move, slower, while Λ's
-# correction brings the force back. On the thesis's route the lowest F after the grasp stays
-# above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs.
+# The grip the route plans full moves within, × Fd: outside it the route's move at half its
+# length (in its own direction), so that Λ's correction gets twice the iterations per degree
+# while it brings the force back. On the thesis's route the lowest F after the grasp stays
+# above 0.54 × Fd and the highest below 1.97 × Fd in 95 % of bench-v1's runs. Handing over to
+# the thesis's move there instead, up to 90° away from the route's, zigzagged Finger 2 through
+# joint space whenever F hovered at the band's edge, and the grip swung with it (bench-v1's
+# circle-027: between 0.3 and 0.8 × Fd every two or three iterations, down to 0.22 × Fd); the
+# route's move at full length outside the band lost six more runs to F below 0.25 × Fd.
 GRIP_BAND = (0.5, 2.0)
 # How far from the ends of its pad's range a contact must be for the route to plan (mm; the
 # pad-edge check reverses at half a row, 1.7 mm). The model holds the contacts fixed on the pads,
@@ -228,7 +234,8 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
     """The candidate that turns AB furthest in the thesis move's sense within the margins; the
     thesis's move when none does (or when the thesis's move turns AB by nothing, so that the
     stroke's sense is unknown). Within REACH_MARGIN_MM of Finger 1's stretch, while the grip is
-    firm, the candidates must keep the reach the finger has left (down to REACH_FLOOR_MM)."""
+    firm, the candidates must keep the reach the finger has left (down to REACH_FLOOR_MM).
+    Half the move while the grip is outside GRIP_BAND."""
     base = thesis_move(direction, pred.params)
     ref = turn_sense(base, pred.pose, pred.obs, pred.ctx)
     if ref == 0.0:
@@ -238,13 +245,15 @@ def workspace_move(direction: int, pred: Predictor) -> Move:
         if not (now.inside(REACH_FLOOR_MM) and pred.firm()):
             return base  # the thesis's move, and its checks
         reach = now.reach  # on the reach edge: spend none of it
-    if not pred.grip_holds() or pred.edge_room() < 0.0:
+    if pred.edge_room() < 0.0:
         return base
     best, best_turn = base, 0.0
     for move in candidates(base):
         t = pred.turn(move, reach)
         if t is not None and t * ref > best_turn:
             best, best_turn = move, t * ref
+    if not pred.grip_holds():
+        return Move(best.d4 / 2, best.d5 / 2)
     return best
 
 

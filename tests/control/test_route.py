@@ -13,6 +13,7 @@ from sdh2svc.campaign.run import run_case
 from sdh2svc.config import Settings
 from sdh2svc.control import route
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.plan import grip_force
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.route import (
     LIMIT_MARGIN,
@@ -78,15 +79,22 @@ def test_the_workspace_route_turns_ab_at_least_as_far(cfg: Settings, ctx: ModelC
 
 
 @pytest.mark.parametrize("amplitude", [1000.0, 8000.0], ids=["loose", "squeezed"])
-def test_outside_the_grip_band_it_is_the_thesis_move(
+def test_outside_the_grip_band_it_is_half_the_routes_move(
     cfg: Settings, ctx: ModelContext, amplitude: float
 ) -> None:
+    """A grip outside the band slows the route down (half its move, in the direction it would
+    take with the grip inside the band) instead of turning Finger 2 onto the thesis's line."""
     p = workspace(cfg, finger1_max_step_deg=10.0)
     obs = observe(TILTED, frame(20.0, amplitude), frame(24.0, amplitude), ctx)
     assert obs.Lambda is not None
     pred = Predictor(TILTED, obs, obs.Lambda, p.alpha, p, ctx)
     assert not pred.grip_holds()
-    assert workspace_move(1, pred) == thesis_move(1, p)
+    held = p.model_copy(update={"grasp_force": grip_force(obs.contact1, obs.contact2)})
+    inside = Predictor(TILTED, obs, obs.Lambda, held.alpha, held, ctx)
+    assert inside.grip_holds()
+    full = workspace_move(1, inside)
+    assert full != thesis_move(1, p)  # the route's own direction, not the thesis's
+    assert workspace_move(1, pred) == Move(full.d4 / 2, full.d5 / 2)
 
 
 def test_near_a_pads_end_it_is_the_thesis_move(
