@@ -241,7 +241,12 @@ def _on_way_back(state: RollState, p: RollingParams) -> bool:
     Finger 1's reach (or a joint limit) with a contact near its pad's end flickering onto the
     edge row is refused both ways in turn — the reach one way, the edge the other — and the run
     stops as stuck (bench-v1's circle-327 on the workspace route, a 94 mm circle)."""
-    return state.consecutive_reversals > 0 and state.travel < WAY_BACK * p.min_half_stroke
+    return state.consecutive_reversals > 0 and _within_way_back(state, p)
+
+
+def _within_way_back(state: RollState, p: RollingParams) -> bool:
+    """Whether Finger 2 has travelled less than WAY_BACK half strokes since the last reversal."""
+    return state.travel < WAY_BACK * p.min_half_stroke
 
 
 def _cone_refuses(w_d: float, waived: Reversal | None, alpha: float) -> bool:
@@ -270,7 +275,7 @@ def step(
         held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
         state = replace(state, alpha_held=held)
     alpha = max(params.alpha, state.alpha_held)
-    waived = state.waived if state.travel < WAY_BACK * params.min_half_stroke else None
+    waived = state.waived if _within_way_back(state, params) else None
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
         return StepResult(_reverse(state, F, reason, params), None, reason, obs, F, dF, plan)
