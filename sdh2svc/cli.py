@@ -318,7 +318,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"run {summary['run_id']}: {summary['status']} {summary['message']}".rstrip())
         print(
             f"  strokes {summary['strokes']}, iterations {summary['iterations']}, "
-            f"reversals {len(summary['reversals'])}, Λ at grasp {summary['lambda_initial_mm']}"
+            f"reversals {len(summary['reversals'])}, Λ at grasp {_mm(summary['lambda_initial_mm'])}"
         )
         if f["mean"] is not None:
             print(
@@ -330,10 +330,17 @@ def cmd_run(args: argparse.Namespace) -> int:
             cls = rec["object_class"]
             print(f"  recognised {'an' if cls[0] in 'aeiou' else 'a'} {cls} "
                   f"({rec.get('confidence', 0):.0%}; "
-                  f"{sizes} mm), turned {rec.get('rotation_deg') or 0:.1f}°")  # fmt: skip
-        if "truth" in summary:
-            print(f"  simulation truth: {summary['truth']}")
+                  f"{sizes} mm), estimated rotation at the end "
+                  f"{rec.get('rotation_deg') or 0:.1f}°")  # fmt: skip
+        if truth := summary.get("truth"):
+            print(f"  simulation truth: {truth['object']} ({truth['size_mm']:.1f} mm), turned over "
+                  f"{truth['rotation_range_deg']:.1f}°, {truth['slips']} slips"
+                  f"{', dropped' if truth['dropped'] else ''}")  # fmt: skip
     return Exit.OK if summary["status"] == "completed" else Exit.FAILED
+
+
+def _mm(value: float | None) -> str:
+    return "—" if value is None else f"{value:.1f} mm"
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

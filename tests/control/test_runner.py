@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import re
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Callable, Coroutine
@@ -221,6 +222,17 @@ def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
     finally:
         store.close()
     assert its == samples and len(its) == out["iterations"]
+
+
+def test_cli_run_prints_a_readable_summary(tmp_path: Path) -> None:
+    """Without --json: rounded figures with their units, and the simulation's truth in words."""
+    args = [sys.executable, "-m", "sdh2svc", "run", "--sim", "--fast", "--object", "cylinder",
+            "--cycles", "1", "--set", f"storage.db_path='{tmp_path / 'runs.sqlite'}'"]  # fmt: skip
+    r = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert re.search(r"Λ at grasp \d+\.\d mm\n", r.stdout), r.stdout
+    assert re.search(r"simulation truth: cylinder \(68\.0 mm\), turned over \d+\.\d°, \d+ slips\n",
+                     r.stdout), r.stdout  # fmt: skip
 
 
 def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:
