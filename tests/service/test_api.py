@@ -125,6 +125,13 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         with pytest.raises(InvalidRequest) as bad:
             await c.set_sim_object(spec={"kind": "circle", "diameter_mm": -3})
         assert any("diameter_mm" in d for d in bad.value.details)
+        async with httpx.AsyncClient(base_url=svc.url, headers=svc.headers()) as raw:
+            # GET's {"object": …} put back as it came: the answer names the fields there are
+            r = await raw.put("/api/sim/object", json={"object": {"kind": "circle"}})
+        assert r.status_code == 422
+        assert r.json()["details"] == [
+            "body.object: unknown field (the fields there are: name, spec)"
+        ]
         with pytest.raises(InvalidRequest) as bad:
             await c.start_run({"alpha_deg": 90})
         assert "alpha_deg" in bad.value.details[0]

@@ -3,7 +3,7 @@ that produce it, and the documentation of each status the routes may answer."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, get_args
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -62,15 +62,31 @@ def error(status: int, message: str, details: list[str] | None = None) -> JSONRe
     return JSONResponse(body, status_code=status)
 
 
+def _body_fields(request: Request) -> list[str] | None:
+    """The top-level fields of the route's JSON body model (None if it has none)."""
+    field = getattr(request.scope.get("route"), "body_field", None)
+    annotation = getattr(getattr(field, "field_info", None), "annotation", None)
+    for model in (annotation, *get_args(annotation)):  # the model, or the model | None
+        if isinstance(model, type) and issubclass(model, BaseModel):
+            return list(model.model_fields)
+    return None
+
+
 def install_errors(app: FastAPI) -> None:
     @app.exception_handler(ServiceError)
     async def _service_error(_: Request, e: ServiceError) -> JSONResponse:
         return error(e.status, e.message, e.details)
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, e: RequestValidationError) -> JSONResponse:
+    async def _validation(request: Request, e: RequestValidationError) -> JSONResponse:
         # never the input itself: only its place and a message, each clipped
-        lines = [f"{error_key(err['loc'])}: {error_message(err)}" for err in e.errors()]
+        known = _body_fields(request)
+        lines = []
+        for err in e.errors():
+            msg = error_message(err)
+            if err["type"] == "extra_forbidden" and len(err["loc"]) == 2 and known is not None:
+                msg = f"unknown field (the fields there are: {', '.join(known) or 'none'})"
+            lines.append(f"{error_key(err['loc'])}: {msg}")
         return error(422, "invalid request", lines)
 
     @app.exception_handler(StarletteHTTPException)
