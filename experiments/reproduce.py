@@ -548,9 +548,10 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         "both pads touch, both distal joints turn against the pads' wedge, (ωA + ωB)/2 − 90°, "
         "so that the rolling can start within the cones (`sdh2svc/control/grasp.py`).",
         "* **Reversals.** A reversal counts as the end of a half stroke only after Finger 2 "
-        "travelled 1° along its route; shorter moves count towards “stuck”. A reversal at a "
-        "cone, the pad's edge or the wedge commits to the way back: none of them refuses it for "
-        "2° of Finger 2's travel (a cone still does 2° beyond its limit) — near the end of a "
+        "travelled 1° along its route; shorter moves count towards “stuck”. A reversal for any "
+        "reason but a lost contact commits to the way back: neither a cone, the wedge, the "
+        "pad's edge nor the force refuses it for 2° of Finger 2's travel (a cone still does 2° "
+        "beyond its limit) — near the end of a "
         "stroke the route barely changes ω, a rolling contact overshoots the plan, one check "
         "often stops one way and another the other, and the thesis's rule would reverse on the "
         "spot for ever. The cones are as wide as the grasp itself held at "

@@ -13,7 +13,7 @@ turns A around B by dσ per iteration.
 
 Additions to the thesis (explained here and in config/default.toml), for objects nobody tuned it
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
-route; a reversal at a cone, the pad's edge or the wedge commits to the way back
+route; a reversal for any reason but a lost contact commits to the way back
 (:attr:`RollState.waived`), and the pad's edge never refuses a way back; the cones are as
 wide as the grasp held (:attr:`RollState.alpha_held`); a plan that widens the pads' wedge
 beyond its limit reverses; a plan Finger 1 cannot follow reverses; Finger 1's step limit; the
@@ -78,15 +78,16 @@ class RollState:
     consecutive_reversals: int = 0  # reversals since Finger 2 last travelled a half stroke
     travel: float = 0.0  # Finger 2's route travel since the last reversal (rad of φ4; σ in
     # one-finger mode)
-    # The check that caused the last reversal (a cone, the pad's edge or the wedge). While set,
-    # and until ``travel`` reaches WAY_BACK half strokes, the way back is waived by all of them.
+    # The check that caused the last reversal (any but a lost contact). While set, and until
+    # ``travel`` reaches WAY_BACK half strokes, the way back is waived by the cones, the wedge,
+    # the pad's edge and the force.
     # The plan respects a cone, but the rolling contact does not follow it exactly and can carry
     # ω past the limit (or a contact onto the edge row); near the end of a stroke the route then
     # barely changes ω, so both directions would "leave" the cone, a noisy ω or edge flag
     # flickers, and the thesis's rule reverses on the spot for ever. And at the end of a stroke
     # one check often stops one way and another the other way (the edge of Finger 1's pad and
-    # Finger 2's cone): each waiving only itself, they refuse both ways in turn. A cone still
-    # refuses a plan beyond it by more than RETREAT_LIMIT.
+    # Finger 2's cone, or Finger 1's reach and a cone): each waiving only itself, they refuse
+    # both ways in turn. A cone still refuses a plan beyond it by more than RETREAT_LIMIT.
     waived: Reversal | None = None
     # The largest |ω − 90°| at the first iteration: the grasp holds the object there, so its
     # friction angle is at least this; the cones are max(α, this) wide. A grasp can end with AB
@@ -200,8 +201,12 @@ def _finger1_step(cfg: _Config, pose: HandPose) -> float:
     return max(abs(cfg.ik.solution.proximal - pose.phi2), abs(cfg.ik.solution.distal - pose.phi3))
 
 
-_WAIVABLE = (Reversal.CONE_A, Reversal.CONE_B, Reversal.CONTACT_EDGE, Reversal.WEDGE,
-             Reversal.FORCE)  # fmt: skip
+# Every reversal but a lost contact commits to its way back, which retraces the travel that led
+# to it. A stroke that ends at Finger 1's reach or a joint limit has often carried a contact a
+# little past its cone on the way (a diagonal grip held at ωB = 112°): refused by the cone on the
+# way back and by the reach on the way forward, the run was stuck. A lost contact has no way
+# back to trust.
+_WAIVABLE = frozenset(Reversal) - {Reversal.CONTACT_LOST}
 
 
 def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> RollState:

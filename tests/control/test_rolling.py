@@ -206,9 +206,11 @@ def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> Non
     assert step(replace(back, travel=0.99 * way), pose, m, m, p, ctx).reversal is None
     r = step(replace(back, travel=way), pose, m, m, p, ctx)
     assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 1
-    # the way back from another check (cone A, the pad's edge) passes cone B as well: at the
-    # end of a stroke one check stops one way and another the other way
-    for other in (Reversal.CONE_A, Reversal.CONTACT_EDGE, Reversal.WEDGE):
+    # the way back from another check (cone A, the pad's edge, Finger 1's reach, a joint limit)
+    # passes cone B as well: at the end of a stroke one check stops one way and another the
+    # other way
+    for other in (Reversal.CONE_A, Reversal.CONTACT_EDGE, Reversal.WEDGE,
+                  Reversal.IK_UNREACHABLE, Reversal.WORKSPACE):  # fmt: skip
         assert step(replace(back, waived=other), pose, m, m, p, ctx).reversal is None
     # nor a plan beyond cone B by more than RETREAT_LIMIT
     far = _past_cone_b(cfg, p, beyond_deg=math.degrees(RETREAT_LIMIT) + 1.0)
@@ -251,6 +253,7 @@ def test_a_half_stroke_counts_only_after_finger2_travelled(cfg: Settings) -> Non
     assert s.travel == pytest.approx(rad(0.75))
     s = step(s, MIRROR, frame(20.0), empty, p, ctx).state
     assert s.half_strokes == 0 and s.consecutive_reversals == 1 and s.travel == 0
+    assert s.waived is None  # a lost contact waives nothing on the way back
     for _ in range(4):
         s = step(s, MIRROR, frame(20.0), frame(20.0), p, ctx).state
     s = step(s, MIRROR, frame(20.0), empty, p, ctx).state
@@ -260,7 +263,7 @@ def test_a_half_stroke_counts_only_after_finger2_travelled(cfg: Settings) -> Non
 def test_workspace_reverses_at_joint_limit(cfg: Settings) -> None:
     pose = HandPose(rad(-20), rad(30), rad(-89.9), rad(30))  # φ4 − Δφ would pass −90°
     r = step(RollState(), pose, frame(20.0), frame(20.0), params(cfg), cfg.model_context())
-    assert r.reversal is Reversal.WORKSPACE
+    assert r.reversal is Reversal.WORKSPACE and r.state.waived is Reversal.WORKSPACE
     # the other way round the same pose is fine for Finger 2
     r = step(RollState(direction=-1), pose, frame(20.0), frame(20.0), params(cfg),
              cfg.model_context())  # fmt: skip
@@ -272,7 +275,7 @@ def test_ik_unreachable_reverses(cfg: Settings) -> None:
     ctx = cfg.model_context()
     p = params(cfg, lambda_gain=50.0, delta_phi_deg=5.0)
     r = step(RollState(), MIRROR, frame(20.0), frame(20.0), p, ctx)
-    assert r.reversal is Reversal.IK_UNREACHABLE
+    assert r.reversal is Reversal.IK_UNREACHABLE and r.state.waived is Reversal.IK_UNREACHABLE
     c1 = r.obs.contact1
     d = math.hypot(r.plan.A_d.y, r.plan.A_d.z)
     l1 = cfg.hand.proximal_length_mm
