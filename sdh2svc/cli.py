@@ -550,7 +550,8 @@ def cmd_campaign(args: argparse.Namespace) -> int:
 def _campaign_run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from sdh2svc.campaign.run import load_suite, run_campaign
+    from sdh2svc.campaign.case import load_suite
+    from sdh2svc.campaign.run import run_campaign
 
     if args.dir_b is not None:
         _fail(Exit.USAGE, f"run takes one suite, not {args.dir_b!r} too")

@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import sdh2svc.control.runner as runner_mod
-from sdh2svc.campaign.run import case_settings, load_suite
+from sdh2svc.campaign.case import load_suite
+from sdh2svc.campaign.run import case_settings
 from sdh2svc.control.runner import RunFault
 from sdh2svc.control.safety import Fault
 

@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import sdh2svc.control.runner as runner_mod
-from sdh2svc.campaign.case import Case
-from sdh2svc.campaign.run import TruthProbe, case_settings, load_suite, measure
+from sdh2svc.campaign.case import Case, load_suite
+from sdh2svc.campaign.run import TruthProbe, case_settings, measure
 from sdh2svc.control.runner import RunFault
 from sdh2svc.control.safety import Fault
 

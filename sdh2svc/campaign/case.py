@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationError
 
+from sdh2svc.config import ConfigError, format_errors
 from sdh2svc.model.base import Frozen
 from sdh2svc.sim.objects import Ellipse, ObjectSpec, Shape
 
@@ -125,16 +128,29 @@ def contact_width_mm(obj: Shape, angle_deg: float) -> float:
 
 
 def load_suite(name_or_path: str | Path) -> Suite:
-    """A packaged suite by name (``smoke``, ``bench-v1``, ``thesis``) or a suite file's path."""
+    """A packaged suite by name (``smoke``, ``bench-v1``, ``thesis``) or a suite file's path.
+    An unknown name or a missing file raises :class:`FileNotFoundError`; an invalid suite
+    :class:`~sdh2svc.config.ConfigError`, naming every bad field and its allowed range."""
     text = str(name_or_path)
-    packaged = SUITES_DIR / f"{text}.json"
-    if "/" not in text and "\\" not in text and not text.endswith(".json"):
-        if not packaged.is_file():
-            names = ", ".join(suite_names())
+    path = Path(text)
+    if not (path.suffix.lower() == ".json" or os.sep in text or "/" in text or path.exists()):
+        path = SUITES_DIR / f"{text}.json"
+        if not path.is_file():
             shown = text if len(text) <= 80 else text[:80] + "…"
-            raise KeyError(f"unknown suite {shown!r}; packaged suites: {names}")
-        return Suite.load(packaged)
-    return Suite.load(Path(name_or_path))
+            raise FileNotFoundError(
+                f"no suite {shown!r} (packaged suites: {', '.join(suite_names())}; or give a "
+                "suite file's path)"
+            )
+    try:
+        suite = Suite.load(path)
+    except ValidationError as e:
+        raise ConfigError(format_errors(e, Suite), f"suite {path}") from None
+    counts = Counter(c.id for c in suite.cases)
+    dups = sorted(i for i, n in counts.items() if n > 1)
+    if dups:
+        raise ConfigError([f"cases: the id {d!r} is used more than once" for d in dups],
+                          f"suite {path}")  # fmt: skip
+    return suite
 
 
 def suite_names() -> list[str]:

@@ -26,7 +26,6 @@ import sys
 import tempfile
 import time
 import traceback
-from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -34,13 +33,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
-
 from sdh2svc.campaign.case import Case, Suite
-from sdh2svc.config import ConfigError, format_errors, load_config
+from sdh2svc.config import ConfigError, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 
-SUITES_DIR = Path(__file__).parent / "suites"
 CASES_FILE = "cases.jsonl"
 CAMPAIGN_FILE = "campaign.json"
 RESULTS_FILE = "results.parquet"
@@ -60,31 +56,6 @@ class CampaignError(Exception):
 
 
 # --- suites ---------------------------------------------------------------------------------
-
-
-def load_suite(name_or_path: str | Path) -> Suite:
-    """A suite by name (``smoke``, ``bench-v1``, ``thesis``: ``campaign/suites/NAME.json``) or
-    from a JSON file. An invalid one raises :class:`ConfigError` naming every bad field and its
-    allowed range; a missing one :class:`FileNotFoundError`."""
-    text = str(name_or_path)
-    path = Path(text)
-    if not (path.suffix.lower() == ".json" or os.sep in text or path.exists()):
-        path = SUITES_DIR / f"{text}.json"
-        if not path.is_file():
-            known = sorted(p.stem for p in SUITES_DIR.glob("*.json"))
-            raise FileNotFoundError(
-                f"no suite {text!r} (suites: {', '.join(known) or 'none yet'}; or give a file)"
-            )
-    try:
-        suite = Suite.load(path)
-    except ValidationError as e:
-        raise ConfigError(format_errors(e, Suite), f"suite {path}") from None
-    counts = Counter(c.id for c in suite.cases)
-    dups = sorted(i for i, n in counts.items() if n > 1)
-    if dups:
-        raise ConfigError([f"cases: the id {d!r} is used more than once" for d in dups],
-                          f"suite {path}")  # fmt: skip
-    return suite
 
 
 def suite_digest(suite: Suite) -> str:

@@ -164,7 +164,7 @@ def test_packaged_suites_load_by_name_and_path() -> None:
     smoke = load_suite("smoke")
     assert load_suite(gen.SUITES_DIR / "smoke.json") == smoke
     assert load_suite(str(gen.SUITES_DIR / "smoke.json")) == smoke
-    with pytest.raises(KeyError, match="unknown suite"):
+    with pytest.raises(FileNotFoundError, match=r"no suite 'nosuch' \(packaged suites: bench"):
         load_suite("nosuch")
 
 

@@ -241,7 +241,7 @@ def thesis_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[tupl
     campaign runs them: every iteration's observation, matrices, true ψ and truth per pad."""
     from experiments.recognition.capture import capture_case
     from experiments.recognition.truth import feature, spec_of
-    from sdh2svc.campaign.run import load_suite
+    from sdh2svc.campaign.case import load_suite
 
     ctx = default_config().model_context()
     suite = {c.id: c for c in load_suite("thesis").cases}
