@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import os
+import re
 import sys
 import traceback
 from collections.abc import Sequence
@@ -516,15 +517,20 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
 
 def cmd_campaign(args: argparse.Namespace) -> int:
     """Campaigns: run every case of a suite (one fast simulated run each, judged from the
-    simulation's truth) into OUT/results.parquet; report on one; compare two. `run` is
-    resumable: the same command on the same --out runs only the cases not yet recorded."""
+    simulation's truth) into OUT/results.parquet; report on one; compare two; generate a new
+    suite from a seed. `run` is resumable: the same command on the same --out runs only the
+    cases not yet recorded."""
     from pathlib import Path
 
     from sdh2svc.campaign.run import CampaignError
 
+    if args.action != "generate" and (args.seed is not None or args.cases is not None):
+        _fail(Exit.USAGE, "--seed and --cases go with generate only")
     try:
         if args.action == "run":
             return _campaign_run(args)
+        if args.action == "generate":
+            return _campaign_generate(args)
         if args.action == "report":
             from sdh2svc.campaign.report import write_report
 
@@ -545,6 +551,42 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         _fail(Exit(e.status), _one_line(e))
     except FileNotFoundError as e:
         _fail(Exit.NOT_FOUND, _one_line(e))
+
+
+def _campaign_generate(args: argparse.Namespace) -> int:
+    """A new suite of ``--cases`` generated cases from ``--seed``: the same seed and count, the
+    same cases (a suite of objects none of the packaged suites holds, e.g. to check a change on
+    objects it was not chosen on)."""
+    from pathlib import Path
+
+    from sdh2svc.campaign.case import Suite
+    from sdh2svc.campaign.generate import generate_cases
+
+    name = args.dir
+    if args.dir_b is not None:
+        _fail(Exit.USAGE, f"generate takes one suite name, not {args.dir_b[:80]!r} too")
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", name):
+        _fail(Exit.USAGE, f"suite name {name[:80]!r}: letters, digits, '_', '.', '-' (at most "
+                          "64, starting with a letter or digit)")  # fmt: skip
+    if args.seed is None or args.cases is None:
+        _fail(Exit.USAGE, "generate needs --seed S and --cases N (the same seed and count, "
+                          "the same cases)")  # fmt: skip
+    if not 1 <= args.cases <= 100_000:
+        _fail(Exit.USAGE, f"--cases {args.cases}: 1 to 100000")
+    if args.seed < 0:
+        _fail(Exit.USAGE, f"--seed {args.seed}: 0 or more")
+    out = Path(args.output or f"{name}.json")
+    if out.exists():
+        _fail(Exit.USAGE, f"{out} exists: a suite is never rewritten (give another -o FILE)")
+    cases = tuple(generate_cases(args.seed, args.cases, prefix=f"{name}-"))
+    suite = Suite(name=name, generator_seed=args.seed, cases=cases,
+                  description=f"{args.cases} generated cases, seed {args.seed}")  # fmt: skip
+    try:
+        suite.dump(out)
+    except OSError as e:
+        _fail(Exit.UNAVAILABLE, f"cannot write {out}: {e.strerror or e}")
+    print(f"{out}: suite {name!r}, {args.cases} cases from seed {args.seed}")
+    return Exit.OK
 
 
 def _campaign_run(args: argparse.Namespace) -> int:
@@ -684,13 +726,14 @@ def build_parser() -> argparse.ArgumentParser:
     action.add_argument("--release", action="store_true", help="release it")
     p.set_defaults(func=cmd_estop)
 
-    p = sub.add_parser("campaign", help="campaigns: run a suite, report, compare",
+    p = sub.add_parser("campaign", help="campaigns: run a suite, report, compare, generate",
                        description=cmd_campaign.__doc__)  # fmt: skip
     _add_config_args(p)
-    p.add_argument("action", choices=["run", "report", "compare"])
+    p.add_argument("action", choices=["run", "report", "compare", "generate"])
     p.add_argument("dir", metavar="SUITE|DIR",
                    help="run: a suite name (smoke, bench-v1, thesis) or a suite JSON file; "
-                        "report: a campaign directory; compare: campaign A")  # fmt: skip
+                        "report: a campaign directory; compare: campaign A; generate: the new "
+                        "suite's name")  # fmt: skip
     p.add_argument("dir_b", nargs="?", metavar="DIR_B", help="compare: campaign B")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, help="local worker processes (default: all CPUs)")
@@ -700,7 +743,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="run: campaign directory (default "
                    "campaigns/SUITE_NAME); the same command again resumes there")  # fmt: skip
     p.add_argument("-o", "--output", metavar="FILE",
-                   help="compare: markdown file (default DIR_B/compare.md)")  # fmt: skip
+                   help="compare: markdown file (default DIR_B/compare.md); generate: the "
+                        "suite file (default NAME.json)")  # fmt: skip
+    p.add_argument("--seed", type=int, help="generate: the generator's seed")
+    p.add_argument("--cases", type=int, help="generate: how many cases (families take turns)")
     p.add_argument("--quiet", action="store_true", help="run: no progress line")
     p.set_defaults(func=cmd_campaign)
     return parser

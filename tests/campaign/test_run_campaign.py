@@ -16,7 +16,8 @@ import pytest
 
 import sdh2svc.service.headless as headless
 from sdh2svc.campaign import run as camp
-from sdh2svc.campaign.case import Case, Suite
+from sdh2svc.campaign.case import Case, Suite, load_suite
+from sdh2svc.campaign.generate import GENERATED, generate_cases
 from sdh2svc.campaign.results import METADATA_KEY
 from sdh2svc.cli import main
 from sdh2svc.connect import Simulated
@@ -331,3 +332,27 @@ def test_a_dead_worker_or_an_exception_in_it_is_a_crashed_case_and_the_rest_run(
     assert rows["rubber-4"]["status"] == "crashed"
     assert "ValueError: not caught in the worker" in rows["rubber-4"]["traceback"]
     assert all(rows[f"rubber-{i}"]["status"] == "stopped" for i in (1, 2, 5, 6))
+
+
+def test_generate_writes_a_new_suite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`campaign generate NAME --seed S --cases N`: the seed's cases under the suite's name, a
+    file `campaign run` loads as it loads any suite; never rewritten; bad input refused (2)."""
+    out = tmp_path / "held.json"
+    args = ["campaign", "generate", "held", "--seed", "77", "--cases", "7", "-o", str(out)]
+    assert main(args) == 0
+    suite = load_suite(out)
+    assert suite.name == "held" and suite.generator_seed == 77
+    assert suite.cases == tuple(generate_cases(77, 7, prefix="held-"))
+    assert {c.family for c in suite.cases} == set(GENERATED)  # every family, taking turns
+    text = out.read_text()
+    assert main(args) == 2 and out.read_text() == text  # never rewritten
+    assert "exists" in capsys.readouterr().err
+    again = tmp_path / "again.json"
+    assert main([*args[:-1], str(again)]) == 0 and again.read_text() == text  # bit for bit
+    for bad in (["generate", "a b", "--seed", "1", "--cases", "3"],
+                ["generate", "x", "--cases", "3"],
+                ["generate", "x", "--seed", "1", "--cases", "0"],
+                ["generate", "x", "--seed", "-1", "--cases", "3"],
+                ["run", "smoke", "--seed", "1"]):  # fmt: skip
+        assert main(["campaign", *bad, "-o", str(tmp_path / "bad.json")]) == 2, bad
+    assert not (tmp_path / "bad.json").exists()
