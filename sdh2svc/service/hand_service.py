@@ -175,7 +175,8 @@ class HandService:
         return self._opening is not None and not self._opening.done()
 
     def start_run(self, params: dict[str, Any] | None = None, obj: Any = None) -> dict[str, Any]:
-        """Start a run (409 while one runs, while the hand opens, or the e-stop is latched)."""
+        """Start a run (409 while one runs, while the hand opens, or the e-stop is latched; 503
+        while a line is down: nothing is recorded, as a run could not even pre-shape)."""
         joints, tactile, store = self._links()
         if self.running and self.run is not None:
             raise ServiceError(409, f"run {self.run.run_id} is already running "
@@ -185,6 +186,7 @@ class HandService:
         if joints.estopped:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
+        self._require_lines(joints, tactile)
         run_params = validate_params(self.params, params) if params else self.params
         if self.bench is not None:  # as in a lab: the object is put back in the fixture first
             self.set_object(obj or self.bench.obj)
@@ -266,8 +268,7 @@ class HandService:
         if joints.estopped:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
-        if not joints.connected:
-            raise ServiceError(503, f"the joint line ({self.sdh_url}) is down")
+        self._require_lines(joints)
         self._opening = asyncio.create_task(self._open(joints), name="open-hand")
         self.publish_status()
         return {"state": "opening"}
@@ -411,6 +412,15 @@ class HandService:
         self.hub.publish(Status(self.status()))
 
     # --- internals ------------------------------------------------------------------------------
+
+    def _require_lines(self, joints: JointLink, tactile: TactileBus | None = None) -> None:
+        """503 naming the line that is down (the links reconnect by themselves meanwhile)."""
+        if not joints.connected:
+            raise ServiceError(503, f"the joint line ({self.sdh_url}) is down; it reconnects by "
+                               "itself: try again when status shows it connected")  # fmt: skip
+        if tactile is not None and not tactile.connected:
+            raise ServiceError(503, f"the tactile line ({self.dsa_url}) is down; it reconnects "
+                               "by itself: try again when status shows it connected")  # fmt: skip
 
     def _links(self) -> tuple[JointLink, TactileBus, RunStore]:
         if self.joints is None or self.tactile is None or self.store is None:

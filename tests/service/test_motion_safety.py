@@ -18,7 +18,7 @@ from typing import Any
 import httpx
 import pytest
 
-from sdh2svc.client import AsyncClient, Conflict, Unauthorized, run_state
+from sdh2svc.client import AsyncClient, Conflict, Unauthorized, Unavailable, run_state
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.sim.cable import Cable
@@ -63,6 +63,13 @@ async def _stop(svc: LiveService, sig: int = signal.SIGTERM) -> int:
     return await asyncio.to_thread(svc.stop, sig)
 
 
+def _faulted_and_down(st: dict[str, Any]) -> bool:
+    """The run has faulted and the service sees the joint line down."""
+    return (
+        not st["hand"]["connected"]["joints"] and (st["last_run"] or {}).get("status") == "faulted"
+    )
+
+
 async def _start_grasp(svc: LiveService, sim: SimulatedHand) -> None:
     async with svc.client() as client:
         await client.start_run()
@@ -83,6 +90,14 @@ async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
         await _start_grasp(svc, sim)
         await cable.cut()
         at_cut = _angles(sim)
+        async with svc.client() as client:  # while the line is down a run is refused, not begun
+            await client.wait_status(_faulted_and_down, 30.0)
+            runs = len(await client.runs())
+            with pytest.raises(Unavailable, match=r"the joint line \(.*\) is down"):
+                await client.start_run()
+            with pytest.raises(Unavailable, match=r"the joint line \(.*\) is down"):
+                await client.open_hand()
+            assert len(await client.runs()) == runs  # nothing recorded
         await asyncio.sleep(WATCH_S)
         assert _moved(_angles(sim), at_cut) <= STEP_DEG
         await cable.plug()  # the link comes back: the service stops all axes, nothing moves
@@ -93,6 +108,34 @@ async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
         assert _moved(_angles(sim), at_cut) <= STEP_DEG
     finally:
         assert await _stop(svc) == 0, "".join(svc.log)
+
+
+async def test_a_run_waits_for_the_tactile_line(tmp_path: Path) -> None:
+    """With the tactile line down a run is refused (503, nothing recorded); once it is back,
+    the same request starts a run."""
+    async with simulated_hand(load_config(), Simulated()) as bench:
+        sim = bench.sim
+        host, port = sim.urls("dsa")[0].removeprefix("socket://").rsplit(":", 1)
+        dsa = Cable(host, int(port))
+        await dsa.plug()
+        extra = ["--dsa", dsa.url, "--sdh", sim.urls("sdh")[0]]
+        svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, sim=False,
+                                      extra=extra)  # fmt: skip
+        try:
+            async with svc.client() as client:
+                await dsa.cut()
+                await client.wait_status(lambda st: not st["hand"]["connected"]["tactile"], 30.0)
+                with pytest.raises(Unavailable, match=r"the tactile line \(.*\) is down"):
+                    await client.start_run()
+                assert await client.runs() == []
+                await dsa.plug()
+                await client.wait_status(lambda st: st["hand"]["connected"]["tactile"], 30.0)
+                run = await client.start_run()
+                await client.stop_run()
+                assert (await client.wait_run(run["run_id"], timeout=60.0))["id"] == run["run_id"]
+        finally:
+            await dsa.close()
+            assert await _stop(svc) == 0, "".join(svc.log)
 
 
 async def test_kill_during_the_grasp_then_restart_leaves_the_fingers_still(
