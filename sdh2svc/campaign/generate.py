@@ -29,19 +29,20 @@ The ranges, and why:
   distal pad (matrix 1 or 5) in about one case of four.
 
 Each scalar is drawn by Latin hypercube over the suite (one draw per stratum of 1/n), so even a
-20-case suite spans every range; the families take turns. Every case is checked before it is
-kept (:func:`check_placement`; else its angle and shape are drawn again, its width, height,
-material and sensor kept): it validates, fits between the open fingers with ``CLEARANCE_MM`` to
-spare, and closing each finger as the grasp does (proximal +δ, distal −δ) touches the object
-first with its distal pad, on the pad's sensing area at least one row in from its ends, before
-``run.grasp_max_close_deg`` — and both fingertips touch it within ``MAX_TOUCH_LAG_DEG`` of
-closing of each other. That last one matters: the fixture holds the object where it is placed
-and withdraws it if one finger pushes 1 mm into it before the other touches, and a tilted
-object's two touching points sit at different heights, where the pads' arcs stand at different
-distances. So an asymmetric outline (an irregular or odd-sided polygon) is first turned to the
-nearest angle at which its extent along y0 is centred on its centre, and tilts are kept where the
-two touches still come together (sticks end up within a few degrees of level). The checks are
-geometry only: whether the run then holds and rolls the object is what a campaign measures.
+20-case suite spans every range; the families take turns. Every case is checked before it is kept
+(:func:`check_placement`; else its angle and shape are drawn again, its width, height, material and
+sensor kept; after ``MAX_TRIES`` draws its width is narrowed by 2 % and the draws begin again: near
+120 mm and low down the open fingers hold a little less): it validates, fits between the open
+fingers with ``CLEARANCE_MM`` to spare, and closing each finger as the grasp does (proximal +δ,
+distal −δ) touches the object first with its distal pad, on the pad's sensing area at least one row
+in from its ends, before ``run.grasp_max_close_deg`` — and both fingertips touch it within
+``MAX_TOUCH_LAG_DEG`` of closing of each other. That last one matters: the fixture holds the object
+where it is placed and withdraws it if one finger pushes 1 mm into it before the other touches, and
+a tilted object's two touching points sit at different heights, where the pads' arcs stand at
+different distances. So an asymmetric outline (an irregular or odd-sided polygon) is first turned
+to the nearest angle at which its extent along y0 is centred on its centre, and tilts are kept
+where the two touches still come together (sticks end up within a few degrees of level). The checks
+are geometry only: whether the run then holds and rolls the object is what a campaign measures.
 """
 
 from __future__ import annotations
@@ -126,6 +127,7 @@ MAX_TOUCH_LAG_DEG = 0.4  # both fingertips touch it within this much closing of 
 DECIMALS = 3  # every generated number is rounded (mm, g, …): readable, and exact in JSON
 WIDTH_DECIMALS = 6  # the true contact width, computed from them
 MAX_TRIES = 500
+WIDTH_SHRINK = 0.98  # after MAX_TRIES draws that do not fit, the width is made this much smaller
 SWEEP_CHUNK = 16  # grasp steps checked per distance evaluation
 
 # the named suites: name → (seed, cases, description)
@@ -409,8 +411,12 @@ def _dead_cells(s: Settings) -> list[tuple[int, int, int]]:
     return [(m, int(r), int(c)) for m in mats for r, c in zip(*np.nonzero(valid), strict=True)]
 
 
-def generate_cases(seed: int, n: int, *, prefix: str = "") -> list[Case]:
-    """``n`` cases from ``seed`` (bit for bit the same every time), families taking turns."""
+def generate_cases(
+    seed: int, n: int, *, prefix: str = "", progress: Callable[[int, int], None] | None = None
+) -> list[Case]:
+    """``n`` cases from ``seed`` (bit for bit the same every time), families taking turns;
+    ``progress(done, n)`` after each (a case takes tens of milliseconds: its placement is
+    checked against the hand's geometry)."""
     rng = np.random.default_rng(seed)
     names = ("width", "height", "angle", "friction", "stiffness", "mass", "depth", "gain",
              "creep_gain", "creep_rise", "noise", "sides")  # fmt: skip
@@ -445,25 +451,34 @@ def generate_cases(seed: int, n: int, *, prefix: str = "") -> list[Case]:
             dead_texels=texels,
         )
         angle_u, n_sides, is_regular = u["angle"][i], sides[i], bool(regular[i])
-        for attempt in range(MAX_TRIES):
-            if attempt and attempt % KEEP_SIDES_TRIES == 0:  # e.g. no regular triangle this
-                n_sides = int(rng.integers(lo_n, hi_n + 1))  # wide fits at this height
-                is_regular = bool(rng.random() < REGULAR_SHARE)
-            try:
-                got = _shape(family, width, angle_u, depth, material, rng, case_id,
-                             n_sides, is_regular)  # fmt: skip
-            except ValueError:  # pydantic's ValidationError is one: a draw out of bounds
-                got = None
-            if got is not None:
-                obj, angle = got
-                if check_placement(obj, height, angle) is None:
+        placed = None
+        while placed is None:
+            for attempt in range(MAX_TRIES):
+                if attempt and attempt % KEEP_SIDES_TRIES == 0:  # e.g. no regular triangle this
+                    n_sides = int(rng.integers(lo_n, hi_n + 1))  # wide fits at this height
+                    is_regular = bool(rng.random() < REGULAR_SHARE)
+                try:
+                    got = _shape(family, width, angle_u, depth, material, rng, case_id,
+                                 n_sides, is_regular)  # fmt: skip
+                except ValueError:  # pydantic's ValidationError is one: a draw out of bounds
+                    got = None
+                if got is not None and check_placement(got[0], height, got[1]) is None:
+                    placed = got
                     break
-            angle_u = rng.random()  # another angle (and another shape) for this width
-        else:  # pragma: no cover - the ranges above always leave room
-            raise RuntimeError(f"no graspable {family} {width:.1f} mm wide after {MAX_TRIES}")
+                angle_u = rng.random()  # another angle (and another shape) for this width
+            else:
+                # The open fingers hold less at some heights than the widest of WIDTH_MM (a
+                # 119 mm box at 116 mm up touches a pad off its sensing area or does not fit):
+                # a little narrower, until it fits
+                if width * WIDTH_SHRINK < WIDTH_MM[0]:  # pragma: no cover - 15 mm always fits
+                    raise RuntimeError(f"no graspable {family} at {height} mm up")
+                width *= WIDTH_SHRINK
+        obj, angle = placed
         cases.append(Case(id=case_id, family=family, object=obj, height_mm=height,
                           angle_deg=angle, seed=i + 1, sensor=sensor,
                           true_width_mm=_true_width(obj, angle)))  # fmt: skip
+        if progress is not None:
+            progress(i + 1, n)
     return cases
 
 

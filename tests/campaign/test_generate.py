@@ -83,6 +83,16 @@ def test_generated_cases_validate_and_their_true_width_is_right(seed: int) -> No
         check_case(case)
 
 
+def test_a_width_the_fingers_cannot_hold_at_its_height_is_narrowed() -> None:
+    """Seed 3's 25 cases draw a 118.8 mm box 116.5 mm up, where no angle or aspect fits: it is
+    narrowed until one does (before, generation stopped with an error)."""
+    cases = gen.generate_cases(3, 25)
+    box = next(c for c in cases if c.id == "box-024")
+    assert box.height_mm < 117.0 and 110.0 < box.true_width_mm < 118.8 * gen.WIDTH_SHRINK + 0.5
+    for case in cases:
+        check_case(case)
+
+
 _mm = st.floats(5.0, 140.0)
 
 

@@ -352,6 +352,7 @@ def test_generate_writes_a_new_suite(tmp_path: Path, capsys: pytest.CaptureFixtu
     for bad in (["generate", "a b", "--seed", "1", "--cases", "3"],
                 ["generate", "x", "--cases", "3"],
                 ["generate", "x", "--seed", "1", "--cases", "0"],
+                ["generate", "x", "--seed", "1", "--cases", "10001"],
                 ["generate", "x", "--seed", "-1", "--cases", "3"],
                 ["run", "smoke", "--seed", "1"]):  # fmt: skip
         assert main(["campaign", *bad, "-o", str(tmp_path / "bad.json")]) == 2, bad
