@@ -253,7 +253,10 @@ def _read_presses(bench: Bench, loop: Any) -> None:
 
 def _object(args: argparse.Namespace, default: str = "") -> Shape:
     """The simulated object of ``--object``/``--object-file`` (else the preset ``default``)."""
-    from sdh2svc.sim.objects import get_object, load_object
+    from pydantic import ValidationError
+
+    from sdh2svc.config import format_errors
+    from sdh2svc.sim.objects import ObjectSpec, get_object, load_object
 
     try:
         if args.object_file:
@@ -261,6 +264,9 @@ def _object(args: argparse.Namespace, default: str = "") -> Shape:
         return get_object(args.object or default)
     except KeyError as e:  # str() of a KeyError is the repr of its argument
         _fail(Exit.USAGE, _one_line(e.args[0] if e.args else e))
+    except ValidationError as e:  # before ValueError, which it is: one line per bad field
+        _fail(Exit.USAGE, f"invalid object in {args.object_file}: "
+                          + "; ".join(format_errors(e, ObjectSpec)))  # fmt: skip
     except (OSError, ValueError) as e:
         _fail(Exit.USAGE, _one_line(e))
 

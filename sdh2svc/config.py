@@ -265,9 +265,27 @@ def format_errors(err: ValidationError, model: Any) -> list[str]:
         allowed = _allowed_range(model, loc)
         msg = error_message(e).removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            msg = "unknown key (see config/default.toml for the keys there are)"
+            msg = unknown_key(model_keys(model, loc[:-1]))
         lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
     return lines
+
+
+def unknown_key(keys: Iterable[str] | None) -> str:
+    """The message for a key a model does not have, naming the keys it has (if known)."""
+    if keys is None:
+        return "unknown key"
+    return f"unknown key (the keys there are: {', '.join(keys) or 'none'})"
+
+
+def model_keys(model: Any, loc: tuple[int | str, ...] = ()) -> list[str] | None:
+    """The keys of the model that ``loc`` leads to down ``model`` (None: not a model there)."""
+    tp: Any = model
+    for part in loc:
+        tp, _ = _descend(tp, part)
+        if tp is None:
+            return None
+    tp, _ = _unwrap(tp)
+    return list(tp.model_fields) if isinstance(tp, type) and issubclass(tp, BaseModel) else None
 
 
 def _allowed_range(model: Any, loc: tuple[int | str, ...]) -> str:

@@ -333,3 +333,23 @@ def test_a_bug_is_one_line_unless_debugging(
     monkeypatch.setenv("SDH2SVC_DEBUG", "1")
     assert main(["demo"]) == Exit.BUG
     assert "Traceback" in capsys.readouterr().err
+
+
+def test_a_bad_object_file_is_named_field_by_field(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--object-file: each bad field on one line with its range or the keys there are; a file
+    that is not TOML says where."""
+    bad = tmp_path / "mine.toml"
+    bad.write_text('kind = "box"\nwidth_mm = -4\nheight_mm = 20\ndepth_mm = 30\ncolour = 3\n')
+    assert main(["run", "--sim", "--fast", "--object-file", str(bad)]) == Exit.USAGE
+    line = one_line(capsys.readouterr().err, "run")
+    assert f"invalid object in {bad}: box.width_mm = -4:" in line
+    assert "(allowed: 1.0 ≤ width_mm ≤ 150.0)" in line
+    assert "box.colour = 3: unknown key (the keys there are: name, depth_mm," in line
+    bad.write_text('kind = "blob"\n')
+    assert main(["run", "--sim", "--fast", "--object-file", str(bad)]) == Exit.USAGE
+    assert "'stick', 'box', 'ellipse', 'circle', 'polygon'" in capsys.readouterr().err
+    bad.write_text('kind = "box\n')
+    assert main(["run", "--sim", "--fast", "--object-file", str(bad)]) == Exit.USAGE
+    assert "(at line 1, column 12)" in one_line(capsys.readouterr().err, "run")

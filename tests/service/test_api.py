@@ -129,9 +129,7 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
             # GET's {"object": …} put back as it came: the answer names the fields there are
             r = await raw.put("/api/sim/object", json={"object": {"kind": "circle"}})
         assert r.status_code == 422
-        assert r.json()["details"] == [
-            "body.object: unknown field (the fields there are: name, spec)"
-        ]
+        assert r.json()["details"] == ["body.object: unknown key (the keys there are: name, spec)"]
         with pytest.raises(InvalidRequest) as bad:
             await c.start_run({"alpha_deg": 90})
         assert "alpha_deg" in bad.value.details[0]

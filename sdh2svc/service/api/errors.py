@@ -3,7 +3,7 @@ that produce it, and the documentation of each status the routes may answer."""
 
 from __future__ import annotations
 
-from typing import Any, get_args
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from sdh2svc.config import clip, error_key, error_message
+from sdh2svc.config import clip, error_key, error_message, model_keys, unknown_key
 from sdh2svc.service.hand_service import ServiceError
 
 
@@ -62,14 +62,10 @@ def error(status: int, message: str, details: list[str] | None = None) -> JSONRe
     return JSONResponse(body, status_code=status)
 
 
-def _body_fields(request: Request) -> list[str] | None:
-    """The top-level fields of the route's JSON body model (None if it has none)."""
+def _body_keys(request: Request) -> list[str] | None:
+    """The top-level keys of the route's JSON body model (None if it has none)."""
     field = getattr(request.scope.get("route"), "body_field", None)
-    annotation = getattr(getattr(field, "field_info", None), "annotation", None)
-    for model in (annotation, *get_args(annotation)):  # the model, or the model | None
-        if isinstance(model, type) and issubclass(model, BaseModel):
-            return list(model.model_fields)
-    return None
+    return model_keys(getattr(getattr(field, "field_info", None), "annotation", None))
 
 
 def install_errors(app: FastAPI) -> None:
@@ -80,12 +76,11 @@ def install_errors(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, e: RequestValidationError) -> JSONResponse:
         # never the input itself: only its place and a message, each clipped
-        known = _body_fields(request)
         lines = []
         for err in e.errors():
             msg = error_message(err)
-            if err["type"] == "extra_forbidden" and len(err["loc"]) == 2 and known is not None:
-                msg = f"unknown field (the fields there are: {', '.join(known) or 'none'})"
+            if err["type"] == "extra_forbidden" and len(err["loc"]) == 2:  # body.KEY
+                msg = unknown_key(_body_keys(request))
             lines.append(f"{error_key(err['loc'])}: {msg}")
         return error(422, "invalid request", lines)
 
