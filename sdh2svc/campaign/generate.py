@@ -48,6 +48,7 @@ are geometry only: whether the run then holds and rolls the object is what a cam
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import sys
 from collections.abc import Callable, Sequence
@@ -451,29 +452,27 @@ def generate_cases(
             dead_texels=texels,
         )
         angle_u, n_sides, is_regular = u["angle"][i], sides[i], bool(regular[i])
-        placed = None
-        while placed is None:
-            for attempt in range(MAX_TRIES):
-                if attempt and attempt % KEEP_SIDES_TRIES == 0:  # e.g. no regular triangle this
-                    n_sides = int(rng.integers(lo_n, hi_n + 1))  # wide fits at this height
-                    is_regular = bool(rng.random() < REGULAR_SHARE)
-                try:
-                    got = _shape(family, width, angle_u, depth, material, rng, case_id,
-                                 n_sides, is_regular)  # fmt: skip
-                except ValueError:  # pydantic's ValidationError is one: a draw out of bounds
-                    got = None
-                if got is not None and check_placement(got[0], height, got[1]) is None:
-                    placed = got
-                    break
-                angle_u = rng.random()  # another angle (and another shape) for this width
-            else:
+        for attempt in itertools.count(1):
+            try:
+                got = _shape(family, width, angle_u, depth, material, rng, case_id,
+                             n_sides, is_regular)  # fmt: skip
+            except ValueError:  # pydantic's ValidationError is one: a draw out of bounds
+                got = None
+            if got is not None and check_placement(got[0], height, got[1]) is None:
+                break
+            angle_u = rng.random()  # another angle (and another shape) for this width
+            if attempt % MAX_TRIES == 0:
                 # The open fingers hold less at some heights than the widest of WIDTH_MM (a
                 # 119 mm box at 116 mm up touches a pad off its sensing area or does not fit):
                 # a little narrower, until it fits
                 if width * WIDTH_SHRINK < WIDTH_MM[0]:  # pragma: no cover - 15 mm always fits
                     raise RuntimeError(f"no graspable {family} at {height} mm up")
                 width *= WIDTH_SHRINK
-        obj, angle = placed
+            elif attempt % KEEP_SIDES_TRIES == 0:  # e.g. no regular triangle this wide fits
+                n_sides = int(rng.integers(lo_n, hi_n + 1))  # at this height
+                is_regular = bool(rng.random() < REGULAR_SHARE)
+        assert got is not None  # the loop ends only with a placement
+        obj, angle = got
         cases.append(Case(id=case_id, family=family, object=obj, height_mm=height,
                           angle_deg=angle, seed=i + 1, sensor=sensor,
                           true_width_mm=_true_width(obj, angle)))  # fmt: skip

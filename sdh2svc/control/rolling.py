@@ -240,12 +240,10 @@ def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | No
 
 
 def _on_way_back(state: RollState, p: RollingParams) -> bool:
-    """Whether the rotation reversed (for any reason) less than WAY_BACK half strokes ago. The
-    pad's edge does not refuse the way back from any reversal, not only from its own: that way
-    retraces the travel that carried the contact to the edge. Otherwise a stroke that ends at
-    Finger 1's reach (or a joint limit) with a contact near its pad's end flickering onto the
-    edge row is refused both ways in turn — the reach one way, the edge the other — and the run
-    stops as stuck (bench-v1's circle-327 on the workspace route, a 94 mm circle)."""
+    """Whether the rotation reversed, for any reason, less than WAY_BACK half strokes ago. The
+    pad's edge refuses no such way back, a lost contact's included (the other checks follow
+    ``waived``, see _WAIVABLE): it retraces the travel that carried the contact to the edge
+    (bench-v1's circle-327 was stuck between the reach one way and the edge row the other)."""
     return state.consecutive_reversals > 0 and _within_way_back(state, p)
 
 
