@@ -15,7 +15,7 @@ from enum import IntEnum
 from typing import TYPE_CHECKING, Any, NoReturn
 
 from sdh2svc import __version__
-from sdh2svc.config import ConfigError, Settings, load_config
+from sdh2svc.config import ConfigError, Settings, clip, load_config
 from sdh2svc.model.friction import inside_cone, omega
 from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
@@ -570,9 +570,9 @@ def _campaign_generate(args: argparse.Namespace) -> int:
 
     name = args.dir
     if args.dir_b is not None:
-        _fail(Exit.USAGE, f"generate takes one suite name, not {args.dir_b[:80]!r} too")
+        _fail(Exit.USAGE, f"generate takes one suite name, not {clip(args.dir_b)!r} too")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", name):
-        _fail(Exit.USAGE, f"suite name {name[:80]!r}: letters, digits, '_', '.', '-' (at most "
+        _fail(Exit.USAGE, f"suite name {clip(name)!r}: letters, digits, '_', '.', '-' (at most "
                           "64, starting with a letter or digit)")  # fmt: skip
     if args.seed is None or args.cases is None:
         _fail(Exit.USAGE, "generate needs --seed S and --cases N (the same seed and count, "

@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, ValidationError
 
-from sdh2svc.config import ConfigError, format_errors
+from sdh2svc.config import ConfigError, clip, format_errors
 from sdh2svc.model.base import Frozen
 from sdh2svc.sim.objects import Ellipse, ObjectSpec, Shape
 
@@ -136,9 +136,8 @@ def load_suite(name_or_path: str | Path) -> Suite:
     if not (path.suffix.lower() == ".json" or os.sep in text or "/" in text or path.exists()):
         path = SUITES_DIR / f"{text}.json"
         if not path.is_file():
-            shown = text if len(text) <= 80 else text[:80] + "…"
             raise FileNotFoundError(
-                f"no suite {shown!r} (packaged suites: {', '.join(suite_names())}; or give a "
+                f"no suite {clip(text)!r} (packaged suites: {', '.join(suite_names())}; or give a "
                 "suite file's path)"
             )
     try:
