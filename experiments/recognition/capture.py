@@ -11,6 +11,8 @@ which feature touches each pad is computed offline (:mod:`experiments.recognitio
     python -m experiments.recognition.capture --seed 1701 --n 60 --out /tmp/recog/fit.jsonl
     (and --seed 1703 → fit2.jsonl, --seed 1704 → fit3.jsonl: the other fit suites)
     python -m experiments.recognition.capture --seed 1702 --n 60 --out /tmp/recog/test.jsonl
+    python -m experiments.recognition.capture --seed 1709 --n 60 --out /tmp/recog/test2.jsonl
+    python -m experiments.recognition.capture --seed 1710 --n 60 --out /tmp/recog/test3.jsonl
     python -m experiments.recognition.capture --suite thesis --out /tmp/recog/thesis.jsonl
 
 One JSON line per case; a case already in the file is skipped (the capture resumes).

@@ -20,9 +20,12 @@ How (rolling kinematics, no model of the object):
   a relative turn while the contact stays put (a pivot): an **edge** or corner; in between a
   **curved** surface of radius 1/κ. A small learned model (multinomial logistic,
   :class:`Softmax`) weighs this against how well ν − ψ fits a line over the window (a
-  transition does not), the pressure footprint, how soft the object reads over the run (the
-  pad rubber's compression against Hertz's F^⅔: a soft object takes part of the squeeze, and
-  its flat face wraps the pad like a curved one) and the other contact
+  transition does not), the same line over a longer window (about a half stroke: a radius of
+  a few millimetres moves the contact too little in the short one to tell it from a pivot),
+  the pressure footprint and its profile along the pad (:func:`pressure_profile`: a flat face
+  loads the rows under it alike or in a ramp, a curved surface in a hump), how soft the object
+  reads over the run (the pad rubber's compression against Hertz's F^⅔: a soft object takes
+  part of the squeeze, and its flat face wraps the pad like a curved one) and the other contact
   (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide. A curved
   contact's radius is the kinematic one times a learned correction (:class:`Linear`, on the
   same features), which undoes the window's bias on large radii and soft objects.
@@ -30,8 +33,8 @@ How (rolling kinematics, no model of the object):
   second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
 
 The learned parts are fitted by ``python -m experiments.recognition.fit`` and shipped in
-``recognition_model.json`` beside this module. The raw counts are taken for the contract's
-sake: everything used from them is already in the observation's contact estimates.
+``recognition_model.json`` beside this module. From the raw counts it takes the pressure's
+profile along each pad; the rest comes from the observation's contact estimates.
 """
 
 from __future__ import annotations
@@ -106,6 +109,14 @@ class _Affine:
     weights: np.ndarray  # (outputs, features) or (features,)
     bias: np.ndarray  # (outputs,) or a scalar
     quadratic: bool = False
+    # the standardisation folded into the weights and bias: one product per call
+    _w: np.ndarray = field(init=False, repr=False, compare=False)
+    _b: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        w = self.weights / self.scale
+        object.__setattr__(self, "_w", w.T)
+        object.__setattr__(self, "_b", self.bias - w @ self.mean)
 
     @classmethod
     def load(cls, data: dict[str, Any]) -> Self:
@@ -131,8 +142,7 @@ class _Affine:
         ``expanded``: ``expand(x)``, when the caller has it already."""
         if self.quadratic:
             x = expand(x) if expanded is None else expanded
-        z = x - self.mean
-        out: np.ndarray = (z / self.scale) @ self.weights.T + self.bias
+        out: np.ndarray = x @ self._w + self._b
         return out
 
 
@@ -142,8 +152,8 @@ class Softmax(_Affine):
 
     def probabilities(self, x: np.ndarray, expanded: np.ndarray | None = None) -> np.ndarray:
         s = self.scores(x, expanded)
-        e = np.exp(s - s.max())
-        p: np.ndarray = e / e.sum()
+        e = np.exp(s - s.max(axis=-1, keepdims=True))
+        p: np.ndarray = e / e.sum(axis=-1, keepdims=True)
         return p
 
 
@@ -158,7 +168,8 @@ class Linear(_Affine):
 def expand(x: np.ndarray) -> np.ndarray:
     """``x`` followed by the products of every pair of its entries (with themselves)."""
     i, j = _pairs(x.shape[-1])
-    out: np.ndarray = np.concatenate([x, x[..., i] * x[..., j]], axis=-1)
+    # np.take: a fancy index on the last axis of many rows is slower by half
+    out: np.ndarray = np.concatenate([x, np.take(x, i, axis=-1) * np.take(x, j, axis=-1)], axis=-1)
     return out
 
 
@@ -173,6 +184,7 @@ class RecognitionModel:
     """The estimators' parameters (fitted by ``python -m experiments.recognition.fit``)."""
 
     window: int = 20  # iterations in the curvature regression
+    long_window: int = 120  # iterations in the long one (about a half stroke)
     min_travel_mm: float = 0.3  # contact travel below which a relative turn is a pivot
     min_turn_deg: float = 0.6  # relative turn below which a travelling contact is flat
     edge_radius_mm: float = 4.0  # a curved contact sharper than this is an edge
@@ -258,8 +270,8 @@ class _ContactTrack:
         self.model = model
         # Finger 2 is mirrored: ν − ψ turns the other way for the same curvature
         self.sign = -1.0 if finger is Finger.ONE else 1.0
-        self.L: deque[float] = deque(maxlen=model.window)
-        self.rel: deque[float] = deque(maxlen=model.window)
+        self.short = _Line(model.window)  # (L, ν − ψ): the curvature window
+        self.long = _Line(model.long_window)  # the same over about a half stroke
         self.kind: ContactKind | None = None
         self.radius: float | None = None
         self.kinematic_radius = MAX_RADIUS_MM
@@ -275,28 +287,25 @@ class _ContactTrack:
         return self._soft_sum / self._soft_n if self._soft_n else 0.0
 
     def lost(self) -> None:
-        self.L.clear()
-        self.rel.clear()
+        self.short.clear()
+        self.long.clear()
         self.kind, self.radius, self.features, self.p = None, None, None, None
 
-    def update(self, c: ContactEstimate, nu: float, psi: float) -> None:
+    def update(self, c: ContactEstimate, nu: float, psi: float, counts: np.ndarray) -> None:
         assert c.L_mm is not None
-        self.L.append(c.L_mm)
-        self.rel.append(nu - psi)
-        if len(self.L) < 3:
+        self.short.add(c.L_mm, nu - psi)
+        self.long.add(c.L_mm, nu - psi)
+        if len(self.short.x) < 3:
             return
-        # the window's regression in plain Python: 20 numbers, numpy's per-call cost dominates
-        xs, ys = self.L, self.rel
-        n = len(xs)
-        mx, my = sum(xs) / n, sum(ys) / n
-        sxx = sum((x - mx) * (x - mx) for x in xs)
-        sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True))
-        syy = sum((y - my) * (y - my) for y in ys)
-        travel, turn = max(xs) - min(xs), math.degrees(max(ys) - min(ys))
-        kappa = self.sign * sxy / sxx if sxx > 1e-9 else 0.0
-        # what the line leaves of ν − ψ: small on one feature, large across a transition
-        resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n)) if sxx > 1e-9 else 0.0
+        kappa, travel, turn, resid = self.short.fit()
+        kappa *= self.sign
         self.kinematic_radius = min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
+        # the same over the long window (a half stroke): a small radius (a stick's end, an
+        # ellipse's tip) turns the pad by a fraction of a degree per 0.1 mm of travel, too
+        # little to tell from a pivot in the short window
+        long_kappa, long_travel, long_turn, long_resid = self.long.fit()
+        long_kappa *= self.sign
+        long_radius = min(1.0 / long_kappa, MAX_RADIUS_MM) if long_kappa > 0 else MAX_RADIUS_MM
         main = max(c.blobs, key=lambda b: b.pressure_sum_n_per_mm2)
         d = c.depth
         if c.force > 0.05:
@@ -315,6 +324,11 @@ class _ContactTrack:
             c.L_mm,
             math.log(resid + 0.05),
             self.softness,
+            math.log(max(long_radius, 0.5)),  # LONG_RADIUS
+            math.log(long_travel + 0.05),
+            math.log(long_turn + 0.05),
+            math.log(long_resid + 0.05),
+            *pressure_profile(counts, main.first_row, main.last_row),
         ]
         self.kind, self.radius = self._rules(travel, turn, kappa)
 
@@ -334,10 +348,112 @@ class _ContactTrack:
         return ContactKind.CURVED, 1.0 / kappa
 
 
+class _Line:
+    """The last ``n`` (L, ν − ψ) and their least-squares line, in constant time per iteration:
+    running sums (made anew from the window every ``n`` additions, so rounding never builds
+    up), the window's extremes from the deques."""
+
+    def __init__(self, n: int) -> None:
+        self.x: deque[float] = deque(maxlen=n)
+        self.y: deque[float] = deque(maxlen=n)
+        self.clear()
+
+    def clear(self) -> None:
+        self.x.clear()
+        self.y.clear()
+        self._sums = [0.0] * 5  # Σx, Σy, Σxx, Σxy, Σyy
+        self._since = 0
+
+    def add(self, x: float, y: float) -> None:
+        sums, xs, ys = self._sums, self.x, self.y
+        if len(xs) == xs.maxlen:
+            ox, oy = xs[0], ys[0]
+            sums[0] -= ox
+            sums[1] -= oy
+            sums[2] -= ox * ox
+            sums[3] -= ox * oy
+            sums[4] -= oy * oy
+        xs.append(x)
+        ys.append(y)
+        self._since += 1
+        if self._since >= len(xs):
+            self._since = 0
+            xy = sum(a * b for a, b in zip(xs, ys, strict=True))
+            sums[:] = [sum(xs), sum(ys), sum(v * v for v in xs), xy, sum(v * v for v in ys)]
+        else:
+            sums[0] += x
+            sums[1] += y
+            sums[2] += x * x
+            sums[3] += x * y
+            sums[4] += y * y
+
+    def fit(self) -> tuple[float, float, float, float]:
+        """The slope of ν − ψ (rad) against L (mm): the curvature (unsigned, 1/mm; 0 without
+        travel); the contact's travel (mm) and relative turn (°) over the window; the rms of
+        what the line leaves (°: small on one feature, large across a transition)."""
+        n = len(self.x)
+        sx, sy, sxx, sxy, syy = self._sums
+        sxx, sxy, syy = sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
+        travel = max(self.x) - min(self.x)
+        turn = math.degrees(max(self.y) - min(self.y))
+        if sxx <= 1e-9:
+            return 0.0, travel, turn, 0.0
+        resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n))
+        return sxy / sxx, travel, turn, resid
+
+
+LONG_RADIUS = 12  # in a track's features: log of the long window's kinematic radius
+# a contact of one row: no shape along the pad (flat-topped, no skew, nor spread, nor ramp)
+_ONE_ROW = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+PROFILE = len(_ONE_ROW)  # pressure_profile's values, last in a track's features
+
+
+def pressure_profile(counts: np.ndarray, first: int, last: int) -> tuple[float, ...]:
+    """The shape of the pressure along the pad over a contact's rows ``first``…``last``,
+    whatever its scale: peak / mean (1 flat-topped), |skewness| (a ramp is lopsided), kurtosis,
+    the end rows' mean against the peak, log(spread / rows), and the rms of what a straight
+    line leaves, against the peak. A rigid flat face pressed evenly loads the rows under it
+    alike, tilted in a ramp; a curved surface loads them in a hump (Hertz), an edge in one or
+    two rows; a soft object's flat face, which wraps the pad as it rolls and turns against it
+    like a curved one, keeps its even load."""
+    p = counts[first : last + 1].sum(axis=1).tolist()
+    n, peak = len(p), max(p)
+    if n < 2 or peak <= 0.0:
+        return _ONE_ROW
+    # the profile's raw moments about its first row, in one pass
+    m0 = m1 = m2 = m3 = m4 = q = 0.0
+    for i, v in enumerate(p):
+        m0 += v
+        m1 += i * v
+        m2 += i * i * v
+        m3 += i * i * i * v
+        m4 += i * i * i * i * v
+        q += v * v
+    mu = m1 / m0
+    var = m2 / m0 - mu * mu + 1e-9
+    skew = (m3 / m0 - 3 * mu * m2 / m0 + 2 * mu**3) / var**1.5
+    kurt = (m4 / m0 - 4 * mu * m3 / m0 + 6 * mu * mu * m2 / m0 - 3 * mu**4) / var**2
+    # the straight line's rms residual: Σ(v − v̄)² less what the slope explains
+    mean, mid = m0 / n, (n - 1) / 2
+    sii = n * (n * n - 1) / 12  # Σ(i − mid)²
+    siv = m1 - mid * m0  # Σ(i − mid)·v
+    ramp = math.sqrt(max(q - m0 * mean - siv * siv / sii, 0.0) / n)
+    return (
+        peak / mean, abs(skew), kurt, (p[0] + p[-1]) / 2 / peak,
+        math.log(math.sqrt(var) / n), ramp / peak,
+    )  # fmt: skip
+
+
 def contact_features(me: list[float], other: list[float], lam: float) -> np.ndarray:
-    """The kind model's input for one contact: its own track's features, the other contact's
-    first four (radius, travel, turn, footprint), the radius against Λ/2, and log Λ."""
-    return np.array([*me, me[0] - math.log(lam / 2), *other[:4], math.log(lam)])
+    """The kind model's input for one contact: its own track's features, the radius against
+    Λ/2, the other contact's first four (radius, travel, turn, footprint), long-window radius
+    and pressure profile, and log Λ."""
+    return np.array(
+        [
+            *me, me[0] - math.log(lam / 2), *other[:4], other[LONG_RADIUS], *other[-PROFILE:],
+            math.log(lam),
+        ]
+    )  # fmt: skip
 
 
 class _LogHistogram:
@@ -481,10 +597,12 @@ class Recognizer:
         ev = self._ev
         ev.psi_min, ev.psi_max = min(ev.psi_min, self._psi), max(ev.psi_max, self._psi)
         nus = []  # each pad's surface direction at its contact
-        for track, c in zip(self._tracks, (obs.contact1, obs.contact2), strict=True):
+        for track, c, counts in zip(
+            self._tracks, (obs.contact1, obs.contact2), (counts1, counts2), strict=True
+        ):
             assert c.x3_mm is not None
             nus.append(pad_normal_angle(track.finger, obs.pose, c.x3_mm, self.ctx))
-            track.update(c, nus[-1], self._psi)
+            track.update(c, nus[-1], self._psi, counts)
         (k1, r1), (k2, r2) = self._kinds(obs.Lambda)
         self._gather(obs.Lambda, nus, k1, k2, r1, r2)
         cls, conf, a, b = self._classify()
@@ -513,17 +631,22 @@ class Recognizer:
         model = self.model.kind
         if model is None or t1.features is None or t2.features is None:
             return [(t1.kind, t1.radius), (t2.kind, t2.radius)]
+        # both contacts in one go; the kind and radius models take the same features' pairwise
+        # products: expanded once
+        x = np.stack([contact_features(t1.features, t2.features, lam),
+                      contact_features(t2.features, t1.features, lam)])  # fmt: skip
+        xx = expand(x) if model.quadratic else None
+        ps = model.probabilities(x, xx)
         out: list[tuple[ContactKind | None, float | None]] = []
-        for me, other in ((t1, t2), (t2, t1)):
-            assert me.features is not None and other.features is not None
-            x = contact_features(me.features, other.features, lam)
-            # the kind and radius models take the same features' pairwise products: expand once
-            xx = expand(x) if model.quadratic else None
-            p = model.probabilities(x, xx)
-            a = self.model.smoothing
+        a = self.model.smoothing
+        for row, me in enumerate((t1, t2)):
+            p = ps[row]
             me.p = p if me.p is None or a <= 0.0 else a * me.p + (1.0 - a) * p
             kind = KINDS[int(np.argmax(me.p))]
-            out.append((kind, self._radius(me, x, xx) if kind is ContactKind.CURVED else None))
+            radius = None
+            if kind is ContactKind.CURVED:
+                radius = self._radius(me, x[row], None if xx is None else xx[row])
+            out.append((kind, radius))
         return out
 
     def _radius(self, track: _ContactTrack, x: np.ndarray, xx: np.ndarray | None = None) -> float:

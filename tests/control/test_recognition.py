@@ -16,6 +16,7 @@ import pytest
 
 from sdh2svc.config import Settings, default_config
 from sdh2svc.control.recognition import (
+    PROFILE,
     ContactKind,
     ObjectClass,
     Recognition,
@@ -26,7 +27,9 @@ from sdh2svc.control.recognition import (
     caliper_slope,
     class_features,
     classify,
+    contact_features,
     outline,
+    pressure_profile,
 )
 from sdh2svc.model.contact import NO_CONTACT, Blob, ContactEstimate
 from sdh2svc.model.depth import NO_DEPTH
@@ -42,11 +45,15 @@ def _C(L: float) -> ContactEstimate:
     return replace(NO_CONTACT, present=True, L_mm=L, S_mm=20.0, blobs=(blob,), n_cells=12)
 
 
+_COUNTS = np.zeros((13, 6))  # a pad's counts: _C's blob, rows 4–6, in a hump
+_COUNTS[4:7] = [[300.0], [600.0], [300.0]]
+
+
 def trace(track: _ContactTrack, L: np.ndarray, rel: np.ndarray) -> list[ContactKind | None]:
     """Feed a track the pad distances L (mm) and the relative turns ν − ψ (rad); its labels."""
     out = []
     for x, y in zip(L, rel, strict=True):
-        track.update(_C(float(x)), float(y), 0.0)
+        track.update(_C(float(x)), float(y), 0.0, _COUNTS)
         out.append(track.kind)
     return out
 
@@ -65,6 +72,17 @@ def rolling(finger: Finger, n: int, dL: float, radius: float | None) -> tuple[np
     return L, rel
 
 
+def _n_features() -> int:
+    """contact_features' length: a track's features after a few iterations, twice."""
+    track = _ContactTrack(Finger.ONE, MODEL)
+    trace(track, *rolling(Finger.ONE, 5, 0.1, None))
+    assert track.features is not None
+    return len(contact_features(track.features, track.features, 40.0))
+
+
+N_FEATURES = _n_features()
+
+
 @pytest.mark.parametrize("finger", [Finger.ONE, Finger.TWO])
 def test_a_box_turning_through_face_edge_face(finger: Finger) -> None:
     track = _ContactTrack(finger, MODEL)
@@ -74,7 +92,7 @@ def test_a_box_turning_through_face_edge_face(finger: Finger) -> None:
         (rolling(finger, 60, -0.15, None), ContactKind.FLAT),
     ]
     for (L, rel), want in segments:
-        labels = trace(track, L, rel - rel[0] + (track.rel[-1] if track.rel else 0.3))
+        labels = trace(track, L, rel - rel[0] + (track.short.y[-1] if track.short.y else 0.3))
         # a window's lag at each change, then the segment's kind throughout
         assert labels[MODEL.window :] == [want] * (len(labels) - MODEL.window)
         assert track.radius is None
@@ -160,6 +178,30 @@ def test_the_caliper_slope_tells_a_box_from_a_circle() -> None:
     assert f_box[-2] > f_circle[-2] + 2.0
 
 
+def test_the_pressure_profile_along_the_pad() -> None:
+    """A face pressed evenly loads its rows alike, a tilted one in a ramp, a curved surface in
+    a hump; the profile does not depend on the pressure's scale."""
+
+    def profile(rows: list[float]) -> tuple[float, ...]:
+        counts = np.zeros((13, 6))
+        counts[3 : 3 + len(rows)] = np.asarray(rows)[:, None]
+        return pressure_profile(counts, 3, 2 + len(rows))
+
+    even, ramp, hump = (
+        profile([400.0] * 7),
+        profile([100.0 * i for i in range(1, 8)]),
+        profile([100.0, 400.0, 700.0, 800.0, 700.0, 400.0, 100.0]),
+    )
+    peak_mean, skew, kurt, ends, spread, line = range(PROFILE)
+    assert even[peak_mean] == pytest.approx(1.0) and even[ends] == pytest.approx(1.0)
+    assert even[skew] == pytest.approx(0.0, abs=1e-9) and even[line] == pytest.approx(0.0)
+    assert ramp[skew] > 0.2 and ramp[line] == pytest.approx(0.0, abs=1e-9)
+    assert hump[peak_mean] > 1.5 and hump[ends] < 0.2 and hump[line] > 0.2
+    assert hump[kurt] > even[kurt] and hump[spread] < even[spread]
+    assert profile([40.0, 80.0, 70.0]) == pytest.approx(profile([400.0, 800.0, 700.0]))
+    assert profile([500.0]) == (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # one row: no shape
+
+
 def test_a_soft_object_reads_soft() -> None:
     """The rubber's compression at a given force: a rigid object presses it as Hertz says
     (∝ F^⅔), a soft one takes part of the squeeze."""
@@ -169,7 +211,7 @@ def test_a_soft_object_reads_soft() -> None:
         for i, force in enumerate((1.0, 2.0, 4.0)):
             c = compression * force ** (2 / 3)
             depth = replace(NO_DEPTH, compression_mm=c)
-            track.update(replace(_C(20.0 + i), force=force, depth=depth), 0.3, 0.0)
+            track.update(replace(_C(20.0 + i), force=force, depth=depth), 0.3, 0.0, _COUNTS)
         out[name] = track.softness
     assert out["rigid"] == pytest.approx(math.log(0.8), abs=0.02)
     assert out["foam"] < out["rigid"] - 1.0
@@ -210,7 +252,7 @@ def test_the_packaged_model_loads(cfg: Settings) -> None:
     assert isinstance(model, RecognitionModel)
     assert model.kind is not None and model.radius is not None and model.object_class is not None
     again = RecognitionModel.load(json.loads(json.dumps(model.dump())))  # a JSON round trip
-    x = np.linspace(-1.0, 2.0, 18)  # contact_features' length
+    x = np.linspace(-1.0, 2.0, N_FEATURES)
     assert again.radius is not None
     assert again.radius.predict(x) == model.radius.predict(x)
 
@@ -219,7 +261,7 @@ def test_the_radius_model_scales_the_kinematic_radius() -> None:
     """A curved contact's radius is the kinematic one times exp(the model's log ratio)."""
     from sdh2svc.control.recognition import Linear
 
-    n = 18
+    n = N_FEATURES
     lin = Linear(np.zeros(n), np.ones(n), np.zeros(n), np.asarray(math.log(0.8)))
     track = _ContactTrack(Finger.ONE, MODEL)
     track.kinematic_radius = 50.0
