@@ -22,8 +22,10 @@ from sdh2svc.control.recognition import (
     Recognition,
     RecognitionModel,
     Recognizer,
+    Softmax,
     _ContactTrack,
     _Evidence,
+    _Line,
     caliper_slope,
     class_features,
     classify,
@@ -176,6 +178,47 @@ def test_the_caliper_slope_tells_a_box_from_a_circle() -> None:
     f_circle = class_features(widths(np.full(psi.size, 68.0), psi))
     f_box = class_features(widths(box, psi))
     assert f_box[-2] > f_circle[-2] + 2.0
+
+
+def test_the_windows_line_from_running_sums_matches_a_direct_fit() -> None:
+    """Thousands of iterations through a 120-iteration window: the running sums' slope,
+    travel, turn and residual stay those of a least-squares fit of the window itself."""
+    rng = np.random.default_rng(3)
+    line, xs, ys = _Line(120), [], []
+    for k in range(3000):
+        x = 20.0 + 5.0 * math.sin(k / 50) + rng.normal(0.0, 0.05)
+        y = 0.3 + 0.1 * math.cos(k / 70) + rng.normal(0.0, 1e-3)
+        line.add(x, y)
+        xs.append(x)
+        ys.append(y)
+        if k % 97 or k < 3:
+            continue
+        X, Y = np.array(xs[-120:]), np.array(ys[-120:])
+        slope, intercept = np.polyfit(X, Y, 1)
+        resid = math.degrees(float(np.sqrt(np.mean((Y - slope * X - intercept) ** 2))))
+        kappa, travel, turn, rms = line.fit()
+        assert kappa == pytest.approx(slope, rel=1e-6, abs=1e-9)
+        assert travel == pytest.approx(float(np.ptp(X)))
+        assert turn == pytest.approx(math.degrees(float(np.ptp(Y))))
+        assert rms == pytest.approx(resid, rel=1e-6, abs=1e-9)
+    line.clear()
+    line.add(1.0, 0.5)
+    line.add(1.0, 0.6)  # no travel: no slope
+    assert line.fit() == (0.0, 0.0, pytest.approx(math.degrees(0.1)), 0.0)
+
+
+def test_many_samples_score_as_one_at_a_time() -> None:
+    """The kind model scores both contacts in one product: row by row the same as alone."""
+    rng = np.random.default_rng(4)
+    n = 6
+    model = Softmax(rng.normal(size=n + n * (n + 1) // 2), np.full(n + n * (n + 1) // 2, 2.0),
+                    rng.normal(size=(3, n + n * (n + 1) // 2)), rng.normal(size=3),
+                    quadratic=True)  # fmt: skip
+    x = rng.normal(size=(2, n))
+    both = model.probabilities(x)
+    for row in range(2):
+        assert both[row] == pytest.approx(model.probabilities(x[row]))
+        assert both[row].sum() == pytest.approx(1.0)
 
 
 def test_the_pressure_profile_along_the_pad() -> None:
