@@ -565,8 +565,7 @@ def _campaign_generate(args: argparse.Namespace) -> int:
     objects it was not chosen on)."""
     from pathlib import Path
 
-    from sdh2svc.campaign.case import Suite
-    from sdh2svc.campaign.generate import generate_cases
+    from sdh2svc.campaign.generate import generated_suite
 
     name = args.dir
     if args.dir_b is not None:
@@ -590,9 +589,9 @@ def _campaign_generate(args: argparse.Namespace) -> int:
             print(f"\rgenerating {done}/{n} cases", end="\n" if done == n else "",
                   file=sys.stderr, flush=True)  # fmt: skip
 
-    cases = tuple(generate_cases(args.seed, args.cases, prefix=f"{name}-", progress=progress))
-    suite = Suite(name=name, generator_seed=args.seed, cases=cases,
-                  description=f"{args.cases} generated cases, seed {args.seed}")  # fmt: skip
+    description = f"{args.cases} generated cases, seed {args.seed}"
+    suite = generated_suite(name, args.seed, args.cases, description=description,
+                            prefix=f"{name}-", progress=progress)  # fmt: skip
     try:
         suite.dump(out)
     except OSError as e:

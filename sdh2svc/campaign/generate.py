@@ -500,8 +500,16 @@ def build_suite(name: str) -> Suite:
     if name == "thesis":
         return thesis_suite()
     seed, n, description = SUITE_SEEDS[name]
-    return Suite(name=name, generator_seed=seed, description=description,
-                 cases=tuple(generate_cases(seed, n)))  # fmt: skip
+    return generated_suite(name, seed, n, description=description)
+
+
+def generated_suite(
+    name: str, seed: int, n: int, *, description: str, prefix: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> Suite:  # fmt: skip
+    """A suite of ``n`` cases from ``seed`` (:func:`generate_cases`, ids after ``prefix``)."""
+    cases = tuple(generate_cases(seed, n, prefix=prefix, progress=progress))
+    return Suite(name=name, generator_seed=seed, description=description, cases=cases)
 
 
 SUITE_NAMES: tuple[str, ...] = (*SUITE_SEEDS, "thesis")

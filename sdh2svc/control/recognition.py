@@ -299,13 +299,12 @@ class _ContactTrack:
             return
         kappa, travel, turn, resid = self.short.fit()
         kappa *= self.sign
-        self.kinematic_radius = min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
+        self.kinematic_radius = _radius_of(kappa)
         # the same over the long window (a half stroke): a small radius (a stick's end, an
         # ellipse's tip) turns the pad by a fraction of a degree per 0.1 mm of travel, too
         # little to tell from a pivot in the short window
         long_kappa, long_travel, long_turn, long_resid = self.long.fit()
-        long_kappa *= self.sign
-        long_radius = min(1.0 / long_kappa, MAX_RADIUS_MM) if long_kappa > 0 else MAX_RADIUS_MM
+        long_radius = _radius_of(self.sign * long_kappa)
         main = max(c.blobs, key=lambda b: b.pressure_sum_n_per_mm2)
         d = c.depth
         if c.force > 0.05:
@@ -346,6 +345,11 @@ class _ContactTrack:
         if kappa >= 1.0 / m.edge_radius_mm:
             return ContactKind.EDGE, None
         return ContactKind.CURVED, 1.0 / kappa
+
+
+def _radius_of(kappa: float) -> float:
+    """The radius (mm) of a signed curvature: MAX_RADIUS_MM for a flat or concave one."""
+    return min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
 
 
 class _Line:
