@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from sdh2svc.campaign.case import Case
@@ -238,6 +238,8 @@ grasps = st.builds(
 @settings(max_examples=150, deadline=None)
 @given(case=st.one_of(anywhere, grasps), direction=st.sampled_from((1, -1)),
        iteration=st.sampled_from((0, 5)))  # fmt: skip
+# a loose grip: the route halves the thesis's move (once taken for a move of its own)
+@example(case=((0.0, 11.0, 11.0, 10.0), 11.0, 5.25, 800.0), direction=-1, iteration=0)
 def test_workspace_route_stays_inside_limits_and_cones(
     cfg: Settings,
     case: tuple[tuple[float, float, float, float], float, float, float],
@@ -265,7 +267,11 @@ def test_workspace_route_stays_inside_limits_and_cones(
         return
     pred = Predictor(hp, obs, obs.Lambda, max(p.alpha, r.state.alpha_held), p, ctx)
     move = workspace_move(direction, pred)
-    if move == thesis_move(direction, p):
+    # outside the grip band the route halves the move it chose (the thesis's included, when no
+    # other turned further): the checks are the whole one's
+    base = thesis_move(direction, p)
+    chosen = move if move == base or pred.grip_holds() else Move(2 * move.d4, 2 * move.d5)
+    if chosen == base:
         return
     # a move of its own: planned from inside the route's margins, and keeping them; within
     # REACH_MARGIN_MM of Finger 1's stretch only while the grip is firm, spending none of it
@@ -280,11 +286,10 @@ def test_workspace_route_stays_inside_limits_and_cones(
                phi5 - lim2.distal_min, lim2.distal_max - phi5)  # fmt: skip
     assert room >= LIMIT_MARGIN - 1e-12
     # the margins kept (cones, wedge, both contacts within wedge_limit, Finger 1's joints, reach)
-    assert pred.turn(move, reach) is not None
+    assert pred.turn(chosen, reach) is not None
     # …and it turns AB the way the thesis's move does
     c2 = obs.contact2
     assert c2.r_mm is not None and c2.theta_rad is not None
-    base = thesis_move(direction, p)
     B = contact_point(Finger.TWO, phi4, phi5, c2.r_mm, c2.theta_rad, ctx.geom)
     Bt = contact_point(Finger.TWO, hp.phi4 + base.d4, hp.phi5 + base.d5, c2.r_mm,
                        c2.theta_rad, ctx.geom)  # fmt: skip
