@@ -7,8 +7,9 @@ A true contact's point on the object (object frame, the pressure centroid) lies
 * on a flat side (the open part of a polygon's edge, a stick's long side): **flat**;
 * on a rounding arc or at a sharp corner: **edge** when the arc's radius is below
   :data:`EDGE_RADIUS_MM` (a sharp corner has radius 0), else **curved** with that radius;
-* on an ellipse: **curved**, with the analytic ellipse's radius of curvature there;
-  on a circle: **curved**, its radius.
+* on an ellipse: **curved**, with the analytic ellipse's radius of curvature there, or an
+  **edge** where that radius is below :data:`EDGE_RADIUS_MM` (a slender ellipse's tip: one line
+  between edge and curve for every shape); on a circle: **curved**, its radius.
 
 A flat side's contact whose centroid lies within :data:`CORNER_MARGIN_MM` of a sharp corner is
 the corner's (a face–edge contact presses the corner into the pad: its centroid sits at the
@@ -68,7 +69,7 @@ def feature(spec: Shape, p: tuple[float, float]) -> tuple[ContactKind, float | N
         a, b = spec.axis_a_mm / 2, spec.axis_b_mm / 2
         t = math.atan2(p[1] / b, p[0] / a)
         rho = (a * a * math.sin(t) ** 2 + b * b * math.cos(t) ** 2) ** 1.5 / (a * b)
-        return ContactKind.CURVED, rho
+        return (ContactKind.EDGE, None) if rho < EDGE_RADIUS_MM else (ContactKind.CURVED, rho)
     core, r = spec.outline()
     q = np.asarray(p, dtype=float)
     n = len(core)

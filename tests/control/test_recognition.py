@@ -317,6 +317,28 @@ def test_the_radius_model_scales_the_kinematic_radius() -> None:
     assert rec._radius(track, np.zeros(n)) == pytest.approx(500.0)
 
 
+def test_the_truth_draws_one_line_between_edge_and_curve() -> None:
+    """The scoring's truth: a rounding, a stick's end and an ellipse's tip sharper than
+    EDGE_RADIUS_MM are edges; blunter ones curved, with their radius."""
+    from experiments.recognition.truth import EDGE_RADIUS_MM, feature
+    from sdh2svc.sim.objects import Box, Ellipse, Stick
+
+    r = EDGE_RADIUS_MM
+    slender = Ellipse(axis_a_mm=40.0, axis_b_mm=12.0, depth_mm=10.0)  # tip radius 1.8 mm
+    assert feature(slender, (20.0, 0.0)) == (ContactKind.EDGE, None)
+    kind, radius = feature(slender, (0.0, 6.0))  # its side: radius 20²/6 ≈ 67 mm
+    assert kind is ContactKind.CURVED and radius == pytest.approx(400.0 / 6.0, rel=1e-3)
+    blunt = Ellipse(axis_a_mm=40.0, axis_b_mm=30.0, depth_mm=10.0)  # tip radius 11.25 mm
+    kind, radius = feature(blunt, (20.0, 0.0))
+    assert kind is ContactKind.CURVED and radius == pytest.approx(15.0**2 / 20.0, rel=1e-3)
+    for d, want in ((2 * r - 1.0, ContactKind.EDGE), (2 * r + 1.0, ContactKind.CURVED)):
+        stick = Stick(length_mm=60.0, diameter_mm=d, depth_mm=10.0)
+        assert feature(stick, (30.0, 0.0))[0] is want
+        box = Box(width_mm=40.0, height_mm=30.0, corner_radius_mm=d / 2, depth_mm=10.0)
+        corner = (20.0 - d / 2 * (1 - math.sqrt(0.5)), 15.0 - d / 2 * (1 - math.sqrt(0.5)))
+        assert feature(box, corner)[0] is want
+
+
 # --- fast simulated runs of the thesis's objects (200 iterations each), against their truth
 
 
