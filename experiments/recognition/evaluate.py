@@ -3,10 +3,12 @@
     python -m experiments.recognition.evaluate /tmp/recog/test.jsonl [--model FILE] [--json OUT]
 
 Per case: the contact kind at every iteration with both contacts (against
-:func:`experiments.recognition.truth.feature`), the radius at every iteration where both the
-truth and the estimate are curved, the class after the first full stroke and at the end, and the
-rotation against the true ψ − ψ(first iteration): over the run (the estimate's excursion against
-the true one) and at every counted half stroke's end.
+:func:`experiments.recognition.truth.feature`; beside it, as a secondary figure, the same with
+an edge read as a curve or the reverse counted right where the touched radius is within 20 %
+of the line between them, :func:`~experiments.recognition.truth.near_the_line`), the radius
+at every iteration where both the truth and the estimate are curved, the class after the first
+full stroke and at the end, and the rotation against the true ψ − ψ(first iteration): over the
+run (the estimate's excursion against the true one) and at every counted half stroke's end.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.recognition.truth import feature, spec_of, true_class, true_sizes
+from experiments.recognition.truth import feature, near_the_line, spec_of, true_class, true_sizes
 from sdh2svc.config import load_config
 from sdh2svc.control.recognition import (
     ContactKind,
@@ -47,6 +49,8 @@ class Step:
     half_strokes: int
     psi: float | None  # the object's true angle, rad
     truth: tuple[tuple[ContactKind, float | None] | None, ...]  # per pad
+    # per pad: the touched surface's radius within 20 % of the line between edge and curve
+    near_line: tuple[bool, ...] = (False, False)
 
 
 @dataclass
@@ -73,9 +77,9 @@ def load_cases(path: str | Path, ctx: ModelContext) -> Iterator[Case]:
                 obs = observe(HandPose(*it["pose"]), m1, m2, ctx)
                 tr = it["truth"]
                 pose = tr.get("object_pose")
-                truth = tuple(
-                    feature(spec, tuple(tr[p]["object_point"])) if p in tr else None for p in PADS
-                )
+                points = [tuple(tr[p]["object_point"]) if p in tr else None for p in PADS]
+                truth = tuple(None if q is None else feature(spec, q) for q in points)
+                near = tuple(q is not None and near_the_line(spec, q) for q in points)
                 case.steps.append(
                     Step(
                         obs,
@@ -85,6 +89,7 @@ def load_cases(path: str | Path, ctx: ModelContext) -> Iterator[Case]:
                         it["half_strokes"],
                         None if pose is None else pose[2],
                         truth,
+                        near,
                     )
                 )
             yield case
@@ -97,20 +102,24 @@ def run(case: Case, ctx: ModelContext, model: RecognitionModel) -> list[Recognit
 
 def judge(case: Case, recs: list[Recognition]) -> dict[str, Any]:
     """The case's scores (see the module docstring)."""
-    kinds_ok = kinds_n = 0
+    kinds_ok = kinds_n = kinds_near_line = 0
     confusion: dict[str, int] = {}
     radius_err: list[float] = []
     for s, r in zip(case.steps, recs, strict=True):
         if s.obs.Lambda is None:
             continue
-        for truth, kind, radius in (
-            (s.truth[0], r.kind1, r.radius1),
-            (s.truth[1], r.kind2, r.radius2),
+        for truth, near, kind, radius in (
+            (s.truth[0], s.near_line[0], r.kind1, r.radius1),
+            (s.truth[1], s.near_line[1], r.kind2, r.radius2),
         ):
             if truth is None or kind is None:
                 continue
             kinds_n += 1
             kinds_ok += kind is truth[0]
+            # an edge read as a curve or the reverse, where the radius is near the line
+            kinds_near_line += (
+                near and kind is not truth[0] and ContactKind.FLAT not in (kind, truth[0])
+            )
             key = f"{truth[0].value}->{kind.value}"
             confusion[key] = confusion.get(key, 0) + 1
             if truth[0] is ContactKind.CURVED and kind is ContactKind.CURVED:
@@ -157,6 +166,7 @@ def judge(case: Case, recs: list[Recognition]) -> dict[str, Any]:
         "strokes": max((s.strokes for s in case.steps), default=0),
         "kinds_ok": kinds_ok,
         "kinds_n": kinds_n,
+        "kinds_near_line": kinds_near_line,
         "confusion": confusion,
         "radius_err": radius_err,
         "rotation": rot,
@@ -169,6 +179,7 @@ def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
     cls_ok = sum(r["class_first_stroke"] == r["class"] for r in stroked)
     kinds_ok = sum(r["kinds_ok"] for r in rows)
     kinds_n = sum(r["kinds_n"] for r in rows)
+    near_line = sum(r.get("kinds_near_line", 0) for r in rows)
     rad = np.abs(np.asarray([e for r in rows for e in r["radius_err"]], dtype=float))
     halves = [h for r in rows for h in r["rotation"].get("half_strokes", []) if abs(h[0]) >= 1.0]
     half_err = np.array([abs(e - t) / abs(t) for t, e in halves]) if halves else np.zeros(0)
@@ -205,6 +216,9 @@ def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "class_by_true_class": {k: f"{a}/{b}" for k, (a, b) in sorted(by_class.items())},
         "contact_kind": kinds_ok / max(1, kinds_n),
         "contact_iterations": kinds_n,
+        # the edge/curve mix-ups where the touched radius is within 20 % of the 4 mm line,
+        # counted right: a secondary figure (the target is contact_kind)
+        "contact_kind_near_line_forgiven": (kinds_ok + near_line) / max(1, kinds_n),
         "kind_confusion_truth_to_estimate": dict(sorted(confusion.items())),
         "radius_within_20pct": float(np.mean(rad <= 0.2)) if rad.size else None,
         "radius_median_abs_err": float(np.median(rad)) if rad.size else None,

@@ -63,13 +63,30 @@ def true_sizes(spec: Shape) -> tuple[float, float | None]:
 
 def feature(spec: Shape, p: tuple[float, float]) -> tuple[ContactKind, float | None]:
     """The kind of the object's surface at ``p`` (object frame) and its radius if curved."""
+    r = touched_radius(spec, p)
+    if r == math.inf:
+        return ContactKind.FLAT, None
+    return (ContactKind.EDGE, None) if r < EDGE_RADIUS_MM else (ContactKind.CURVED, r)
+
+
+def near_the_line(spec: Shape, p: tuple[float, float], within: float = 0.2) -> bool:
+    """Whether the surface at ``p`` is rounded within ``within`` (relative) of the
+    EDGE_RADIUS_MM line between edge and curve, where a few tenths of a millimetre of radius
+    decide the label."""
+    return abs(touched_radius(spec, p) / EDGE_RADIUS_MM - 1.0) <= within
+
+
+def touched_radius(spec: Shape, p: tuple[float, float]) -> float:
+    """The object's radius of curvature at ``p`` (mm): ``math.inf`` on a flat side, the
+    rounding's radius on a polygon's rounded corner or a stick's end (0 at a sharp corner, and
+    on a flat side within CORNER_MARGIN_MM of a corner rounded below EDGE_RADIUS_MM), the
+    analytic radius on an ellipse or a circle."""
     if isinstance(spec, Circle):
-        return ContactKind.CURVED, spec.diameter_mm / 2
+        return spec.diameter_mm / 2
     if isinstance(spec, Ellipse):
         a, b = spec.axis_a_mm / 2, spec.axis_b_mm / 2
         t = math.atan2(p[1] / b, p[0] / a)
-        rho = (a * a * math.sin(t) ** 2 + b * b * math.cos(t) ** 2) ** 1.5 / (a * b)
-        return (ContactKind.EDGE, None) if rho < EDGE_RADIUS_MM else (ContactKind.CURVED, rho)
+        return float((a * a * math.sin(t) ** 2 + b * b * math.cos(t) ** 2) ** 1.5 / (a * b))
     core, r = spec.outline()
     q = np.asarray(p, dtype=float)
     n = len(core)
@@ -86,9 +103,7 @@ def feature(spec: Shape, p: tuple[float, float]) -> tuple[ContactKind, float | N
     length = float(np.linalg.norm(v - u))
     along = t * length
     margin = CORNER_MARGIN_MM if r < EDGE_RADIUS_MM else 1e-6
-    if margin < along < length - margin:
-        return ContactKind.FLAT, None
-    return (ContactKind.EDGE, None) if r < EDGE_RADIUS_MM else (ContactKind.CURVED, r)
+    return math.inf if margin < along < length - margin else float(r)
 
 
 def spec_of(case: dict[str, Any]) -> Shape:

@@ -320,12 +320,14 @@ def test_the_radius_model_scales_the_kinematic_radius() -> None:
 def test_the_truth_draws_one_line_between_edge_and_curve() -> None:
     """The scoring's truth: a rounding, a stick's end and an ellipse's tip sharper than
     EDGE_RADIUS_MM are edges; blunter ones curved, with their radius."""
-    from experiments.recognition.truth import EDGE_RADIUS_MM, feature
+    from experiments.recognition.truth import EDGE_RADIUS_MM, feature, near_the_line, touched_radius
     from sdh2svc.sim.objects import Box, Ellipse, Stick
 
     r = EDGE_RADIUS_MM
     slender = Ellipse(axis_a_mm=40.0, axis_b_mm=12.0, depth_mm=10.0)  # tip radius 1.8 mm
     assert feature(slender, (20.0, 0.0)) == (ContactKind.EDGE, None)
+    assert touched_radius(slender, (20.0, 0.0)) == pytest.approx(1.8, rel=1e-3)
+    assert not near_the_line(slender, (20.0, 0.0))
     kind, radius = feature(slender, (0.0, 6.0))  # its side: radius 20²/6 ≈ 67 mm
     assert kind is ContactKind.CURVED and radius == pytest.approx(400.0 / 6.0, rel=1e-3)
     blunt = Ellipse(axis_a_mm=40.0, axis_b_mm=30.0, depth_mm=10.0)  # tip radius 11.25 mm
@@ -337,6 +339,12 @@ def test_the_truth_draws_one_line_between_edge_and_curve() -> None:
         box = Box(width_mm=40.0, height_mm=30.0, corner_radius_mm=d / 2, depth_mm=10.0)
         corner = (20.0 - d / 2 * (1 - math.sqrt(0.5)), 15.0 - d / 2 * (1 - math.sqrt(0.5)))
         assert feature(box, corner)[0] is want
+        # within 20 % of the line either side: where the scoring forgives an edge/curve mix-up
+        assert near_the_line(stick, (30.0, 0.0)) and near_the_line(box, corner)
+    assert (
+        touched_radius(Box(width_mm=40.0, height_mm=30.0, depth_mm=10.0), (0.0, 15.0)) == math.inf
+    )
+    assert not near_the_line(Stick(length_mm=60.0, diameter_mm=6.0, depth_mm=10.0), (30.0, 0.0))
 
 
 # --- fast simulated runs of the thesis's objects (200 iterations each), against their truth
@@ -420,7 +428,7 @@ def test_the_radius_model_brings_the_radius_nearer_the_truth(
     for obs, m1, m2, _, truth in thesis_runs[name]:
         r = rec.update(obs, m1, m2)
         for reported, track, t in zip((r.radius1, r.radius2), rec._tracks, truth, strict=True):
-            if reported is None or t is None or t[1] is None:
+            if reported is None or t is None or t[0] is not ContactKind.CURVED:
                 continue
             near["reported"] += abs(reported / t[1] - 1.0) <= 0.2
             near["kinematic"] += abs(track.kinematic_radius / t[1] - 1.0) <= 0.2
