@@ -25,7 +25,14 @@ from typing import Any
 
 import numpy as np
 
-from experiments.recognition.truth import feature, near_the_line, spec_of, true_class, true_sizes
+from experiments.recognition.truth import (
+    kind_at,
+    radius_near_the_line,
+    spec_of,
+    touched_radius,
+    true_class,
+    true_sizes,
+)
 from sdh2svc.config import load_config
 from sdh2svc.control.recognition import (
     ContactKind,
@@ -77,9 +84,11 @@ def load_cases(path: str | Path, ctx: ModelContext) -> Iterator[Case]:
                 obs = observe(HandPose(*it["pose"]), m1, m2, ctx)
                 tr = it["truth"]
                 pose = tr.get("object_pose")
-                points = [tuple(tr[p]["object_point"]) if p in tr else None for p in PADS]
-                truth = tuple(None if q is None else feature(spec, q) for q in points)
-                near = tuple(q is not None and near_the_line(spec, q) for q in points)
+                # the touched radius once per pad: the kind and the line's nearness from it
+                radii = [touched_radius(spec, tuple(tr[p]["object_point"])) if p in tr else None
+                         for p in PADS]  # fmt: skip
+                truth = tuple(None if r is None else kind_at(r) for r in radii)
+                near = tuple(r is not None and radius_near_the_line(r) for r in radii)
                 case.steps.append(
                     Step(
                         obs,
@@ -179,7 +188,7 @@ def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
     cls_ok = sum(r["class_first_stroke"] == r["class"] for r in stroked)
     kinds_ok = sum(r["kinds_ok"] for r in rows)
     kinds_n = sum(r["kinds_n"] for r in rows)
-    near_line = sum(r.get("kinds_near_line", 0) for r in rows)
+    near_line = sum(r["kinds_near_line"] for r in rows)
     rad = np.abs(np.asarray([e for r in rows for e in r["radius_err"]], dtype=float))
     halves = [h for r in rows for h in r["rotation"].get("half_strokes", []) if abs(h[0]) >= 1.0]
     half_err = np.array([abs(e - t) / abs(t) for t, e in halves]) if halves else np.zeros(0)

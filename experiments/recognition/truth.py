@@ -63,17 +63,27 @@ def true_sizes(spec: Shape) -> tuple[float, float | None]:
 
 def feature(spec: Shape, p: tuple[float, float]) -> tuple[ContactKind, float | None]:
     """The kind of the object's surface at ``p`` (object frame) and its radius if curved."""
-    r = touched_radius(spec, p)
-    if r == math.inf:
+    return kind_at(touched_radius(spec, p))
+
+
+def kind_at(radius: float) -> tuple[ContactKind, float | None]:
+    """The kind of a surface of this radius of curvature (:func:`touched_radius`), and the
+    radius if curved."""
+    if radius == math.inf:
         return ContactKind.FLAT, None
-    return (ContactKind.EDGE, None) if r < EDGE_RADIUS_MM else (ContactKind.CURVED, r)
+    return (ContactKind.EDGE, None) if radius < EDGE_RADIUS_MM else (ContactKind.CURVED, radius)
 
 
 def near_the_line(spec: Shape, p: tuple[float, float], within: float = 0.2) -> bool:
     """Whether the surface at ``p`` is rounded within ``within`` (relative) of the
     EDGE_RADIUS_MM line between edge and curve, where a few tenths of a millimetre of radius
     decide the label."""
-    return abs(touched_radius(spec, p) / EDGE_RADIUS_MM - 1.0) <= within
+    return radius_near_the_line(touched_radius(spec, p), within)
+
+
+def radius_near_the_line(radius: float, within: float = 0.2) -> bool:
+    """:func:`near_the_line` for a radius already found."""
+    return abs(radius / EDGE_RADIUS_MM - 1.0) <= within
 
 
 def touched_radius(spec: Shape, p: tuple[float, float]) -> float:
