@@ -14,6 +14,7 @@ which feature touches each pad is computed offline (:mod:`experiments.recognitio
     python -m experiments.recognition.capture --seed 1702 --n 60 --out /tmp/recog/test.jsonl
     python -m experiments.recognition.capture --seed 1709 --n 60 --out /tmp/recog/test2.jsonl
     python -m experiments.recognition.capture --seed 1710 --n 60 --out /tmp/recog/test3.jsonl
+    python -m experiments.recognition.capture --seed 1720 --n 60 --out /tmp/recog/test4.jsonl
     python -m experiments.recognition.capture --suite thesis --out /tmp/recog/thesis.jsonl
 
 One JSON line per case; a case already in the file is skipped (the capture resumes).

@@ -3,7 +3,7 @@
     python -m experiments.recognition.fit /tmp/recog/fit-*.jsonl
 
 (the captures of :mod:`experiments.recognition.capture` for generator seeds 1701, 1703–1707
-and 1711–1714, 600 cases; the held-out test suites are seeds 1702, 1709 and 1710). Writes
+and 1711–1714, 600 cases; the held-out test suites are seeds 1702, 1709, 1710 and 1720). Writes
 ``sdh2svc/control/recognition_model.json``, its three models fitted in turn:
 
 1. **contact kind** — a multinomial logistic model on each contact's features
@@ -213,7 +213,7 @@ def class_samples(
         end = i == len(steps) - 1
         stroke = steps[i].strokes >= 1 and (i == 0 or steps[i - 1].strokes < 1)
         if rec._ev.n and (stroke or end or steps[i + 1].half_strokes != steps[i].half_strokes):
-            X.append(class_features(rec._ev, rec.softness()))
+            X.append(class_features(rec._ev, rec.softness(), rec.open_sweeps()))
             y.append(CLASSES.index(true_class(case.family, case.spec)))
             group.append(index[id(case)])
             first.append(stroke)

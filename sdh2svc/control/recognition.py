@@ -30,7 +30,10 @@ How (rolling kinematics, no model of the object):
   contact's radius is the kinematic one times a learned correction (:class:`Linear`, on the
   same features), which undoes the window's bias on large radii and soft objects.
 * **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
-  second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`).
+  second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`),
+  among it the touched outline in the object frame: the flat faces' directions ν − ψ and the
+  pads' sweeps about the edges they pivot on, against a box's (:func:`box_misfit`: faces at
+  right angles, corners turning the pad within one).
 
 The learned parts are fitted by ``python -m experiments.recognition.fit`` and shipped in
 ``recognition_model.json`` beside this module. From the raw counts it takes the pressure's
@@ -484,6 +487,12 @@ class _LogHistogram:
         return [self.LO + (int(i) + 0.5) * width for i in idx]
 
 
+MIN_SWEEP = 5  # iterations of an edge run before its sweep counts
+MAX_SWEEPS = 24  # the widest sweeps kept (a run's pivots are few; this bounds the cost)
+_BETAS = np.arange(90.0)  # a box's orientations tried, deg (its directions β + k·90°)
+_OFF_GRID = np.abs((np.arange(180.0)[None, :] + 0.5 - _BETAS[:, None] + 45.0) % 90.0 - 45.0)
+
+
 @dataclass
 class _Evidence:
     """What the run has shown so far, for the class."""
@@ -511,6 +520,13 @@ class _Evidence:
     p_sum: float = 0.0
     pp_sum: float = 0.0
     pl_sum: float = 0.0
+    # the touched outline in the object frame (ν − ψ, deg): Σ over the flat contacts of their
+    # direction's distance from β + k·90° for every β in _BETAS, and how many; and the pivots'
+    # sweeps (each edge run's lowest and highest direction)
+    faces: np.ndarray = field(default_factory=lambda: np.zeros(len(_BETAS)))
+    faces_n: int = 0
+    sweeps: list[tuple[float, float]] = field(default_factory=list)
+    _box: tuple[float, float] | None = None  # box_misfit's, until the outline grows
 
     def add_width(self, lam: float, psi: float) -> None:
         """One iteration's Λ (mm) at the object's rotation ψ (rad)."""
@@ -520,6 +536,47 @@ class _Evidence:
         self.p_sum += psi
         self.pp_sum += psi * psi
         self.pl_sum += psi * lam
+
+
+class _Sweep:
+    """One pad's current edge run: how far the pad's direction on the object swept (deg)."""
+
+    __slots__ = ("d0", "hi", "lo", "n")
+
+    def __init__(self, d: float) -> None:
+        self.d0, self.lo, self.hi, self.n = d, 0.0, 0.0, 1
+
+    def add(self, d: float) -> None:
+        rel = (d - self.d0 + 90.0) % 180.0 - 90.0  # unwrapped about the run's start
+        self.lo, self.hi, self.n = min(self.lo, rel), max(self.hi, rel), self.n + 1
+
+    @property
+    def span(self) -> tuple[float, float]:
+        return self.d0 + self.lo, self.d0 + self.hi
+
+
+def box_misfit(ev: _Evidence, open_sweeps: list[tuple[float, float]]) -> tuple[float, float]:
+    """How far the touched outline is from a box's (deg): a box shows faces in two directions
+    at right angles, and its corners turn the pad from one face's direction towards the next,
+    never across one. Over every orientation β, the faces' mean distance from the nearest of
+    β + k·90° — the least: the first figure — and that plus the farthest any sweep crossed a
+    direction β + k·90° (by the lesser of its two sides) — the least: the second. A polygon at
+    other angles, or a corner opposite a face turning the pad both ways of parallel (a regular
+    odd polygon), reads above a box's few tenths of a degree."""
+    sweeps = ev.sweeps + open_sweeps
+    if ev._box is not None and not open_sweeps:
+        return ev._box
+    face = ev.faces / ev.faces_n if ev.faces_n else np.zeros(len(_BETAS))
+    cost = face
+    if sweeps:
+        lo, hi = np.array(sweeps).T
+        g = _BETAS[None, :] + 90.0 * np.ceil((lo[:, None] - _BETAS[None, :]) / 90.0)
+        cross = np.where(g < hi[:, None], np.minimum(g - lo[:, None], hi[:, None] - g), 0.0)
+        cost = face + cross.max(axis=0)
+    out = float(face.min()), float(cost.min())
+    if not open_sweeps:
+        ev._box = out
+    return out
 
 
 def caliper_slope(ev: _Evidence) -> float:
@@ -534,12 +591,16 @@ def caliper_slope(ev: _Evidence) -> float:
     return slope / (ev.lam_sum / n)
 
 
-def class_features(ev: _Evidence, softness: float = 0.0) -> np.ndarray:
+def class_features(
+    ev: _Evidence, softness: float = 0.0, open_sweeps: list[tuple[float, float]] | None = None
+) -> np.ndarray:
     """The class model's input: the shares of each contact kind and of both-flat (parallel or
     not) and both-edge iterations, the curved radii against Λ/2 (median, how far from 1,
     spread), Λ's spread and size, how far the object turned, how σ turned with it, how Λ
-    changed with it (:func:`caliper_slope`), and how soft the object reads
-    (:attr:`_ContactTrack.softness`)."""
+    changed with it (:func:`caliper_slope`), how soft the object reads
+    (:attr:`_ContactTrack.softness`), and how far the touched outline is from a box's
+    (:func:`box_misfit`, with the edge runs still open)."""
+    face_misfit, box = box_misfit(ev, open_sweeps or [])
     total = max(1, ev.flat + ev.edge + ev.curved)
     n = max(1, ev.n)
     q25, q50, q75 = ev.radii.quantiles((0.25, 0.5, 0.75))
@@ -561,6 +622,8 @@ def class_features(ev: _Evidence, softness: float = 0.0) -> np.ndarray:
             max(-2.0, min(2.0, ev.s_ps / ev.s_pp)) if ev.s_pp > 0 else 0.0,
             math.log(abs(caliper_slope(ev)) + 0.01),
             softness,
+            math.log(face_misfit + 0.5),
+            math.log(box + 0.5),
         ]
     )
 
@@ -579,6 +642,7 @@ class Recognizer:
         m = self.model
         self._tracks = (_ContactTrack(Finger.ONE, m), _ContactTrack(Finger.TWO, m))
         self._ev = _Evidence()
+        self._sweeps: list[_Sweep | None] = [None, None]  # each pad's open edge run
 
     def update(self, obs: Observation, counts1: np.ndarray, counts2: np.ndarray) -> Recognition:
         """This iteration's estimate (the state carried from the iterations before)."""
@@ -586,6 +650,8 @@ class Recognizer:
             self._prev = None
             for t in self._tracks:
                 t.lost()
+            self._end_sweep(0)
+            self._end_sweep(1)
             self.last = replace(self.last, kind1=None, kind2=None, radius1=None, radius2=None)
             return self.last
         if self._axis is None:
@@ -673,6 +739,7 @@ class Recognizer:
     ) -> None:
         ev = self._ev
         ev.add_width(lam, self._psi)
+        self._trace(nus, (k1, k2))
         if k1 is None or k2 is None:
             return
         ev.n += 1
@@ -692,11 +759,43 @@ class Recognizer:
             if gap < self.model.parallel_deg:
                 ev.parallel += 1
 
+    def _trace(self, nus: list[float], kinds: tuple[ContactKind | None, ...]) -> None:
+        """The touched outline in the object frame: a flat contact's direction ν − ψ, an edge
+        contact's sweep."""
+        ev = self._ev
+        for i, (nu, kind) in enumerate(zip(nus, kinds, strict=True)):
+            d = math.degrees(nu - self._psi)
+            if kind is ContactKind.FLAT:
+                ev.faces += _OFF_GRID[:, int(d % 180.0)]
+                ev.faces_n += 1
+                ev._box = None
+            if kind is ContactKind.EDGE:
+                sweep = self._sweeps[i]
+                if sweep is None:
+                    self._sweeps[i] = _Sweep(d)
+                else:
+                    sweep.add(d)
+            else:
+                self._end_sweep(i)
+
+    def _end_sweep(self, i: int) -> None:
+        sweep, self._sweeps[i] = self._sweeps[i], None
+        if sweep is not None and sweep.n >= MIN_SWEEP:
+            ev = self._ev
+            ev.sweeps.append(sweep.span)
+            if len(ev.sweeps) > MAX_SWEEPS:  # keep the widest
+                ev.sweeps.remove(min(ev.sweeps, key=lambda s: s[1] - s[0]))
+            ev._box = None
+
+    def open_sweeps(self) -> list[tuple[float, float]]:
+        """The edge runs still going that count already (their sweeps so far)."""
+        return [s.span for s in self._sweeps if s is not None and s.n >= MIN_SWEEP]
+
     def _classify(self) -> tuple[ObjectClass | None, float, float | None, float | None]:
         ev, model = self._ev, self.model.object_class
         if model is None or ev.n == 0:
             return classify(ev, self.model)
-        p = model.probabilities(class_features(ev, self.softness()))
+        p = model.probabilities(class_features(ev, self.softness(), self.open_sweeps()))
         i = int(np.argmax(p))
         a, b = sizes(CLASSES[i], ev)
         return CLASSES[i], float(p[i]), a, b

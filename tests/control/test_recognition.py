@@ -16,6 +16,7 @@ import pytest
 
 from sdh2svc.config import Settings, default_config
 from sdh2svc.control.recognition import (
+    _OFF_GRID,
     PROFILE,
     ContactKind,
     ObjectClass,
@@ -26,6 +27,7 @@ from sdh2svc.control.recognition import (
     _ContactTrack,
     _Evidence,
     _Line,
+    box_misfit,
     caliper_slope,
     class_features,
     classify,
@@ -177,7 +179,38 @@ def test_the_caliper_slope_tells_a_box_from_a_circle() -> None:
     # the class model sees its size: the circle's far below the box's
     f_circle = class_features(widths(np.full(psi.size, 68.0), psi))
     f_box = class_features(widths(box, psi))
-    assert f_box[-2] > f_circle[-2] + 2.0
+    assert f_box[13] > f_circle[13] + 2.0  # log |caliper slope|
+
+
+def outline_evidence(faces: list[float], sweeps: list[tuple[float, float]]) -> _Evidence:
+    """Evidence whose touched outline shows these face directions and pivot sweeps (deg)."""
+    ev = _Evidence()
+    for d in faces:
+        ev.faces += _OFF_GRID[:, int(d % 180.0)]
+        ev.faces_n += 1
+    ev.sweeps = list(sweeps)
+    return ev
+
+
+def test_the_touched_outline_tells_a_box_from_a_polygon() -> None:
+    """A box's faces lie at right angles and its corners turn the pad within one: its misfit
+    is the 1° bins' half degree whatever its orientation. An irregular polygon's faces at 36°
+    do not fit a right angle; a regular pentagon's corner opposite a face, pivoting 20° either
+    way of parallel, crosses a box direction (its faces alone fit one)."""
+    for beta in (0.0, 17.0, 63.0):
+        box = outline_evidence(
+            [beta + 10] * 50 + [beta + 100] * 30, [(beta + 15, beta + 80), (beta - 75, beta - 20)]
+        )
+        assert box_misfit(box, []) == pytest.approx((0.5, 0.5))
+    face, whole = box_misfit(outline_evidence([10.0] * 50 + [46.0] * 30, []), [])
+    assert face == whole and 10.0 < face < 18.0
+    face, whole = box_misfit(outline_evidence([0.0] * 50, [(-20.0, 20.0)]), [])
+    assert face == pytest.approx(0.5) and whole == pytest.approx(19.5)
+    # an edge run still open counts too, and leaves the closed runs' figure cached as it was
+    ev = outline_evidence([0.0] * 50, [])
+    assert box_misfit(ev, [(-20.0, 20.0)])[1] == pytest.approx(19.5)
+    assert box_misfit(ev, []) == pytest.approx((0.5, 0.5))
+    assert box_misfit(_Evidence(), []) == (0.0, 0.0)  # nothing touched yet
 
 
 def test_the_windows_line_from_running_sums_matches_a_direct_fit() -> None:
