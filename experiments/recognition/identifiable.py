@@ -13,7 +13,9 @@ never the tactile data, so it is what a perfect sensor and a perfect estimator w
   the pad across one of those directions (a box's corner turns the pad from one face's
   direction towards its neighbour's, never past one). A polygon is told from a box only by a
   touched pair of faces at another angle, or a corner whose pivot crosses a box direction (a
-  regular odd polygon's corner opposite a face, pivoting both ways of parallel).
+  regular odd polygon's corner opposite a face, pivoting both ways of parallel). This is the
+  test behind :func:`sdh2svc.control.recognition.box_misfit`, but as a yes or no: *every* face
+  within the tolerance (the recognizer's feature is the faces' mean distance, in degrees).
 * **An ellipse that looks like a circle.** A circle's surface has one radius everywhere, and
   it is the radius of the circle through the touched points. An ellipse's first stroke is
   *circle-like* when its radius of curvature at the touched points varies by at most

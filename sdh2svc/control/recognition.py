@@ -526,7 +526,6 @@ class _Evidence:
     faces: np.ndarray = field(default_factory=lambda: np.zeros(len(_BETAS)))
     faces_n: int = 0
     sweeps: list[tuple[float, float]] = field(default_factory=list)
-    _box: tuple[float, float] | None = None  # box_misfit's, until the outline grows
 
     def add_width(self, lam: float, psi: float) -> None:
         """One iteration's Λ (mm) at the object's rotation ψ (rad)."""
@@ -536,6 +535,17 @@ class _Evidence:
         self.p_sum += psi
         self.pp_sum += psi * psi
         self.pl_sum += psi * lam
+
+    def add_face(self, direction: float) -> None:
+        """A flat contact's direction on the object (ν − ψ, deg)."""
+        self.faces += _OFF_GRID[:, int(direction % 180.0)]
+        self.faces_n += 1
+
+    def add_sweep(self, span: tuple[float, float]) -> None:
+        """A finished edge run's sweep (deg); only the MAX_SWEEPS widest are kept."""
+        self.sweeps.append(span)
+        if len(self.sweeps) > MAX_SWEEPS:
+            self.sweeps.remove(min(self.sweeps, key=lambda s: s[1] - s[0]))
 
 
 class _Sweep:
@@ -563,20 +573,14 @@ def box_misfit(ev: _Evidence, open_sweeps: list[tuple[float, float]]) -> tuple[f
     direction β + k·90° (by the lesser of its two sides) — the least: the second. A polygon at
     other angles, or a corner opposite a face turning the pad both ways of parallel (a regular
     odd polygon), reads above a box's few tenths of a degree."""
-    sweeps = ev.sweeps + open_sweeps
-    if ev._box is not None and not open_sweeps:
-        return ev._box
     face = ev.faces / ev.faces_n if ev.faces_n else np.zeros(len(_BETAS))
-    cost = face
-    if sweeps:
-        lo, hi = np.array(sweeps).T
-        g = _BETAS[None, :] + 90.0 * np.ceil((lo[:, None] - _BETAS[None, :]) / 90.0)
-        cross = np.where(g < hi[:, None], np.minimum(g - lo[:, None], hi[:, None] - g), 0.0)
-        cost = face + cross.max(axis=0)
-    out = float(face.min()), float(cost.min())
-    if not open_sweeps:
-        ev._box = out
-    return out
+    sweeps = ev.sweeps + open_sweeps
+    if not sweeps:
+        return float(face.min()), float(face.min())
+    lo, hi = np.array(sweeps).T
+    g = _BETAS[None, :] + 90.0 * np.ceil((lo[:, None] - _BETAS[None, :]) / 90.0)
+    cross = np.where(g < hi[:, None], np.minimum(g - lo[:, None], hi[:, None] - g), 0.0)
+    return float(face.min()), float((face + cross.max(axis=0)).min())
 
 
 def caliper_slope(ev: _Evidence) -> float:
@@ -766,9 +770,7 @@ class Recognizer:
         for i, (nu, kind) in enumerate(zip(nus, kinds, strict=True)):
             d = math.degrees(nu - self._psi)
             if kind is ContactKind.FLAT:
-                ev.faces += _OFF_GRID[:, int(d % 180.0)]
-                ev.faces_n += 1
-                ev._box = None
+                ev.add_face(d)
             if kind is ContactKind.EDGE:
                 sweep = self._sweeps[i]
                 if sweep is None:
@@ -781,11 +783,7 @@ class Recognizer:
     def _end_sweep(self, i: int) -> None:
         sweep, self._sweeps[i] = self._sweeps[i], None
         if sweep is not None and sweep.n >= MIN_SWEEP:
-            ev = self._ev
-            ev.sweeps.append(sweep.span)
-            if len(ev.sweeps) > MAX_SWEEPS:  # keep the widest
-                ev.sweeps.remove(min(ev.sweeps, key=lambda s: s[1] - s[0]))
-            ev._box = None
+            self._ev.add_sweep(sweep.span)
 
     def open_sweeps(self) -> list[tuple[float, float]]:
         """The edge runs still going that count already (their sweeps so far)."""

@@ -16,7 +16,6 @@ import pytest
 
 from sdh2svc.config import Settings, default_config
 from sdh2svc.control.recognition import (
-    _OFF_GRID,
     PROFILE,
     ContactKind,
     ObjectClass,
@@ -186,9 +185,9 @@ def outline_evidence(faces: list[float], sweeps: list[tuple[float, float]]) -> _
     """Evidence whose touched outline shows these face directions and pivot sweeps (deg)."""
     ev = _Evidence()
     for d in faces:
-        ev.faces += _OFF_GRID[:, int(d % 180.0)]
-        ev.faces_n += 1
-    ev.sweeps = list(sweeps)
+        ev.add_face(d)
+    for span in sweeps:
+        ev.add_sweep(span)
     return ev
 
 
@@ -206,7 +205,7 @@ def test_the_touched_outline_tells_a_box_from_a_polygon() -> None:
     assert face == whole and 10.0 < face < 18.0
     face, whole = box_misfit(outline_evidence([0.0] * 50, [(-20.0, 20.0)]), [])
     assert face == pytest.approx(0.5) and whole == pytest.approx(19.5)
-    # an edge run still open counts too, and leaves the closed runs' figure cached as it was
+    # an edge run still open counts too, and leaves the evidence as it was
     ev = outline_evidence([0.0] * 50, [])
     assert box_misfit(ev, [(-20.0, 20.0)])[1] == pytest.approx(19.5)
     assert box_misfit(ev, []) == pytest.approx((0.5, 0.5))
