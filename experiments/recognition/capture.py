@@ -8,7 +8,7 @@ object's pose (y, z, ψ) and, per distal pad, the true contact's point on the ob
 frame), its surface parameter and normal force. The object's spec is stored with the case, so
 which feature touches each pad is computed offline (:mod:`experiments.recognition.truth`).
 
-    for s in 1701 1703 1704 1705 1706 1707 1711 1712 1713 1714; do
+    for s in 1701 1703 1704 1705 1706 1707 1711 1712 1713 1714 1715 1716 1717 1718; do
         python -m experiments.recognition.capture --seed $s --n 60 --out /tmp/recog/fit-$s.jsonl
     done  # the fit suites (two at a time on two cores: ≈ 3 min a pair)
     python -m experiments.recognition.capture --seed 1702 --n 60 --out /tmp/recog/test.jsonl

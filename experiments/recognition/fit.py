@@ -3,14 +3,15 @@
     python -m experiments.recognition.fit /tmp/recog/fit-*.jsonl
 
 (the captures of :mod:`experiments.recognition.capture` for generator seeds 1701, 1703–1707
-and 1711–1714, 600 cases; the held-out test suites are seeds 1702, 1709, 1710 and 1720). Writes
+and 1711–1718, 840 cases; the held-out test suites are seeds 1702, 1709, 1710 and 1720). Writes
 ``sdh2svc/control/recognition_model.json``, its three models fitted in turn:
 
 1. **contact kind** — a multinomial logistic model on each contact's features
    (:func:`~sdh2svc.control.recognition.contact_features`, with their pairwise products),
    labelled by the truth (:func:`experiments.recognition.truth.feature`) at every second
    iteration with both contacts;
-2. **radius** — a linear model (the same features and pairwise products) of log(true radius /
+2. **radius** — a linear model (the first RADIUS_FEATURES of them, and their pairwise products:
+   all but the recent change and trend) of log(true radius /
    kinematic radius) where the truth and model 1 both say curved, fitted robustly (Huber's
    loss on the log ratio: the target counts radii within 20 %, so the bulk matters and not the
    outliers); its Huber width and L2 penalty chosen by 5-fold cross-validation by case
@@ -44,6 +45,7 @@ from experiments.recognition.truth import true_class
 from sdh2svc.control.recognition import (
     CLASSES,
     KINDS,
+    RADIUS_FEATURES,
     ContactKind,
     Linear,
     RecognitionModel,
@@ -65,14 +67,33 @@ EVERY = 2  # iterations between kind and radius samples
 
 
 def _standardised(F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The features' means and scales over the fit set, and the features standardised."""
-    mean, scale = F.mean(axis=0), F.std(axis=0) + 1e-9
-    return mean, scale, (F - mean) / scale
+    """The features' means and scales over the fit set, and the features standardised (in
+    ``F``'s place: the kind model's expanded samples take gigabytes)."""
+    mean = F.mean(axis=0)
+    var = np.zeros_like(mean)
+    for i in range(0, len(F), _BLOCK):  # F.std's temporaries would double F
+        F[i : i + _BLOCK] -= mean
+        var += np.square(F[i : i + _BLOCK]).sum(axis=0)
+    scale = np.sqrt(var / len(F)) + 1e-9
+    F /= scale
+    return mean, scale, F
+
+
+_BLOCK = 20_000  # rows at a time through the large arrays
+
+
+def _expanded(X: np.ndarray, rows: int = _BLOCK) -> np.ndarray:
+    """``expand(X)`` a block of rows at a time, into one array (whole, its temporaries would
+    take four times its size)."""
+    out = np.empty((len(X), expand(X[:1]).shape[1]))
+    for i in range(0, len(X), rows):
+        out[i : i + rows] = expand(X[i : i + rows])
+    return out
 
 
 def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool) -> Softmax:
     """Multinomial logistic regression (L-BFGS, L2 on the weights)."""
-    mean, scale, Z = _standardised(expand(X) if quadratic else X)
+    mean, scale, Z = _standardised(_expanded(X) if quadratic else X.astype(float))
     n, f = Z.shape
     Y = np.eye(k)[y]
 
@@ -96,7 +117,7 @@ def fit_softmax(X: np.ndarray, y: np.ndarray, k: int, l2: float, quadratic: bool
 def fit_huber(X: np.ndarray, y: np.ndarray, l2: float, delta: float) -> Linear:
     """Ridge regression with Huber's loss (width ``delta``) by iteratively reweighted least
     squares, on the features and their pairwise products."""
-    mean, scale, Z = _standardised(expand(X))
+    mean, scale, Z = _standardised(_expanded(X))
     w: np.ndarray = np.zeros(Z.shape[1])
     bias, weight = float(np.mean(y)), np.ones(len(y))
     for _ in range(8):
@@ -163,7 +184,7 @@ def radius_samples(
         for truth, x, me in _contacts(case, i, rec):
             if truth[0] is ContactKind.CURVED and me.p is not None and np.argmax(me.p) == curved:
                 assert truth[1] is not None
-                X.append(x)
+                X.append(x[:RADIUS_FEATURES])
                 y.append(math.log(truth[1] / me.kinematic_radius))
                 group.append(index[id(case)])
 

@@ -22,13 +22,17 @@ How (rolling kinematics, no model of the object):
   :class:`Softmax`) weighs this against how well ν − ψ fits a line over the window (a
   transition does not), the same line over a longer window (about a half stroke: a radius of
   a few millimetres moves the contact too little in the short one to tell it from a pivot),
-  the pressure footprint and its profile along the pad (:func:`pressure_profile`: a flat face
-  loads the rows under it alike or in a ramp, a curved surface in a hump), how soft the object
+  where the window breaks best into two lines and the later line alone (:meth:`_Line.split`:
+  a contact that just went from a face onto a corner or a rounding, or back), how the
+  footprint changed over the last few iterations, the pressure footprint and its profile
+  along the pad (:func:`pressure_profile`: a flat face loads the rows under it alike or in a
+  ramp, a curved surface in a hump), how soft the object
   reads over the run (the pad rubber's compression against Hertz's F^⅔: a soft object takes
   part of the squeeze, and its flat face wraps the pad like a curved one) and the other contact
   (:func:`contact_features`); without one, :meth:`_ContactTrack._rules` decide. A curved
   contact's radius is the kinematic one times a learned correction (:class:`Linear`, on the
-  same features), which undoes the window's bias on large radii and soft objects.
+  same features but the break and the footprint's changes), which undoes the window's bias on
+  large radii and soft objects.
 * **Class and sizes** from what the contacts were over the run (:func:`class_features`, a
   second learned model; without one, :func:`classify`'s rules; sizes by :func:`sizes`),
   among it the touched outline in the object frame: the flat faces' directions ν − ψ and the
@@ -42,8 +46,10 @@ profile along each pad; the rest comes from the observation's contact estimates.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
+import operator
 from collections import deque
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -280,6 +286,8 @@ class _ContactTrack:
         self.kinematic_radius = MAX_RADIUS_MM
         self.features: list[float] | None = None  # see contact_features
         self.p: np.ndarray | None = None  # the kind model's smoothed probabilities
+        # the footprint's features over the last TREND_FAR + 1 iterations
+        self._recent: deque[list[float]] = deque(maxlen=TREND_FAR + 1)
         # the run's mean of log(rubber compression / F^⅔): Hertz's compression grows as F^⅔
         # against a rigid body; a soft object takes its part of the squeeze, the pad less
         self._soft_sum, self._soft_n = 0.0, 0
@@ -292,6 +300,7 @@ class _ContactTrack:
     def lost(self) -> None:
         self.short.clear()
         self.long.clear()
+        self._recent.clear()
         self.kind, self.radius, self.features, self.p = None, None, None, None
 
     def update(self, c: ContactEstimate, nu: float, psi: float, counts: np.ndarray) -> None:
@@ -332,6 +341,19 @@ class _ContactTrack:
             math.log(long_resid + 0.05),
             *pressure_profile(counts, main.first_row, main.last_row),
         ]
+        # what changed lately: the window's best break into two lines (CHANGE) and how the
+        # footprint moved over the last few iterations (TREND), so a contact that just went
+        # from a face onto a corner, or back, need not wait for the whole window to show it
+        gain, since, recent_kappa, recent_travel, recent_turn = self.short.split()
+        self.features += [
+            gain, since, math.log(max(_radius_of(self.sign * recent_kappa), 0.5)),
+            math.log(recent_travel + 0.05), math.log(recent_turn + 0.05),
+        ]  # fmt: skip
+        now = [self.features[i] for i in _FOOTPRINT]
+        self._recent.append(now)
+        near, far = self._recent[max(0, len(self._recent) - 1 - TREND_NEAR)], self._recent[0]
+        self.features += [a - b for a, b in zip(now, near, strict=True)]
+        self.features += [a - b for a, b in zip(now, far, strict=True)]
         self.kind, self.radius = self._rules(travel, turn, kappa)
 
     def _rules(
@@ -394,6 +416,56 @@ class _Line:
             sums[3] += x * y
             sums[4] += y * y
 
+    def split(self) -> tuple[float, float, float, float, float]:
+        """The window broken where two lines fit it best (each of at least MIN_PIECE points):
+        log(one line's squared residual / the two lines'), the later line's length
+        (iterations), slope (as :meth:`fit`'s), travel (mm) and relative turn (°). A window on
+        one feature gains little from a break; one across a change gains much, and the later
+        line is the new feature's alone."""
+        xs, ys = self.x, self.y
+        n = len(xs)
+        if n < 2 * MIN_PIECE + 2:
+            return 0.0, 0.0, 0.0, 0.0, 0.0
+        # prefix sums of x, y, xx, xy, yy (the loop below written out: it runs per pad and
+        # iteration)
+        px = list(itertools.accumulate(xs, initial=0.0))
+        py = list(itertools.accumulate(ys, initial=0.0))
+        pxx = list(itertools.accumulate(map(operator.mul, xs, xs), initial=0.0))
+        pxy = list(itertools.accumulate(map(operator.mul, xs, ys), initial=0.0))
+        pyy = list(itertools.accumulate(map(operator.mul, ys, ys), initial=0.0))
+        X, Y, XX, XY, YY = px[n], py[n], pxx[n], pxy[n], pyy[n]
+
+        def residual(m: int, sx: float, sy: float, sxx: float, sxy: float, syy: float) -> float:
+            """m points' squared residual from their line, from their sums."""
+            vxx, vxy = sxx - sx * sx / m, sxy - sx * sy / m
+            return max(syy - sy * sy / m - (vxy * vxy / vxx if vxx > 1e-9 else 0.0), 0.0)
+
+        best, cut = math.inf, MIN_PIECE
+        for k in range(MIN_PIECE, n - MIN_PIECE + 1):
+            sx, sy, m = px[k], py[k], n - k
+            vxx, vxy = pxx[k] - sx * sx / k, pxy[k] - sx * sy / k
+            e = pyy[k] - sy * sy / k - (vxy * vxy / vxx if vxx > 1e-9 else 0.0)
+            sx, sy = X - sx, Y - sy
+            vxx, vxy = XX - pxx[k] - sx * sx / m, XY - pxy[k] - sx * sy / m
+            e2 = YY - pyy[k] - sy * sy / m - (vxy * vxy / vxx if vxx > 1e-9 else 0.0)
+            # each piece's residual, less rounding below nil
+            e = (e if e > 0.0 else 0.0) + (e2 if e2 > 0.0 else 0.0)
+            if e < best:
+                best, cut = e, k
+        whole = residual(n, X, Y, XX, XY, YY)
+        m = n - cut
+        sx, sy = X - px[cut], Y - py[cut]
+        vxx, vxy = XX - pxx[cut] - sx * sx / m, XY - pxy[cut] - sx * sy / m
+        later_x = list(itertools.islice(xs, cut, n))
+        later_y = list(itertools.islice(ys, cut, n))
+        return (
+            math.log((whole + 1e-7) / (best + 1e-7)),
+            float(n - cut),
+            vxy / vxx if vxx > 1e-9 else 0.0,
+            max(later_x) - min(later_x),
+            math.degrees(max(later_y) - min(later_y)),
+        )
+
     def fit(self) -> tuple[float, float, float, float]:
         """The slope of ν − ψ (rad) against L (mm): the curvature (unsigned, 1/mm; 0 without
         travel); the contact's travel (mm) and relative turn (°) over the window; the rms of
@@ -409,10 +481,20 @@ class _Line:
         return sxy / sxx, travel, turn, resid
 
 
+MIN_PIECE = 3  # iterations in either line of _Line.split
 LONG_RADIUS = 12  # in a track's features: log of the long window's kinematic radius
 # a contact of one row: no shape along the pad (flat-topped, no skew, nor spread, nor ramp)
 _ONE_ROW = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-PROFILE = len(_ONE_ROW)  # pressure_profile's values, last in a track's features
+PROFILE = len(_ONE_ROW)  # pressure_profile's values in a track's features, from PROFILE_AT
+PROFILE_AT = 16
+CHANGE_AT = PROFILE_AT + PROFILE  # _Line.split's five values
+TREND_AT = CHANGE_AT + 5  # the footprint's changes over TREND_NEAR and TREND_FAR iterations
+TREND_NEAR, TREND_FAR = 3, 8
+# the footprint's features whose changes are the trend: its spread, rows, cells, rubber
+# compression, band, force and profile
+_FOOTPRINT = (3, 4, 5, 6, 7, 8, *range(PROFILE_AT, CHANGE_AT))
+# contact_features' first RADIUS_FEATURES are the radius model's input
+RADIUS_FEATURES = CHANGE_AT + 1 + 4 + 1 + PROFILE + 1
 
 
 def pressure_profile(counts: np.ndarray, first: int, last: int) -> tuple[float, ...]:
@@ -452,13 +534,15 @@ def pressure_profile(counts: np.ndarray, first: int, last: int) -> tuple[float, 
 
 
 def contact_features(me: list[float], other: list[float], lam: float) -> np.ndarray:
-    """The kind model's input for one contact: its own track's features, the radius against
-    Λ/2, the other contact's first four (radius, travel, turn, footprint), long-window radius
-    and pressure profile, and log Λ."""
+    """The kind model's input for one contact: its own track's features up to the change, the
+    radius against Λ/2, the other contact's first four (radius, travel, turn, footprint),
+    long-window radius and pressure profile, log Λ (these first RADIUS_FEATURES are the radius
+    model's too); then both contacts' change and its own footprint's trend."""
     return np.array(
         [
-            *me, me[0] - math.log(lam / 2), *other[:4], other[LONG_RADIUS], *other[-PROFILE:],
-            math.log(lam),
+            *me[:CHANGE_AT], me[0] - math.log(lam / 2), *other[:4], other[LONG_RADIUS],
+            *other[PROFILE_AT:CHANGE_AT], math.log(lam),
+            *me[CHANGE_AT:TREND_AT], *other[CHANGE_AT:TREND_AT], *me[TREND_AT:],
         ]
     )  # fmt: skip
 
@@ -705,8 +789,7 @@ class Recognizer:
         model = self.model.kind
         if model is None or t1.features is None or t2.features is None:
             return [(t1.kind, t1.radius), (t2.kind, t2.radius)]
-        # both contacts in one go; the kind and radius models take the same features' pairwise
-        # products: expanded once
+        # both contacts in one go, their pairwise products expanded once
         x = np.stack([contact_features(t1.features, t2.features, lam),
                       contact_features(t2.features, t1.features, lam)])  # fmt: skip
         xx = expand(x) if model.quadratic else None
@@ -719,17 +802,17 @@ class Recognizer:
             kind = KINDS[int(np.argmax(me.p))]
             radius = None
             if kind is ContactKind.CURVED:
-                radius = self._radius(me, x[row], None if xx is None else xx[row])
+                radius = self._radius(me, x[row, :RADIUS_FEATURES])
             out.append((kind, radius))
         return out
 
-    def _radius(self, track: _ContactTrack, x: np.ndarray, xx: np.ndarray | None = None) -> float:
-        """A curved contact's radius: the kinematic one, corrected by the radius model (``xx``:
-        ``expand(x)`` if already worked out)."""
+    def _radius(self, track: _ContactTrack, x: np.ndarray) -> float:
+        """A curved contact's radius: the kinematic one, corrected by the radius model (``x``:
+        the contact's first RADIUS_FEATURES features)."""
         fit = self.model.radius
         if fit is None:
             return track.kinematic_radius
-        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x, xx), MAX_LOG_CORRECTION))
+        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x), MAX_LOG_CORRECTION))
         return min(track.kinematic_radius * math.exp(log_ratio), MAX_RADIUS_MM)
 
     def _gather(

@@ -17,6 +17,7 @@ import pytest
 from sdh2svc.config import Settings, default_config
 from sdh2svc.control.recognition import (
     PROFILE,
+    RADIUS_FEATURES,
     ContactKind,
     ObjectClass,
     Recognition,
@@ -239,6 +240,60 @@ def test_the_windows_line_from_running_sums_matches_a_direct_fit() -> None:
     assert line.fit() == (0.0, 0.0, pytest.approx(math.degrees(0.1)), 0.0)
 
 
+def test_the_window_breaks_where_a_face_gives_way_to_a_corner() -> None:
+    """_Line.split: a window of a face (the contact travels, ν − ψ still) then a rounding of
+    5 mm (ν − ψ turns 1/5 rad per mm) breaks at the change, and the later line is the
+    rounding's alone; a window on one line barely gains from a break; the break is the one a
+    brute-force search finds."""
+    line = _Line(20)
+    for k in range(14):  # the face
+        line.add(20.0 + 0.15 * k, 0.3)
+    for k in range(1, 7):  # the rounding
+        line.add(20.0 + 0.15 * (13 + k), 0.3 + 0.15 * k / 5.0)
+    gain, since, kappa, travel, turn = line.split()
+    assert since in (6.0, 7.0)  # the face's last point is on the rounding's line too
+    assert gain > 10.0  # two lines fit exactly, one leaves a bend
+    assert kappa == pytest.approx(1 / 5.0)
+    assert travel == pytest.approx(0.15 * (since - 1))
+    assert turn == pytest.approx(math.degrees(travel / 5.0))
+
+    def sse(x: np.ndarray, y: np.ndarray) -> float:
+        return float(np.sum((y - np.polyval(np.polyfit(x, y, 1), x)) ** 2))
+
+    rng = np.random.default_rng(5)
+    x, y = 20.0 + rng.normal(0.0, 1.0, 20), rng.normal(0.0, 0.01, 20)
+    line.clear()
+    for a, b in zip(x, y, strict=True):
+        line.add(float(a), float(b))
+    gain, since, *_ = line.split()
+    cut = min(range(3, 18), key=lambda k: sse(x[:k], y[:k]) + sse(x[k:], y[k:]))
+    assert since == 20 - cut
+    best = sse(x[:cut], y[:cut]) + sse(x[cut:], y[cut:])
+    assert gain == pytest.approx(math.log((sse(x, y) + 1e-7) / (best + 1e-7)), rel=1e-6)
+    assert gain < 1.5  # noise on one line: a break explains little
+    line.clear()
+    assert line.split() == (0.0, 0.0, 0.0, 0.0, 0.0)  # too few points to break
+
+
+def test_the_footprint_trend_starts_anew_after_a_lost_contact() -> None:
+    """A track's trend features: the footprint's change over the last few iterations, nil
+    while it holds still, and forgotten when the contact is lost."""
+    from sdh2svc.control.recognition import TREND_AT
+
+    track = _ContactTrack(Finger.ONE, MODEL)
+    trace(track, *rolling(Finger.ONE, 12, 0.1, None))
+    assert track.features is not None
+    assert track.features[TREND_AT:] == [0.0] * (len(track.features) - TREND_AT)
+    wide = replace(_C(22.0), n_cells=30)
+    track.update(wide, 0.3, 0.0, _COUNTS)
+    assert track.features[TREND_AT + 2] == 18.0  # cells: 12 → 30, over the near span
+    track.lost()
+    for k in range(4):
+        track.update(wide, 0.3, 0.0, _COUNTS)
+        track.update(replace(wide, L_mm=22.0 + 0.1 * k), 0.3, 0.0, _COUNTS)
+    assert track.features is not None and track.features[TREND_AT + 2] == 0.0
+
+
 def test_many_samples_score_as_one_at_a_time() -> None:
     """The kind model scores both contacts in one product: row by row the same as alone."""
     rng = np.random.default_rng(4)
@@ -327,7 +382,10 @@ def test_the_packaged_model_loads(cfg: Settings) -> None:
     assert isinstance(model, RecognitionModel)
     assert model.kind is not None and model.radius is not None and model.object_class is not None
     again = RecognitionModel.load(json.loads(json.dumps(model.dump())))  # a JSON round trip
-    x = np.linspace(-1.0, 2.0, N_FEATURES)
+    x = np.linspace(-1.0, 2.0, RADIUS_FEATURES)
+    assert again.kind is not None and model.kind is not None
+    xk = np.linspace(-1.0, 2.0, N_FEATURES)
+    assert np.array_equal(again.kind.probabilities(xk), model.kind.probabilities(xk))
     assert again.radius is not None
     assert again.radius.predict(x) == model.radius.predict(x)
 
@@ -336,7 +394,7 @@ def test_the_radius_model_scales_the_kinematic_radius() -> None:
     """A curved contact's radius is the kinematic one times exp(the model's log ratio)."""
     from sdh2svc.control.recognition import Linear
 
-    n = N_FEATURES
+    n = RADIUS_FEATURES
     lin = Linear(np.zeros(n), np.ones(n), np.zeros(n), np.asarray(math.log(0.8)))
     track = _ContactTrack(Finger.ONE, MODEL)
     track.kinematic_radius = 50.0
