@@ -843,16 +843,28 @@ function shortTime(s) {
   return Number.isNaN(d.getTime()) ? String(s) : d.toLocaleString();
 }
 
+// One load at a time; a load asked for while one is in flight runs again after it, so a click
+// on Refresh always gets an answer the server gave after the click (not one an earlier load,
+// started by a run's start or end, brings back).
 let runsLoading = null;
+let runsAgain = false;
 async function loadRuns() {
-  if (runsLoading) return runsLoading;
+  if (runsLoading) {
+    runsAgain = true;
+    return runsLoading;
+  }
   runsLoading = (async () => {
     try {
-      const runs = await api.runs();
-      clearToasts("run history");
-      renderRuns(runs || []);
-    } catch (e) {
-      showError(e, "run history");
+      do {
+        runsAgain = false;
+        try {
+          const runs = await api.runs();
+          clearToasts("run history");
+          renderRuns(runs || []);
+        } catch (e) {
+          showError(e, "run history");
+        }
+      } while (runsAgain);
     } finally {
       runsLoading = null;
     }

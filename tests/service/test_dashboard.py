@@ -14,6 +14,7 @@ JSON body and its content type.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import os
@@ -408,6 +409,35 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     assert await page.is_hidden("#replay-banner")
     assert await page.get_attribute("#pads", "data-iteration") is None
     assert (await counters(page))["lastError"] is None
+
+
+async def test_a_refresh_during_a_load_fetches_the_history_again(
+    service: LiveService, page: Any
+) -> None:
+    """A click on Refresh while an earlier load of the run history is still out (a run's
+    start or end starts one) is answered by a fresh request, not by that earlier load's
+    answer: the earlier one fails, the click's succeeds, and no error stays."""
+    held: list[Any] = []
+    asked = asyncio.Event()
+
+    async def hold(route: Any) -> None:
+        """The first request waits (it is the earlier load); later ones go to the server."""
+        if held:
+            await route.continue_()
+        else:
+            held.append(route)
+            asked.set()
+
+    await page.route("**/api/runs", hold)
+    await page.evaluate("document.querySelector('#runs-refresh').click()")  # the earlier load
+    await asyncio.wait_for(asked.wait(), 10)
+    await page.click("#runs-refresh")  # while the earlier one is out
+    # the earlier load fails; then a fresh request goes out and is answered
+    async with page.expect_response(lambda r: r.url.endswith("/api/runs") and r.ok):
+        await held[0].fulfill(status=500, json={"error": "db busy"})
+    await expect(page.locator("#errors .toast", has_text="run history")).to_have_count(0)
+    await expect(page.locator("#runs tbody tr").first).to_be_visible()
+    await page.unroute("**/api/runs")
 
 
 async def test_bad_parameter_shows_the_422_next_to_the_field(
