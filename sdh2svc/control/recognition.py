@@ -434,13 +434,8 @@ class _Line:
         pxy = list(itertools.accumulate(map(operator.mul, xs, ys), initial=0.0))
         pyy = list(itertools.accumulate(map(operator.mul, ys, ys), initial=0.0))
         X, Y, XX, XY, YY = px[n], py[n], pxx[n], pxy[n], pyy[n]
-
-        def residual(m: int, sx: float, sy: float, sxx: float, sxy: float, syy: float) -> float:
-            """m points' squared residual from their line, from their sums."""
-            vxx, vxy = sxx - sx * sx / m, sxy - sx * sy / m
-            return max(syy - sy * sy / m - (vxy * vxy / vxx if vxx > 1e-9 else 0.0), 0.0)
-
         best, cut = math.inf, MIN_PIECE
+        # _line_residual written out for both pieces (a call per piece costs a third more)
         for k in range(MIN_PIECE, n - MIN_PIECE + 1):
             sx, sy, m = px[k], py[k], n - k
             vxx, vxy = pxx[k] - sx * sx / k, pxy[k] - sx * sy / k
@@ -452,7 +447,7 @@ class _Line:
             e = (e if e > 0.0 else 0.0) + (e2 if e2 > 0.0 else 0.0)
             if e < best:
                 best, cut = e, k
-        whole = residual(n, X, Y, XX, XY, YY)
+        whole = _line_residual(n, X, Y, XX, XY, YY)
         m = n - cut
         sx, sy = X - px[cut], Y - py[cut]
         vxx, vxy = XX - pxx[cut] - sx * sx / m, XY - pxy[cut] - sx * sy / m
@@ -479,6 +474,12 @@ class _Line:
             return 0.0, travel, turn, 0.0
         resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n))
         return sxy / sxx, travel, turn, resid
+
+
+def _line_residual(m: int, sx: float, sy: float, sxx: float, sxy: float, syy: float) -> float:
+    """m points' squared residual from their least-squares line, from their sums."""
+    vxx, vxy = sxx - sx * sx / m, sxy - sx * sy / m
+    return max(syy - sy * sy / m - (vxy * vxy / vxx if vxx > 1e-9 else 0.0), 0.0)
 
 
 MIN_PIECE = 3  # iterations in either line of _Line.split
