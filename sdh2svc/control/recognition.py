@@ -600,11 +600,16 @@ class _Evidence:
     # stick's contacts stay at its ends, so AB turns with it (slope 1)
     s_ps: float = 0.0
     s_pp: float = 0.0
-    # Λ against ψ (Σψ, Σψ², ΣψΛ; ΣΛ and the count above): the caliper width's slope as the
-    # object turns: nil for a circle, a cos 2θ for an ellipse, a box's other side at a corner
+    # the caliper width D = Λ / cos(w/2) — Λ with the pads' wedge w taken out: a circle's
+    # diameter whatever the wedge, where Λ, its chord, shrinks as the wedge opens — against ψ
+    # (Σψ, Σψ², ΣψD, ΣD; the count is lam_n) and its least and most: its slope as the object
+    # turns is nil for a circle, a cos 2θ for an ellipse, a box's other side at a corner
     p_sum: float = 0.0
     pp_sum: float = 0.0
-    pl_sum: float = 0.0
+    pd_sum: float = 0.0
+    d_sum: float = 0.0
+    d_min: float = math.inf
+    d_max: float = 0.0
     # the touched outline in the object frame (ν − ψ, deg): Σ over the flat contacts of their
     # direction's distance from β + k·90° for every β in _BETAS, and how many; and the pivots'
     # sweeps (each edge run's lowest and highest direction)
@@ -612,14 +617,18 @@ class _Evidence:
     faces_n: int = 0
     sweeps: list[tuple[float, float]] = field(default_factory=list)
 
-    def add_width(self, lam: float, psi: float) -> None:
-        """One iteration's Λ (mm) at the object's rotation ψ (rad)."""
+    def add_width(self, lam: float, psi: float, wedge: float = 0.0) -> None:
+        """One iteration's Λ (mm) at the object's rotation ψ, between pads whose surfaces
+        meet at ``wedge`` (rad; 0: parallel)."""
         self.lam_min, self.lam_max = min(self.lam_min, lam), max(self.lam_max, lam)
         self.lam_sum += lam
         self.lam_n += 1
+        d = lam / math.cos(wedge / 2)
+        self.d_min, self.d_max = min(self.d_min, d), max(self.d_max, d)
+        self.d_sum += d
         self.p_sum += psi
         self.pp_sum += psi * psi
-        self.pl_sum += psi * lam
+        self.pd_sum += psi * d
 
     def add_face(self, direction: float) -> None:
         """A flat contact's direction on the object (ν − ψ, deg)."""
@@ -669,15 +678,16 @@ def box_misfit(ev: _Evidence, open_sweeps: list[tuple[float, float]]) -> tuple[f
 
 
 def caliper_slope(ev: _Evidence) -> float:
-    """dΛ/dψ over the run relative to Λ's mean (least squares; 0 before the object turned)."""
+    """dD/dψ over the run relative to D's mean, D the caliper width (:class:`_Evidence`; least
+    squares; 0 before the object turned)."""
     n = ev.lam_n
     if n < 3:
         return 0.0
     vpp = ev.pp_sum - ev.p_sum * ev.p_sum / n
     if vpp < 1e-8:
         return 0.0
-    slope = (ev.pl_sum - ev.p_sum * ev.lam_sum / n) / vpp
-    return slope / (ev.lam_sum / n)
+    slope = (ev.pd_sum - ev.p_sum * ev.d_sum / n) / vpp
+    return slope / (ev.d_sum / n)
 
 
 def class_features(
@@ -685,8 +695,9 @@ def class_features(
 ) -> np.ndarray:
     """The class model's input: the shares of each contact kind and of both-flat (parallel or
     not) and both-edge iterations, the curved radii against Λ/2 (median, how far from 1,
-    spread), Λ's spread and size, how far the object turned, how σ turned with it, how Λ
-    changed with it (:func:`caliper_slope`), how soft the object reads
+    spread), the caliper width's spread and Λ's size, how far the object turned, how σ
+    turned with it, how the caliper width changed with it (:func:`caliper_slope`), how soft
+    the object reads
     (:attr:`_ContactTrack.softness`), and how far the touched outline is from a box's
     (:func:`box_misfit`, with the edge runs still open)."""
     face_misfit, box = box_misfit(ev, open_sweeps or [])
@@ -705,7 +716,7 @@ def class_features(
             q50,
             abs(q50),
             q75 - q25,
-            math.log((ev.lam_max - ev.lam_min) / lam_mean + 0.01),
+            math.log((ev.d_max - ev.d_min) / (ev.d_sum / max(1, ev.lam_n)) + 0.01),
             math.log(lam_mean),
             math.log(math.degrees(ev.psi_max - ev.psi_min) + 0.5),
             max(-2.0, min(2.0, ev.s_ps / ev.s_pp)) if ev.s_pp > 0 else 0.0,
@@ -826,7 +837,8 @@ class Recognizer:
         r2: float | None,
     ) -> None:
         ev = self._ev
-        ev.add_width(lam, self._psi)
+        # the pads' wedge: how far their surfaces at the contacts are from parallel
+        ev.add_width(lam, self._psi, abs((nus[0] - nus[1] + math.pi / 2) % math.pi - math.pi / 2))
         self._trace(nus, (k1, k2))
         if k1 is None or k2 is None:
             return

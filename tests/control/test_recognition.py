@@ -156,10 +156,11 @@ def test_the_class_of_an_ellipse() -> None:
     assert got[2] == pytest.approx(26.5) and got[3] == pytest.approx(19.5)
 
 
-def widths(lam: np.ndarray, psi: np.ndarray) -> _Evidence:
+def widths(lam: np.ndarray, psi: np.ndarray, wedge: np.ndarray | None = None) -> _Evidence:
     ev = _Evidence()
-    for w, p in zip(lam, psi, strict=True):
-        ev.add_width(float(w), float(p))
+    wedge = np.zeros(psi.size) if wedge is None else wedge
+    for w, p, a in zip(lam, psi, wedge, strict=True):
+        ev.add_width(float(w), float(p), float(a))
     return ev
 
 
@@ -180,6 +181,22 @@ def test_the_caliper_slope_tells_a_box_from_a_circle() -> None:
     f_circle = class_features(widths(np.full(psi.size, 68.0), psi))
     f_box = class_features(widths(box, psi))
     assert f_box[13] > f_circle[13] + 2.0  # log |caliper slope|
+
+
+def test_the_caliper_width_takes_the_pads_wedge_out() -> None:
+    """A circle rolled between pads whose wedge opens from 0 to 20° touches them on a chord
+    Λ = D·cos(w/2) that shrinks by 1.5 %: the caliper width D stays the diameter, so neither
+    its slope nor its spread reads the wedge as the object's shape (Λ's would)."""
+    psi = np.radians(np.linspace(0.0, 15.0, 120))
+    wedge = np.radians(np.linspace(0.0, 20.0, 120))
+    chord = 68.0 * np.cos(wedge / 2)
+    ev = widths(chord, psi, wedge)
+    assert caliper_slope(ev) == pytest.approx(0.0, abs=1e-9)
+    assert ev.d_max - ev.d_min == pytest.approx(0.0, abs=1e-9)
+    assert ev.lam_max - ev.lam_min == pytest.approx(68.0 * (1 - math.cos(math.radians(10))))
+    seen_flat = class_features(widths(chord, psi))  # the same chords, the wedge not known
+    assert class_features(ev)[13] < seen_flat[13] - 1.5  # log |caliper slope|
+    assert class_features(ev)[9] < seen_flat[9] - 0.5  # log caliper spread
 
 
 def outline_evidence(faces: list[float], sweeps: list[tuple[float, float]]) -> _Evidence:
