@@ -918,16 +918,17 @@ class Recognizer:
 
 
 def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
-    """size_a, size_b of a class from the run's Λ and curved radii (see :class:`Recognition`;
-    a box's second side and a polygon's side length are not measured: None)."""
+    """size_a, size_b of a class from the run's Λ, caliper width and curved radii (see
+    :class:`Recognition`; a box's second side and a polygon's side length are not measured:
+    None)."""
     if ev.lam_n == 0:
         return None, None
     lam_mean = ev.lam_sum / ev.lam_n
     r_med = math.exp(ev.radii.quantiles((0.5,))[0]) * lam_mean / 2 if ev.radii.n else None
-    if cls is ObjectClass.CIRCLE:
-        return lam_mean / 2, None
+    if cls is ObjectClass.CIRCLE:  # the caliper width, not the chord Λ (see _Evidence)
+        return ev.d_sum / ev.lam_n / 2, None
     if cls is ObjectClass.ELLIPSE:
-        return ev.lam_max / 2, ev.lam_min / 2
+        return ev.d_max / 2, ev.d_min / 2
     if cls is ObjectClass.STICK:
         return ev.lam_max, max(2 * r_med, 1.0) if r_med is not None else None
     if cls is ObjectClass.BOX:

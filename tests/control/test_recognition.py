@@ -34,6 +34,7 @@ from sdh2svc.control.recognition import (
     contact_features,
     outline,
     pressure_profile,
+    sizes,
 )
 from sdh2svc.model.contact import NO_CONTACT, Blob, ContactEstimate
 from sdh2svc.model.depth import NO_DEPTH
@@ -120,9 +121,7 @@ def evidence(
     ev = _Evidence()
     for k1, k2 in kinds:
         ev.n += 1
-        ev.lam_min, ev.lam_max = min(ev.lam_min, lam), max(ev.lam_max, lam)
-        ev.lam_sum += lam
-        ev.lam_n += 1
+        ev.add_width(lam, 0.0)
         for k in (k1, k2):
             setattr(ev, k.value, getattr(ev, k.value) + 1)
             if k is ContactKind.CURVED:
@@ -150,7 +149,7 @@ def test_the_class_of_a_box_a_circle_and_a_stick() -> None:
 
 def test_the_class_of_an_ellipse() -> None:
     ev = evidence([(C, C)] * 80, 39.0, radius=14.3)
-    ev.lam_max = 53.0
+    ev.add_width(53.0, 0.0)  # across its long axis once
     got = classify(ev, MODEL)
     assert got[0] is ObjectClass.ELLIPSE
     assert got[2] == pytest.approx(26.5) and got[3] == pytest.approx(19.5)
@@ -194,6 +193,7 @@ def test_the_caliper_width_takes_the_pads_wedge_out() -> None:
     assert caliper_slope(ev) == pytest.approx(0.0, abs=1e-9)
     assert ev.d_max - ev.d_min == pytest.approx(0.0, abs=1e-9)
     assert ev.lam_max - ev.lam_min == pytest.approx(68.0 * (1 - math.cos(math.radians(10))))
+    assert sizes(ObjectClass.CIRCLE, ev)[0] == pytest.approx(34.0)  # not the mean chord's half
     seen_flat = class_features(widths(chord, psi))  # the same chords, the wedge not known
     assert class_features(ev)[13] < seen_flat[13] - 1.5  # log |caliper slope|
     assert class_features(ev)[9] < seen_flat[9] - 0.5  # log caliper spread
