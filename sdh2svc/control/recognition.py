@@ -943,13 +943,13 @@ def classify(
     total = ev.flat + ev.edge + ev.curved
     if total == 0 or ev.lam_n == 0:
         return None, 0.0, None, None
-    lam_mean = ev.lam_sum / ev.lam_n
+    d_mean = ev.d_sum / ev.lam_n  # the caliper width's (see _Evidence)
     f_flat, f_edge, f_curved = ev.flat / total, ev.edge / total, ev.curved / total
     r_med = math.exp(ev.radii.quantiles((0.5,))[0]) if ev.radii.n else 1.0  # radius / (Λ/2)
     if f_curved >= max(f_flat, f_edge):
         if r_med < m.stick_ratio * 2:
             cls, conf = ObjectClass.STICK, f_curved
-        elif abs(r_med - 1.0) < m.circle_tol and (ev.lam_max - ev.lam_min) / lam_mean < 0.05:
+        elif abs(r_med - 1.0) < m.circle_tol and (ev.d_max - ev.d_min) / d_mean < 0.05:
             cls, conf = ObjectClass.CIRCLE, f_curved
         else:
             cls, conf = ObjectClass.ELLIPSE, f_curved
