@@ -630,6 +630,11 @@ class _Evidence:
         self.pp_sum += psi * psi
         self.pd_sum += psi * d
 
+    @property
+    def d_mean(self) -> float:
+        """The caliper width's mean (mm; 0 before any width)."""
+        return self.d_sum / self.lam_n if self.lam_n else 0.0
+
     def add_face(self, direction: float) -> None:
         """A flat contact's direction on the object (ν − ψ, deg)."""
         self.faces += _OFF_GRID[:, int(direction % 180.0)]
@@ -686,8 +691,8 @@ def caliper_slope(ev: _Evidence) -> float:
     vpp = ev.pp_sum - ev.p_sum * ev.p_sum / n
     if vpp < 1e-8:
         return 0.0
-    slope = (ev.pd_sum - ev.p_sum * ev.d_sum / n) / vpp
-    return slope / (ev.d_sum / n)
+    slope = (ev.pd_sum - ev.p_sum * ev.d_mean) / vpp
+    return slope / ev.d_mean
 
 
 def class_features(
@@ -716,7 +721,7 @@ def class_features(
             q50,
             abs(q50),
             q75 - q25,
-            math.log((ev.d_max - ev.d_min) / (ev.d_sum / max(1, ev.lam_n)) + 0.01),
+            math.log((ev.d_max - ev.d_min) / ev.d_mean + 0.01),
             math.log(lam_mean),
             math.log(math.degrees(ev.psi_max - ev.psi_min) + 0.5),
             max(-2.0, min(2.0, ev.s_ps / ev.s_pp)) if ev.s_pp > 0 else 0.0,
@@ -838,7 +843,8 @@ class Recognizer:
     ) -> None:
         ev = self._ev
         # the pads' wedge: how far their surfaces at the contacts are from parallel
-        ev.add_width(lam, self._psi, abs((nus[0] - nus[1] + math.pi / 2) % math.pi - math.pi / 2))
+        wedge = abs((nus[0] - nus[1] + math.pi / 2) % math.pi - math.pi / 2)
+        ev.add_width(lam, self._psi, wedge)
         self._trace(nus, (k1, k2))
         if k1 is None or k2 is None:
             return
@@ -855,8 +861,7 @@ class Recognizer:
         ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
         if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
             ev.both_flat += 1
-            gap = abs((math.degrees(nus[0] - nus[1]) + 90.0) % 180.0 - 90.0)
-            if gap < self.model.parallel_deg:
+            if math.degrees(wedge) < self.model.parallel_deg:
                 ev.parallel += 1
 
     def _trace(self, nus: list[float], kinds: tuple[ContactKind | None, ...]) -> None:
@@ -926,7 +931,7 @@ def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
     lam_mean = ev.lam_sum / ev.lam_n
     r_med = math.exp(ev.radii.quantiles((0.5,))[0]) * lam_mean / 2 if ev.radii.n else None
     if cls is ObjectClass.CIRCLE:  # the caliper width, not the chord Λ (see _Evidence)
-        return ev.d_sum / ev.lam_n / 2, None
+        return ev.d_mean / 2, None
     if cls is ObjectClass.ELLIPSE:
         return ev.d_max / 2, ev.d_min / 2
     if cls is ObjectClass.STICK:
@@ -943,13 +948,12 @@ def classify(
     total = ev.flat + ev.edge + ev.curved
     if total == 0 or ev.lam_n == 0:
         return None, 0.0, None, None
-    d_mean = ev.d_sum / ev.lam_n  # the caliper width's (see _Evidence)
     f_flat, f_edge, f_curved = ev.flat / total, ev.edge / total, ev.curved / total
     r_med = math.exp(ev.radii.quantiles((0.5,))[0]) if ev.radii.n else 1.0  # radius / (Λ/2)
     if f_curved >= max(f_flat, f_edge):
         if r_med < m.stick_ratio * 2:
             cls, conf = ObjectClass.STICK, f_curved
-        elif abs(r_med - 1.0) < m.circle_tol and (ev.d_max - ev.d_min) / d_mean < 0.05:
+        elif abs(r_med - 1.0) < m.circle_tol and (ev.d_max - ev.d_min) / ev.d_mean < 0.05:
             cls, conf = ObjectClass.CIRCLE, f_curved
         else:
             cls, conf = ObjectClass.ELLIPSE, f_curved
