@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -30,6 +31,31 @@ def percent(k: int, n: int) -> str:
     95 %); whole numbers without the decimal."""
     tenths = 1000 * k // n
     return f"{tenths // 10} %" if tenths % 10 == 0 else f"{tenths / 10:.1f} %"
+
+
+def interval(k: int, n: int) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a success rate k/n: where the rate over everything the
+    generator draws lies, given n of its cases (scipy.stats.binomtest)."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+    return float(ci.low), float(ci.high)
+
+
+def span(lo: float, hi: float) -> str:
+    """An interval in percent to a tenth, rounded outwards (never narrower than it is)."""
+    return f"{math.floor(lo * 1000 + 1e-9) / 10:.1f}–{math.ceil(hi * 1000 - 1e-9) / 10:.1f} %"
+
+
+def paired_p(better: int, worse: int) -> float:
+    """McNemar's exact test on paired verdicts: the two-sided chance of a split at least this
+    uneven among the ``better + worse`` cases whose verdict changed, were a change as likely
+    one way as the other (1 when none changed)."""
+    if better + worse == 0:
+        return 1.0
+    from scipy.stats import binomtest
+
+    return float(binomtest(better, better + worse, 0.5).pvalue)
 
 
 def rate(rows: Sequence[Row]) -> str:
@@ -132,6 +158,16 @@ def _headline(rows: Sequence[Row]) -> list[str]:
     return lines
 
 
+def _interval_line(rows: Sequence[Row]) -> list[str]:
+    """The overall rate's 95 % interval: what the cases' number leaves open."""
+    n = len(rows)
+    if not n:
+        return []
+    lo, hi = interval(sum(1 for r in rows if r["success"]), n)
+    return [f"95 % interval for the success rate over everything the suite's generator draws: "
+            f"{span(lo, hi)} (Wilson score, {n} cases).", ""]  # fmt: skip
+
+
 def write_report(out: Path) -> Path:
     """``OUT/report.md`` and its plots (``OUT/plots/*.png``)."""
     rows, info = load(out)
@@ -151,6 +187,7 @@ def write_report(out: Path) -> Path:
         "",
         f"**Success overall: {rate(rows)}**",
         "",
+        *_interval_line(rows),
         "| family | cases | success | Λ error mm (median) | wall s per case (mean) |",
         "|---|---|---|---|---|",
     ]
@@ -289,6 +326,19 @@ def _plots(rows: Sequence[Row], plots: Path) -> list[str]:
     return made
 
 
+def _paired(better: int, worse: int) -> str:
+    """Whether the cases that changed verdict say more than chance (McNemar, 5 % level)."""
+    if better + worse == 0:
+        return "Paired on the cases in both: no verdict changed."
+    p = paired_p(better, worse)
+    verdict = "significant at the 5 % level" if p < 0.05 else "not significant at the 5 % level"
+    return (
+        f"Paired on the cases in both: B better on {better}, worse on {worse}. McNemar's "
+        f"exact test (the split of the {better + worse} changed verdicts against an even "
+        f"one): p = {p:.3f}, {verdict}."
+    )
+
+
 def compare(a: Path, b: Path) -> str:
     """Markdown: the two campaigns' success rates side by side, and case by case what changed."""
     ra, ia = load(a)
@@ -312,7 +362,8 @@ def compare(a: Path, b: Path) -> str:
     changed = [i for i in common if not da[i]["success"] and not db[i]["success"]
                and da[i]["failure"] != db[i]["failure"]]  # fmt: skip
     lines += ["", f"{len(common)} cases in both; only in A: {len(set(da) - set(db))}, "
-              f"only in B: {len(set(db) - set(da))}.", ""]  # fmt: skip
+              f"only in B: {len(set(db) - set(da))}.", "", _paired(len(better), len(worse)),
+              ""]  # fmt: skip
     for title, ids in (("Better in B (failed in A, succeeded in B)", better),
                        ("Worse in B (succeeded in A, failed in B)", worse),
                        ("Failed in both, for another reason", changed)):  # fmt: skip

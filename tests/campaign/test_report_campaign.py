@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +86,8 @@ def test_report_writes_markdown_and_plots(tmp_path: Path) -> None:
     assert main(["campaign", "report", str(tmp_path / "a")]) == 0
     md = (tmp_path / "a" / "report.md").read_text()
     assert "**Success overall: 6/11 (54.5 %)**" in md
+    # Wilson's interval for 6 of 11 is 28.009–78.729 %, rounded outwards
+    assert "success rate over everything the suite's generator draws: 28.0–78.8 % " in md
     assert "| box | 6 | 6/6 (100 %) |" in md and "| circle | 5 | 0/5 (0 %) |" in md
     assert "| faulted: stuck | 4 |" in md and "| crashed | 1 |" in md
     assert "ValueError: x" in md
@@ -113,6 +116,7 @@ def test_compare_shows_what_got_better_and_worse(
     assert "## Worse in B (succeeded in A, failed in B): 1" in text
     assert "| box-2 | box | success | dropped |" in text
     assert "| box-3 | box | too few strokes | F above band |" in text
+    assert "B better on 1, worse on 1." in text and "p = 1.000, not significant" in text
     assert (tmp_path / "b" / "compare.md").read_text() == text
 
 
@@ -129,3 +133,36 @@ def test_a_percentage_is_never_rounded_up_across_a_target() -> None:
     assert percent(341, 360) == "94.7 %"  # not "95 %"
     assert percent(359, 360) == "99.7 %" and percent(360, 360) == "100 %"
     assert percent(1, 2) == "50 %" and percent(0, 7) == "0 %"
+
+
+def wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson's score interval, written out (the report takes it from scipy)."""
+    p, d = k / n, 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / d
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return centre - half, centre + half
+
+
+@pytest.mark.parametrize(("k", "n"), [(349, 360), (6, 11), (0, 20), (20, 20), (423, 450)])
+def test_the_success_interval_is_wilsons(k: int, n: int) -> None:
+    from sdh2svc.campaign.report import interval
+
+    assert interval(k, n) == pytest.approx(wilson(k, n), abs=1e-12)
+
+
+def test_an_interval_is_rounded_outwards() -> None:
+    from sdh2svc.campaign.report import span
+
+    assert span(0.94612, 0.98285) == "94.6–98.3 %"  # not 98.2
+    assert span(0.95, 0.99) == "95.0–99.0 %"  # exact tenths stay
+    assert span(0.0, 1.0) == "0.0–100.0 %"
+
+
+def test_the_paired_test_is_mcnemars_exact() -> None:
+    from sdh2svc.campaign.report import paired_p
+
+    # two-sided: twice the chance of 4 or fewer of 17 changes going B's way, 2·3214 / 2¹⁷
+    assert paired_p(4, 13) == pytest.approx(2 * 3214 / 2**17, rel=1e-12)
+    assert paired_p(13, 4) == paired_p(4, 13)
+    assert paired_p(0, 6) == pytest.approx(2 / 2**6, rel=1e-12)
+    assert paired_p(1, 1) == 1.0 and paired_p(0, 0) == 1.0
