@@ -15,7 +15,8 @@ Additions to the thesis (explained here and in config/default.toml), for objects
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
 route; a reversal for any reason but a lost contact commits to the way back
 (:attr:`RollState.waived`), and the pad's edge never refuses a way back; the cones are as
-wide as the grasp held (:attr:`RollState.alpha_held`); a plan that widens the pads' wedge
+wide as the grasp held (:attr:`RollState.alpha_held`), and as wide as a contact holds once its
+cone refuses both ways; a plan that widens the pads' wedge
 beyond its limit reverses; a plan Finger 1 cannot follow reverses; Finger 1's step limit; the
 force band.
 """
@@ -92,7 +93,9 @@ class RollState:
     # The largest |ω − 90°| at the first iteration: the grasp holds the object there, so its
     # friction angle is at least this; the cones are max(α, this) wide. A grasp can end with AB
     # tilted beyond α against the pads (small objects touching the pads at different heights),
-    # where the thesis's rule would refuse both directions from the start.
+    # where the thesis's rule would refuse both directions from the start. Later, a cone that
+    # refuses the way back from its own reversal widens them to its contact's |ω − 90°| then
+    # (see _cone_held).
     alpha_held: float = 0.0
 
     @property
@@ -223,6 +226,19 @@ def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> 
     )
 
 
+def _cone_held(reason: Reversal, waived: Reversal | None, obs: Observation) -> float:
+    """A cone that refuses the way back from its own reversal (``waived``: less than WAY_BACK
+    half strokes ago) refuses both ways, while its contact holds the object where it is: the
+    object's friction angle is at least that contact's |ω − 90°| now, and the cones widen to
+    it, as they do to what the grasp held (:attr:`RollState.alpha_held`). The way back may then
+    go RETREAT_LIMIT beyond it; the object is pushed further only where it held. 0.0 for any
+    other reversal."""
+    if reason is not waived or reason not in (Reversal.CONE_A, Reversal.CONE_B):
+        return 0.0
+    w = obs.omega_A if reason is Reversal.CONE_A else obs.omega_B
+    return 0.0 if w is None else abs(w - math.pi / 2)
+
+
 def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | None,
                    p: RollingParams) -> bool:  # fmt: skip
     """Whether the plan takes the pads' wedge beyond its limit and wider than it is now. With
@@ -281,7 +297,11 @@ def step(
     waived = state.waived if _within_way_back(state, params) else None
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
-        return StepResult(_reverse(state, F, reason, params), None, reason, obs, F, dF, plan)
+        nxt = _reverse(state, F, reason, params)
+        held = _cone_held(reason, waived, obs)
+        if held > nxt.alpha_held:
+            nxt = replace(nxt, alpha_held=held)
+        return StepResult(nxt, None, reason, obs, F, dF, plan)
 
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:

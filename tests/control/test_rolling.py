@@ -343,6 +343,32 @@ def test_the_cones_are_as_wide_as_the_grasp_held(cfg: Settings) -> None:
                is Reversal.CONE_B for d in (1, -1))  # fmt: skip
 
 
+def test_a_cone_that_refuses_its_own_way_back_widens_to_what_its_contact_holds(
+    cfg: Settings,
+) -> None:
+    """ωB far outside the cone, and cone B refuses the way back from its own reversal: it
+    refuses both directions while contact B holds the object there. The cones then widen to
+    ωB's angle now (the object's friction angle is at least that), and the way back passes.
+    A first refusal, one on the way back from another check, or one after the way back do not
+    widen them."""
+    ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
+    far = _past_cone_b(cfg, p, beyond_deg=math.degrees(RETREAT_LIMIT) + 1.0)
+    m = frame(20.0)
+    back = RollState(direction=1, iteration=9, waived=Reversal.CONE_B)
+    r = step(back, far, m, m, p, ctx)
+    held = abs(r.obs.omega_B - math.pi / 2)
+    assert r.reversal is Reversal.CONE_B
+    assert r.state.alpha_held == pytest.approx(held) and held > rad(10.0) + RETREAT_LIMIT
+    again = step(r.state, far, m, m, p, ctx)  # the other way, from the same pose
+    assert again.reversal is None and again.targets is not None
+    assert again.state.alpha_held == pytest.approx(held)  # kept for the rest of the run
+    way = WAY_BACK * p.min_half_stroke
+    for other in (RUNNING, replace(back, waived=Reversal.CONE_A),
+                  replace(back, travel=way)):  # fmt: skip
+        r = step(other, far, m, m, p, ctx)
+        assert r.reversal is Reversal.CONE_B and r.state.alpha_held == 0.0
+
+
 def test_a_plan_that_widens_the_wedge_beyond_its_limit_reverses(cfg: Settings) -> None:
     """Both pads tilted apart (both ω on the same side of 90°): within wide cones, a plan that
     widens the wedge beyond ``wedge_limit_deg`` reverses; one that narrows it passes."""
