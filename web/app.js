@@ -9,7 +9,7 @@ import { Pads } from "/web/pads.js";
 import { showObject } from "/web/readout.js";
 import { MARKERS, Plots } from "/web/plots.js";
 import { Replay } from "/web/replay.js";
-import { configureHand, placedTruth, Sketch } from "/web/sketch.js";
+import { coneAlpha, configureHand, placedTruth, Sketch } from "/web/sketch.js";
 
 const $ = (sel) => document.querySelector(sel);
 const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling", "releasing"]);
@@ -699,7 +699,8 @@ function addEvent(m) {
   ol.prepend(li);
   while (ol.children.length > 60) ol.lastElementChild.remove();
   const write = () => {
-    const ctx = { alpha: state.params.alpha_deg, sample: recent.samples.get(m.iteration) };
+    const sample = recent.samples.get(m.iteration);
+    const ctx = { alpha: coneAlpha(sample, state.params.alpha_deg), sample };
     if (m.kind === "reversal" && m.run_id != null && m.iteration != null) {
       const prev = recent.lastReversal.get(m.run_id);
       if (prev !== undefined) ctx.since = m.iteration - prev;

@@ -90,6 +90,9 @@ export function padNormalAt(f, P) {
 
 const rotate = ([x, y], a) => [x * Math.cos(a) - y * Math.sin(a), x * Math.sin(a) + y * Math.cos(a)];
 const isNum = (v) => typeof v === "number" && Number.isFinite(v);
+// the cones' half-angle (deg) for a sample: the one it recorded (α as the run widened it to what
+// the grasp and the contacts held), else the run's configured α
+export const coneAlpha = (sample, alpha) => (sample && isNum(sample.alpha) && sample.alpha > 0 ? sample.alpha : alpha);
 
 /** A recorded iteration's truth (GET /api/runs/{id}/truth: the run's `outline`, one of its
  * `truth` rows) as the live `sim` message's: the outline placed at the iteration's y, z, ψ. */
@@ -249,8 +252,9 @@ export class Sketch {
            fingerFrame(2, contact.phi4 * D2R, contact.phi5 * D2R)]
         : frames;
       if (cf) {
-        this.drawCone(ctx, px, s, dpr, A, padNormalAt(cf[0], A), contact.omega_A);
-        this.drawCone(ctx, px, s, dpr, B, padNormalAt(cf[1], B), contact.omega_B);
+        const alpha = coneAlpha(contact, this.alpha);
+        this.drawCone(ctx, px, s, dpr, A, padNormalAt(cf[0], A), contact.omega_A, alpha);
+        this.drawCone(ctx, px, s, dpr, B, padNormalAt(cf[1], B), contact.omega_B, alpha);
       }
       ctx.strokeStyle = "#111";
       ctx.lineWidth = 2.5 * dpr;
@@ -357,16 +361,16 @@ export class Sketch {
     ctx.fillText(jointName, jx + (jointName === "C" ? -16 : 8) * dpr, jy + 4 * dpr);
   }
 
-  drawCone(ctx, px, s, dpr, P, normal, omega) {
-    const a = this.alpha * D2R;
+  drawCone(ctx, px, s, dpr, P, normal, omega, alpha) {
+    const a = alpha * D2R;
     const e1 = rotate(normal, a);
     const e2 = rotate(normal, -a);
     // colour by the margin to the cone's edge: green, amber when < α/2 left, red outside
     let col = "44,160,44";
     if (isNum(omega)) {
-      const margin = this.alpha - Math.abs(omega - 90);
+      const margin = alpha - Math.abs(omega - 90);
       if (margin < 0) col = "214,39,40";
-      else if (margin < this.alpha / 2) col = "255,152,0";
+      else if (margin < alpha / 2) col = "255,152,0";
     }
     const tip1 = [P[0] + CONE_LEN * e1[0], P[1] + CONE_LEN * e1[1]];
     const tip2 = [P[0] + CONE_LEN * e2[0], P[1] + CONE_LEN * e2[1]];
@@ -403,7 +407,8 @@ export class Sketch {
       lines.push(`Λ = ${contact.Lambda.toFixed(1)} mm, σ = ${sig}°`);
       const wa = isNum(contact.omega_A) ? contact.omega_A.toFixed(1) : "–";
       const wb = isNum(contact.omega_B) ? contact.omega_B.toFixed(1) : "–";
-      lines.push(`ωA = ${wa}°, ωB = ${wb}° (cone 90 ± ${this.alpha}°)`);
+      const alpha = Math.round(10 * coneAlpha(contact, this.alpha)) / 10;
+      lines.push(`ωA = ${wa}°, ωB = ${wb}° (cone 90 ± ${alpha}°)`);
     }
     if (truth) {
       const t = truth;

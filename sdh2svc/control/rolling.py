@@ -127,6 +127,9 @@ class StepResult:
     F: float
     dF: float
     plan: Plan | None
+    # the friction cones' half-angle from this iteration on: α, widened to what the grasp and
+    # the contacts held (RollState.alpha_held), radians
+    alpha: float
 
     @property
     def points(self) -> HandPoints | None:
@@ -301,7 +304,7 @@ def step(
         held = _cone_held(reason, waived, obs)
         if held > nxt.alpha_held:
             nxt = replace(nxt, alpha_held=held)
-        return StepResult(nxt, None, reason, obs, F, dF, plan)
+        return StepResult(nxt, None, reason, obs, F, dF, plan, max(params.alpha, nxt.alpha_held))
 
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
@@ -325,7 +328,7 @@ def step(
     nxt = replace(state, F_prev=F, iteration=state.iteration + 1,
                   travel=state.travel + cfg.travel)  # fmt: skip
     targets = HandPose(cfg.ik.solution.proximal, cfg.ik.solution.distal, cfg.phi4d, cfg.phi5d)
-    return StepResult(nxt, targets, None, obs, F, dF, plan)
+    return StepResult(nxt, targets, None, obs, F, dF, plan, alpha)
 
 
 _Attempt = tuple[Reversal | None, Plan, _Config | None]

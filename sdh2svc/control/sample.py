@@ -85,6 +85,12 @@ class Sample:
         "age of the actual joint angles φ2…φ5 when the iteration took them", "ms"
     )
     latency_ms: float = _doc("time from the frame's arrival to the targets on the joint line", "ms")
+    alpha: float | None = _doc(
+        "half-angle α of the friction cones from this iteration on: the configured α, widened to "
+        "what the grasp and the contacts held (null: not recorded)",
+        "deg",
+        optional=True,
+    )
     # recognition while rolling (control.recognition), from the tactile frames and angles only
     contact1_kind: str | None = _est(
         "what touches Finger 1's distal pad: flat | edge | curved (null: no contact or estimate)"
@@ -172,7 +178,7 @@ class Sample:
             half_strokes=r.state.half_strokes,
             reversal=r.reversal.value if r.reversal else None,
             frame_age_ms=frame_age_ms, joint_age_ms=joint_age_ms, latency_ms=latency_ms,
-            **_recognized(rec),
+            alpha=math.degrees(r.alpha), **_recognized(rec),
         )  # fmt: skip
 
     def recognition(self) -> Recognition | None:

@@ -185,7 +185,7 @@ class HandFrames:
         it was drawn."""
         entities = self.pads(ns)
         if s is not None:
-            entities.append(self.contacts(s, ns, alpha))
+            entities.append(self.contacts(s, ns, sample_alpha(s, alpha)))
         if truth is not None and (obj := object_entity(truth, ns)) is not None:
             entities.append(obj)
         return fm.SceneUpdate(entities=entities)
@@ -342,6 +342,13 @@ def object_entity(truth: Mapping[str, Any], ns: int) -> fm.SceneEntity | None:
         color=color,
     )
     return fm.SceneEntity(timestamp=_ts(ns), frame_id="frame0", id="object", lines=[line])
+
+
+def sample_alpha(s: Mapping[str, Any], alpha: float) -> float:
+    """The cones' half-angle (rad) to draw for sample ``s``: the one it recorded (``alpha``,
+    degrees: α widened to what the grasp and the contacts held), else ``alpha``."""
+    a = s.get("alpha")
+    return math.radians(a) if isinstance(a, int | float) and a > 0.0 else alpha
 
 
 def _cone(apex: np.ndarray, n: np.ndarray, alpha: float, height: float) -> fm.CylinderPrimitive:

@@ -217,12 +217,14 @@ class Contact:
 class SampleView:
     """A sample as the 3-D view draws it: φ2…φ5 (degrees; None: not in the sample), the
     contacts A (Finger 1) and B (Finger 2), and the reconstructed outline (:func:`estimate_outline`:
-    (y, z) points, mm; empty without a class)."""
+    (y, z) points, mm; empty without a class), and the cones' half-angle α the sample recorded
+    (degrees; None: not recorded, draw the run's α)."""
 
     phi_deg: tuple[float | None, float | None, float | None, float | None]
     A: Contact | None
     B: Contact | None
     estimate: tuple[tuple[float, float], ...] = ()
+    alpha_deg: float | None = None
 
 
 def contact_normal(
@@ -267,7 +269,7 @@ def sample_view(
     A = _contact(s, Finger.ONE, ("Ay", "Az", "phi2", "phi3", "omega_A"), geom)
     B = _contact(s, Finger.TWO, ("By", "Bz", "phi4", "phi5", "omega_B"), geom)
     est = live_outline(s) if live else estimate_outline(s)
-    return SampleView(phis, A, B, _points(est))
+    return SampleView(phis, A, B, _points(est), _num(s, "alpha"))
 
 
 def _points(pts: npt.NDArray[np.float64]) -> tuple[tuple[float, float], ...]:

@@ -681,7 +681,8 @@ class Viewer:
 
     def _render_contacts(self) -> None:
         s = self._contact_sample()
-        alpha = self._alpha_deg()
+        # the cones the controller checks: as wide as the sample says the run has widened them
+        alpha = s.alpha_deg if s is not None and s.alpha_deg else self._alpha_deg()
         contacts = {"A": s.A if s else None, "B": s.B if s else None}
         for label, c in contacts.items():
             sphere, cone = self.nodes[f"/contacts/{label}"], self.nodes[f"/contacts/cone_{label}"]

@@ -11,6 +11,7 @@ import pytest
 from sdh2svc.config import Settings
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import RETREAT_LIMIT, WAY_BACK, Reversal, RollState, step
+from sdh2svc.control.sample import Sample
 from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point, segment
 
 rad = math.radians
@@ -359,14 +360,18 @@ def test_a_cone_that_refuses_its_own_way_back_widens_to_what_its_contact_holds(
     held = abs(r.obs.omega_B - math.pi / 2)
     assert r.reversal is Reversal.CONE_B
     assert r.state.alpha_held == pytest.approx(held) and held > rad(10.0) + RETREAT_LIMIT
+    assert r.alpha == pytest.approx(held)  # the cones from now on, as recorded and drawn
+    assert Sample.from_step(r, far, 1.0, 0.0, 0.0, 0.0).alpha == pytest.approx(math.degrees(held))
     again = step(r.state, far, m, m, p, ctx)  # the other way, from the same pose
     assert again.reversal is None and again.targets is not None
     assert again.state.alpha_held == pytest.approx(held)  # kept for the rest of the run
+    assert again.alpha == pytest.approx(held)
     way = WAY_BACK * p.min_half_stroke
     for other in (RUNNING, replace(back, waived=Reversal.CONE_A),
                   replace(back, travel=way)):  # fmt: skip
         r = step(other, far, m, m, p, ctx)
         assert r.reversal is Reversal.CONE_B and r.state.alpha_held == 0.0
+        assert r.alpha == pytest.approx(p.alpha)
 
 
 def test_a_plan_that_widens_the_wedge_beyond_its_limit_reverses(cfg: Settings) -> None:

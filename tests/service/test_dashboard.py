@@ -165,6 +165,14 @@ async def test_layout_and_static_assets(service: LiveService, page: Any) -> None
     assert float(await page.input_value("#params-form input[name=k]")) == params["k"]
     options = await page.locator("#object-select option").all_inner_texts()
     assert "egg" in options
+    # the sketch's cones (and the event log's cone margins) open as wide as the sample says the
+    # run widened them (Sample.alpha), else the run's α
+    widths = await page.evaluate(
+        "async () => { const m = await import('/web/sketch.js');"
+        " return [m.coneAlpha({alpha: 35}, 22), m.coneAlpha({alpha: null}, 22),"
+        " m.coneAlpha(undefined, 22)]; }"
+    )
+    assert widths == [35, 22, 22]
     # a dropped telemetry socket comes back by itself
     await page.evaluate("window.sdh2debug.telemetry.ws.close()")
     await page.wait_for_function(

@@ -277,3 +277,18 @@ def test_the_reconstructed_outline_is_a_line_in_the_contacts(
     assert est["type"] == "LINE_LOOP"
     got = [c for p in est["points"] for c in (p.get("y", 0.0) * 1e3, p["z"] * 1e3)]
     assert got == pytest.approx([s.Ay, s.Az, s.By, s.Bz, s.Ay, s.Az + 25.0], abs=0.006)  # 0.01 mm
+
+
+def test_the_cones_open_as_wide_as_the_sample_recorded(cfg: Settings) -> None:
+    """A sample records the cones' half-angle the run widened them to (Sample.alpha): the scene's
+    cones open that wide; a sample without one (an older recording) takes the run's α."""
+    scene_cls = _proto_class("foxglove.SceneUpdate", fm.SceneUpdate.get_schema().data)
+    s = _samples(cfg, 1)[0]
+    row = dict(zip(Sample.columns(), s.row(), strict=True))
+    hand, run_alpha = HandFrames.of(cfg), math.radians(22.0)
+    for recorded, opening in ((30.0, 30.0), (None, 22.0)):
+        msg = scene_cls.FromString(hand.scene({**row, "alpha": recorded}, 7, run_alpha).encode())
+        (entity,) = [e for e in msg.entities if e.id == "contacts"]
+        assert len(entity.cylinders) == 2
+        for c in entity.cylinders:
+            assert c.size.x / c.size.z == pytest.approx(2 * math.tan(math.radians(opening)))

@@ -266,6 +266,19 @@ async def test_cones_sit_at_the_contacts_coloured_by_omega(viewer: Viewer) -> No
     assert np.allclose(axis, (0.0, normal.y, normal.z))
 
 
+async def test_cones_open_as_wide_as_the_sample_says_the_run_widened_them(viewer: Viewer) -> None:
+    """The run's α is 25°, but the sample records cones widened to 35° (what the contacts
+    held): the cones open 35°, and ωB 25° off its normal is inside, not red."""
+    n = viewer.frames
+    viewer.handle({"type": "status", "status": {"params": {"alpha_deg": 25.0}}})
+    viewer.handle({"type": "sample", "sample": {**SAMPLE, "alpha": 35.0}})
+    await next_frame(viewer, n)
+    cone_a, cone_b = viewer.nodes["/contacts/cone_A"], viewer.nodes["/contacts/cone_B"]
+    r, _, h = cone_a.scale
+    assert math.isclose(math.degrees(math.atan2(r, h)), 35.0)
+    assert tuple(cone_b.color) == cone_color(25.0, 35.0) != RED
+
+
 async def test_cones_follow_the_normals_the_message_brings(viewer: Viewer) -> None:
     """A sample that comes with its view (as from the service's side of the view's process):
     the cones stand on the normals given, nothing is worked out again."""
