@@ -103,6 +103,11 @@ class RollState:
         """Completed back-and-forth strokes (two reversals each)."""
         return self.half_strokes // 2
 
+    def cone(self, p: RollingParams) -> float:
+        """The friction cones' half-angle (rad): α, widened to what the grasp and the contacts
+        held (:attr:`alpha_held`)."""
+        return max(p.alpha, self.alpha_held)
+
 
 @dataclass(frozen=True, slots=True)
 class Plan:
@@ -127,9 +132,7 @@ class StepResult:
     F: float
     dF: float
     plan: Plan | None
-    # the friction cones' half-angle from this iteration on: α, widened to what the grasp and
-    # the contacts held (RollState.alpha_held), radians
-    alpha: float
+    alpha: float  # the friction cones' half-angle from this iteration on (RollState.cone)
 
     @property
     def points(self) -> HandPoints | None:
@@ -215,7 +218,9 @@ def _finger1_step(cfg: _Config, pose: HandPose) -> float:
 _WAIVABLE = frozenset(Reversal) - {Reversal.CONTACT_LOST}
 
 
-def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> RollState:
+def _reverse(
+    state: RollState, F: float, reason: Reversal, p: RollingParams, obs: Observation
+) -> RollState:
     moved = state.travel >= p.min_half_stroke
     return replace(
         state,
@@ -226,6 +231,7 @@ def _reverse(state: RollState, F: float, reason: Reversal, p: RollingParams) -> 
         consecutive_reversals=1 if moved else state.consecutive_reversals + 1,
         travel=0.0,
         waived=reason if reason in _WAIVABLE else None,
+        alpha_held=max(state.alpha_held, _cone_held(reason, _waived(state, p), obs)),
     )
 
 
@@ -266,6 +272,11 @@ def _on_way_back(state: RollState, p: RollingParams) -> bool:
     return state.consecutive_reversals > 0 and _within_way_back(state, p)
 
 
+def _waived(state: RollState, p: RollingParams) -> Reversal | None:
+    """The check the way back is waived by (:attr:`RollState.waived`) while it lasts."""
+    return state.waived if _within_way_back(state, p) else None
+
+
 def _within_way_back(state: RollState, p: RollingParams) -> bool:
     """Whether Finger 2 has travelled less than WAY_BACK half strokes since the last reversal."""
     return state.travel < WAY_BACK * p.min_half_stroke
@@ -296,15 +307,12 @@ def step(
     if state.iteration == 0 and obs.omega_A is not None and obs.omega_B is not None:
         held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
         state = replace(state, alpha_held=held)
-    alpha = max(params.alpha, state.alpha_held)
-    waived = state.waived if _within_way_back(state, params) else None
+    alpha = state.cone(params)
+    waived = _waived(state, params)
 
     def reverse(reason: Reversal, plan: Plan | None = None) -> StepResult:
-        nxt = _reverse(state, F, reason, params)
-        held = _cone_held(reason, waived, obs)
-        if held > nxt.alpha_held:
-            nxt = replace(nxt, alpha_held=held)
-        return StepResult(nxt, None, reason, obs, F, dF, plan, max(params.alpha, nxt.alpha_held))
+        nxt = _reverse(state, F, reason, params, obs)
+        return StepResult(nxt, None, reason, obs, F, dF, plan, nxt.cone(params))
 
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
