@@ -548,7 +548,8 @@ def write_report(outcomes: Sequence[Outcome], out: Path, quick: bool) -> Path:
         "both pads touch, both distal joints turn against the pads' wedge, (ωA + ωB)/2 − 90°, "
         "so that the rolling can start within the cones (`sdh2svc/control/grasp.py`).",
         "* **Reversals.** A reversal counts as the end of a half stroke only after Finger 2 "
-        "travelled 1° along its route; shorter moves count towards “stuck”. A reversal for any "
+        "travelled 1° along its route and the object turned 1.2° by the rolling kinematics of "
+        "its contacts; other reversals count towards “stuck”. A reversal for any "
         "reason but a lost contact commits to the way back: neither a cone, the wedge, the "
         "pad's edge nor the force refuses it for 2° of Finger 2's travel (a cone still does 2° "
         "beyond its limit) — near the end of a "

@@ -91,7 +91,8 @@ class TruthProbe(BaseObserver):
         self.psi_grasp: float | None = None
         self.psi: list[tuple[int, float]] = []  # (iteration, ψ rad) of every rolling iteration
         # the iterations that reversed, and whether each ended a half stroke (the runner's count
-        # rose: Finger 2 travelled min_half_stroke_deg since the reversal before)
+        # rose: Finger 2 travelled min_half_stroke_deg since the reversal before and the
+        # object turned by the controller's own estimate, control/rolling.py)
         self.reversals: list[tuple[int | None, bool]] = []
         self._half_strokes = 0
         self.grasp_F: float | None = None
@@ -135,8 +136,8 @@ class TruthProbe(BaseObserver):
         before), up to the reversal that ends it. The largest, not the net: an object may turn
         and come part of the way back within one half stroke (the egg does, ≈ 15° and back) —
         it did turn. Only the reversals the runner counted end a half stroke (Finger 2
-        travelled far enough since the one before); the unfinished last half stroke (the run
-        ended) is not counted."""
+        travelled far enough since the one before, and the object turned by the controller's
+        own estimate); the unfinished last half stroke (the run ended) is not counted."""
         if self.psi_grasp is None:
             return []
         out: list[float] = []

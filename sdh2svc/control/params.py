@@ -71,7 +71,9 @@ class RollingParams(Frozen):
     )
     min_half_stroke_deg: Annotated[float, Field(ge=0.0, le=90.0)] = Field(
         description="Finger 2's travel along its route (φ4; σ in one-finger mode) before a "
-        "reversal counts as a half stroke; fewer count towards 'stuck' (not in the thesis)"
+        "reversal counts as a half stroke, which also needs the object to have turned 1.2 × "
+        "this by the contacts' rolling kinematics; other reversals count towards 'stuck' (not "
+        "in the thesis)"
     )
     wedge_limit_deg: Annotated[float, Field(ge=0.0, le=60.0)] = Field(
         description="the pads' wedge, (ωA + ωB)/2 − 90°, a plan may not widen beyond this "

@@ -61,8 +61,8 @@ import numpy as np
 
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.geometry import pad_slope
-from sdh2svc.model.kinematics import Finger, HandPose, frame3_axes, hand_points
-from sdh2svc.model.observe import ModelContext, Observation
+from sdh2svc.model.kinematics import Finger, HandPose, frame3_axes
+from sdh2svc.model.observe import ModelContext, Observation, rolling_turn
 
 MODEL_FILE = "recognition_model.json"
 
@@ -249,20 +249,6 @@ def pad_normal_angle(finger: Finger, pose: HandPose, x3: float, ctx: ModelContex
     ex, ey = frame3_axes(finger, prox + dist)
     m = pad_slope(x3, ctx.geom.pad)
     return math.atan2(ex.z + m * ey.z, ex.y + m * ey.y)
-
-
-def rolling_turn(prev: Observation, pose: HandPose, ctx: ModelContext) -> float | None:
-    """dψ (rad) of a rigid object rolling without slip from ``prev`` to ``pose``: the pad
-    points under the previous contacts move by δA, δB; dψ = (AB × (δB − δA)) / |AB|²."""
-    pts, vj1, vj2 = prev.points, prev.contact1.virtual_joint, prev.contact2.virtual_joint
-    if pts is None or vj1 is None or vj2 is None:
-        return None
-    now = hand_points(pose, vj1, vj2, ctx.geom)
-    dy, dz = pts.B.y - pts.A.y, pts.B.z - pts.A.z
-    vy = (now.B.y - pts.B.y) - (now.A.y - pts.A.y)
-    vz = (now.B.z - pts.B.z) - (now.A.z - pts.A.z)
-    d2 = dy * dy + dz * dz
-    return (dy * vz - dz * vy) / d2 if d2 > 1e-9 else None
 
 
 MAX_RADIUS_MM = 1000.0  # a kinematic radius beyond this (or a curvature ≤ 0) is flat

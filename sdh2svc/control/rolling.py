@@ -13,7 +13,8 @@ turns A around B by dσ per iteration.
 
 Additions to the thesis (explained here and in config/default.toml), for objects nobody tuned it
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
-route; a reversal for any reason but a lost contact commits to the way back
+route and the object has turned TURN_MARGIN × that by the rolling kinematics of its contacts
+(:attr:`RollState.turned`); a reversal for any reason but a lost contact commits to the way back
 (:attr:`RollState.waived`), and the pad's edge never refuses a way back; the cones are as
 wide as the grasp held (:attr:`RollState.alpha_held`), and as wide as a contact holds once its
 cone refuses both ways; a plan that widens the pads' wedge
@@ -42,7 +43,7 @@ from sdh2svc.model.kinematics import (
     Point,
     contact_point,
 )
-from sdh2svc.model.observe import ModelContext, Observation, observe
+from sdh2svc.model.observe import ModelContext, Observation, observe, rolling_turn
 
 # How far beyond a cone the way back may plan ω (see RollState.waived): a rolling contact drifts
 # from the plan by ≈ 0.3° per iteration, and sensor noise moves the measured ω by a few tenths.
@@ -53,6 +54,11 @@ RETREAT_LIMIT = math.radians(2.0)
 # direction's check while ω is still where the reversal left it, and the strokes shrink to a
 # dither of ≈ 1° that barely turns the object.
 WAY_BACK = 2.0
+# A half stroke counts only once the object has turned min_half_stroke_deg by the rolling
+# estimate (:func:`~sdh2svc.model.observe.rolling_turn`) times this: the estimate is within 20 %
+# of the true turn on 94 % of half strokes (experiments/recognition/report.md), so an estimate
+# of 1.2 × the minimum is at least the minimum of true turn.
+TURN_MARGIN = 1.2
 
 
 class Reversal(StrEnum):
@@ -74,9 +80,11 @@ class RollState:
 
     direction: int = 1  # +1: Δφ as configured; −1: reversed
     F_prev: float | None = None
-    half_strokes: int = 0  # reversals after Finger 2 travelled at least min_half_stroke_deg
+    # reversals after Finger 2 travelled at least min_half_stroke_deg and the object turned
+    # TURN_MARGIN × that (see ``turned``)
+    half_strokes: int = 0
     iteration: int = 0
-    consecutive_reversals: int = 0  # reversals since Finger 2 last travelled a half stroke
+    consecutive_reversals: int = 0  # reversals since the last half stroke
     travel: float = 0.0  # Finger 2's route travel since the last reversal (rad of φ4; σ in
     # one-finger mode)
     # The check that caused the last reversal (any but a lost contact). While set, and until
@@ -97,6 +105,14 @@ class RollState:
     # refuses the way back from its own reversal widens them to its contact's |ω − 90°| then
     # (see _cone_held).
     alpha_held: float = 0.0
+    # The object's rotation since the last half stroke ended (rad, rolling kinematics: the sum
+    # of rolling_turn from one iteration to the next), and its largest excursion, ``turned``:
+    # a reversal ends a half stroke only once the object has really turned. Finger 2's travel
+    # alone does not tell: near a cone or the pad's end the fingers can move a degree while the
+    # object turns a tenth of one, and such strokes are a dither, not a roll.
+    turn: float = 0.0
+    turned: float = 0.0
+    prev: Observation | None = None  # the last iteration's observation (for rolling_turn)
 
     @property
     def strokes(self) -> int:
@@ -221,18 +237,31 @@ _WAIVABLE = frozenset(Reversal) - {Reversal.CONTACT_LOST}
 def _reverse(
     state: RollState, F: float, reason: Reversal, p: RollingParams, obs: Observation
 ) -> RollState:
-    moved = state.travel >= p.min_half_stroke
+    ended = (state.travel >= p.min_half_stroke
+             and state.turned >= TURN_MARGIN * p.min_half_stroke)  # fmt: skip
     return replace(
         state,
         direction=-state.direction,
         F_prev=F,
-        half_strokes=state.half_strokes + moved,
+        half_strokes=state.half_strokes + ended,
         iteration=state.iteration + 1,
-        consecutive_reversals=1 if moved else state.consecutive_reversals + 1,
+        consecutive_reversals=1 if ended else state.consecutive_reversals + 1,
         travel=0.0,
         waived=reason if reason in _WAIVABLE else None,
         alpha_held=max(state.alpha_held, _cone_held(reason, _waived(state, p), obs)),
+        turn=0.0 if ended else state.turn,
+        turned=0.0 if ended else state.turned,
     )
+
+
+def _turned(state: RollState, obs: Observation, ctx: ModelContext) -> RollState:
+    """The state with the object's turn since the last iteration added (rolling kinematics)
+    and this observation kept for the next."""
+    d = None if state.prev is None else rolling_turn(state.prev, obs.pose, ctx)
+    if d is None:
+        return replace(state, prev=obs)
+    turn = state.turn + d
+    return replace(state, turn=turn, turned=max(state.turned, abs(turn)), prev=obs)
 
 
 def _cone_held(reason: Reversal, waived: Reversal | None, obs: Observation) -> float:
@@ -300,6 +329,7 @@ def step(
 ) -> StepResult:
     """One rolling iteration (hand-model §8, step 2)."""
     obs = observe(pose, counts1, counts2, ctx)
+    state = _turned(state, obs, ctx)
     c1, c2 = obs.contact1, obs.contact2
     F = grip_force(c1, c2)
     dF = 0.0 if state.F_prev is None else F - state.F_prev

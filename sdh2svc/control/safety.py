@@ -61,7 +61,7 @@ class Fault(StrEnum):
     FORCE_CEILING = "force_ceiling"
     STALE_SENSOR = "stale_sensor"
     DROPPED = "dropped"  # both contacts lost while rolling
-    STUCK = "stuck"  # reversing on every iteration
+    STUCK = "stuck"  # reversing again and again without a half stroke
     JOINT_ERROR = "joint_error"
     SENSOR_ERROR = "sensor_error"
 
@@ -145,7 +145,9 @@ def grasp_lost(contact1: bool, contact2: bool) -> Violation | None:
 def stuck(consecutive: int, last: str | None, safety: SafetyConfig) -> Violation | None:
     """More reversals in a row than allowed (``last``: the latest one's reason)."""
     if consecutive > safety.max_consecutive_reversals:
-        return Violation(Fault.STUCK, f"{consecutive} reversals in a row (last: {last})")
+        return Violation(
+            Fault.STUCK, f"{consecutive} reversals in a row without a half stroke (last: {last})"
+        )
     return None
 
 

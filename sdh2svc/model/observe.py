@@ -103,3 +103,17 @@ def observe(
     wa = omega(Finger.ONE, pose.phi2 + pose.phi3, c1.x3_mm, pts.A, pts.B, pad)
     wb = omega(Finger.TWO, pose.phi4 + pose.phi5, c2.x3_mm, pts.B, pts.A, pad)
     return Observation(pose, c1, c2, pts, lam, sigma, wa, wb)
+
+
+def rolling_turn(prev: Observation, pose: HandPose, ctx: ModelContext) -> float | None:
+    """dψ (rad) of a rigid object rolling without slip from ``prev`` to ``pose``: the pad
+    points under the previous contacts move by δA, δB; dψ = (AB × (δB − δA)) / |AB|²."""
+    pts, vj1, vj2 = prev.points, prev.contact1.virtual_joint, prev.contact2.virtual_joint
+    if pts is None or vj1 is None or vj2 is None:
+        return None
+    now = hand_points(pose, vj1, vj2, ctx.geom)
+    dy, dz = pts.B.y - pts.A.y, pts.B.z - pts.A.z
+    vy = (now.B.y - pts.B.y) - (now.A.y - pts.A.y)
+    vz = (now.B.z - pts.B.z) - (now.A.z - pts.A.z)
+    d2 = dy * dy + dz * dz
+    return (dy * vz - dz * vy) / d2 if d2 > 1e-9 else None

@@ -10,7 +10,14 @@ import pytest
 
 from sdh2svc.config import Settings
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.rolling import RETREAT_LIMIT, WAY_BACK, Reversal, RollState, step
+from sdh2svc.control.rolling import (
+    RETREAT_LIMIT,
+    TURN_MARGIN,
+    WAY_BACK,
+    Reversal,
+    RollState,
+    step,
+)
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point, segment
 
@@ -205,7 +212,7 @@ def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> Non
     # waived while the way back is shorter than WAY_BACK half strokes, and only so long
     way = WAY_BACK * p.min_half_stroke
     assert step(replace(back, travel=0.99 * way), pose, m, m, p, ctx).reversal is None
-    r = step(replace(back, travel=way), pose, m, m, p, ctx)
+    r = step(replace(back, travel=way, turned=rad(2.0)), pose, m, m, p, ctx)
     assert r.reversal is Reversal.CONE_B and r.state.half_strokes == 1
     # the way back from another check (cone A, the pad's edge, Finger 1's reach, a joint limit)
     # passes cone B as well: at the end of a stroke one check stops one way and another the
@@ -224,7 +231,7 @@ def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
     ctx, p = cfg.model_context(), params(cfg)
     edge = np.zeros((13, 6), np.uint16)
     edge[12, 1:5] = 1500  # on the last row
-    r = step(RollState(iteration=5, travel=rad(3.0)), MIRROR, edge, edge, p, ctx)
+    r = step(RollState(iteration=5, travel=rad(3.0), turned=rad(3.0)), MIRROR, edge, edge, p, ctx)
     assert r.reversal is Reversal.CONTACT_EDGE and r.state.waived is Reversal.CONTACT_EDGE
     assert r.state.half_strokes == 1 and r.state.direction == -1 and r.state.travel == 0
     r = step(r.state, MIRROR, edge, edge, p, ctx)
@@ -245,19 +252,50 @@ def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
     assert step(far, MIRROR, edge, edge, p, ctx).reversal is Reversal.CONTACT_EDGE
 
 
+def _roll(s: RollState, pose: HandPose, n: int, p: RollingParams, cfg: Settings,
+          lost: bool = False) -> tuple[RollState, HandPose]:  # fmt: skip
+    """``n`` iterations with the fingers where the last one commanded them (the object turns
+    with the pads: the contacts stay where they are on both), then one with Finger 2's
+    contact lost when ``lost``."""
+    ctx = cfg.model_context()
+    for _ in range(n):
+        r = step(s, pose, frame(20.0), frame(20.0), p, ctx)
+        s, pose = r.state, r.targets or pose
+    if lost:
+        s = step(s, pose, frame(20.0), np.zeros((13, 6), np.uint16), p, ctx).state
+    return s, pose
+
+
 def test_a_half_stroke_counts_only_after_finger2_travelled(cfg: Settings) -> None:
-    ctx, p = cfg.model_context(), params(cfg)
-    empty = np.zeros((13, 6), np.uint16)
-    s = RollState()
-    for _ in range(3):  # three steps of 0.25°: less than the 1° a half stroke needs
-        s = step(s, MIRROR, frame(20.0), frame(20.0), p, ctx).state
-    assert s.travel == pytest.approx(rad(0.75))
-    s = step(s, MIRROR, frame(20.0), empty, p, ctx).state
+    p = params(cfg)
+    # three steps of 0.25°: less than the 1° a half stroke needs
+    s, pose = _roll(RollState(), MIRROR, 3, p, cfg)
+    assert s.travel == pytest.approx(rad(0.75)) and s.turned > TURN_MARGIN * p.min_half_stroke
+    s, pose = _roll(s, pose, 0, p, cfg, lost=True)
     assert s.half_strokes == 0 and s.consecutive_reversals == 1 and s.travel == 0
     assert s.waived is None  # a lost contact waives nothing on the way back
-    for _ in range(4):
+    s, pose = _roll(s, pose, 4, p, cfg, lost=True)
+    assert s.half_strokes == 1 and s.consecutive_reversals == 1
+    assert s.turn == 0.0 and s.turned == 0.0  # the next half stroke's turn starts afresh
+
+
+def test_a_half_stroke_counts_only_once_the_object_turned(cfg: Settings) -> None:
+    """Finger 2 travels its half stroke, but the fingers never get where they were sent (the
+    pads, and the object, stay put: a dither at a cone or the pad's end): the reversal ends
+    no half stroke and counts towards 'stuck' instead."""
+    ctx, p = cfg.model_context(), params(cfg)
+    s = RollState()
+    for _ in range(6):  # the same pose every time: no rolling
         s = step(s, MIRROR, frame(20.0), frame(20.0), p, ctx).state
-    s = step(s, MIRROR, frame(20.0), empty, p, ctx).state
+    assert s.travel >= p.min_half_stroke and s.turned == 0.0
+    s = step(s, MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), p, ctx).state
+    assert s.half_strokes == 0 and s.consecutive_reversals == 1
+    # it turned, but less than the margin over the estimate's error asks
+    s = replace(s, travel=rad(2.0), turned=0.99 * TURN_MARGIN * p.min_half_stroke)
+    s = step(s, MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), p, ctx).state
+    assert s.half_strokes == 0 and s.consecutive_reversals == 2
+    s = replace(s, travel=rad(2.0), turned=1.01 * TURN_MARGIN * p.min_half_stroke)
+    s = step(s, MIRROR, frame(20.0), np.zeros((13, 6), np.uint16), p, ctx).state
     assert s.half_strokes == 1 and s.consecutive_reversals == 1
 
 
@@ -293,19 +331,17 @@ def test_parameter_change_applies_at_next_iteration(cfg: Settings) -> None:
 
 
 def test_reversal_flips_direction_and_counts_strokes(cfg: Settings) -> None:
-    ctx = cfg.model_context()
+    ctx, p = cfg.model_context(), params(cfg)
     empty = np.zeros((13, 6), np.uint16)
-    s = RollState()
+    s, pose = RollState(), MIRROR
     for _ in range(4):  # move a half stroke's travel, then reverse: four half strokes
-        for _ in range(4):
-            s = step(s, MIRROR, frame(20.0), frame(20.0), params(cfg), ctx).state
-        s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
+        s, pose = _roll(s, pose, 4, p, cfg, lost=True)
         assert s.consecutive_reversals == 1
     assert s.half_strokes == 4 and s.strokes == 2 and s.direction == 1
     for _ in range(3):  # reversing on the spot is not a half stroke
-        s = step(s, MIRROR, frame(20.0), empty, params(cfg), ctx).state
+        s = step(s, pose, frame(20.0), empty, p, ctx).state
     assert s.half_strokes == 4 and s.consecutive_reversals == 4 and s.direction == -1
-    r = step(RollState(direction=-1), MIRROR, frame(20.0), frame(20.0), params(cfg), ctx)
+    r = step(RollState(direction=-1), MIRROR, frame(20.0), frame(20.0), p, ctx)
     assert r.targets.phi4 == pytest.approx(MIRROR.phi4 + rad(0.25))  # reversed route
 
 

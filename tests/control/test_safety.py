@@ -62,7 +62,7 @@ def test_stuck_beyond_the_allowed_reversals_in_a_row(cfg: Settings) -> None:
     s = cfg.safety  # 6
     assert safety.stuck(6, Reversal.CONE_A, s) is None
     v = safety.stuck(7, Reversal.CONE_A, s)
-    assert v == Violation(Fault.STUCK, "7 reversals in a row (last: cone_A)")
+    assert v == Violation(Fault.STUCK, "7 reversals in a row without a half stroke (last: cone_A)")
 
 
 def test_grasp_timeout_only_under_fd_and_after_the_timeout(cfg: Settings) -> None:
