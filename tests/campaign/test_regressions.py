@@ -51,6 +51,9 @@ def run(case_id: str) -> dict[str, Any]:
         # directions (workspace one way, a cone the other) until stuck; another move of the
         # same length turns it on
         ("polygon-061", "faulted: stuck"),
+        # a 35 mm box whose third half stroke ended at Finger 1's reach after Finger 2's 1° of
+        # travel but 0.9° of the object's turn: a half stroke now counts once the object turned
+        ("box-006", "half stroke < 1°"),
     ],
 )
 def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) -> None:
@@ -86,3 +89,14 @@ def test_a_grasp_that_loses_a_contact_as_it_settles_is_no_grasp() -> None:
     row = run("polygon-037")
     assert row["status"] == "faulted" and row["fault"] == "no_contact", row["message"]
     assert "settled" in row["message"] and not row["dropped"]
+
+
+def test_a_dither_in_place_is_stuck_not_strokes() -> None:
+    # A 29 mm box held with ωA just past the cone the grasp held: the rotation reversed at cone A
+    # every 9 iterations both ways, Finger 2 travelled its 1° each time and the object turned
+    # 0.05–0.14°; the run "completed" 3 strokes that never turned it. Such reversals end no half
+    # stroke: the run faults stuck, and it says why.
+    row = run("box-102")
+    assert row["status"] == "faulted" and row["fault"] == "stuck", row["message"]
+    assert "without a half stroke" in row["message"] and not row["dropped"]
+    assert all(h >= MIN_HALF_STROKE_DEG for h in row["half_stroke_rotation_deg"])
