@@ -7,7 +7,7 @@ export const FAULT_WORDS = {
   force_ceiling: "the grip force went too high",
   stale_sensor: "the tactile frames stopped coming",
   dropped: "both contacts were lost; the object is no longer held",
-  stuck: "the rolling reversed on every iteration (stuck)",
+  stuck: "the rolling kept reversing without turning the object (stuck)",
   joint_error: "the joint controller failed",
   sensor_error: "the tactile sensor's controller failed",
 };
