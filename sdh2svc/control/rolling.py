@@ -15,10 +15,11 @@ Additions to the thesis (explained here and in config/default.toml), for objects
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
 route and the object has turned TURN_MARGIN × that by the rolling kinematics of its contacts
 (:attr:`RollState.turned`); a reversal for any reason but a lost contact commits to the way back
-(:attr:`RollState.waived`), and the pad's edge never refuses a way back; the cones are as
-wide as the grasp held (:attr:`RollState.alpha_held`), and as wide as a contact holds once its
-cone refuses both ways; a plan that widens the pads' wedge
-beyond its limit reverses; a plan Finger 1 cannot follow reverses; Finger 1's step limit; the
+(:attr:`RollState.waived`), and the pad's edge never refuses a way back, nor, once the
+rotation dithers without half strokes, from its row's inner half (:func:`_edge_refuses`); the
+cones are as wide as the grasp held (:attr:`RollState.alpha_held`), and as wide as a contact
+holds once its cone refuses both ways; a plan that widens the pads' wedge beyond its limit
+reverses; a plan Finger 1 cannot follow reverses; Finger 1's step limit; the
 force band.
 """
 
@@ -293,6 +294,27 @@ def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | No
     return planned > abs(wedge(obs.omega_A, obs.omega_B))
 
 
+def _edge_refuses(state: RollState, p: RollingParams, obs: Observation,
+                  ctx: ModelContext) -> bool:  # fmt: skip
+    """Whether a contact on the pad's edge reverses the rotation (a contact on the first or
+    last row: ``at_edge``, within ``edge_margin_rows`` of its centre), never on a way back.
+
+    Once the rotation has reversed ESCAPE_AFTER times in a row without a half stroke, the edge
+    zone's inner half is given up: near a turning point of the route the object's rotation
+    reverses within the half stroke and brings the contact back onto the edge row either way,
+    and the thesis's rule dithers there until stuck. Only its outer half still refuses: a
+    contact whose centroid nears the last row's centre is rolling off the pad (its sensed force
+    falls), and beyond it nothing would be sensed."""
+    if _on_way_back(state, p):
+        return False
+    c1, c2 = obs.contact1, obs.contact2
+    if state.consecutive_reversals < ESCAPE_AFTER:
+        return c1.at_edge or c2.at_edge
+    last, margin = ctx.distal.rows - 1, ctx.calib.edge_margin_rows / 2
+    rows = [c.S_mm / ctx.pitch_mm for c in (c1, c2) if c.S_mm is not None]
+    return any(row < margin or row > last - margin for row in rows)
+
+
 def _on_way_back(state: RollState, p: RollingParams) -> bool:
     """Whether the rotation reversed, for any reason, less than WAY_BACK half strokes ago. The
     pad's edge refuses no such way back, a lost contact's included (the other checks follow
@@ -347,7 +369,7 @@ def step(
     present = min(c1.force, c2.force) > params.contact_force_min
     if not present or obs.points is None or obs.Lambda is None or obs.sigma is None:
         return reverse(Reversal.CONTACT_LOST)
-    if (c1.at_edge or c2.at_edge) and not _on_way_back(state, params):
+    if _edge_refuses(state, params, obs, ctx):
         return reverse(Reversal.CONTACT_EDGE)
     if F > params.force_reverse * params.grasp_force and dF >= 0.0 and waived is None:
         return reverse(Reversal.FORCE)

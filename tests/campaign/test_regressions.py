@@ -54,6 +54,10 @@ def run(case_id: str) -> dict[str, Any]:
         # a 35 mm box whose third half stroke ended at Finger 1's reach after Finger 2's 1° of
         # travel but 0.9° of the object's turn: a half stroke now counts once the object turned
         ("box-006", "half stroke < 1°"),
+        # a rounded box whose contact sat on its pad's edge row in both directions (the object's
+        # rotation reversing within the half stroke): reversals at the edge until stuck; the
+        # edge row's inner half is given up once the rotation dithers
+        ("rounded-011", "faulted: stuck"),
     ],
 )
 def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) -> None:

@@ -11,6 +11,7 @@ import pytest
 from sdh2svc.config import Settings
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import (
+    ESCAPE_AFTER,
     RETREAT_LIMIT,
     TURN_MARGIN,
     WAY_BACK,
@@ -250,6 +251,24 @@ def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
                 ctx).reversal is Reversal.CONTACT_EDGE  # fmt: skip
     far = replace(reach, travel=WAY_BACK * p.min_half_stroke)
     assert step(far, MIRROR, edge, edge, p, ctx).reversal is Reversal.CONTACT_EDGE
+
+
+def test_a_dither_at_the_pad_edge_gives_up_the_edge_rows_inner_half(cfg: Settings) -> None:
+    """After ESCAPE_AFTER reversals in a row without a half stroke (and off the way back), a
+    contact on the edge row's inner half no longer reverses the rotation; one near the last
+    row's centre, rolling off the pad, still does."""
+    ctx, p = cfg.model_context(), params(cfg)
+    pitch, last = ctx.pitch_mm, ctx.distal.rows - 1
+    inner = frame((last - 0.4) * pitch)  # within edge_margin_rows (0.5), not within half of it
+    outer = frame(last * pitch)
+    fresh = RollState(iteration=5, travel=rad(3.0), consecutive_reversals=1)
+    dithering = replace(fresh, consecutive_reversals=ESCAPE_AFTER)
+    assert step(fresh, MIRROR, inner, frame(20.0), p, ctx).reversal is Reversal.CONTACT_EDGE
+    assert step(dithering, MIRROR, inner, frame(20.0), p, ctx).reversal is None
+    # (Finger 2's contact that far out leaves cone B at this pose: another check, not the edge)
+    assert step(dithering, MIRROR, frame(20.0), inner, p, ctx).reversal is not Reversal.CONTACT_EDGE
+    assert step(dithering, MIRROR, outer, frame(20.0), p, ctx).reversal is Reversal.CONTACT_EDGE
+    assert step(dithering, MIRROR, frame(20.0), outer, p, ctx).reversal is Reversal.CONTACT_EDGE
 
 
 def _roll(s: RollState, pose: HandPose, n: int, p: RollingParams, cfg: Settings,
