@@ -310,9 +310,8 @@ def _edge_refuses(state: RollState, p: RollingParams, obs: Observation,
     c1, c2 = obs.contact1, obs.contact2
     if state.consecutive_reversals < ESCAPE_AFTER:
         return c1.at_edge or c2.at_edge
-    last, margin = ctx.distal.rows - 1, ctx.calib.edge_margin_rows / 2
-    rows = [c.S_mm / ctx.pitch_mm for c in (c1, c2) if c.S_mm is not None]
-    return any(row < margin or row > last - margin for row in rows)
+    outer = ctx.calib.edge_margin_rows / 2
+    return any(c.edge_rows is not None and c.edge_rows < outer for c in (c1, c2))
 
 
 def _on_way_back(state: RollState, p: RollingParams) -> bool:

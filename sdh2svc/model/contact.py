@@ -155,6 +155,9 @@ class ContactEstimate:
     n_cells: int
     blobs: tuple[Blob, ...]
     depth: ContactDepth = NO_DEPTH
+    # rows from the centroid to the nearer end row's centre (``at_edge``: within
+    # edge_margin_rows); None without a contact
+    edge_rows: float | None = None
 
     @property
     def virtual_joint(self) -> tuple[float, float] | None:
@@ -248,7 +251,7 @@ def estimate_contact(
                               total_counts=pressure / p_per_count)  # fmt: skip
     r, theta = virtual_joint(*below_surface(x3, y3, depth.depth_mm, pad))
     row = S / pitch_mm
-    margin = calib.edge_margin_rows
+    edge_rows = min(row, (layout.rows - 1) - row)
     return ContactEstimate(
         present=True,
         S_mm=S,
@@ -257,7 +260,7 @@ def estimate_contact(
         y3_mm=y3,
         r_mm=r,
         theta_rad=theta,
-        at_edge=row < margin or row > (layout.rows - 1) - margin,
+        at_edge=edge_rows < calib.edge_margin_rows,
         force_library=library,
         force_physical_n=physical,
         force=pressure * ref if ref > 0 else library,
@@ -265,6 +268,7 @@ def estimate_contact(
         n_cells=n_cells,
         blobs=blobs,
         depth=depth,
+        edge_rows=edge_rows,
     )
 
 
