@@ -15,12 +15,13 @@ Additions to the thesis (explained here and in config/default.toml), for objects
 for: a half stroke counts only once Finger 2 has travelled ``min_half_stroke_deg`` along its
 route and the object has turned TURN_MARGIN × that by the rolling kinematics of its contacts
 (:attr:`RollState.turned`); a reversal for any reason but a lost contact commits to the way back
-(:attr:`RollState.waived`), and the pad's edge never refuses a way back, nor, once the
-rotation dithers without half strokes, from its row's inner half (:func:`_edge_refuses`); the
-cones are as wide as the grasp held (:attr:`RollState.alpha_held`), and as wide as a contact
-holds once its cone refuses both ways; a plan that widens the pads' wedge beyond its limit
-reverses; a plan Finger 1 cannot follow reverses; Finger 1's step limit; the
-force band.
+(:attr:`RollState.waived`; a cone's way back goes on while its contact is still outside it
+and each plan leans it less, :func:`_retreats`), and the pad's edge never refuses a way back,
+nor, once the rotation dithers without half strokes, from its row's inner half
+(:func:`_edge_refuses`); the cones are as wide as the grasp held
+(:attr:`RollState.alpha_held`), and as wide as a contact holds once its cone refuses both
+ways; a plan that widens the pads' wedge beyond its limit reverses; a plan Finger 1 cannot
+follow reverses; Finger 1's step limit; the force band.
 """
 
 from __future__ import annotations
@@ -113,6 +114,9 @@ class RollState:
     # object turns a tenth of one, and such strokes are a dither, not a roll.
     turn: float = 0.0
     turned: float = 0.0
+    # |ω − 90°| of the contact whose cone caused the last reversal, at that reversal (0.0 after
+    # any other): its way back retreats on only while the contact leans less (_retreats)
+    lean: float = 0.0
     prev: Observation | None = None  # the last iteration's observation (for rolling_turn)
 
     @property
@@ -252,7 +256,14 @@ def _reverse(
         alpha_held=max(state.alpha_held, _cone_held(reason, _waived(state, p), obs)),
         turn=0.0 if ended else state.turn,
         turned=0.0 if ended else state.turned,
+        lean=_lean(reason, obs),
     )
+
+
+def _lean(reason: Reversal, obs: Observation) -> float:
+    """|ω − 90°| of the contact whose cone is ``reason`` (0.0 for any other reversal)."""
+    w = {Reversal.CONE_A: obs.omega_A, Reversal.CONE_B: obs.omega_B}.get(reason)
+    return 0.0 if w is None else abs(w - math.pi / 2)
 
 
 def _turned(state: RollState, obs: Observation, ctx: ModelContext) -> RollState:
@@ -418,13 +429,33 @@ def _attempt(route: _Route, waived: Reversal | None, alpha: float) -> _Attempt:
     phi = (ik.solution.proximal, ik.solution.distal, cfg.phi4d, cfg.phi5d)
     wa, wb = omegas(obs, phi, plan.A_d, plan.B_d, route.ctx)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
-    if _cone_refuses(wa, waived, alpha):
+    if _cone_refuses(wa, waived, alpha) and not _retreats(Reversal.CONE_A, wa, route, alpha):
         return Reversal.CONE_A, plan, None
-    if _cone_refuses(wb, waived, alpha):
+    if _cone_refuses(wb, waived, alpha) and not _retreats(Reversal.CONE_B, wb, route, alpha):
         return Reversal.CONE_B, plan, None
     if _wedge_refuses(wa, wb, obs, waived, params):
         return Reversal.WEDGE, plan, None
     return None, plan, cfg
+
+
+def _retreats(cone: Reversal, w_d: float, route: _Route, alpha: float) -> bool:
+    """Whether the way back from ``cone``'s reversal goes on beyond WAY_BACK: while that cone's
+    contact is still outside it but leans less than at the reversal (:attr:`RollState.lean`), a
+    plan that leans it less than it leans now, and no more than RETREAT_LIMIT beyond the cone,
+    retreats on. A way back that ended a tenth of a degree outside the cone was refused there as
+    if it were a new lean, and the rotation dithered at the same cone either way until stuck
+    (bench-v1's ellipse-212, at cone B). A contact that leans as far as at the reversal, or
+    further, is not coming back: a sliding contact stays at its friction angle whatever the
+    plan, which assumes it rolls (confirm2115-polygon-001 slid the length of its pad with ωB
+    held 1° outside the cone)."""
+    state, obs = route.state, route.obs
+    if state.waived is not cone or _within_way_back(state, route.params):
+        return False
+    w = obs.omega_A if cone is Reversal.CONE_A else obs.omega_B
+    if w is None or inside_cone(w, alpha) or abs(w - math.pi / 2) >= state.lean:
+        return False
+    margin = cone_margin(w_d, alpha)
+    return margin > cone_margin(w, alpha) and margin >= -RETREAT_LIMIT
 
 
 # Reversals in a row without a half stroke after which a refused move looks for another way.

@@ -6,6 +6,7 @@ before its fix (polygon-313 and polygon-061: git history of experiments/campaign
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,6 +15,7 @@ from sdh2svc.campaign.case import load_suite
 from sdh2svc.campaign.run import MIN_HALF_STROKE_DEG, run_case
 
 CASES = {c.id: c for c in load_suite("bench-v1").cases}
+UNSEEN = Path(__file__).parents[2] / "experiments" / "campaigns" / "unseen"
 
 
 def run(case_id: str) -> dict[str, Any]:
@@ -58,6 +60,10 @@ def run(case_id: str) -> dict[str, Any]:
         # rotation reversing within the half stroke): reversals at the edge until stuck; the
         # edge row's inner half is given up once the rotation dithers
         ("rounded-011", "faulted: stuck"),
+        # an ellipse whose way back from cone B ended with ωB still a little outside the cone:
+        # refused there as a new lean, the rotation reversed at cone B either way until stuck;
+        # the way back now goes on while each plan leans the contact less
+        ("ellipse-212", "faulted: stuck"),
     ],
 )
 def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) -> None:
@@ -104,3 +110,14 @@ def test_a_dither_in_place_is_stuck_not_strokes() -> None:
     assert row["status"] == "faulted" and row["fault"] == "stuck", row["message"]
     assert "without a half stroke" in row["message"] and not row["dropped"]
     assert all(h >= MIN_HALF_STROKE_DEG for h in row["half_stroke_rotation_deg"])
+
+
+def test_a_contact_sliding_just_outside_its_cone_is_no_way_back() -> None:
+    # A foam quadrilateral (μ 0.39) whose contact B, after its cone's reversal, slid the length
+    # of its pad (S2 19 → 3 mm, F falling to 0.18 × Fd) with ωB held 1° outside the cone, each
+    # plan leaning it a little less than it did: the way back beyond WAY_BACK went on. It goes
+    # on only while the contact leans less than at the reversal; a sliding one leans as far.
+    case = next(c for c in load_suite(UNSEEN / "confirm2115" / "suite.json").cases
+                if c.id == "confirm2115-polygon-001")  # fmt: skip
+    row = run_case(case.model_dump_json())
+    assert row["success"], (row["failure"], row["message"])

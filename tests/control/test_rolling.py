@@ -226,6 +226,38 @@ def test_the_way_back_from_a_cone_the_contact_already_left(cfg: Settings) -> Non
     assert step(back, far, m, m, p, ctx).reversal is Reversal.CONE_B
 
 
+def test_the_way_back_from_a_cone_retreats_on_while_its_contact_is_outside(
+    cfg: Settings,
+) -> None:
+    """Once the way back from a cone is travelled, a contact still outside that cone but
+    leaning less than at the reversal is not refused as a new lean: a plan that leans it less
+    than it leans now (and no more than RETREAT_LIMIT beyond) goes on. A contact that leans as
+    far as at the reversal (sliding at its friction angle), a plan that leans it further, the
+    way back from the other cone, or a plan beyond RETREAT_LIMIT are refused."""
+    ctx, p = cfg.model_context(), params(cfg, alpha_deg=10.0, lambda_gain=0.0)
+    pose = _past_cone_b(cfg, p, beyond_deg=0.5)
+    m = frame(20.0)
+    leans = {}
+    for d in (1, -1):
+        r = step(replace(RUNNING, direction=d), pose, m, m, p, ctx)
+        assert r.reversal is Reversal.CONE_B  # the thesis's rule: outside, either way
+        assert r.state.lean == pytest.approx(abs(r.obs.omega_B - math.pi / 2))
+        leans[d] = abs(r.plan.omega_B_d - math.pi / 2) - abs(r.obs.omega_B - math.pi / 2)
+    back, out = min(leans, key=leans.get), max(leans, key=leans.get)
+    assert leans[back] < 0.0 < leans[out]  # one way retreats, the other leans further
+    now = abs(r.obs.omega_B - math.pi / 2)
+    done = RollState(direction=back, iteration=9, waived=Reversal.CONE_B, lean=now + rad(0.5),
+                     travel=WAY_BACK * p.min_half_stroke, consecutive_reversals=1)  # fmt: skip
+    r = step(done, pose, m, m, p, ctx)
+    assert r.reversal is None and r.targets is not None
+    assert step(replace(done, lean=now), pose, m, m, p, ctx).reversal is Reversal.CONE_B
+    assert step(replace(done, direction=out), pose, m, m, p, ctx).reversal is Reversal.CONE_B
+    assert step(replace(done, waived=Reversal.CONE_A), pose, m, m, p,
+                ctx).reversal is Reversal.CONE_B  # fmt: skip
+    far = _past_cone_b(cfg, p, beyond_deg=math.degrees(RETREAT_LIMIT) + 1.0)
+    assert step(done, far, m, m, p, ctx).reversal is Reversal.CONE_B
+
+
 def test_the_way_back_from_the_pad_edge(cfg: Settings) -> None:
     """A contact on the edge row reverses the rotation; the way back passes while the contact
     is still there (a reversal moves nothing, so the thesis's rule would repeat for ever)."""
