@@ -256,13 +256,14 @@ def _reverse(
         alpha_held=max(state.alpha_held, _cone_held(reason, _waived(state, p), obs)),
         turn=0.0 if ended else state.turn,
         turned=0.0 if ended else state.turned,
-        lean=_lean(reason, obs),
+        lean=_cone_lean(reason, obs),
     )
 
 
-def _lean(reason: Reversal, obs: Observation) -> float:
-    """|ω − 90°| of the contact whose cone is ``reason`` (0.0 for any other reversal)."""
-    w = {Reversal.CONE_A: obs.omega_A, Reversal.CONE_B: obs.omega_B}.get(reason)
+def _cone_lean(cone: Reversal, obs: Observation) -> float:
+    """|ω − 90°| now of the contact whose cone is ``cone`` (0.0 for any other check, or
+    without ω)."""
+    w = {Reversal.CONE_A: obs.omega_A, Reversal.CONE_B: obs.omega_B}.get(cone)
     return 0.0 if w is None else abs(w - math.pi / 2)
 
 
@@ -283,10 +284,7 @@ def _cone_held(reason: Reversal, waived: Reversal | None, obs: Observation) -> f
     it, as they do to what the grasp held (:attr:`RollState.alpha_held`). The way back may then
     go RETREAT_LIMIT beyond it; the object is pushed further only where it held. 0.0 for any
     other reversal."""
-    if reason is not waived or reason not in (Reversal.CONE_A, Reversal.CONE_B):
-        return 0.0
-    w = obs.omega_A if reason is Reversal.CONE_A else obs.omega_B
-    return 0.0 if w is None else abs(w - math.pi / 2)
+    return _cone_lean(reason, obs) if reason is waived else 0.0
 
 
 def _wedge_refuses(wa: float, wb: float, obs: Observation, waived: Reversal | None,
@@ -448,14 +446,14 @@ def _retreats(cone: Reversal, w_d: float, route: _Route, alpha: float) -> bool:
     further, is not coming back: a sliding contact stays at its friction angle whatever the
     plan, which assumes it rolls (confirm2115-polygon-001 slid the length of its pad with ωB
     held 1° outside the cone)."""
-    state, obs = route.state, route.obs
+    state = route.state
     if state.waived is not cone or _within_way_back(state, route.params):
         return False
-    w = obs.omega_A if cone is Reversal.CONE_A else obs.omega_B
-    if w is None or inside_cone(w, alpha) or abs(w - math.pi / 2) >= state.lean:
+    lean = _cone_lean(cone, route.obs)
+    if lean < alpha or lean >= state.lean:  # inside the cone, or not coming back
         return False
     margin = cone_margin(w_d, alpha)
-    return margin > cone_margin(w, alpha) and margin >= -RETREAT_LIMIT
+    return margin > alpha - lean and margin >= -RETREAT_LIMIT
 
 
 # Reversals in a row without a half stroke after which a refused move looks for another way.

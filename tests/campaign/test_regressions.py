@@ -2,7 +2,9 @@
 campaign runs it (fast simulation through the full byte path, judged from the simulation's
 truth) with the default configuration. Each failed on a committed bench-v1 run: the baseline
 (experiments/campaigns/bench-v1-baseline) or, where a later controller change broke it, the run
-before its fix (polygon-313 and polygon-061: git history of experiments/campaigns/bench-v1)."""
+before its fix (polygon-313 and polygon-061: git history of experiments/campaigns/bench-v1).
+The last test is an unseen suite's case that a first version of a fix broke
+(experiments/campaigns/unseen)."""
 
 from __future__ import annotations
 
