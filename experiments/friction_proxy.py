@@ -26,6 +26,7 @@ import sys
 import tempfile
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -96,16 +97,22 @@ def probe_case(case_json: str, overrides: Sequence[str] = ()) -> dict[str, Any]:
             summary = run_fast(run_once(cfg, Simulated(obj=case.object, fast=True),
                                         observer=observer))  # fmt: skip
         row = camp.finish_row(camp.case_columns(case) | camp.measure(summary, truth, cfg, case))
-    return {"id": case.id, "family": case.family,
+    return {"id": case.id, "family": case.family, "alpha_deg": cfg.rolling.alpha_deg,
             "friction_deg": math.degrees(math.atan(case.object.material.friction)),
             "status": row["status"], "success": row["success"], "failure": row["failure"],
             "rows": rows}  # fmt: skip
 
 
 def run(suite: str, out: Path, overrides: Sequence[str], workers: int) -> None:
+    """Probe every case of ``suite`` on ``workers`` processes, one JSON line per case in ``out``
+    (in the suite's order), the progress on stderr."""
+    from sdh2svc.campaign import run as camp
     from sdh2svc.campaign.case import load_suite
 
-    cases = [c.model_dump_json() for c in load_suite(suite).cases]
+    loaded = load_suite(suite)
+    if loaded.cases:  # a bad --set is refused here, before any worker starts
+        camp.case_settings(loaded.cases[0], overrides, None)
+    cases = [c.model_dump_json() for c in loaded.cases]
     with ProcessPoolExecutor(workers) as ex, out.open("w") as f:
         args = [(c, tuple(overrides)) for c in cases]
         for i, res in enumerate(ex.map(_probe_args, args), 1):
@@ -123,64 +130,80 @@ def _pct(x: np.ndarray) -> str:
     return f"{x.mean():+.2f}° (median {p50:+.2f}°, 5–95 % {p5:+.2f}° to {p95:+.2f}°), n = {len(x)}"
 
 
+@dataclass
+class _Figures:
+    """What ``report`` counts, over every probed run."""
+
+    error: list[float] = field(default_factory=list)  # measured − true lean, every one
+    grasp: list[float] = field(default_factory=list)  # the same, the contact widening at grasp
+    widened: list[float] = field(default_factory=list)  # ... a contact widening them later
+    slide: list[float] = field(default_factory=list)  # a sliding contact's lean − friction angle
+    # the measured lean's change over the planned one, where the plan leaned it further
+    follow: dict[bool, list[float]] = field(default_factory=lambda: {False: [], True: []})
+
+
+_COL = {c: i for i, c in enumerate(COLUMNS)}
+
+
+def _scan(case: dict[str, Any], fig: _Figures) -> None:
+    rows, alpha0 = case["rows"], case["alpha_deg"]
+    widest = alpha0
+    for k, r in enumerate(rows):
+        alpha = r[_COL["alpha"]]
+        for x in "AB":
+            m, t, s = r[_COL[f"lean_{x}"]], r[_COL[f"true_{x}"]], r[_COL[f"slip_{x}"]]
+            if m is None or t is None:
+                continue
+            fig.error.append(m - t)
+            if s:
+                fig.slide.append(m - case["friction_deg"])
+            if k == 0 and alpha > alpha0 + 1e-9 and m > alpha - 1e-9:  # this lean widened them
+                fig.grasp.append(m - t)
+            planned, before = (None, None) if k == 0 else (
+                rows[k - 1][_COL[f"plan_{x}"]], rows[k - 1][_COL[f"lean_{x}"]])  # fmt: skip
+            if planned is not None and before is not None and planned - before > 0.05:
+                fig.follow[bool(s)].append((m - before) / (planned - before))
+        if k > 0 and alpha > widest + 1e-9:  # widened by the contact whose lean it took
+            leans = {x: r[_COL[f"lean_{x}"]] for x in "AB" if r[_COL[f"lean_{x}"]] is not None}
+            x = min(leans, key=lambda x: abs(leans[x] - alpha), default=None)
+            if x is not None and r[_COL[f"true_{x}"]] is not None:
+                fig.widened.append(leans[x] - r[_COL[f"true_{x}"]])
+        widest = max(widest, alpha)
+
+
 def report(paths: Sequence[Path]) -> str:
     """The figures, as markdown."""
     runs = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line]
-    col = {c: i for i, c in enumerate(COLUMNS)}
-    err, slide, grasp, widen = [], [], [], []
-    follow: dict[bool, list[float]] = {False: [], True: []}
+    fig = _Figures()
     for case in runs:
-        rows = case["rows"]
-        for k, r in enumerate(rows):
-            for x in "AB":
-                m, t, s = r[col[f"lean_{x}"]], r[col[f"true_{x}"]], r[col[f"slip_{x}"]]
-                if m is None or t is None:
-                    continue
-                err.append(m - t)
-                if s:
-                    slide.append(m - case["friction_deg"])
-                if k == 0 and m > r[col["alpha"]] - 1e-9 and r[col["alpha"]] > 22.0 + 1e-9:
-                    grasp.append(m - t)
-                if k > 0:
-                    prev = rows[k - 1]
-                    planned, before = prev[col[f"plan_{x}"]], prev[col[f"lean_{x}"]]
-                    if planned is not None and before is not None and planned - before > 0.05:
-                        follow[bool(s)].append((m - before) / (planned - before))
-            if k > 0 and r[col["alpha"]] > max(q[col["alpha"]] for q in rows[:k]) + 1e-9:
-                x = min("AB", key=lambda x: abs((r[col[f"lean_{x}"]] or 0.0) - r[col["alpha"]]))
-                if r[col[f"true_{x}"]] is not None:
-                    widen.append(r[col[f"lean_{x}"]] - r[col[f"true_{x}"]])
-    low = [c for c in runs if c["friction_deg"] < 22.0]  # α's cone wider than the object's
+        _scan(case, fig)
+
+    def row(what: str, x: list[float]) -> str:
+        return f"| {what} | {_pct(np.array(x)) if x else 'none'} |"
+
+    low = [c for c in runs if c["friction_deg"] < c["alpha_deg"]]  # α's cone too wide for them
+    failed = [c["id"] for c in low if not c["success"]]
     followed = ", ".join(f"{'sliding' if s else 'holding'} {np.median(v):.2f} (n = {len(v)})"
-                         for s, v in sorted(follow.items()) if v)  # fmt: skip
-    lines = [
+                         for s, v in sorted(fig.follow.items()) if v)  # fmt: skip
+    slid = f"{_pct(np.array(fig.slide))}." if fig.slide else "none slid."
+    return "\n".join([
         f"{len(runs)} runs ({', '.join(str(p) for p in paths)}).",
         "",
         "| what | measured lean − true lean |",
         "|---|---|",
-        f"| every rolling contact-iteration | {_pct(np.array(err))} |",
-        f"| a contact that widened the cones at the grasp | {_pct(np.array(grasp))} |"
-        if grasp
-        else "| a contact that widened the cones at the grasp | none |",
-        f"| a contact that widened the cones later (its cone refused both ways) | "
-        f"{_pct(np.array(widen))} |"
-        if widen
-        else "| widened later | none |",
+        row("every rolling contact-iteration", fig.error),
+        row("a contact that widened the cones at the grasp", fig.grasp),
+        row("a contact that widened the cones later (its cone refused both ways)", fig.widened),
         "",
-        f"Sliding contact-iterations, measured lean − the object's friction angle: "
-        f"{_pct(np.array(slide))}."
-        if slide
-        else "No contact slid.",
+        f"Sliding contact-iterations, measured lean − the object's friction angle: {slid}",
         "",
-        f"Objects whose friction angle is below α = 22°: {len(low)}, of which "
-        f"{sum(bool(c['success']) for c in low)} succeed"
-        + (f" (failed: {', '.join(c['id'] for c in low if not c['success'])})." if low else "."),
+        f"Objects whose friction angle is below α: {len(low)}, of which {len(low) - len(failed)} "
+        f"succeed" + (f" (failed: {', '.join(failed)})." if failed else "."),
         "",
         "How far a contact's measured lean followed a plan that leaned it further (the change "
-        f"of the measured lean over the planned one, from one iteration to the next), median: "
-        f"{followed}.",
-    ]
-    return "\n".join(lines)
+        "of the measured lean over the planned one, from one iteration to the next), median: "
+        f"{followed or 'no such plan'}.",
+    ])  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -195,10 +218,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     rep = sub.add_parser("report", help="print the figures of probed suites")
     rep.add_argument("paths", type=Path, nargs="+")
     a = ap.parse_args(argv)
-    if a.cmd == "run":
-        run(a.suite, a.out, a.overrides, a.workers)
-    else:
-        print(report(a.paths))
+    if a.cmd == "run" and a.workers < 1:
+        ap.error("--workers must be at least 1")
+    try:
+        if a.cmd == "run":
+            run(a.suite, a.out, a.overrides, a.workers)
+        else:
+            print(report(a.paths))
+    except (OSError, ValueError) as e:  # a missing suite or file, a bad --set (ConfigError)
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except (KeyError, IndexError, TypeError) as e:
+        print(f"error: not the output of `friction_proxy run` ({e!r})", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import sdh2svc.control.runner as runner
-from experiments.friction_proxy import COLUMNS, probe_case, report
+from experiments.friction_proxy import COLUMNS, main, probe_case, report
 from sdh2svc.campaign.case import load_suite
 from sdh2svc.campaign.run import run_case
 
@@ -56,3 +56,19 @@ def test_the_report_states_the_figures(probed: tuple[dict, dict], tmp_path: Path
     n = sum(r[col[f"lean_{x}"]] is not None and r[col[f"true_{x}"]] is not None
             for r in res["rows"] for x in "AB")  # fmt: skip
     assert f"n = {n} |" in text.splitlines()[4]  # every contact-iteration with both leans
+
+
+def test_bad_input_is_refused_with_a_message(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bad --set, an unknown suite and a file that is not a probe's output: exit 2 and one
+    line naming the problem, before any run starts."""
+    out = tmp_path / "out.jsonl"
+    assert main(["run", "smoke", str(out), "--set", "rolling.nope=1"]) == 2
+    assert "rolling.nope" in capsys.readouterr().err and not out.exists()
+    assert main(["run", "nosuch", str(out)]) == 2
+    assert "no suite 'nosuch'" in capsys.readouterr().err
+    other = tmp_path / "other.jsonl"
+    other.write_text('{"id": "x"}\n')
+    assert main(["report", str(other)]) == 2
+    assert "not the output of `friction_proxy run`" in capsys.readouterr().err
