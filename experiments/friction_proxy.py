@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import math
 import sys
@@ -114,15 +115,11 @@ def run(suite: str, out: Path, overrides: Sequence[str], workers: int) -> None:
         camp.case_settings(loaded.cases[0], overrides, None)
     cases = [c.model_dump_json() for c in loaded.cases]
     with ProcessPoolExecutor(workers) as ex, out.open("w") as f:
-        args = [(c, tuple(overrides)) for c in cases]
-        for i, res in enumerate(ex.map(_probe_args, args), 1):
+        results = ex.map(probe_case, cases, itertools.repeat(tuple(overrides), len(cases)))
+        for i, res in enumerate(results, 1):
             f.write(json.dumps(res) + "\n")
             print(f"\r{i}/{len(cases)} {res['id']}: {res['status']}   ", end="", file=sys.stderr)
     print(file=sys.stderr)
-
-
-def _probe_args(a: tuple[str, tuple[str, ...]]) -> dict[str, Any]:
-    return probe_case(*a)
 
 
 def _pct(x: np.ndarray) -> str:

@@ -427,10 +427,9 @@ def _attempt(route: _Route, waived: Reversal | None, alpha: float) -> _Attempt:
     phi = (ik.solution.proximal, ik.solution.distal, cfg.phi4d, cfg.phi5d)
     wa, wb = omegas(obs, phi, plan.A_d, plan.B_d, route.ctx)
     plan = replace(plan, omega_A_d=wa, omega_B_d=wb)
-    if _cone_refuses(wa, waived, alpha) and not _retreats(Reversal.CONE_A, wa, route, alpha):
-        return Reversal.CONE_A, plan, None
-    if _cone_refuses(wb, waived, alpha) and not _retreats(Reversal.CONE_B, wb, route, alpha):
-        return Reversal.CONE_B, plan, None
+    for cone, w_d in ((Reversal.CONE_A, wa), (Reversal.CONE_B, wb)):
+        if _cone_refuses(w_d, waived, alpha) and not _retreats(cone, w_d, route, alpha):
+            return cone, plan, None
     if _wedge_refuses(wa, wb, obs, waived, params):
         return Reversal.WEDGE, plan, None
     return None, plan, cfg
