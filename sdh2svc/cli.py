@@ -8,11 +8,12 @@ import logging
 import math
 import os
 import re
+import signal
 import sys
 import traceback
-from collections.abc import Sequence
+from collections.abc import Coroutine, Sequence
 from enum import IntEnum
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 from sdh2svc import __version__
 from sdh2svc.config import ConfigError, Settings, clip, load_config
@@ -134,7 +135,6 @@ def cmd_sim(args: argparse.Namespace) -> int:
     pressed with --press, or by typing `press pad=3 x=10 y=12 force=2 …` (or `release`) on the
     standard input while it runs."""
     import asyncio
-    import signal
 
     from sdh2svc.connect import Simulated, simulated_hand
 
@@ -208,6 +208,28 @@ def _press_arg(spec: str) -> tuple[str, tuple[Press, float]]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _seconds_arg(text: str) -> float:
+    """A positive, finite number of seconds (argparse's type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is no number of seconds") from None
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"{text}: a number of seconds above 0 expected")
+    return value
+
+
+def _port_arg(text: str) -> int:
+    """A TCP port 0 … 65535 (argparse's type)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is no port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port}: a port is 0 … 65535")
+    return port
+
+
 def sim_command(bench: Bench, line: str) -> str | None:
     """One line typed into `sdh2svc sim`: ``press <spec>`` presses a pad, ``release`` lifts
     every press. Returns what to tell the user (None for a blank line); a bad line changes
@@ -267,8 +289,30 @@ def _object(args: argparse.Namespace, default: str = "") -> Shape:
     except ValidationError as e:  # before ValueError, which it is: one line per bad field
         _fail(Exit.USAGE, f"invalid object in {args.object_file}: "
                           + "; ".join(format_errors(e, ObjectSpec)))  # fmt: skip
-    except (OSError, ValueError) as e:
-        _fail(Exit.USAGE, _one_line(e))
+    except OSError as e:
+        _fail(Exit.USAGE, f"cannot read the object file {args.object_file}: {e.strerror or e}")
+    except ValueError as e:
+        where = f"the object file {args.object_file}: " if args.object_file else ""
+        _fail(Exit.USAGE, where + _one_line(e))
+
+
+T = TypeVar("T")
+
+
+async def _terminable(work: Coroutine[Any, Any, T]) -> T:
+    """``work``, cancelled by SIGTERM (systemd's stop, kill) as Ctrl-C cancels it: the run
+    stops, the hand with it, the run is recorded as stopped. (A background job started by a
+    non-interactive shell ignores SIGINT: SIGTERM is what stops it.)"""
+    import asyncio
+
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    loop.add_signal_handler(signal.SIGTERM, task.cancel)
+    try:
+        return await work
+    finally:
+        loop.remove_signal_handler(signal.SIGTERM)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -307,9 +351,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.fast:
             from sdh2svc.sim.clock import run_fast
 
-            summary = run_fast(run_once(cfg, where, progress=progress))
+            summary = run_fast(_terminable(run_once(cfg, where, progress=progress)))
         else:
-            summary = asyncio.run(run_once(cfg, where, progress=progress))
+            summary = asyncio.run(_terminable(run_once(cfg, where, progress=progress)))
+    except asyncio.CancelledError:  # SIGTERM: stopped like Ctrl-C (the run recorded stopped)
+        return Exit.INTERRUPTED
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, str(e))
     except EstopLatched as e:
@@ -440,11 +486,15 @@ def cmd_estop(args: argparse.Namespace) -> int:
     """The e-stop latch kept in the run database (what a restarted service re-applies, and what
     `run` on a real hand refuses to start under): show it, latch it, or release it. A running
     service keeps its own copy: use its API (POST /api/estop, /api/estop/release) instead."""
+    import sqlite3
+
     from sdh2svc.service.store import NoDatabase, RunStore, StoreError
 
     cfg = load_config(args.config, args.overrides)
     try:
-        store = RunStore(cfg.storage.db_path, create=args.latch)
+        store = RunStore(
+            cfg.storage.db_path, create=args.latch, busy_timeout_s=cfg.storage.busy_timeout_s
+        )
     except NoDatabase:
         if args.release:
             _fail(Exit.NOT_FOUND, f"no run database at {cfg.storage.db_path}: nothing latched")
@@ -458,6 +508,8 @@ def cmd_estop(args: argparse.Namespace) -> int:
         elif args.release:
             store.release_estop()
         latch = store.estop_latch()
+    except sqlite3.Error as e:  # locked by another program past the busy timeout, a bad disk
+        _fail(Exit.UNAVAILABLE, f"the run database {cfg.storage.db_path} is unusable: {e}")
     finally:
         store.close()
     print("released" if latch is None else f"latched since {latch['since']}: {latch['reason']}")
@@ -477,7 +529,9 @@ def cmd_runs(args: argparse.Namespace) -> int:
     if args.action != "list" and args.id is None:
         _fail(Exit.USAGE, f"{args.action}: which run? (give its ID)")
     try:
-        store = RunStore(cfg.storage.db_path, create=False)
+        store = RunStore(
+            cfg.storage.db_path, create=False, busy_timeout_s=cfg.storage.busy_timeout_s
+        )
     except NoDatabase as e:
         _fail(Exit.NOT_FOUND, f"{e} ({NO_DATABASE_HINT})")
     except StoreError as e:
@@ -657,8 +711,8 @@ def build_parser() -> argparse.ArgumentParser:
     obj.add_argument("--object", help="a preset: rubber, egg, cylinder, stick62 … stick119")
     obj.add_argument("--object-file", metavar="FILE", help="an object defined in TOML or JSON")
     p.add_argument("--host", help="TCP bind address (default from config: 127.0.0.1)")
-    p.add_argument("--dsa-port", type=int, help="DSACON32m TCP port (default 13000; 0 = any)")
-    p.add_argument("--sdh-port", type=int, help="SDH2 TCP port (default 13023; 0 = any)")
+    p.add_argument("--dsa-port", type=_port_arg, help="DSACON32m TCP port (default 13000; 0 = any)")
+    p.add_argument("--sdh-port", type=_port_arg, help="SDH2 TCP port (default 13023; 0 = any)")
     p.add_argument("--no-pty", action="store_true", help="serve on TCP only")
     p.add_argument("--no-tcp", action="store_true", help="serve on ptys only")
     p.add_argument("--baud", type=int, help="line pacing in bits/s (default 115200)")
@@ -699,8 +753,8 @@ def build_parser() -> argparse.ArgumentParser:
     obj.add_argument("--object-file", metavar="FILE", help="simulated object file (with --sim)")
     p.add_argument("--host", help="bind address (default 127.0.0.1; beyond loopback needs a "
                    "token: SDH2SVC_SERVICE__TOKEN)")  # fmt: skip
-    p.add_argument("--port", type=int, help="HTTP port (default 8000; 0 = any free one)")
-    p.add_argument("--viser-port", type=int, help="3-D view port (default 8080; 0 = any)")
+    p.add_argument("--port", type=_port_arg, help="HTTP port (default 8000; 0 = any free one)")
+    p.add_argument("--viser-port", type=_port_arg, help="3-D view port (default 8080; 0 = any)")
     p.add_argument("--no-viewer", action="store_true", help="no viser 3-D view")
     p.add_argument("--dsa", metavar="URL", help="DSACON32m port or pyserial URL (real hand)")
     p.add_argument("--sdh", metavar="URL", help="SDH2 port or pyserial URL (real hand)")
@@ -715,7 +769,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
     p.add_argument("--url", help="the service's base URL http://HOST:PORT, or its /api/status "
                    "URL (default: from service.host/port)")  # fmt: skip
-    p.add_argument("--timeout", type=float, default=4.0, help="seconds")
+    p.add_argument("--timeout", type=_seconds_arg, default=4.0, help="seconds (> 0)")
     p.set_defaults(func=cmd_health)
 
     p = sub.add_parser("runs", help="recorded runs: list, show, export",

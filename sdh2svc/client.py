@@ -25,7 +25,8 @@ from typing import Any, Literal, TypedDict, cast
 import httpx
 from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
-from websockets.exceptions import ConnectionClosedOK
+from websockets.exceptions import ConnectionClosedOK, InvalidStatus
+from websockets.sync.client import ClientConnection as SyncClientConnection
 from websockets.sync.client import connect as ws_connect_sync
 
 __all__ = [
@@ -108,6 +109,11 @@ class Unavailable(ApiError):
     """503: the hand's links are not up."""
 
 
+class Unreachable(ConnectionError):
+    """The service did not answer at all (not running, wrong URL, a network fault, a timeout):
+    names the URL and the reason."""
+
+
 _ERRORS: dict[int, type[ApiError]] = {
     **dict.fromkeys((400, 413, 415, 422), InvalidRequest),
     **{401: Unauthorized, 403: Forbidden, 404: NotFound, 409: Conflict, 503: Unavailable},
@@ -127,6 +133,42 @@ def _raise_for(r: httpx.Response) -> None:
         error, details = r.reason_phrase or "error", [r.text[:200]] if r.text else []
     kind = _ERRORS.get(r.status_code, ApiError)
     raise kind(r.status_code, error, details, r.request.method, str(r.request.url))
+
+
+def _refused(e: InvalidStatus, url: str) -> ApiError:
+    """A WebSocket handshake the service answered with an HTTP error, as its ApiError."""
+    r = e.response
+    try:
+        body = json.loads(r.body or b"")
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and "error" in body:
+        error, details = str(body["error"]), list(body.get("details") or [])
+    else:
+        error, details = r.reason_phrase or "error", []
+    return _ERRORS.get(r.status_code, ApiError)(r.status_code, error, details, "GET", url)
+
+
+def _unreachable(where: str, e: Exception) -> Unreachable:
+    return Unreachable(f"{where}: the service did not answer ({str(e) or type(e).__name__})")
+
+
+def _ws_open_sync(url: str, headers: dict[str, str]) -> SyncClientConnection:
+    try:
+        return ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES)
+    except InvalidStatus as e:
+        raise _refused(e, url) from None
+    except (OSError, TimeoutError) as e:
+        raise _unreachable(url, e) from e
+
+
+async def _ws_open(url: str, headers: dict[str, str]) -> ClientConnection:
+    try:
+        return await ws_connect(url, additional_headers=headers, max_size=_WS_MAX_BYTES)
+    except InvalidStatus as e:
+        raise _refused(e, url) from None
+    except (OSError, TimeoutError) as e:
+        raise _unreachable(url, e) from e
 
 
 # --- the routes, once for both clients --------------------------------------------------------
@@ -191,6 +233,22 @@ def _ended(status: JSON, run_id: int) -> JSON | None:
     return cast(JSON, last) if last and last.get("id") == run_id else None
 
 
+def _current(status: JSON, run_id: int) -> bool:
+    """The status shows this run as the one the service runs now (its end comes as
+    ``last_run``); otherwise only its recorded row can tell."""
+    run = status.get("run") or {}
+    return bool(run.get("id") == run_id and run.get("status") in (None, "running"))
+
+
+def _row_ended(row: JSON) -> JSON | None:
+    """A recorded run's end (as ``_ended``) once its row says it is no longer running: it
+    ended before the wait began, or another run has ended since (``last_run`` is that one)."""
+    if row.get("status") in (None, "running"):
+        return None
+    message = (row.get("summary") or {}).get("message", "")
+    return {"id": row.get("id"), "status": row["status"], "message": message}
+
+
 def _ws_url(base_url: str, decimate: int, tactile: bool, max_queue: int | None) -> str:
     url = base_url.rstrip("/").replace("http", "ws", 1)  # https → wss
     query = f"?decimate={decimate}&tactile={int(tactile)}"
@@ -227,7 +285,10 @@ class Client:
         self._http.close()
 
     def _call(self, call: _Call) -> Any:
-        r = self._http.request(call.method, call.path, **call.kwargs())
+        try:
+            r = self._http.request(call.method, call.path, **call.kwargs())
+        except httpx.TransportError as e:
+            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         _raise_for(r)
         return r.json()
 
@@ -313,20 +374,33 @@ class Client:
         """Write a run to a file (CSV or MCAP, from ``format`` or the file's suffix)."""
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
-        with self._http.stream(call.method, call.path, **call.kwargs()) as r:
-            if not r.is_success:
-                r.read()
-                _raise_for(r)
-            with path.open("wb") as f:
-                for chunk in r.iter_bytes():
-                    f.write(chunk)
+        try:
+            with self._http.stream(call.method, call.path, **call.kwargs()) as r:
+                if not r.is_success:
+                    r.read()
+                    _raise_for(r)
+                with path.open("wb") as f:
+                    for chunk in r.iter_bytes():
+                        f.write(chunk)
+        except httpx.TransportError as e:
+            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         return path
 
     def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
-        """Wait until the run has ended; answers ``status()["last_run"]`` (id, status,
-        message). TimeoutError after ``timeout`` seconds."""
-        st = self.wait_status(lambda st: _ended(st, run_id) is not None, timeout, poll_s)
-        return cast(JSON, _ended(st, run_id))
+        """Wait until the run has ended (at once if it already has); answers its end (id,
+        status, message), as ``status()["last_run"]`` has it. NotFound for a run the service
+        never had; TimeoutError after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while (end := self._end_of(self.status(), run_id)) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"run {run_id} did not end within {timeout} s")
+            time.sleep(poll_s)
+        return end
+
+    def _end_of(self, status: JSON, run_id: int) -> JSON | None:
+        if (end := _ended(status, run_id)) is not None or _current(status, run_id):
+            return end
+        return _row_ended(self.run(run_id))
 
     def wait_status(self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05) -> JSON:
         """Poll the status until ``ok(status)`` holds (e.g. :func:`run_state` ``("rolling")``);
@@ -354,7 +428,7 @@ class Client:
         the generator (or drop it) to disconnect."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
         headers = _headers(self.token)
-        with ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES) as ws:
+        with _ws_open_sync(url, headers) as ws:
             try:
                 for text in ws:
                     yield cast(TelemetryMessage, json.loads(text))
@@ -399,9 +473,7 @@ class AsyncTelemetry:
 
     async def _connect(self) -> ClientConnection:
         if self._ws is None:
-            self._ws = await ws_connect(
-                self._url, additional_headers=self._headers, max_size=_WS_MAX_BYTES
-            )
+            self._ws = await _ws_open(self._url, self._headers)
         return self._ws
 
 
@@ -422,7 +494,10 @@ class AsyncClient:
         await self._http.aclose()
 
     async def _call(self, call: _Call) -> Any:
-        r = await self._http.request(call.method, call.path, **call.kwargs())
+        try:
+            r = await self._http.request(call.method, call.path, **call.kwargs())
+        except httpx.TransportError as e:
+            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         _raise_for(r)
         return r.json()
 
@@ -500,18 +575,30 @@ class AsyncClient:
     ) -> Path:
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
-        async with self._http.stream(call.method, call.path, **call.kwargs()) as r:
-            if not r.is_success:
-                await r.aread()
-                _raise_for(r)
-            with path.open("wb") as f:
-                async for chunk in r.aiter_bytes():
-                    f.write(chunk)
+        try:
+            async with self._http.stream(call.method, call.path, **call.kwargs()) as r:
+                if not r.is_success:
+                    await r.aread()
+                    _raise_for(r)
+                with path.open("wb") as f:
+                    async for chunk in r.aiter_bytes():
+                        f.write(chunk)
+        except httpx.TransportError as e:
+            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         return path
 
     async def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
-        st = await self.wait_status(lambda st: _ended(st, run_id) is not None, timeout, poll_s)
-        return cast(JSON, _ended(st, run_id))
+        deadline = time.monotonic() + timeout
+        while (end := await self._end_of(await self.status(), run_id)) is None:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"run {run_id} did not end within {timeout} s")
+            await asyncio.sleep(poll_s)
+        return end
+
+    async def _end_of(self, status: JSON, run_id: int) -> JSON | None:
+        if (end := _ended(status, run_id)) is not None or _current(status, run_id):
+            return end
+        return _row_ended(await self.run(run_id))
 
     async def wait_status(
         self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05

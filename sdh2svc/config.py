@@ -45,6 +45,7 @@ class StorageConfig(Frozen):
     """Where runs are recorded."""
 
     db_path: str
+    busy_timeout_s: Annotated[float, Field(gt=0.0, le=600.0)] = 10.0
 
 
 class ServiceConfig(Frozen):

@@ -7,6 +7,7 @@ the ports, the start-up of the service; the rest through :func:`sdh2svc.cli.main
 
 from __future__ import annotations
 
+import contextlib
 import json
 import socket
 import subprocess
@@ -183,6 +184,34 @@ def test_database_in_an_unwritable_place(tmp_path: Path, closed_port: int) -> No
     assert f"{blocker} is not a directory" in one_line(r.stderr, "run")
 
 
+def test_estop_on_a_locked_database_is_unavailable(
+    one_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Another program holds the run database's write lock past the busy timeout."""
+    import sqlite3
+
+    lock = sqlite3.connect(one_run, isolation_level=None)
+    try:
+        lock.execute("BEGIN IMMEDIATE")
+        for action in ("--latch", "--release"):
+            status, _, err = call(capsys, "estop", action, *db_set(one_run),
+                                  "--set", "storage.busy_timeout_s=0.2")  # fmt: skip
+            assert status == Exit.UNAVAILABLE, err
+            assert "database is locked" in one_line(err, "estop")
+    finally:
+        lock.execute("ROLLBACK")
+        lock.close()
+    assert call(capsys, "estop", *db_set(one_run))[1] == "released\n"
+
+
+@pytest.mark.parametrize("timeout", ["-1", "0", "nan", "inf", "soon"])
+def test_health_timeout_must_be_seconds(timeout: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as bad:
+        main(["health", "--timeout", timeout])
+    assert bad.value.code == Exit.USAGE == 2
+    assert "--timeout" in capsys.readouterr().err
+
+
 def test_no_such_run_is_not_found(one_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
     status, _, err = call(capsys, "runs", "show", "999", *db_set(one_run))
     assert status == Exit.NOT_FOUND
@@ -220,6 +249,41 @@ def test_which_run_is_a_usage_error(one_run: Path, capsys: pytest.CaptureFixture
 
 
 # --- devices and ports -----------------------------------------------------------------------
+
+
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path: Path) -> None:
+    """systemd's stop (or kill) mid-run: the run stops and is recorded as stopped, exit 130."""
+    import signal
+    import time
+
+    db = tmp_path / "r.sqlite"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sdh2svc", "run", "--sim", *db_set(db)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not _runs(db) and time.monotonic() < deadline:  # the run has begun
+            time.sleep(0.05)
+        assert _runs(db) == [(1, "running")]
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == Exit.INTERRUPTED == 130, err
+    assert _runs(db) == [(1, "stopped")]
+
+
+def _runs(db: Path) -> list[tuple[int, str]]:
+    import sqlite3
+
+    if not db.exists():
+        return []
+    with contextlib.closing(sqlite3.connect(db)) as con:
+        try:
+            return con.execute("SELECT id, status FROM runs").fetchall()
+        except sqlite3.OperationalError:  # the tables are not made yet
+            return []
 
 
 def test_run_against_a_nonexistent_device(tmp_path: Path) -> None:
@@ -352,4 +416,9 @@ def test_a_bad_object_file_is_named_field_by_field(
     assert "'stick', 'box', 'ellipse', 'circle', 'polygon'" in capsys.readouterr().err
     bad.write_text('kind = "box\n')
     assert main(["run", "--sim", "--fast", "--object-file", str(bad)]) == Exit.USAGE
-    assert "(at line 1, column 12)" in one_line(capsys.readouterr().err, "run")
+    line = one_line(capsys.readouterr().err, "run")
+    assert f"the object file {bad}: " in line and "(at line 1, column 12)" in line
+    missing = tmp_path / "missing.toml"
+    assert main(["run", "--sim", "--fast", "--object-file", str(missing)]) == Exit.USAGE
+    line = one_line(capsys.readouterr().err, "run")
+    assert line.endswith(f"cannot read the object file {missing}: No such file or directory")

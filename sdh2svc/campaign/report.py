@@ -15,15 +15,36 @@ Row = Mapping[str, Any]
 
 
 def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """A campaign's rows and metadata: ``results.parquet`` rewritten from ``cases.jsonl``."""
-    from sdh2svc.campaign.results import read_results, write_results
-    from sdh2svc.campaign.run import CASES_FILE, RESULTS_FILE
+    """A campaign's rows and metadata: ``results.parquet`` rewritten from ``cases.jsonl``.
+    A folder that holds no campaign is refused before anything is written into it; a file of
+    a campaign that cannot be read (cut short, overwritten) is refused naming it (exit 2)."""
+    from pyarrow import ArrowException
 
-    if (out / CASES_FILE).exists():
-        write_results(out)
-    elif not (out / RESULTS_FILE).exists():
+    from sdh2svc.campaign.results import read_results, write_results
+    from sdh2svc.campaign.run import (
+        CAMPAIGN_FILE,
+        CASES_FILE,
+        RESULTS_FILE,
+        CampaignError,
+        read_rows,
+    )  # fmt: skip
+
+    cases, results = out / CASES_FILE, out / RESULTS_FILE
+    if not cases.exists() and not results.exists():
         raise FileNotFoundError(f"no campaign in {out} (no {CASES_FILE} or {RESULTS_FILE})")
-    return read_results(out)
+    try:
+        if cases.exists():
+            if not (out / CAMPAIGN_FILE).exists():
+                raise CampaignError(3, f"no campaign in {out}: {CASES_FILE} without the "
+                                    f"{CAMPAIGN_FILE} a campaign run writes first")  # fmt: skip
+            if not any("id" in r for r in read_rows(out)):
+                raise CampaignError(2, f"{cases}: no case's result in it")
+            write_results(out)
+        return read_results(out)
+    except (ArrowException, ValueError, OSError) as e:  # (json's errors are ValueErrors)
+        if isinstance(e, FileNotFoundError):
+            raise
+        raise CampaignError(2, f"cannot read the campaign in {out}: {e}") from None
 
 
 def percent(k: int, n: int) -> str:

@@ -337,7 +337,8 @@ class Outcome:
 
 
 def read_rows(out: Path) -> list[dict[str, Any]]:
-    """Every row of ``OUT/cases.jsonl``; a torn last line (a crash mid-write) is dropped."""
+    """Every row of ``OUT/cases.jsonl``; a torn last line (a crash mid-write), or any line
+    that is not a JSON object, is dropped."""
     path = out / CASES_FILE
     if not path.exists():
         return []
@@ -345,9 +346,11 @@ def read_rows(out: Path) -> list[dict[str, Any]]:
     with path.open("rb") as fh:
         for line in fh:
             try:
-                rows.append(json.loads(line))
+                row = json.loads(line)
             except ValueError:
                 continue
+            if isinstance(row, dict):
+                rows.append(row)
     return rows
 
 

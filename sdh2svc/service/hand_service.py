@@ -12,6 +12,8 @@ import asyncio
 import contextlib
 import logging
 import math
+import sqlite3
+import time
 from contextlib import AsyncExitStack
 from dataclasses import asdict
 from typing import Any
@@ -54,9 +56,11 @@ class ServiceError(Exception):
 
 
 def validate_params(current: RollingParams, patch: dict[str, Any]) -> RollingParams:
-    """``current`` with ``patch`` laid over it, validated whole (422 naming each bad field)."""
+    """``current`` with ``patch`` laid over it, validated whole (422 naming each bad field).
+    Strictly: a value is taken as it is typed ("2" is no number; configuration files and
+    --set, which are text, go through the lax path of sdh2svc.config)."""
     try:
-        return RollingParams.model_validate({**current.model_dump(), **patch})
+        return RollingParams.model_validate({**current.model_dump(), **patch}, strict=True)
     except ValidationError as e:
         lines = format_errors(e, RollingParams)
         raise ServiceError(422, "invalid rolling parameters", lines) from None
@@ -76,6 +80,22 @@ def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Shape
         return parse_object(spec or {})
     except ValidationError as e:
         raise ServiceError(422, "invalid object spec", format_errors(e, ObjectSpec)) from None
+
+
+def _failure(stop: asyncio.Future[None]) -> str | None:
+    """Why a finished e-stop did not reach the hand (None: it did)."""
+    if stop.cancelled():
+        return "the service closed"
+    e = stop.exception()
+    return None if e is None else str(e) or type(e).__name__
+
+
+def _log_late_stop(stop: asyncio.Future[None]) -> None:
+    """How an e-stop that outlived its answer ended."""
+    if (e := _failure(stop)) is not None:
+        log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
+    else:
+        log.warning("e-stop: the hand confirmed the stop late")
 
 
 class HandService:
@@ -98,8 +118,9 @@ class HandService:
         self._tasks: list[asyncio.Task[None]] = []
         self._last_tactile = -math.inf
         self._opening: asyncio.Task[None] | None = None
-        self._latch: dict[str, str] | None = None  # the e-stop latch as on disk
+        self._latch: dict[str, str] | None = None  # the e-stop latch as on disk (or unrecorded)
         self._closed = False
+        self._late_stop: asyncio.Future[None] | None = None  # an e-stop outliving its answer
 
     # --- life -----------------------------------------------------------------------------------
 
@@ -107,7 +128,7 @@ class HandService:
         cfg = self.cfg
         self._hand = hand = await self._stack.enter_async_context(connect_hand(cfg, self.where))
         self.joints, self.tactile = hand.joints, hand.tactile
-        self.store = RunStore(cfg.storage.db_path)
+        self.store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
         interrupted = self.store.mark_interrupted()
         if interrupted:
             log.warning("runs %s were still 'running' in %s: marked interrupted",
@@ -211,41 +232,81 @@ class HandService:
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
 
     async def estop(self) -> dict[str, Any]:
-        """Motors off now, from any state; latched on disk first (a restart keeps it), then
-        sent to the hand. A run ends e-stopped; an opening hand stops. Never refused: if the
-        line is down, the latch is sent as soon as it is back."""
+        """Motors off now, from any state; never refused. The link latches at once (nothing
+        moves the hand until released) and the stop goes to the hand while the latch is written
+        to disk beside it (a restart keeps it): the disk write runs in a thread, so a locked or
+        failing run database neither holds up the stop nor cancels it, and is reported
+        (``recorded: false``). If the line is down, the stop is sent as soon as it is back."""
         joints, _, store = self._links()
         log.warning("E-STOP")
-        self._latch = store.latch_estop("e-stop requested")
         joints.latch()
-        reached, problem = True, ""
-        try:
-            if self.running and self.run is not None:
-                await self.run.runner.emergency_stop()
-            else:
-                await self._cancel_opening()
-                await joints.emergency_stop()
-                self._hand_event(EventKind.ESTOP, {})
-        except JointLinkError as e:
-            reached, problem = False, str(e)
+        record = asyncio.ensure_future(asyncio.to_thread(store.latch_estop, "e-stop requested"))
+        stop = asyncio.ensure_future(self._stop_hand(joints))
+        # a silent line would hold the answer through the link's retries: the answer waits for
+        # one reply's timeout; the stop goes on meanwhile (and the latch holds the line anyway)
+        done, _ = await asyncio.wait({stop}, timeout=joints.timeout_s + 0.5)
+        reached, problems = True, []
+        if not done:
+            reached = False
+            problems.append("the hand has not confirmed the stop yet (the joint line does not "
+                            "answer); it is being retried")  # fmt: skip
+            self._late_stop = stop  # (held: the loop keeps only a weak reference to a task)
+            stop.add_done_callback(_log_late_stop)
+        elif (e := _failure(stop)) is not None:
+            reached = False
+            problems.append(f"the hand was not reached ({e}); the stop is sent when the line "
+                            "is back")  # fmt: skip
             log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
         self.publish_status()
-        out: dict[str, Any] = {"estopped": True, "hand_reached": reached}
-        if problem:
-            out["detail"] = (
-                f"the hand was not reached ({problem}); the stop is sent when the line is back"
-            )
+        recorded = await self._recorded(record)
+        if not recorded:
+            problems.append(f"the latch could not be written to the run database "
+                            f"({store.path}): a restart would not keep it")  # fmt: skip
+        self.publish_status()
+        out: dict[str, Any] = {"estopped": True, "hand_reached": reached, "recorded": recorded}
+        if problems:
+            out["detail"] = "; ".join(problems)
         return out
 
+    async def _stop_hand(self, joints: JointLink) -> None:
+        """The e-stop sent to the hand: the run ends e-stopped, or an opening hand stops."""
+        if self.running and self.run is not None:
+            await self.run.runner.emergency_stop()
+        else:
+            await self._cancel_opening()
+            await joints.emergency_stop()
+            self._hand_event(EventKind.ESTOP, {})
+
+    async def _recorded(self, record: asyncio.Future[dict[str, str]]) -> bool:
+        """The e-stop's latch written to disk (``self._latch``); False, logged, if it failed
+        (the latch then stands in memory only, shown in the status without a record)."""
+        try:
+            self._latch = await record
+            return True
+        except (OSError, sqlite3.Error) as e:
+            log.error("e-stop latched, but not on disk: %s", e)
+            since = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+            self._latch = self._latch or {"since": since, "reason": "e-stop requested",
+                                          "recorded": "no"}  # fmt: skip
+            return False
+
     async def release_estop(self) -> dict[str, Any]:
-        """Release the latch: the hand first (motors on), then the record on disk."""
+        """Release the latch: its record on disk first, then the hand (motors on). Either
+        failing leaves the e-stop latched, on disk and in the hand (503)."""
         joints, _, store = self._links()
+        try:
+            await asyncio.to_thread(store.release_estop)
+        except (OSError, sqlite3.Error) as e:
+            raise ServiceError(503, f"the run database did not take the release ({e}); the "
+                               "e-stop stays latched") from None  # fmt: skip
         try:
             await joints.release()
         except JointLinkError as e:
+            # the hand stays latched: so does its record (best effort: the line is the problem)
+            with contextlib.suppress(OSError, sqlite3.Error):
+                self._latch = await asyncio.to_thread(store.latch_estop, "e-stop requested")
             raise ServiceError(503, f"the hand did not take the release: {e}; the e-stop "
                                "stays latched") from None  # fmt: skip
-        store.release_estop()
         self._latch = None
         log.info("e-stop released")
         self.publish_status()

@@ -31,7 +31,7 @@ async def run_once(
     hand) and returns what watches the run's events and samples, e.g. to sample the
     simulation's truth along the run (:mod:`sdh2svc.campaign.run`).
     """
-    store = RunStore(cfg.storage.db_path)
+    store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
     try:
         async with connect_hand(cfg, where) as hand:
             # the latch belongs to the real hand, not a simulated one; checked before it moves

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
+import sqlite3
 from typing import Any
 
 from sdh2svc.bus.joint import JointLink
@@ -24,6 +26,8 @@ from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.store import Recorder, RunStore
 from sdh2svc.service.telemetry import outline_points
+
+log = logging.getLogger(__name__)
 
 
 class RecordedRun:
@@ -54,7 +58,7 @@ class RecordedRun:
             obj, pts = bench.obj, outline_points(bench.outline.perimeter_points)
             name = obj.name or obj.kind  # as the truth names it
             store.set_outline(self.run_id, name, float(obj.size_mm), pts.tolist())
-        self._rec = Recorder(store.path, self.run_id)
+        self._rec = Recorder(store.path, self.run_id, busy_timeout_s=store.busy_timeout_s)
         self._truth: dict[str, Any] = {}
         self._observer: RunObserver = observer or BaseObserver()
         self.runner = Runner(cfg.control(), joints, tactile, params=params, observer=self)
@@ -92,15 +96,15 @@ class RecordedRun:
             result = self.runner.result
             if result.status == "running":
                 result.status, result.message = "stopped", "cancelled"
-            self.summary = self._finish(result.summary())
+            self.summary = await self._finish(result.summary())
             raise
         finally:
             with contextlib.suppress(Exception):
                 self._rec.close()
-        self.summary = self._finish(result.summary())
+        self.summary = await self._finish(result.summary())
         return self.summary
 
-    def _finish(self, summary: dict[str, Any]) -> dict[str, Any]:
+    async def _finish(self, summary: dict[str, Any]) -> dict[str, Any]:
         st = self.tactile.stats
         summary["frames"] = {"received": st.frames, "crc_errors": st.crc_errors,
                              "resyncs": st.resyncs, "frames_per_s": st.frames_per_s}  # fmt: skip
@@ -109,5 +113,10 @@ class RecordedRun:
             summary["truth"] = self._truth or self.bench.truth().summary()
             if summary["truth"]["dropped"] and summary["status"] == "completed":
                 summary["status"] = "dropped"
-        self.store.finish_run(self.run_id, summary["status"], summary)
+        try:  # in a thread: a database another program holds locked must not hold the loop
+            await asyncio.to_thread(self.store.finish_run, self.run_id, summary["status"], summary)
+        except sqlite3.Error as e:  # the run ended as it ended; only its record is missing
+            log.error("run %d: its end could not be recorded: %s", self.run_id, e)
+            note = f"its end is not recorded in {self.store.path}: {e}"
+            summary["message"] = f"{summary['message']}; {note}" if summary.get("message") else note
         return summary

@@ -160,7 +160,9 @@ async def serve(cfg: Settings, where: Where, *, announce_json: bool = False) -> 
     sock = listen_socket(cfg)  # before the hand: a taken port fails at once
     try:
         check_viser_port(cfg)
-        RunStore(cfg.storage.db_path).close()  # an unusable database fails before the hand moves
+        RunStore(
+            cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s
+        ).close()  # an unusable database fails before the hand moves
         services = await open_services(cfg, where)
     except BaseException as e:
         sock.close()

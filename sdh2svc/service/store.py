@@ -115,7 +115,9 @@ class NoDatabase(StoreError):
         super().__init__(f"no run database at {path}")
 
 
-def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
+def connect(
+    path: str | Path, *, create: bool = True, busy_timeout_s: float = 10.0
+) -> sqlite3.Connection:
     """Open the run database; WAL so a reader never blocks the recorder.
 
     ``create=True`` (the recorder, the service, ``sdh2svc run``) creates the file, its directory
@@ -139,7 +141,7 @@ def connect(path: str | Path, *, create: bool = True) -> sqlite3.Connection:
         if create:
             p.parent.mkdir(parents=True, exist_ok=True)
         uri = f"{p.absolute().as_uri()}?mode={'rwc' if create else 'rw'}"
-        db = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=10.0)
+        db = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=busy_timeout_s)
         db.execute("PRAGMA journal_mode=WAL")
         db.execute("PRAGMA synchronous=NORMAL")
         if not create and not _has_runs_table(db):
@@ -179,11 +181,13 @@ def _now_iso() -> str:
 class RunStore:
     """Reads and the occasional write (run creation, finish) of the run database."""
 
-    def __init__(self, path: str | Path, *, create: bool = True) -> None:
+    def __init__(
+        self, path: str | Path, *, create: bool = True, busy_timeout_s: float = 10.0
+    ) -> None:
         """Open the database at ``path``; ``create=False``: only an existing one (see
-        :func:`connect`)."""
-        self.path = Path(path)
-        self.db = connect(path, create=create)
+        :func:`connect`); a write waits up to ``busy_timeout_s`` for another program's lock."""
+        self.path, self.busy_timeout_s = Path(path), busy_timeout_s
+        self.db = connect(path, create=create, busy_timeout_s=busy_timeout_s)
         self._lock = threading.Lock()
 
     def close(self) -> None:
@@ -443,8 +447,11 @@ class Recorder:
     the loop ≈ 20 % of its speed.
     """
 
-    def __init__(self, path: str | Path, run_id: int, flush_s: float = 0.05) -> None:
+    def __init__(
+        self, path: str | Path, run_id: int, flush_s: float = 0.05, busy_timeout_s: float = 10.0
+    ) -> None:
         self.path, self.run_id, self.flush_s = Path(path), run_id, flush_s
+        self.busy_timeout_s = busy_timeout_s
         self._buf: deque[tuple[str, tuple[Any, ...]]] = deque()
         self._closing = threading.Event()
         self.committed = 0  # items on disk
@@ -475,7 +482,7 @@ class Recorder:
         self._thread.join()
 
     def _run(self) -> None:
-        db = connect(self.path)
+        db = connect(self.path, busy_timeout_s=self.busy_timeout_s)
         tables = {
             "s": ("samples", f'"run_id", {_QUOTED}', len(SAMPLE_COLUMNS) + 1),
             "e": ("events", "run_id, t, iteration, kind, detail", 5),

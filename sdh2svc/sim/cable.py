@@ -3,7 +3,9 @@
 Every connection the host opens to :attr:`Cable.url` is forwarded, byte for byte, to the
 device's TCP port. :meth:`Cable.cut` drops every connection on both sides at once and refuses
 new ones until :meth:`Cable.plug` — what pulling the RS-232 plug looks like through a
-serial-to-TCP adapter.
+serial-to-TCP adapter. :meth:`Cable.hold` keeps the connections open but carries nothing either
+way until :meth:`Cable.resume` (then what was held back goes on): a line that falls silent — a
+controller that hangs, a converter that stalls — while the port stays open.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ class Cable:
         self._server: asyncio.Server | None = None
         self._pipes: set[asyncio.Task[None]] = set()
         self._writers: set[asyncio.StreamWriter] = set()
+        self._flowing = asyncio.Event()
+        self._flowing.set()
 
     @property
     def url(self) -> str:
@@ -49,6 +53,13 @@ class Cable:
             with contextlib.suppress(Exception):
                 await server.wait_closed()
 
+    def hold(self) -> None:
+        """Carry nothing either way (the connections stay open) until :meth:`resume`."""
+        self._flowing.clear()
+
+    def resume(self) -> None:
+        self._flowing.set()
+
     async def close(self) -> None:
         await self.cut()
 
@@ -59,7 +70,8 @@ class Cable:
             w.transport.abort()
             return
         self._writers |= {w, dw}
-        pipes = [asyncio.create_task(self._pump(r, dw)), asyncio.create_task(self._pump(dr, w))]
+        pipes = [asyncio.create_task(self._pump(r, dw, self._flowing)),
+                 asyncio.create_task(self._pump(dr, w, self._flowing))]  # fmt: skip
         self._pipes.update(pipes)
         try:
             await asyncio.wait(pipes, return_when=asyncio.FIRST_COMPLETED)
@@ -72,8 +84,11 @@ class Cable:
                 self._writers.discard(writer)
 
     @staticmethod
-    async def _pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:
+    async def _pump(
+        src: asyncio.StreamReader, dst: asyncio.StreamWriter, flowing: asyncio.Event
+    ) -> None:
         with contextlib.suppress(OSError, asyncio.IncompleteReadError):
             while data := await src.read(65536):
+                await flowing.wait()
                 dst.write(data)
                 await dst.drain()

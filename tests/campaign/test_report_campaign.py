@@ -127,6 +127,36 @@ def test_report_on_a_directory_without_a_campaign_is_not_found(
     assert "no campaign in" in capsys.readouterr().err
 
 
+def test_a_folder_that_only_looks_like_a_campaign_is_refused_untouched(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "cases.jsonl").write_text("hello world\n")
+    for action in (["report", str(tmp_path)], ["compare", str(tmp_path), str(tmp_path)]):
+        assert main(["campaign", *action]) == 3
+        assert "no campaign in" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cases.jsonl"]  # nothing written
+    (tmp_path / "campaign.json").write_text("{}")
+    (tmp_path / "cases.jsonl").write_text("hello world\n5\n[1]\n")
+    assert main(["campaign", "report", str(tmp_path)]) == 2
+    assert "no case's result in it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("broken", ["results.parquet", "campaign.json"])
+def test_a_campaign_file_that_cannot_be_read_is_refused_naming_the_campaign(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], broken: str
+) -> None:
+    out = tmp_path / "camp"
+    write(out, [good(case(i, "box")) for i in range(2)])
+    assert main(["campaign", "report", str(out)]) == 0  # readable: a report
+    capsys.readouterr()
+    (out / broken).write_bytes(b"\x00junk")
+    if broken == "results.parquet":
+        (out / "cases.jsonl").unlink()  # only the Parquet file left to read
+    assert main(["campaign", "report", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "cannot read the campaign in" in err and str(out) in err and "Traceback" not in err
+
+
 def test_a_percentage_is_never_rounded_up_across_a_target() -> None:
     from sdh2svc.campaign.report import percent
 

@@ -10,6 +10,7 @@ import csv
 import functools
 import io
 import json
+import re
 import socket
 import struct
 from collections.abc import AsyncIterator, Iterator
@@ -31,6 +32,7 @@ from sdh2svc.client import (
     InvalidRequest,
     NotFound,
     Unauthorized,
+    Unreachable,
     _raise_for,
 )
 from sdh2svc.service.foxglove_live import URDF_URI
@@ -160,6 +162,24 @@ def test_an_error_without_the_service_body() -> None:
         _raise_for(httpx.Response(404, json=body, request=request))
 
 
+def test_a_service_that_does_not_answer_is_unreachable() -> None:
+    url = f"http://127.0.0.1:{_free_port()}"  # nothing listens there
+    with Client(url) as c, pytest.raises(Unreachable, match=re.escape(f"GET {url}/api/status")):
+        c.status()
+    with pytest.raises(Unreachable, match=re.escape(f"ws://127.0.0.1:{url.rsplit(':', 1)[1]}")):
+        next(Client(url).telemetry())
+
+
+async def test_a_bad_telemetry_query_is_an_invalid_request(svc: LiveService) -> None:
+    async with AsyncClient(svc.url, token=TOKEN) as c:
+        with pytest.raises(InvalidRequest) as bad:
+            async with c.telemetry(decimate=0):
+                pass
+    assert bad.value.status == 422 and bad.value.details == [
+        "query.decimate: Input should be greater than or equal to 1"
+    ]
+
+
 def test_calls_and_refusals(svc: LiveService) -> None:
     with Client(svc.url, token=TOKEN) as c:
         assert c.viewer() == {"url": None}
@@ -211,6 +231,10 @@ async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_pa
         assert (await c.runs())[0]["id"] == run_id
         run = await c.run(run_id)
         assert run["status"] == "completed" and run["iterations"] > 0
+        # a run that has already ended: its end at once (not a wait for the next one's)
+        assert (await c.wait_run(run_id, timeout=0.0)) == cycle.end
+        with pytest.raises(NotFound, match="no run 999999"):
+            await c.wait_run(999999, timeout=0.0)
         kinds = [e["kind"] for e in await c.events(run_id)]
         assert {"start", "grasped", "end"} <= set(kinds), kinds
 

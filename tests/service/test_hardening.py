@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import socket
+import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,12 +18,14 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from sdh2svc.client import ApiError, InvalidRequest, NotFound
+from sdh2svc.client import ApiError, InvalidRequest, NotFound, Unavailable, run_state
 from tests.live_service import LiveService, start_service
 
 EVIL = "http://evil.example"
 ALLOWED_ORIGIN = "http://dash.example:9000"
 MAX_BODY_KB = 512
+JSON = {"content-type": "application/json"}
+BUSY_TIMEOUT_S = 0.5  # how long the service's writes wait for another program's lock
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +34,7 @@ def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
         "--set", 'service.allowed_hosts=["lab-pc.local"]',
         "--set", f'service.allowed_origins=["{ALLOWED_ORIGIN}"]',
         "--set", f"service.max_body_kb={MAX_BODY_KB}",
+        "--set", f"storage.busy_timeout_s={BUSY_TIMEOUT_S}",
     ])  # fmt: skip
     try:
         yield s
@@ -272,12 +277,12 @@ async def test_openapi_lists_every_status_and_content_type(svc: LiveService) -> 
         ("get", "/api/runs/{run_id}/samples"): {200, 400, 404, 422},
         ("get", "/api/runs/{run_id}/export"): {200, 400, 404, 422},
         ("post", "/api/estop"): {200, 400, 413, 503},
-        ("post", "/api/estop/release"): {200, 400, 401, 403, 413, 415, 503},
-        ("post", "/api/hand/open"): {202, 400, 401, 403, 409, 413, 415, 503},
+        ("post", "/api/estop/release"): {200, 400, 401, 403, 413, 415, 422, 503},
+        ("post", "/api/hand/open"): {202, 400, 401, 403, 409, 413, 415, 422, 503},
         ("get", "/api/sim/object"): {200, 400, 404},
         ("put", "/api/sim/object"): {200, 400, 401, 403, 404, 409, 413, 415, 422},
         ("post", "/api/sim/press"): {202, 400, 401, 403, 404, 413, 415, 422},
-        ("delete", "/api/sim/press"): {200, 400, 401, 403, 404, 413, 415},
+        ("delete", "/api/sim/press"): {200, 400, 401, 403, 404, 413, 415, 422},
     }
     for (method, path), codes in expect.items():
         responses = paths[path][method]["responses"]
@@ -296,3 +301,97 @@ def test_docs_assets_are_in_the_installed_package() -> None:
 
     names = {p.name for p in Path(docs_assets_dir()).iterdir()}
     assert {"swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js"} <= names
+
+
+NO_BODY = [("post", "/api/estop/release"), ("post", "/api/hand/open"),
+           ("delete", "/api/sim/press"), ("delete", "/api/viewer/replay")]  # fmt: skip
+
+
+async def test_a_command_without_a_body_refuses_one(svc: LiveService) -> None:
+    """A mistaken body (a speed for Open hand, garbage for the release) is a 422, never silently
+    ignored; nothing or {} is no body. The stops take any body: stopping is never refused."""
+    async with plain(svc) as raw:
+        for method, path in NO_BODY:
+            for body in ("garbage", '{"speed": 1}', "[1, 2]", "null", '{"a"'):
+                r = await raw.request(method, path, content=body, headers=JSON)
+                assert r.status_code == 422, (method, path, body, r.text)
+                assert "takes no body" in r.json()["details"][0]
+            for body in ("", "{}", " { } "):
+                r = await raw.request(method, path, content=body, headers=JSON)
+                assert r.status_code != 422, (method, path, body, r.text)
+        # the empty bodies opened the hand: the stop, garbage and all, stops that (202) or
+        # finds nothing left to stop (409), whichever comes first
+        r = await raw.post("/api/runs/stop", content="garbage", headers=JSON)
+        assert r.status_code in (202, 409), r.text
+        async with svc.client() as c:
+            await c.wait_status(lambda st: not st["hand"]["opening"])
+        r = await raw.post("/api/estop", content="garbage", headers=JSON)
+        assert r.status_code == 200 and r.json()["estopped"] is True
+        r = await raw.post("/api/estop/release", content="{}", headers=JSON)
+        assert r.status_code == 200 and r.json() == {"estopped": False}
+
+
+async def test_integers_are_written_in_digits_and_values_as_typed(svc: LiveService) -> None:
+    async with plain(svc) as raw:
+        for path in ("/api/runs/1_0", "/api/runs/+1", "/api/runs/1.0", "/api/runs/%20%201",
+                     "/api/runs/1/samples?offset=1_0", "/api/runs/1/frames?from=+0"):  # fmt: skip
+            r = await raw.get(path)
+            assert r.status_code == 422, (path, r.text)
+            assert "written in digits 0-9" in r.json()["details"][0], path
+        for body in ({"cycles": "2"}, {"k": "3.5"}, {"route": 1}):
+            r = await raw.patch("/api/params", json=body, headers=JSON)
+            assert r.status_code == 422 and next(iter(body)) in r.json()["details"][0], r.text
+        for at in ({"run_id": True, "iteration": 0}, {"run_id": "1", "iteration": 0},
+                   {"run_id": 1, "iteration": "5"}):  # fmt: skip
+            r = await raw.put("/api/viewer/replay", json=at, headers=JSON)
+            assert r.status_code == 422, (at, r.text)
+        huge = '{"cycles": ' + "9" * 5000 + "}"  # beyond what json.loads reads
+        r = await raw.patch("/api/params", content=huge, headers=JSON)
+        assert r.status_code == 400 and "4300 digits" in r.json()["error"]
+        assert (await raw.get("/api/params")).json()["cycles"] != "2"
+
+
+async def test_a_bad_telemetry_query_refuses_the_handshake_with_422(svc: LiveService) -> None:
+    for query in ("decimate=0", "decimate=abc", "tactile=2", "max_queue=0", "decimate=1_0"):
+        with pytest.raises(InvalidStatus) as refused:
+            async with connect(f"{svc.ws_url}?{query}"):
+                pass
+        r = refused.value.response
+        body = json.loads(r.body)
+        assert r.status_code == 422 and body["error"] == "invalid request", query
+        assert body["details"][0].startswith(f"query.{query.split('=')[0]}: "), body
+
+
+async def test_the_estop_stops_a_run_whatever_the_database_does(
+    svc: LiveService, tmp_path: Path
+) -> None:
+    """Another program holds the run database locked (a DB browser, a sqlite3 shell) as the
+    e-stop comes mid-run: the hand stops all the same and the run ends e-stopped; the answer
+    says the latch is not on disk. The release cannot clear the record then, so it refuses and
+    the e-stop stays latched; once the lock is gone, both work."""
+    async with plain(svc) as raw:
+        db = Path((await raw.get("/api/config")).json()["storage"]["db_path"])
+    async with svc.client() as c:
+        run_id = (await c.start_run({"cycles": 1}))["run_id"]
+        await c.wait_status(run_state("pre-shape", "grasping"))
+        lock = sqlite3.connect(db, isolation_level=None)
+        try:
+            lock.execute("BEGIN IMMEDIATE")
+            out = await c.estop()
+            assert out["estopped"] is True and out["recorded"] is False, out
+            assert "could not be written to the run database" in out["detail"]
+            end = await c.wait_run(run_id, timeout=60)
+            assert end["status"] == "e-stopped" and "not recorded" in end["message"], end
+            st = await c.status()
+            assert st["estopped"] is True and st["estop"]["recorded"] == "no"
+            with pytest.raises(Unavailable, match="e-stop stays latched"):
+                await c.release_estop()
+            assert (await c.status())["estopped"] is True
+        finally:
+            lock.execute("ROLLBACK")
+            lock.close()
+        assert (await c.estop())["recorded"] is True  # now on disk
+        with contextlib.closing(sqlite3.connect(db)) as look:
+            assert look.execute("SELECT reason FROM estop").fetchall() == [("e-stop requested",)]
+        assert (await c.release_estop()) == {"estopped": False}
+        assert (await c.status())["estop"] is None

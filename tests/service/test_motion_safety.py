@@ -110,6 +110,32 @@ async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
         assert await _stop(svc) == 0, "".join(svc.log)
 
 
+async def test_the_estop_answers_while_the_joint_line_is_silent(
+    hand: tuple[SimulatedHand, Cable], tmp_path: Path
+) -> None:
+    """The joint line falls silent mid-grasp, its port still open: the e-stop answers after
+    one reply's timeout (not after the link's retries), saying the hand has not confirmed yet;
+    the stop goes on, and once the line answers again the hand is stopped and powered off."""
+    sim, cable = hand
+    svc = await _serve(tmp_path, sim, cable)
+    try:
+        await _start_grasp(svc, sim)
+        cable.hold()
+        at_hold = _angles(sim)
+        async with svc.client() as client:
+            out = await client.estop()
+            assert out["estopped"] is True and out["hand_reached"] is False, out
+            assert "has not confirmed the stop yet" in out["detail"], out
+            cable.resume()
+            st = await client.wait_run((await client.status())["run"]["id"], timeout=60.0)
+            assert st["status"] == "e-stopped", st
+            await client.wait_status(lambda st: not any(sim.sdh.powered), 30.0)
+        assert _moved(_angles(sim), at_hold) <= STEP_DEG
+    finally:
+        cable.resume()
+        assert await _stop(svc) == 0, "".join(svc.log)
+
+
 async def test_a_run_waits_for_the_tactile_line(tmp_path: Path) -> None:
     """With the tactile line down a run is refused (503, nothing recorded); once it is back,
     the same request starts a run."""

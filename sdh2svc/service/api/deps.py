@@ -3,13 +3,17 @@ per request through FastAPI dependencies, and the bearer-token check."""
 
 from __future__ import annotations
 
+import json
+import re
 import secrets
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import Depends
 from fastapi import Path as PathParam
-from starlette.requests import HTTPConnection
+from pydantic import BeforeValidator
+from pydantic_core import PydanticCustomError
+from starlette.requests import HTTPConnection, Request
 
 from sdh2svc.config import Settings
 from sdh2svc.service.hand_service import HandService, ServiceError
@@ -56,8 +60,38 @@ def authorised(request: HTTPConnection) -> None:
                            "Bearer <token>' (the service's SDH2SVC_SERVICE__TOKEN)")  # fmt: skip
 
 
+async def no_body(request: Request) -> None:
+    """A command that takes no body takes nothing, or ``{}``: any other body is a 422, so that
+    a mistaken one (a speed for *Open hand*, garbage for the release) is never silently
+    ignored. (The stops take any body: stopping is never refused.)"""
+    raw = await request.body()
+    if not raw.strip():
+        return
+    try:
+        value = json.loads(raw)
+    except ValueError:  # (also a UnicodeDecodeError)
+        value = None
+    if value != {}:
+        raise ServiceError(422, "invalid request", ["body: this command takes no body: send "
+                                                    "nothing, or {}"])  # fmt: skip
+
+
 Svc = Annotated[Services, Depends(services)]
 St = Annotated[HandService, Depends(station)]
 Cfg = Annotated[Settings, Depends(settings)]
 Auth = Depends(authorised)
-RunId = Annotated[int, PathParam(ge=1, le=SQL_INT_MAX, description="a run's id (GET /api/runs)")]
+NoBody = Depends(no_body)  # after Auth: 401 comes before the body's validation
+
+
+def _digits(v: object) -> object:
+    """An integer in a path or query is written in decimal digits: int() would also read
+    '1_0' as 10 and ' +1' as 1, another number than the one a caller meant to write."""
+    if isinstance(v, str) and not re.fullmatch(r"[0-9]+", v):
+        raise PydanticCustomError("digits", "must be a whole number written in digits 0-9")
+    return v
+
+
+Digits = BeforeValidator(_digits)  # after Query()/Path(): their ranges stay in the schema
+RunId = Annotated[
+    int, PathParam(ge=1, le=SQL_INT_MAX, description="a run's id (GET /api/runs)"), Digits
+]

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi import FastAPI, Request, WebSocket
+from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -33,8 +33,10 @@ _WHY = {
     413: "request body larger than service.max_body_kb",
     415: "a request that changes something must say Content-Type: application/json",
     422: "invalid values: one line per bad field, naming the field and its allowed range",
-    503: "the hand's links are not up",
+    503: "the hand's links are not up (the e-stop's release: the hand or the run database did "
+    "not take it)",
 }
+_UNPARSED = "There was an error parsing the body"  # FastAPI's detail, not a JSONDecodeError
 READ = (400,)  # every route: the Host rule
 WRITE = (400, 401, 403, 413, 415)  # every mutating route but POST /api/estop
 # A mutating route without a body: an empty JSON object, or nothing, with the JSON content type
@@ -84,6 +86,20 @@ def install_errors(app: FastAPI) -> None:
             lines.append(f"{error_key(err['loc'])}: {msg}")
         return error(422, "invalid request", lines)
 
+    @app.exception_handler(WebSocketRequestValidationError)
+    async def _ws_validation(ws: WebSocket, e: WebSocketRequestValidationError) -> None:
+        # a bad query value refuses the handshake like a bad REST value: a 422 naming it (not
+        # the bare 403 a close before accept makes, which reads as an Origin problem)
+        lines = [f"{error_key(err['loc'])}: {error_message(err)}" for err in e.errors()]
+        if "websocket.http.response" in ws.scope.get("extensions", {}):
+            await ws.send_denial_response(error(422, "invalid request", lines))
+        else:
+            reason = clip("invalid request: " + "; ".join(lines), 100).encode()[:120]
+            await ws.close(code=1008, reason=reason.decode(errors="ignore"))
+
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, e: StarletteHTTPException) -> JSONResponse:
+        if e.status_code == 400 and e.detail == _UNPARSED:  # JSON that json.loads gave up on
+            return error(400, "the body is JSON this service cannot read: a number of over "
+                         "4300 digits, or arrays and objects nested too deep")  # fmt: skip
         return error(e.status_code, str(e.detail))

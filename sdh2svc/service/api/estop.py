@@ -7,7 +7,7 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from sdh2svc.service.api.deps import Auth, St
+from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, WRITE, responses
 
 router = APIRouter()
@@ -18,7 +18,8 @@ async def estop(st: St) -> dict[str, Any]:
     return await st.estop()
 
 
-@router.post("/api/estop/release", dependencies=[Auth], responses=responses(*WRITE, 503),
+@router.post("/api/estop/release", dependencies=[Auth, NoBody],
+             responses=responses(*WRITE, 422, 503),
              openapi_extra=EMPTY_BODY)  # fmt: skip
 async def release(st: St) -> dict[str, Any]:
     return await st.release_estop()

@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from sdh2svc.service.api.deps import Auth, St
+from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.telemetry import clean_json
 
@@ -19,8 +19,8 @@ async def status(st: St) -> JSONResponse:
     return JSONResponse(clean_json(st.status()))
 
 
-@router.post("/api/hand/open", status_code=202, dependencies=[Auth],
-             responses=responses(*WRITE, 409, 503), openapi_extra=EMPTY_BODY)  # fmt: skip
+@router.post("/api/hand/open", status_code=202, dependencies=[Auth, NoBody],
+             responses=responses(*WRITE, 409, 422, 503), openapi_extra=EMPTY_BODY)  # fmt: skip
 async def open_hand(st: St) -> dict[str, Any]:
     """Open the fingers to the pre-shape pose, releasing what they hold; answers at once
     (follow ``status.hand.opening``)."""

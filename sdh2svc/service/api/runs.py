@@ -19,7 +19,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.config import Settings
-from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, RunId, St, Svc
+from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, Digits, NoBody, RunId, St, Svc
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
@@ -155,8 +155,8 @@ OUTLINE_DOC = (
 def samples(
     cfg: Cfg,
     run_id: RunId,
-    offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX)] = 0,
-    limit: Annotated[int, Query(ge=1, le=10_000)] = 1000,
+    offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX), Digits] = 0,
+    limit: Annotated[int, Query(ge=1, le=10_000), Digits] = 1000,
     outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> dict[str, Any]:
     if outline and limit > MAX_OUTLINES:
@@ -214,9 +214,9 @@ class FramePage(BaseModel):
 def frames(
     cfg: Cfg,
     run_id: RunId,
-    first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX)] = 0,
-    to: Annotated[int | None, Query(ge=0, le=SQL_INT_MAX)] = None,
-    limit: Annotated[int, Query(ge=1, le=2000)] = 500,
+    first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX), Digits] = 0,
+    to: Annotated[int | None, Query(ge=0, le=SQL_INT_MAX), Digits] = None,
+    limit: Annotated[int, Query(ge=1, le=2000), Digits] = 500,
 ) -> FramePage:
     """The run's tactile frames of iterations `from`…`to`, `limit` at most; follow `next` for
     the rest. Frames recorded without an iteration are not listed."""
@@ -281,8 +281,8 @@ class TruthPage(BaseModel):
 def truth(
     cfg: Cfg,
     run_id: RunId,
-    first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX)] = 0,
-    limit: Annotated[int, Query(ge=1, le=10000)] = 2000,
+    first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX), Digits] = 0,
+    limit: Annotated[int, Query(ge=1, le=10000), Digits] = 2000,
 ) -> TruthPage:
     """In simulation, the object's true pose and state at each iteration from `from` on,
     `limit` at most, and its outline; follow `next` for the rest."""
@@ -301,7 +301,7 @@ def truth(
 class ReplayAt(BaseModel):
     """Which recorded iteration the 3-D view is to show."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # "1" and true are no ids
 
     run_id: int = Field(ge=1, le=SQL_INT_MAX, description="a run's id (GET /api/runs)")
     iteration: int = Field(ge=0, le=SQL_INT_MAX, description="an iteration of that run")
@@ -338,8 +338,8 @@ async def show_replay(svc: Svc, at: ReplayAt) -> ReplayShown:
     return ReplayShown(replay=clean_json(rec.where()), live_again_in_s=view.replay.ttl_s)
 
 
-@router.delete("/api/viewer/replay", response_model=ReplayShown, dependencies=[Auth],
-               responses=responses(*WRITE, 409), openapi_extra=EMPTY_BODY)  # fmt: skip
+@router.delete("/api/viewer/replay", response_model=ReplayShown, dependencies=[Auth, NoBody],
+               responses=responses(*WRITE, 409, 422), openapi_extra=EMPTY_BODY)  # fmt: skip
 async def end_replay(svc: Svc) -> ReplayShown:
     """The 3-D view shows the live hand again."""
     _viewer(svc).replay.end()
@@ -369,7 +369,7 @@ def export(cfg: Cfg, run_id: RunId, format: Literal["csv", "mcap"] = "csv") -> R
 @contextlib.contextmanager
 def _store(cfg: Settings) -> Iterator[RunStore]:
     """A connection of this worker thread's own (SQLite WAL: readers never block the recorder)."""
-    store = RunStore(cfg.storage.db_path)
+    store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
     try:
         yield store
     finally:

@@ -8,7 +8,7 @@ from typing import Any
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
-from sdh2svc.service.api.deps import Auth, St
+from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import parse_object_request
 from sdh2svc.sim.press import Press
@@ -48,8 +48,8 @@ async def press(st: St, req: Press) -> dict[str, Any]:
 
 @router.delete(
     "/api/sim/press",
-    dependencies=[Auth],
-    responses=responses(*WRITE, 404),
+    dependencies=[Auth, NoBody],
+    responses=responses(*WRITE, 404, 422),
     openapi_extra=EMPTY_BODY,
 )
 async def release(st: St) -> dict[str, int]:

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 
-from sdh2svc.service.api.deps import Svc
+from sdh2svc.service.api.deps import Digits, Svc
 from sdh2svc.service.api.errors import READ, responses
 from sdh2svc.service.hub import Client
 from sdh2svc.service.telemetry import Hello, encode
@@ -30,9 +30,9 @@ async def viewer(request: Request, svc: Svc) -> dict[str, Any]:
 async def telemetry(
     ws: WebSocket,
     svc: Svc,
-    decimate: Annotated[int, Query(ge=1, le=1000)] = 1,
-    tactile: Annotated[int, Query(ge=0, le=1)] = 1,
-    max_queue: Annotated[int, Query(ge=1, le=100_000)] = 0,
+    decimate: Annotated[int, Query(ge=1, le=1000), Digits] = 1,
+    tactile: Annotated[int, Query(ge=0, le=1), Digits] = 1,
+    max_queue: Annotated[int, Query(ge=1, le=100_000), Digits] = 0,
 ) -> None:
     await ws.accept()
     client = Client(max_queue=max_queue or svc.cfg.service.telemetry_queue,
