@@ -557,6 +557,8 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
         print(json.dumps(run, indent=2, ensure_ascii=False))
         return Exit.OK
     path = args.output or (None if args.format == "csv" else f"run-{args.id}.mcap")
+    if path is None and sys.stdout is None:  # started with its standard output closed
+        _fail(Exit.UNAVAILABLE, "cannot write stdout: it is closed (give --output FILE)")
     try:
         if args.format == "csv":
             out = open(path, "w", newline="") if path else sys.stdout  # noqa: SIM115

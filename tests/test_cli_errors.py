@@ -242,6 +242,16 @@ def test_export_to_an_unwritable_file(
     assert f"cannot write {target}" in one_line(err, "runs")
 
 
+def test_export_to_a_closed_stdout(one_run: Path) -> None:
+    import shlex
+
+    cmd = shlex.join([sys.executable, "-m", "sdh2svc", "runs", "export", "1", *db_set(one_run)])
+    r = subprocess.run(["sh", "-c", f"exec {cmd} >&-"], capture_output=True, text=True,
+                       timeout=60)  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    assert "cannot write stdout: it is closed" in one_line(r.stderr, "runs")
+
+
 def test_which_run_is_a_usage_error(one_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
     status, _, err = call(capsys, "runs", "show", *db_set(one_run))
     assert status == Exit.USAGE

@@ -465,6 +465,7 @@ class JointLink:
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[None]] = set()
         self._sent_at = math.nan  # loop time the last request went on the line
+        self._silent = False  # the port is open, but the line gave no byte back (_transact)
         self._bare: dict[tuple[str, bool, bool], _Request] = {}  # requests without values
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -502,7 +503,12 @@ class JointLink:
             raise LinkLost("link closed")
         if self._conn is not None:
             return
-        self._conn = await self._connect_once()
+        try:
+            self._conn = await self._connect_once()
+        except JointLinkError as e:  # which line it was (a lab plugs in two)
+            if type(e) is not JointLinkError or self.url in str(e):
+                raise
+            raise JointLinkError(f"joint line {self.url}: {e}") from e
         self._emit(LinkEventKind.CONNECTED, f"firmware {self.version}")
 
     async def close(self, *, power_off: bool = False) -> None:
@@ -543,6 +549,12 @@ class JointLink:
     @property
     def connected(self) -> bool:
         return self._conn is not None and self._conn.lost is None
+
+    @property
+    def silent(self) -> bool:
+        """The port is open but the line has stopped answering: not a byte back through two
+        attempts in a row of the last command (see :meth:`_transact`); False once it answers."""
+        return self._silent and self.connected
 
     @property
     def estopped(self) -> bool:
@@ -687,9 +699,17 @@ class JointLink:
     async def _transact(
         self, conn: _Conn, req: _Request, *, timeout_s: float, retries: int, urgent: bool = False
     ) -> Reply:
-        """One command with SDHLibrary's retry policy; the caller holds the turnstile."""
+        """One command with SDHLibrary's retry policy; the caller holds the turnstile.
+
+        Retries help a line that answers wrongly (a flipped bit, a lost byte); a line that stays
+        silent — not one byte back — through two attempts in a row does not answer any more
+        (a hung controller, a stalled converter, its port still open): the command fails then,
+        and the link counts as :attr:`silent` until something answers again (one attempt only
+        meanwhile). Otherwise a silent line would hold a run through every retry — 20 s —
+        before it could fault, while the fingers wait."""
         self.stats.commands += 1
         failure: JointLinkError | None = None
+        silent_before = self._silent  # the line was silent already: one silent attempt ends it
         for attempt in range(retries + 1):
             if attempt:
                 if self._estop_pending and not urgent:
@@ -699,6 +719,7 @@ class JointLink:
                 await self._resync(conn)
             if attempt and self._may_be_moving:
                 await self._stop_motion(conn, timeout_s)
+            rx = conn.rx_bytes
             try:
                 reply = await self._attempt(conn, req, timeout_s)
             except FirmwareError as exc:
@@ -712,7 +733,15 @@ class JointLink:
             except TimeoutError:
                 self.stats.timeouts += 1
                 failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s")
+                silent = conn.rx_bytes == rx
+                if silent and silent_before:
+                    self._silent = True
+                    failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s, "
+                                             "twice in a row: the line is silent")  # fmt: skip
+                    break
+                silent_before = silent
             else:
+                self._silent = False
                 self._may_be_moving = self._may_be_moving or req.moves
                 return reply
         assert failure is not None
@@ -830,6 +859,7 @@ class JointLink:
             raise JointLinkError(f"cannot open {self.url}: {exc}") from exc
         parser = ReplyParser(crc=self.binary_crc, binary=self.binary)
         conn = _Conn(reader, writer, parser, self._conn_lost)
+        self._silent = False  # a new connection is given its retries
         try:
             await self._handshake(conn)
         except BaseException:

@@ -297,7 +297,10 @@ class TactileBus:
     async def open(cls, url: str, options: TactileOptions | None = None) -> TactileBus:
         """Open ``url`` (device path or pyserial URL) and run the SDHLibrary open sequence."""
         bus = cls(url, options)
-        await bus._establish()
+        try:
+            await bus._establish()
+        except TactileError as e:  # which line it was: a lab plugs in two
+            raise TactileError(f"tactile line {url}: {e}") from e
         bus._emit(LinkEventKind.CONNECTED, url)
         bus._supervisor = bus._loop.create_task(bus._supervise(), name="tactile-supervisor")
         return bus

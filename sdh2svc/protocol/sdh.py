@@ -19,7 +19,11 @@ I/O layer; the parsers offer :meth:`reset` for it. Parsers never raise on any in
 
 Resynchronisation rule (both stream parsers): a message boundary is the start of the stream, the
 byte after a line's ``\\n`` or the byte after a complete binary frame. A byte ≥ 0x80 at a boundary
-starts a binary frame; anything else starts a line. A frame whose header is implausible costs one
+starts a binary frame; anything else starts a line. No line holds a byte ≥ 0x80, so in a
+stream that may carry binary frames one that comes before the line's ``\\n`` (or while an
+over-long line is being dropped) cuts the line short (reported, never answered) and starts a
+frame: a stray byte or a frame cut short can then cost one reply, never every later frame of
+the connection. A frame whose header is implausible costs one
 byte (reported) and scanning resumes at the next byte; a frame with a wrong CRC is dropped whole
 (reported) — the usual case is a bit error, and the host expects one reply per request. An
 incomplete frame waits for its remaining bytes, so binary garbage can swallow up to 31 following
@@ -125,6 +129,7 @@ blank lines, and ``RESYNC`` ends with LF. The controller parser reports those bl
 """
 
 _BINARY_MIN: Final = 0x80  # §2.6: all command codes are >= 0x80, so never printable ASCII
+_HIGH: Final = re.compile(rb"[\x80-\xff]")  # a byte no line holds: where a binary frame starts
 _STRIP: Final = "\r\n "  # §2.1 / PART 3 item 1: strip CR, LF and spaces around a line
 
 
@@ -397,6 +402,9 @@ ASCII_COMMANDS: Final[Mapping[str, CommandSpec]] = MappingProxyType({s.keyword: 
 """Every ASCII command of §2.4 by lower-case keyword."""
 
 
+_AXIS_FORMS: Final = (ArgForm.VECTOR, ArgForm.AXIS_ONLY)  # the forms with an axis index
+
+
 def _shape_error(
     spec: CommandSpec, axis: int | None, values: tuple[float, ...] | None
 ) -> tuple[SdhError, str] | None:
@@ -406,7 +414,7 @@ def _shape_error(
     too few values (or a bare get of selgrip/grip) → NOT_ENOUGH_PARAMS; too many →
     CMD_FORMAT_ERROR; non-integral value for an integer command → INVALID_PARAMETER.
     """
-    if axis is not None and spec.form not in (ArgForm.VECTOR, ArgForm.AXIS_ONLY):
+    if axis is not None and spec.form not in _AXIS_FORMS:
         return SdhError.CMD_FORMAT_ERROR, f"{spec.keyword} has no per-axis form"
     if axis is None and spec.form is ArgForm.AXIS_ONLY:
         return SdhError.CMD_FORMAT_ERROR, f"{spec.keyword} needs an axis index"
@@ -642,6 +650,9 @@ def parse_command_line(
     spec = None if commands is None else commands.get(keyword)
     if commands is not None and spec is None:
         raise SdhProtocolError(SdhError.CMD_UNKNOWN, f"unknown command {keyword!r}")
+    if m[2] is not None and spec is not None and spec.form not in _AXIS_FORMS:
+        # no per-axis form at all: that, whatever the index (temp(0) and temp(8) alike)
+        raise SdhProtocolError(SdhError.CMD_FORMAT_ERROR, f"{keyword} has no per-axis form")
     axis = None if m[2] is None else _parse_axis(m[2], num_axes)
     values = None if m[3] is None else _parse_values(m[3])
     if spec is not None and (err := _shape_error(spec, axis, values)) is not None:
@@ -987,6 +998,11 @@ class _Framer(ABC, Generic[E]):
         buf = self._buf
         if self._discarding:
             idx = buf.find(b"\n")
+            high = self._high(buf, len(buf) if idx < 0 else idx)
+            if high is not None:  # a frame starts: the dropped line ends there
+                del buf[:high]
+                self._discarding = False
+                return True
             if idx < 0:
                 buf.clear()
                 return False
@@ -1009,6 +1025,11 @@ class _Framer(ABC, Generic[E]):
             events.append(event)
             return True
         idx = buf.find(b"\n", 0, self._max_line + 1)
+        high = self._high(buf, min(len(buf), self._max_line + 1) if idx < 0 else idx)
+        if high is not None:  # the line was cut short by a frame (a stray byte, a lost one)
+            events.append(self._broken(bytes(buf[:high])))
+            del buf[:high]
+            return True
         if idx < 0:
             if len(buf) <= self._max_line:
                 return False
@@ -1020,11 +1041,22 @@ class _Framer(ABC, Generic[E]):
         events.extend(self._line(line))
         return True
 
+    def _high(self, buf: bytearray, end: int) -> int | None:
+        """Where the first byte ≥ 0x80 before ``end`` is, if frames may come (else None)."""
+        if not self._binary:
+            return None
+        m = _HIGH.search(buf, 0, end)
+        return None if m is None else m.start()
+
     @abstractmethod
     def _line(self, raw: bytes) -> list[E]: ...
 
     @abstractmethod
     def _overflow(self, prefix: bytes) -> E: ...
+
+    @abstractmethod
+    def _broken(self, prefix: bytes) -> E:
+        """The event for the start of a line that a binary frame cut short."""
 
     @abstractmethod
     def _frame(self, buf: bytearray) -> tuple[int, E] | None:
@@ -1070,6 +1102,9 @@ class ReplyParser(_Framer[ReplyEvent]):
 
     def _overflow(self, prefix: bytes) -> ReplyEvent:
         return Garbage(prefix, f"line longer than {self._max_line} bytes")
+
+    def _broken(self, prefix: bytes) -> ReplyEvent:
+        return Garbage(prefix, "a line cut short by a binary reply")
 
     def _frame(self, buf: bytearray) -> tuple[int, ReplyEvent] | None:
         if buf[0] not in _CODES:
@@ -1145,6 +1180,11 @@ class HostStreamParser(_Framer[HostEvent]):
             prefix,
             ErrorSource.LINE,
         )
+
+    def _broken(self, prefix: bytes) -> HostEvent:
+        # never answered: the host speaks binary now, an E<n> line would misalign its replies
+        return ProtocolErrorEvent(SdhError.CMD_FORMAT_ERROR, "a line cut short by a binary "
+                                  "request", prefix, ErrorSource.GARBAGE)  # fmt: skip
 
     def _garbage(self, buf: bytearray, code: SdhError, message: str) -> tuple[int, HostEvent]:
         return 1, ProtocolErrorEvent(code, message, bytes(buf[:1]), ErrorSource.GARBAGE)

@@ -446,7 +446,8 @@ class HandService:
                 "strokes_total": r.params.cycles, "iteration": r.state.iteration,
                 "status": r.result.status, "message": r.result.message,
             }  # fmt: skip
-        connected = {"joints": bool(j and j.connected), "tactile": bool(t and t.connected)}
+        joints_up = bool(j and j.connected and not j.silent)  # a silent line is down too
+        connected = {"joints": joints_up, "tactile": bool(t and t.connected)}
         return {
             "sim": self.bench is not None,
             "auth_required": bool(self.cfg.service.token),
@@ -479,6 +480,9 @@ class HandService:
         if not joints.connected:
             raise ServiceError(503, f"the joint line ({self.sdh_url}) is down; it reconnects by "
                                "itself: try again when status shows it connected")  # fmt: skip
+        if joints.silent:
+            raise ServiceError(503, f"the joint line ({self.sdh_url}) does not answer (its port "
+                               "is open): try again when status shows it connected")  # fmt: skip
         if tactile is not None and not tactile.connected:
             raise ServiceError(503, f"the tactile line ({self.dsa_url}) is down; it reconnects "
                                "by itself: try again when status shows it connected")  # fmt: skip

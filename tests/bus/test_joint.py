@@ -365,6 +365,28 @@ async def test_pty_unplugged_times_out_then_recovers() -> None:
         assert len(await link.get_actual()) == NUM_AXES
 
 
+async def test_a_silent_line_fails_after_two_silent_attempts_not_every_retry() -> None:
+    """Not a byte back through two attempts in a row: the command fails then (the retries
+    are for a line that answers wrongly), and the link is silent — one attempt per command —
+    until the line answers again."""
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.1, retries=3)
+        rig.ep.disconnect(3.0)  # (the two calls below take about 0.3 s)
+        with pytest.raises(JointLinkError, match="twice in a row: the line is silent"):
+            await link.get_actual()
+        assert link.stats.timeouts == 2 and link.silent and link.connected
+        with pytest.raises(JointLinkError, match="the line is silent"):
+            await link.get_actual()
+        assert link.stats.timeouts == 3  # one attempt while silent
+        async with asyncio.timeout(30):  # the line answers again: so does the link
+            while True:
+                with contextlib.suppress(JointLinkError):
+                    assert len(await link.get_actual()) == NUM_AXES
+                    break
+                await asyncio.sleep(0.1)
+        assert not link.silent
+
+
 async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
     seen: list[LinkEvent] = []
     link = await tcp_rig.open(on_event=seen.append)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ from sdh2svc.bus.tactile import (
     Subscription,
     TactileBus,
     TactileCommandError,
+    TactileError,
     TactileFrame,
     TactileOptions,
     TactileStats,
@@ -130,6 +132,27 @@ async def next_event(sub: Subscription, kind: LinkEventKind, timeout: float) -> 
         while (event := await sub.events.get()).kind is not kind:
             pass
     return event
+
+
+async def test_a_line_that_never_answers_is_named_when_the_open_fails() -> None:
+    """A lab plugs in two lines: the error says which one (here a TCP port that accepts and
+    never answers, as a converter with nothing behind it)."""
+    peers: list[asyncio.StreamWriter] = []
+
+    async def mute(_: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        peers.append(w)
+
+    server = await asyncio.start_server(mute, "127.0.0.1", 0)
+    url = f"socket://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+    quick = TactileOptions(open_tries=1, open_timeout_s=0.05, command_timeout_s=0.05,
+                           open_query_tries=1)  # fmt: skip
+    try:
+        with pytest.raises(TactileError, match=re.escape(f"tactile line {url}: no reply")):
+            await TactileBus.open(url, quick)
+    finally:
+        for w in peers:
+            w.close()
+        server.close()
 
 
 def test_command_error_names_known_and_unknown_codes() -> None:

@@ -798,3 +798,44 @@ def test_fuzz_line_parsers_never_raise(garbage: bytes) -> None:
     controller = HostStreamParser(max_line=64, binary=False)
     controller.feed(garbage)
     assert controller.feed(b"\r\ncon\r\n")[-1] == AsciiCommand("con")
+
+
+# --- a line cut short by a binary frame (a stray byte, a frame cut short) ---------------------
+
+GET_POS = encode_binary_request(BinaryCommand.POS)  # 83 03 00 dc 1e
+
+
+@pytest.mark.parametrize(
+    "stray",
+    [GET_POS[:-1], b"x", bytes([0xAC, 0x03, 0x00, 0x83, 0xF1]), b"x" * 300],
+    ids=["frame-cut-short", "stray-ascii-byte", "unknown-code", "over-long-line"],
+)
+def test_a_stray_costs_a_binary_host_one_reply_at_most(stray: bytes) -> None:
+    """§2.6: frames are told from lines by their first byte (≥ 0x80, which no line holds). So
+    a stray or a cut-short frame costs at most the next request, never every later one, and
+    is never answered with an E<n> line, which would misalign a binary host's replies."""
+    parser = HostStreamParser()
+    parser.feed(stray)  # (an over-long line itself is answered E32: it is a line)
+    events = []
+    for _ in range(60):
+        events += parser.feed(GET_POS)
+    requests = [e for e in events if isinstance(e, BinaryRequest)]
+    assert len(requests) >= 59 and requests[-1] == BinaryRequest(BinaryCommand.POS, None, True)
+    errors = [e for e in events if isinstance(e, ProtocolErrorEvent)]
+    assert all(e.suggested_reply() == b"" or e.source is ErrorSource.FRAME for e in errors), [
+        (e.source, e.message) for e in errors
+    ]
+
+
+def test_a_reply_line_cut_short_by_a_binary_reply_is_garbage_then_the_reply() -> None:
+    reply = encode_binary_reply(BinaryCommand.POS, 0, (1.0,) * NUM_AXES)
+    events = ReplyParser(binary=True).feed(b"POS=1.0,2" + reply)
+    assert isinstance(events[0], Garbage) and events[0].data == b"POS=1.0,2"
+    assert isinstance(events[1], BinaryReply) and len(events) == 2
+
+
+@pytest.mark.parametrize("line", ["temp(0)", "temp(8)", "ver(9)", "m(0)", "m(7)"])
+def test_an_index_to_a_command_without_an_axis_form_is_a_format_error(line: str) -> None:
+    with pytest.raises(SdhProtocolError) as bad:
+        parse_command_line(line)
+    assert bad.value.code is SdhError.CMD_FORMAT_ERROR and "no per-axis form" in str(bad.value)

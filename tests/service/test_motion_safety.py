@@ -10,6 +10,7 @@ however long the test waited — the old velocity grasp moved 3 °/s for as long
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -110,30 +111,56 @@ async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
         assert await _stop(svc) == 0, "".join(svc.log)
 
 
-async def test_the_estop_answers_while_the_joint_line_is_silent(
-    hand: tuple[SimulatedHand, Cable], tmp_path: Path
-) -> None:
-    """The joint line falls silent mid-grasp, its port still open: the e-stop answers after
-    one reply's timeout (not after the link's retries), saying the hand has not confirmed yet;
-    the stop goes on, and once the line answers again the hand is stopped and powered off."""
+@contextlib.asynccontextmanager
+async def _silenced_mid_grasp(
+    hand: tuple[SimulatedHand, Cable], tmp: Path
+) -> AsyncIterator[tuple[LiveService, tuple[float, ...]]]:
+    """A service mid-grasp whose joint line has just fallen silent, its port still open: the
+    service and the angles when it fell silent; the line answers again on leaving."""
     sim, cable = hand
-    svc = await _serve(tmp_path, sim, cable)
+    svc = await _serve(tmp, sim, cable)
     try:
         await _start_grasp(svc, sim)
         cable.hold()
-        at_hold = _angles(sim)
-        async with svc.client() as client:
-            out = await client.estop()
-            assert out["estopped"] is True and out["hand_reached"] is False, out
-            assert "has not confirmed the stop yet" in out["detail"], out
-            cable.resume()
-            st = await client.wait_run((await client.status())["run"]["id"], timeout=60.0)
-            assert st["status"] == "e-stopped", st
-            await client.wait_status(lambda st: not any(sim.sdh.powered), 30.0)
-        assert _moved(_angles(sim), at_hold) <= STEP_DEG
+        yield svc, _angles(sim)
     finally:
         cable.resume()
         assert await _stop(svc) == 0, "".join(svc.log)
+
+
+async def test_the_estop_answers_while_the_joint_line_is_silent(
+    hand: tuple[SimulatedHand, Cable], tmp_path: Path
+) -> None:
+    """The e-stop answers after one reply's timeout (not after the link's retries), saying the
+    hand has not confirmed yet; the stop goes on, and once the line answers again the hand is
+    stopped and powered off."""
+    sim, cable = hand
+    async with _silenced_mid_grasp(hand, tmp_path) as (svc, at_hold), svc.client() as client:
+        out = await client.estop()
+        assert out["estopped"] is True and out["hand_reached"] is False, out
+        assert "has not confirmed the stop yet" in out["detail"], out
+        cable.resume()
+        st = await client.wait_run((await client.status())["run"]["id"], timeout=60.0)
+        assert st["status"] == "e-stopped", st
+        await client.wait_status(lambda st: not any(sim.sdh.powered), 30.0)
+        assert _moved(_angles(sim), at_hold) <= STEP_DEG
+
+
+async def test_a_silent_joint_line_faults_the_run_and_shows_as_down(
+    hand: tuple[SimulatedHand, Cable], tmp_path: Path
+) -> None:
+    """The run faults within two replies' timeouts (not after every retry), the status shows
+    the line down and runs are refused; once it answers again it shows connected, and the
+    fingers never moved."""
+    sim, cable = hand
+    async with _silenced_mid_grasp(hand, tmp_path) as (svc, at_hold), svc.client() as client:
+        st = await client.wait_status(_faulted_and_down, 30.0)
+        assert "the line is silent" in st["last_run"]["message"], st["last_run"]
+        with pytest.raises(Unavailable, match="does not answer"):
+            await client.start_run()
+        cable.resume()
+        await client.wait_status(lambda st: st["hand"]["connected"]["joints"], 30.0)
+        assert _moved(_angles(sim), at_hold) <= STEP_DEG
 
 
 async def test_a_run_waits_for_the_tactile_line(tmp_path: Path) -> None:
