@@ -219,6 +219,14 @@ def _seconds_arg(text: str) -> float:
     return value
 
 
+def _url_arg(text: str) -> str:
+    """A device path or pyserial URL, not blank (argparse's type): an empty one would fall
+    back to the configured line without a word."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty: give a device path or a pyserial URL")
+    return text
+
+
 def _port_arg(text: str) -> int:
     """A TCP port 0 … 65535 (argparse's type)."""
     try:
@@ -739,8 +747,10 @@ def build_parser() -> argparse.ArgumentParser:
     obj.add_argument("--object", help="simulated object preset (with --sim)")
     obj.add_argument("--object-file", metavar="FILE", help="simulated object file (with --sim)")
     p.add_argument("--cycles", type=int, help="strokes before the run ends (rolling.cycles)")
-    p.add_argument("--dsa", metavar="URL", help="DSACON32m port or pyserial URL (real hand)")
-    p.add_argument("--sdh", metavar="URL", help="SDH2 port or pyserial URL (real hand)")
+    p.add_argument("--dsa", metavar="URL", type=_url_arg,
+                   help="DSACON32m port or pyserial URL (real hand)")  # fmt: skip
+    p.add_argument("--sdh", metavar="URL", type=_url_arg,
+                   help="SDH2 port or pyserial URL (real hand)")  # fmt: skip
     p.add_argument("--fast", action="store_true",
                    help="virtual clock: as fast as the CPU allows (with --sim)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="one JSON summary object on stdout")
@@ -758,8 +768,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=_port_arg, help="HTTP port (default 8000; 0 = any free one)")
     p.add_argument("--viser-port", type=_port_arg, help="3-D view port (default 8080; 0 = any)")
     p.add_argument("--no-viewer", action="store_true", help="no viser 3-D view")
-    p.add_argument("--dsa", metavar="URL", help="DSACON32m port or pyserial URL (real hand)")
-    p.add_argument("--sdh", metavar="URL", help="SDH2 port or pyserial URL (real hand)")
+    p.add_argument("--dsa", metavar="URL", type=_url_arg,
+                   help="DSACON32m port or pyserial URL (real hand)")  # fmt: skip
+    p.add_argument("--sdh", metavar="URL", type=_url_arg,
+                   help="SDH2 port or pyserial URL (real hand)")  # fmt: skip
     p.add_argument("--log-format", choices=["text", "json"], default="text",
                    help="log lines on stderr: text (journald) or json")  # fmt: skip
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])

@@ -204,6 +204,25 @@ def test_estop_on_a_locked_database_is_unavailable(
     assert call(capsys, "estop", *db_set(one_run))[1] == "released\n"
 
 
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["sim", "--dsa-port", "99999"], "a port is 0 … 65535"),
+        (["sim", "--sdh-port", "-1"], "a port is 0 … 65535"),
+        (["serve", "--port", "http"], "'http' is no port number"),
+        (["run", "--sdh", ""], "empty: give a device path"),
+        (["serve", "--dsa", " "], "empty: give a device path"),
+    ],
+)
+def test_bad_ports_and_empty_urls_are_usage_errors(
+    args: list[str], fragment: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as bad:
+        main(args)
+    assert bad.value.code == Exit.USAGE
+    assert fragment in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("timeout", ["-1", "0", "nan", "inf", "soon"])
 def test_health_timeout_must_be_seconds(timeout: str, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as bad:
