@@ -48,7 +48,7 @@ exit status:
   4    cannot reach a device or use a resource (hand unreachable, port in use,
        database unusable, output file not writable)
   70   unexpected error, a bug (--debug or SDH2SVC_DEBUG=1 prints the traceback)
-  130  interrupted (Ctrl-C)
+  130  interrupted (Ctrl-C; SIGTERM to run)
 """
 
 NO_DATABASE_HINT = "set storage.db_path or run from the directory that holds data/"
