@@ -315,7 +315,14 @@ export class Plots {
   showLive() {
     this.replay = null;
     this.pinned = null;
-    for (const c of this.charts) delete c._container.dataset.cursorIteration;
+    for (const c of this.charts) {
+      delete c._container.dataset.cursorIteration;
+      // park the replay's cursor off the plot (as uPlot does when the mouse leaves): left on
+      // it, it would read as a hover and hold the legends and the sketch on an old iteration
+      c.setCursor({ left: -10, top: -10 }, false, false);
+      c._pinnedAt = undefined;
+    }
+    this.onCursor?.(null);
     this.schedule();
   }
 

@@ -138,6 +138,7 @@ class Runner:
         self._m1, self._m2 = self._axes.finger1_distal_matrix, self._axes.finger2_distal_matrix
         self._last_seq: int | None = None
         self._estopping = False
+        self._estopped = asyncio.Event()  # the e-stop has latched and been reported
         self._make_recognizer = recognizer
         # the run's recognition; None once it failed (the rolling goes on without an estimate)
         self._recognizer: Recognizer | None = None
@@ -162,13 +163,26 @@ class Runner:
         self._estopping = True
         self.result.status, self.result.message = "e-stopped", "emergency stop"
         self.result.strokes = self.state.strokes
-        if self._task is not None and not self._task.done():
-            self._task.cancel()
+        task, live = self._task, False
+        if task is not None and not task.done():
+            task.cancel()
+            live = True
         try:
             await self.joints.emergency_stop()
         finally:
             self._set_phase(Phase.ESTOPPED)
             self._event(EventKind.ESTOP, {})
+            if live:  # the run ends here (one that had ended has reported its end)
+                rec = self.result.recognition
+                end = {"status": "e-stopped", "message": "emergency stop", "recognition": rec}
+                self._event(EventKind.END, end)
+            self._estopped.set()
+
+    async def estop_reported(self) -> None:
+        """Once an e-stop's events are out (a recording waits for them before it closes: the
+        run's task is cancelled before the stop has latched)."""
+        if self._estopping:
+            await self._estopped.wait()
 
     # --- the run ----------------------------------------------------------------------------
 

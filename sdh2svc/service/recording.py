@@ -91,8 +91,10 @@ class RecordedRun:
     async def execute(self) -> dict[str, Any]:
         """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
         try:
-            result = await self.runner.run()
+            result = await self.runner.run()  # (an e-stop's cancellation ends it too)
+            await self.runner.estop_reported()  # the e-stop's events go to the record too
         except asyncio.CancelledError:
+            await self.runner.estop_reported()  # its events go to the record too
             result = self.runner.result
             if result.status == "running":
                 result.status, result.message = "stopped", "cancelled"

@@ -19,6 +19,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -175,7 +176,11 @@ def _has_runs_table(db: sqlite3.Connection) -> bool:
 
 
 def _now_iso() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    """Now, local time with its UTC offset, to the millisecond (an MCAP export's time base)."""
+    now = time.time()
+    local = time.localtime(now)
+    ms = int(now % 1 * 1000)
+    return time.strftime("%Y-%m-%dT%H:%M:%S", local) + f".{ms:03d}" + time.strftime("%z", local)
 
 
 class RunStore:
@@ -429,8 +434,10 @@ def _truth_dict(r: sqlite3.Row) -> dict[str, Any]:
 
 
 def _epoch_ns(iso: str) -> int:
+    """A stored time (with its offset, to the second or the millisecond) as ns since the epoch,
+    whatever the exporting process's time zone; 0 if it is not one."""
     try:
-        return int(time.mktime(time.strptime(iso, "%Y-%m-%dT%H:%M:%S%z")) * 1e9)
+        return round(datetime.fromisoformat(iso).timestamp() * 1000) * 1_000_000
     except ValueError:
         return 0
 

@@ -1006,6 +1006,9 @@ class Viewer:
     def _build_gui(self) -> None:
         assert self.server is not None
         gui, p = self.server.gui, self.settings.rolling
+        # no "Share" button: it asks viser's public tunnel for a URL on the internet, which a
+        # lab PC next to a hand must not offer (and nothing here downloads or uploads)
+        gui.configure_theme(show_share_button=False)
         with gui.add_folder("sdh2svc"):
             self.nodes["gui/state"] = gui.add_markdown("**idle**")
             for kind in COMMANDS:

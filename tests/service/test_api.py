@@ -267,7 +267,12 @@ async def test_estop_mid_run_and_release(svc: LiveService) -> None:
         assert len(tm.samples(run_id)) == n  # no iteration after the e-stop
         assert (await c.release_estop()) == {"estopped": False}
         assert (await c.status())["estopped"] is False
-        assert (await c.run(run_id))["status"] == "e-stopped"
+        recorded = await c.run(run_id)
+        assert recorded["status"] == "e-stopped"
+        # the record has the e-stop's events, as telemetry had them, and the run's end
+        kinds = [(e["kind"], e["detail"].get("phase") or e["detail"].get("status"))
+                 for e in recorded["events"]]  # fmt: skip
+        assert kinds[-3:] == [("phase", "e-stopped"), ("estop", None), ("end", "e-stopped")]
 
 
 async def test_token_required_when_exposed(tmp_path: Path) -> None:

@@ -416,6 +416,9 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         await page.click("#back-to-live")
     assert await page.is_hidden("#replay-banner")
     assert await page.get_attribute("#pads", "data-iteration") is None
+    # the replay's cursors are parked off the plots: live, nothing holds an old iteration
+    lefts = await page.evaluate("window.sdh2debug.plots.charts.map(c => c.cursor.left)")
+    assert all(left < 0 for left in lefts), lefts
     assert (await counters(page))["lastError"] is None
 
 

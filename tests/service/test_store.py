@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from mcap_check import read
 
 from sdh2svc.config import Settings
@@ -188,3 +189,30 @@ def test_the_recognition_round_trips_and_an_older_database_reads_as_none(
     assert line["object_class"] == "polygon" and float(line["rotation_est [deg]"]) == -12.25
     assert line["radius1 [mm]"] == "" and float(line["radius2 [mm]"]) == 18.0
     store.close()
+
+
+def test_the_export_time_base_is_to_the_millisecond_and_the_same_in_every_time_zone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A run's start is stored with its offset to the millisecond; an MCAP export's time base
+    read back from it is that instant wherever the export runs (it was the local time read as
+    if it were the process's zone, to the whole second)."""
+    import time
+
+    from sdh2svc.service.store import _epoch_ns, _now_iso
+
+    instant = 1796232027.707
+    try:
+        for zone in ("UTC", "Europe/Berlin", "America/New_York"):
+            monkeypatch.setenv("TZ", zone)
+            time.tzset()
+            assert _epoch_ns("2026-12-02T17:20:27.707+0000") == round(instant * 1e3) * 10**6
+            assert _epoch_ns("2026-12-02T18:20:27.707+0100") == round(instant * 1e3) * 10**6
+            assert _epoch_ns("2026-12-02T17:20:27+0000") == 1796232027 * 10**9
+            stamp = _now_iso()
+            assert abs(_epoch_ns(stamp) / 1e9 - time.time()) < 5.0, stamp
+            assert len(stamp.split(".")[1]) == len("707+0000"), stamp
+    finally:
+        monkeypatch.delenv("TZ")
+        time.tzset()
+    assert _epoch_ns("not a time") == 0

@@ -765,3 +765,26 @@ async def test_a_replayed_iteration_reaches_the_view_then_live_again(
     assert not np.allclose(tip, straight, atol=1e-6) and not np.allclose(tip, live_tip, atol=1e-6)
     assert "replay" not in viewer.nodes["gui/state"].content
     store.close()
+
+
+async def test_the_view_offers_no_share_button(
+    cfg: Settings, commands: Recorder, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """viser's "Share" asks its public tunnel for an internet URL to this view: not on a lab PC
+    next to a hand (and nothing here reaches the internet)."""
+    from viser._gui_api import GuiApi
+
+    themes: list[dict[str, Any]] = []
+    configure = GuiApi.configure_theme
+
+    def spy(self: GuiApi, **kw: Any) -> None:
+        themes.append(kw)
+        configure(self, **kw)
+
+    monkeypatch.setattr(GuiApi, "configure_theme", spy)
+    v = Viewer(cfg, port=0, on_command=commands)
+    await v.start()
+    try:
+        assert themes and all(t.get("show_share_button") is False for t in themes), themes
+    finally:
+        await v.stop()
