@@ -345,6 +345,9 @@ async def test_integers_are_written_in_digits_and_values_as_typed(svc: LiveServi
                    {"run_id": 1, "iteration": "5"}):  # fmt: skip
             r = await raw.put("/api/viewer/replay", json=at, headers=JSON)
             assert r.status_code == 422, (at, r.text)
+        for literal in ("NaN", "Infinity", "-Infinity"):  # named as such, not as out of range
+            r = await raw.patch("/api/params", content=f'{{"k": {literal}}}', headers=JSON)
+            assert r.status_code == 422 and "finite number" in r.json()["details"][0], r.text
         huge = '{"cycles": ' + "9" * 5000 + "}"  # beyond what json.loads reads
         r = await raw.patch("/api/params", content=huge, headers=JSON)
         assert r.status_code == 400 and "4300 digits" in r.json()["error"]
