@@ -71,6 +71,14 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
+def _add_link_args(p: argparse.ArgumentParser) -> None:
+    """--dsa and --sdh: a real hand's two lines (else the configuration's ``links``)."""
+    p.add_argument("--dsa", metavar="URL", type=_url_arg,
+                   help="DSACON32m port or pyserial URL (real hand)")  # fmt: skip
+    p.add_argument("--sdh", metavar="URL", type=_url_arg,
+                   help="SDH2 port or pyserial URL (real hand)")  # fmt: skip
+
+
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="a TOML file overriding config/default.toml")
     p.add_argument(
@@ -747,10 +755,7 @@ def build_parser() -> argparse.ArgumentParser:
     obj.add_argument("--object", help="simulated object preset (with --sim)")
     obj.add_argument("--object-file", metavar="FILE", help="simulated object file (with --sim)")
     p.add_argument("--cycles", type=int, help="strokes before the run ends (rolling.cycles)")
-    p.add_argument("--dsa", metavar="URL", type=_url_arg,
-                   help="DSACON32m port or pyserial URL (real hand)")  # fmt: skip
-    p.add_argument("--sdh", metavar="URL", type=_url_arg,
-                   help="SDH2 port or pyserial URL (real hand)")  # fmt: skip
+    _add_link_args(p)
     p.add_argument("--fast", action="store_true",
                    help="virtual clock: as fast as the CPU allows (with --sim)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="one JSON summary object on stdout")
@@ -768,10 +773,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=_port_arg, help="HTTP port (default 8000; 0 = any free one)")
     p.add_argument("--viser-port", type=_port_arg, help="3-D view port (default 8080; 0 = any)")
     p.add_argument("--no-viewer", action="store_true", help="no viser 3-D view")
-    p.add_argument("--dsa", metavar="URL", type=_url_arg,
-                   help="DSACON32m port or pyserial URL (real hand)")  # fmt: skip
-    p.add_argument("--sdh", metavar="URL", type=_url_arg,
-                   help="SDH2 port or pyserial URL (real hand)")  # fmt: skip
+    _add_link_args(p)
     p.add_argument("--log-format", choices=["text", "json"], default="text",
                    help="log lines on stderr: text (journald) or json")  # fmt: skip
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])

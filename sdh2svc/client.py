@@ -14,6 +14,7 @@ dicts. Imports nothing of the service itself, so a lab script needs only httpx a
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from collections.abc import AsyncIterator, Callable, Generator, Iterator, Mapping
@@ -120,55 +121,61 @@ _ERRORS: dict[int, type[ApiError]] = {
 }
 
 
+def _error_body(content: bytes | bytearray) -> tuple[str, list[Any]] | None:
+    """The service's error body (``error``, ``details``), if that is what ``content`` is."""
+    try:
+        body = json.loads(content or b"")
+    except ValueError:
+        return None
+    if isinstance(body, dict) and "error" in body:
+        return str(body["error"]), list(body.get("details") or [])
+    return None
+
+
 def _raise_for(r: httpx.Response) -> None:
     if r.is_success:
         return
-    try:
-        body = r.json()
-    except ValueError:
-        body = None
-    if isinstance(body, dict) and "error" in body:
-        error, details = str(body["error"]), list(body.get("details") or [])
-    else:
-        error, details = r.reason_phrase or "error", [r.text[:200]] if r.text else []
+    got = _error_body(r.content)
+    error, details = got or (r.reason_phrase or "error", [r.text[:200]] if r.text else [])
     kind = _ERRORS.get(r.status_code, ApiError)
     raise kind(r.status_code, error, details, r.request.method, str(r.request.url))
 
 
-def _refused(e: InvalidStatus, url: str) -> ApiError:
-    """A WebSocket handshake the service answered with an HTTP error, as its ApiError."""
-    r = e.response
+@contextlib.contextmanager
+def _answered(
+    where: str, failures: tuple[type[Exception], ...] = (httpx.TransportError,)
+) -> Iterator[None]:
+    """Transport ``failures`` as :class:`Unreachable` naming ``where`` (the request, the URL);
+    anything else (a file that cannot be written) as it is."""
     try:
-        body = json.loads(r.body or b"")
-    except ValueError:
-        body = None
-    if isinstance(body, dict) and "error" in body:
-        error, details = str(body["error"]), list(body.get("details") or [])
-    else:
-        error, details = r.reason_phrase or "error", []
-    return _ERRORS.get(r.status_code, ApiError)(r.status_code, error, details, "GET", url)
+        yield
+    except failures as e:
+        raise Unreachable(f"{where}: the service did not answer "
+                          f"({str(e) or type(e).__name__})") from e  # fmt: skip
 
 
-def _unreachable(where: str, e: Exception) -> Unreachable:
-    return Unreachable(f"{where}: the service did not answer ({str(e) or type(e).__name__})")
+@contextlib.contextmanager
+def _handshake(url: str) -> Iterator[None]:
+    """A WebSocket handshake the service refused (an HTTP error), as its ApiError; one it did
+    not answer, as :class:`Unreachable`."""
+    with _answered(url, (OSError, TimeoutError)):
+        try:
+            yield
+        except InvalidStatus as e:
+            r = e.response
+            error, details = _error_body(r.body or b"") or (r.reason_phrase or "error", [])
+            kind = _ERRORS.get(r.status_code, ApiError)
+            raise kind(r.status_code, error, details, "GET", url) from None
 
 
 def _ws_open_sync(url: str, headers: dict[str, str]) -> SyncClientConnection:
-    try:
+    with _handshake(url):
         return ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES)
-    except InvalidStatus as e:
-        raise _refused(e, url) from None
-    except (OSError, TimeoutError) as e:
-        raise _unreachable(url, e) from e
 
 
 async def _ws_open(url: str, headers: dict[str, str]) -> ClientConnection:
-    try:
+    with _handshake(url):
         return await ws_connect(url, additional_headers=headers, max_size=_WS_MAX_BYTES)
-    except InvalidStatus as e:
-        raise _refused(e, url) from None
-    except (OSError, TimeoutError) as e:
-        raise _unreachable(url, e) from e
 
 
 # --- the routes, once for both clients --------------------------------------------------------
@@ -285,10 +292,8 @@ class Client:
         self._http.close()
 
     def _call(self, call: _Call) -> Any:
-        try:
+        with _answered(f"{call.method} {self.url}{call.path}"):
             r = self._http.request(call.method, call.path, **call.kwargs())
-        except httpx.TransportError as e:
-            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         _raise_for(r)
         return r.json()
 
@@ -374,16 +379,16 @@ class Client:
         """Write a run to a file (CSV or MCAP, from ``format`` or the file's suffix)."""
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
-        try:
-            with self._http.stream(call.method, call.path, **call.kwargs()) as r:
-                if not r.is_success:
-                    r.read()
-                    _raise_for(r)
-                with path.open("wb") as f:
-                    for chunk in r.iter_bytes():
-                        f.write(chunk)
-        except httpx.TransportError as e:
-            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
+        with (
+            _answered(f"{call.method} {self.url}{call.path}"),
+            self._http.stream(call.method, call.path, **call.kwargs()) as r,
+        ):
+            if not r.is_success:
+                r.read()
+                _raise_for(r)
+            with path.open("wb") as f:
+                for chunk in r.iter_bytes():
+                    f.write(chunk)
         return path
 
     def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
@@ -494,10 +499,8 @@ class AsyncClient:
         await self._http.aclose()
 
     async def _call(self, call: _Call) -> Any:
-        try:
+        with _answered(f"{call.method} {self.url}{call.path}"):
             r = await self._http.request(call.method, call.path, **call.kwargs())
-        except httpx.TransportError as e:
-            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         _raise_for(r)
         return r.json()
 
@@ -575,7 +578,7 @@ class AsyncClient:
     ) -> Path:
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
-        try:
+        with _answered(f"{call.method} {self.url}{call.path}"):
             async with self._http.stream(call.method, call.path, **call.kwargs()) as r:
                 if not r.is_success:
                     await r.aread()
@@ -583,8 +586,6 @@ class AsyncClient:
                 with path.open("wb") as f:
                     async for chunk in r.aiter_bytes():
                         f.write(chunk)
-        except httpx.TransportError as e:
-            raise _unreachable(f"{call.method} {self.url}{call.path}", e) from e
         return path
 
     async def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:

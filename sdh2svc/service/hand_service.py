@@ -13,7 +13,6 @@ import contextlib
 import logging
 import math
 import sqlite3
-import time
 from contextlib import AsyncExitStack
 from dataclasses import asdict
 from typing import Any
@@ -31,7 +30,7 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
-from sdh2svc.service.store import RunStore
+from sdh2svc.service.store import RunStore, now_iso
 from sdh2svc.service.telemetry import (
     OUTLINE_POINTS,
     Event,
@@ -285,8 +284,7 @@ class HandService:
             return True
         except (OSError, sqlite3.Error) as e:
             log.error("e-stop latched, but not on disk: %s", e)
-            since = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-            self._latch = self._latch or {"since": since, "reason": "e-stop requested",
+            self._latch = self._latch or {"since": now_iso(), "reason": "e-stop requested",
                                           "recorded": "no"}  # fmt: skip
             return False
 

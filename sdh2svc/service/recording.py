@@ -92,17 +92,18 @@ class RecordedRun:
         """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
         try:
             result = await self.runner.run()  # (an e-stop's cancellation ends it too)
-            await self.runner.estop_reported()  # the e-stop's events go to the record too
         except asyncio.CancelledError:
-            await self.runner.estop_reported()  # its events go to the record too
             result = self.runner.result
             if result.status == "running":
                 result.status, result.message = "stopped", "cancelled"
             self.summary = await self._finish(result.summary())
             raise
         finally:
-            with contextlib.suppress(Exception):
-                self._rec.close()
+            try:
+                await self.runner.estop_reported()  # the e-stop's events go to the record too
+            finally:  # (closed also if the wait is cancelled)
+                with contextlib.suppress(Exception):
+                    self._rec.close()
         self.summary = await self._finish(result.summary())
         return self.summary
 

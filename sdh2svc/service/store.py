@@ -175,7 +175,7 @@ def _has_runs_table(db: sqlite3.Connection) -> bool:
     return row.fetchone() is not None
 
 
-def _now_iso() -> str:
+def now_iso() -> str:
     """Now, local time with its UTC offset, to the millisecond (an MCAP export's time base)."""
     now = time.time()
     local = time.localtime(now)
@@ -202,7 +202,7 @@ class RunStore:
         with self._lock, self.db:
             cur = self.db.execute(
                 "INSERT INTO runs (started_at, status, meta) VALUES (?, 'running', ?)",
-                (_now_iso(), json.dumps(meta)),
+                (now_iso(), json.dumps(meta)),
             )
         assert cur.lastrowid is not None
         return cur.lastrowid
@@ -211,7 +211,7 @@ class RunStore:
         with self._lock, self.db:
             self.db.execute(
                 "UPDATE runs SET status = ?, ended_at = ?, summary = ? WHERE id = ?",
-                (status, _now_iso(), json.dumps(summary), run_id),
+                (status, now_iso(), json.dumps(summary), run_id),
             )
 
     def mark_interrupted(self) -> list[int]:
@@ -233,7 +233,7 @@ class RunStore:
         so a restart — or the PC losing power — finds it still latched. Returns the latch (the
         first one's time and reason, if it was latched already)."""
         self._durably("INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
-                      (_now_iso(), reason))  # fmt: skip
+                      (now_iso(), reason))  # fmt: skip
         latch = self.estop_latch()
         assert latch is not None
         return latch

@@ -199,7 +199,7 @@ def test_the_export_time_base_is_to_the_millisecond_and_the_same_in_every_time_z
     if it were the process's zone, to the whole second)."""
     import time
 
-    from sdh2svc.service.store import _epoch_ns, _now_iso
+    from sdh2svc.service.store import _epoch_ns, now_iso
 
     instant = 1796232027.707
     try:
@@ -209,7 +209,7 @@ def test_the_export_time_base_is_to_the_millisecond_and_the_same_in_every_time_z
             assert _epoch_ns("2026-12-02T17:20:27.707+0000") == round(instant * 1e3) * 10**6
             assert _epoch_ns("2026-12-02T18:20:27.707+0100") == round(instant * 1e3) * 10**6
             assert _epoch_ns("2026-12-02T17:20:27+0000") == 1796232027 * 10**9
-            stamp = _now_iso()
+            stamp = now_iso()
             assert abs(_epoch_ns(stamp) / 1e9 - time.time()) < 5.0, stamp
             assert len(stamp.split(".")[1]) == len("707+0000"), stamp
     finally:
