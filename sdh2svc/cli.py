@@ -71,6 +71,14 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
+def _no_lines_with_sim(args: argparse.Namespace) -> None:
+    """--sim serves its own lines: a --dsa or --sdh beside it is a mistake, not ignored."""
+    given = [f"--{name}" for name in ("dsa", "sdh") if getattr(args, name, None) is not None]
+    if given:
+        what = "names a real hand's line" if len(given) == 1 else "name a real hand's lines"
+        _fail(Exit.USAGE, f"{' and '.join(given)} {what}: not with --sim, which serves its own")
+
+
 def _add_link_args(p: argparse.ArgumentParser) -> None:
     """--dsa and --sdh: a real hand's two lines (else the configuration's ``links``)."""
     p.add_argument("--dsa", metavar="URL", type=_url_arg,
@@ -93,7 +101,10 @@ def _load(args: argparse.Namespace) -> Settings:
 
 def cmd_config(args: argparse.Namespace) -> int:
     """Print the effective, validated configuration as JSON."""
-    print(json.dumps(_load(args).model_dump(mode="json"), indent=2, ensure_ascii=False))
+    data = _load(args).model_dump(mode="json")
+    if data["service"]["token"]:  # as GET /api/config shows it: a terminal is often shared
+        data["service"]["token"] = "***"
+    print(json.dumps(data, indent=2, ensure_ascii=False))
     return 0
 
 
@@ -102,6 +113,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     cfg = _load(args)
     pad = cfg.hand.pad
     s_range = (cfg.tactile.distal.rows - 1) * cfg.tactile.texel_pitch_mm
+    # φ2…φ5 within their axes' joint limits, S1 and S2 on the pad: the model has no answer
+    # elsewhere (a stretched pose is still one, a pad point 1 km away is not)
+    axes = (*cfg.axes.finger_axes(Finger.ONE), *cfg.axes.finger_axes(Finger.TWO))
+    for name, axis in zip(("phi2", "phi3", "phi4", "phi5"), axes, strict=True):
+        lo, hi, value = cfg.limits.min_deg[axis], cfg.limits.max_deg[axis], getattr(args, name)
+        if not lo <= value <= hi:
+            _fail(Exit.USAGE, f"--{name} {value:g}: outside axis {axis}'s joint limits "
+                              f"{lo:g} … {hi:g} deg")  # fmt: skip
+    for name in ("s1", "s2"):
+        if not 0.0 <= getattr(args, name) <= s_range:
+            _fail(Exit.USAGE, f"--{name} {getattr(args, name):g}: off the pad (0 … {s_range:g} mm)")
     pose = HandPose(*(math.radians(a) for a in (args.phi2, args.phi3, args.phi4, args.phi5)))
     x3s, vjs = [], []
     for S in (args.s1, args.s2):
@@ -158,6 +180,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     obj = _object(args, cfg.sim.object)
 
+    if (args.no_pty or not cfg.sim.links.pty) and args.no_tcp:
+        _fail(Exit.USAGE, "nothing to serve: --no-tcp, and no pty (--no-pty or sim.links.pty)")
     # ports default to the configuration's; the lab assistant to sim.replace_after_s
     spec = Simulated(
         obj=obj,
@@ -225,6 +249,17 @@ def _seconds_arg(text: str) -> float:
     if not (math.isfinite(value) and value > 0.0):
         raise argparse.ArgumentTypeError(f"{text}: a number of seconds above 0 expected")
     return value
+
+
+def _cycles_arg(text: str) -> int:
+    """``--cycles``: a whole number of strokes within rolling.cycles' range (argparse's type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is no whole number") from None
+    if not 1 <= n <= 10000:
+        raise argparse.ArgumentTypeError(f"{n}: 1 … 10000 strokes")
+    return n
 
 
 def _url_arg(text: str) -> str:
@@ -349,6 +384,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     obj = None
     if args.sim:
+        _no_lines_with_sim(args)
         obj = _object(args, cfg.sim.object)
     elif args.object or args.object_file or args.fast:
         _fail(Exit.USAGE, "--object, --object-file and --fast need --sim")
@@ -382,7 +418,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary))
     else:
-        print(file=sys.stderr)
+        if sys.stderr.isatty():  # end the progress line
+            print(file=sys.stderr)
         f = summary["force"]
         print(f"run {summary['run_id']}: {summary['status']} {summary['message']}".rstrip())
         print(
@@ -405,7 +442,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"  simulation truth: {truth['object']} ({truth['size_mm']:.1f} mm), turned over "
                   f"{truth['rotation_range_deg']:.1f}°, {truth['slips']} slips"
                   f"{', dropped' if truth['dropped'] else ''}")  # fmt: skip
-    return Exit.OK if summary["status"] == "completed" else Exit.FAILED
+    if summary["status"] == "completed":
+        return Exit.OK
+    # the summary is the output (stdout); the failure is also the one line on stderr
+    print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: "
+          f"{_one_line(summary['message']) or 'no message'}", file=sys.stderr)  # fmt: skip
+    return Exit.FAILED
 
 
 def _mm(value: float | None) -> str:
@@ -429,6 +471,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     setup_logging(args.log_format, args.log_level)
     obj = None
+    if args.sim:
+        _no_lines_with_sim(args)
     if args.object or args.object_file:
         if not args.sim:
             _fail(Exit.USAGE, "--object and --object-file need --sim")
@@ -612,11 +656,15 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         if args.action == "report":
             from sdh2svc.campaign.report import write_report
 
+            _only_for(args, "report", run_options=True)
             path = write_report(Path(args.dir))
             print(path)
             return Exit.OK
         from sdh2svc.campaign.report import compare
 
+        _only_for(args, "compare", run_options=True)
+        if args.dir_b is None:
+            _fail(Exit.USAGE, "compare needs two campaign folders: DIR_A DIR_B")
         text = compare(Path(args.dir), Path(args.dir_b))
         out = Path(args.output) if args.output else Path(args.dir_b) / "compare.md"
         print(text, end="")
@@ -629,6 +677,18 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         _fail(Exit(e.status), _one_line(e))
     except FileNotFoundError as e:
         _fail(Exit.NOT_FOUND, _one_line(e))
+
+
+def _only_for(args: argparse.Namespace, action: str, *, run_options: bool) -> None:
+    """``report`` and ``compare`` take none of ``run``'s options: given, they are mistakes
+    (a --set the user thinks applies), not silently dropped; ``report`` takes one folder."""
+    if action == "report" and args.dir_b is not None:
+        _fail(Exit.USAGE, f"report takes one campaign folder, not {clip(args.dir_b)!r} too")
+    given = [flag for flag, value in (("--set", args.overrides), ("--config", args.config),
+                                      ("--workers", args.workers), ("--ray", args.ray),
+                                      ("--out", args.out)) if value]  # fmt: skip
+    if run_options and given:
+        _fail(Exit.USAGE, f"{', '.join(given)}: options of campaign run, not of {action}")
 
 
 def _campaign_generate(args: argparse.Namespace) -> int:
@@ -684,15 +744,29 @@ def _campaign_run(args: argparse.Namespace) -> int:
         _fail(Exit.USAGE, f"--workers {args.workers}: at least 1")
     suite = load_suite(args.dir)
     out = Path(args.out or f"campaigns/{suite.name}")
-    outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
-                           overrides=args.overrides, config_path=args.config,
-                           progress=not args.quiet)  # fmt: skip
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill`: stopped as by Ctrl-C
+    try:
+        outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
+                               overrides=args.overrides, config_path=args.config,
+                               progress=not args.quiet)  # fmt: skip
+    except KeyboardInterrupt:
+        print(f"sdh2svc campaign: interrupted; every finished case is in {out}: the same "
+              "command goes on with the rest", file=sys.stderr)  # fmt: skip
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     n = outcome.total
     print(f"{out}: {n} cases ({outcome.skipped} already there, {outcome.ran} run in "
           f"{outcome.wall_s:.1f} s), success {outcome.succeeded}/{n}"
-          + (f", {outcome.crashed} crashed" if outcome.crashed else "")
+          + (f", {outcome.crashed} crashed (the same command runs them again)"
+             if outcome.crashed else "")
           + f"; {outcome.results}")  # fmt: skip
     return Exit.FAILED if outcome.crashed else Exit.OK
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    """SIGTERM as Ctrl-C: the campaign stops its workers and keeps what has finished."""
+    raise KeyboardInterrupt
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -754,7 +828,8 @@ def build_parser() -> argparse.ArgumentParser:
     obj = p.add_mutually_exclusive_group()
     obj.add_argument("--object", help="simulated object preset (with --sim)")
     obj.add_argument("--object-file", metavar="FILE", help="simulated object file (with --sim)")
-    p.add_argument("--cycles", type=int, help="strokes before the run ends (rolling.cycles)")
+    p.add_argument("--cycles", type=_cycles_arg,
+                   help="strokes before the run ends (rolling.cycles, 1 … 10000)")  # fmt: skip
     _add_link_args(p)
     p.add_argument("--fast", action="store_true",
                    help="virtual clock: as fast as the CPU allows (with --sim)")  # fmt: skip

@@ -8,18 +8,20 @@ whose message names each offending key, its value and the allowed range.
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
 import tomllib
 import types
 import typing
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
 
 import annotated_types as at
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
 from sdh2svc.control.config import ControlConfig
@@ -44,7 +46,7 @@ class LinksConfig(Frozen):
 class StorageConfig(Frozen):
     """Where runs are recorded."""
 
-    db_path: str
+    db_path: Annotated[str, Field(min_length=1)]
     busy_timeout_s: Annotated[float, Field(gt=0.0, le=600.0)] = 10.0
 
 
@@ -91,6 +93,19 @@ class Settings(BaseSettings):
     storage: StorageConfig
     service: ServiceConfig
     sim: SimConfig
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Settings:
+        """Checks across sections: a pre-shape inside the joint limits; distinct ports."""
+        problems = self.run.preshape_outside(self.limits)
+        svc = self.service
+        ports = {"port": svc.port, "viser_port": svc.viser_port, "foxglove_port": svc.foxglove_port}
+        for a, b in itertools.combinations(ports, 2):
+            if ports[a] and ports[a] == ports[b]:
+                problems.append(f"service.{a} and service.{b} are both {ports[a]}: one port each")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
 
     def model_context(self) -> ModelContext:
         """The pure model's view of this configuration."""
@@ -202,21 +217,89 @@ def load_config(
     """Load and validate the configuration: defaults ← ``path`` ← environment ← ``overrides``."""
     data = _read_toml(default_config_path())
     data["sim"] = _read_toml(default_config_path("sim.toml"))
+    # each layer with what names the origin of a value in it (a file, a variable, a --set)
+    layers: list[tuple[Callable[[tuple[int | str, ...]], str], Mapping[str, Any]]] = []
     if path is not None:
-        data = deep_merge(data, _read_toml(Path(path)))
+        layers.append((_named(str(path)), _read_toml(Path(path))))
     if use_env:
-        try:
-            env = EnvSettingsSource(Settings)()
-        except SettingsError as e:  # e.g. SDH2SVC_LIMITS__MIN_DEG=[1, 2 (not JSON)
-            raise ConfigError([f"environment (SDH2SVC_…): {e}"]) from None
-        data = deep_merge(data, env)
+        layers.append((_env_name, read_environment()))
     for text in overrides:
-        data = deep_merge(data, parse_override(text))
+        layers.append((_named(f"--set {text}"), parse_override(text)))
+    for _, layer in layers:
+        data = deep_merge(data, layer)
     try:
         # model_validate, not Settings(...): the layers above are already merged in order.
         return Settings.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(format_errors(e, Settings), str(path or "configuration")) from None
+
+        def origin(loc: tuple[int | str, ...]) -> str | None:
+            """Where the value at ``loc`` came from: the topmost layer that sets it."""
+            return next((name(loc) for name, layer in reversed(layers) if _sets(layer, loc)), None)
+
+        raise ConfigError(format_errors(e, Settings, origin)) from None
+
+
+def _named(name: str) -> Callable[[tuple[int | str, ...]], str]:
+    """The origin of every value of a layer that is one file or one option."""
+    return lambda loc: name
+
+
+ENV_PREFIX = "SDH2SVC_"
+
+
+def read_environment() -> dict[str, Any]:
+    """The ``SDH2SVC_SECTION__KEY`` variables as a table. A variable whose section is not one
+    of the configuration's, or whose value cannot be read, is a :class:`ConfigError` naming it
+    (pydantic-settings drops the first without a word)."""
+    sections = {name.upper() for name in Settings.model_fields}
+    unknown = [
+        name for name in os.environ
+        if name.startswith(ENV_PREFIX)
+        and name[len(ENV_PREFIX):].split("__")[0].upper() not in sections
+        and name not in NOT_CONFIGURATION
+    ]  # fmt: skip
+    if unknown:
+        raise ConfigError([
+            f"{name}: no such configuration section (the sections are: "
+            f"{', '.join(Settings.model_fields)}; a key is SDH2SVC_SECTION__KEY)"
+            for name in sorted(unknown)
+        ])  # fmt: skip
+    try:
+        return EnvSettingsSource(Settings)()
+    except SettingsError as e:  # e.g. SDH2SVC_LIMITS__MIN_DEG=[1, 2 (not JSON)
+        section = str(e).partition('field "')[2].partition('"')[0]
+        names = sorted(n for n in os.environ if n.startswith(f"{ENV_PREFIX}{section.upper()}"))
+        raise ConfigError([
+            f"{name} = {clip(repr(os.environ[name]))}: cannot be read (a list or table is "
+            "written in JSON, e.g. '[\"a\", \"b\"]')" for name in names
+        ] or [f"environment ({ENV_PREFIX}…): {e}"]) from None  # fmt: skip
+
+
+# Variables with the prefix that are not configuration (the CLI's own switches).
+NOT_CONFIGURATION = frozenset({"SDH2SVC_DEBUG", "SDH2SVC_HYPOTHESIS", "SDH2SVC_SCREENSHOTS"})
+
+
+def _env_name(loc: tuple[int | str, ...]) -> str:
+    """The environment variable that sets the value at ``loc`` (its string parts; an index
+    is inside the variable's JSON value)."""
+    keys = [str(p) for p in loc if isinstance(p, str)]
+    for n in range(len(keys), 0, -1):
+        name = ENV_PREFIX + "__".join(keys[:n]).upper()
+        if name in os.environ:
+            return name
+    return ENV_PREFIX + "__".join(keys).upper()
+
+
+def _sets(layer: Mapping[str, Any], loc: tuple[int | str, ...]) -> bool:
+    """Whether ``layer`` supplies the value at ``loc`` (or a list or value that holds it)."""
+    node: Any = layer
+    for part in loc:
+        if not isinstance(node, Mapping):
+            return True  # inside a value this layer gave whole
+        if part not in node:
+            return False
+        node = node[part]
+    return True
 
 
 @lru_cache(maxsize=1)
@@ -251,11 +334,17 @@ def error_key(loc: Iterable[int | str]) -> str:
     return ".".join(clip(str(p)) for p in loc) or "(top level)"
 
 
-def format_errors(err: ValidationError, model: Any) -> list[str]:
+def format_errors(
+    err: ValidationError,
+    model: Any,
+    origin: Callable[[tuple[int | str, ...]], str | None] | None = None,
+) -> list[str]:
     """One line per error, e.g. ``rolling.k = 0.5: Input should be greater than 1 (allowed: …)``.
 
     ``model`` is a model class, or an annotated union of them with a ``kind`` discriminator (the
     error's location then starts with the kind). Long values are clipped (:func:`clip`).
+    ``origin`` names where a location's value came from (a file, a variable, an option), if known:
+    ``rolling.k = 0.5 (lab.toml): …``.
     """
     lines = []
     for e in err.errors():
@@ -263,6 +352,12 @@ def format_errors(err: ValidationError, model: Any) -> list[str]:
         key = error_key(loc)
         value = e.get("input")
         shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"
+        if not loc:  # a check across fields (a model validator): its message says it all
+            lines.extend(error_message(e).removeprefix("Value error, ").split("; "))
+            continue
+        source = origin(loc) if origin is not None else None
+        if source:
+            shown += f" ({clip(source, 4 * CLIP_CHARS)})"
         allowed = _allowed_range(model, loc)
         msg = error_message(e).removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":

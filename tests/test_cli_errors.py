@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -127,7 +128,7 @@ def test_bad_environment_value_is_invalid_configuration(
     monkeypatch.setenv("SDH2SVC_LIMITS__MIN_DEG", "[1, 2")
     status, _, err = call(capsys, "config")
     assert status == Exit.USAGE
-    assert "environment" in one_line(err, "config")
+    assert "SDH2SVC_LIMITS__MIN_DEG = '[1, 2': cannot be read" in one_line(err, "config")
 
 
 # --- the run database ------------------------------------------------------------------------
@@ -451,3 +452,60 @@ def test_a_bad_object_file_is_named_field_by_field(
     assert main(["run", "--sim", "--fast", "--object-file", str(missing)]) == Exit.USAGE
     line = one_line(capsys.readouterr().err, "run")
     assert line.endswith(f"cannot read the object file {missing}: No such file or directory")
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["demo", "--phi2", "inf"], "--phi2 inf: outside axis 1's joint limits -90 … 90 deg"),
+        (["demo", "--phi5", "nan"], "--phi5 nan: outside"),
+        (["demo", "--phi3", "720"], "--phi3 720: outside"),
+        (["demo", "--s1", "-500"], "--s1 -500: off the pad (0 … 40.8 mm)"),
+        (["demo", "--s2", "1e6"], "--s2 1e+06: off the pad"),
+        (["sim", "--no-pty", "--no-tcp"], "nothing to serve"),
+        (["run", "--sim", "--dsa", "/dev/x"], "--dsa names a real hand's line: not with --sim"),
+        (["serve", "--sim", "--dsa", "a", "--sdh", "b"], "--dsa and --sdh name a real hand's"),
+    ],
+)
+def test_inputs_the_model_or_the_simulator_cannot_use_are_usage_errors(
+    args: list[str], fragment: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A pose beyond the joint limits or a contact off the pad (the model would print a
+    contact 1 km away, or crash); a simulator serving nothing; real lines beside --sim
+    (ignored before)."""
+    status, _, err = call(capsys, *args)
+    assert status == Exit.USAGE
+    assert fragment in one_line(err, args[0])
+
+
+@pytest.mark.parametrize("cycles", ["0", "10001", "two"])
+def test_cycles_must_be_a_count_of_strokes(cycles: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as bad:
+        main(["run", "--sim", "--cycles", cycles])
+    assert bad.value.code == Exit.USAGE
+    assert "argument --cycles" in capsys.readouterr().err
+
+
+def test_a_failed_run_says_so_in_one_line_on_stderr(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The summary is the output (stdout, or the JSON); the failure is stderr's one line."""
+    for extra in ([], ["--json"]):
+        args = ["run", "--sim", "--fast", "--cycles", "1", "--set", "run.grasp_timeout_s=0.5"]
+        status, out, err = call(capsys, *args, *extra, *db_set(tmp_path / "runs.sqlite"))
+        assert status == Exit.FAILED
+        line = one_line(err, "run")
+        assert re.fullmatch(r"sdh2svc run: run \d+ faulted: no_contact: .*", line), line
+        if extra:
+            assert json.loads(out)["status"] == "faulted"
+        else:
+            assert "faulted" in out
+
+
+def test_config_does_not_print_the_token(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("SDH2SVC_SERVICE__TOKEN", "sekrit")
+    status, out, _ = call(capsys, "config")
+    assert status == Exit.OK and "sekrit" not in out
+    assert json.loads(out)["service"]["token"] == "***"

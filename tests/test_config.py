@@ -68,7 +68,7 @@ def _problems(*overrides: str) -> str:
         ("rolling.k='fast'", ["rolling.k = 'fast'", "valid number"]),
         ("rolling.mode='three-finger'", ["rolling.mode", "'two-finger' or 'one-finger'"]),
         ("rolling.speed=3", ["rolling.speed", "unknown key (the keys there are: mode, route,"]),
-        ("rollin.k=3", ["rollin: unknown key (the keys there are: hand, axes,", "rolling"]),
+        ("rollin.k=3", ["rollin (--set rollin.k=3): unknown key (the keys there are:", "rolling"]),
         ("limits.max_deg=[90, 90, 90, 90, 90, 90, 200]", ["limits.max_deg.6 = 200", "≤ 180.0"]),
         ("limits.min_deg=[0, 0]", ["limits.min_deg", "7"]),
         ("limits.min_deg=[0, 90, -90, -90, -90, -90, -90]", ["limits", "axes [1]"]),
@@ -129,8 +129,74 @@ def test_environment_and_override_precedence(
     s = load_config(f, overrides=["rolling.k=4"])
     assert s.rolling.k == 4.0  # --set beats the environment
     monkeypatch.setenv("SDH2SVC_ROLLING__K", "0")
-    with pytest.raises(ConfigError, match=r"rolling\.k = '0'"):
+    with pytest.raises(ConfigError, match=r"rolling\.k = '0' \(SDH2SVC_ROLLING__K\)"):
+        load_config(f)
+
+
+def test_a_bad_value_names_the_layer_it_came_from(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The file, the variable or the --set that gave the value, not the file for all."""
+    f = tmp_path / "lab.toml"
+    f.write_text("[rolling]\nk = 5.0\ncycles = 0\n")
+    monkeypatch.setenv("SDH2SVC_ROLLING__LAMBDA_GAIN", "-1")
+    with pytest.raises(ConfigError) as ei:
+        load_config(f, overrides=["rolling.alpha_deg=90"])
+    lines = ei.value.problems
+    assert any(ln.startswith(f"rolling.cycles = 0 ({f})") for ln in lines), lines
+    assert any(ln.startswith("rolling.lambda_gain = '-1' (SDH2SVC_ROLLING__LAMBDA_GAIN)")
+               for ln in lines), lines  # fmt: skip
+    assert any(ln.startswith("rolling.alpha_deg = 90 (--set rolling.alpha_deg=90)")
+               for ln in lines), lines  # fmt: skip
+    assert not any("rolling.k" in ln for ln in lines)  # 5.0 is fine
+
+
+def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A misspelt section is refused (pydantic-settings would drop it); a list that is not
+    JSON names its variable and says how to write one."""
+    monkeypatch.setenv("SDH2SVC_ROLLNG__K", "3")
+    with pytest.raises(ConfigError, match="SDH2SVC_ROLLNG__K: no such configuration section"):
         load_config()
+    monkeypatch.delenv("SDH2SVC_ROLLNG__K")
+    monkeypatch.setenv("SDH2SVC_SERVICE__ALLOWED_HOSTS", "labpc")
+    with pytest.raises(ConfigError, match=r"SDH2SVC_SERVICE__ALLOWED_HOSTS = 'labpc'.*JSON"):
+        load_config()
+    monkeypatch.setenv("SDH2SVC_SERVICE__ALLOWED_HOSTS", '["labpc"]')
+    monkeypatch.setenv("SDH2SVC_DEBUG", "1")  # the CLI's own switch, not configuration
+    assert load_config().service.allowed_hosts == ("labpc",)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        (["run.preshape_deg=[nan,-30,30,-90,0,-30,30]"], "run.preshape_deg.0 = nan"),
+        (["run.preshape_deg=[90,-30,30,-90,0,-30,170]"], "outside axis 6's joint limits"),
+        (["limits.max_deg=[90,90,90,90,90,90,20]"], "run.preshape_deg.6 = 30: outside axis 6"),
+        (
+            ["run.grasp_min_velocity_deg_s=10", "run.grasp_max_velocity_deg_s=3"],
+            "grasp_min_velocity_deg_s (10) must not exceed grasp_max_velocity_deg_s (3)",
+        ),
+        (
+            ["service.port=8080", "service.viser_port=8080"],
+            "service.port and service.viser_port are both 8080",
+        ),
+        (["sim.physics.pad_stiffness_n_per_mm3=inf"], "finite number"),
+        (["sim.physics.gravity_m_per_s2=[0,nan,0]"], "gravity_m_per_s2.1 = nan"),
+        (["sim.physics.proximal_pad_start_mm=80"], "must be below proximal_pad_end_mm"),
+        (["sim.object='nonsense'"], "unknown object 'nonsense' (the presets: rubber"),
+        (['storage.db_path=""'], "storage.db_path = ''"),
+        (["rolling.route=true"], "'thesis' or 'workspace'"),
+    ],
+)
+def test_values_that_would_mislead_the_hand_are_refused(
+    overrides: list[str], expected: str
+) -> None:
+    """Values each field alone would take but the hand or the simulation cannot: a pre-shape
+    beyond the joint limits (the motion clamps it to a limit without a word), NaN anywhere,
+    settings that contradict each other, an object that is no preset."""
+    with pytest.raises(ConfigError) as ei:
+        load_config(overrides=overrides, use_env=False)
+    assert expected in str(ei.value)
 
 
 def test_bad_override_syntax() -> None:

@@ -28,7 +28,7 @@ const sdh2 = (window.sdh2 = {
   samples: 0, tactile: 0, statusMsgs: 0, events: 0, lastError: null,
   ws: "connecting", connects: 0, dropped: 0, runState: null, replaying: null,
   serviceAlive: true, deadSince: null, notice: null, openRequests: 0,
-  replayIndex: null, viewerFeeds: 0, toasts: 0,
+  replayIndex: null, viewerFeeds: 0, toasts: 0, backfilled: null,
 });
 
 const state = {
@@ -691,17 +691,33 @@ function rememberSample(runId, s) {
   }
 }
 
-function addEvent(m) {
+const MAX_EVENTS = 60; // in the list, newest first
+
+/** An event at the top of the list (`older`: from the run's record, at the bottom; its samples
+ * the recorded ones, by iteration). */
+function addEvent(m, { older = false, samples = recent.samples, since } = {}) {
   const li = document.createElement("li");
   li.className = m.kind;
   li.dataset.kind = m.kind;
   const ol = $("#events");
-  ol.prepend(li);
-  while (ol.children.length > 60) ol.lastElementChild.remove();
+  if (older) {
+    if (m.run_id === state.liveRunId && m.iteration != null && MARKERS[m.kind]) {
+      plots.markLive({ x: m.iteration, kind: m.kind, text: m.kind });
+    }
+    if (ol.children.length >= MAX_EVENTS) return;
+    li.dataset.backfilled = "true";
+    ol.append(li);
+  } else {
+    ol.prepend(li);
+    if (m.run_id != null) shownLive(m);
+  }
+  while (ol.children.length > MAX_EVENTS) ol.lastElementChild.remove();
   const write = () => {
-    const sample = recent.samples.get(m.iteration);
+    const sample = samples.get(m.iteration);
     const ctx = { alpha: coneAlpha(sample, state.params.alpha_deg), sample };
-    if (m.kind === "reversal" && m.run_id != null && m.iteration != null) {
+    if (older) {
+      if (since !== undefined) ctx.since = since;
+    } else if (m.kind === "reversal" && m.run_id != null && m.iteration != null) {
       const prev = recent.lastReversal.get(m.run_id);
       if (prev !== undefined) ctx.since = m.iteration - prev;
       recent.lastReversal.set(m.run_id, m.iteration);
@@ -712,6 +728,10 @@ function addEvent(m) {
     small.textContent = `(${where})`;
     li.appendChild(small);
   };
+  if (older) {
+    write();
+    return;
+  }
   if (m.kind === "reversal" && m.iteration != null && !recent.samples.has(m.iteration)) {
     const p = { iteration: m.iteration, done: write, timer: 0 };
     p.timer = setTimeout(() => {
@@ -754,6 +774,75 @@ function eventNotice(m) {
   }
 }
 
+// --- joining a run mid-way ----------------------------------------------------------------------
+
+const BACKFILL_PAGE = 1000; // samples per request (the API's limit is 10 000)
+// the recorder writes every 50 ms: how often, and how long, to wait for what it has not written
+const BACKFILL_WAITS = 20;
+const BACKFILL_WAIT_MS = 100;
+const backfilled = { runId: null, busy: false };
+// the events shown live, per run (the last few runs), so that the record's copy is not shown twice
+const liveEvents = new Map();
+const eventKey = (m) => `${m.kind}|${m.iteration}|${m.t}`;
+
+function shownLive(m) {
+  if (!liveEvents.has(m.run_id)) {
+    liveEvents.set(m.run_id, new Set());
+    if (liveEvents.size > 3) liveEvents.delete(liveEvents.keys().next().value);
+  }
+  liveEvents.get(m.run_id).add(eventKey(m));
+}
+
+/**
+ * The run's iterations before `first` (the first live sample seen, at time `t0`) and its events
+ * before that, from its record: a page opened or reloaded mid-run shows the whole run (as far
+ * as the plots' window goes), not only what came after it loaded. The live samples come
+ * before the recorder's next write (every 50 ms): the record is read until it reaches `first`.
+ */
+async function backfill(runId, first, t0) {
+  if (backfilled.busy) return;
+  backfilled.busy = true;
+  try {
+    const older = [];
+    let offset = Math.max(0, first - plots.live.limit); // one sample per iteration
+    for (let waits = 0; waits < BACKFILL_WAITS; ) {
+      const page = await api.samples(runId, offset, BACKFILL_PAGE);
+      const got = page.samples.filter((x) => x.iteration < first);
+      older.push(...got);
+      offset += got.length;
+      // the record reaches the first live sample: it holds every one before it (in order)
+      if (got.length < page.samples.length) break;
+      if (page.samples.length < BACKFILL_PAGE) { // the newest are not written yet
+        waits += 1;
+        await new Promise((done) => setTimeout(done, BACKFILL_WAIT_MS));
+      }
+    }
+    const run = await api.run(runId);
+    if (state.liveRunId !== runId) return; // another run began meanwhile
+    plots.prependLive(older, state.params);
+    const bySample = new Map(older.map((x) => [x.iteration, x]));
+    const seen = liveEvents.get(runId) ?? new Set();
+    const events = [];
+    let last; // the iteration of the previous reversal, for each reversal's "since"
+    for (const e of run.events || []) {
+      if (e.t > t0) break;
+      const m = { type: "event", run_id: runId, ...e };
+      const since = m.kind === "reversal" && last !== undefined ? m.iteration - last : undefined;
+      if (m.kind === "reversal") last = m.iteration;
+      if (!seen.has(eventKey(m))) events.push({ m, since });
+    }
+    for (const { m, since } of events.reverse()) { // newest first, below those already listed
+      addEvent(m, { older: true, samples: bySample, since });
+    }
+    if (last !== undefined && !recent.lastReversal.has(runId)) recent.lastReversal.set(runId, last);
+    sdh2.backfilled = { samples: older.length, events: events.length };
+  } catch (e) {
+    showError(e, "backfill");
+  } finally {
+    backfilled.busy = false;
+  }
+}
+
 function onMessage(m) {
   heard();
   switch (m.type) {
@@ -768,6 +857,11 @@ function onMessage(m) {
       if (m.run_id !== state.liveRunId) {
         state.liveRunId = m.run_id;
         plots.resetLive();
+      }
+      if (m.run_id !== backfilled.runId) {
+        backfilled.runId = m.run_id;
+        // the page may have joined mid-run (opened or reloaded): what it missed, from the record
+        backfill(m.run_id, s.iteration, s.t);
       }
       plots.push(s, state.params);
       rememberSample(m.run_id, s);

@@ -296,6 +296,17 @@ export class Plots {
     if (!this.replay) this.schedule();
   }
 
+  /** Put a live run's earlier samples (in iteration order, all before the first live one)
+   * ahead of those already shown, within the live window; its markers stay. */
+  prependLive(samples, params) {
+    const now = this.live.samples;
+    const markers = this.live.markers;
+    this.live.clear();
+    for (const s of [...samples, ...now]) this.live.push(s, params || {});
+    for (const m of markers) this.live.mark(m);
+    if (!this.replay) this.schedule();
+  }
+
   /** Start a new live series (a new run). */
   resetLive() {
     this.live.clear();

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from sdh2svc.config import ConfigError, clip, format_errors
 from sdh2svc.model.base import Frozen
@@ -49,8 +49,21 @@ class SensorVariation(Frozen):
     dead_texels: tuple[Texel, ...] = ()
 
 
+# A suite's name is also its campaign's folder (campaigns/NAME): a plain file name.
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+SEED_MAX = 2**63 - 1  # a Parquet int64, as sim.seed is stored
+# How far a case's stated true_width_mm may be from its object's width at its angle (mm): the
+# generator writes it to 3 decimals.
+WIDTH_TOLERANCE_MM = 0.01
+# The widest contact the open fingers take (mm): from the default pre-shape the pads stand
+# 122.5 mm apart (campaign/generate.py); a wider object is never gripped.
+MAX_CONTACT_WIDTH_MM = 122.5
+
+
 class Case(Frozen):
     """One run of a campaign."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     family: Family
@@ -59,11 +72,29 @@ class Case(Frozen):
         description="z0 of the object's centre between the fingertips (sim.object_height_mm)"
     )
     angle_deg: Annotated[float, Field(ge=-180.0, le=180.0)] = 0.0
-    seed: Annotated[int, Field(ge=0)] = 1
+    seed: Annotated[int, Field(ge=0, le=SEED_MAX)] = 1
     sensor: SensorVariation = SensorVariation()
     true_width_mm: Annotated[float, Field(gt=0.0, le=200.0)] = Field(
         description="the object's width along y0 at its placement: where the fingertips touch"
     )
+
+    @model_validator(mode="after")
+    def _width_is_the_objects(self) -> Case:
+        """The stated width is the object's at its angle (a wrong one would skew every Λ error
+        the campaign reports), and one the open fingers take."""
+        # on a copy: the outline it caches would make equal cases compare unequal (arrays)
+        width = contact_width_mm(self.object.model_copy(), self.angle_deg)
+        if abs(width - self.true_width_mm) > WIDTH_TOLERANCE_MM:
+            raise ValueError(
+                f"true_width_mm is {self.true_width_mm:g} but the object is {width:.3f} mm wide "
+                f"along y0 at angle_deg {self.angle_deg:g} (contact_width_mm)"
+            )
+        if width > MAX_CONTACT_WIDTH_MM:
+            raise ValueError(
+                f"the object is {width:.3f} mm wide where the fingertips touch it: the open "
+                f"fingers take at most {MAX_CONTACT_WIDTH_MM:g} mm"
+            )
+        return self
 
     def overrides(self, base_gain: float) -> list[str]:
         """The configuration keys this case sets (``--set`` syntax), given the nominal
@@ -84,15 +115,15 @@ class Case(Frozen):
 class Suite(Frozen):
     """A named, versioned list of cases, and the generator seed that made it (None: by hand)."""
 
-    name: str
-    version: int = 1
-    generator_seed: int | None = None
+    name: str = Field(pattern=NAME_PATTERN, description="a plain file name: its campaign's folder")
+    version: Annotated[int, Field(ge=1, le=SEED_MAX)] = 1
+    generator_seed: Annotated[int, Field(ge=0, le=SEED_MAX)] | None = None
     description: str = ""
-    cases: tuple[Case, ...]
+    cases: tuple[Case, ...] = Field(min_length=1)
 
     @classmethod
     def load(cls, path: str | Path) -> Suite:
-        return cls.model_validate_json(Path(path).read_text())
+        return cls.model_validate_json(Path(path).read_bytes())
 
     def dump(self, path: str | Path) -> None:
         Path(path).write_text(self.to_json())
@@ -133,17 +164,22 @@ def load_suite(name_or_path: str | Path) -> Suite:
     :class:`~sdh2svc.config.ConfigError`, naming every bad field and its allowed range."""
     text = str(name_or_path)
     path = Path(text)
-    if not (path.suffix.lower() == ".json" or os.sep in text or "/" in text or path.exists()):
+    if not (path.suffix.lower() == ".json" or os.sep in text or "/" in text or path.is_file()):
         path = SUITES_DIR / f"{text}.json"
         if not path.is_file():
             raise FileNotFoundError(
                 f"no suite {clip(text)!r} (packaged suites: {', '.join(suite_names())}; or give a "
                 "suite file's path)"
             )
+    if path.is_dir():
+        raise ConfigError([f"{path} is a directory, not a suite file"], f"suite {path}")
     try:
         suite = Suite.load(path)
     except ValidationError as e:
-        raise ConfigError(format_errors(e, Suite), f"suite {path}") from None
+        problems = format_errors(e, Suite)
+        if any(err["type"] == "json_invalid" for err in e.errors()):
+            problems = [f"not a JSON suite file: {problems[0]} (suites are JSON, see smoke.json)"]
+        raise ConfigError(problems, f"suite {path}") from None
     counts = Counter(c.id for c in suite.cases)
     dups = sorted(i for i, n in counts.items() if n > 1)
     if dups:

@@ -41,7 +41,7 @@ def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
                 raise CampaignError(2, f"{cases}: no case's result in it")
             write_results(out)
         return read_results(out)
-    except (ArrowException, ValueError, OSError) as e:  # (json's errors are ValueErrors)
+    except (ArrowException, ValueError, TypeError, OSError) as e:  # json's are ValueErrors
         if isinstance(e, FileNotFoundError):
             raise
         raise CampaignError(2, f"cannot read the campaign in {out}: {e}") from None
@@ -179,13 +179,16 @@ def _headline(rows: Sequence[Row]) -> list[str]:
     return lines
 
 
-def _interval_line(rows: Sequence[Row]) -> list[str]:
-    """The overall rate's 95 % interval: what the cases' number leaves open."""
+def _interval_line(rows: Sequence[Row], generated: bool = True) -> list[str]:
+    """The overall rate's 95 % interval: what the cases' number leaves open (over what the
+    suite's generator draws; a hand-written suite's cases are a population of their own)."""
     n = len(rows)
     if not n:
         return []
     lo, hi = interval(sum(1 for r in rows if r["success"]), n)
-    return [f"95 % interval for the success rate over everything the suite's generator draws: "
+    over = ("everything the suite's generator draws" if generated
+            else "objects like these (a suite written by hand: no generator)")  # fmt: skip
+    return [f"95 % interval for the success rate over {over}: "
             f"{span(lo, hi)} (Wilson score, {n} cases).", ""]  # fmt: skip
 
 
@@ -208,7 +211,7 @@ def write_report(out: Path) -> Path:
         "",
         f"**Success overall: {rate(rows)}**",
         "",
-        *_interval_line(rows),
+        *_interval_line(rows, info.get("generator_seed") is not None),
         "| family | cases | success | Λ error mm (median) | wall s per case (mean) |",
         "|---|---|---|---|---|",
     ]
@@ -377,13 +380,24 @@ def compare(a: Path, b: Path) -> str:
     for fam in _family_order(set(fa) | set(fb)):
         lines.append(f"| {fam} | {rate(fa.get(fam, []))} | {rate(fb.get(fam, []))} |")
     da, db = {r["id"]: r for r in ra}, {r["id"]: r for r in rb}
-    common = [i for i in da if i in db]
+    # a case is paired with the same case: the same id and the same object, placement and
+    # sensor (packaged suites share ids such as box-000 for different objects)
+    common = [i for i in da if i in db and da[i]["spec"] == db[i]["spec"]]
+    unpaired = [i for i in da if i in db and da[i]["spec"] != db[i]["spec"]]
+    if unpaired:
+        lines[5:5] = ["", f"**{len(unpaired)} cases share an id but not their spec (object, "
+                      "placement, sensor): they are other cases, not paired** "
+                      f"(e.g. {', '.join(unpaired[:3])}; different suites?)"]  # fmt: skip
+    if ia.get("suite_digest") != ib.get("suite_digest"):
+        lines[5:5] = ["", f"The suites differ (digest {ia.get('suite_digest')} and "
+                      f"{ib.get('suite_digest')}): only cases with the same id and spec are "
+                      "paired."]  # fmt: skip
     better = [i for i in common if not da[i]["success"] and db[i]["success"]]
     worse = [i for i in common if da[i]["success"] and not db[i]["success"]]
     changed = [i for i in common if not da[i]["success"] and not db[i]["success"]
                and da[i]["failure"] != db[i]["failure"]]  # fmt: skip
-    lines += ["", f"{len(common)} cases in both; only in A: {len(set(da) - set(db))}, "
-              f"only in B: {len(set(db) - set(da))}.", "", _paired(len(better), len(worse)),
+    lines += ["", f"{len(common)} cases in both; only in A: {len(set(da) - set(common))}, "
+              f"only in B: {len(set(db) - set(common))}.", "", _paired(len(better), len(worse)),
               ""]  # fmt: skip
     for title, ids in (("Better in B (failed in A, succeeded in B)", better),
                        ("Worse in B (succeeded in A, failed in B)", worse),

@@ -22,6 +22,7 @@ import multiprocessing
 import os
 import shutil
 import signal
+import socket
 import sys
 import tempfile
 import time
@@ -34,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from sdh2svc.campaign.case import Case, Suite
-from sdh2svc.config import ConfigError, load_config
+from sdh2svc.config import ConfigError, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 
 CASES_FILE = "cases.jsonl"
@@ -338,7 +339,7 @@ class Outcome:
 
 def read_rows(out: Path) -> list[dict[str, Any]]:
     """Every row of ``OUT/cases.jsonl``; a torn last line (a crash mid-write), or any line
-    that is not a JSON object, is dropped."""
+    that is not a case's result (:func:`_is_result`), is dropped."""
     path = out / CASES_FILE
     if not path.exists():
         return []
@@ -349,9 +350,17 @@ def read_rows(out: Path) -> list[dict[str, Any]]:
                 row = json.loads(line)
             except ValueError:
                 continue
-            if isinstance(row, dict):
+            if _is_result(row):
                 rows.append(row)
     return rows
+
+
+def _is_result(row: Any) -> bool:
+    """A case's row as :func:`finish_row` writes it (an id, a verdict and a status): anything
+    else in the file (a line from another program, a hand edit) is no result."""
+    return (isinstance(row, dict) and isinstance(row.get("id"), str)
+            and isinstance(row.get("success"), bool)
+            and isinstance(row.get("status"), str))  # fmt: skip
 
 
 def _repair_tail(path: Path) -> None:
@@ -410,18 +419,89 @@ def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | Non
 
 
 def _check_same(out: Path, info: Mapping[str, Any]) -> None:
+    """``out`` is new, empty, or holds this same campaign (to resume): the same suite, the same
+    ``--set`` values, the same effective configuration (whatever the file, the environment or
+    ``--set`` it came from) and the same code. Anything else is refused before a byte is
+    written: a folder of other files is never written into, and results of two
+    configurations or two code versions are never mixed in one campaign."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise CampaignError(2, f"--out {out}: not a directory")
     path = out / CAMPAIGN_FILE
-    if not path.exists() or not (out / CASES_FILE).exists():
+    if not path.exists():
+        if any(out.iterdir()):
+            raise CampaignError(2, f"{out} is not empty and holds no campaign ({CAMPAIGN_FILE}): "
+                                "give a new or empty --out")  # fmt: skip
         return
     try:
         old = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return
-    for key in ("suite_digest", "overrides"):
+        if not isinstance(old, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as e:
+        raise CampaignError(2, f"{path} cannot be read ({e}): is {out} a campaign? "
+                            "give another --out") from None  # fmt: skip
+    for key in ("suite_digest", "overrides", "config", "code"):
         if old.get(key) != info[key]:
-            raise CampaignError(2, f"{out} holds another campaign ({key} differs: "
-                                f"{old.get(key)!r} there, {info[key]!r} now); "
-                                "use another --out")  # fmt: skip
+            shown = (f"{clip(repr(old.get(key)))} there, {clip(repr(info[key]))} now"
+                     if key != "config" else _config_change(old.get(key), info[key]))  # fmt: skip
+            raise CampaignError(2, f"{out} holds another campaign ({key} differs: {shown}); "
+                                "resume it as it was run, or use another --out")  # fmt: skip
+
+
+def _config_change(old: Any, new: Mapping[str, Any]) -> str:
+    """The first configuration keys whose values differ, ``rolling.k: 2.0 there, 3.0 now``."""
+
+    def flat(d: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(d, Mapping):
+            return {prefix.rstrip("."): d}
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}."))
+        return out
+
+    a, b = flat(old or {}), flat(new)
+    keys = [k for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k)]
+    shown = "; ".join(f"{k}: {clip(repr(a.get(k)))} there, {clip(repr(b.get(k)))} now"
+                      for k in keys[:3])  # fmt: skip
+    return shown + (f"; and {len(keys) - 3} more" if len(keys) > 3 else "")
+
+
+# The configuration keys a case sets (Case.overrides), but the nominal gain it scales.
+CASE_KEYS = frozenset({
+    "sim.seed", "sim.object_height_mm", "sim.object_angle_deg", "sim.sensor.creep_gain",
+    "sim.sensor.creep_rise_s", "sim.sensor.noise_counts", "sim.sensor.dead_texels",
+})  # fmt: skip
+
+
+def check_overrides(overrides: Sequence[str]) -> None:
+    """No ``--set`` of a key each case sets itself (Case.overrides: where the object is placed,
+    the seed, the sensor's variation): the case's value would win without a word, while the
+    campaign recorded the --set as in effect. ``sim.sensor.gain_vs_library`` is the nominal
+    gain every case's ``gain_factor`` scales: that one may be set."""
+    for text in overrides:
+        key = text.partition("=")[0].strip()
+        if key in CASE_KEYS:
+            raise CampaignError(2, f"--set {clip(text)}: {key} is set by each case (its "
+                                "placement, seed or sensor); change it in the suite's "
+                                "cases")  # fmt: skip
+
+
+RAY_CONNECT_S = 10.0
+
+
+def _check_ray_address(address: str) -> None:
+    """A ``HOST:PORT`` (no ``ray://``) must answer a TCP connect within RAY_CONNECT_S: Ray itself
+    retries an address where nothing listens for many minutes, logging as it goes."""
+    if address in ("auto", "local") or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    try:
+        with socket.create_connection((host or "127.0.0.1", int(port)), timeout=RAY_CONNECT_S):
+            pass
+    except (OSError, ValueError) as e:
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e) or type(e).__name__
+        raise CampaignError(4, f"cannot reach the Ray cluster at {address}: {why}") from None
 
 
 def validate_cases(suite: Suite, overrides: Sequence[str], config_path: str | None) -> None:
@@ -457,20 +537,25 @@ def run_campaign(
     t0 = time.perf_counter()
     out = Path(out)
     overrides = list(overrides)
+    check_overrides(overrides)
     info = campaign_info(suite, overrides, config_path)  # --set values are checked here
     validate_cases(suite, overrides, config_path)
+    if ray_address is not None:
+        _check_ray_address(ray_address)
+    _check_same(out, info)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        _check_same(out, info)
         (out / CAMPAIGN_FILE).write_text(json.dumps(info, indent=1, ensure_ascii=False) + "\n")
         appender = Appender(out / CASES_FILE)
+        work = tempfile.mkdtemp(prefix=".work-", dir=out)  # its own: removed at the end
     except OSError as e:
         raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
-    rows = read_rows(out)
+    # the last row of each case decides; a crashed case runs again (a crash is no result)
+    last = {r["id"]: r for r in read_rows(out) if isinstance(r.get("id"), str)}
     ids = {c.id for c in suite.cases}
-    done = {r.get("id") for r in rows} & ids
+    done = {i for i, r in last.items() if i in ids and r.get("status") != "crashed"}
     todo = [c for c in suite.cases if c.id not in done]
-    succeeded = sum(1 for r in rows if r.get("id") in ids and r.get("success"))
+    succeeded = sum(1 for i in done if last[i].get("success"))
     crashed = 0
     bar = _progress(len(suite.cases), len(done), succeeded, enabled=progress)
 
@@ -481,7 +566,6 @@ def run_campaign(
         crashed += row.get("status") == "crashed"
         bar.update(bool(row.get("success")))
 
-    work = str(out / ".work")
     try:
         if ray_address is not None:
             _run_ray(todo, overrides, config_path, ray_address, record)

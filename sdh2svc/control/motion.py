@@ -11,6 +11,7 @@ increment (≤ 1°, :class:`~sdh2svc.control.safety.SafetyConfig`).
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Callable, Sequence
 
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
@@ -44,6 +45,8 @@ async def move_in_increments(
     where it is by the caller). Raises :class:`MoveBlocked` when the fingers stop making
     progress for :data:`STALL_S`.
     """
+    if not all(math.isfinite(g) for g in goal):
+        raise ValueError(f"a goal angle is no finite number: {list(goal)}")
     goal = tuple(min(b, max(a, g)) for g, a, b in zip(goal, lo, hi, strict=True))
     await joints.set_controller(ControllerMode.POSE)
     await joints.set_velocities([velocity_deg_s] * len(goal))

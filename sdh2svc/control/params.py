@@ -94,7 +94,7 @@ class RollingParams(Frozen):
     @classmethod
     def _no_bool(cls, v: object, info: ValidationInfo) -> object:
         # pydantic would take true as 1 (cycles) or 1.0: a mistake, never meant
-        if isinstance(v, bool) and info.field_name != "mode":
+        if isinstance(v, bool) and info.field_name not in ("mode", "route"):
             raise ValueError("must be a number, not true/false")
         return v
 

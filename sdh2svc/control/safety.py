@@ -7,18 +7,19 @@ or stale sensor stream, on a dropped object or when the rotation keeps reversing
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Annotated
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from sdh2svc.control.rolling import StepResult
 from sdh2svc.model.base import Frozen
-from sdh2svc.model.hand import AxisMap
+from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 
-Deg7 = tuple[float, ...]
+Deg7 = tuple[AngleDeg, ...]
 
 
 class RunConfig(Frozen):
@@ -42,6 +43,25 @@ class RunConfig(Frozen):
         if len(v) != 7:
             raise ValueError(f"needs 7 angles, one per wire axis 0…6 (got {len(v)})")
         return v
+
+    @model_validator(mode="after")
+    def _grasp_speeds(self) -> RunConfig:
+        if self.grasp_min_velocity_deg_s > self.grasp_max_velocity_deg_s:
+            raise ValueError(
+                f"grasp_min_velocity_deg_s ({self.grasp_min_velocity_deg_s:g}) must not exceed "
+                f"grasp_max_velocity_deg_s ({self.grasp_max_velocity_deg_s:g})"
+            )
+        return self
+
+    def preshape_outside(self, limits: JointLimits) -> list[str]:
+        """One line per pre-shape angle outside its axis's joint limits (none: all inside)."""
+        bounds = zip(self.preshape_deg, limits.min_deg, limits.max_deg, strict=True)
+        return [
+            f"run.preshape_deg.{i} = {a:g}: outside axis {i}'s joint limits "
+            f"(allowed: {lo:g} ≤ preshape_deg.{i} ≤ {hi:g}, limits.min_deg/max_deg)"
+            for i, (a, lo, hi) in enumerate(bounds)
+            if not lo <= a <= hi
+        ]
 
 
 class SafetyConfig(Frozen):
@@ -73,9 +93,13 @@ def clamp_targets(
     hi: Sequence[float],
     max_step: float,
 ) -> tuple[float, ...]:
-    """Targets moved at most ``max_step`` from ``current`` and kept within [lo, hi] (degrees)."""
+    """Targets moved at most ``max_step`` from ``current`` and kept within [lo, hi] (degrees).
+    A target that is no finite number holds its axis where it is (a NaN would otherwise clamp
+    to a step towards the lower limit)."""
     out = []
     for t, c, a, b in zip(targets, current, lo, hi, strict=True):
+        if not math.isfinite(t):
+            t = c
         t = min(c + max_step, max(c - max_step, t))
         out.append(min(b, max(a, t)))
     return tuple(out)

@@ -31,7 +31,7 @@ bytes; feeding :data:`RESYNC` (17 × ``\\r\\n``, as long as the longest binary m
 garbage always leaves the parser at a message boundary, so the next clean message is recovered
 (proof sketch in :data:`RESYNC`). Without garbage no resync is needed.
 
-Facts are cited as §x.y of ``/work/shared/docs/protocols.md``; behaviour that document marks
+Facts are cited as §x.y of ``docs/protocols.md``; behaviour that document marks
 unconfirmed ([U]) is a parameter or is noted in the docstring that implements a choice.
 """
 

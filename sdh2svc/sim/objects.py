@@ -22,11 +22,13 @@ from pydantic import Field, Strict, TypeAdapter, model_validator
 
 from sdh2svc.model.base import Frozen
 
-# What the two fingertips can hold. Their proximal joints are 66 mm apart (hand.base_offset_mm)
+# What the two fingertips could hold. Their proximal joints are 66 mm apart (hand.base_offset_mm)
 # and each finger is 86.5 + 68 mm long, with a 44 mm sensing pad near its tip: an object much
 # wider than ≈ 150 mm across cannot be reached by both pads at once (the presets span 22 mm, the
-# rubber's thickness, to 119.4 mm, stick119). Below ≈ 5 mm across, the pads (20.4 mm wide, 2 mm
-# of rubber each) would meet before they press the object. Any other dimension (a stick's
+# rubber's thickness, to 119.4 mm, stick119). From the default pre-shape the open pads stand
+# 122.5 mm apart, so wider objects are never gripped there (campaign/generate.py keeps contact
+# widths ≤ 120 mm); the bound here is the geometry's. Below ≈ 5 mm across, the pads (20.4 mm
+# wide, 2 mm of rubber each) would meet before they press the object. Any other dimension (a stick's
 # diameter, a box's thinner side, the depth across the pad) may be as small as 1 mm: the
 # simulation samples the pads' surface every 0.25 mm, so a thinner object would fall between
 # its samples. Strict: a number, never true/false or a string; finite.

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field
+from pydantic import ConfigDict, Field, model_validator
 from scipy import optimize
 
 from sdh2svc.model.base import Frozen
@@ -66,7 +66,7 @@ from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope
 from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose
 from sdh2svc.sim.objects import Ellipse, Outline, Polygon
 
-Positive = Annotated[float, Field(gt=0.0)]
+Gravity = Annotated[float, Field(ge=-100.0, le=100.0)]  # m/s², at most ≈ 10 g
 Pair = tuple[float, float]
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, ...]  # 3 rows
@@ -76,25 +76,38 @@ _World = list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]
 
 
 class PhysicsConfig(Frozen):
-    """Contact mechanics parameters (see config/sim.toml)."""
+    """Contact mechanics parameters (see config/sim.toml). The ranges are generous physical
+    ones (a rubber 500 × softer or stiffer than the DSA's, a finger 10⁴ × stiffer); NaN and
+    infinities are refused: they break the balance's solver rather than the simulated hand."""
 
-    pad_stiffness_n_per_mm3: Positive
-    pad_thickness_mm: Positive
-    backing_stiffness_n_per_mm3: Positive
-    finger_stiffness_n_per_mm: Positive
-    tangential_stiffness_n_per_mm: Positive
-    gravity_m_per_s2: tuple[float, float, float]  # (x0: out of the plane, y0, z0)
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    pad_stiffness_n_per_mm3: Annotated[float, Field(gt=0.0, le=100.0)]
+    pad_thickness_mm: Annotated[float, Field(gt=0.0, le=20.0)]
+    backing_stiffness_n_per_mm3: Annotated[float, Field(gt=0.0, le=1e4)]
+    finger_stiffness_n_per_mm: Annotated[float, Field(gt=0.0, le=1e5)]
+    tangential_stiffness_n_per_mm: Annotated[float, Field(gt=0.0, le=1e5)]
+    gravity_m_per_s2: tuple[Gravity, Gravity, Gravity]  # (x0: out of the plane, y0, z0)
     sample_spacing_mm: Annotated[float, Field(gt=0.01, le=2.0)]
     max_joint_step_deg: Annotated[float, Field(gt=0.0, le=5.0)]
-    release_force_n: Annotated[float, Field(ge=0.0)]
+    release_force_n: Annotated[float, Field(ge=0.0, le=100.0)]
     fixture_max_overlap_mm: Annotated[float, Field(gt=0.0, le=50.0)]
     proximal_pad_offset_mm: Annotated[float, Field(ge=0.0, le=50.0)]
     proximal_pad_start_mm: Annotated[float, Field(ge=0.0, le=200.0)]
     proximal_pad_end_mm: Annotated[float, Field(ge=0.0, le=200.0)]
-    palm_z_mm: float
-    pad_width_mm: Positive
-    torque_limit_proximal_n_mm: Positive
-    torque_limit_distal_n_mm: Positive
+    palm_z_mm: Annotated[float, Field(ge=-100.0, le=50.0)]
+    pad_width_mm: Annotated[float, Field(gt=0.0, le=100.0)]
+    torque_limit_proximal_n_mm: Annotated[float, Field(gt=0.0, le=1e5)]
+    torque_limit_distal_n_mm: Annotated[float, Field(gt=0.0, le=1e5)]
+
+    @model_validator(mode="after")
+    def _proximal_pad(self) -> PhysicsConfig:
+        if self.proximal_pad_start_mm >= self.proximal_pad_end_mm:
+            raise ValueError(
+                f"proximal_pad_start_mm ({self.proximal_pad_start_mm:g}) must be below "
+                f"proximal_pad_end_mm ({self.proximal_pad_end_mm:g})"
+            )
+        return self
 
 
 _ZERO3 = (0.0, 0.0, 0.0)

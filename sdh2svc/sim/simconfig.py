@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from sdh2svc.model.base import Frozen
+from sdh2svc.sim.objects import PRESETS
 from sdh2svc.sim.physics import PhysicsConfig
 from sdh2svc.sim.sensor import SensorModelConfig
 
@@ -36,3 +37,12 @@ class SimConfig(Frozen):
     physics: PhysicsConfig
     sensor: SensorModelConfig
     links: LinksConfig
+
+    @field_validator("object")
+    @classmethod
+    def _preset(cls, v: str) -> str:
+        """A preset's name (an object file is given with ``--object-file``)."""
+        if v not in PRESETS:
+            shown = v if len(v) <= 80 else v[:80] + "…"
+            raise ValueError(f"unknown object {shown!r} (the presets: {', '.join(PRESETS)})")
+        return v

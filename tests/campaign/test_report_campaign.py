@@ -45,7 +45,12 @@ def write(out: Path, rows: list[dict[str, Any]]) -> None:
     with (out / camp.CASES_FILE).open("w") as fh:
         for r in rows:
             fh.write(json.dumps(r) + "\n")
-    info = {"suite": "synthetic", "overrides": [], "code": {"version": "0.1.0"}}
+    info = {
+        "suite": "synthetic",
+        "overrides": [],
+        "code": {"version": "0.1.0"},
+        "generator_seed": 7,
+    }
     (out / camp.CAMPAIGN_FILE).write_text(json.dumps(info))
 
 

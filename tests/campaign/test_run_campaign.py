@@ -146,9 +146,36 @@ def _wait_for_line(path: Path, proc: subprocess.Popen[bytes], deadline_s: float)
     pytest.fail("no case finished in time")
 
 
-@pytest.mark.parametrize("workers", [2])  # the pool: a single process is the simpler case
-def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(tmp_path: Path,
-                                                                workers: int) -> None:  # fmt: skip
+def _descendants(pid: int) -> set[int]:
+    """The processes below ``pid`` now (from /proc): a pool's forkserver and its workers."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.add(c)
+            todo.append(c)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+# the pool: a single process is the simpler case; SIGTERM (`kill`) stops it as Ctrl-C does
+@pytest.mark.parametrize(("workers", "sig"), [(2, signal.SIGINT), (2, signal.SIGTERM)])
+def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(
+    tmp_path: Path, workers: int, sig: int
+) -> None:
     # far more cases than can finish between the first one's line and the signal (a few ms)
     n = 24
     suite = tiny_suite(*(("rubber", seed) for seed in range(1, n + 1)))
@@ -164,8 +191,17 @@ def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(tmp_path: Path,
                             preexec_fn=_default_sigint)  # fmt: skip
     try:
         _wait_for_line(out / camp.CASES_FILE, proc, 240)
-        proc.send_signal(signal.SIGINT)
+        below = _descendants(proc.pid)
+        assert below, "no pool processes"
+        proc.send_signal(sig)
         assert proc.wait(timeout=60) == 130, proc.stderr.read()  # type: ignore[union-attr]
+        err = proc.stderr.read().decode()  # type: ignore[union-attr]
+        assert "interrupted; every finished case is in" in err, err
+        # no worker outlives the campaign (a SIGTERM used to orphan them, running)
+        end = time.monotonic() + 30
+        while any(_alive(p) for p in below) and time.monotonic() < end:
+            time.sleep(0.05)
+        assert not [p for p in below if _alive(p)]
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -113,6 +114,14 @@ def test_rolling_step_checks_ceiling_then_drop_then_stuck(cfg: Settings) -> None
     assert fault(safety.rolling_step(both, fd, s)) is Fault.DROPPED
     high = replace(both, F=3 * fd + 0.01)
     assert fault(safety.rolling_step(high, fd, s)) is Fault.FORCE_CEILING
+
+
+def test_a_target_that_is_no_number_holds_its_axis() -> None:
+    """NaN compares false with everything: min/max would turn it into one step towards the
+    lower limit; ±inf would be a full step. The axis holds where it is instead."""
+    lo, hi = [-90.0] * 3, [90.0] * 3
+    got = safety.clamp_targets([math.nan, math.inf, -math.inf], [10.0, 20.0, 30.0], lo, hi, 1.0)
+    assert got == (10.0, 20.0, 30.0)
 
 
 def test_clamp_targets_limits_the_step_and_the_range() -> None:

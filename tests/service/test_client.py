@@ -176,7 +176,7 @@ async def test_a_bad_telemetry_query_is_an_invalid_request(svc: LiveService) -> 
             async with c.telemetry(decimate=0):
                 pass
     assert bad.value.status == 422 and bad.value.details == [
-        "query.decimate: Input should be greater than or equal to 1"
+        "query.decimate = '0': Input should be greater than or equal to 1"
     ]
 
 

@@ -301,6 +301,10 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
         "Number(document.querySelector('#plot-sigma').dataset.reversals) >= 1"
     )
 
+    # a second page opened mid-run shows the run from its start: the earlier iterations and
+    # events from the record, then the live ones
+    await joined_mid_run(service, page)
+
     # e-stop mid-run: the run ends e-stopped, start is locked until the release
     await page.click("#estop")
     await page.wait_for_function(
@@ -420,6 +424,46 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
     lefts = await page.evaluate("window.sdh2debug.plots.charts.map(c => c.cursor.left)")
     assert all(left < 0 for left in lefts), lefts
     assert (await counters(page))["lastError"] is None
+
+
+async def joined_mid_run(service: LiveService, page: Any) -> None:
+    """A page opened on ``service`` while its run rolls plots that run from its first iteration,
+    with no gap up to the live samples, lists the grasp and the reversals before it opened (once
+    each), and marks those reversals on its plots."""
+    context = await page.context.browser.new_context(viewport={"width": 1500, "height": 1200})
+    try:
+        late = await context.new_page()
+        errors: list[str] = []
+        late.on("pageerror", lambda e: errors.append(str(e)))
+        await late.goto(page.url)
+        try:
+            await late.wait_for_function(
+                "window.sdh2.backfilled !== null || window.sdh2.lastError !== null",
+                timeout=30_000,
+            )
+        except playwright_api.TimeoutError:
+            raise AssertionError(f"no backfill: {await counters(late)}") from None
+        got = await late.evaluate("""() => {
+          const live = window.sdh2debug.plots.live;
+          return {backfilled: window.sdh2.backfilled, lastError: window.sdh2.lastError,
+                  iterations: live.samples.map(s => s.iteration),
+                  reversals: live.markers.filter(m => m.kind === 'reversal').length,
+                  events: [...document.querySelectorAll('#events li')].map(li => li.textContent),
+                  older: document.querySelectorAll('#events li[data-backfilled]').length};
+        }""")
+        assert got["lastError"] is None, got["lastError"]
+        its = got["iterations"]
+        run_id = httpx.get(service.url + "/api/status").json()["run"]["id"]
+        first = httpx.get(f"{service.url}/api/runs/{run_id}/samples?limit=1").json()["samples"]
+        assert got["backfilled"]["samples"] > 0 and its[0] == first[0]["iteration"], its[:5]
+        assert its == list(range(its[0], its[0] + len(its))), "a gap or a repeat in the plots"
+        assert got["older"] == got["backfilled"]["events"] > 0
+        grasped = [t for t in got["events"] if t.startswith("Grasped with F = ")]
+        assert len(grasped) == 1, got["events"]
+        assert got["reversals"] >= 1
+        assert errors == [], errors
+    finally:
+        await context.close()
 
 
 async def test_a_refresh_during_a_load_fetches_the_history_again(

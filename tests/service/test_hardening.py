@@ -362,7 +362,8 @@ async def test_a_bad_telemetry_query_refuses_the_handshake_with_422(svc: LiveSer
         r = refused.value.response
         body = json.loads(r.body)
         assert r.status_code == 422 and body["error"] == "invalid request", query
-        assert body["details"][0].startswith(f"query.{query.split('=')[0]}: "), body
+        name, _, value = query.partition("=")
+        assert body["details"][0].startswith(f"query.{name} = {value!r}: "), body
 
 
 async def test_the_estop_stops_a_run_whatever_the_database_does(

@@ -36,6 +36,17 @@ _WHY = {
     503: "the hand's links are not up (the e-stop's release: the hand or the run database did "
     "not take it)",
 }
+
+
+def _line(err: Any, msg: str) -> str:
+    """``query.limit = 0: Input should be greater than or equal to 1``: the field, the value as
+    given (a scalar, clipped; a missing one or a whole object is not quoted), the message."""
+    value = err.get("input")
+    quoted = err["type"] != "missing" and isinstance(value, (str, int, float, bool))
+    shown = f" = {clip(repr(value))}" if quoted else ""
+    return f"{error_key(err['loc'])}{shown}: {msg}"
+
+
 _UNPARSED = "There was an error parsing the body"  # FastAPI's detail, not a JSONDecodeError
 READ = (400,)  # every route: the Host rule
 WRITE = (400, 401, 403, 413, 415)  # every mutating route but POST /api/estop
@@ -77,20 +88,23 @@ def install_errors(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, e: RequestValidationError) -> JSONResponse:
-        # never the input itself: only its place and a message, each clipped
+        errors = e.errors()
+        if bad_json := [err for err in errors if err["type"] == "json_invalid"]:
+            why = (bad_json[0].get("ctx") or {}).get("error", "")
+            return error(400, "the body is not JSON", [clip(f"{why}" or "JSON decode error")])
         lines = []
-        for err in e.errors():
+        for err in errors:
             msg = error_message(err)
             if err["type"] == "extra_forbidden" and len(err["loc"]) == 2:  # body.KEY
                 msg = unknown_key(_body_keys(request))
-            lines.append(f"{error_key(err['loc'])}: {msg}")
+            lines.append(_line(err, msg))
         return error(422, "invalid request", lines)
 
     @app.exception_handler(WebSocketRequestValidationError)
     async def _ws_validation(ws: WebSocket, e: WebSocketRequestValidationError) -> None:
         # a bad query value refuses the handshake like a bad REST value: a 422 naming it (not
         # the bare 403 a close before accept makes, which reads as an Origin problem)
-        lines = [f"{error_key(err['loc'])}: {error_message(err)}" for err in e.errors()]
+        lines = [_line(err, error_message(err)) for err in e.errors()]
         if "websocket.http.response" in ws.scope.get("extensions", {}):
             await ws.send_denial_response(error(422, "invalid request", lines))
         else:

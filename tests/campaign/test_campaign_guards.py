@@ -1,0 +1,224 @@
+"""What a campaign refuses before it runs or writes anything, and how it resumes: a folder that
+is not its own, a suite that would write elsewhere or cannot be judged, a --set a case would
+override, a resume under another configuration; crashed cases run again. The cases are stand-ins
+(no simulation): what is checked is the campaign's bookkeeping."""
+
+from __future__ import annotations
+
+import json
+import socket
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import ValidationError
+
+from sdh2svc.campaign import run as camp
+from sdh2svc.campaign.case import Case, Suite, load_suite
+from sdh2svc.campaign.results import read_results
+from sdh2svc.cli import main
+from sdh2svc.config import ConfigError
+from sdh2svc.sim.objects import get_object
+
+WIDTH = {"egg": 53.0, "rubber": 60.5}
+
+
+def suite(*seeds: int, name: str = "guards", obj: str = "rubber") -> Suite:
+    return Suite(name=name, cases=tuple(
+        Case(id=f"{obj}-{s}", family="thesis", object=get_object(obj), height_mm=125.0,
+             seed=s, true_width_mm=WIDTH[obj])
+        for s in seeds
+    ))  # fmt: skip
+
+
+def stopped(case_json: str, *args: Any) -> dict[str, Any]:
+    """A stand-in for run_case: every case recorded as run (no simulation)."""
+    case = Case.model_validate_json(case_json)
+    return camp.finish_row({**camp.case_columns(case), "status": "completed"})
+
+
+def run(s: Suite, out: Path, fn: Any = stopped, **kw: Any) -> camp.Outcome:
+    return camp.run_campaign(s, out, workers=1, progress=False, case_fn=fn, **kw)
+
+
+def test_a_folder_of_other_files_is_never_written_into(tmp_path: Path) -> None:
+    """Not even its `.work`: a campaign's scratch folder is its own, made and removed by it."""
+    out = tmp_path / "mine"
+    (out / ".work").mkdir(parents=True)
+    (out / ".work" / "draft.tex").write_text("precious")
+    (out / "results.parquet").write_text("my own")
+    with pytest.raises(camp.CampaignError, match="is not empty and holds no campaign"):
+        run(suite(1), out)
+    assert (out / ".work" / "draft.tex").read_text() == "precious"
+    assert (out / "results.parquet").read_text() == "my own"
+    assert sorted(p.name for p in out.iterdir()) == [".work", "results.parquet"]
+    # a campaign.json that cannot be read is no campaign to resume either
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / camp.CAMPAIGN_FILE).write_text("{torn")
+    (bad / camp.CASES_FILE).write_text('{"id": "foo", "success": true}\n')
+    with pytest.raises(camp.CampaignError, match="cannot be read"):
+        run(suite(1), bad)
+    assert (bad / camp.CAMPAIGN_FILE).read_text() == "{torn"
+    # an empty folder is fine, and the campaign leaves no scratch behind
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert run(suite(1, 2), empty).ran == 2
+    assert not [p for p in empty.iterdir() if p.name.startswith(".work")]
+    # a file is no folder
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(camp.CampaignError, match="not a directory"):
+        run(suite(1), tmp_path / "afile")
+
+
+def test_a_resume_under_another_configuration_is_refused(tmp_path: Path) -> None:
+    """The same --set is not enough: the same effective configuration, whatever file or
+    variable gave it (a resume with k = 3 over cases run with k = 2 mixed both silently)."""
+    out = tmp_path / "out"
+    run(suite(1, 2), out, overrides=["rolling.cycles=1"])
+    k3 = tmp_path / "k3.toml"
+    k3.write_text("[rolling]\nk = 3.0\n")
+    with pytest.raises(camp.CampaignError, match=r"config differs: rolling\.k: 2\.0 there, 3\.0"):
+        run(suite(1, 2), out, overrides=["rolling.cycles=1"], config_path=str(k3))
+    # the same configuration again resumes (nothing left to run)
+    assert run(suite(1, 2), out, overrides=["rolling.cycles=1"]).ran == 0
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "sim.object_height_mm=100",
+        "sim.seed=7",
+        "sim.object_angle_deg=10",
+        "sim.sensor.noise_counts=1",
+    ],
+)
+def test_a_set_of_what_each_case_sets_is_refused(key: str, tmp_path: Path) -> None:
+    """The case's value would win without a word while the campaign recorded the --set."""
+    with pytest.raises(camp.CampaignError, match="is set by each case"):
+        run(suite(1), tmp_path / "out", overrides=[key])
+    assert not (tmp_path / "out").exists()
+    # the nominal gain the cases scale is the campaign's to set
+    assert run(suite(1), tmp_path / "ok", overrides=["sim.sensor.gain_vs_library=0.06"]).ran == 1
+
+
+def test_a_crashed_case_runs_again_on_resume(tmp_path: Path) -> None:
+    """A crash is no result: the resume runs the case again and its new row decides."""
+    calls: list[str] = []
+
+    def crashing(case_json: str, *args: Any) -> dict[str, Any]:
+        case = Case.model_validate_json(case_json)
+        calls.append(case.id)
+        if case.seed == 2 and calls.count(case.id) == 1:
+            return camp.crashed_row(case, "Traceback: a transient failure")
+        return stopped(case_json)
+
+    out = tmp_path / "out"
+    first = run(suite(1, 2), out, fn=crashing)
+    assert (first.crashed, first.ran) == (1, 2)
+    again = run(suite(1, 2), out, fn=crashing)
+    assert calls == ["rubber-1", "rubber-2", "rubber-2"]
+    assert (again.ran, again.skipped, again.crashed) == (1, 1, 0)
+    rows, _ = read_results(out)
+    assert [r["status"] for r in rows] == ["completed", "completed"]
+
+
+def test_suites_that_cannot_be_run_or_judged_are_refused(tmp_path: Path) -> None:
+    """A name that is a path (the campaign's folder would be written elsewhere), no cases, a
+    seed Parquet cannot hold, a stated width that is not the object's, an object wider than
+    the open fingers, NaN, a file that is not UTF-8, a directory."""
+    data = json.loads(suite(1).to_json())
+
+    def refused(change: dict[str, Any], case_change: dict[str, Any], fragment: str) -> None:
+        d = json.loads(json.dumps(data))
+        d.update(change)
+        if case_change:
+            d["cases"][0].update(case_change)
+        path = tmp_path / "s.json"
+        path.write_text(json.dumps(d))
+        with pytest.raises(ConfigError) as ei:
+            load_suite(path)
+        assert fragment in str(ei.value), str(ei.value)
+
+    refused({"name": "../../escape"}, {}, "name = '../../escape'")
+    refused({"name": ""}, {}, "name = ''")
+    refused({"cases": []}, {}, "cases")
+    refused({}, {"seed": 2**70}, "cases.0.seed")
+    refused({}, {"true_width_mm": 150.0}, "true_width_mm is 150 but the object is 60.500 mm")
+    refused({}, {"height_mm": float("nan")}, "finite number")
+    wide = get_object("stick119").model_copy(update={"length_mm": 140.0}).model_dump()
+    refused({}, {"object": wide, "true_width_mm": 140.0}, "the open fingers take at most 122.5")
+    latin1 = tmp_path / "latin1.json"
+    latin1.write_bytes(b'{"name": "b\xe4d", "cases": []}')
+    with pytest.raises(ConfigError, match="not a JSON suite file"):
+        load_suite(latin1)
+    with pytest.raises(ValidationError):
+        Suite(name="a/b", cases=suite(1).cases)
+
+
+def test_a_folder_named_like_a_packaged_suite_does_not_hide_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`cd campaigns; campaign run smoke` (where smoke/ is the smoke campaign's folder)."""
+    (tmp_path / "smoke").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert load_suite("smoke").name == "smoke"
+    with pytest.raises(ConfigError, match="is a directory, not a suite file"):
+        load_suite("./smoke")
+
+
+def test_report_and_compare_take_only_their_own_arguments(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "a"
+    run(suite(1), out)
+    for args, fragment in (
+        (["compare", str(out)], "compare needs two campaign folders"),
+        (["report", str(out), str(out)], "report takes one campaign folder"),
+        (["report", str(out), "--set", "rolling.k=3"], "--set: options of campaign run"),
+        (["compare", str(out), str(out), "--workers", "2"], "--workers: options of campaign run"),
+    ):
+        assert main(["campaign", *args]) == 2, args
+        assert fragment in capsys.readouterr().err
+
+
+def test_compare_pairs_a_case_only_with_the_same_case(tmp_path: Path) -> None:
+    """The packaged suites share ids (box-000 …) for different objects: same id, other spec,
+    another case — not paired, and said so."""
+    from sdh2svc.campaign.report import compare
+
+    run(suite(1, 2, name="one"), tmp_path / "a")
+    run(suite(1, 2, name="two", obj="egg"), tmp_path / "b")  # other objects
+    b_rows = [json.loads(x) for x in (tmp_path / "b" / camp.CASES_FILE).read_text().splitlines()]
+    a_rows = [json.loads(x) for x in (tmp_path / "a" / camp.CASES_FILE).read_text().splitlines()]
+    for r in b_rows:  # the same ids as A's, other objects
+        r["id"] = r["id"].replace("egg", "rubber")
+    (tmp_path / "b" / camp.CASES_FILE).write_text("".join(json.dumps(r) + "\n" for r in b_rows))
+    text = compare(tmp_path / "a", tmp_path / "b")
+    assert "0 cases in both" in text
+    assert "2 cases share an id but not their spec" in text and "The suites differ" in text
+    assert a_rows[0]["spec"] != b_rows[0]["spec"]
+
+
+def test_report_skips_lines_that_are_no_case_results(tmp_path: Path) -> None:
+    from sdh2svc.campaign.report import load
+
+    out = tmp_path / "a"
+    run(suite(1), out)
+    with (out / camp.CASES_FILE).open("a") as fh:
+        fh.write('{"id": "foo", "success": true}\n[1, 2]\n{"id": 3}\n')
+    rows, _ = load(out)
+    assert [r["id"] for r in rows] == ["rubber-1"]
+
+
+def test_a_ray_address_where_nothing_listens_is_refused_at_once(tmp_path: Path) -> None:
+    """Ray would retry HOST:PORT for many minutes; nothing is written before it answers."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(
+        camp.CampaignError, match=f"cannot reach the Ray cluster at 127.0.0.1:{port}"
+    ):
+        camp.run_campaign(suite(1), tmp_path / "o", ray_address=f"127.0.0.1:{port}",
+                          progress=False)  # fmt: skip
+    assert not (tmp_path / "o").exists()
