@@ -588,6 +588,15 @@ def cmd_runs(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.overrides)
     if args.action != "list" and args.id is None:
         _fail(Exit.USAGE, f"{args.action}: which run? (give its ID)")
+    # what only another action takes is a mistake here, not dropped without a word
+    extra = [what for what, given, takes in (
+        (f"the run ID {args.id}", args.id is not None, ("show", "export")),
+        ("--format", args.format is not None, ("export",)),
+        ("--output", args.output is not None, ("export",)),
+    ) if given and args.action not in takes]  # fmt: skip
+    if extra:
+        _fail(Exit.USAGE, f"{', '.join(extra)}: not with runs {args.action}")
+    args.format = args.format or "csv"
     try:
         store = RunStore(
             cfg.storage.db_path, create=False, busy_timeout_s=cfg.storage.busy_timeout_s
@@ -868,7 +877,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
     p.add_argument("action", choices=["list", "show", "export"])
     p.add_argument("id", nargs="?", type=int, help="run ID (show, export)")
-    p.add_argument("--format", choices=["csv", "mcap"], default="csv", help="export format")
+    p.add_argument("--format", choices=["csv", "mcap"], help="export format (default csv)")
     p.add_argument(
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
     )

@@ -509,3 +509,19 @@ def test_config_does_not_print_the_token(
     status, out, _ = call(capsys, "config")
     assert status == Exit.OK and "sekrit" not in out
     assert json.loads(out)["service"]["token"] == "***"
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["runs", "list", "5"], "the run ID 5: not with runs list"),
+        (["runs", "list", "--format", "mcap"], "--format: not with runs list"),
+        (["runs", "show", "5", "-o", "x.csv"], "--output: not with runs show"),
+    ],
+)
+def test_what_another_runs_action_takes_is_a_usage_error(
+    args: list[str], fragment: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`runs list 5 --format mcap` printed the whole list: the ID and the format dropped."""
+    status, _, err = call(capsys, *args)
+    assert status == Exit.USAGE and fragment in one_line(err, "runs")
