@@ -16,7 +16,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
+import threading
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable, Generator, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +29,13 @@ from typing import Any, Literal, TypedDict, cast
 import httpx
 from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
-from websockets.exceptions import ConnectionClosedOK, InvalidStatus
+from websockets.exceptions import (
+    ConnectionClosed,
+    ConnectionClosedOK,
+    InvalidHandshake,
+    InvalidStatus,
+    InvalidURI,
+)
 from websockets.sync.client import ClientConnection as SyncClientConnection
 from websockets.sync.client import connect as ws_connect_sync
 
@@ -36,14 +45,17 @@ __all__ = [
     "AsyncTelemetry",
     "Client",
     "Conflict",
+    "ExportFormat",
     "Forbidden",
     "InvalidRequest",
     "NotFound",
     "RunRef",
     "SamplePage",
     "StatusCheck",
+    "TelemetryMessage",
     "Unauthorized",
     "Unavailable",
+    "Unreachable",
     "run_state",
 ]
 
@@ -55,6 +67,13 @@ JSON = dict[str, Any]
 TelemetryMessage = JSON
 StatusCheck = Callable[[JSON], bool]  # a condition on the status (Client.wait_status)
 _WS_MAX_BYTES = 2**24  # a hello carries the whole status; a tactile frame six matrices
+# Closes that end the telemetry as the service meant it: normal, going away, restarting. Any
+# other end of the socket (no close frame, a keepalive ping unanswered) is a lost service.
+_SERVICE_CLOSES = frozenset({1000, 1001, 1012})
+# The WebSocket library's own log (a keepalive that failed, …): the client says what went wrong
+# in the exception it raises; a lab script that configures logging still sees it.
+_WS_LOG = logging.getLogger(__name__ + ".websocket")
+_WS_LOG.addHandler(logging.NullHandler())
 
 
 class RunRef(TypedDict):
@@ -84,6 +103,10 @@ class ApiError(Exception):
         self.method, self.url = method, url
         more = "".join(f"\n  {d}" for d in details)
         super().__init__(f"{method} {url}: {status} {error}{more}")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled and copied whole (a worker process's error reaches its parent)."""
+        return (type(self), (self.status, self.error, self.details, self.method, self.url))
 
 
 class InvalidRequest(ApiError):
@@ -157,8 +180,8 @@ def _answered(
 @contextlib.contextmanager
 def _handshake(url: str) -> Iterator[None]:
     """A WebSocket handshake the service refused (an HTTP error), as its ApiError; one it did
-    not answer, as :class:`Unreachable`."""
-    with _answered(url, (OSError, TimeoutError)):
+    not answer, or answered with something that is no handshake, as :class:`Unreachable`."""
+    with _answered(url, (OSError, TimeoutError, InvalidHandshake, InvalidURI)):
         try:
             yield
         except InvalidStatus as e:
@@ -168,14 +191,31 @@ def _handshake(url: str) -> Iterator[None]:
             raise kind(r.status_code, error, details, "GET", url) from None
 
 
-def _ws_open_sync(url: str, headers: dict[str, str]) -> SyncClientConnection:
-    with _handshake(url):
-        return ws_connect_sync(url, additional_headers=headers, max_size=_WS_MAX_BYTES)
+def _ws_options(timeout: float) -> dict[str, Any]:
+    """The handshake within ``timeout``, and a keepalive ping every ``min(10, timeout)`` s that
+    must be answered within ``timeout``: a hung service ends the telemetry within about twice
+    the client's timeout, whatever the messages' rate."""
+    return {"max_size": _WS_MAX_BYTES, "open_timeout": timeout, "logger": _WS_LOG,
+            "ping_interval": min(10.0, timeout), "ping_timeout": timeout}  # fmt: skip
 
 
-async def _ws_open(url: str, headers: dict[str, str]) -> ClientConnection:
+def _ws_open_sync(url: str, headers: dict[str, str], timeout: float) -> SyncClientConnection:
     with _handshake(url):
-        return await ws_connect(url, additional_headers=headers, max_size=_WS_MAX_BYTES)
+        return ws_connect_sync(url, additional_headers=headers, **_ws_options(timeout))
+
+
+async def _ws_open(url: str, headers: dict[str, str], timeout: float) -> ClientConnection:
+    with _handshake(url):
+        return await ws_connect(url, additional_headers=headers, **_ws_options(timeout))
+
+
+def _lost(e: ConnectionClosed, url: str) -> Unreachable | None:
+    """None when the telemetry ended as the service (or this client) closed it; else the
+    :class:`Unreachable` to raise (the service died, hung, or the network went)."""
+    code = e.rcvd.code if e.rcvd is not None else None
+    if isinstance(e, ConnectionClosedOK) or code in _SERVICE_CLOSES:
+        return None
+    return Unreachable(f"{url}: the telemetry was cut off ({e})")
 
 
 # --- the routes, once for both clients --------------------------------------------------------
@@ -206,12 +246,40 @@ def _start(params: Mapping[str, Any] | None, obj: str | Mapping[str, Any] | None
     return _Call("POST", "/api/runs", body)
 
 
-def _samples(run_id: int, offset: int, limit: int) -> _Call:
-    return _Call("GET", f"/api/runs/{run_id}/samples", query={"offset": offset, "limit": limit})
+def _samples(run_id: int, offset: int, limit: int, outline: bool = False) -> _Call:
+    query: dict[str, Any] = {"offset": offset, "limit": limit}
+    if outline:
+        query["outline"] = "true"
+    return _Call("GET", f"/api/runs/{run_id}/samples", query=query)
 
 
-def _frames(run_id: int, first: int, limit: int) -> _Call:
-    return _Call("GET", f"/api/runs/{run_id}/frames", query={"from": first, "limit": limit})
+def _frames(run_id: int, first: int, limit: int, to: int | None = None) -> _Call:
+    query: dict[str, Any] = {"from": first, "limit": limit}
+    if to is not None:
+        query["to"] = to
+    return _Call("GET", f"/api/runs/{run_id}/frames", query=query)
+
+
+def _truth(run_id: int, first: int, limit: int) -> _Call:
+    return _Call("GET", f"/api/runs/{run_id}/truth", query={"from": first, "limit": limit})
+
+
+def _press(pad: int, x_mm: float, y_mm: float, force_n: float, radius_mm: float | None,
+           duration_s: float | None) -> _Call:  # fmt: skip
+    body: JSON = {"pad": pad, "x_mm": x_mm, "y_mm": y_mm, "force_n": force_n}
+    if radius_mm is not None:
+        body["radius_mm"] = radius_mm
+    if duration_s is not None:
+        body["duration_s"] = duration_s
+    return _Call("POST", "/api/sim/press", body)
+
+
+_RELEASE_PRESS = _Call("DELETE", "/api/sim/press", {})
+_END_REPLAY = _Call("DELETE", "/api/viewer/replay", {})
+
+
+def _replay(run_id: int, iteration: int) -> _Call:
+    return _Call("PUT", "/api/viewer/replay", {"run_id": run_id, "iteration": iteration})
 
 
 def _object(name: str | None, spec: Mapping[str, Any] | None) -> _Call:
@@ -259,7 +327,9 @@ def _row_ended(row: JSON) -> JSON | None:
 def _ws_url(base_url: str, decimate: int, tactile: bool, max_queue: int | None) -> str:
     url = base_url.rstrip("/").replace("http", "ws", 1)  # https → wss
     query = f"?decimate={decimate}&tactile={int(tactile)}"
-    return f"{url}/ws/telemetry{query}" + (f"&max_queue={max_queue}" if max_queue else "")
+    return f"{url}/ws/telemetry{query}" + (
+        f"&max_queue={max_queue}" if max_queue is not None else ""
+    )
 
 
 def run_state(*states: str) -> StatusCheck:
@@ -276,11 +346,15 @@ def _headers(token: str | None) -> dict[str, str]:
 
 
 class Client:
-    """The service over HTTP, blocking. ``token``: the service's bearer token, if it has one."""
+    """The service over HTTP, blocking. ``token``: the service's bearer token, if it has one;
+    ``timeout``: seconds a request (or the telemetry's keepalive) may go unanswered before
+    :class:`Unreachable`. Closing it (or leaving ``with``) also disconnects its telemetry."""
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
-        self.url, self.token = url.rstrip("/"), token
+        self.url, self.token, self.timeout = url.rstrip("/"), token, timeout
         self._http = httpx.Client(base_url=self.url, headers=_headers(token), timeout=timeout)
+        self._sockets: set[SyncClientConnection] = set()  # open telemetry, closed with it
+        self._sockets_lock = threading.Lock()
 
     def __enter__(self) -> Client:
         return self
@@ -289,6 +363,10 @@ class Client:
         self.close()
 
     def close(self) -> None:
+        with self._sockets_lock:
+            sockets, self._sockets = list(self._sockets), set()
+        for ws in sockets:  # a generator blocked on it ends
+            ws.close()
         self._http.close()
 
     def _call(self, call: _Call) -> Any:
@@ -351,8 +429,12 @@ class Client:
     def events(self, run_id: int) -> list[JSON]:
         return cast(list[JSON], self.run(run_id)["events"])
 
-    def samples(self, run_id: int, offset: int = 0, limit: int = 1000) -> SamplePage:
-        return cast(SamplePage, self._call(_samples(run_id, offset, limit)))
+    def samples(
+        self, run_id: int, offset: int = 0, limit: int = 1000, outline: bool = False
+    ) -> SamplePage:
+        """A page of a run's samples (``outline``: each with its ``estimate_outline``; ``limit``
+        then at most 100)."""
+        return cast(SamplePage, self._call(_samples(run_id, offset, limit, outline)))
 
     def iter_samples(self, run_id: int, page: int = 1000) -> Iterator[JSON]:
         """Every sample of a run, fetched a page at a time."""
@@ -364,14 +446,20 @@ class Client:
                 return
             offset += len(got)
 
-    def frames(self, run_id: int, first: int = 0, limit: int = 500) -> JSON:
-        """A page of a run's tactile frames from iteration ``first`` (docs/api.md; follow
-        ``next``); ``texels`` is base64 of little-endian uint16 counts."""
-        return cast(JSON, self._call(_frames(run_id, first, limit)))
+    def frames(self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None) -> JSON:
+        """A page of a run's tactile frames of iterations ``first`` … ``to`` (docs/api.md;
+        follow ``next``); ``texels`` is base64 of little-endian uint16 counts."""
+        return cast(JSON, self._call(_frames(run_id, first, limit, to)))
+
+    def truth(self, run_id: int, first: int = 0, limit: int = 2000) -> JSON:
+        """In simulation, the object's truth recorded with each iteration from ``first`` on
+        (its ``outline`` and ``truth`` rows; follow ``next``)."""
+        return cast(JSON, self._call(_truth(run_id, first, limit)))
 
     def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
         call = _export(run_id, format)
-        r = self._http.request(call.method, call.path, **call.kwargs())
+        with _answered(f"{call.method} {self.url}{call.path}"):
+            r = self._http.request(call.method, call.path, **call.kwargs())
         _raise_for(r)
         return r.content
 
@@ -426,34 +514,68 @@ class Client:
     ) -> JSON:
         return cast(JSON, self._call(_object(name, spec)))
 
+    def press(self, pad: int, x_mm: float, y_mm: float, force_n: float,
+              radius_mm: float | None = None, duration_s: float | None = None) -> JSON:  # fmt: skip
+        """Press a simulated pad as a person would (``POST /api/sim/press``)."""
+        return cast(JSON, self._call(_press(pad, x_mm, y_mm, force_n, radius_mm, duration_s)))
+
+    def release_press(self) -> JSON:
+        """Lift every press that is on (``{"released": n}``)."""
+        return cast(JSON, self._call(_RELEASE_PRESS))
+
+    # the 3-D view
+    def show_replay(self, run_id: int, iteration: int) -> JSON:
+        """The 3-D view shows a recorded iteration instead of the live hand (for 60 s)."""
+        return cast(JSON, self._call(_replay(run_id, iteration)))
+
+    def end_replay(self) -> JSON:
+        return cast(JSON, self._call(_END_REPLAY))
+
     def telemetry(
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
     ) -> Generator[TelemetryMessage, None, None]:
-        """The live messages (``hello`` first), until the service closes the socket. Close
-        the generator (or drop it) to disconnect."""
+        """The live messages (``hello`` first), until the service closes the socket (or this
+        client is closed). A service that dies, hangs (no keepalive answer within the client's
+        ``timeout``) or goes off the network raises :class:`Unreachable`. Close the generator
+        (or drop it) to disconnect."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
-        headers = _headers(self.token)
-        with _ws_open_sync(url, headers) as ws:
+        ws = _ws_open_sync(url, _headers(self.token), self.timeout)
+        with ws:
+            with self._sockets_lock:
+                self._sockets.add(ws)
             try:
-                for text in ws:
+                while True:
+                    try:
+                        text = ws.recv()
+                    except ConnectionClosed as e:
+                        if (lost := _lost(e, url)) is not None:
+                            raise lost from e
+                        return
                     yield cast(TelemetryMessage, json.loads(text))
-            except ConnectionClosedOK:
-                return
+            finally:
+                with self._sockets_lock:
+                    self._sockets.discard(ws)
 
 
 # --- async -------------------------------------------------------------------------------------
 
 
 class AsyncTelemetry:
-    """The live messages of ``/ws/telemetry`` (``hello`` first) as an async iterator. Connects
-    on first use; use it as ``async with`` to disconnect as soon as the block is left."""
+    """The live messages of ``/ws/telemetry`` (``hello`` first) as an async iterator, until the
+    service closes the socket (a service that dies, hangs or goes off the network raises
+    :class:`Unreachable`). Connects on first use; use it as ``async with`` to disconnect as
+    soon as the block is left (its client's ``aclose`` disconnects it too). Tasks may share
+    it: each message goes to one of them."""
 
-    def __init__(self, url: str, headers: dict[str, str]) -> None:
-        self._url, self._headers = url, headers
+    def __init__(self, url: str, headers: dict[str, str], timeout: float = 30.0) -> None:
+        self._url, self._headers, self._timeout = url, headers, timeout
         self._ws: ClientConnection | None = None
+        self._lock = asyncio.Lock()  # one connection, one reader at a time
+        self._closed = False
 
     async def __aenter__(self) -> AsyncTelemetry:
-        await self._connect()
+        async with self._lock:
+            await self._connect()
         return self
 
     async def __aexit__(
@@ -462,6 +584,8 @@ class AsyncTelemetry:
         await self.aclose()
 
     async def aclose(self) -> None:
+        """Disconnect (a task waiting for a message gets the end of the iteration)."""
+        self._closed = True
         if self._ws is not None:
             await self._ws.close()
 
@@ -469,25 +593,35 @@ class AsyncTelemetry:
         return self
 
     async def __anext__(self) -> TelemetryMessage:
-        ws = await self._connect()
-        try:
-            text = await ws.recv()
-        except ConnectionClosedOK:
-            raise StopAsyncIteration from None
+        async with self._lock:
+            if self._closed:
+                raise StopAsyncIteration
+            ws = await self._connect()
+            try:
+                text = await ws.recv()
+            except ConnectionClosed as e:
+                if (lost := _lost(e, self._url)) is not None and not self._closed:
+                    raise lost from e
+                raise StopAsyncIteration from None
         return cast(TelemetryMessage, json.loads(text))
 
     async def _connect(self) -> ClientConnection:
+        """The connection, opened once (callers hold the lock, or are the only user)."""
         if self._ws is None:
-            self._ws = await _ws_open(self._url, self._headers)
+            self._ws = await _ws_open(self._url, self._headers, self._timeout)
+            if self._closed:  # closed while the handshake was out
+                await self._ws.close()
         return self._ws
 
 
 class AsyncClient:
-    """The service over HTTP and its WebSocket, for asyncio. Same calls as :class:`Client`."""
+    """The service over HTTP and its WebSocket, for asyncio. Same calls as :class:`Client`;
+    closing it also disconnects its telemetry."""
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
-        self.url, self.token = url.rstrip("/"), token
+        self.url, self.token, self.timeout = url.rstrip("/"), token, timeout
         self._http = httpx.AsyncClient(base_url=self.url, headers=_headers(token), timeout=timeout)
+        self._telemetry: weakref.WeakSet[AsyncTelemetry] = weakref.WeakSet()
 
     async def __aenter__(self) -> AsyncClient:
         return self
@@ -496,6 +630,8 @@ class AsyncClient:
         await self.aclose()
 
     async def aclose(self) -> None:
+        for tm in list(self._telemetry):
+            await tm.aclose()
         await self._http.aclose()
 
     async def _call(self, call: _Call) -> Any:
@@ -551,8 +687,10 @@ class AsyncClient:
     async def events(self, run_id: int) -> list[JSON]:
         return cast(list[JSON], (await self.run(run_id))["events"])
 
-    async def samples(self, run_id: int, offset: int = 0, limit: int = 1000) -> SamplePage:
-        return cast(SamplePage, await self._call(_samples(run_id, offset, limit)))
+    async def samples(
+        self, run_id: int, offset: int = 0, limit: int = 1000, outline: bool = False
+    ) -> SamplePage:
+        return cast(SamplePage, await self._call(_samples(run_id, offset, limit, outline)))
 
     async def iter_samples(self, run_id: int, page: int = 1000) -> AsyncIterator[JSON]:
         offset = 0
@@ -564,12 +702,18 @@ class AsyncClient:
                 return
             offset += len(got)
 
-    async def frames(self, run_id: int, first: int = 0, limit: int = 500) -> JSON:
-        return cast(JSON, await self._call(_frames(run_id, first, limit)))
+    async def frames(
+        self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None
+    ) -> JSON:
+        return cast(JSON, await self._call(_frames(run_id, first, limit, to)))
+
+    async def truth(self, run_id: int, first: int = 0, limit: int = 2000) -> JSON:
+        return cast(JSON, await self._call(_truth(run_id, first, limit)))
 
     async def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
         call = _export(run_id, format)
-        r = await self._http.request(call.method, call.path, **call.kwargs())
+        with _answered(f"{call.method} {self.url}{call.path}"):
+            r = await self._http.request(call.method, call.path, **call.kwargs())
         _raise_for(r)
         return r.content
 
@@ -620,8 +764,28 @@ class AsyncClient:
     ) -> JSON:
         return cast(JSON, await self._call(_object(name, spec)))
 
+    async def press(
+        self, pad: int, x_mm: float, y_mm: float, force_n: float,
+        radius_mm: float | None = None, duration_s: float | None = None,
+    ) -> JSON:  # fmt: skip
+        return cast(JSON, await self._call(_press(pad, x_mm, y_mm, force_n, radius_mm, duration_s)))
+
+    async def release_press(self) -> JSON:
+        return cast(JSON, await self._call(_RELEASE_PRESS))
+
+    # the 3-D view
+    async def show_replay(self, run_id: int, iteration: int) -> JSON:
+        return cast(JSON, await self._call(_replay(run_id, iteration)))
+
+    async def end_replay(self) -> JSON:
+        return cast(JSON, await self._call(_END_REPLAY))
+
     def telemetry(
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
     ) -> AsyncTelemetry:
         """``async with client.telemetry() as tm: async for msg in tm: …``"""
-        return AsyncTelemetry(_ws_url(self.url, decimate, tactile, max_queue), _headers(self.token))
+        tm = AsyncTelemetry(
+            _ws_url(self.url, decimate, tactile, max_queue), _headers(self.token), self.timeout
+        )
+        self._telemetry.add(tm)
+        return tm

@@ -210,6 +210,22 @@ def test_calls_and_refusals(svc: LiveService) -> None:
             c.start_run()
         assert c.release_estop() == {"estopped": False}
 
+        # every route of docs/api.md has its call
+        press = c.press(3, 10.0, 12.0, 2.0, duration_s=0.5)
+        assert (press["pad"], press["radius_mm"], press["duration_s"]) == (3, 3.0, 0.5)
+        assert c.release_press()["released"] >= 0
+        with pytest.raises(InvalidRequest):
+            c.press(3, 10.0, 12.0, 60.0)  # above 50 N
+        for call in (lambda: c.truth(9999), lambda: c.frames(9999, to=5),
+                     lambda: c.samples(9999, limit=100, outline=True)):  # fmt: skip
+            with pytest.raises(NotFound):
+                call()
+        for replay in (lambda: c.show_replay(1, 0), c.end_replay):
+            with pytest.raises(Conflict, match="3-D view is off"):  # none in this service
+                replay()
+        with pytest.raises(InvalidRequest):  # max_queue=0 reaches the service: its 422
+            next(c.telemetry(max_queue=0))
+
     with Client(svc.url) as anonymous:  # reading needs no token; commanding does
         assert anonymous.status()["estopped"] is False
         patch = functools.partial(anonymous.patch_params, {"k": 3.0})

@@ -1,0 +1,181 @@
+"""sdh2svc.client's telemetry and transport against small stand-in servers (no service): how
+the telemetry ends when the service closes it, restarts, dies or answers no handshake; that
+closing a client disconnects its telemetry; that tasks may share one stream; that its errors
+pickle. What a lab script meets when the service goes away under it."""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import json
+import pickle
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+import pytest
+from websockets.asyncio.server import ServerConnection, serve
+
+import sdh2svc.client as client_module
+from sdh2svc.client import AsyncClient, Client, NotFound, Unreachable
+
+Handler = Callable[[ServerConnection], Any]
+
+
+class Stand:
+    """A WebSocket server on a free port whose every connection ``handler`` serves; counts
+    the connections it has and has had."""
+
+    def __init__(self, handler: Handler) -> None:
+        self.handler, self.open, self.total = handler, 0, 0
+        self.url = ""
+
+    async def __call__(self, ws: ServerConnection) -> None:
+        self.open += 1
+        self.total += 1
+        try:
+            await self.handler(ws)
+        finally:
+            self.open -= 1
+
+
+async def ticking(ws: ServerConnection) -> None:
+    """A service's telemetry: hello, then a status every 20 ms."""
+    await ws.send(json.dumps({"type": "hello"}))
+    while True:
+        await asyncio.sleep(0.02)
+        await ws.send(json.dumps({"type": "status"}))
+
+
+async def restarting(ws: ServerConnection) -> None:
+    """hello, then the close a service sends as it shuts down (uvicorn: 1012)."""
+    await ws.send(json.dumps({"type": "hello"}))
+    await ws.close(1012, "service restart")
+
+
+async def dying(ws: ServerConnection) -> None:
+    """hello, then the connection cut without a close frame (the service killed)."""
+    await ws.send(json.dumps({"type": "hello"}))
+    await asyncio.sleep(0.05)
+    ws.transport.abort()
+
+
+@pytest.fixture
+async def stand(request: pytest.FixtureRequest) -> AsyncIterator[Stand]:
+    st = Stand(request.param)
+    async with serve(st, "127.0.0.1", 0) as server:
+        port = next(iter(server.sockets)).getsockname()[1]
+        st.url = f"http://127.0.0.1:{port}"
+        yield st
+
+
+async def _drain(tm: Any) -> list[str]:
+    return [m["type"] async for m in tm]
+
+
+def _sync_drain(url: str) -> list[str]:
+    with Client(url, timeout=5.0) as c:
+        return [m["type"] for m in c.telemetry()]
+
+
+@pytest.mark.parametrize("stand", [restarting], indirect=True)
+async def test_a_service_that_shuts_down_ends_the_telemetry(stand: Stand) -> None:
+    """1012 ("service restart") is the service closing the socket: the iteration ends, it
+    does not raise websockets' ConnectionClosedError."""
+    async with AsyncClient(stand.url, timeout=5.0) as c:
+        assert await _drain(c.telemetry()) == ["hello"]
+    assert await asyncio.to_thread(_sync_drain, stand.url) == ["hello"]
+
+
+@pytest.mark.parametrize("stand", [dying], indirect=True)
+async def test_a_service_that_dies_is_unreachable(stand: Stand) -> None:
+    async with AsyncClient(stand.url, timeout=5.0) as c:
+        with pytest.raises(Unreachable, match="the telemetry was cut off"):
+            await _drain(c.telemetry())
+    with pytest.raises(Unreachable, match="the telemetry was cut off"):
+        await asyncio.to_thread(_sync_drain, stand.url)
+
+
+async def test_a_handshake_that_is_no_handshake_is_unreachable() -> None:
+    """A port that accepts and closes at once (a service dying, a proxy), and a URL without
+    a scheme: Unreachable, as the REST calls raise, not websockets' own exceptions."""
+
+    async def hang_up(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.close()
+
+    server = await asyncio.start_server(hang_up, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        async with AsyncClient(f"http://127.0.0.1:{port}", timeout=5.0) as c:
+            with pytest.raises(Unreachable):
+                await c.telemetry().__anext__()
+        with pytest.raises(Unreachable):
+            await asyncio.to_thread(_sync_drain, f"http://127.0.0.1:{port}")
+    with pytest.raises(Unreachable):
+        next(Client("127.0.0.1:1").telemetry())
+
+
+@pytest.mark.parametrize("stand", [ticking], indirect=True)
+async def test_closing_a_client_disconnects_its_telemetry(stand: Stand) -> None:
+    c = AsyncClient(stand.url, timeout=5.0)
+    tm = c.telemetry()  # used as a plain async iterator: no `async with` to close it
+    assert (await tm.__anext__())["type"] == "hello"
+    assert stand.open == 1
+    await c.aclose()
+    with pytest.raises(StopAsyncIteration):
+        await tm.__anext__()
+    await _until(lambda: stand.open == 0)
+
+    def sync_side() -> None:
+        with Client(stand.url, timeout=5.0) as s:
+            g = s.telemetry()
+            assert next(g)["type"] == "hello"
+        # leaving `with` closed the socket: the generator ends
+        assert [m["type"] for m in g][-1:] in ([], ["status"])
+
+    await asyncio.to_thread(sync_side)
+    await _until(lambda: stand.open == 0)
+
+
+@pytest.mark.parametrize("stand", [ticking], indirect=True)
+async def test_tasks_share_one_telemetry_stream(stand: Stand) -> None:
+    """Each message to one task, over one connection (two tasks once opened two, one of them
+    beyond aclose's reach, then failed in websockets' ConcurrencyError)."""
+    async with AsyncClient(stand.url, timeout=5.0) as c:
+        tm = c.telemetry()
+
+        async def some() -> list[str]:
+            return [(await tm.__anext__())["type"] for _ in range(5)]
+
+        got = await asyncio.gather(some(), some(), some())
+        assert sorted(t for g in got for t in g) == ["hello", *["status"] * 14]
+        assert stand.total == 1
+        await tm.aclose()
+    await _until(lambda: stand.open == 0)
+
+
+async def _until(ok: Callable[[], bool]) -> None:
+    async with asyncio.timeout(10):
+        while not ok():
+            await asyncio.sleep(0.01)
+
+
+def test_an_api_error_pickles_and_copies_whole() -> None:
+    """An error raised in a worker process reaches its parent (it is pickled)."""
+    e = NotFound(404, "no run 7", ["run_id: 7"], "GET", "http://h/api/runs/7")
+    for back in (pickle.loads(pickle.dumps(e)), copy.copy(e)):
+        assert type(back) is NotFound and str(back) == str(e)
+        got = (back.status, back.error, back.details, back.url)
+        assert got == (404, "no run 7", ["run_id: 7"], e.url)
+
+
+def test_the_exceptions_a_script_catches_are_exported() -> None:
+    assert {"Unreachable", "ApiError", "InvalidRequest", "TelemetryMessage"} <= set(
+        client_module.__all__
+    )
+    assert all(hasattr(client_module, name) for name in client_module.__all__)
+
+
+def test_a_telemetry_option_of_0_reaches_the_service() -> None:
+    """max_queue=0 was dropped from the URL (the service's default used without a word)."""
+    url = client_module._ws_url("http://h:1", 1, True, 0)
+    assert url.endswith("&max_queue=0")  # the service's 422 for it: tests/service/test_client.py
