@@ -181,7 +181,7 @@ def _answered(
 def _handshake(url: str) -> Iterator[None]:
     """A WebSocket handshake the service refused (an HTTP error), as its ApiError; one it did
     not answer, or answered with something that is no handshake, as :class:`Unreachable`."""
-    with _answered(url, (OSError, TimeoutError, InvalidHandshake, InvalidURI)):
+    with _answered(url, (OSError, TimeoutError, InvalidHandshake, InvalidURI, ConnectionClosed)):
         try:
             yield
         except InvalidStatus as e:

@@ -486,20 +486,18 @@ def test_cycles_must_be_a_count_of_strokes(cycles: str, capsys: pytest.CaptureFi
     assert "argument --cycles" in capsys.readouterr().err
 
 
-def test_a_failed_run_says_so_in_one_line_on_stderr(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_a_failed_run_says_so_in_one_line_on_stderr(tmp_path: Path) -> None:
     """The summary is the output (stdout, or the JSON); the failure is stderr's one line."""
     for extra in ([], ["--json"]):
         args = ["run", "--sim", "--fast", "--cycles", "1", "--set", "run.grasp_timeout_s=0.5"]
-        status, out, err = call(capsys, *args, *extra, *db_set(tmp_path / "runs.sqlite"))
-        assert status == Exit.FAILED
-        line = one_line(err, "run")
+        r = run(*args, *extra, *db_set(tmp_path / "runs.sqlite"))
+        assert r.returncode == Exit.FAILED
+        line = one_line(r.stderr, "run")
         assert re.fullmatch(r"sdh2svc run: run \d+ faulted: no_contact: .*", line), line
         if extra:
-            assert json.loads(out)["status"] == "faulted"
+            assert json.loads(r.stdout)["status"] == "faulted"
         else:
-            assert "faulted" in out
+            assert "faulted" in r.stdout
 
 
 def test_config_does_not_print_the_token(

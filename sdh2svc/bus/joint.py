@@ -452,6 +452,7 @@ class JointLink:
         self._gate = _Turnstile()
         self._closed = False
         self._estopped = False
+        self._releasing = False  # a release is out (estopped until the hand takes it)
         self._estop_pending = 0
         self.reading: JointReading | None = None  # the newest actual angles (pos, tpap)
         self._may_be_moving = False  # a command that can start motion went out since the last hold
@@ -558,8 +559,9 @@ class JointLink:
 
     @property
     def estopped(self) -> bool:
-        """Whether an emergency stop is latched (see :meth:`release`)."""
-        return self._estopped
+        """Whether an emergency stop is latched (see :meth:`release`): also while a release is
+        out, until the hand has taken it."""
+        return self._estopped or self._releasing
 
     # -- events ---------------------------------------------------------------------------------
 
@@ -1182,13 +1184,16 @@ class JointLink:
         return held
 
     async def release(self) -> tuple[bool, ...]:
-        """Clear a latched emergency stop and power all axes on again."""
-        self._estopped = False
+        """Clear a latched emergency stop and power all axes on again. :attr:`estopped` stays
+        true until the hand has answered (the link lets the power command through meanwhile)."""
+        self._releasing, self._estopped = True, False
         try:
             flags = await self.power([True] * NUM_AXES)
         except BaseException:
             self._estopped = True  # not released until the hand took it
             raise
+        finally:
+            self._releasing = False
         self._emit(LinkEventKind.RELEASED)
         return flags
 

@@ -139,6 +139,9 @@ class Runner:
         self._last_seq: int | None = None
         self._estopping = False
         self._estopped = asyncio.Event()  # the e-stop has latched and been reported
+        # run() has returned: the run's end is its own (an e-stop then stops the hand alone;
+        # the task that ran it may still be recording that end, and must not be cancelled)
+        self._returned = False
         self._make_recognizer = recognizer
         # the run's recognition; None once it failed (the rolling goes on without an estimate)
         self._recognizer: Recognizer | None = None
@@ -160,6 +163,9 @@ class Runner:
         the phase changes once the link has latched the stop, so no observer sees one without
         the other.
         """
+        if self._returned:  # the run has ended as it ended; only the hand is stopped
+            await self.joints.emergency_stop()
+            return
         self._estopping = True
         self.result.status, self.result.message = "e-stopped", "emergency stop"
         self.result.strokes = self.state.strokes
@@ -225,6 +231,7 @@ class Runner:
             self.joints.stop_polling()
             sub.close()
             watch.close()
+            self._returned = True
         return self.result
 
     def _finish(self, phase: Phase, status: str, message: str = "") -> None:
@@ -378,9 +385,11 @@ class Runner:
                 latency_ms = (loop.time() - frame.arrival) * 1000
                 self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
                 _raise(v)
+            commanded = None
             if r.targets is not None:
-                want = self._axes.wire_targets(r.targets, actual)
-                sent = await self.joints.send_targets(self._clamp(want, actual))
+                want = self._clamp(self._axes.wire_targets(r.targets, actual), actual)
+                commanded = self._axes.pose(want)  # recorded as sent, within the step limit
+                sent = await self.joints.send_targets(want)
                 latency_ms = (sent - frame.arrival) * 1000  # the targets are on the line
                 # Start the move and go on at once: the next iteration runs on the next fresh
                 # frame with the angles the fingers have then. A move still running is replanned
@@ -389,7 +398,7 @@ class Runner:
             else:
                 latency_ms = (loop.time() - frame.arrival) * 1000
             self.state = r.state
-            self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
+            self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms, commanded)
 
     def _new_recognizer(self) -> Recognizer | None:
         try:
@@ -436,6 +445,7 @@ class Runner:
         age_ms: float,
         joint_age_ms: float,
         latency_ms: float,
+        commanded: HandPose | None = None,
     ) -> None:
         t = frame.arrival - self._t0
         res = self.result
@@ -453,7 +463,8 @@ class Runner:
             detail = {"reason": why, "stroke": st.strokes, "half_strokes": st.half_strokes}
             self._event(EventKind.REVERSAL, detail, st.iteration)
         if self.observer is not None:
-            sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms, rec)
+            sample = Sample.from_step(r, pose, t, age_ms, joint_age_ms, latency_ms, rec,
+                                      commanded)  # fmt: skip
             self.observer.sample(sample)
             self.observer.frame(t, sample.iteration, frame)
 

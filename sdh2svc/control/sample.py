@@ -152,10 +152,13 @@ class Sample:
         joint_age_ms: float,
         latency_ms: float,
         rec: Recognition | None = None,
+        commanded: HandPose | None = None,
     ) -> Sample:
         """The sample of one iteration; ``pose`` are the actual angles it started from, ``rec``
-        what the recognition made of it (None: no estimate, its fields null)."""
-        obs, plan, tg = r.obs, r.plan, r.targets
+        what the recognition made of it (None: no estimate, its fields null), ``commanded`` the
+        targets as sent (the step's, clamped by the supervisor; default: the step's)."""
+        obs, plan = r.obs, r.plan
+        tg = commanded if commanded is not None else r.targets
         pts = obs.points
         ay, az = _yz(pts.A if pts else None)
         by, bz = _yz(pts.B if pts else None)

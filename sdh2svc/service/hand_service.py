@@ -44,6 +44,9 @@ from sdh2svc.sim.objects import PRESETS, ObjectSpec, Shape, get_object, parse_ob
 from sdh2svc.sim.press import Press
 
 log = logging.getLogger(__name__)
+# How long an e-stop's answer waits for its latch to reach the disk (the stop itself does not
+# wait): a run database another program holds locked would hold it busy_timeout_s.
+RECORD_WAIT_S = 1.0
 
 
 class ServiceError(Exception):
@@ -239,7 +242,10 @@ class HandService:
         joints, _, store = self._links()
         log.warning("E-STOP")
         joints.latch()
-        record = asyncio.ensure_future(asyncio.to_thread(store.latch_estop, "e-stop requested"))
+        since = now_iso()  # when it was pressed, whenever the disk takes it
+        record = asyncio.ensure_future(
+            asyncio.to_thread(store.latch_estop, "e-stop requested", since)
+        )
         stop = asyncio.ensure_future(self._stop_hand(joints))
         # a silent line would hold the answer through the link's retries: the answer waits for
         # one reply's timeout; the stop goes on meanwhile (and the latch holds the line anyway)
@@ -257,18 +263,24 @@ class HandService:
                             "is back")  # fmt: skip
             log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
         self.publish_status()
-        recorded = await self._recorded(record)
-        if not recorded:
+        recorded = await self._recorded(record, since)
+        if recorded is None:
+            problems.append(f"the latch is still being written to the run database "
+                            f"({store.path}: another program holds it locked); the status's "
+                            "estop.recorded says when it is on disk")  # fmt: skip
+        elif not recorded:
             problems.append(f"the latch could not be written to the run database "
                             f"({store.path}): a restart would not keep it")  # fmt: skip
         self.publish_status()
-        out: dict[str, Any] = {"estopped": True, "hand_reached": reached, "recorded": recorded}
+        out: dict[str, Any] = {"estopped": True, "hand_reached": reached,
+                               "recorded": bool(recorded)}  # fmt: skip
         if problems:
             out["detail"] = "; ".join(problems)
         return out
 
     async def _stop_hand(self, joints: JointLink) -> None:
-        """The e-stop sent to the hand: the run ends e-stopped, or an opening hand stops."""
+        """The e-stop sent to the hand: the run ends e-stopped (one that has already ended,
+        and is only being recorded, keeps its end), or an opening hand stops."""
         if self.running and self.run is not None:
             await self.run.runner.emergency_stop()
         else:
@@ -276,17 +288,38 @@ class HandService:
             await joints.emergency_stop()
             self._hand_event(EventKind.ESTOP, {})
 
-    async def _recorded(self, record: asyncio.Future[dict[str, str]]) -> bool:
+    async def _recorded(self, record: asyncio.Future[dict[str, str]], since: str) -> bool | None:
         """The e-stop's latch written to disk (``self._latch``); False, logged, if it failed
-        (the latch then stands in memory only, shown in the status without a record)."""
-        try:
-            self._latch = await record
-            return True
-        except (OSError, sqlite3.Error) as e:
-            log.error("e-stop latched, but not on disk: %s", e)
-            self._latch = self._latch or {"since": now_iso(), "reason": "e-stop requested",
-                                          "recorded": "no"}  # fmt: skip
+        (the latch then stands in memory only, shown in the status without a record); None if
+        the write is still out after RECORD_WAIT_S (a lock held by another program): the answer
+        does not wait for it, the status says ``"recorded": "pending"`` until it is done."""
+        done, _ = await asyncio.wait({record}, timeout=RECORD_WAIT_S)
+        if not done:
+            self._latch = self._latch or {"since": since, "reason": "e-stop requested",
+                                          "recorded": "pending"}  # fmt: skip
+            record.add_done_callback(lambda fut: self._latch_written(fut, since))
+            return None
+        return self._latch_written(record, since)
+
+    def _latch_written(self, record: asyncio.Future[dict[str, str]], since: str) -> bool:
+        """The latch as the disk write left it: on disk, or in memory only (logged)."""
+        if record.cancelled():
             return False
+        e = record.exception()
+        if e is None:
+            if self._latch is not None or self.latched_now():  # not released meanwhile
+                self._latch = record.result()
+            self.publish_status()
+            return True
+        log.error("e-stop latched, but not on disk: %s", e)
+        if self.latched_now():
+            self._latch = {"since": since, "reason": "e-stop requested", "recorded": "no"}
+        self.publish_status()
+        return False
+
+    def latched_now(self) -> bool:
+        """Whether the joint link holds the e-stop latched (or has no link to ask)."""
+        return self._hand is None or self._hand.joints.estopped
 
     async def release_estop(self) -> dict[str, Any]:
         """Release the latch: its record on disk first, then the hand (motors on). Either
@@ -297,12 +330,16 @@ class HandService:
         except (OSError, sqlite3.Error) as e:
             raise ServiceError(503, f"the run database did not take the release ({e}); the "
                                "e-stop stays latched") from None  # fmt: skip
+        latch = self._latch or {}
         try:
             await joints.release()
         except JointLinkError as e:
-            # the hand stays latched: so does its record (best effort: the line is the problem)
+            # the hand stays latched: so does its record, as it was (best effort: the line is
+            # the problem)
             with contextlib.suppress(OSError, sqlite3.Error):
-                self._latch = await asyncio.to_thread(store.latch_estop, "e-stop requested")
+                self._latch = await asyncio.to_thread(
+                    store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
+                )
             raise ServiceError(503, f"the hand did not take the release: {e}; the e-stop "
                                "stays latched") from None  # fmt: skip
         self._latch = None

@@ -11,10 +11,10 @@ the one it would have been unrecorded), and in the summary the truth as the run 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import sqlite3
-from typing import Any
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.bus.tactile import TactileBus, TactileFrame
@@ -24,10 +24,35 @@ from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
-from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.service.store import CLOSE_TRIES, Recorder, RunStore, locked
 from sdh2svc.service.telemetry import outline_points
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+def _retrying(write: Callable[[], None]) -> None:
+    """``write``, tried again while another program holds the database locked (each try waits
+    storage.busy_timeout_s), up to CLOSE_TRIES times more."""
+    for attempt in range(CLOSE_TRIES + 1):
+        try:
+            write()
+            return
+        except sqlite3.OperationalError as e:
+            if not locked(e) or attempt == CLOSE_TRIES:
+                raise
+            log.warning("the run database is locked by another program (%s): trying again", e)
+
+
+async def _whole(aw: Awaitable[T]) -> T:
+    """``aw`` to its end even if the awaiting task is cancelled meanwhile: then it is awaited
+    all the same, and the cancellation goes on once it is done."""
+    fut = asyncio.ensure_future(aw)
+    try:
+        return await asyncio.shield(fut)
+    except asyncio.CancelledError:
+        await fut
+        raise
 
 
 class RecordedRun:
@@ -89,25 +114,44 @@ class RecordedRun:
         self._observer.frame(t, iteration, frame)
 
     async def execute(self) -> dict[str, Any]:
-        """Run to the end (completed, stopped, faulted, e-stopped) and return the summary."""
+        """Run to the end (completed, stopped, faulted, e-stopped) and return the summary.
+
+        The record is closed and the run's end written in threads (a run database another
+        program holds locked must not hold the event loop: the service's every answer, its
+        links and the e-stop go through it), and both finish even if this task is cancelled
+        meanwhile (a run whose end was never written stayed ``running`` for good)."""
         try:
             result = await self.runner.run()  # (an e-stop's cancellation ends it too)
         except asyncio.CancelledError:
             result = self.runner.result
             if result.status == "running":
                 result.status, result.message = "stopped", "cancelled"
-            self.summary = await self._finish(result.summary())
+            await self._close()
+            self.summary = await _whole(self._finish(result.summary()))
             raise
-        finally:
-            try:
-                await self.runner.estop_reported()  # the e-stop's events go to the record too
-            finally:  # (closed also if the wait is cancelled)
-                with contextlib.suppress(Exception):
-                    self._rec.close()
-        self.summary = await self._finish(result.summary())
+        await self._close()
+        self.summary = await _whole(self._finish(result.summary()))
         return self.summary
 
+    async def _close(self) -> None:
+        """The recording closed once the e-stop's events (if any) are in it."""
+        try:
+            await self.runner.estop_reported()  # the e-stop's events go to the record too
+        finally:  # (closed also if the wait is cancelled)
+            await _whole(asyncio.to_thread(self._close_recorder))
+
+    def _write_end(self, summary: dict[str, Any]) -> None:
+        _retrying(lambda: self.store.finish_run(self.run_id, summary["status"], summary))
+
+    def _close_recorder(self) -> None:
+        try:
+            self._rec.close()
+        except Exception:
+            log.exception("run %d: its recording did not close cleanly", self.run_id)
+
     async def _finish(self, summary: dict[str, Any]) -> dict[str, Any]:
+        """The summary completed and written as the run's end (a failure to write it is logged
+        and noted in the summary: the run ended as it ended)."""
         st = self.tactile.stats
         summary["frames"] = {"received": st.frames, "crc_errors": st.crc_errors,
                              "resyncs": st.resyncs, "frames_per_s": st.frames_per_s}  # fmt: skip
@@ -117,7 +161,7 @@ class RecordedRun:
             if summary["truth"]["dropped"] and summary["status"] == "completed":
                 summary["status"] = "dropped"
         try:  # in a thread: a database another program holds locked must not hold the loop
-            await asyncio.to_thread(self.store.finish_run, self.run_id, summary["status"], summary)
+            await asyncio.to_thread(self._write_end, summary)
         except sqlite3.Error as e:  # the run ended as it ended; only its record is missing
             log.error("run %d: its end could not be recorded: %s", self.run_id, e)
             note = f"its end is not recorded in {self.store.path}: {e}"

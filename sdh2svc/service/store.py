@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import sqlite3
 import threading
@@ -26,6 +27,8 @@ from typing import IO, TYPE_CHECKING, Any
 import numpy as np
 
 from sdh2svc.control.sample import Sample
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from sdh2svc.config import Settings
@@ -228,12 +231,13 @@ class RunStore:
         row = self.db.execute("SELECT since, reason FROM estop WHERE id = 1").fetchone()
         return None if row is None else {"since": row["since"], "reason": row["reason"]}
 
-    def latch_estop(self, reason: str) -> dict[str, str]:
+    def latch_estop(self, reason: str, since: str | None = None) -> dict[str, str]:
         """Latch the e-stop on disk before anything else happens: fsync'd (synchronous=FULL),
-        so a restart — or the PC losing power — finds it still latched. Returns the latch (the
+        so a restart — or the PC losing power — finds it still latched. ``since``: when it was
+        pressed (default: now; a write that waited for a lock is later). Returns the latch (the
         first one's time and reason, if it was latched already)."""
         self._durably("INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
-                      (now_iso(), reason))  # fmt: skip
+                      (since or now_iso(), reason))  # fmt: skip
         latch = self.estop_latch()
         assert latch is not None
         return latch
@@ -442,6 +446,16 @@ def _epoch_ns(iso: str) -> int:
         return 0
 
 
+# Tries a closing recorder makes for rows a locked database refused (each waits busy_timeout_s)
+CLOSE_TRIES = 6
+
+
+def locked(e: sqlite3.OperationalError) -> bool:
+    """SQLite's "database is locked" / "busy": another connection's doing, not this data's."""
+    text = str(e).lower()
+    return "locked" in text or "busy" in text
+
+
 class Recorder:
     """Writes one run's samples, events, frames and truth from a background thread, in small
     batches.
@@ -462,6 +476,7 @@ class Recorder:
         self._buf: deque[tuple[str, tuple[Any, ...]]] = deque()
         self._closing = threading.Event()
         self.committed = 0  # items on disk
+        self.refusals = 0  # batches a locked database refused (they were tried again)
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name=f"recorder-{run_id}", daemon=True)
         self._thread.start()
@@ -516,10 +531,12 @@ class Recorder:
                 db.execute(sql[key], [v for row in part for v in row])
 
         buf = self._buf
+        refused: list[tuple[str, tuple[Any, ...]]] = []  # rows a locked database did not take
+        tries_closing = 0
         try:
             while True:
                 done = self._closing.wait(self.flush_s)
-                batch = []
+                batch = refused
                 while buf:
                     batch.append(buf.popleft())
                 if batch:
@@ -528,13 +545,32 @@ class Recorder:
                     by_table: dict[str, list[tuple[Any, ...]]] = {}
                     for kind, row in batch:
                         by_table.setdefault(kind, []).append(row)
-                    with db:
-                        for kind, rows in by_table.items():
-                            insert(kind, rows)
+                    try:
+                        with db:
+                            for kind, rows in by_table.items():
+                                insert(kind, rows)
+                    except sqlite3.OperationalError as e:
+                        # another program holds the file locked beyond busy_timeout_s: the
+                        # rows wait for the next try (they were lost with the thread before);
+                        # closing, it gives up after CLOSE_TRIES more
+                        if not locked(e) or (done and tries_closing >= CLOSE_TRIES):
+                            raise
+                        tries_closing += done
+                        self.refusals += 1
+                        if not refused:
+                            log.warning("run %d: the run database is locked by another "
+                                        "program (%s); its rows wait in memory", self.run_id,
+                                        e)  # fmt: skip
+                        refused = batch
+                        continue
+                    refused = []
                     self.committed += len(batch)
                 if done and not buf:
                     break
         except BaseException as e:
             self.error = e
+            lost = len(refused) + len(buf)
+            log.error("run %d: %d recorded items not written to %s: %s", self.run_id, lost,
+                      self.path, e)  # fmt: skip
         finally:
             db.close()

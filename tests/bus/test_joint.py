@@ -387,6 +387,23 @@ async def test_a_silent_line_fails_after_two_silent_attempts_not_every_retry() -
         assert not link.silent
 
 
+async def test_a_release_the_hand_has_not_taken_shows_latched() -> None:
+    """While the release's power command is out (a silent line), the link says e-stopped: the
+    status showed it released for the seconds the release took to fail."""
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.2, retries=1)
+        await link.emergency_stop()
+        rig.ep.disconnect(2.0)  # silent while the release is out
+        release = asyncio.create_task(link.release())
+        seen = []
+        while not release.done():
+            seen.append(link.estopped)
+            await asyncio.sleep(0.01)
+        with pytest.raises(JointLinkError):
+            await release
+        assert seen and all(seen) and link.estopped
+
+
 async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
     seen: list[LinkEvent] = []
     link = await tcp_rig.open(on_event=seen.append)

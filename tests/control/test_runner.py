@@ -186,6 +186,35 @@ def test_emergency_stop_mid_roll(tmp_path: Path) -> None:
     assert max(abs(t - a) for t, a in zip(target, actual, strict=True)) < 0.5
 
 
+def test_an_estop_after_the_run_ended_stops_the_hand_and_keeps_the_end(tmp_path: Path) -> None:
+    """The service e-stops while a run that has ended is still being recorded: the hand stops,
+    but the run keeps its own end (it was relabelled e-stopped, and the task recording it was
+    cancelled, so that its end was never written)."""
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[Any, Phase, tuple[AxisState, ...], bool]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+
+            async def stop_soon() -> None:
+                while runner.phase is Phase.IDLE:
+                    await asyncio.sleep(0.01)
+                runner.request_stop()
+
+            stopper = asyncio.create_task(stop_soon())
+            await runner.run()  # in this task, as RecordedRun.execute runs it
+            await stopper
+            recording = asyncio.current_task()
+            assert recording is not None
+            await runner.emergency_stop()
+            states = await runner.joints.get_state()
+            return runner.result, runner.phase, states, recording.cancelling() > 0
+
+    result, phase, states, cancelled = fast(main)
+    assert result.status == "stopped" and phase is Phase.STOPPED
+    assert all(s is AxisState.DISABLED for s in states)  # the hand is e-stopped all the same
+    assert not cancelled
+
+
 def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
     db = tmp_path / "runs.sqlite"
     args = [sys.executable, "-m", "sdh2svc", "run", "--sim", "--fast", "--object", "egg",

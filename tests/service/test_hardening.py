@@ -399,3 +399,32 @@ async def test_the_estop_stops_a_run_whatever_the_database_does(
             assert look.execute("SELECT reason FROM estop").fetchall() == [("e-stop requested",)]
         assert (await c.release_estop()) == {"estopped": False}
         assert (await c.status())["estop"] is None
+
+
+async def test_the_estop_answers_at_once_while_its_latch_waits_for_a_lock(tmp_path: Path) -> None:
+    """The run database's writes wait 5 s for another program's lock: the e-stop's answer
+    does not (it waited the whole busy timeout before). It says the latch is not on disk yet,
+    the status says it is pending, and once the lock goes the latch is on disk with the time
+    the e-stop came, not the time the write got through."""
+    s = start_service(tmp_path, viewer=False, extra=["--set", "storage.busy_timeout_s=5"])
+    try:
+        async with s.client() as c:
+            lock = sqlite3.connect(tmp_path / "runs.sqlite", isolation_level=None)
+            try:
+                lock.execute("BEGIN IMMEDIATE")
+                out = await c.estop()
+                assert out["estopped"] is True and out["recorded"] is False, out
+                assert "still being written" in out["detail"]
+                pending = (await c.status())["estop"]
+                assert pending["recorded"] == "pending", pending
+            finally:
+                lock.execute("ROLLBACK")
+                lock.close()
+            st = await c.wait_status(lambda st: "recorded" not in (st["estop"] or {}), 30)
+            assert st["estopped"] is True and st["estop"]["since"] == pending["since"]
+            with contextlib.closing(sqlite3.connect(tmp_path / "runs.sqlite")) as look:
+                rows = look.execute("SELECT since FROM estop").fetchall()
+            assert rows == [(pending["since"],)]
+            assert (await c.release_estop()) == {"estopped": False}
+    finally:
+        assert s.stop() == 0, "".join(s.log)

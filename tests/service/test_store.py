@@ -11,6 +11,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -216,3 +217,29 @@ def test_the_export_time_base_is_to_the_millisecond_and_the_same_in_every_time_z
         monkeypatch.delenv("TZ")
         time.tzset()
     assert _epoch_ns("not a time") == 0
+
+
+def test_rows_wait_out_a_lock_another_program_holds(cfg: Settings, tmp_path: Path) -> None:
+    """A DB browser or a sqlite3 shell holds the file locked for longer than busy_timeout_s:
+    the recorder keeps the rows and writes them once the lock is gone (its thread died on the
+    first refused batch before, and every later row of the run was lost)."""
+    db = tmp_path / "runs.sqlite"
+    store = RunStore(db)
+    run_id = store.create_run({})
+    rec = Recorder(db, run_id, flush_s=0.01, busy_timeout_s=0.05)
+    lock = sqlite3.connect(db, isolation_level=None)
+    lock.execute("BEGIN EXCLUSIVE")
+    samples = _samples(cfg, 30)
+    for s in samples[:10]:
+        rec.sample(s)
+    deadline = time.monotonic() + 30  # (a guard: the lock is met within a flush or two)
+    while rec.refusals == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert rec.refusals > 0 and rec.committed == 0
+    for s in samples[10:]:
+        rec.sample(s)
+    lock.execute("ROLLBACK")
+    lock.close()
+    rec.close()
+    assert rec.error is None and rec.committed == 30
+    assert [r["iteration"] for r in store.samples(run_id, 0, 100)] == [s.iteration for s in samples]
