@@ -167,7 +167,9 @@ class Runner:
             await self.joints.emergency_stop()
             return
         self._estopping = True
-        self.result.status, self.result.message = "e-stopped", "emergency stop"
+        after = self.result.message  # a fault the run was already answering (a force ceiling)
+        self.result.status = "e-stopped"
+        self.result.message = f"emergency stop (after {after})" if after else "emergency stop"
         self.result.strokes = self.state.strokes
         task, live = self._task, False
         if task is not None and not task.done():
@@ -180,7 +182,7 @@ class Runner:
             self._event(EventKind.ESTOP, {})
             if live:  # the run ends here (one that had ended has reported its end)
                 rec = self.result.recognition
-                end = {"status": "e-stopped", "message": "emergency stop", "recognition": rec}
+                end = {"status": "e-stopped", "message": self.result.message, "recognition": rec}
                 self._event(EventKind.END, end)
             self._estopped.set()
 
@@ -214,10 +216,13 @@ class Runner:
         except RunFault as e:
             await self._halt()
             status = "dropped" if e.fault is Fault.DROPPED else "faulted"
+            # said at once, before the opening below: the status and the record know why the
+            # fingers open, and an e-stop during the opening keeps it
+            self._event(EventKind.FAULT, {"fault": e.fault.value, "message": str(e)})
+            self.result.message = f"{e.fault.value}: {e}"
             if e.fault is Fault.FORCE_CEILING:
                 with contextlib.suppress(Exception):
                     await self._release()
-            self._event(EventKind.FAULT, {"fault": e.fault.value, "message": str(e)})
             self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
         except (JointLinkError, TactileError) as e:
             await self._halt()

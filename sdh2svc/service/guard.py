@@ -174,8 +174,8 @@ class Guard:
         method = scope.get("method", "GET")
         estop = method == "POST" and scope.get("path") == ESTOP_PATH
         refusal = self._host_refusal(headers)
+        lengths = headers.get("content-length", [])
         if refusal is None:
-            lengths = headers.get("content-length", [])
             if len(lengths) > 1 or (lengths and not lengths[0].strip().isdigit()):
                 refusal = 400, "send one valid Content-Length", []
             elif lengths and int(lengths[0]) > self.max_body:

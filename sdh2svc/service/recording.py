@@ -129,6 +129,9 @@ class RecordedRun:
             await self._close()
             self.summary = await _whole(self._finish(result.summary()))
             raise
+        except BaseException:  # a bug: the recording is closed all the same (what it has)
+            await self._close()
+            raise
         await self._close()
         self.summary = await _whole(self._finish(result.summary()))
         return self.summary

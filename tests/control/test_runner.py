@@ -215,6 +215,36 @@ def test_an_estop_after_the_run_ended_stops_the_hand_and_keeps_the_end(tmp_path:
     assert not cancelled
 
 
+def test_a_force_ceiling_says_so_before_it_opens_and_an_estop_keeps_it(tmp_path: Path) -> None:
+    """A force above the ceiling opens the hand: the fault is said as the opening starts (the
+    status showed a plain `releasing` for its 3 s), and an e-stop during the opening ends the
+    run e-stopped without losing why it was opening (the fault event came only after it)."""
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[list[tuple[str, dict[str, Any]]], str, Any]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            run = asyncio.create_task(runner.run())
+            while runner.phase is not Phase.ROLLING:
+                await asyncio.sleep(0.01)
+            # the grip (≈ Fd = 2) is far above 3 × 0.3: the ceiling trips at the next iteration
+            runner.set_params(runner.params.model_copy(update={"grasp_force": 0.3}))
+            while runner.phase is not Phase.RELEASING:
+                await asyncio.sleep(0.01)
+            before = list(seen(runner).events)
+            during = runner.result.message
+            await runner.emergency_stop()
+            with contextlib.suppress(asyncio.CancelledError):
+                await run
+            return before, during, runner.result
+
+    before, during, result = fast(main)
+    faults = [d for k, d in before if k == EventKind.FAULT]
+    assert [f["fault"] for f in faults] == ["force_ceiling"], before
+    assert during.startswith("force_ceiling: ")
+    assert result.status == "e-stopped"
+    assert result.message == f"emergency stop (after {during})"
+
+
 def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
     db = tmp_path / "runs.sqlite"
     args = [sys.executable, "-m", "sdh2svc", "run", "--sim", "--fast", "--object", "egg",

@@ -396,11 +396,14 @@ async def test_the_estop_stops_a_run_whatever_the_database_does(
             lock.execute("BEGIN IMMEDIATE")
             out = await c.estop()
             assert out["estopped"] is True and out["recorded"] is False, out
-            assert "could not be written to the run database" in out["detail"]
+            # its write waits 0.5 s for the lock, the answer at most 1 s for the write: on a busy
+            # machine the answer may come first
+            assert re.search("(could not be|is still being) written to the run database",
+                             out["detail"]), out  # fmt: skip
             end = await c.wait_run(run_id, timeout=60)
             assert end["status"] == "e-stopped" and "not recorded" in end["message"], end
-            st = await c.status()
-            assert st["estopped"] is True and st["estop"]["recorded"] == "no"
+            st = await c.wait_status(lambda st: st["estop"]["recorded"] == "no", 30)
+            assert st["estopped"] is True
             with pytest.raises(Unavailable, match="e-stop stays latched"):
                 await c.release_estop()
             assert (await c.status())["estopped"] is True
