@@ -567,7 +567,7 @@ def run_campaign(
         bar.update(bool(row.get("success")))
 
     try:
-        if ray_address is not None:
+        if ray_address is not None and todo:  # (nothing left to run starts no Ray)
             _run_ray(todo, overrides, config_path, ray_address, record)
         elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1:
             fn = case_fn or run_case

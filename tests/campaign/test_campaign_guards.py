@@ -222,3 +222,18 @@ def test_a_ray_address_where_nothing_listens_is_refused_at_once(tmp_path: Path) 
         camp.run_campaign(suite(1), tmp_path / "o", ray_address=f"127.0.0.1:{port}",
                           progress=False)  # fmt: skip
     assert not (tmp_path / "o").exists()
+
+
+def test_a_resume_with_nothing_left_starts_no_ray(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`--ray local` on a finished campaign started a Ray instance (7 s) to run nothing."""
+    out = tmp_path / "out"
+    run(suite(1), out)
+
+    def no_ray(*args: Any) -> None:
+        raise AssertionError("Ray started with nothing to run")
+
+    monkeypatch.setattr(camp, "_run_ray", no_ray)
+    res = camp.run_campaign(suite(1), out, ray_address="local", progress=False)
+    assert (res.ran, res.skipped) == (0, 1)
