@@ -11,7 +11,7 @@ import re
 import signal
 import sys
 import traceback
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from enum import IntEnum
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
@@ -251,17 +251,6 @@ def _seconds_arg(text: str) -> float:
     return value
 
 
-def _cycles_arg(text: str) -> int:
-    """``--cycles``: a whole number of strokes within rolling.cycles' range (argparse's type)."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is no whole number") from None
-    if not 1 <= n <= 10000:
-        raise argparse.ArgumentTypeError(f"{n}: 1 … 10000 strokes")
-    return n
-
-
 def _url_arg(text: str) -> str:
     """A device path or pyserial URL, not blank (argparse's type): an empty one would fall
     back to the configured line without a word."""
@@ -270,15 +259,24 @@ def _url_arg(text: str) -> str:
     return text
 
 
-def _port_arg(text: str) -> int:
-    """A TCP port 0 … 65535 (argparse's type)."""
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is no port number") from None
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"{port}: a port is 0 … 65535")
-    return port
+def _int_arg(lo: int, hi: int, noun: str, span: str) -> Callable[[str], int]:
+    """An argparse type: a whole number ``lo`` … ``hi`` (``noun``: what a number it is;
+    ``span``: the range in words)."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is no {noun}") from None
+        if not lo <= n <= hi:
+            raise argparse.ArgumentTypeError(f"{n}: {span}")
+        return n
+
+    return parse
+
+
+_port_arg = _int_arg(0, 65535, "port number", "a port is 0 … 65535")  # a TCP port
+_cycles_arg = _int_arg(1, 10000, "whole number", "1 … 10000 strokes")  # rolling.cycles' range
 
 
 def sim_command(bench: Bench, line: str) -> str | None:
@@ -665,13 +663,13 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         if args.action == "report":
             from sdh2svc.campaign.report import write_report
 
-            _only_for(args, "report", run_options=True)
+            _only_for(args, "report")
             path = write_report(Path(args.dir))
             print(path)
             return Exit.OK
         from sdh2svc.campaign.report import compare
 
-        _only_for(args, "compare", run_options=True)
+        _only_for(args, "compare")
         if args.dir_b is None:
             _fail(Exit.USAGE, "compare needs two campaign folders: DIR_A DIR_B")
         text = compare(Path(args.dir), Path(args.dir_b))
@@ -688,7 +686,7 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         _fail(Exit.NOT_FOUND, _one_line(e))
 
 
-def _only_for(args: argparse.Namespace, action: str, *, run_options: bool) -> None:
+def _only_for(args: argparse.Namespace, action: str) -> None:
     """``report`` and ``compare`` take none of ``run``'s options: given, they are mistakes
     (a --set the user thinks applies), not silently dropped; ``report`` takes one folder."""
     if action == "report" and args.dir_b is not None:
@@ -696,7 +694,7 @@ def _only_for(args: argparse.Namespace, action: str, *, run_options: bool) -> No
     given = [flag for flag, value in (("--set", args.overrides), ("--config", args.config),
                                       ("--workers", args.workers), ("--ray", args.ray),
                                       ("--out", args.out)) if value]  # fmt: skip
-    if run_options and given:
+    if given:
         _fail(Exit.USAGE, f"{', '.join(given)}: options of campaign run, not of {action}")
 
 

@@ -160,8 +160,12 @@ def _raise_for(r: httpx.Response) -> None:
         return
     got = _error_body(r.content)
     error, details = got or (r.reason_phrase or "error", [r.text[:200]] if r.text else [])
-    kind = _ERRORS.get(r.status_code, ApiError)
-    raise kind(r.status_code, error, details, r.request.method, str(r.request.url))
+    raise _api_error(r.status_code, error, details, r.request.method, str(r.request.url))
+
+
+def _api_error(status: int, error: str, details: list[Any], method: str, url: str) -> ApiError:
+    """The :class:`ApiError` subclass for ``status``."""
+    return _ERRORS.get(status, ApiError)(status, error, details, method, url)
 
 
 @contextlib.contextmanager
@@ -187,8 +191,7 @@ def _handshake(url: str) -> Iterator[None]:
         except InvalidStatus as e:
             r = e.response
             error, details = _error_body(r.body or b"") or (r.reason_phrase or "error", [])
-            kind = _ERRORS.get(r.status_code, ApiError)
-            raise kind(r.status_code, error, details, "GET", url) from None
+            raise _api_error(r.status_code, error, details, "GET", url) from None
 
 
 def _ws_options(timeout: float) -> dict[str, Any]:
@@ -370,10 +373,14 @@ class Client:
         self._http.close()
 
     def _call(self, call: _Call) -> Any:
+        return self._send(call).json()
+
+    def _send(self, call: _Call) -> httpx.Response:
+        """The service's answer to ``call``; a refusal raised (ApiError), no answer too."""
         with _answered(f"{call.method} {self.url}{call.path}"):
             r = self._http.request(call.method, call.path, **call.kwargs())
         _raise_for(r)
-        return r.json()
+        return r
 
     # the hand
     def status(self) -> JSON:
@@ -457,11 +464,7 @@ class Client:
         return cast(JSON, self._call(_truth(run_id, first, limit)))
 
     def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
-        call = _export(run_id, format)
-        with _answered(f"{call.method} {self.url}{call.path}"):
-            r = self._http.request(call.method, call.path, **call.kwargs())
-        _raise_for(r)
-        return r.content
+        return self._send(_export(run_id, format)).content
 
     def export(self, run_id: int, path: str | Path, format: ExportFormat | None = None) -> Path:
         """Write a run to a file (CSV or MCAP, from ``format`` or the file's suffix)."""
@@ -635,10 +638,13 @@ class AsyncClient:
         await self._http.aclose()
 
     async def _call(self, call: _Call) -> Any:
+        return (await self._send(call)).json()
+
+    async def _send(self, call: _Call) -> httpx.Response:
         with _answered(f"{call.method} {self.url}{call.path}"):
             r = await self._http.request(call.method, call.path, **call.kwargs())
         _raise_for(r)
-        return r.json()
+        return r
 
     # the hand
     async def status(self) -> JSON:
@@ -711,11 +717,7 @@ class AsyncClient:
         return cast(JSON, await self._call(_truth(run_id, first, limit)))
 
     async def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
-        call = _export(run_id, format)
-        with _answered(f"{call.method} {self.url}{call.path}"):
-            r = await self._http.request(call.method, call.path, **call.kwargs())
-        _raise_for(r)
-        return r.content
+        return (await self._send(_export(run_id, format))).content
 
     async def export(
         self, run_id: int, path: str | Path, format: ExportFormat | None = None

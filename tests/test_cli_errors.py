@@ -465,14 +465,18 @@ def test_a_bad_object_file_is_named_field_by_field(
         (["sim", "--no-pty", "--no-tcp"], "nothing to serve"),
         (["run", "--sim", "--dsa", "/dev/x"], "--dsa names a real hand's line: not with --sim"),
         (["serve", "--sim", "--dsa", "a", "--sdh", "b"], "--dsa and --sdh name a real hand's"),
+        (["runs", "list", "5"], "the run ID 5: not with runs list"),
+        (["runs", "list", "--format", "mcap"], "--format: not with runs list"),
+        (["runs", "show", "5", "-o", "x.csv"], "--output: not with runs show"),
     ],
 )
 def test_inputs_the_model_or_the_simulator_cannot_use_are_usage_errors(
     args: list[str], fragment: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A pose beyond the joint limits or a contact off the pad (the model would print a
-    contact 1 km away, or crash); a simulator serving nothing; real lines beside --sim
-    (ignored before)."""
+    contact 1 km away, or crash); a simulator serving nothing; real lines beside --sim, and
+    what only another `runs` action takes (`runs list 5 --format mcap` printed the whole list):
+    ignored before."""
     status, _, err = call(capsys, *args)
     assert status == Exit.USAGE
     assert fragment in one_line(err, args[0])
@@ -507,19 +511,3 @@ def test_config_does_not_print_the_token(
     status, out, _ = call(capsys, "config")
     assert status == Exit.OK and "sekrit" not in out
     assert json.loads(out)["service"]["token"] == "***"
-
-
-@pytest.mark.parametrize(
-    ("args", "fragment"),
-    [
-        (["runs", "list", "5"], "the run ID 5: not with runs list"),
-        (["runs", "list", "--format", "mcap"], "--format: not with runs list"),
-        (["runs", "show", "5", "-o", "x.csv"], "--output: not with runs show"),
-    ],
-)
-def test_what_another_runs_action_takes_is_a_usage_error(
-    args: list[str], fragment: str, capsys: pytest.CaptureFixture[str]
-) -> None:
-    """`runs list 5 --format mcap` printed the whole list: the ID and the format dropped."""
-    status, _, err = call(capsys, *args)
-    assert status == Exit.USAGE and fragment in one_line(err, "runs")

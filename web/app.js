@@ -693,45 +693,47 @@ function rememberSample(runId, s) {
 
 const MAX_EVENTS = 60; // in the list, newest first
 
-/** An event at the top of the list (`older`: from the run's record, at the bottom; its samples
- * the recorded ones, by iteration). */
-function addEvent(m, { older = false, samples = recent.samples, since } = {}) {
+/** An event's list item (its sentence written by `writeEvent`). */
+function eventItem(m) {
   const li = document.createElement("li");
   li.className = m.kind;
   li.dataset.kind = m.kind;
-  const ol = $("#events");
-  if (older) {
-    if (m.run_id === state.liveRunId && m.iteration != null && MARKERS[m.kind]) {
-      plots.markLive({ x: m.iteration, kind: m.kind, text: m.kind });
-    }
-    if (ol.children.length >= MAX_EVENTS) return;
-    li.dataset.backfilled = "true";
-    ol.append(li);
-  } else {
-    ol.prepend(li);
-    if (m.run_id != null) shownLive(m);
+  return li;
+}
+
+/** The event as a sentence (`ctx`: see eventSentence) and where it happened. */
+function writeEvent(li, m, ctx) {
+  const where = m.run_id != null ? `run ${m.run_id}${m.iteration != null ? `, it ${m.iteration}` : ""}` : "hand";
+  li.textContent = `${eventSentence(m, ctx)} `;
+  const small = document.createElement("small");
+  small.textContent = `(${where})`;
+  li.appendChild(small);
+}
+
+/** The event on the live plots' iteration axis, if it is of the live run and has a marker. */
+function markEvent(m) {
+  if (m.run_id != null && m.run_id === state.liveRunId && m.iteration != null && MARKERS[m.kind]) {
+    plots.markLive({ x: m.iteration, kind: m.kind, text: m.kind });
   }
+}
+
+/** A live event at the top of the list. */
+function addEvent(m) {
+  const li = eventItem(m);
+  const ol = $("#events");
+  ol.prepend(li);
+  if (m.run_id != null) shownLive(m);
   while (ol.children.length > MAX_EVENTS) ol.lastElementChild.remove();
   const write = () => {
-    const sample = samples.get(m.iteration);
+    const sample = recent.samples.get(m.iteration);
     const ctx = { alpha: coneAlpha(sample, state.params.alpha_deg), sample };
-    if (older) {
-      if (since !== undefined) ctx.since = since;
-    } else if (m.kind === "reversal" && m.run_id != null && m.iteration != null) {
+    if (m.kind === "reversal" && m.run_id != null && m.iteration != null) {
       const prev = recent.lastReversal.get(m.run_id);
       if (prev !== undefined) ctx.since = m.iteration - prev;
       recent.lastReversal.set(m.run_id, m.iteration);
     }
-    const where = m.run_id != null ? `run ${m.run_id}${m.iteration != null ? `, it ${m.iteration}` : ""}` : "hand";
-    li.textContent = `${eventSentence(m, ctx)} `;
-    const small = document.createElement("small");
-    small.textContent = `(${where})`;
-    li.appendChild(small);
+    writeEvent(li, m, ctx);
   };
-  if (older) {
-    write();
-    return;
-  }
   if (m.kind === "reversal" && m.iteration != null && !recent.samples.has(m.iteration)) {
     const p = { iteration: m.iteration, done: write, timer: 0 };
     p.timer = setTimeout(() => {
@@ -742,10 +744,23 @@ function addEvent(m, { older = false, samples = recent.samples, since } = {}) {
   } else {
     write();
   }
-  if (m.run_id != null && m.run_id === state.liveRunId && m.iteration != null && MARKERS[m.kind]) {
-    plots.markLive({ x: m.iteration, kind: m.kind, text: m.kind });
-  }
+  markEvent(m);
   eventNotice(m);
+}
+
+/** An event from the run's record, below those listed (`samples`: the recorded ones by
+ * iteration; `since`: iterations since the previous reversal). */
+function addOlderEvent(m, samples, since) {
+  markEvent(m);
+  const ol = $("#events");
+  if (ol.children.length >= MAX_EVENTS) return;
+  const li = eventItem(m);
+  li.dataset.backfilled = "true";
+  ol.append(li);
+  const sample = samples.get(m.iteration);
+  const ctx = { alpha: coneAlpha(sample, state.params.alpha_deg), sample };
+  if (since !== undefined) ctx.since = since;
+  writeEvent(li, m, ctx);
 }
 
 /** Events that change what the notice says (`fault` comes before the run's `end`). */
@@ -832,7 +847,7 @@ async function backfill(runId, first, t0) {
       if (!seen.has(eventKey(m))) events.push({ m, since });
     }
     for (const { m, since } of events.reverse()) { // newest first, below those already listed
-      addEvent(m, { older: true, samples: bySample, since });
+      addOlderEvent(m, bySample, since);
     }
     if (last !== undefined && !recent.lastReversal.has(runId)) recent.lastReversal.set(runId, last);
     sdh2.backfilled = { samples: older.length, events: events.length };

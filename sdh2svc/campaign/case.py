@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from sdh2svc.config import ConfigError, clip, format_errors
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite, Frozen
 from sdh2svc.sim.objects import Ellipse, ObjectSpec, Shape
 
 Family = Literal["box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis"]
@@ -60,10 +60,16 @@ WIDTH_TOLERANCE_MM = 0.01
 MAX_CONTACT_WIDTH_MM = 122.5
 
 
-class Case(Frozen):
-    """One run of a campaign."""
+# The configuration keys a case may set (Case.overrides), bar the nominal sensor gain it scales
+# (sim.sensor.gain_vs_library × gain_factor): a campaign's --set of one would be overridden.
+CASE_KEYS = frozenset({
+    "sim.seed", "sim.object_height_mm", "sim.object_angle_deg", "sim.sensor.creep_gain",
+    "sim.sensor.creep_rise_s", "sim.sensor.noise_counts", "sim.sensor.dead_texels",
+})  # fmt: skip
 
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+class Case(Finite):
+    """One run of a campaign."""
 
     id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     family: Family
@@ -97,8 +103,8 @@ class Case(Frozen):
         return self
 
     def overrides(self, base_gain: float) -> list[str]:
-        """The configuration keys this case sets (``--set`` syntax), given the nominal
-        ``sim.sensor.gain_vs_library``."""
+        """The configuration keys this case sets (``--set`` syntax; of :data:`CASE_KEYS`, and
+        the sensor's gain), given the nominal ``sim.sensor.gain_vs_library``."""
         out = [f"sim.seed={self.seed}", f"sim.object_height_mm={self.height_mm!r}",
                f"sim.object_angle_deg={self.angle_deg!r}",
                f"sim.sensor.gain_vs_library={base_gain * self.sensor.gain_factor!r}"]  # fmt: skip

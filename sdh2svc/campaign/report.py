@@ -37,7 +37,7 @@ def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
             if not (out / CAMPAIGN_FILE).exists():
                 raise CampaignError(3, f"no campaign in {out}: {CASES_FILE} without the "
                                     f"{CAMPAIGN_FILE} a campaign run writes first")  # fmt: skip
-            if not any("id" in r for r in read_rows(out)):
+            if not read_rows(out):  # (it keeps only results)
                 raise CampaignError(2, f"{cases}: no case's result in it")
             write_results(out)
         return read_results(out)
@@ -363,35 +363,39 @@ def _paired(better: int, worse: int) -> str:
     )
 
 
+def _campaign_line(label: str, out: Path, info: Mapping[str, Any]) -> str:
+    """``A: `DIR` suite S (sdh2svc V, DESCRIBE), `--set` …``: which campaign a column is."""
+    code, sets = info.get("code") or {}, " ".join(info.get("overrides") or []) or "none"
+    return (
+        f"{label}: `{out}` suite {info.get('suite')} (sdh2svc {code.get('version')}, "
+        f"{code.get('git_describe')}), `--set` {sets}"
+    )
+
+
 def compare(a: Path, b: Path) -> str:
     """Markdown: the two campaigns' success rates side by side, and case by case what changed."""
     ra, ia = load(a)
     rb, ib = load(b)
-    lines = [f"# {a} vs {b}", "",
-             f"A: `{a}` suite {ia.get('suite')} (sdh2svc {(ia.get('code') or {}).get('version')}"
-             f", {(ia.get('code') or {}).get('git_describe')}), `--set` "
-             f"{' '.join(ia.get('overrides') or []) or 'none'}",
-             f"B: `{b}` suite {ib.get('suite')} (sdh2svc {(ib.get('code') or {}).get('version')}"
-             f", {(ib.get('code') or {}).get('git_describe')}), `--set` "
-             f"{' '.join(ib.get('overrides') or []) or 'none'}",
-             "", "| family | A | B |", "|---|---|---|",
-             f"| **all** | {rate(ra)} | {rate(rb)} |"]  # fmt: skip
-    fa, fb = by(ra, lambda r: r["family"]), by(rb, lambda r: r["family"])
-    for fam in _family_order(set(fa) | set(fb)):
-        lines.append(f"| {fam} | {rate(fa.get(fam, []))} | {rate(fb.get(fam, []))} |")
     da, db = {r["id"]: r for r in ra}, {r["id"]: r for r in rb}
     # a case is paired with the same case: the same id and the same object, placement and
     # sensor (packaged suites share ids such as box-000 for different objects)
     common = [i for i in da if i in db and da[i]["spec"] == db[i]["spec"]]
     unpaired = [i for i in da if i in db and da[i]["spec"] != db[i]["spec"]]
-    if unpaired:
-        lines[5:5] = ["", f"**{len(unpaired)} cases share an id but not their spec (object, "
-                      "placement, sensor): they are other cases, not paired** "
-                      f"(e.g. {', '.join(unpaired[:3])}; different suites?)"]  # fmt: skip
+    notes = []
     if ia.get("suite_digest") != ib.get("suite_digest"):
-        lines[5:5] = ["", f"The suites differ (digest {ia.get('suite_digest')} and "
-                      f"{ib.get('suite_digest')}): only cases with the same id and spec are "
-                      "paired."]  # fmt: skip
+        notes += ["", f"The suites differ (digest {ia.get('suite_digest')} and "
+                  f"{ib.get('suite_digest')}): only cases with the same id and spec are "
+                  "paired."]  # fmt: skip
+    if unpaired:
+        notes += ["", f"**{len(unpaired)} cases share an id but not their spec (object, "
+                  "placement, sensor): they are other cases, not paired** "
+                  f"(e.g. {', '.join(unpaired[:3])}; different suites?)"]  # fmt: skip
+    lines = [f"# {a} vs {b}", "", _campaign_line("A", a, ia), _campaign_line("B", b, ib), *notes,
+             "", "| family | A | B |", "|---|---|---|",
+             f"| **all** | {rate(ra)} | {rate(rb)} |"]  # fmt: skip
+    fa, fb = by(ra, lambda r: r["family"]), by(rb, lambda r: r["family"])
+    for fam in _family_order(set(fa) | set(fb)):
+        lines.append(f"| {fam} | {rate(fa.get(fam, []))} | {rate(fb.get(fam, []))} |")
     better = [i for i in common if not da[i]["success"] and db[i]["success"]]
     worse = [i for i in common if da[i]["success"] and not db[i]["success"]]
     changed = [i for i in common if not da[i]["success"] and not db[i]["success"]

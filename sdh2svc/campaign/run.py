@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sdh2svc.campaign.case import Case, Suite
+from sdh2svc.campaign.case import CASE_KEYS, Case, Suite
 from sdh2svc.config import ConfigError, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 
@@ -467,13 +467,6 @@ def _config_change(old: Any, new: Mapping[str, Any]) -> str:
     return shown + (f"; and {len(keys) - 3} more" if len(keys) > 3 else "")
 
 
-# The configuration keys a case sets (Case.overrides), but the nominal gain it scales.
-CASE_KEYS = frozenset({
-    "sim.seed", "sim.object_height_mm", "sim.object_angle_deg", "sim.sensor.creep_gain",
-    "sim.sensor.creep_rise_s", "sim.sensor.noise_counts", "sim.sensor.dead_texels",
-})  # fmt: skip
-
-
 def check_overrides(overrides: Sequence[str]) -> None:
     """No ``--set`` of a key each case sets itself (Case.overrides: where the object is placed,
     the seed, the sensor's variation): the case's value would win without a word, while the
@@ -551,7 +544,7 @@ def run_campaign(
     except OSError as e:
         raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
     # the last row of each case decides; a crashed case runs again (a crash is no result)
-    last = {r["id"]: r for r in read_rows(out) if isinstance(r.get("id"), str)}
+    last = {r["id"]: r for r in read_rows(out)}
     ids = {c.id for c in suite.cases}
     done = {i for i, r in last.items() if i in ids and r.get("status") != "crashed"}
     todo = [c for c in suite.cases if c.id not in done]

@@ -9,16 +9,13 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Self
 
-from pydantic import ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 
 
-class RollingParams(Frozen):
+class RollingParams(Finite):
     """Parameters of the rolling loop. Angles in degrees (converted by the properties below)."""
-
-    # NaN and ±∞ are no parameters: named as such, not as a range they fall outside of
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     mode: Literal["two-finger", "one-finger"] = Field(
         description="two-finger: thesis §3.4–3.5; one-finger: §3.3, Finger 2 holds still"

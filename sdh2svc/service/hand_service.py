@@ -307,17 +307,17 @@ class HandService:
             return False
         e = record.exception()
         if e is None:
-            if self._latch is not None or self.latched_now():  # not released meanwhile
+            if self._latch is not None or self._latched_now():  # not released meanwhile
                 self._latch = record.result()
             self.publish_status()
             return True
         log.error("e-stop latched, but not on disk: %s", e)
-        if self.latched_now():
+        if self._latched_now():
             self._latch = {"since": since, "reason": "e-stop requested", "recorded": "no"}
         self.publish_status()
         return False
 
-    def latched_now(self) -> bool:
+    def _latched_now(self) -> bool:
         """Whether the joint link holds the e-stop latched (or has no link to ask)."""
         return self._hand is None or self._hand.joints.estopped
 

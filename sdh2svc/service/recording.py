@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import sqlite3
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable
 from typing import Any, TypeVar
 
 from sdh2svc.bus.joint import JointLink
@@ -24,24 +24,11 @@ from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
-from sdh2svc.service.store import CLOSE_TRIES, Recorder, RunStore, locked
+from sdh2svc.service.store import Recorder, RunStore, retry_locked
 from sdh2svc.service.telemetry import outline_points
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
-
-
-def _retrying(write: Callable[[], None]) -> None:
-    """``write``, tried again while another program holds the database locked (each try waits
-    storage.busy_timeout_s), up to CLOSE_TRIES times more."""
-    for attempt in range(CLOSE_TRIES + 1):
-        try:
-            write()
-            return
-        except sqlite3.OperationalError as e:
-            if not locked(e) or attempt == CLOSE_TRIES:
-                raise
-            log.warning("the run database is locked by another program (%s): trying again", e)
 
 
 async def _whole(aw: Awaitable[T]) -> T:
@@ -121,18 +108,16 @@ class RecordedRun:
         links and the e-stop go through it), and both finish even if this task is cancelled
         meanwhile (a run whose end was never written stayed ``running`` for good)."""
         try:
-            result = await self.runner.run()  # (an e-stop's cancellation ends it too)
+            try:
+                result = await self.runner.run()  # (an e-stop's cancellation ends it too)
+            finally:
+                await self._close()
         except asyncio.CancelledError:
             result = self.runner.result
             if result.status == "running":
                 result.status, result.message = "stopped", "cancelled"
-            await self._close()
             self.summary = await _whole(self._finish(result.summary()))
             raise
-        except BaseException:  # a bug: the recording is closed all the same (what it has)
-            await self._close()
-            raise
-        await self._close()
         self.summary = await _whole(self._finish(result.summary()))
         return self.summary
 
@@ -144,7 +129,7 @@ class RecordedRun:
             await _whole(asyncio.to_thread(self._close_recorder))
 
     def _write_end(self, summary: dict[str, Any]) -> None:
-        _retrying(lambda: self.store.finish_run(self.run_id, summary["status"], summary))
+        retry_locked(lambda: self.store.finish_run(self.run_id, summary["status"], summary))
 
     def _close_recorder(self) -> None:
         try:

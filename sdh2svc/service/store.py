@@ -19,7 +19,7 @@ import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
@@ -456,6 +456,19 @@ def locked(e: sqlite3.OperationalError) -> bool:
     return "locked" in text or "busy" in text
 
 
+def retry_locked(write: Callable[[], None]) -> None:
+    """``write``, tried again while another program holds the database locked (each try waits
+    storage.busy_timeout_s), up to CLOSE_TRIES times more."""
+    for attempt in range(CLOSE_TRIES + 1):
+        try:
+            write()
+            return
+        except sqlite3.OperationalError as e:
+            if not locked(e) or attempt == CLOSE_TRIES:
+                raise
+            log.warning("the run database is locked by another program (%s): trying again", e)
+
+
 class Recorder:
     """Writes one run's samples, events, frames and truth from a background thread, in small
     batches.
@@ -531,19 +544,18 @@ class Recorder:
                 db.execute(sql[key], [v for row in part for v in row])
 
         buf = self._buf
-        refused: list[tuple[str, tuple[Any, ...]]] = []  # rows a locked database did not take
-        tries_closing = 0
+        pending: list[tuple[str, tuple[Any, ...]]] = []  # taken from the buffer, not on disk
+        in_a_row = tries_closing = 0  # refusals of a locked database
         try:
             while True:
                 done = self._closing.wait(self.flush_s)
-                batch = refused
                 while buf:
-                    batch.append(buf.popleft())
-                if batch:
+                    pending.append(buf.popleft())
+                if pending:
                     # one transaction; each table's rows (in their order) in few statements:
                     # the tables' rows come interleaved (a sample, its truth, its frame, …)
                     by_table: dict[str, list[tuple[Any, ...]]] = {}
-                    for kind, row in batch:
+                    for kind, row in pending:
                         by_table.setdefault(kind, []).append(row)
                     try:
                         with db:
@@ -557,19 +569,19 @@ class Recorder:
                             raise
                         tries_closing += done
                         self.refusals += 1
-                        if not refused:
+                        in_a_row += 1
+                        if in_a_row == 1:
                             log.warning("run %d: the run database is locked by another "
                                         "program (%s); its rows wait in memory", self.run_id,
                                         e)  # fmt: skip
-                        refused = batch
                         continue
-                    refused = []
-                    self.committed += len(batch)
+                    self.committed += len(pending)
+                    pending, in_a_row = [], 0
                 if done and not buf:
                     break
         except BaseException as e:
             self.error = e
-            lost = len(refused) + len(buf)
+            lost = len(pending) + len(buf)
             log.error("run %d: %d recorded items not written to %s: %s", self.run_id, lost,
                       self.path, e)  # fmt: skip
         finally:

@@ -458,4 +458,4 @@ def get_object(name: str) -> Shape:
         return PRESETS[name]
     except KeyError:
         shown = name if len(name) <= 80 else name[:80] + "…"
-        raise KeyError(f"unknown object {shown!r}; presets: {', '.join(PRESETS)}") from None
+        raise KeyError(f"unknown object {shown!r} (the presets: {', '.join(PRESETS)})") from None

@@ -58,10 +58,10 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 import numpy as np
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 from scipy import optimize
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope
 from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose
 from sdh2svc.sim.objects import Ellipse, Outline, Polygon
@@ -75,12 +75,10 @@ _Pull = tuple[float, float, float, float, float]  # an anchor's spring, see Cont
 _World = list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]
 
 
-class PhysicsConfig(Frozen):
+class PhysicsConfig(Finite):
     """Contact mechanics parameters (see config/sim.toml). The ranges are generous physical
     ones (a rubber 500 × softer or stiffer than the DSA's, a finger 10⁴ × stiffer); NaN and
     infinities are refused: they break the balance's solver rather than the simulated hand."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     pad_stiffness_n_per_mm3: Annotated[float, Field(gt=0.0, le=100.0)]
     pad_thickness_mm: Annotated[float, Field(gt=0.0, le=20.0)]

@@ -7,7 +7,7 @@ from typing import Annotated
 from pydantic import Field, field_validator
 
 from sdh2svc.model.base import Frozen
-from sdh2svc.sim.objects import PRESETS
+from sdh2svc.sim.objects import get_object
 from sdh2svc.sim.physics import PhysicsConfig
 from sdh2svc.sim.sensor import SensorModelConfig
 
@@ -42,7 +42,8 @@ class SimConfig(Frozen):
     @classmethod
     def _preset(cls, v: str) -> str:
         """A preset's name (an object file is given with ``--object-file``)."""
-        if v not in PRESETS:
-            shown = v if len(v) <= 80 else v[:80] + "…"
-            raise ValueError(f"unknown object {shown!r} (the presets: {', '.join(PRESETS)})")
+        try:
+            get_object(v)
+        except KeyError as e:  # its message names the presets
+            raise ValueError(e.args[0]) from None
         return v
