@@ -1199,6 +1199,10 @@ class DescriptorString:
 _FRAME_HEAD = struct.Struct("<IB")
 _FLAG_RLE = 0x01
 _RUN_MAX = 15  # 4-bit run length
+# texel indices, and whether an offset into a run starts a word (a lookup: cheaper than `% 15`),
+# for frames of up to 4096 texels
+_INDEX = np.arange(4096, dtype=np.intp)
+_WORD_START = _INDEX % _RUN_MAX == 0
 
 
 @dataclass(frozen=True, slots=True, eq=False, repr=False)
@@ -1258,25 +1262,33 @@ def rle_encode(values: npt.ArrayLike, *, breaks: Iterable[int] = ()) -> bytes:
 
 
 def _rle_words(v: npt.NDArray[np.uint16], breaks: Iterable[int]) -> bytes:
-    """:func:`rle_encode` of texels already checked (:func:`_as_texels`)."""
+    """:func:`rle_encode` of texels already checked (:func:`_as_texels`).
+
+    A word starts where a run starts and every 15 texels into a run; each texel's offset into
+    its run is its index minus the running maximum of the run starts' indices.
+    """
     n = v.size
     if n == 0:
         return b""
-    starts = np.ones(n, dtype=bool)
+    starts = np.empty(n, dtype=bool)
+    starts[0] = True
     np.not_equal(v[1:], v[:-1], out=starts[1:])
     b = np.fromiter(breaks, dtype=np.intp)
     if b.size:
         if int(b.min()) < 0 or int(b.max()) > n:
             raise ValueError(f"RLE breaks must lie in 0…{n}")
         starts[b[b < n]] = True
-    first = np.flatnonzero(starts)
+    if n <= _INDEX.size:
+        idx, word_start = _INDEX[:n], _WORD_START
+    else:  # larger than any real sensor's frame
+        idx = np.arange(n)
+        word_start = idx % _RUN_MAX == 0
+    since = idx - np.maximum.accumulate(idx * starts)  # offset into the texel's run
+    first = word_start[since].nonzero()[0]
     lengths = np.empty_like(first)  # np.diff(np.append(first, n)), without their overhead
     np.subtract(first[1:], first[:-1], out=lengths[:-1])
     lengths[-1] = n - first[-1]
-    nwords = (lengths + _RUN_MAX - 1) // _RUN_MAX
-    counts = np.full(int(nwords.sum()), _RUN_MAX, dtype=np.uint16)
-    counts[nwords.cumsum() - 1] = lengths - _RUN_MAX * (nwords - 1)
-    words = (counts << 12) | np.repeat(v[first], nwords)
+    words: npt.NDArray[np.intp] = (lengths << 12) | v[first]
     return words.astype("<u2").tobytes()
 
 
@@ -1287,12 +1299,13 @@ def rle_decode(data: bytes | memoryview, nb_cells: int) -> npt.NDArray[np.uint16
     """
     if len(data) % 2:
         raise FrameError(f"RLE data has an odd length ({len(data)} bytes)")
-    words = np.frombuffer(data, dtype="<u2")
-    counts = (words >> 12).astype(np.intp)
-    total = int(counts.sum())
-    if total != nb_cells:
-        raise FrameError(f"RLE data expands to {total} texels, expected {nb_cells}")
-    return np.repeat((words & TEXEL_MAX).astype(np.uint16), counts)
+    words: npt.NDArray[np.uint16] = np.frombuffer(data, dtype="<u2")
+    # the methods, not np.repeat/np.sum: their dispatch costs more than the work; the size is
+    # checked after expanding (a payload's u16 length bounds it to 32767 · 15 texels)
+    texels = (words & np.uint16(TEXEL_MAX)).repeat((words >> 12).astype(np.intp))
+    if texels.size != nb_cells:
+        raise FrameError(f"RLE data expands to {texels.size} texels, expected {nb_cells}")
+    return texels
 
 
 def encode_frame_payload(

@@ -210,7 +210,7 @@ class DsaconEmulator:
         self._shapes = tuple((int(r), int(c)) for r, c in world.matrix_shapes)
         self._masks = _check_masks(self._shapes, static_masks)
         self._present = np.concatenate([m.ravel() for m in self._masks])
-        self._absent = ~self._present
+        self._absent = np.flatnonzero(~self._present)  # an index: cheaper than a mask per frame
         self._breaks = _rle_breaks(self._shapes, self.options.rle_breaks)
         n = len(self._shapes)
         self._saved_sens = [self.options.factory_sensitivity] * n

@@ -36,6 +36,7 @@ from sdh2svc.sim.world import FACTORY_SENSITIVITY, MAX_COUNT
 
 MATRICES, MAX_ROWS, MAX_COLS = 6, 14, 6  # the DSA's six matrices; the largest (proximal) 14 × 6
 DeadIndex = Annotated[int, Strict(), Field(ge=0)]
+_Settings = tuple[tuple[float, ...], tuple[int, ...], np.ndarray, np.ndarray | None]
 
 
 class SensorModelConfig(Frozen):
@@ -130,9 +131,10 @@ class TactileSensorModel:
             if m >= len(self.shapes) or r >= self.shapes[m][0] or c >= self.shapes[m][1]:
                 raise ValueError(f"dead texel [{m}, {r}, {c}]: matrix {m} has no such cell")
             self.valid[self.offsets[m] + r * self.shapes[m][1] + c] = False
+        self._absent = np.flatnonzero(~self.valid)  # an index: cheaper than a mask per frame
         self._t: float | None = None
-        self._settings: tuple[tuple[float, ...], tuple[int, ...], np.ndarray, np.ndarray] | None
-        self._settings = None
+        # (sensitivity, threshold, gain per cell, threshold per cell or None when all are <= 0)
+        self._settings: _Settings | None = None
 
     def _flat_pressures(
         self, by_surface: Mapping[int, tuple[np.ndarray, np.ndarray]], band_mm: float
@@ -177,15 +179,21 @@ class TactileSensorModel:
             mem = self.memory
             rise, fall = -np.expm1(-dt / cfg.creep_rise_s), -np.expm1(-dt / cfg.creep_fall_s)
             mem += (p - mem) * np.where(p > mem, rise, fall)
-            reading = p + cfg.creep_gain * np.minimum(mem, p)
+            reading = np.minimum(mem, p)  # p + creep_gain·min(m, p), in place (+ and · commute)
+            reading *= cfg.creep_gain
+            reading += p
         c = reading / self.per_count
         if cfg.noise and cfg.noise_counts > 0:
             # an unloaded resistive cell reads a clean 0; loaded ones are noisy (one draw per
             # cell, in wire order: the same stream as drawing matrix by matrix)
             noise = self.rng.normal(0.0, cfg.noise_counts, c.shape)
-            c = np.where(c > 0.5, c + noise, c)
-        counts = np.where(self.valid, np.maximum(c, 0.0), 0.0)
-        return self._apply_settings(counts, sensitivity, threshold)
+            # c + noise·(c > 0.5): an unloaded cell adds ±0.0 (the draws are finite), which
+            # at most turns a -0.0 into 0.0, the same count; np.where or a masked add cost more
+            noise *= c > 0.5
+            c += noise
+        np.maximum(c, 0.0, out=c)
+        c[self._absent] = 0.0  # cells missing from the layout, and dead ones
+        return self._apply_settings(c, sensitivity, threshold)
 
     def _apply_settings(
         self, raw: np.ndarray, sensitivity: Sequence[float], threshold: Sequence[int]
@@ -198,9 +206,14 @@ class TactileSensorModel:
             sizes = np.diff(self.offsets)
             gain = np.repeat([float(v) / FACTORY_SENSITIVITY for v in key_s], sizes)
             thr = np.repeat(np.asarray([int(v) for v in key_t], dtype=float), sizes)
-            st = (key_s, key_t, gain, thr)
+            # counts are >= 0 here: a threshold of 0 or below suppresses nothing
+            st = (key_s, key_t, gain, thr if thr.max() > 0 else None)
             self._settings = st
-        # np.clip's own overhead is far dearer than its two ufuncs
-        seg: np.ndarray = np.minimum(np.maximum(np.rint(raw * st[2]), 0.0), MAX_COUNT)
-        seg[seg < st[3]] = 0
+        # np.clip's own overhead is far dearer than its two ufuncs; in place: no temporaries
+        seg: np.ndarray = raw * st[2]
+        np.rint(seg, out=seg)
+        np.maximum(seg, 0.0, out=seg)
+        np.minimum(seg, MAX_COUNT, out=seg)
+        if st[3] is not None:
+            seg[seg < st[3]] = 0
         return seg.astype(np.uint16)
