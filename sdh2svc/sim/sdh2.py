@@ -299,18 +299,22 @@ class Profile:
         ``K = k·max(dᵢ/aᵢ)`` is smallest at ``c = max(√K, max dᵢ/vᵢ)``. Raises ValueError if an
         axis must move with zero velocity or acceleration.
         """
-        moving = [
-            (abs(d), v, a)
-            for d, v, a in zip(distances, velocities, accelerations, strict=True)
-            if abs(d) > _EPS
-        ]
-        if not moving:
+        # max dᵢ/aᵢ and max dᵢ/vᵢ over the moving axes, in one pass (as max() picks them)
+        per_a: float | None = None
+        per_v: float | None = None
+        for d, v, a in zip(distances, velocities, accelerations, strict=True):
+            d = abs(d)
+            if d > _EPS:
+                if v <= 0.0 or a <= 0.0:
+                    raise ValueError("an axis must move with zero velocity or acceleration")
+                if per_a is None or d / a > per_a:
+                    per_a = d / a
+                if per_v is None or d / v > per_v:
+                    per_v = d / v
+        if per_a is None or per_v is None:  # nothing moves
             return cls(0.0, 0.0, sin2)
-        if any(v <= 0.0 or a <= 0.0 for _, v, a in moving):
-            raise ValueError("an axis must move with zero velocity or acceleration")
-        peak = math.pi / 2 if sin2 else 1.0
-        k = peak * max(d / a for d, _, a in moving)
-        cruise = max(math.sqrt(k), max(d / v for d, v, _ in moving))
+        k = (math.pi / 2 if sin2 else 1.0) * per_a
+        cruise = max(math.sqrt(k), per_v)
         ramp = k / cruise
         return cls(cruise + ramp, ramp, sin2)
 
@@ -425,39 +429,43 @@ class _Move:
         duration = max(self.profile.duration, max(c.time for c in self.carry))
         object.__setattr__(self, "duration", duration)
         object.__setattr__(self, "end", self.t0 + duration)
+        goal, start, carry = self.goal, self.start, self.carry
         plain: list[tuple[int, float, float]] = []
-        coast: dict[tuple[float, bool], list[tuple[int, float, float, Carry]]] = {}
-        for i, (g, s, c) in enumerate(zip(self.goal, self.start, self.carry, strict=True)):
-            span = g - s - c.distance
+        coast: dict[tuple[float, bool], _Coast] = {}
+        for i in _ALL:
+            s, c = start[i], carry[i]
+            span = goal[i] - s - c.distance
             if c.time > 0.0:
-                coast.setdefault((c.time, c.sin2), []).append((i, s, span, c))
+                if (group := coast.get((c.time, c.sin2))) is None:
+                    coast[c.time, c.sin2] = group = _Coast(c.time, c.sin2)
+                group.add(i, s, span, c)
             else:  # the carry's offset is 0.0
                 plain.append((i, s + 0.0, span))
         object.__setattr__(self, "plain", tuple(plain))
-        object.__setattr__(self, "coast", tuple(_Coast.of(axes) for axes in coast.values()))
+        object.__setattr__(self, "coast", tuple(coast.values()))
 
     def span(self, i: int) -> float:
         """What the coordinated profile covers on axis i (the rest is the carry's)."""
         return self.goal[i] - self.start[i] - self.carry[i].distance
 
 
-@dataclass(frozen=True, slots=True)
 class _Coast:
     """A move's axes whose carries ramp down alike (same time and shape): the carry's shape at a
     tick is computed once for all of them (:meth:`Carry.offset`, :meth:`Carry.velocity`)."""
 
-    time: float
-    sin2: bool
-    k: float  # time / 2π
-    twice: float  # 2·time
-    axes: tuple[tuple[int, float, float, Carry], ...]  # (axis, start, span, carry)
-    after: tuple[tuple[int, float, float], ...]  # (axis, start + carry distance, span)
+    __slots__ = ("after", "axes", "k", "sin2", "time", "twice")
 
-    @classmethod
-    def of(cls, axes: list[tuple[int, float, float, Carry]]) -> _Coast:
-        c = axes[0][3]
-        after = tuple((i, start + c.distance, span) for i, start, span, c in axes)
-        return cls(c.time, c.sin2, c.time / (2 * math.pi), 2 * c.time, tuple(axes), after)
+    def __init__(self, time: float, sin2: bool) -> None:
+        self.time, self.sin2 = time, sin2
+        self.k = time / (2 * math.pi)
+        self.twice = 2 * time
+        self.axes: list[tuple[int, float, float, Carry]] = []  # (axis, start, span, carry)
+        self.after: list[tuple[int, float, float]] = []  # (axis, start + carry distance, span)
+
+    def add(self, i: int, start: float, span: float, carry: Carry) -> None:
+        """Axis ``i`` (while the move is planned; never changed once it runs)."""
+        self.axes.append((i, start, span, carry))
+        self.after.append((i, start + carry.distance, span))
 
     def follow(self, tau: float, frac: float, rate: float, ax: _Axes) -> None:
         """References ``tau`` s into the move: the carry's offset and velocity plus the profile's
