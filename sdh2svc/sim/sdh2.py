@@ -335,23 +335,21 @@ class Profile:
             return 0.0, 0.0
         cruise = total - ramp
         if t < ramp:
-            area, speed = self._ramp_area(t), self._ramp_speed(t)
+            area, speed = self._ramp(t)
         elif t <= cruise:
             area, speed = ramp / 2 + (t - ramp), 1.0
         else:
-            area, speed = cruise - self._ramp_area(total - t), self._ramp_speed(total - t)
+            area, speed = self._ramp(total - t)
+            area = cruise - area
         return area / cruise, speed / cruise
 
-    def _ramp_area(self, t: float) -> float:
+    def _ramp(self, t: float) -> tuple[float, float]:
+        """Distance and speed ``t`` s into a ramp up (the unit velocity shape)."""
         r = self.ramp
         if self.sin2:
-            return t / 2 - r / (2 * math.pi) * math.sin(math.pi * t / r)
-        return t * t / (2 * r)
-
-    def _ramp_speed(self, t: float) -> float:
-        if self.sin2:
-            return math.sin(math.pi * t / (2 * self.ramp)) ** 2
-        return t / self.ramp
+            area = t / 2 - r / (2 * math.pi) * math.sin(math.pi * t / r)
+            return area, math.sin(math.pi * t / (2 * r)) ** 2
+        return t * t / (2 * r), t / r
 
 
 @dataclass(frozen=True, slots=True)
@@ -434,11 +432,14 @@ class _Move:
         coast: dict[tuple[float, bool], _Coast] = {}
         for i in _ALL:
             s, c = start[i], carry[i]
-            span = goal[i] - s - c.distance
+            distance = c.distance
+            span = goal[i] - s - distance
             if c.time > 0.0:
-                if (group := coast.get((c.time, c.sin2))) is None:
-                    coast[c.time, c.sin2] = group = _Coast(c.time, c.sin2)
-                group.add(i, s, span, c)
+                key = (c.time, c.sin2)
+                if (group := coast.get(key)) is None:
+                    coast[key] = group = _Coast(*key)
+                group.axes.append((i, s, span, c))
+                group.after.append((i, s + distance, span))
             else:  # the carry's offset is 0.0
                 plain.append((i, s + 0.0, span))
         object.__setattr__(self, "plain", tuple(plain))
@@ -459,13 +460,9 @@ class _Coast:
         self.time, self.sin2 = time, sin2
         self.k = time / (2 * math.pi)
         self.twice = 2 * time
+        # filled as the move is built, never changed once it runs
         self.axes: list[tuple[int, float, float, Carry]] = []  # (axis, start, span, carry)
         self.after: list[tuple[int, float, float]] = []  # (axis, start + carry distance, span)
-
-    def add(self, i: int, start: float, span: float, carry: Carry) -> None:
-        """Axis ``i`` (while the move is planned; never changed once it runs)."""
-        self.axes.append((i, start, span, carry))
-        self.after.append((i, start + carry.distance, span))
 
     def follow(self, tau: float, frac: float, rate: float, ax: _Axes) -> None:
         """References ``tau`` s into the move: the carry's offset and velocity plus the profile's
@@ -945,8 +942,11 @@ class Sdh2Emulator:
         return _Vector(read, read, write)
 
     def _clip(self, values: Sequence[float]) -> list[float]:
-        bounds = zip(values, self._pmin, self._pmax, strict=True)
-        return [min(max(v, lo), hi) for v, lo, hi in bounds]
+        out = []
+        for v, lo, hi in zip(values, self._pmin, self._pmax, strict=True):
+            v = lo if lo > v else v  # max(v, lo) and min(…, hi), as those pick
+            out.append(hi if hi < v else v)
+        return out
 
     # -- other commands --------------------------------------------------------------------------
 
