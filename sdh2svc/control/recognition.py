@@ -508,7 +508,8 @@ def pressure_profile(counts: np.ndarray, first: int, last: int) -> tuple[float, 
     alike, tilted in a ramp; a curved surface loads them in a hump (Hertz), an edge in one or
     two rows; a soft object's flat face, which wraps the pad as it rolls and turns against it
     like a curved one, keeps its even load."""
-    p = counts[first : last + 1].sum(axis=1).tolist()
+    # each row's sum of whole counts, in plain Python: a handful of rows, exact in any order
+    p = list(map(sum, counts[first : last + 1].tolist()))
     n, peak = len(p), max(p)
     if n < 2 or peak <= 0.0:
         return _ONE_ROW
@@ -679,7 +680,8 @@ def box_misfit(ev: _Evidence, open_sweeps: list[tuple[float, float]]) -> tuple[f
     face = ev.faces / ev.faces_n if ev.faces_n else np.zeros(len(_BETAS))
     sweeps = ev.sweeps + open_sweeps
     if not sweeps:
-        return float(face.min()), float(face.min())
+        least = float(face.min())
+        return least, least
     lo, hi = np.array(sweeps).T
     g = _BETAS[None, :] + 90.0 * np.ceil((lo[:, None] - _BETAS[None, :]) / 90.0)
     cross = np.where(g < hi[:, None], np.minimum(g - lo[:, None], hi[:, None] - g), 0.0)

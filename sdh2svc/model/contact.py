@@ -17,6 +17,7 @@ cover the whole matrix, as SDHLibrary's ``GetContactInfo`` does, so they stay li
 
 from __future__ import annotations
 
+import itertools
 import math
 import operator
 from dataclasses import dataclass
@@ -124,9 +125,8 @@ def _label(flat: list[Any], threshold: float, neighbours: tuple[tuple[int, ...],
     breadth-first fill in plain Python: on 78 cells it is several times cheaper than scipy."""
     loaded = [v > threshold for v in flat]
     groups = []
-    for start, on in enumerate(loaded):
-        if not on:
-            continue
+    # compress reads ``loaded`` as it goes: a cell a group took is no start
+    for start in itertools.compress(range(len(loaded)), loaded):
         loaded[start] = False
         group = [start]
         for k in group:  # grows while it is read: breadth first
