@@ -379,19 +379,59 @@ def _radius_of(kappa: float) -> float:
     return min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
 
 
+class _Extremes:
+    """The largest and the smallest of the last ``n`` values added, in constant time per value
+    (amortised): monotonic queues of (index, value). Of equal values the queues keep the
+    oldest at the front, the one ``max`` and ``min`` of the window return."""
+
+    __slots__ = ("_hi", "_lo", "_n", "_t")
+
+    def __init__(self, n: int) -> None:
+        self._n = n
+        self._hi: deque[tuple[int, float]] = deque()
+        self._lo: deque[tuple[int, float]] = deque()
+        self._t = 0
+
+    def clear(self) -> None:
+        self._hi.clear()
+        self._lo.clear()
+        self._t = 0
+
+    def add(self, v: float) -> None:
+        hi, lo, t = self._hi, self._lo, self._t
+        while hi and hi[-1][1] < v:
+            hi.pop()
+        hi.append((t, v))
+        while lo and lo[-1][1] > v:
+            lo.pop()
+        lo.append((t, v))
+        if hi[0][0] <= t - self._n:  # the value leaving the window
+            hi.popleft()
+        if lo[0][0] <= t - self._n:
+            lo.popleft()
+        self._t = t + 1
+
+    def span(self) -> float:
+        """max − min of the window (as ``max(window) - min(window)``)."""
+        return self._hi[0][1] - self._lo[0][1]
+
+
 class _Line:
     """The last ``n`` (L, ν − ψ) and their least-squares line, in constant time per iteration:
     running sums (made anew from the window every ``n`` additions, so rounding never builds
-    up), the window's extremes from the deques."""
+    up), the window's extremes from monotonic queues (:class:`_Extremes`)."""
 
     def __init__(self, n: int) -> None:
         self.x: deque[float] = deque(maxlen=n)
         self.y: deque[float] = deque(maxlen=n)
+        self._x_range, self._y_range = _Extremes(n), _Extremes(n)
         self.clear()
 
     def clear(self) -> None:
         self.x.clear()
         self.y.clear()
+        self._x_range.clear()
+        self._y_range.clear()
         self._sums = [0.0] * 5  # Σx, Σy, Σxx, Σxy, Σyy
         self._since = 0
 
@@ -406,6 +446,8 @@ class _Line:
             sums[4] -= oy * oy
         xs.append(x)
         ys.append(y)
+        self._x_range.add(x)
+        self._y_range.add(y)
         self._since += 1
         if self._since >= len(xs):
             self._since = 0
@@ -470,8 +512,8 @@ class _Line:
         n = len(self.x)
         sx, sy, sxx, sxy, syy = self._sums
         sxx, sxy, syy = sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
-        travel = max(self.x) - min(self.x)
-        turn = math.degrees(max(self.y) - min(self.y))
+        travel = self._x_range.span()
+        turn = math.degrees(self._y_range.span())
         if sxx <= 1e-9:
             return 0.0, travel, turn, 0.0
         resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n))
