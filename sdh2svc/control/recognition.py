@@ -46,6 +46,7 @@ profile along each pad; the rest comes from the observation's contact estimates.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import json
 import math
@@ -176,9 +177,13 @@ class Linear(_Affine):
 
 def expand(x: np.ndarray) -> np.ndarray:
     """``x`` followed by the products of every pair of its entries (with themselves)."""
-    i, j = _pairs(x.shape[-1])
-    # np.take: a fancy index on the last axis of many rows is slower by half
-    out: np.ndarray = np.concatenate([x, np.take(x, i, axis=-1) * np.take(x, j, axis=-1)], axis=-1)
+    n = x.shape[-1]
+    i, j = _pairs(n)
+    # the products straight into their place (no concatenation); np.take: a fancy index on the
+    # last axis of many rows is slower by half
+    out = np.empty((*x.shape[:-1], n + len(i)), dtype=x.dtype)
+    out[..., :n] = x
+    np.multiply(np.take(x, i, axis=-1), np.take(x, j, axis=-1), out=out[..., n:])
     return out
 
 
@@ -186,6 +191,17 @@ def expand(x: np.ndarray) -> np.ndarray:
 def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     i, j = np.triu_indices(n)
     return i, j
+
+
+@lru_cache(maxsize=8)
+def _sub_expansion(n: int) -> np.ndarray:
+    """Where ``expand(x[:RADIUS_FEATURES])``'s entries are in ``expand(x)``, x of ``n``
+    features: the same products of the same entries, so the same values to the last bit."""
+    i, j = _pairs(n)
+    at = {(a, b): n + k for k, (a, b) in enumerate(zip(i.tolist(), j.tolist(), strict=True))}
+    si, sj = _pairs(RADIUS_FEATURES)
+    products = [at[a, b] for a, b in zip(si.tolist(), sj.tolist(), strict=True)]
+    return np.array([*range(RADIUS_FEATURES), *products])
 
 
 @dataclass(frozen=True, slots=True)
@@ -363,19 +379,59 @@ def _radius_of(kappa: float) -> float:
     return min(1.0 / kappa, MAX_RADIUS_MM) if kappa > 0 else MAX_RADIUS_MM
 
 
+class _Extremes:
+    """The largest and the smallest of the last ``n`` values added, in constant time per value
+    (amortised): monotonic queues of (index, value). Of equal values the queues keep the
+    oldest at the front, the one ``max`` and ``min`` of the window return."""
+
+    __slots__ = ("_hi", "_lo", "_n", "_t")
+
+    def __init__(self, n: int) -> None:
+        self._n = n
+        self._hi: deque[tuple[int, float]] = deque()
+        self._lo: deque[tuple[int, float]] = deque()
+        self._t = 0
+
+    def clear(self) -> None:
+        self._hi.clear()
+        self._lo.clear()
+        self._t = 0
+
+    def add(self, v: float) -> None:
+        hi, lo, t = self._hi, self._lo, self._t
+        while hi and hi[-1][1] < v:
+            hi.pop()
+        hi.append((t, v))
+        while lo and lo[-1][1] > v:
+            lo.pop()
+        lo.append((t, v))
+        if hi[0][0] <= t - self._n:  # the value leaving the window
+            hi.popleft()
+        if lo[0][0] <= t - self._n:
+            lo.popleft()
+        self._t = t + 1
+
+    def span(self) -> float:
+        """max − min of the window (as ``max(window) - min(window)``)."""
+        return self._hi[0][1] - self._lo[0][1]
+
+
 class _Line:
     """The last ``n`` (L, ν − ψ) and their least-squares line, in constant time per iteration:
     running sums (made anew from the window every ``n`` additions, so rounding never builds
-    up), the window's extremes from the deques."""
+    up), the window's extremes from monotonic queues (:class:`_Extremes`)."""
 
     def __init__(self, n: int) -> None:
         self.x: deque[float] = deque(maxlen=n)
         self.y: deque[float] = deque(maxlen=n)
+        self._x_range, self._y_range = _Extremes(n), _Extremes(n)
         self.clear()
 
     def clear(self) -> None:
         self.x.clear()
         self.y.clear()
+        self._x_range.clear()
+        self._y_range.clear()
         self._sums = [0.0] * 5  # Σx, Σy, Σxx, Σxy, Σyy
         self._since = 0
 
@@ -390,6 +446,8 @@ class _Line:
             sums[4] -= oy * oy
         xs.append(x)
         ys.append(y)
+        self._x_range.add(x)
+        self._y_range.add(y)
         self._since += 1
         if self._since >= len(xs):
             self._since = 0
@@ -454,8 +512,8 @@ class _Line:
         n = len(self.x)
         sx, sy, sxx, sxy, syy = self._sums
         sxx, sxy, syy = sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n
-        travel = max(self.x) - min(self.x)
-        turn = math.degrees(max(self.y) - min(self.y))
+        travel = self._x_range.span()
+        turn = math.degrees(self._y_range.span())
         if sxx <= 1e-9:
             return 0.0, travel, turn, 0.0
         resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n))
@@ -492,7 +550,8 @@ def pressure_profile(counts: np.ndarray, first: int, last: int) -> tuple[float, 
     alike, tilted in a ramp; a curved surface loads them in a hump (Hertz), an edge in one or
     two rows; a soft object's flat face, which wraps the pad as it rolls and turns against it
     like a curved one, keeps its even load."""
-    p = counts[first : last + 1].sum(axis=1).tolist()
+    # each row's sum of whole counts, in plain Python: a handful of rows, exact in any order
+    p = list(map(sum, counts[first : last + 1].tolist()))
     n, peak = len(p), max(p)
     if n < 2 or peak <= 0.0:
         return _ONE_ROW
@@ -525,13 +584,16 @@ def contact_features(me: list[float], other: list[float], lam: float) -> np.ndar
     radius against Λ/2, the other contact's first four (radius, travel, turn, footprint),
     long-window radius and pressure profile, log Λ (these first RADIUS_FEATURES are the radius
     model's too); then both contacts' change and its own footprint's trend."""
-    return np.array(
-        [
-            *me[:CHANGE_AT], me[0] - math.log(lam / 2), *other[:4], other[LONG_RADIUS],
-            *other[PROFILE_AT:CHANGE_AT], math.log(lam),
-            *me[CHANGE_AT:TREND_AT], *other[CHANGE_AT:TREND_AT], *me[TREND_AT:],
-        ]
-    )  # fmt: skip
+    return np.array(_contact_row(me, other, lam))
+
+
+def _contact_row(me: list[float], other: list[float], lam: float) -> list[float]:
+    """:func:`contact_features` as a list."""
+    return [
+        *me[:CHANGE_AT], me[0] - math.log(lam / 2), *other[:4], other[LONG_RADIUS],
+        *other[PROFILE_AT:CHANGE_AT], math.log(lam),
+        *me[CHANGE_AT:TREND_AT], *other[CHANGE_AT:TREND_AT], *me[TREND_AT:],
+    ]  # fmt: skip
 
 
 class _LogHistogram:
@@ -540,7 +602,7 @@ class _LogHistogram:
     LO, HI, BINS = -4.0, 2.0, 120  # log(radius / (Λ/2)): 0.018 … 7.4, bins of 5 %
 
     def __init__(self) -> None:
-        self.counts = np.zeros(self.BINS, dtype=np.int64)
+        self.counts = [0] * self.BINS
         self.n = 0
 
     def add(self, value: float) -> None:
@@ -552,10 +614,9 @@ class _LogHistogram:
         """The log values at the quantiles ``qs`` (0…1; bin centres; 0 while empty)."""
         if self.n == 0:
             return [0.0] * len(qs)
-        cum = np.cumsum(self.counts)
-        idx = np.searchsorted(cum, [q * self.n for q in qs])
+        cum = list(itertools.accumulate(self.counts))
         width = (self.HI - self.LO) / self.BINS
-        return [self.LO + (int(i) + 0.5) * width for i in idx]
+        return [self.LO + (bisect.bisect_left(cum, q * self.n) + 0.5) * width for q in qs]
 
 
 MIN_SWEEP = 5  # iterations of an edge run before its sweep counts
@@ -661,7 +722,8 @@ def box_misfit(ev: _Evidence, open_sweeps: list[tuple[float, float]]) -> tuple[f
     face = ev.faces / ev.faces_n if ev.faces_n else np.zeros(len(_BETAS))
     sweeps = ev.sweeps + open_sweeps
     if not sweeps:
-        return float(face.min()), float(face.min())
+        least = float(face.min())
+        return least, least
     lo, hi = np.array(sweeps).T
     g = _BETAS[None, :] + 90.0 * np.ceil((lo[:, None] - _BETAS[None, :]) / 90.0)
     cross = np.where(g < hi[:, None], np.minimum(g - lo[:, None], hi[:, None] - g), 0.0)
@@ -793,8 +855,8 @@ class Recognizer:
         if model is None or t1.features is None or t2.features is None:
             return [(t1.kind, t1.radius), (t2.kind, t2.radius)]
         # both contacts in one go, their pairwise products expanded once
-        x = np.stack([contact_features(t1.features, t2.features, lam),
-                      contact_features(t2.features, t1.features, lam)])  # fmt: skip
+        x = np.array([_contact_row(t1.features, t2.features, lam),
+                      _contact_row(t2.features, t1.features, lam)])  # fmt: skip
         xx = expand(x) if model.quadratic else None
         ps = model.probabilities(x, xx)
         out: list[tuple[ContactKind | None, float | None]] = []
@@ -805,17 +867,21 @@ class Recognizer:
             kind = KINDS[int(np.argmax(me.p))]
             radius = None
             if kind is ContactKind.CURVED:
-                radius = self._radius(me, x[row, :RADIUS_FEATURES])
+                # the radius model's products are among the kind model's: picked, not made anew
+                sub = None if xx is None else xx[row].take(_sub_expansion(x.shape[1]))
+                radius = self._radius(me, x[row, :RADIUS_FEATURES], sub)
             out.append((kind, radius))
         return out
 
-    def _radius(self, track: _ContactTrack, x: np.ndarray) -> float:
+    def _radius(
+        self, track: _ContactTrack, x: np.ndarray, expanded: np.ndarray | None = None
+    ) -> float:
         """A curved contact's radius: the kinematic one, corrected by the radius model (``x``:
-        the contact's first RADIUS_FEATURES features)."""
+        the contact's first RADIUS_FEATURES features; ``expanded``: ``expand(x)``, if known)."""
         fit = self.model.radius
         if fit is None:
             return track.kinematic_radius
-        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x), MAX_LOG_CORRECTION))
+        log_ratio = max(-MAX_LOG_CORRECTION, min(fit.predict(x, expanded), MAX_LOG_CORRECTION))
         return min(track.kinematic_radius * math.exp(log_ratio), MAX_RADIUS_MM)
 
     def _gather(

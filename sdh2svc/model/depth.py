@@ -42,6 +42,7 @@ e and a resolved c scale with it, c_wedge with its square root.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -110,12 +111,25 @@ def contact_depth(
     with every column a real cell (they measure the band's width); ``total_counts``: the sum of
     the counts of every loaded cell of the pad (the finger's load), default the contact's.
     """
-    per = hand.pressure_per_count_n_per_mm2
     values = counts * contact
     # along the pad: each row's load and its largest cell (counts), as plain floats: 13 rows are
     # too few for numpy to pay off
     rows = values.sum(axis=1).tolist()
     peaks = values.max(axis=1).tolist()
+    return row_depth(rows, peaks, full_rows.tolist(), pitch_mm, hand, total_counts)
+
+
+def row_depth(
+    rows: list[float],
+    peaks: list[float],
+    full_rows: Sequence[bool],
+    pitch_mm: float,
+    hand: PadCompliance,
+    total_counts: float | None = None,
+) -> ContactDepth:
+    """:func:`contact_depth` from the contact's rows alone: each row's load ``rows`` and its
+    largest cell ``peaks`` (counts; 0.0 in rows the contact does not touch)."""
+    per = hand.pressure_per_count_n_per_mm2
     total = sum(rows)
     if total <= 0.0:
         return NO_DEPTH
@@ -126,7 +140,7 @@ def contact_depth(
     # across the pad: the band's width, each full row's load over its largest cell (in cells),
     # averaged over those rows by load (over every loaded row if no full row is loaded)
     num = den = num_all = s1 = s2 = sq = 0.0
-    for j, (q, top, full) in enumerate(zip(rows, peaks, full_rows.tolist(), strict=True)):
+    for j, (q, top, full) in enumerate(zip(rows, peaks, full_rows, strict=True)):
         if q <= 0.0:
             continue
         num_all += q * q / top

@@ -24,6 +24,7 @@ from sdh2svc.model.kinematics import (
     HandGeometry,
     HandPoints,
     HandPose,
+    contact_point,
     hand_points,
     segment,
 )
@@ -111,9 +112,11 @@ def rolling_turn(prev: Observation, pose: HandPose, ctx: ModelContext) -> float 
     pts, vj1, vj2 = prev.points, prev.contact1.virtual_joint, prev.contact2.virtual_joint
     if pts is None or vj1 is None or vj2 is None:
         return None
-    now = hand_points(pose, vj1, vj2, ctx.geom)
+    # A and B as hand_points has them (C and D are not needed)
+    A = contact_point(Finger.ONE, pose.phi2, pose.phi3, vj1[0], vj1[1], ctx.geom)
+    B = contact_point(Finger.TWO, pose.phi4, pose.phi5, vj2[0], vj2[1], ctx.geom)
     dy, dz = pts.B.y - pts.A.y, pts.B.z - pts.A.z
-    vy = (now.B.y - pts.B.y) - (now.A.y - pts.A.y)
-    vz = (now.B.z - pts.B.z) - (now.A.z - pts.A.z)
+    vy = (B.y - pts.B.y) - (A.y - pts.A.y)
+    vz = (B.z - pts.B.z) - (A.z - pts.A.z)
     d2 = dy * dy + dz * dz
     return (dy * vz - dz * vy) / d2 if d2 > 1e-9 else None

@@ -294,14 +294,17 @@ class PhysicsWorld:
         every servo tick); :meth:`move_joints` keeps that step less than a substep behind."""
         if self._blocked:
             self._blocked.clear()
+        at_limit = self._tau
+        if at_limit is not None and not at_limit:  # mostly none: nothing to do, dropped or not
+            return
         if self._physics.state.dropped:
             return
-        if self._tau is None:
+        if at_limit is None:
             tau = self._physics.joint_torques_n_mm()
-            # only the joints at their torque limit can stall (mostly none: then nothing to do)
-            self._tau = [(axis, tau[name]) for axis, name, limit in self._limits
-                         if abs(tau[name]) >= limit]  # fmt: skip
-        for axis, t in self._tau:
+            # only the joints at their torque limit can stall
+            self._tau = at_limit = [(axis, tau[name]) for axis, name, limit in self._limits
+                                    if abs(tau[name]) >= limit]  # fmt: skip
+        for axis, t in at_limit:
             if (target[axis] - self._angles[axis]) * t < 0:  # moving against the load
                 target[axis] = self._angles[axis]
                 self._blocked.add(axis)

@@ -299,60 +299,57 @@ class Profile:
         ``K = k·max(dᵢ/aᵢ)`` is smallest at ``c = max(√K, max dᵢ/vᵢ)``. Raises ValueError if an
         axis must move with zero velocity or acceleration.
         """
-        moving = [
-            (abs(d), v, a)
-            for d, v, a in zip(distances, velocities, accelerations, strict=True)
-            if abs(d) > _EPS
-        ]
-        if not moving:
+        # max dᵢ/aᵢ and max dᵢ/vᵢ over the moving axes, in one pass (as max() picks them)
+        per_a: float | None = None
+        per_v: float | None = None
+        for d, v, a in zip(distances, velocities, accelerations, strict=True):
+            d = abs(d)
+            if d > _EPS:
+                if v <= 0.0 or a <= 0.0:
+                    raise ValueError("an axis must move with zero velocity or acceleration")
+                if per_a is None or d / a > per_a:
+                    per_a = d / a
+                if per_v is None or d / v > per_v:
+                    per_v = d / v
+        if per_a is None or per_v is None:  # nothing moves
             return cls(0.0, 0.0, sin2)
-        if any(v <= 0.0 or a <= 0.0 for _, v, a in moving):
-            raise ValueError("an axis must move with zero velocity or acceleration")
-        peak = math.pi / 2 if sin2 else 1.0
-        k = peak * max(d / a for d, _, a in moving)
-        cruise = max(math.sqrt(k), max(d / v for d, v, _ in moving))
+        k = (math.pi / 2 if sin2 else 1.0) * per_a
+        cruise = max(math.sqrt(k), per_v)
         ramp = k / cruise
         return cls(cruise + ramp, ramp, sin2)
 
     def fraction(self, t: float) -> float:
         """Share of the distance covered ``t`` s after the start."""
-        total, ramp = self.duration, self.ramp
-        if t >= total:
-            return 1.0
-        if t <= 0.0:
-            return 0.0
-        cruise = total - ramp
-        if t < ramp:
-            area = self._ramp_area(t)
-        elif t <= cruise:
-            area = ramp / 2 + (t - ramp)
-        else:
-            area = cruise - self._ramp_area(total - t)
-        return area / cruise
+        return self.at(t)[0]
 
     def rate(self, t: float) -> float:
         """d fraction / dt at ``t`` (1/s)."""
-        total, ramp = self.duration, self.ramp
-        if t <= 0.0 or t >= total:
-            return 0.0
-        if t < ramp:
-            speed = self._ramp_speed(t)
-        elif t <= total - ramp:
-            speed = 1.0
-        else:
-            speed = self._ramp_speed(total - t)
-        return speed / (total - ramp)
+        return self.at(t)[1]
 
-    def _ramp_area(self, t: float) -> float:
+    def at(self, t: float) -> tuple[float, float]:
+        """:meth:`fraction` and :meth:`rate` at ``t`` in one go (asked at every servo tick)."""
+        total, ramp = self.duration, self.ramp
+        if t >= total:
+            return 1.0, 0.0
+        if t <= 0.0:
+            return 0.0, 0.0
+        cruise = total - ramp
+        if t < ramp:
+            area, speed = self._ramp(t)
+        elif t <= cruise:
+            area, speed = ramp / 2 + (t - ramp), 1.0
+        else:
+            area, speed = self._ramp(total - t)
+            area = cruise - area
+        return area / cruise, speed / cruise
+
+    def _ramp(self, t: float) -> tuple[float, float]:
+        """Distance and speed ``t`` s into a ramp up (the unit velocity shape)."""
         r = self.ramp
         if self.sin2:
-            return t / 2 - r / (2 * math.pi) * math.sin(math.pi * t / r)
-        return t * t / (2 * r)
-
-    def _ramp_speed(self, t: float) -> float:
-        if self.sin2:
-            return math.sin(math.pi * t / (2 * self.ramp)) ** 2
-        return t / self.ramp
+            area = t / 2 - r / (2 * math.pi) * math.sin(math.pi * t / r)
+            return area, math.sin(math.pi * t / (2 * r)) ** 2
+        return t * t / (2 * r), t / r
 
 
 @dataclass(frozen=True, slots=True)
@@ -371,10 +368,10 @@ class Carry:
     @classmethod
     def plan(cls, v0: float, accel: float, *, sin2: bool, at_least: float = 0.0) -> Carry:
         """Ramp down within ``accel``, and over no less than ``at_least`` s."""
-        if v0 == 0.0 or accel <= 0.0:
+        v0, time = _carry(v0, accel, sin2, at_least)
+        if v0 == 0.0:
             return _STILL[sin2] if cls is Carry else cls(0.0, 0.0, sin2)
-        peak = math.pi / 2 if sin2 else 1.0
-        return cls(v0, max(peak * abs(v0) / accel, at_least), sin2)
+        return cls(v0, time, sin2)
 
     @property
     def distance(self) -> float:
@@ -399,6 +396,13 @@ class Carry:
         return self.v0 * (1.0 - t / self.time)
 
 
+def _carry(v0: float, accel: float, sin2: bool, at_least: float) -> tuple[float, float]:
+    """:meth:`Carry.plan`'s ``(v0, time)``, without building the Carry (planning tries several)."""
+    if v0 == 0.0 or accel <= 0.0:
+        return 0.0, 0.0
+    return v0, max((math.pi / 2 if sin2 else 1.0) * abs(v0) / accel, at_least)
+
+
 _NO_CARRY: Final = Carry(0.0, 0.0, False)
 _STILL: Final = {False: _NO_CARRY, True: Carry(0.0, 0.0, True)}  # Carry.plan of v0 = 0
 
@@ -413,21 +417,81 @@ class _Move:
     carry: tuple[Carry, ...] = (_NO_CARRY,) * NUM_AXES  # per axis: a replan's inherited velocity
     # asked at every servo tick: computed once
     duration: float = field(init=False, repr=False, compare=False)
-    spans: Vec = field(init=False, repr=False, compare=False)  # span(i) of every axis
-    coasting: tuple[bool, ...] = field(init=False, repr=False, compare=False)  # carry time > 0
     end: float = field(init=False, repr=False, compare=False)  # t0 + duration
+    # the axes without a carry: (axis, start + 0.0, span)
+    plain: tuple[tuple[int, float, float], ...] = field(init=False, repr=False, compare=False)
+    # the axes with one (carry time > 0), by carry shape
+    coast: tuple[_Coast, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         duration = max(self.profile.duration, max(c.time for c in self.carry))
         object.__setattr__(self, "duration", duration)
         object.__setattr__(self, "end", self.t0 + duration)
-        ends = zip(self.goal, self.start, self.carry, strict=True)
-        object.__setattr__(self, "spans", tuple(g - s - c.distance for g, s, c in ends))
-        object.__setattr__(self, "coasting", tuple(c.time > 0.0 for c in self.carry))
+        goal, start, carry = self.goal, self.start, self.carry
+        plain: list[tuple[int, float, float]] = []
+        coast: dict[tuple[float, bool], _Coast] = {}
+        for i in _ALL:
+            s, c = start[i], carry[i]
+            distance = c.distance
+            span = goal[i] - s - distance
+            if c.time > 0.0:
+                key = (c.time, c.sin2)
+                if (group := coast.get(key)) is None:
+                    coast[key] = group = _Coast(*key)
+                group.axes.append((i, s, span, c))
+                group.after.append((i, s + distance, span))
+            else:  # the carry's offset is 0.0
+                plain.append((i, s + 0.0, span))
+        object.__setattr__(self, "plain", tuple(plain))
+        object.__setattr__(self, "coast", tuple(coast.values()))
 
     def span(self, i: int) -> float:
         """What the coordinated profile covers on axis i (the rest is the carry's)."""
         return self.goal[i] - self.start[i] - self.carry[i].distance
+
+
+class _Coast:
+    """A move's axes whose carries ramp down alike (same time and shape): the carry's shape at a
+    tick is computed once for all of them (:meth:`Carry.offset`, :meth:`Carry.velocity`)."""
+
+    __slots__ = ("after", "axes", "k", "sin2", "time", "twice")
+
+    def __init__(self, time: float, sin2: bool) -> None:
+        self.time, self.sin2 = time, sin2
+        self.k = time / (2 * math.pi)
+        self.twice = 2 * time
+        # filled as the move is built, never changed once it runs
+        self.axes: list[tuple[int, float, float, Carry]] = []  # (axis, start, span, carry)
+        self.after: list[tuple[int, float, float]] = []  # (axis, start + carry distance, span)
+
+    def follow(self, tau: float, frac: float, rate: float, ax: _Axes) -> None:
+        """References ``tau`` s into the move: the carry's offset and velocity plus the profile's
+        ``frac`` and ``rate`` of the span (the same operations as Carry.offset/velocity)."""
+        in_move, blocked, ref, rvel = ax.in_move, ax.blocked, ax.ref, ax.rvel
+        ctime = self.time
+        if tau >= ctime:  # coasted all the way: Carry.offset is its distance, the velocity 0.0
+            for i, base, span in self.after:
+                if in_move[i] and not blocked[i]:
+                    ref[i] = base + span * frac
+                    rvel[i] = 0.0 + span * rate
+            return
+        if not 0.0 < tau:  # not ramping yet (or not a number): per axis
+            for i, start, span, c in self.axes:
+                if in_move[i] and not blocked[i]:
+                    ref[i] = start + c.offset(tau) + span * frac
+                    rvel[i] = c.velocity(tau) + span * rate
+            return
+        if self.sin2:  # per unit v0
+            pt = math.pi * tau
+            offset = tau / 2 + self.k * math.sin(pt / ctime)
+            velocity = math.cos(pt / self.twice) ** 2
+        else:
+            offset = tau - tau * tau / self.twice
+            velocity = 1.0 - tau / ctime
+        for i, start, span, c in self.axes:
+            if in_move[i] and not blocked[i]:
+                ref[i] = start + c.v0 * offset + span * frac
+                rvel[i] = c.v0 * velocity + span * rate
 
 
 class _Reject(Exception):
@@ -878,8 +942,11 @@ class Sdh2Emulator:
         return _Vector(read, read, write)
 
     def _clip(self, values: Sequence[float]) -> list[float]:
-        bounds = zip(values, self._pmin, self._pmax, strict=True)
-        return [min(max(v, lo), hi) for v, lo, hi in bounds]
+        out = []
+        for v, lo, hi in zip(values, self._pmin, self._pmax, strict=True):
+            v = lo if lo > v else v  # max(v, lo) and min(…, hi), as those pick
+            out.append(hi if hi < v else v)
+        return out
 
     # -- other commands --------------------------------------------------------------------------
 
@@ -960,28 +1027,28 @@ class Sdh2Emulator:
         v0 = [ax.rvel[i] if free[i] else 0.0 for i in _ALL]
         halved = [False] * NUM_AXES
 
-        def carries(at_least: float) -> list[Carry]:
+        def carries(at_least: float) -> list[tuple[float, float]]:  # (v0, time) of each
             out = []
             for i in _ALL:
-                c = Carry.plan(v0[i], accels[i], sin2=sin2, at_least=at_least)
-                if not halved[i] and (goal[i] - start[i] - c.distance) * v0[i] < 0.0:
+                c = _carry(v0[i], accels[i], sin2, at_least)
+                if not halved[i] and (goal[i] - start[i] - c[0] * c[1] / 2) * v0[i] < 0.0:
                     halved[i] = True  # a reversal: carry and profile share the acceleration
                     accels[i] /= 2
-                    c = Carry.plan(v0[i], accels[i], sin2=sin2, at_least=at_least)
+                    c = _carry(v0[i], accels[i], sin2, at_least)
                 out.append(c)
             return out
 
         carry = carries(0.0)
         try:
             for _ in range(3):  # the carry ramps down while the profile ramps up: same length
-                dist = [g - s - c.distance for g, s, c in zip(goal, start, carry, strict=True)]
+                dist = [g - s - v * t / 2 for g, s, (v, t) in zip(goal, start, carry, strict=True)]
                 profile = Profile.plan(dist, speeds, accels, sin2=sin2)
-                if not moving or all(c.time >= profile.ramp - 1e-9 for c in carry if c.v0):
+                if not moving or all(t >= profile.ramp - 1e-9 for v, t in carry if v):
                     break
                 carry = carries(profile.ramp)
         except ValueError:
             raise _Reject(self.options.range_error) from None
-        return start, profile, tuple(carry)
+        return start, profile, tuple(Carry(v, t, sin2) if v else _STILL[sin2] for v, t in carry)
 
     def _duration(self, goal: Sequence[float]) -> float:
         _, profile, carry = self._plan(goal)
@@ -1049,13 +1116,17 @@ class Sdh2Emulator:
 
     def _due(self) -> float | None:
         """When the servo model must next step on its own (None: only at the next command)."""
-        if not self._active():
+        move = self._move
+        if move is None and not self._active():
             return None
-        assert self._t is not None
-        if self._next_tick <= self._t:  # motion (re)started: the tick grid starts now
-            self._next_tick = self._t + self.options.tick_s
+        t = self._t
+        assert t is not None
+        if self._next_tick <= t:  # motion (re)started: the tick grid starts now
+            self._next_tick = t + self.options.tick_s
         due = self._next_tick
-        return due if self._move is None else min(due, self._move.end)
+        if move is None:
+            return due
+        return move.end if move.end < due else due  # min(due, end)
 
     def _advance(self, now: float) -> None:
         """Bring the servo model and the world to ``now``: every tick due, then ``now`` itself."""
@@ -1078,8 +1149,10 @@ class Sdh2Emulator:
             tick = max(tick, (now - self._t) / self.options.max_catchup_steps)
         while (due := self._due()) is not None and due <= now:
             self._step(due)
-            while self._next_tick <= due:
-                self._next_tick += tick
+            next_tick = self._next_tick
+            while next_tick <= due:
+                next_tick += tick
+            self._next_tick = next_tick
 
     def _power_on(self, now: float) -> None:
         ax = self._ax
@@ -1093,16 +1166,17 @@ class Sdh2Emulator:
     def _step(self, t: float) -> None:
         assert self._t is not None
         dt = t - self._t
-        if self._move is not None:
+        move, ax = self._move, self._ax  # (neither the world nor _observe changes the move)
+        if move is not None:
             self._follow(t)
         elif self._con != POSE:
             self._integrate(dt)
-        actual = self._world.move_joints(t, tuple(self._ax.ref), tuple(self._ax.powered))
+        actual = self._world.move_joints(t, tuple(ax.ref), tuple(ax.powered))
         self._observe(list(map(float, actual)), dt)
-        if self._move is not None and t >= self._move.end:
+        if move is not None and t >= move.end:
             self._move = None
-            self._ax.in_move[:] = [False] * NUM_AXES
-            self._ax.rvel[:] = [0.0] * NUM_AXES
+            ax.in_move[:] = [False] * NUM_AXES
+            ax.rvel[:] = [0.0] * NUM_AXES
         self._t = t
 
     def _follow(self, t: float) -> None:
@@ -1116,35 +1190,13 @@ class Sdh2Emulator:
                 if in_move[i] and not blocked[i]:
                     ref[i], rvel[i] = move.goal[i], 0.0
             return
-        frac, rate = move.profile.fraction(tau), move.profile.rate(tau)
-        start, spans, coasting = move.start, move.spans, move.coasting
-        for i in _ALL:
+        frac, rate = move.profile.at(tau)
+        for i, base, span in move.plain:  # no carry: its offset and velocity are 0.0
             if in_move[i] and not blocked[i]:
-                span = spans[i]
-                if coasting[i]:  # Carry.offset and Carry.velocity, written out (time > 0)
-                    c = move.carry[i]
-                    v0, ctime = c.v0, c.time
-                    if tau <= 0.0:
-                        offset = 0.0
-                    elif tau >= ctime:
-                        offset = v0 * ctime / 2
-                    elif c.sin2:
-                        offset = v0 * (
-                            tau / 2 + ctime / (2 * math.pi) * math.sin(math.pi * tau / ctime)
-                        )
-                    else:
-                        offset = v0 * (tau - tau * tau / (2 * ctime))
-                    if tau < 0.0 or tau >= ctime:
-                        velocity = 0.0
-                    elif c.sin2:
-                        velocity = v0 * math.cos(math.pi * tau / (2 * ctime)) ** 2
-                    else:
-                        velocity = v0 * (1.0 - tau / ctime)
-                    ref[i] = start[i] + offset + span * frac
-                    rvel[i] = velocity + span * rate
-                else:  # no carry: its offset and velocity are 0.0
-                    ref[i] = start[i] + 0.0 + span * frac
-                    rvel[i] = 0.0 + span * rate
+                ref[i] = base + span * frac
+                rvel[i] = 0.0 + span * rate
+        for group in move.coast:
+            group.follow(tau, frac, rate, ax)
 
     def _integrate(self, dt: float) -> None:
         """Velocity controllers: advance each reference by its (ramped) velocity over ``dt``."""
