@@ -576,10 +576,11 @@ class ContactPhysics:
             forms = _ellipse_forms(*self._ellipse, cos_p, sin_p, ox, oy)
             inside = (forms @ points < 1.0).nonzero()[0]  # g < 1 exactly when g² < 1
             return inside, self._depths(cols, inside, cos_p, sin_p, ox, oy), starts, cols
-        local = (np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points).T
+        rows = np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points  # (x, y)
         if not self._prefilter:
-            inside = np.nonzero(self.outline.sdf(local) < 0.0)[0]
+            inside = np.nonzero(self.outline.sdf_rows(rows) < 0.0)[0]
         else:  # a polygon's sdf is dear: only for the samples in its bounding circle
+            local = rows.T
             near = np.nonzero(np.einsum("ij,ij->i", local, local) <= reach2)[0]
             inside = near[self.outline.sdf(local[near]) < 0.0]
         return inside, self._depths(cols, inside, cos_p, sin_p, ox, oy), starts, cols
@@ -601,8 +602,8 @@ class ContactPhysics:
         # with the columns (see _local_columns); rows (px, py, dx, dy)
         self._to_object.put(_OBJECT_ENTRIES, (cos_p, sin_p, -ox, -sin_p, cos_p, -oy,
                                               -cos_p, -sin_p, sin_p, -cos_p))  # fmt: skip
-        pd = self._to_object @ cols[inside].T
-        return self.outline.exit_distance(pd[:2].T, pd[2:].T)
+        pd = self._to_object @ cols.take(inside, axis=0).T  # take: cols[inside], cheaper
+        return self.outline.exit_rows(pd)
 
     def _pulls(self) -> dict[int, _Pull]:
         """Each anchored contact's spring at the current pose, for :meth:`_evaluate`: its
