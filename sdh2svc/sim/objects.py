@@ -42,6 +42,11 @@ ELLIPSE_VERTICES = 96
 _MIN_TURN_RAD = 1e-3  # a polygon's vertex that turns less is collinear with its neighbours
 
 
+# Constants as 0-d arrays: a numpy call takes one at half the overhead of a Python float (the
+# same float64 operation, so the same values); the rows' operations below run per evaluation.
+_ZERO, _ONE, _TINY = np.array(0.0), np.array(1.0), np.array(1e-300)
+
+
 def _frozen(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)  # cached and shared: nobody may change it in place
     return a
@@ -273,6 +278,12 @@ class Outline:
             self._segment = ((float(mid[0]), float(mid[1])), (float(unit[0]), float(unit[1])), half)
         # a stick's core along x (as Stick's is): its projection rel·e is the one product rel_x·e_x
         self._axial = len(self.vertices) == 2 and float(self.edges[0, 1]) == 0.0
+        # the rows' constants as 0-d arrays (see _ZERO): the first vertex, the first edge's x,
+        # its squared length, the radius and its square, a stick's half length
+        self._v0 = (np.array(self.vertices[0, 0]), np.array(self.vertices[0, 1]))
+        self._ex, self._e0_sq = np.array(self.edges[0, 0]), np.array(self._edge0_sq)
+        self._r, self._rr = np.array(self.radius), np.array(self.radius * self.radius)
+        self._half = np.array(self._segment[2] if self._segment else 0.0)
         if isinstance(spec, Ellipse):
             self._ab = (spec.axis_a_mm / 2, spec.axis_b_mm / 2)
             ia, ib = 2.0 / spec.axis_a_mm, 2.0 / spec.axis_b_mm
@@ -329,19 +340,19 @@ class Outline:
         """:meth:`sdf` of points given as the two rows (x, y) of pq (2, N). A disk's and a stick
         along x are worked out on the rows (the same operations as sdf's, on contiguous 1-D
         arrays: far cheaper than on (N, 2) columns); the other shapes' by :meth:`sdf`."""
-        v, r = self.vertices, self.radius
+        v = self.vertices
         if self._ab is not None or self._box_core is not None:
             return self.sdf(pq.T)
         if len(v) == 1:
-            px, py = pq[0] - v[0, 0], pq[1] - v[0, 1]
-            return np.asarray(np.sqrt(px * px + py * py) - r)
+            px, py = pq[0] - self._v0[0], pq[1] - self._v0[1]
+            return np.asarray(np.sqrt(px * px + py * py) - self._r)
         if not self._axial:
             return self.sdf(pq.T)
         # the segment from v0 along (e_x, 0): the nearest point's parameter, clipped to [0, 1]
-        rx, ry = pq[0] - v[0, 0], pq[1] - v[0, 1]
-        ex = self.edges[0, 0]
-        qx = rx - _clip01(rx * ex / self._edge0_sq) * ex
-        return np.asarray(np.sqrt(qx * qx + ry * ry) - r)
+        rx, ry = pq[0] - self._v0[0], pq[1] - self._v0[1]
+        ex = self._ex
+        qx = rx - _clip01(rx * ex / self._e0_sq) * ex
+        return np.asarray(np.sqrt(qx * qx + ry * ry) - self._r)
 
     def exit_distance(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
         """How far each object-frame point p (N, 2) inside the outline goes along its unit
@@ -360,16 +371,15 @@ class Outline:
         dy) of pd (4, N). Few points, so few whole-array operations: the coordinates are
         handled as rows (each numpy call on a few dozen values costs more than its work)."""
         if self._ab is not None:  # an ellipse: the unit circle, in coordinates scaled by 1/a, 1/b
-            wx, wy, dx, dy = pd * self._inv_ab
-            return _disk_exit(wx, wy, dx, dy, 1.0, scaled=True)
+            return _disk_exit_rows(pd * self._inv_ab, _ONE, scaled=True)
         if self._box_core is not None:
             return self._box_exit(pd[:2], pd[2:])
         v, r = self.vertices, self.radius
         if len(v) == 1:  # a disk (about the origin, as every circle's core is)
+            if self._centred:
+                return _disk_exit_rows(pd, self._rr)
             px, py, dx, dy = pd
-            if not self._centred:
-                px, py = px - v[0, 0], py - v[0, 1]
-            return _disk_exit(px, py, dx, dy, r)
+            return _disk_exit(px - v[0, 0], py - v[0, 1], dx, dy, r)
         if not self._closed:
             px, py, dx, dy = pd
             return self._stick_exit(px, py, dx, dy)
@@ -427,9 +437,9 @@ class Outline:
             px, py = (px - cx) * ux + (py - cy) * uy, (py - cy) * ux - (px - cx) * uy
             dx, dy = dx * ux + dy * uy, dy * ux - dx * uy
         r = self.radius
-        t = (r - np.sign(dy) * py) / np.maximum(np.abs(dy), 1e-300)
+        t = (self._r - np.sign(dy) * py) / np.maximum(np.abs(dy), _TINY)
         u = px + t * dx
-        cap = np.abs(u) > half
+        cap = np.abs(u) > self._half
         if np.count_nonzero(cap):
             t = np.where(cap, _disk_exit(px - np.copysign(half, u), py, dx, dy, r), t)
         return np.asarray(t)
@@ -455,7 +465,7 @@ def _row_norms(q: np.ndarray) -> np.ndarray:
 
 def _clip01(x: np.ndarray) -> np.ndarray:
     """``np.clip(x, 0.0, 1.0)`` without np.clip's own overhead (the same values)."""
-    out: np.ndarray = np.minimum(np.maximum(x, 0.0), 1.0)
+    out: np.ndarray = np.minimum(np.maximum(x, _ZERO), _ONE)
     return out
 
 
@@ -473,6 +483,18 @@ def _disk_exit(
         return np.asarray(np.sqrt(np.maximum(b * b - c, 0.0)) - b)
     dd = dx * dx + dy * dy
     return np.asarray((np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd)
+
+
+def _disk_exit_rows(wd: np.ndarray, rr: np.ndarray, scaled: bool = False) -> np.ndarray:
+    """:func:`_disk_exit` of the four rows (wx, wy, dx, dy) of wd (4, N), for the squared
+    radius rr (0-d): the same operations, on the rows."""
+    wx, wy, dx, dy = wd
+    b = wx * dx + wy * dy
+    c = wx * wx + wy * wy - rr
+    if not scaled:
+        return np.asarray(np.sqrt(np.maximum(b * b - c, _ZERO)) - b)
+    dd = dx * dx + dy * dy
+    return np.asarray((np.sqrt(np.maximum(b * b - dd * c, _ZERO)) - b) / dd)
 
 
 def load_object(path: str | Path) -> Shape:
