@@ -266,6 +266,8 @@ class Outline:
         self._box_core: np.ndarray | None = None
         if isinstance(spec, Box):
             self._box_core = np.max(np.abs(self.vertices), axis=0)
+            # its half sides as 0-d arrays (see _ZERO)
+            self._box_half = (np.array(self._box_core[0]), np.array(self._box_core[1]))
         if self._box_core is not None:
             self._box_far = (self._box_core + self.radius)[:, None]  # its sides moved out by r
         self._ab: tuple[float, float] | None = None
@@ -317,7 +319,7 @@ class Outline:
             grad = np.sqrt((qx / a) ** 2 + (qy / b) ** 2) / np.maximum(g, 1e-12)
             return (g - 1.0) / np.maximum(grad, 1e-12)
         if self._box_core is not None:
-            return self._box_sdf(p)
+            return self._box_sdf_rows(p[:, 0], p[:, 1])
         v, e = self.vertices, self.edges
         n = len(v)
         if n == 1 or self._axial:
@@ -341,7 +343,9 @@ class Outline:
         along x are worked out on the rows (the same operations as sdf's, on contiguous 1-D
         arrays: far cheaper than on (N, 2) columns); the other shapes' by :meth:`sdf`."""
         v = self.vertices
-        if self._ab is not None or self._box_core is not None:
+        if self._box_core is not None:
+            return self._box_sdf_rows(pq[0], pq[1])
+        if self._ab is not None:
             return self.sdf(pq.T)
         if len(v) == 1:
             px, py = pq[0] - self._v0[0], pq[1] - self._v0[1]
@@ -381,8 +385,7 @@ class Outline:
             px, py, dx, dy = pd
             return _disk_exit(px - v[0, 0], py - v[0, 1], dx, dy, r)
         if not self._closed:
-            px, py, dx, dy = pd
-            return self._stick_exit(px, py, dx, dy)
+            return self._stick_exit(pd[0], pd[1], pd[2], pd[3])
         return self._polygon_exit(pd[:2].T, pd[2:].T)
 
     def _polygon_exit(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -444,16 +447,17 @@ class Outline:
             t = np.where(cap, _disk_exit(px - np.copysign(half, u), py, dx, dy, r), t)
         return np.asarray(t)
 
-    def _box_sdf(self, p: np.ndarray) -> np.ndarray:
-        """:meth:`sdf` of a box: the same distances as the polygon's, without projecting every
-        point on every edge (q: how far each coordinate lies beyond the core's half side)."""
-        q = np.abs(p) - self._box_core
-        qx, qy = q[:, 0], q[:, 1]
+    def _box_sdf_rows(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+        """:meth:`sdf` of a box, the points' coordinates as rows: the same distances as the
+        polygon's, without projecting every point on every edge (q: how far each coordinate
+        lies beyond the core's half side)."""
+        hx, hy = self._box_half
+        qx, qy = np.abs(px) - hx, np.abs(py) - hy
         outside = np.maximum(qx, qy)  # inside the core: the distance to its nearest side
         if self.radius <= 0.0:
             return np.asarray(outside)  # as for any polygon: exact inside, positive outside
-        corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
-        return np.asarray(np.where(outside > 0.0, corner, outside) - self.radius)
+        corner = np.hypot(np.maximum(qx, _ZERO), np.maximum(qy, _ZERO))  # outside: to the core
+        return np.asarray(np.where(outside > _ZERO, corner, outside) - self._r)
 
 
 def _row_norms(q: np.ndarray) -> np.ndarray:
@@ -488,7 +492,7 @@ def _disk_exit(
 def _disk_exit_rows(wd: np.ndarray, rr: np.ndarray, scaled: bool = False) -> np.ndarray:
     """:func:`_disk_exit` of the four rows (wx, wy, dx, dy) of wd (4, N), for the squared
     radius rr (0-d): the same operations, on the rows."""
-    wx, wy, dx, dy = wd
+    wx, wy, dx, dy = wd[0], wd[1], wd[2], wd[3]  # (indexing: cheaper than unpacking)
     b = wx * dx + wy * dy
     c = wx * wx + wy * wy - rr
     if not scaled:

@@ -385,6 +385,7 @@ class ContactPhysics:
         self._world: _World = []
         self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int], np.ndarray]] = {}
         self._starts: dict[tuple[int, ...], list[int]] = {}  # each group's surface starts
+        self._starts_array: dict[tuple[int, ...], np.ndarray] = {}  # the same, for searchsorted
         self._map = np.zeros((9, 9))  # see _to_world
         self._to_object = np.zeros((4, 9))  # see _depths
         self._frame_rows: list[tuple[tuple[float, float], ...]] = []
@@ -486,7 +487,7 @@ class ContactPhysics:
         ])  # the others are nowhere near the object  # fmt: skip
         # all nearby surfaces' samples at once, then each surface's share of those inside
         inside, depth, starts, cols_all = self._inside(near_j, cy, cz, cos_p, sin_p, reach * reach)
-        bounds = inside.searchsorted(starts).tolist()
+        bounds = inside.searchsorted(self._starts_array[near_j]).tolist()
         for k, j in enumerate(near_j):
             lo, hi = bounds[k], bounds[k + 1]
             if lo == hi:
@@ -562,6 +563,7 @@ class ContactPhysics:
                 for j in near_j:
                     starts.append(starts[-1] + len(self._local_cols[j]))
                 self._starts[near_j] = starts
+                self._starts_array[near_j] = np.array(starts)
             cols = np.empty((starts[-1], 9))
             for k, j in enumerate(near_j):
                 out = cols[starts[k] : starts[k + 1]]
