@@ -42,6 +42,11 @@ ELLIPSE_VERTICES = 96
 _MIN_TURN_RAD = 1e-3  # a polygon's vertex that turns less is collinear with its neighbours
 
 
+# Constants as 0-d arrays: a numpy call takes one at half the overhead of a Python float (the
+# same float64 operation, so the same values); the rows' operations below run per evaluation.
+_ZERO, _ONE, _TINY = np.array(0.0), np.array(1.0), np.array(1e-300)
+
+
 def _frozen(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)  # cached and shared: nobody may change it in place
     return a
@@ -261,6 +266,8 @@ class Outline:
         self._box_core: np.ndarray | None = None
         if isinstance(spec, Box):
             self._box_core = np.max(np.abs(self.vertices), axis=0)
+            # its half sides as 0-d arrays (see _ZERO)
+            self._box_half = (np.array(self._box_core[0]), np.array(self._box_core[1]))
         if self._box_core is not None:
             self._box_far = (self._box_core + self.radius)[:, None]  # its sides moved out by r
         self._ab: tuple[float, float] | None = None
@@ -271,9 +278,18 @@ class Outline:
             half = float(lengths[0]) / 2
             mid, unit = self.vertices.mean(axis=0), self.edges[0] / lengths[0]
             self._segment = ((float(mid[0]), float(mid[1])), (float(unit[0]), float(unit[1])), half)
+        # a stick's core along x (as Stick's is): its projection rel·e is the one product rel_x·e_x
+        self._axial = len(self.vertices) == 2 and float(self.edges[0, 1]) == 0.0
+        # the rows' constants as 0-d arrays (see _ZERO): the first vertex, the first edge's x,
+        # its squared length, the radius and its square, a stick's half length
+        self._v0 = (np.array(self.vertices[0, 0]), np.array(self.vertices[0, 1]))
+        self._ex, self._e0_sq = np.array(self.edges[0, 0]), np.array(self._edge0_sq)
+        self._r, self._rr = np.array(self.radius), np.array(self.radius * self.radius)
+        self._half = np.array(self._segment[2] if self._segment else 0.0)
         if isinstance(spec, Ellipse):
             self._ab = (spec.axis_a_mm / 2, spec.axis_b_mm / 2)
-            self._inv_ab = np.array([[2.0 / spec.axis_a_mm], [2.0 / spec.axis_b_mm]])
+            ia, ib = 2.0 / spec.axis_a_mm, 2.0 / spec.axis_b_mm
+            self._inv_ab = np.array([[ia], [ib], [ia], [ib]])  # scales (px, py, dx, dy)
             self.half_extent = np.array(self._ab)
             self.bound_radius = max(self._ab)
 
@@ -303,11 +319,11 @@ class Outline:
             grad = np.sqrt((qx / a) ** 2 + (qy / b) ** 2) / np.maximum(g, 1e-12)
             return (g - 1.0) / np.maximum(grad, 1e-12)
         if self._box_core is not None:
-            return self._box_sdf(p)
+            return self._box_sdf_rows(p[:, 0], p[:, 1])
         v, e = self.vertices, self.edges
         n = len(v)
-        if n == 1:
-            return _row_norms(p - v[0]) - self.radius
+        if n == 1 or self._axial:
+            return self.sdf_rows(p.T)
         if not self._closed:  # a segment (stick)
             rel = p - v[0]
             t = _clip01(rel @ e[0] / self._edge0_sq)
@@ -316,11 +332,31 @@ class Outline:
         outside = np.maximum.reduce(side, axis=1)
         d = outside.copy()
         out = outside > 0.0
-        if self.radius > 0.0 and out.any():  # exact distance to the core outside it
+        if self.radius > 0.0 and np.count_nonzero(out):  # exact distance to the core outside it
             rel = p[out][:, None, :] - v[None]
             t = np.clip(np.sum(rel * e[None], axis=2) / np.sum(e * e, axis=1)[None], 0.0, 1.0)
             d[out] = np.min(np.linalg.norm(rel - t[..., None] * e[None], axis=2), axis=1)
         return np.asarray(d - self.radius)
+
+    def sdf_rows(self, pq: np.ndarray) -> np.ndarray:
+        """:meth:`sdf` of points given as the two rows (x, y) of pq (2, N). A disk's and a stick
+        along x are worked out on the rows (the same operations as sdf's, on contiguous 1-D
+        arrays: far cheaper than on (N, 2) columns); the other shapes' by :meth:`sdf`."""
+        v = self.vertices
+        if self._box_core is not None:
+            return self._box_sdf_rows(pq[0], pq[1])
+        if self._ab is not None:
+            return self.sdf(pq.T)
+        if len(v) == 1:
+            px, py = pq[0] - self._v0[0], pq[1] - self._v0[1]
+            return np.asarray(np.sqrt(px * px + py * py) - self._r)
+        if not self._axial:
+            return self.sdf(pq.T)
+        # the segment from v0 along (e_x, 0): the nearest point's parameter, clipped to [0, 1]
+        rx, ry = pq[0] - self._v0[0], pq[1] - self._v0[1]
+        ex = self._ex
+        qx = rx - _clip01(rx * ex / self._e0_sq) * ex
+        return np.asarray(np.sqrt(qx * qx + ry * ry) - self._r)
 
     def exit_distance(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
         """How far each object-frame point p (N, 2) inside the outline goes along its unit
@@ -330,20 +366,33 @@ class Outline:
         ellipse is a disk once scaled by its semi-axes, a quadratic in t; a polygon grown by r
         is first left through one of its edges moved out by r (the first half-plane the ray
         leaves), and where that exit lies beyond the ends of its edge it is in a rounded
-        corner, on that vertex's circle (a stick: its two sides, then its end caps). Few
-        points, so few whole-array operations: the coordinates are handled as rows.
+        corner, on that vertex's circle (a stick: its two sides, then its end caps).
         """
+        return self.exit_rows(np.concatenate((p.T, d.T)))
+
+    def exit_rows(self, pd: np.ndarray) -> np.ndarray:
+        """:meth:`exit_distance` of points and directions given as the four rows (px, py, dx,
+        dy) of pd (4, N). Few points, so few whole-array operations: the coordinates are
+        handled as rows (each numpy call on a few dozen values costs more than its work)."""
         if self._ab is not None:  # an ellipse: the unit circle, in coordinates scaled by 1/a, 1/b
-            return _disk_exit(p.T * self._inv_ab, d.T * self._inv_ab, 1.0, scaled=True)
+            return _disk_exit_rows(pd * self._inv_ab, _ONE, scaled=True)
         if self._box_core is not None:
-            return self._box_exit(p.T, d.T)
-        (px, py), (dx, dy) = p.T, d.T
+            return self._box_exit(pd[:2], pd[2:])
         v, r = self.vertices, self.radius
         if len(v) == 1:  # a disk (about the origin, as every circle's core is)
-            return _disk_exit(p.T if self._centred else p.T - v[0][:, None], d.T, r)
+            if self._centred:
+                return _disk_exit_rows(pd, self._rr)
+            px, py, dx, dy = pd
+            return _disk_exit(px - v[0, 0], py - v[0, 1], dx, dy, r)
         if not self._closed:
-            return self._stick_exit(px, py, dx, dy)
-        # a polygon's edges moved out by r: the first of their half-planes the ray leaves
+            return self._stick_exit(pd[0], pd[1], pd[2], pd[3])
+        return self._polygon_exit(pd[:2].T, pd[2:].T)
+
+    def _polygon_exit(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """:meth:`exit_distance` of a polygon grown by r: the first of its edges' half-planes,
+        moved out by r, that the ray leaves; beyond an end of that edge, its vertex's circle."""
+        (px, py), (dx, dy) = p.T, d.T
+        v, r = self.vertices, self.radius
         dn = d @ self.normals.T
         room = self.offsets + r - p @ self.normals.T
         t_edges = np.divide(room, dn, out=np.full(room.shape, np.inf), where=dn > 0.0)
@@ -357,9 +406,10 @@ class Outline:
             e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1]
         )
         cap = (along < 0.0) | (along > 1.0)
-        if cap.any():
+        if np.count_nonzero(cap):
             corner = v[(k[cap] + (along[cap] > 1.0)) % len(v)]
-            t[cap] = _disk_exit((p[cap] - corner).T, d[cap].T, r)
+            (wx, wy), (ux, uy) = (p[cap] - corner).T, d[cap].T
+            t[cap] = _disk_exit(wx, wy, ux, uy, r)
         return np.asarray(t)
 
     def _box_exit(self, P: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -375,10 +425,10 @@ class Outline:
         assert core is not None  # a box's
         beyond = np.abs(Q) > core[:, None]
         cap = beyond[0] & beyond[1]
-        if not cap.any():
+        if not np.count_nonzero(cap):
             return np.asarray(t)
-        W = P - np.copysign(core[:, None], Q)  # from the corner
-        return np.where(cap, _disk_exit(W, D, self.radius), t)
+        wx, wy = P - np.copysign(core[:, None], Q)  # from the corner
+        return np.where(cap, _disk_exit(wx, wy, D[0], D[1], self.radius), t)
 
     def _stick_exit(self, px: np.ndarray, py: np.ndarray, dx: np.ndarray, dy: np.ndarray
                     ) -> np.ndarray:  # fmt: skip
@@ -390,24 +440,24 @@ class Outline:
             px, py = (px - cx) * ux + (py - cy) * uy, (py - cy) * ux - (px - cx) * uy
             dx, dy = dx * ux + dy * uy, dy * ux - dx * uy
         r = self.radius
-        t = (r - np.sign(dy) * py) / np.maximum(np.abs(dy), 1e-300)
+        t = (self._r - np.sign(dy) * py) / np.maximum(np.abs(dy), _TINY)
         u = px + t * dx
-        cap = np.abs(u) > half
-        if cap.any():
-            W = np.stack((px - np.copysign(half, u), py))
-            t = np.where(cap, _disk_exit(W, np.stack((dx, dy)), r), t)
+        cap = np.abs(u) > self._half
+        if np.count_nonzero(cap):
+            t = np.where(cap, _disk_exit(px - np.copysign(half, u), py, dx, dy, r), t)
         return np.asarray(t)
 
-    def _box_sdf(self, p: np.ndarray) -> np.ndarray:
-        """:meth:`sdf` of a box: the same distances as the polygon's, without projecting every
-        point on every edge (q: how far each coordinate lies beyond the core's half side)."""
-        q = np.abs(p) - self._box_core
-        qx, qy = q[:, 0], q[:, 1]
+    def _box_sdf_rows(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+        """:meth:`sdf` of a box, the points' coordinates as rows: the same distances as the
+        polygon's, without projecting every point on every edge (q: how far each coordinate
+        lies beyond the core's half side)."""
+        hx, hy = self._box_half
+        qx, qy = np.abs(px) - hx, np.abs(py) - hy
         outside = np.maximum(qx, qy)  # inside the core: the distance to its nearest side
         if self.radius <= 0.0:
             return np.asarray(outside)  # as for any polygon: exact inside, positive outside
-        corner = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))  # outside: to the core
-        return np.asarray(np.where(outside > 0.0, corner, outside) - self.radius)
+        corner = np.hypot(np.maximum(qx, _ZERO), np.maximum(qy, _ZERO))  # outside: to the core
+        return np.asarray(np.where(outside > _ZERO, corner, outside) - self._r)
 
 
 def _row_norms(q: np.ndarray) -> np.ndarray:
@@ -419,23 +469,36 @@ def _row_norms(q: np.ndarray) -> np.ndarray:
 
 def _clip01(x: np.ndarray) -> np.ndarray:
     """``np.clip(x, 0.0, 1.0)`` without np.clip's own overhead (the same values)."""
-    out: np.ndarray = np.minimum(np.maximum(x, 0.0), 1.0)
+    out: np.ndarray = np.minimum(np.maximum(x, _ZERO), _ONE)
     return out
 
 
-def _disk_exit(W: np.ndarray, D: np.ndarray, r: float, scaled: bool = False) -> np.ndarray:
+def _disk_exit(
+    wx: np.ndarray, wy: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: float,
+    scaled: bool = False,
+) -> np.ndarray:  # fmt: skip
     """The larger root t of |w + t·d|² = r², for points w (from the disk's centre) and
-    directions d as rows (x, y): where a ray leaves the disk, (√(b² − dd·c) − b)/dd with
-    b = w·d, c = w·w − r² and dd = d·d, 1 unless ``scaled``. A ray that misses the disk (only
-    by rounding, at a tangent) gets its nearest approach."""
-    WD, WW = W * D, W * W
-    b = WD[0] + WD[1]
-    c = WW[0] + WW[1] - r * r
+    directions d given as their coordinates' rows: where a ray leaves the disk,
+    (√(b² − dd·c) − b)/dd with b = w·d, c = w·w − r² and dd = d·d, 1 unless ``scaled``. A ray
+    that misses the disk (only by rounding, at a tangent) gets its nearest approach."""
+    b = wx * dx + wy * dy
+    c = wx * wx + wy * wy - r * r
     if not scaled:
         return np.asarray(np.sqrt(np.maximum(b * b - c, 0.0)) - b)
-    DD = D * D
-    dd = DD[0] + DD[1]
+    dd = dx * dx + dy * dy
     return np.asarray((np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd)
+
+
+def _disk_exit_rows(wd: np.ndarray, rr: np.ndarray, scaled: bool = False) -> np.ndarray:
+    """:func:`_disk_exit` of the four rows (wx, wy, dx, dy) of wd (4, N), for the squared
+    radius rr (0-d): the same operations, on the rows."""
+    wx, wy, dx, dy = wd[0], wd[1], wd[2], wd[3]  # (indexing: cheaper than unpacking)
+    b = wx * dx + wy * dy
+    c = wx * wx + wy * wy - rr
+    if not scaled:
+        return np.asarray(np.sqrt(np.maximum(b * b - c, _ZERO)) - b)
+    dd = dx * dx + dy * dy
+    return np.asarray((np.sqrt(np.maximum(b * b - dd * c, _ZERO)) - b) / dd)
 
 
 def load_object(path: str | Path) -> Shape:

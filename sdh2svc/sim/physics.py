@@ -109,6 +109,8 @@ class PhysicsConfig(Finite):
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
+# 0-d arrays: a numpy call takes one at half the overhead of a Python float (the same values)
+_ZERO, _ONE = np.array(0.0), np.array(1.0)
 MAX_HALVINGS = 3  # a substep without a balance is retried in halves down to 1/8 of its length
 # The sampled surfaces make the contact forces jump by one sample's share as a sample enters or
 # leaves a contact; on a thin object's few contact samples that can leave no exact balance
@@ -371,6 +373,7 @@ class ContactPhysics:
         self._wds = self.width_mm * cfg.sample_spacing_mm  # each sample's strip of pad, mm²
         self._kw = self.k * self._wds  # p·w·ds per mm of compression, below the knee
         self._kt = cfg.tangential_stiffness_n_per_mm
+        self._kw0 = np.array(self._kw)  # as a 0-d array for numpy (see _ZERO)
         self._moment_scale = 1.0 / max(outline.bound_radius, 1.0)  # moment in force units
         self._pressures: tuple[_Eval, dict[int, tuple[np.ndarray, np.ndarray]]] | None = None
         self.hand_pose = pose
@@ -382,6 +385,7 @@ class ContactPhysics:
         self._world: _World = []
         self._groups: dict[tuple[int, ...], tuple[np.ndarray, list[int], np.ndarray]] = {}
         self._starts: dict[tuple[int, ...], list[int]] = {}  # each group's surface starts
+        self._starts_array: dict[tuple[int, ...], np.ndarray] = {}  # the same, for searchsorted
         self._map = np.zeros((9, 9))  # see _to_world
         self._to_object = np.zeros((4, 9))  # see _depths
         self._frame_rows: list[tuple[tuple[float, float], ...]] = []
@@ -475,7 +479,7 @@ class ContactPhysics:
         pressures: dict[int, tuple[np.ndarray, int, np.ndarray, float]] = {}
         sums: dict[int, tuple[float, float, float]] = {}
         max_depth = 0.0
-        wds, kw, reach = self._wds, self._kw, self.outline.bound_radius
+        wds, reach = self._wds, self.outline.bound_radius
         near_j = tuple([
             j
             for j, (my, mz, lim) in enumerate(self._world_circles)
@@ -483,7 +487,7 @@ class ContactPhysics:
         ])  # the others are nowhere near the object  # fmt: skip
         # all nearby surfaces' samples at once, then each surface's share of those inside
         inside, depth, starts, cols_all = self._inside(near_j, cy, cz, cos_p, sin_p, reach * reach)
-        bounds = inside.searchsorted(starts).tolist()
+        bounds = inside.searchsorted(self._starts_array[near_j]).tolist()
         for k, j in enumerate(near_j):
             lo, hi = bounds[k], bounds[k + 1]
             if lo == hi:
@@ -497,16 +501,23 @@ class ContactPhysics:
             e = 0.0 if SURFACE_FINGER[j] is None else self._yield(overlap, wds, deepest, j, ov)
             # compression; the samples the yielding finger left (overlap ≤ e) weigh 0 rather
             # than being picked out (the pressures are only picked once a frame asks for them)
-            c = np.maximum(overlap - e, 0.0) if e > 0.0 else overlap
+            c = np.maximum(overlap - e, _ZERO) if e > 0.0 else overlap
             top = deepest - e
-            # p·w·ds per sample: the linear law's k·c below the knee
-            pw = c * kw if top <= self.knee else self._pressure(c, top) * wds
+            # p·w·ds per sample (the linear law's k·c below the knee), and times the overlap:
+            # written straight into the two rows the product below takes
+            weights = np.empty((2, hi - lo))
+            pw = weights[0]
+            if top <= self.knee:
+                np.multiply(c, self._kw0, out=pw)
+            else:
+                np.multiply(self._pressure(c, top), wds, out=pw)
+            np.multiply(pw, overlap, out=weights[1])
             # a convex object presses one run of samples: a view instead of a copy
             g0, g1 = int(inside[lo]), int(inside[hi - 1]) + 1
             sub = cols_all[g0:g1] if g1 - g0 == hi - lo else cols_all[inside[lo:hi]]
             # one product gives Σ p·w·ds·(n, p×n, point, 1, tangent, s) over the contact samples,
             # and the same weighted by the overlap (only its normal part is used)
-            sums_pw, back = (np.array((pw, pw * overlap)) @ sub).tolist()
+            sums_pw, back = (weights @ sub).tolist()
             Fy, Fz, pxn, Py, Pz, total, Ty, Tz, S = sums_pw
             if total <= 0.0:  # the yielding finger left every sample: no contact here
                 continue
@@ -552,6 +563,7 @@ class ContactPhysics:
                 for j in near_j:
                     starts.append(starts[-1] + len(self._local_cols[j]))
                 self._starts[near_j] = starts
+                self._starts_array[near_j] = np.array(starts)
             cols = np.empty((starts[-1], 9))
             for k, j in enumerate(near_j):
                 out = cols[starts[k] : starts[k + 1]]
@@ -574,14 +586,15 @@ class ContactPhysics:
         ox, oy = cy * cos_p + cz * sin_p, cz * cos_p - cy * sin_p
         if self._ellipse is not None:
             forms = _ellipse_forms(*self._ellipse, cos_p, sin_p, ox, oy)
-            inside = (forms @ points < 1.0).nonzero()[0]  # g < 1 exactly when g² < 1
+            inside = (forms @ points < _ONE).nonzero()[0]  # g < 1 exactly when g² < 1
             return inside, self._depths(cols, inside, cos_p, sin_p, ox, oy), starts, cols
-        local = (np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points).T
+        rows = np.array(((cos_p, sin_p, -ox), (-sin_p, cos_p, -oy))) @ points  # (x, y)
         if not self._prefilter:
-            inside = np.nonzero(self.outline.sdf(local) < 0.0)[0]
+            inside = np.nonzero(self.outline.sdf_rows(rows) < _ZERO)[0]
         else:  # a polygon's sdf is dear: only for the samples in its bounding circle
-            near = np.nonzero(np.einsum("ij,ij->i", local, local) <= reach2)[0]
-            inside = near[self.outline.sdf(local[near]) < 0.0]
+            px, py = rows  # |local|² on the rows: the same unfused sum as an einsum's
+            near = np.nonzero(px * px + py * py <= reach2)[0]
+            inside = near[self.outline.sdf(rows.T[near]) < _ZERO]
         return inside, self._depths(cols, inside, cos_p, sin_p, ox, oy), starts, cols
 
     def _depths(
@@ -601,8 +614,8 @@ class ContactPhysics:
         # with the columns (see _local_columns); rows (px, py, dx, dy)
         self._to_object.put(_OBJECT_ENTRIES, (cos_p, sin_p, -ox, -sin_p, cos_p, -oy,
                                               -cos_p, -sin_p, sin_p, -cos_p))  # fmt: skip
-        pd = self._to_object @ cols[inside].T
-        return self.outline.exit_distance(pd[:2].T, pd[2:].T)
+        pd = self._to_object @ cols.take(inside, axis=0).T  # take: cols[inside], cheaper
+        return self.outline.exit_rows(pd)
 
     def _pulls(self) -> dict[int, _Pull]:
         """Each anchored contact's spring at the current pose, for :meth:`_evaluate`: its
