@@ -214,20 +214,17 @@ class Runner:
             await self._release()
             self._finish(Phase.STOPPED if status == "stopped" else Phase.DONE, status)
         except RunFault as e:
+            self._say_fault(e.fault, str(e))
             await self._halt()
-            status = "dropped" if e.fault is Fault.DROPPED else "faulted"
-            # said at once, before the opening below: the status and the record know why the
-            # fingers open, and an e-stop during the opening keeps it
-            self._event(EventKind.FAULT, {"fault": e.fault.value, "message": str(e)})
-            self.result.message = f"{e.fault.value}: {e}"
             if e.fault is Fault.FORCE_CEILING:
                 with contextlib.suppress(Exception):
                     await self._release()
+            status = "dropped" if e.fault is Fault.DROPPED else "faulted"
             self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
         except (JointLinkError, TactileError) as e:
-            await self._halt()
             fault = Fault.JOINT_ERROR if isinstance(e, JointLinkError) else Fault.SENSOR_ERROR
-            self._event(EventKind.FAULT, {"fault": fault.value, "message": str(e)})
+            self._say_fault(fault, str(e))
+            await self._halt()
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
         except asyncio.CancelledError:
             if not self._estopping:
@@ -247,6 +244,13 @@ class Runner:
         self._set_phase(phase)
         rec = self.result.recognition
         self._event(EventKind.END, {"status": status, "message": message, "recognition": rec})
+
+    def _say_fault(self, fault: Fault, message: str) -> None:
+        """The fault in the status and the record at once, before the halt and any opening: on
+        a silent joint line the halt takes a reply's timeout per command (seconds, the run
+        showing its phase meanwhile), and an e-stop during the halt or opening keeps why."""
+        self._event(EventKind.FAULT, {"fault": fault.value, "message": message})
+        self.result.message = f"{fault.value}: {message}"
 
     async def _halt(self) -> None:
         """Hold where the hand is: stop every axis, targets = actual angles."""

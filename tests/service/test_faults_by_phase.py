@@ -232,7 +232,7 @@ async def _outage(
         await cable.cut()
     else:
         cable.hold()
-    down_at = None
+    down_at = said_at = None
     while loop.time() - t0 < outage_s:
         await asyncio.sleep(0.1)
         assert _moved(sim.sdh.actual_deg, began) <= step + EPS  # at most one increment
@@ -240,12 +240,17 @@ async def _outage(
         run = st["run"]
         if down_at is None and _down(st, line):
             down_at = loop.time()
+        if said_at is None and run["message"]:
+            said_at = loop.time()
         if run["status"] != "running":  # faulted: the line shows down, runs are refused
             assert run["status"] == "faulted" and _down(st, line), st
             assert (await c.post("/api/runs", json={})).status_code == 503
-    assert down_at is not None
+    assert down_at is not None and said_at is not None
     fault = {"sdh": "joint_error: ", "dsa": "stale_sensor: "}[line]
     assert station.last_run is not None and station.last_run["message"].startswith(fault)
+    # a silent joint line fails a command within two replies' timeouts; the run says so then,
+    # not after its halt's commands have timed out too (seconds later)
+    assert said_at - down_at <= 1.5, (said_at - down_at, station.last_run)
     back = sim.sdh.actual_deg
     if how == "cut":
         await cable.plug()
