@@ -263,14 +263,21 @@ class Runner:
         return self.ctx.contact(m[self._m1]), self.ctx.contact(m[self._m2])
 
     def _watch_ceiling(self, sub: Subscription) -> Callable[[], None]:
-        """A move's check: the newest fresh frame's F must stay under the ceiling."""
+        """A move's check: the newest frame is fresh and its F under the ceiling. A stale or
+        silent stream is a fault as in the grasp: the move would go on with the ceiling unseen
+        (the first frame has :func:`safety.stale_s` from the move's start to come)."""
+        loop = asyncio.get_running_loop()
+        started = loop.time()
 
         def check() -> None:
-            frame = sub.latest
-            s = self.config.safety
-            if frame is not None and safety.frame_age(frame.age(), s) is None:
-                F = grip_force(*self._contacts(frame))
-                _raise(safety.force_ceiling(F, self.params.grasp_force, s))
+            frame, s = sub.latest, self.config.safety
+            if frame is None:
+                if loop.time() - started > safety.stale_s(s):
+                    _raise(safety.frame_age(None, s))
+                return
+            _raise(safety.frame_age(frame.age(), s))
+            F = grip_force(*self._contacts(frame))
+            _raise(safety.force_ceiling(F, self.params.grasp_force, s))
 
         return check
 

@@ -185,6 +185,7 @@ OUTAGES = [  # (line, how, phase, after_s, outage_s)
     ("sdh", "silent", "rolling", 0.5, 20.0),
     ("dsa", "cut", "grasping", 1.0, 10.0),
     ("dsa", "cut", "rolling", 0.5, 30.0),
+    ("dsa", "cut", "pre-shape", 0.3, 10.0),
 ]
 
 
@@ -225,7 +226,10 @@ async def _outage(
     how: str, at: tuple[str, float], outage_s: float,
 ) -> None:  # fmt: skip
     """The line out for ``outage_s`` from ``at`` (phase, s into it), watched, then back."""
-    loop, step = asyncio.get_running_loop(), station.cfg.safety.max_step_deg
+    loop, cfg = asyncio.get_running_loop(), station.cfg
+    step = cfg.safety.max_step_deg
+    if at[0] == "pre-shape":  # paced by joint round trips, not frames: on until a frame is stale
+        step += cfg.run.preshape_velocity_deg_s * cfg.safety.stale_frame_ms / 1000
     await _start(c, station, *at)
     began, t0 = sim.sdh.actual_deg, loop.time()
     if how == "cut":
@@ -235,7 +239,7 @@ async def _outage(
     down_at = said_at = None
     while loop.time() - t0 < outage_s:
         await asyncio.sleep(0.1)
-        assert _moved(sim.sdh.actual_deg, began) <= step + EPS  # at most one increment
+        assert _moved(sim.sdh.actual_deg, began) <= step + EPS  # one increment (or as above)
         st = (await c.get("/api/status")).json()
         run = st["run"]
         if down_at is None and _down(st, line):
