@@ -214,20 +214,17 @@ class Runner:
             await self._release()
             self._finish(Phase.STOPPED if status == "stopped" else Phase.DONE, status)
         except RunFault as e:
+            self._say_fault(e.fault, str(e))
             await self._halt()
-            status = "dropped" if e.fault is Fault.DROPPED else "faulted"
-            # said at once, before the opening below: the status and the record know why the
-            # fingers open, and an e-stop during the opening keeps it
-            self._event(EventKind.FAULT, {"fault": e.fault.value, "message": str(e)})
-            self.result.message = f"{e.fault.value}: {e}"
             if e.fault is Fault.FORCE_CEILING:
                 with contextlib.suppress(Exception):
                     await self._release()
+            status = "dropped" if e.fault is Fault.DROPPED else "faulted"
             self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
         except (JointLinkError, TactileError) as e:
-            await self._halt()
             fault = Fault.JOINT_ERROR if isinstance(e, JointLinkError) else Fault.SENSOR_ERROR
-            self._event(EventKind.FAULT, {"fault": fault.value, "message": str(e)})
+            self._say_fault(fault, str(e))
+            await self._halt()
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
         except asyncio.CancelledError:
             if not self._estopping:
@@ -248,6 +245,13 @@ class Runner:
         rec = self.result.recognition
         self._event(EventKind.END, {"status": status, "message": message, "recognition": rec})
 
+    def _say_fault(self, fault: Fault, message: str) -> None:
+        """The fault in the status and the record at once, before the halt and any opening: on
+        a silent joint line the halt takes a reply's timeout per command (seconds, the run
+        showing its phase meanwhile), and an e-stop during the halt or opening keeps why."""
+        self._event(EventKind.FAULT, {"fault": fault.value, "message": message})
+        self.result.message = f"{fault.value}: {message}"
+
     async def _halt(self) -> None:
         """Hold where the hand is: stop every axis, targets = actual angles."""
         with contextlib.suppress(Exception):
@@ -259,14 +263,21 @@ class Runner:
         return self.ctx.contact(m[self._m1]), self.ctx.contact(m[self._m2])
 
     def _watch_ceiling(self, sub: Subscription) -> Callable[[], None]:
-        """A move's check: the newest fresh frame's F must stay under the ceiling."""
+        """A move's check: the newest frame is fresh and its F under the ceiling. A stale or
+        silent stream is a fault as in the grasp: the move would go on with the ceiling unseen
+        (the first frame has :func:`safety.stale_s` from the move's start to come)."""
+        loop = asyncio.get_running_loop()
+        started = loop.time()
 
         def check() -> None:
-            frame = sub.latest
-            s = self.config.safety
-            if frame is not None and safety.frame_age(frame.age(), s) is None:
-                F = grip_force(*self._contacts(frame))
-                _raise(safety.force_ceiling(F, self.params.grasp_force, s))
+            frame, s = sub.latest, self.config.safety
+            if frame is None:
+                if loop.time() - started > safety.stale_s(s):
+                    _raise(safety.frame_age(None, s))
+                return
+            _raise(safety.frame_age(frame.age(), s))
+            F = grip_force(*self._contacts(frame))
+            _raise(safety.force_ceiling(F, self.params.grasp_force, s))
 
         return check
 

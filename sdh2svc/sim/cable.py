@@ -6,6 +6,9 @@ new ones until :meth:`Cable.plug` — what pulling the RS-232 plug looks like th
 serial-to-TCP adapter. :meth:`Cable.hold` keeps the connections open but carries nothing either
 way until :meth:`Cable.resume` (then what was held back goes on): a line that falls silent — a
 controller that hangs, a converter that stalls — while the port stays open.
+
+:meth:`Cable.unix` is the same cable between Unix sockets, for the simulated hand in fast mode
+(its virtual clock needs a transport that delivers at once, :mod:`sdh2svc.sim.clock`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ class Cable:
     def __init__(self, device_host: str, device_port: int, *, host: str = "127.0.0.1") -> None:
         self.device_host, self.device_port, self.host = device_host, device_port, host
         self.port = 0
+        self.device_path: str | None = None  # a Unix socket's device and host ends (unix())
+        self.path: str | None = None
         self.cuts = 0
         self._server: asyncio.Server | None = None
         self._pipes: set[asyncio.Task[None]] = set()
@@ -25,9 +30,17 @@ class Cable:
         self._flowing = asyncio.Event()
         self._flowing.set()
 
+    @classmethod
+    def unix(cls, device_url: str, path: str) -> Cable:
+        """A cable from ``unix://path`` (its :attr:`url`) to a device served at ``device_url``
+        (``unix:///…``)."""
+        cable = cls("", 0)
+        cable.device_path, cable.path = device_url.removeprefix("unix://"), path
+        return cable
+
     @property
     def url(self) -> str:
-        return f"socket://{self.host}:{self.port}"
+        return f"unix://{self.path}" if self.path else f"socket://{self.host}:{self.port}"
 
     @property
     def plugged(self) -> bool:
@@ -35,7 +48,11 @@ class Cable:
 
     async def plug(self) -> None:
         """Listen (again, on the same port once it had one)."""
-        if self._server is None:
+        if self._server is not None:
+            return
+        if self.path is not None:
+            self._server = await asyncio.start_unix_server(self._connection, self.path)
+        else:
             self._server = await asyncio.start_server(self._connection, self.host, self.port)
             self.port = self._server.sockets[0].getsockname()[1]
 
@@ -65,7 +82,10 @@ class Cable:
 
     async def _connection(self, r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
         try:
-            dr, dw = await asyncio.open_connection(self.device_host, self.device_port)
+            if self.device_path is not None:
+                dr, dw = await asyncio.open_unix_connection(self.device_path)
+            else:
+                dr, dw = await asyncio.open_connection(self.device_host, self.device_port)
         except OSError:
             w.transport.abort()
             return

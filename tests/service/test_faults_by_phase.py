@@ -1,0 +1,274 @@
+"""A force above the ceiling in every phase, and outages of 10–30 s, through the service in this
+process on the virtual clock (the app over ASGI; the hand in fast mode: seconds of wall time).
+
+A person presses a distal pad (POST /api/sim/press) during the pre-shape, the grasp or the
+rolling: the run faults with force_ceiling, says so before the fingers open, opens them to the
+pre-shape in increments of at most ``safety.max_step_deg`` within the joint limits, and then
+nothing moves; an e-stop during that opening stops it and keeps why it was opening. A joint line
+cut or silent, or a tactile line cut, for 10–30 s mid-grasp or mid-roll: the run faults, the
+fingers move at most one increment, the status shows the line down and runs are refused until it
+is back, nothing moves when it comes back, and a new run then starts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Real, Simulated, simulated_hand
+from sdh2svc.service.hand_service import HandService
+from sdh2svc.sim.cable import Cable
+from sdh2svc.sim.clock import run_fast
+from sdh2svc.sim.lab import SimulatedHand
+from tests.service.test_sim_press import service
+
+FINGERS = (1, 2, 3, 4, 5, 6)  # the coupled fingers and the thumb
+EPS = 1e-4  # the binary protocol's float32 angles
+WATCH_S = 5.0  # how long a still hand is watched (virtual seconds)
+# 30 N over r = 10 mm on Finger 1's distal pad: F ≈ 7.4 against 3 × Fd = 6 (a 4 mm press
+# saturates its cells and reads F ≈ 3)
+PRESS = {"pad": 1, "x_mm": 10.0, "y_mm": 10.0, "force_n": 30.0, "radius_mm": 10.0,
+         "duration_s": 30.0}  # fmt: skip
+
+
+def _cfg(tmp: Path) -> Settings:
+    return load_config(overrides=[f"storage.db_path='{tmp / 'runs.sqlite'}'"], use_env=False)
+
+
+def _moved(a: Sequence[float], b: Sequence[float]) -> float:
+    return max(abs(a[i] - b[i]) for i in FINGERS)
+
+
+@dataclass(frozen=True)
+class Command:
+    """A target command as it went out: the run's phase and message then, the targets, and the
+    hand's true angles then."""
+
+    phase: str
+    message: str
+    targets: tuple[float, ...]
+    actual: tuple[float, ...]
+
+
+def _spy(station: HandService, sim: SimulatedHand) -> list[Command]:
+    """Every target command the service sends from now on."""
+    joints, sent = station.joints, []
+    assert joints is not None
+    for name in ("set_targets", "send_targets"):
+        original = getattr(joints, name)
+
+        async def spied(angles: Sequence[float], _original: Any = original) -> Any:
+            run = station.status()["run"] or {}
+            sent.append(Command(run.get("state", ""), run.get("message", ""), tuple(angles),
+                                sim.sdh.actual_deg))  # fmt: skip
+            return await _original(angles)
+
+        setattr(joints, name, spied)
+    return sent
+
+
+async def _until_phase(station: HandService, phase: str) -> None:
+    async with asyncio.timeout(120):
+        while station.run is None or station.run.runner.phase.value != phase:
+            await asyncio.sleep(0.01)
+
+
+async def _until_ended(station: HandService) -> None:
+    async with asyncio.timeout(120):
+        while station.running:
+            await asyncio.sleep(0.01)
+
+
+async def _start(c: httpx.AsyncClient, station: HandService, phase: str, after_s: float) -> None:
+    r = await c.post("/api/runs", json={})
+    assert r.status_code == 201, r.text
+    await _until_phase(station, phase)
+    await asyncio.sleep(after_s)  # the fingers are moving when the fault comes
+
+
+# --- a force above the ceiling in every phase ------------------------------------------------
+
+
+@pytest.mark.parametrize("estop", [False, True], ids=["opens", "estop"])
+@pytest.mark.parametrize(("phase", "after_s"), [("pre-shape", 0.5), ("grasping", 1.0),
+                                                ("rolling", 0.5)])  # fmt: skip
+def test_a_pad_press_above_the_ceiling_faults_and_opens_the_hand_in_steps(
+    tmp_path: Path, phase: str, after_s: float, estop: bool
+) -> None:
+    cfg = _cfg(tmp_path)
+
+    async def main() -> None:
+        async with service(cfg, Simulated(fast=True)) as (c, services):
+            station = services.station
+            assert station.bench is not None
+            sim = station.bench.sim
+            sent = _spy(station, sim)
+            await _start(c, station, phase, after_s)
+            await _press_until_said(c, station, phase)
+            if estop:  # a few increments into the opening
+                n = len(sent)
+                while len(sent) < n + 3:
+                    await asyncio.sleep(0.005)
+                assert (await c.post("/api/estop")).json()["hand_reached"] is True
+            await _until_ended(station)
+            end = sim.sdh.actual_deg
+            await asyncio.sleep(WATCH_S)
+            assert _moved(sim.sdh.actual_deg, end) < EPS  # nothing moves afterwards
+            _check_opening(cfg, sent)
+            last = _check_record(station, phase)
+            if estop:
+                assert last["status"] == "e-stopped", last
+                assert last["message"].startswith("emergency stop (after force_ceiling: ")
+                assert not any(sim.sdh.powered)
+            else:
+                assert last["status"] == "faulted", last
+                assert last["message"].startswith("force_ceiling: ")
+                assert _moved(end, cfg.run.preshape_deg) < 0.5  # open: the object let go
+
+    run_fast(main())
+
+
+async def _press_until_said(c: httpx.AsyncClient, station: HandService, phase: str) -> None:
+    """Press Finger 1's distal pad; the run leaves ``phase`` for the opening, saying why."""
+    assert (await c.post("/api/sim/press", json=PRESS)).status_code == 202
+    assert station.run is not None
+    runner = station.run.runner
+    async with asyncio.timeout(5):  # the next frames trip it
+        while runner.phase.value == phase:
+            await asyncio.sleep(0.005)
+    run = (await c.get("/api/status")).json()["run"]
+    assert run["state"] == "releasing", run
+    assert run["message"].startswith("force_ceiling: F = "), run  # said before it opens
+
+
+def _check_opening(cfg: Settings, sent: list[Command]) -> None:
+    """Every target within the joint limits; the opening's increments ≤ max_step_deg from
+    where the fingers were, each sent with the fault already said."""
+    lim = cfg.limits
+    for s in sent:
+        assert all(lo <= t <= hi for t, lo, hi in zip(s.targets, lim.min_deg, lim.max_deg,
+                                                      strict=True)), s  # fmt: skip
+    opening = [s for s in sent if s.phase == "releasing"]
+    assert opening and all(s.message.startswith("force_ceiling") for s in opening)
+    assert max(_moved(s.targets, s.actual) for s in opening) <= cfg.safety.max_step_deg + EPS
+
+
+def _check_record(station: HandService, phase: str) -> dict[str, Any]:
+    """The run's record: the fault between ``phase`` and the opening, and the status's end;
+    returns the status's last run."""
+    assert station.store is not None and station.run is not None
+    row = station.store.run(station.run.run_id)
+    assert row is not None
+    events = [e for e in station.store.events(row["id"]) if e["kind"] in ("phase", "fault")]
+    kinds = [(e["kind"], e["detail"].get("fault") or e["detail"].get("phase")) for e in events]
+    said = kinds.index(("fault", "force_ceiling"))
+    assert kinds[said - 1 : said + 2] == [("phase", phase), ("fault", "force_ceiling"),
+                                          ("phase", "releasing")], kinds  # fmt: skip
+    assert station.last_run is not None and row["status"] == station.last_run["status"]
+    return station.last_run
+
+
+# --- outages of 10-30 s ----------------------------------------------------------------------
+
+
+OUTAGES = [  # (line, how, phase, after_s, outage_s)
+    ("sdh", "cut", "grasping", 1.0, 20.0),
+    ("sdh", "silent", "grasping", 1.0, 30.0),
+    ("sdh", "cut", "rolling", 0.5, 10.0),
+    ("sdh", "silent", "rolling", 0.5, 20.0),
+    ("dsa", "cut", "grasping", 1.0, 10.0),
+    ("dsa", "cut", "rolling", 0.5, 30.0),
+    ("dsa", "cut", "pre-shape", 0.3, 10.0),
+]
+
+
+def _down(st: dict[str, Any], line: str) -> bool:
+    connected = st["hand"]["connected"]
+    return not connected["joints" if line == "sdh" else "tactile"]
+
+
+@pytest.mark.parametrize(("line", "how", "phase", "after_s", "outage_s"), OUTAGES)
+def test_a_long_outage_faults_the_run_and_nothing_moves(
+    tmp_path: Path, line: str, how: str, phase: str, after_s: float, outage_s: float
+) -> None:
+    cfg = _cfg(tmp_path)
+
+    async def main() -> None:
+        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
+            sim = bench.sim
+            cables = {n: Cable.unix(sim.urls(n)[0], str(tmp_path / f"{n}.sock"))
+                      for n in ("dsa", "sdh")}  # fmt: skip
+            for cable in cables.values():
+                await cable.plug()
+            try:
+                where = Real(cables["dsa"].url, cables["sdh"].url)
+                async with service(cfg, where) as (c, services):
+                    await _outage(c, services.station, sim, cables[line], line, how,
+                                  (phase, after_s), outage_s)  # fmt: skip
+                    bench.place()  # as in a lab: the object back between the fingertips
+                    await _new_run_works(c, services.station)
+            finally:
+                for cable in cables.values():
+                    await cable.close()
+
+    run_fast(main())
+
+
+async def _outage(
+    c: httpx.AsyncClient, station: HandService, sim: SimulatedHand, cable: Cable, line: str,
+    how: str, at: tuple[str, float], outage_s: float,
+) -> None:  # fmt: skip
+    """The line out for ``outage_s`` from ``at`` (phase, s into it), watched, then back."""
+    loop, cfg = asyncio.get_running_loop(), station.cfg
+    step = cfg.safety.max_step_deg
+    if at[0] == "pre-shape":  # paced by joint round trips, not frames: on until a frame is stale
+        step += cfg.run.preshape_velocity_deg_s * cfg.safety.stale_frame_ms / 1000
+    await _start(c, station, *at)
+    began, t0 = sim.sdh.actual_deg, loop.time()
+    if how == "cut":
+        await cable.cut()
+    else:
+        cable.hold()
+    down_at = said_at = None
+    while loop.time() - t0 < outage_s:
+        await asyncio.sleep(0.1)
+        assert _moved(sim.sdh.actual_deg, began) <= step + EPS  # one increment (or as above)
+        st = (await c.get("/api/status")).json()
+        run = st["run"]
+        if down_at is None and _down(st, line):
+            down_at = loop.time()
+        if said_at is None and run["message"]:
+            said_at = loop.time()
+        if run["status"] != "running":  # faulted: the line shows down, runs are refused
+            assert run["status"] == "faulted" and _down(st, line), st
+            assert (await c.post("/api/runs", json={})).status_code == 503
+    assert down_at is not None and said_at is not None
+    fault = {"sdh": "joint_error: ", "dsa": "stale_sensor: "}[line]
+    assert station.last_run is not None and station.last_run["message"].startswith(fault)
+    # a silent joint line fails a command within two replies' timeouts; the run says so then,
+    # not after its halt's commands have timed out too (seconds later)
+    assert said_at - down_at <= 1.5, (said_at - down_at, station.last_run)
+    back = sim.sdh.actual_deg
+    if how == "cut":
+        await cable.plug()
+    else:
+        cable.resume()
+    async with asyncio.timeout(30):  # the link reconnects by itself (back-off up to 4 s)
+        while _down((await c.get("/api/status")).json(), line):
+            await asyncio.sleep(0.1)
+    await asyncio.sleep(WATCH_S)
+    assert _moved(sim.sdh.actual_deg, back) < EPS  # nothing moves when it comes back
+
+
+async def _new_run_works(c: httpx.AsyncClient, station: HandService) -> None:
+    await _start(c, station, "grasping", 0.5)
+    assert (await c.post("/api/runs/stop", json={})).status_code == 202
+    await _until_ended(station)
+    assert station.last_run is not None and station.last_run["status"] == "stopped"
