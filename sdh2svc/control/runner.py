@@ -155,36 +155,46 @@ class Runner:
     def request_stop(self) -> None:
         self._stop.set()
 
+    def begin_emergency_stop(self) -> bool:
+        """The e-stop's first half, synchronous with the joint link's latch: from here on the run
+        ends e-stopped, whatever it meets before its task is cancelled — a command the latch
+        refuses, a fault (the service latches the link at once and stops the run a loop
+        iteration later, when the run's next command may already have been refused). False if
+        the run had ended on its own: it keeps that end."""
+        if self._returned and not self._estopping:
+            return False
+        if not self._estopping:
+            self._estopping = True
+            after = self.result.message  # a fault the run was already answering (a force ceiling)
+            self.result.status = "e-stopped"
+            self.result.message = f"emergency stop (after {after})" if after else "emergency stop"
+            self.result.strokes = self.state.strokes
+        return True
+
     async def emergency_stop(self) -> None:
         """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase.
 
-        The run is marked e-stopped before its task is cancelled, so however the cancellation
-        reaches it (mid-command, or as the link fails the queued commands), it ends e-stopped;
-        the phase changes once the link has latched the stop, so no observer sees one without
-        the other.
+        The run is marked e-stopped (:meth:`begin_emergency_stop`) before its task is cancelled,
+        so however the cancellation reaches it (mid-command, or as the link fails the queued
+        commands), it ends e-stopped; the phase changes once the link has latched the stop, so
+        no observer sees one without the other.
         """
-        if self._returned:  # the run has ended as it ended; only the hand is stopped
+        if not self.begin_emergency_stop():  # the run has ended as it ended: the hand alone
             await self.joints.emergency_stop()
             return
-        self._estopping = True
-        after = self.result.message  # a fault the run was already answering (a force ceiling)
-        self.result.status = "e-stopped"
-        self.result.message = f"emergency stop (after {after})" if after else "emergency stop"
-        self.result.strokes = self.state.strokes
-        task, live = self._task, False
-        if task is not None and not task.done():
-            task.cancel()
-            live = True
+        task = self._task
+        if not self._returned and task is not None and not task.done():
+            task.cancel()  # (once run() has returned, the task is its recording's: left alone)
         try:
             await self.joints.emergency_stop()
         finally:
-            self._set_phase(Phase.ESTOPPED)
-            self._event(EventKind.ESTOP, {})
-            if live:  # the run ends here (one that had ended has reported its end)
-                rec = self.result.recognition
+            if not self._estopped.is_set():  # said once, however many e-stops came
+                self._set_phase(Phase.ESTOPPED)
+                self._event(EventKind.ESTOP, {})
+                rec = self.result.recognition  # the run ends here: _finish said nothing
                 end = {"status": "e-stopped", "message": self.result.message, "recognition": rec}
                 self._event(EventKind.END, end)
-            self._estopped.set()
+                self._estopped.set()
 
     async def estop_reported(self) -> None:
         """Once an e-stop's events are out (a recording waits for them before it closes: the
@@ -248,7 +258,10 @@ class Runner:
     def _say_fault(self, fault: Fault, message: str) -> None:
         """The fault in the status and the record at once, before the halt and any opening: on
         a silent joint line the halt takes a reply's timeout per command (seconds, the run
-        showing its phase meanwhile), and an e-stop during the halt or opening keeps why."""
+        showing its phase meanwhile), and an e-stop during the halt or opening keeps why. After
+        an e-stop nothing is a fault of the run (its latch refuses commands)."""
+        if self._estopping:
+            return
         self._event(EventKind.FAULT, {"fault": fault.value, "message": message})
         self.result.message = f"{fault.value}: {message}"
 

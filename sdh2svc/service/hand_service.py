@@ -27,6 +27,7 @@ from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import BaseObserver, EventKind
 from sdh2svc.control.observer import Event as RunEvent
 from sdh2svc.control.params import RollingParams
+from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
@@ -242,11 +243,16 @@ class HandService:
         joints, _, store = self._links()
         log.warning("E-STOP")
         joints.latch()
+        # the run told in the same instant: its next command, refused by the latch, must not
+        # end it as a fault before the stop below reaches it
+        runner = self.run.runner if self.running and self.run is not None else None
+        if runner is not None:
+            runner.begin_emergency_stop()
         since = now_iso()  # when it was pressed, whenever the disk takes it
         record = asyncio.ensure_future(
             asyncio.to_thread(store.latch_estop, "e-stop requested", since)
         )
-        stop = asyncio.ensure_future(self._stop_hand(joints))
+        stop = asyncio.ensure_future(self._stop_hand(joints, runner))
         # a silent line would hold the answer through the link's retries: the answer waits for
         # one reply's timeout; the stop goes on meanwhile (and the latch holds the line anyway)
         done, _ = await asyncio.wait({stop}, timeout=joints.timeout_s + 0.5)
@@ -278,11 +284,12 @@ class HandService:
             out["detail"] = "; ".join(problems)
         return out
 
-    async def _stop_hand(self, joints: JointLink) -> None:
-        """The e-stop sent to the hand: the run ends e-stopped (one that has already ended,
-        and is only being recorded, keeps its end), or an opening hand stops."""
-        if self.running and self.run is not None:
-            await self.run.runner.emergency_stop()
+    async def _stop_hand(self, joints: JointLink, runner: Runner | None) -> None:
+        """The e-stop sent to the hand: the run that was running when it came ends e-stopped
+        (one that had already ended, and is only being recorded, keeps its end), or an opening
+        hand stops."""
+        if runner is not None:
+            await runner.emergency_stop()
         else:
             await self._cancel_opening()
             await joints.emergency_stop()

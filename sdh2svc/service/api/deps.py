@@ -37,21 +37,30 @@ class Services:
         return self.viewer.url if self.viewer is not None else None
 
 
-def services(conn: HTTPConnection) -> Services:
-    """The app's services, for a request or a WebSocket."""
+# The dependencies are coroutines: FastAPI runs a plain function in a worker thread, a thread
+# hop per request for an attribute read (and, on the fast mode's virtual clock, a wait the
+# clock jumps over: a request's answer then depended on the machine's speed).
+
+
+def _services(conn: HTTPConnection) -> Services:
     return conn.app.state.services  # type: ignore[no-any-return]
 
 
-def station(conn: HTTPConnection) -> HandService:
-    return services(conn).station
+async def services(conn: HTTPConnection) -> Services:
+    """The app's services, for a request or a WebSocket."""
+    return _services(conn)
 
 
-def settings(conn: HTTPConnection) -> Settings:
-    return services(conn).cfg
+async def station(conn: HTTPConnection) -> HandService:
+    return _services(conn).station
 
 
-def authorised(request: HTTPConnection) -> None:
-    token = services(request).cfg.service.token
+async def settings(conn: HTTPConnection) -> Settings:
+    return _services(conn).cfg
+
+
+async def authorised(request: HTTPConnection) -> None:
+    token = _services(request).cfg.service.token
     if not token:
         return
     given = request.headers.get("authorization", "")
