@@ -375,15 +375,16 @@ class Outline:
         dy) of pd (4, N). Few points, so few whole-array operations: the coordinates are
         handled as rows (each numpy call on a few dozen values costs more than its work)."""
         if self._ab is not None:  # an ellipse: the unit circle, in coordinates scaled by 1/a, 1/b
-            return _disk_exit_rows(pd * self._inv_ab, _ONE, scaled=True)
+            w = pd * self._inv_ab
+            return _disk_exit(w[0], w[1], w[2], w[3], _ONE, scaled=True)
         if self._box_core is not None:
             return self._box_exit(pd[:2], pd[2:])
         v, r = self.vertices, self.radius
         if len(v) == 1:  # a disk (about the origin, as every circle's core is)
             if self._centred:
-                return _disk_exit_rows(pd, self._rr)
+                return _disk_exit(pd[0], pd[1], pd[2], pd[3], self._rr)
             px, py, dx, dy = pd
-            return _disk_exit(px - v[0, 0], py - v[0, 1], dx, dy, r)
+            return _disk_exit(px - v[0, 0], py - v[0, 1], dx, dy, r * r)
         if not self._closed:
             return self._stick_exit(pd[0], pd[1], pd[2], pd[3])
         return self._polygon_exit(pd[:2].T, pd[2:].T)
@@ -409,7 +410,7 @@ class Outline:
         if np.count_nonzero(cap):
             corner = v[(k[cap] + (along[cap] > 1.0)) % len(v)]
             (wx, wy), (ux, uy) = (p[cap] - corner).T, d[cap].T
-            t[cap] = _disk_exit(wx, wy, ux, uy, r)
+            t[cap] = _disk_exit(wx, wy, ux, uy, r * r)
         return np.asarray(t)
 
     def _box_exit(self, P: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -428,7 +429,7 @@ class Outline:
         if not np.count_nonzero(cap):
             return np.asarray(t)
         wx, wy = P - np.copysign(core[:, None], Q)  # from the corner
-        return np.where(cap, _disk_exit(wx, wy, D[0], D[1], self.radius), t)
+        return np.where(cap, _disk_exit(wx, wy, D[0], D[1], self._rr), t)
 
     def _stick_exit(self, px: np.ndarray, py: np.ndarray, dx: np.ndarray, dy: np.ndarray
                     ) -> np.ndarray:  # fmt: skip
@@ -444,7 +445,7 @@ class Outline:
         u = px + t * dx
         cap = np.abs(u) > self._half
         if np.count_nonzero(cap):
-            t = np.where(cap, _disk_exit(px - np.copysign(half, u), py, dx, dy, r), t)
+            t = np.where(cap, _disk_exit(px - np.copysign(half, u), py, dx, dy, r * r), t)
         return np.asarray(t)
 
     def _box_sdf_rows(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
@@ -474,25 +475,14 @@ def _clip01(x: np.ndarray) -> np.ndarray:
 
 
 def _disk_exit(
-    wx: np.ndarray, wy: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: float,
+    wx: np.ndarray, wy: np.ndarray, dx: np.ndarray, dy: np.ndarray, rr: float | np.ndarray,
     scaled: bool = False,
 ) -> np.ndarray:  # fmt: skip
     """The larger root t of |w + t·d|² = r², for points w (from the disk's centre) and
-    directions d given as their coordinates' rows: where a ray leaves the disk,
-    (√(b² − dd·c) − b)/dd with b = w·d, c = w·w − r² and dd = d·d, 1 unless ``scaled``. A ray
-    that misses the disk (only by rounding, at a tangent) gets its nearest approach."""
-    b = wx * dx + wy * dy
-    c = wx * wx + wy * wy - r * r
-    if not scaled:
-        return np.asarray(np.sqrt(np.maximum(b * b - c, 0.0)) - b)
-    dd = dx * dx + dy * dy
-    return np.asarray((np.sqrt(np.maximum(b * b - dd * c, 0.0)) - b) / dd)
-
-
-def _disk_exit_rows(wd: np.ndarray, rr: np.ndarray, scaled: bool = False) -> np.ndarray:
-    """:func:`_disk_exit` of the four rows (wx, wy, dx, dy) of wd (4, N), for the squared
-    radius rr (0-d): the same operations, on the rows."""
-    wx, wy, dx, dy = wd[0], wd[1], wd[2], wd[3]  # (indexing: cheaper than unpacking)
+    directions d given as their coordinates' rows, and the squared radius ``rr``: where a ray
+    leaves the disk, (√(b² − dd·c) − b)/dd with b = w·d, c = w·w − r² and dd = d·d, 1 unless
+    ``scaled``. A ray that misses the disk (only by rounding, at a tangent) gets its nearest
+    approach."""
     b = wx * dx + wy * dy
     c = wx * wx + wy * wy - rr
     if not scaled:

@@ -64,7 +64,7 @@ from scipy import optimize
 from sdh2svc.model.base import Finite
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope
 from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose
-from sdh2svc.sim.objects import Ellipse, Outline, Polygon
+from sdh2svc.sim.objects import _ONE, _ZERO, Ellipse, Outline, Polygon
 
 Gravity = Annotated[float, Field(ge=-100.0, le=100.0)]  # m/s², at most ≈ 10 g
 Pair = tuple[float, float]
@@ -109,8 +109,6 @@ class PhysicsConfig(Finite):
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
-# 0-d arrays: a numpy call takes one at half the overhead of a Python float (the same values)
-_ZERO, _ONE = np.array(0.0), np.array(1.0)
 MAX_HALVINGS = 3  # a substep without a balance is retried in halves down to 1/8 of its length
 # The sampled surfaces make the contact forces jump by one sample's share as a sample enters or
 # leaves a contact; on a thin object's few contact samples that can leave no exact balance
@@ -373,7 +371,7 @@ class ContactPhysics:
         self._wds = self.width_mm * cfg.sample_spacing_mm  # each sample's strip of pad, mm²
         self._kw = self.k * self._wds  # p·w·ds per mm of compression, below the knee
         self._kt = cfg.tangential_stiffness_n_per_mm
-        self._kw0 = np.array(self._kw)  # as a 0-d array for numpy (see _ZERO)
+        self._kw0 = np.array(self._kw)  # as a 0-d array for numpy (see objects._ZERO)
         self._moment_scale = 1.0 / max(outline.bound_radius, 1.0)  # moment in force units
         self._pressures: tuple[_Eval, dict[int, tuple[np.ndarray, np.ndarray]]] | None = None
         self.hand_pose = pose

@@ -13,7 +13,7 @@ is back, nothing moves when it comes back, and a new run then starts.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,20 +57,30 @@ class Command:
     actual: tuple[float, ...]
 
 
-def _spy(station: HandService, sim: SimulatedHand) -> list[Command]:
-    """Every target command the service sends from now on."""
-    joints, sent = station.joints, []
+Around = Callable[[Sequence[float], Callable[[Sequence[float]], Awaitable[Any]]], Awaitable[Any]]
+
+
+def _around_targets(station: HandService, around: Around) -> None:
+    """Every target command the service sends from now on goes through ``around(angles, send)``."""
+    joints = station.joints
     assert joints is not None
     for name in ("set_targets", "send_targets"):
         original = getattr(joints, name)
+        setattr(joints, name, lambda angles, _send=original: around(angles, _send))
 
-        async def spied(angles: Sequence[float], _original: Any = original) -> Any:
-            run = station.status()["run"] or {}
-            sent.append(Command(run.get("state", ""), run.get("message", ""), tuple(angles),
-                                sim.sdh.actual_deg))  # fmt: skip
-            return await _original(angles)
 
-        setattr(joints, name, spied)
+def _spy(station: HandService, sim: SimulatedHand) -> list[Command]:
+    """Every target command the service sends from now on."""
+    sent: list[Command] = []
+
+    async def spied(angles: Sequence[float], send: Callable[[Sequence[float]], Awaitable[Any]]
+                    ) -> Any:  # fmt: skip
+        run = station.status()["run"] or {}
+        sent.append(Command(run.get("state", ""), run.get("message", ""), tuple(angles),
+                            sim.sdh.actual_deg))  # fmt: skip
+        return await send(angles)
+
+    _around_targets(station, spied)
     return sent
 
 
@@ -306,9 +316,7 @@ def test_an_estop_whose_latch_refuses_the_runs_next_command_ends_the_run_estoppe
                     assert joints.estopped
                 return await _original(angles)
 
-            for name in ("set_targets", "send_targets"):
-                original = getattr(joints, name)
-                setattr(joints, name, lambda a, _o=original: racing(a, _o))
+            _around_targets(station, racing)
             await _start(c, station, "rolling", 0.5)
             if phase == "releasing":
                 assert (await c.post("/api/sim/press", json=PRESS)).status_code == 202
