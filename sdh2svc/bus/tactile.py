@@ -131,6 +131,8 @@ class TactileOptions:
     max_error_streak: int = 8  # "> 8 in a row" as SDHLibrary's updater
     min_dead_s: float = 0.5  # ...and no good packet for this long
     stall_s: float = 1.5  # nothing good beyond the expected frame gap → reconnect
+    silent_s: float = 0.25  # ...→ silent meanwhile: shown down, runs refused (before a run's
+    #                         stale-frame fault at 0.3 s, so a run faulted by it is not restarted)
     reconnect: bool = True
     backoff_initial_s: float = 0.25
     backoff_max_s: float = 4.0
@@ -336,6 +338,16 @@ class TactileBus:
     @property
     def connected(self) -> bool:
         return self._connected.is_set()
+
+    @property
+    def silent(self) -> bool:
+        """The port is open but a stream runs and nothing good came for ``silent_s`` beyond its
+        frame gap: a held or stalled line (the reconnect waits for ``stall_s``). Idle, the line
+        owes nothing, so it is never silent then."""
+        if not self.connected or self._opening or self._mode is Mode.IDLE:
+            return False
+        quiet = self._loop.time() - max(self._last_good, self._active_since)
+        return quiet >= self.options.silent_s + self._expected_gap()
 
     def subscribe(self, matrices: Iterable[int], rate_hz: float) -> Subscription:
         """Ask for ``matrices`` at ``rate_hz``; the scheduler adapts the line at once.

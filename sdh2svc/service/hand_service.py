@@ -489,7 +489,8 @@ class HandService:
                 "status": r.result.status, "message": r.result.message,
             }  # fmt: skip
         joints_up = bool(j and j.connected and not j.silent)  # a silent line is down too
-        connected = {"joints": joints_up, "tactile": bool(t and t.connected)}
+        tactile_up = bool(t and t.connected and not t.silent)
+        connected = {"joints": joints_up, "tactile": tactile_up}
         return {
             "sim": self.bench is not None,
             "auth_required": bool(self.cfg.service.token),
@@ -528,6 +529,9 @@ class HandService:
         if tactile is not None and not tactile.connected:
             raise ServiceError(503, f"the tactile line ({self.dsa_url}) is down; it reconnects "
                                "by itself: try again when status shows it connected")  # fmt: skip
+        if tactile is not None and tactile.silent:
+            raise ServiceError(503, f"the tactile line ({self.dsa_url}) sends no frames (its "
+                               "port is open): try again when status shows it connected")  # fmt: skip
 
     def _links(self) -> tuple[JointLink, TactileBus, RunStore]:
         if self.joints is None or self.tactile is None or self.store is None:

@@ -32,6 +32,7 @@ from sdh2svc.bus.tactile import (
     TactileStats,
 )
 from sdh2svc.protocol import dsa
+from sdh2svc.sim.cable import Cable
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Endpoint, FaultConfig, PtyEndpoint, TcpEndpoint, UnixEndpoint
@@ -368,3 +369,51 @@ async def test_tcp_disconnect_times_out_waiters_then_reconnects() -> None:
         assert stats.reconnects >= 1
         assert_plausible(r, r.frames)
         sub.close()
+
+
+def test_a_held_line_is_silent_while_a_stream_runs_then_reconnects(tmp_path: Path) -> None:
+    """A line that stops carrying bytes with its port open: silent once ``silent_s`` beyond
+    the frame gap has passed without a good packet (not before), lost at ``stall_s``, and
+    neither once it carries again; idle, the line owes nothing and is never silent."""
+    options = TactileOptions()
+
+    async def main() -> list[tuple[float, bool, bool]]:
+        loop = asyncio.get_running_loop()
+        emu = DsaconEmulator(RecordingWorld(), options=DsaconOptions())
+        async with UnixEndpoint(emu, str(tmp_path / "dsa.sock")) as endpoint:
+            cable = Cable.unix(endpoint.url, str(tmp_path / "cable.sock"))
+            await cable.plug()
+            bus = await TactileBus.open(cable.url, options)
+            try:
+                idle_quiet = loop.time()
+                await asyncio.sleep(2 * options.stall_s)  # idle: no stream, nothing owed
+                assert bus.mode is Mode.IDLE and bus.connected and not bus.silent
+                assert loop.time() - idle_quiet >= 2 * options.stall_s
+                sub = bus.subscribe(DISTAL, rate_hz=30.0)
+                await sub.next_frame()
+                await sub.next_frame()
+                last = sub.latest
+                assert last is not None and not bus.silent
+                cable.hold()
+                seen = []
+                while bus.connected:
+                    seen.append((loop.time() - last.arrival, bus.silent, bus.connected))
+                    await asyncio.sleep(0.01)
+                cable.resume()
+                await until(lambda: bus.connected, timeout=30.0)
+                await sub.next_frame(timeout=2.0)
+                assert not bus.silent
+                sub.close()
+                return seen
+            finally:
+                await bus.close()
+                await cable.close()
+
+    seen = run_fast(main())
+    gap = 1 / 30.0
+    quiet_then = [quiet for quiet, silent, _ in seen if silent]
+    assert quiet_then, "the held line never counted as silent"
+    assert min(quiet_then) >= options.silent_s  # not on one late frame
+    assert min(quiet_then) <= options.silent_s + gap + 0.02  # but at once after
+    assert all(silent for quiet, silent, _ in seen if quiet >= options.silent_s + gap + 0.02)
+    assert max(quiet for quiet, _, _ in seen) <= options.stall_s + gap + 0.2  # then lost

@@ -4,8 +4,8 @@ process on the virtual clock (the app over ASGI; the hand in fast mode: seconds 
 A person presses a distal pad (POST /api/sim/press) during the pre-shape, the grasp or the
 rolling: the run faults with force_ceiling, says so before the fingers open, opens them to the
 pre-shape in increments of at most ``safety.max_step_deg`` within the joint limits, and then
-nothing moves; an e-stop during that opening stops it and keeps why it was opening. A joint line
-cut or silent, or a tactile line cut, for 10–30 s mid-grasp or mid-roll: the run faults, the
+nothing moves; an e-stop during that opening stops it and keeps why it was opening. A joint or
+tactile line cut or silent for 10–30 s mid-grasp or mid-roll: the run faults, the
 fingers move at most one increment, the status shows the line down and runs are refused until it
 is back, nothing moves when it comes back, and a new run then starts.
 """
@@ -196,6 +196,8 @@ OUTAGES = [  # (line, how, phase, after_s, outage_s)
     ("dsa", "cut", "grasping", 1.0, 10.0),
     ("dsa", "cut", "rolling", 0.5, 30.0),
     ("dsa", "cut", "pre-shape", 0.3, 10.0),
+    ("dsa", "silent", "rolling", 0.5, 20.0),
+    ("dsa", "silent", "grasping", 1.0, 10.0),
 ]
 
 
