@@ -337,12 +337,14 @@ class Runner:
         # the timeout counts from the first touch once there is one: a small object is far
         # from the pre-shape, and the closing takes most of the timeout before it touches
         touched: float | None = None
+        opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
             _raise(safety.force_ceiling(F, fd, self.config.safety))
             actual, _ = self._newest_angles()
+            opened = opened or actual
             pose = self._axes.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
@@ -359,12 +361,20 @@ class Runner:
             else:
                 if touched is None and max(c1.force, c2.force) > self.params.contact_force_min:
                     touched = loop.time()
-                since = started if touched is None else touched
-                _raise(safety.grasp_timeout(F, fd, loop.time(), since, run))
+                since, now = (started if touched is None else touched), loop.time()
+                closing = (
+                    None if touched is not None else self._closing(opened, actual, now - started)
+                )
+                _raise(safety.grasp_timeout(F, fd, now, since, run, closing))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(self._clamp(want, actual))
             await self.joints.move()
+
+    def _closing(self, opened: Sequence[float], actual: Sequence[float], dt: float) -> float:
+        """The proximal joints' mean closing speed (°/s) from ``opened`` to ``actual``."""
+        i, j = self._axes.phi2, self._axes.phi4
+        return (abs(actual[i] - opened[i]) + abs(actual[j] - opened[j])) / 2 / max(dt, 1e-9)
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""

@@ -20,6 +20,7 @@ from sdh2svc.model.base import Frozen
 from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 
 Deg7 = tuple[AngleDeg, ...]
+SLOW_CLOSING = 0.5  # an untouched grasp closing below this share of its speed names the lines
 
 
 class RunConfig(Frozen):
@@ -186,12 +187,28 @@ def rolling_step(r: StepResult, grasp_force: float, safety: SafetyConfig) -> Vio
 
 
 def grasp_timeout(
-    F: float, grasp_force: float, now: float, started: float, run: RunConfig
+    F: float,
+    grasp_force: float,
+    now: float,
+    started: float,
+    run: RunConfig,
+    closing_deg_s: float | None = None,
 ) -> Violation | None:
     """Still under Fd ``run.grasp_timeout_s`` after ``started`` (clock seconds): the grasp's
-    start, or the first touch once a pad has touched."""
+    start, or the first touch once a pad has touched. ``closing_deg_s``: how fast the proximal
+    joints closed while nothing touched. Each frame commands one increment from the newest
+    joint angles, so lines too slow for the run (a wrong baud rate) close the fingers much
+    slower than the grasp commands; the message then says so rather than only "no grasp"."""
     if F < grasp_force and now > started + run.grasp_timeout_s:
         msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
+        free = min(
+            run.grasp_max_velocity_deg_s,
+            max(run.grasp_min_velocity_deg_s, run.grasp_gain_deg_s * grasp_force),
+        )
+        if closing_deg_s is not None and closing_deg_s < SLOW_CLOSING * free:
+            msg += (f"; untouched, the fingers closed at {closing_deg_s:.2f}°/s of the "
+                    f"{free:g}°/s commanded: the joint angles and the frames come too slowly "
+                    "over the lines for the run (their baud rate?)")  # fmt: skip
         return Violation(Fault.NO_CONTACT, msg)
     return None
 

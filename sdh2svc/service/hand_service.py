@@ -531,7 +531,7 @@ class HandService:
                                "by itself: try again when status shows it connected")  # fmt: skip
         if tactile is not None and tactile.silent:
             raise ServiceError(503, f"the tactile line ({self.dsa_url}) sends no frames (its "
-                               "port is open): try again when status shows it connected")  # fmt: skip
+                               "port is open): try again when status shows it up")  # fmt: skip
 
     def _links(self) -> tuple[JointLink, TactileBus, RunStore]:
         if self.joints is None or self.tactile is None or self.store is None:

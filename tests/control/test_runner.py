@@ -140,6 +140,21 @@ def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:
     assert result.iterations == 0
 
 
+def test_lines_too_slow_for_the_run_are_named_when_the_grasp_times_out(tmp_path: Path) -> None:
+    """At 9600 baud the joint angles and frames come so slowly that each frame's increment,
+    taken from the newest angles, closes the fingers at a fraction of the grasp's speed: the
+    grasp times out untouched, and says why (at 115200 the same grasp touches the egg)."""
+    cfg = cfg_with(tmp_path, "sim.links.baud=9600")
+
+    async def main() -> Any:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            return await runner.run()
+
+    result = fast(main)
+    assert result.status == "faulted" and result.message.startswith("no_contact: no grasp")
+    assert "too slowly over the lines" in result.message, result.message
+
+
 def test_silent_sensor_stream_faults_and_holds(tmp_path: Path) -> None:
     cfg = cfg_with(tmp_path)
 

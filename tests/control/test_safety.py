@@ -74,6 +74,20 @@ def test_grasp_timeout_only_under_fd_and_after_the_timeout(cfg: Settings) -> Non
     assert safety.grasp_timeout(2.0, 2.0, 500.0, 100.0, run) is None  # held: no timeout
 
 
+def test_a_grasp_timeout_names_lines_too_slow_to_close_the_fingers(cfg: Settings) -> None:
+    run = cfg.run  # untouched, the grasp commands 3°/s (its speed limit)
+    plain = "no grasp (F = 0.00 < Fd = 2.0) within 20 s"
+    assert safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, 2.9) == Violation(
+        Fault.NO_CONTACT, plain
+    )
+    assert safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, 1.5) == Violation(
+        Fault.NO_CONTACT, plain
+    )
+    slow = safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, 0.87)
+    assert slow is not None and slow.message.startswith(plain + "; untouched, the fingers ")
+    assert "0.87°/s of the 3°/s commanded" in slow.message and "baud rate" in slow.message
+
+
 def test_a_grasp_ends_only_with_both_contacts() -> None:
     assert safety.grasp_lost(True, True) is None
     v = safety.grasp_lost(True, False)
