@@ -354,7 +354,8 @@ function renderBus(st) {
       ["timeouts", fmt(t.timeouts), t.timeouts > 0],
       ["bad frames", fmt(t.bad_frames), t.bad_frames > 0],
       ["reconnects", fmt(t.reconnects), t.reconnects > 0],
-      ["tactile link", t.connected ? "connected" : "down", !t.connected],
+      ["tactile link", !t.connected ? "down" : t.silent ? "silent (no frames)" : "connected",
+       !t.connected || t.silent],
     );
   } else {
     rows.push(["tactile link", "not open", true]);

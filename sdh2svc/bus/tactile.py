@@ -179,6 +179,7 @@ class TactileStats:
     unexpected_replies: int  # late replies to commands that had already timed out
     reconnects: int
     connected: bool
+    silent: bool  # connected, but a stream runs and no good packet came (TactileBus.silent)
 
 
 class Subscription:
@@ -423,6 +424,7 @@ class TactileBus:
             unexpected_replies=self._unexpected,
             reconnects=self._reconnects,
             connected=self.connected,
+            silent=self.silent,
         )
 
     # -- connection lifecycle ----------------------------------------------------------------

@@ -398,6 +398,7 @@ def test_a_held_line_is_silent_while_a_stream_runs_then_reconnects(tmp_path: Pat
                 seen = []
                 while bus.connected:
                     seen.append((loop.time() - last.arrival, bus.silent, bus.connected))
+                    assert bus.stats.silent is bus.silent  # status shows it
                     await asyncio.sleep(0.01)
                 cable.resume()
                 await until(lambda: bus.connected, timeout=30.0)
