@@ -37,6 +37,10 @@ CHROMIUM_ARGS = [
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
 ]  # fmt: skip
 RUN_TIMEOUT_MS = 120_000
+# an expectation waits for its event up to this long (Playwright's default, 5 s, was once too
+# short in CI for a refresh of the run history: chromium, the service and the other test worker
+# share two cores); it only ever waits longer, it never passes sooner
+expect.set_options(timeout=30_000)
 ACTIVE = ("idle", "connecting", "pre-shape", "grasping", "rolling", "releasing")
 
 
