@@ -17,11 +17,12 @@ from tests.live_service import LiveService, start_service
 # ≈ 9 s of real time instead of ≈ 16 (in fast mode the egg's peak force stays below 2 × Fd).
 FAST_GRASP = ("--set", "run.grasp_max_velocity_deg_s=9.0", "--set", "run.grasp_gain_deg_s=5.0")
 LONG_RUNS = ("--set", "safety.force_ceiling_factor=4.0", *FAST_GRASP)
-# The dashboard's tests drive chromium against a real-time service while the other test worker
-# may be building a virtual environment: on two cores the service can then wait for the CPU
-# longer than the 0.3 s after which a run faults on a stale tactile frame (seen once in CI:
-# 395 ms). They are about the dashboard; the watchdogs are tested on the virtual clock
-# (tests/control, test_faults_by_phase.py), where load cannot move them.
+# The dashboard's, the API's and the client's tests run a real-time service while chromium or
+# the other test worker (building a virtual environment) share its two cores: the service can
+# then wait for the CPU longer than the 0.3 s after which a run faults on a stale tactile frame
+# (seen once in CI: 395 ms). They are about the dashboard, the API and the client; the
+# watchdogs are tested on the virtual clock (tests/control, test_faults_by_phase.py), where load
+# cannot move them, and in real time by test_motion_safety.py, which keeps them at 0.3 s.
 PATIENT = ("--set", "safety.stale_frame_ms=2000", "--set", "safety.stale_joint_ms=2000")
 
 

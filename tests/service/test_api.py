@@ -31,6 +31,7 @@ from sdh2svc.client import (
 from sdh2svc.config import load_config
 from sdh2svc.service.store import RunStore
 from tests.live_service import LiveService, service_command, start_service
+from tests.service.conftest import PATIENT
 
 RUN_TIMEOUT_S = 120.0
 
@@ -39,7 +40,7 @@ RUN_TIMEOUT_S = 120.0
 def svc(
     tmp_path_factory: pytest.TempPathFactory, long_runs: tuple[str, ...]
 ) -> Iterator[LiveService]:
-    s = start_service(tmp_path_factory.mktemp("api"), viewer=False, extra=long_runs)
+    s = start_service(tmp_path_factory.mktemp("api"), viewer=False, extra=(*long_runs, *PATIENT))
     try:
         yield s
     finally:
@@ -405,7 +406,8 @@ async def _one_stroke_run(c: AsyncClient) -> dict[str, Any]:
 async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
     tmp_path: Path, long_runs: tuple[str, ...]
 ) -> None:
-    svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, extra=long_runs)
+    extra = (*long_runs, *PATIENT)
+    svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, extra=extra)
     try:
         async with svc.client() as c, telemetry(c, tactile=False) as tm:
             run_id = (await c.start_run({"cycles": 50}, "egg"))["run_id"]

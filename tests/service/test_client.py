@@ -38,7 +38,7 @@ from sdh2svc.client import (
 from sdh2svc.service.foxglove_live import URDF_URI
 from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
 from tests.live_service import LiveService, start_service
-from tests.service.conftest import LONG_RUNS
+from tests.service.conftest import LONG_RUNS, PATIENT
 
 TOKEN = "s3cret"
 RUN_TIMEOUT_S = 120.0
@@ -137,7 +137,7 @@ def _free_port() -> int:
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveService, int]]:
     """The service and its live Foxglove view's port (the tests leave it idle)."""
     port = _free_port()
-    extra = (*LONG_RUNS, "--set", f"service.foxglove_port={port}")
+    extra = (*LONG_RUNS, *PATIENT, "--set", f"service.foxglove_port={port}")
     s = start_service(tmp_path_factory.mktemp("lab"), viewer=False, extra=extra, token=TOKEN)
     try:
         yield s, port
