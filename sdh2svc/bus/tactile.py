@@ -347,8 +347,7 @@ class TactileBus:
         owes nothing, so it is never silent then."""
         if not self.connected or self._opening or self._mode is Mode.IDLE:
             return False
-        quiet = self._loop.time() - max(self._last_good, self._active_since)
-        return quiet >= self.options.silent_s + self._expected_gap()
+        return self._quiet_s(self._loop.time()) >= self.options.silent_s + self._expected_gap()
 
     def subscribe(self, matrices: Iterable[int], rate_hz: float) -> Subscription:
         """Ask for ``matrices`` at ``rate_hz``; the scheduler adapts the line at once.
@@ -629,13 +628,17 @@ class TactileBus:
         why = line_verdict(
             error_streak=self._error_streak,
             max_error_streak=o.max_error_streak,
-            quiet_s=now - max(self._last_good, self._active_since),
+            quiet_s=self._quiet_s(now),
             min_dead_s=o.min_dead_s,
             stall_s=o.stall_s,
             expected_gap_s=None if self._mode is Mode.IDLE else self._expected_gap(),
         )
         if why is not None:
             self._mark_lost(why)
+
+    def _quiet_s(self, now: float) -> float:
+        """How long nothing good has come since the present mode began."""
+        return now - max(self._last_good, self._active_since)
 
     def _expected_gap(self) -> float:
         rate = self._line.push_fps() if self._mode is Mode.PUSH else self._required_hz()

@@ -58,13 +58,18 @@ class GraspStep:
     wedge_deg: float | None  # (ωA + ωB)/2 − 90°; None without both contacts
 
 
-def _closing_step(f: float, law: GraspLaw) -> float:
-    """Degrees one finger closes this frame for its own contact force ``f`` (negative: it
+def closing_speed(f: float, law: GraspLaw) -> float:
+    """Degrees per second one finger closes for its own contact force ``f`` (negative: it
     opens — above Fd, while the pads turn against their wedge)."""
     speed = (law.grasp_force - f) * law.gain_deg_s
     if f < law.grasp_force:
         speed = max(law.min_velocity_deg_s, speed)
-    speed = max(-law.max_velocity_deg_s, min(law.max_velocity_deg_s, speed))
+    return max(-law.max_velocity_deg_s, min(law.max_velocity_deg_s, speed))
+
+
+def _closing_step(f: float, law: GraspLaw) -> float:
+    """Degrees one finger closes this frame for its own contact force ``f``."""
+    speed = closing_speed(f, law)
     return max(-law.max_step_deg, min(speed * law.period_s, law.max_step_deg))
 
 

@@ -25,7 +25,7 @@ from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
 from sdh2svc.control import safety
 from sdh2svc.control.config import ControlConfig
-from sdh2svc.control.grasp import GraspLaw, grasp_step
+from sdh2svc.control.grasp import GraspLaw, closing_speed, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
@@ -338,13 +338,15 @@ class Runner:
         # from the pre-shape, and the closing takes most of the timeout before it touches
         touched: float | None = None
         opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
+        free = closing_speed(0.0, law)  # the speed it commands until something touches
         while not self._stop.is_set():
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
             _raise(safety.force_ceiling(F, fd, self.config.safety))
             actual, _ = self._newest_angles()
-            opened = opened or actual
+            if opened is None:
+                opened = actual
             pose = self._axes.pose(actual)
             g = grasp_step(pose, c1, c2, law, self.ctx)
             if F >= fd:  # held; the pads may still turn against their wedge for a while
@@ -361,20 +363,18 @@ class Runner:
             else:
                 if touched is None and max(c1.force, c2.force) > self.params.contact_force_min:
                     touched = loop.time()
-                since, now = (started if touched is None else touched), loop.time()
-                closing = (
-                    None if touched is not None else self._closing(opened, actual, now - started)
-                )
-                _raise(safety.grasp_timeout(F, fd, now, since, run, closing))
+                since = started if touched is None else touched
+                untouched = None if touched is not None else (self._closed(opened, actual), free)
+                _raise(safety.grasp_timeout(F, fd, loop.time(), since, run, untouched))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(self._clamp(want, actual))
             await self.joints.move()
 
-    def _closing(self, opened: Sequence[float], actual: Sequence[float], dt: float) -> float:
-        """The proximal joints' mean closing speed (°/s) from ``opened`` to ``actual``."""
+    def _closed(self, opened: Sequence[float], actual: Sequence[float]) -> float:
+        """How far (°) the proximal joints closed, on average, from ``opened`` to ``actual``."""
         i, j = self._axes.phi2, self._axes.phi4
-        return (abs(actual[i] - opened[i]) + abs(actual[j] - opened[j])) / 2 / max(dt, 1e-9)
+        return (abs(actual[i] - opened[i]) + abs(actual[j] - opened[j])) / 2
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""

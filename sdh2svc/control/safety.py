@@ -192,23 +192,23 @@ def grasp_timeout(
     now: float,
     started: float,
     run: RunConfig,
-    closing_deg_s: float | None = None,
+    untouched: tuple[float, float] | None = None,
 ) -> Violation | None:
     """Still under Fd ``run.grasp_timeout_s`` after ``started`` (clock seconds): the grasp's
-    start, or the first touch once a pad has touched. ``closing_deg_s``: how fast the proximal
-    joints closed while nothing touched. Each frame commands one increment from the newest
-    joint angles, so lines too slow for the run (a wrong baud rate) close the fingers much
-    slower than the grasp commands; the message then says so rather than only "no grasp"."""
+    start, or the first touch once a pad has touched. ``untouched``, while nothing has touched
+    (``started`` is then the grasp's start): how far the proximal joints closed since (°), and
+    how fast the grasp commands them to (°/s). Each frame commands one increment from the
+    newest joint angles, so lines too slow for the run (a wrong baud rate) close the fingers
+    much slower than commanded; the message then says so rather than only "no grasp"."""
     if F < grasp_force and now > started + run.grasp_timeout_s:
         msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
-        free = min(
-            run.grasp_max_velocity_deg_s,
-            max(run.grasp_min_velocity_deg_s, run.grasp_gain_deg_s * grasp_force),
-        )
-        if closing_deg_s is not None and closing_deg_s < SLOW_CLOSING * free:
-            msg += (f"; untouched, the fingers closed at {closing_deg_s:.2f}°/s of the "
-                    f"{free:g}°/s commanded: the joint angles and the frames come too slowly "
-                    "over the lines for the run (their baud rate?)")  # fmt: skip
+        if untouched is not None:
+            closed_deg, commanded = untouched
+            speed = closed_deg / (now - started)
+            if speed < SLOW_CLOSING * commanded:
+                msg += (f"; untouched, the fingers closed at {speed:.2f}°/s of the "
+                        f"{commanded:g}°/s commanded: the joint angles and the frames come too "
+                        "slowly over the lines for the run (their baud rate?)")  # fmt: skip
         return Violation(Fault.NO_CONTACT, msg)
     return None
 

@@ -75,15 +75,16 @@ def test_grasp_timeout_only_under_fd_and_after_the_timeout(cfg: Settings) -> Non
 
 
 def test_a_grasp_timeout_names_lines_too_slow_to_close_the_fingers(cfg: Settings) -> None:
-    run = cfg.run  # untouched, the grasp commands 3°/s (its speed limit)
+    run = cfg.run
     plain = "no grasp (F = 0.00 < Fd = 2.0) within 20 s"
-    assert safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, 2.9) == Violation(
+    # (closed °, commanded °/s) over the 21 s since the grasp began: 2.9, 1.5 and 0.87 °/s
+    assert safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, (2.9 * 21, 3.0)) == Violation(
         Fault.NO_CONTACT, plain
     )
-    assert safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, 1.5) == Violation(
+    assert safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, (1.5 * 21, 3.0)) == Violation(
         Fault.NO_CONTACT, plain
     )
-    slow = safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, 0.87)
+    slow = safety.grasp_timeout(0.0, 2.0, 121.0, 100.0, run, (0.87 * 21, 3.0))
     assert slow is not None and slow.message.startswith(plain + "; untouched, the fingers ")
     assert "0.87°/s of the 3°/s commanded" in slow.message and "baud rate" in slow.message
 
