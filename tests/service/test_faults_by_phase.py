@@ -5,9 +5,12 @@ A person presses a distal pad (POST /api/sim/press) during the pre-shape, the gr
 rolling: the run faults with force_ceiling, says so before the fingers open, opens them to the
 pre-shape in increments of at most ``safety.max_step_deg`` within the joint limits, and then
 nothing moves; an e-stop during that opening stops it and keeps why it was opening. A joint or
-tactile line cut or silent for 10–30 s mid-grasp or mid-roll: the run faults, the
-fingers move at most one increment, the status shows the line down and runs are refused until it
-is back, nothing moves when it comes back, and a new run then starts.
+tactile line cut or silent for 10–30 s in the pre-shape, mid-grasp or mid-roll, or the joint
+line during the opening at a run's end: the run faults, the fingers move at most one increment
+(in the pre-shape, as far as the move goes until a frame is stale), the status shows the line
+down and runs are refused until it is back, nothing moves when it comes back, and a new run
+then starts. The tactile line lost during that opening lets the opening finish (it needs no
+frames) and no further.
 """
 
 from __future__ import annotations
@@ -38,8 +41,11 @@ PRESS = {"pad": 1, "x_mm": 10.0, "y_mm": 10.0, "force_n": 30.0, "radius_mm": 10.
          "duration_s": 30.0}  # fmt: skip
 
 
-def _cfg(tmp: Path) -> Settings:
-    return load_config(overrides=[f"storage.db_path='{tmp / 'runs.sqlite'}'"], use_env=False)
+def _cfg(tmp: Path, phase: str = "") -> Settings:
+    """The service's configuration; one stroke when the test waits for the opening at the end."""
+    strokes = ["rolling.cycles=1"] if phase == "releasing" else []
+    return load_config(overrides=[f"storage.db_path='{tmp / 'runs.sqlite'}'", *strokes],
+                       use_env=False)  # fmt: skip
 
 
 def _moved(a: Sequence[float], b: Sequence[float]) -> float:
@@ -198,6 +204,11 @@ OUTAGES = [  # (line, how, phase, after_s, outage_s)
     ("dsa", "cut", "pre-shape", 0.3, 10.0),
     ("dsa", "silent", "rolling", 0.5, 20.0),
     ("dsa", "silent", "grasping", 1.0, 10.0),
+    ("sdh", "cut", "pre-shape", 0.3, 10.0),
+    ("sdh", "silent", "pre-shape", 0.3, 20.0),
+    ("dsa", "silent", "pre-shape", 0.3, 10.0),
+    ("sdh", "cut", "releasing", 0.3, 10.0),
+    ("sdh", "silent", "releasing", 0.3, 20.0),
 ]
 
 
@@ -210,7 +221,7 @@ def _down(st: dict[str, Any], line: str) -> bool:
 def test_a_long_outage_faults_the_run_and_nothing_moves(
     tmp_path: Path, line: str, how: str, phase: str, after_s: float, outage_s: float
 ) -> None:
-    cfg = _cfg(tmp_path)
+    cfg = _cfg(tmp_path, phase)
 
     async def main() -> None:
         async with simulated_hand(cfg, Simulated(fast=True)) as bench:
@@ -280,6 +291,66 @@ async def _outage(
     # stalled converter does), at most the run's last command: one increment
     limit = EPS if how == "cut" else step + EPS
     assert _moved(sim.sdh.actual_deg, back) < limit
+
+
+@pytest.mark.parametrize("how", ["cut", "silent"])
+def test_a_tactile_outage_while_opening_lets_the_opening_finish(tmp_path: Path, how: str) -> None:
+    """The opening at a run's end needs no frames (it checks no force: opening is the remedy for
+    a high F) and each of its increments is commanded from the joint angles just read. A tactile
+    line lost then lets it finish at the pre-shape, and no further: the object is let go. Then
+    nothing moves, the status shows the line down, runs are refused until it is back."""
+    cfg = _cfg(tmp_path, "releasing")
+
+    async def main() -> None:
+        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
+            sim = bench.sim
+            cable = Cable.unix(sim.urls("dsa")[0], str(tmp_path / "dsa.sock"))
+            await cable.plug()
+            try:
+                where = Real(cable.url, sim.urls("sdh")[0])
+                async with service(cfg, where) as (c, services):
+                    station = services.station
+                    sent = _spy(station, sim)
+                    await _start(c, station, "releasing", 0.3)  # the fingers are opening
+                    if how == "cut":
+                        await cable.cut()
+                    else:
+                        cable.hold()
+                    await _until_ended(station)
+                    end = sim.sdh.actual_deg
+                    assert _moved(end, cfg.run.preshape_deg) < 0.5, end  # open: let go
+                    lim, opening = cfg.limits, [s for s in sent if s.phase == "releasing"]
+                    assert opening
+                    for s in opening:  # within the joint limits, one increment at a time
+                        assert all(lo <= t <= hi for t, lo, hi in zip(
+                            s.targets, lim.min_deg, lim.max_deg, strict=True)), s  # fmt: skip
+                        assert _moved(s.targets, s.actual) <= cfg.safety.max_step_deg + EPS, s
+                    assert station.last_run is not None
+                    assert station.last_run["status"] == "completed", station.last_run
+                    loop = asyncio.get_running_loop()
+                    t0 = loop.time()
+                    while loop.time() - t0 < 3.0:  # the line is seen down (at stall_s)
+                        st = (await c.get("/api/status")).json()
+                        if _down(st, "dsa"):
+                            break
+                        await asyncio.sleep(0.1)
+                    assert _down(st, "dsa"), st["links"]
+                    assert (await c.post("/api/runs", json={})).status_code == 503
+                    await asyncio.sleep(WATCH_S)
+                    assert _moved(sim.sdh.actual_deg, end) < EPS  # nothing moves afterwards
+                    if how == "cut":
+                        await cable.plug()
+                    else:
+                        cable.resume()
+                    async with asyncio.timeout(30):  # back by itself
+                        while _down((await c.get("/api/status")).json(), "dsa"):
+                            await asyncio.sleep(0.1)
+                    bench.place()
+                    await _new_run_works(c, station)
+            finally:
+                await cable.close()
+
+    run_fast(main())
 
 
 async def _new_run_works(c: httpx.AsyncClient, station: HandService) -> None:
