@@ -409,3 +409,52 @@ def test_an_estop_whose_latch_refuses_the_runs_next_command_ends_the_run_estoppe
             assert faults == ([] if phase == "rolling" else ["force_ceiling"]), faults
 
     run_fast(main())
+
+
+# --- stop and e-stop from every phase --------------------------------------------------------
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+@pytest.mark.parametrize("phase", ["pre-shape", "grasping", "rolling", "releasing", "opening"])
+def test_stop_and_estop_work_from_every_phase(tmp_path: Path, phase: str, action: str) -> None:
+    """A run in each of its moving phases, or the hand opening (POST /api/hand/open), 0.3 s in.
+    A stop ends the run with the hand opened to the pre-shape (a run already opening finishes
+    that, completed), or holds an opening hand where it is; an e-stop turns the motors off where
+    the fingers are and ends the run e-stopped. Then nothing moves."""
+    cfg = _cfg(tmp_path, phase)
+
+    async def main() -> None:
+        async with service(cfg, Simulated(fast=True)) as (c, services):
+            station = services.station
+            assert station.bench is not None
+            sim = station.bench.sim
+            if phase == "opening":  # from the pose the hand starts in
+                assert (await c.post("/api/hand/open", json={})).status_code == 202
+                await asyncio.sleep(0.3)
+                assert station.opening
+            else:
+                await _start(c, station, phase, 0.3)
+            if action == "stop":
+                assert (await c.post("/api/runs/stop", json={})).status_code == 202
+            else:
+                r = await c.post("/api/estop")
+                assert r.status_code == 200 and r.json()["hand_reached"] is True, r.text
+            await _until_ended(station)
+            async with asyncio.timeout(5):
+                while station.opening:
+                    await asyncio.sleep(0.01)
+            end = sim.sdh.actual_deg
+            await asyncio.sleep(WATCH_S)
+            assert _moved(sim.sdh.actual_deg, end) < EPS  # nothing moves afterwards
+            assert any(sim.sdh.powered) is (action == "stop")
+            opened = _moved(end, cfg.run.preshape_deg) < 0.5
+            last = station.last_run
+            if phase == "opening":
+                assert last is None and not opened  # held where the stop found it
+            elif action == "stop":
+                assert last is not None and opened
+                assert last["status"] == ("completed" if phase == "releasing" else "stopped")
+            else:
+                assert last is not None and last["status"] == "e-stopped", last
+
+    run_fast(main())
