@@ -63,7 +63,7 @@ async def running(cfg: Settings, **kwargs: Any) -> AsyncIterator[ViewerProcess]:
         await v.stop()
 
 
-async def wait_for(pred: Any, timeout: float = 5.0) -> None:
+async def wait_for(pred: Any, timeout: float = 30.0) -> None:
     deadline = time.monotonic() + timeout
     while not pred():
         assert time.monotonic() < deadline, "condition not reached"
