@@ -164,15 +164,16 @@ async def _press_until_said(c: httpx.AsyncClient, station: HandService, phase: s
     assert run["message"].startswith("force_ceiling: F = "), run  # said before it opens
 
 
-def _check_opening(cfg: Settings, sent: list[Command]) -> None:
+def _check_opening(cfg: Settings, sent: list[Command], said: str = "force_ceiling") -> None:
     """Every target within the joint limits; the opening's increments ≤ max_step_deg from
-    where the fingers were, each sent with the fault already said."""
+    where the fingers were, each sent with the run's message beginning with ``said`` (the
+    fault, already said)."""
     lim = cfg.limits
     for s in sent:
         assert all(lo <= t <= hi for t, lo, hi in zip(s.targets, lim.min_deg, lim.max_deg,
                                                       strict=True)), s  # fmt: skip
     opening = [s for s in sent if s.phase == "releasing"]
-    assert opening and all(s.message.startswith("force_ceiling") for s in opening)
+    assert opening and all(s.message.startswith(said) for s in opening)
     assert max(_moved(s.targets, s.actual) for s in opening) <= cfg.safety.max_step_deg + EPS
 
 
@@ -319,12 +320,7 @@ def test_a_tactile_outage_while_opening_lets_the_opening_finish(tmp_path: Path, 
                     await _until_ended(station)
                     end = sim.sdh.actual_deg
                     assert _moved(end, cfg.run.preshape_deg) < 0.5, end  # open: let go
-                    lim, opening = cfg.limits, [s for s in sent if s.phase == "releasing"]
-                    assert opening
-                    for s in opening:  # within the joint limits, one increment at a time
-                        assert all(lo <= t <= hi for t, lo, hi in zip(
-                            s.targets, lim.min_deg, lim.max_deg, strict=True)), s  # fmt: skip
-                        assert _moved(s.targets, s.actual) <= cfg.safety.max_step_deg + EPS, s
+                    _check_opening(cfg, sent, said="")  # no fault: the run's own end
                     assert station.last_run is not None
                     assert station.last_run["status"] == "completed", station.last_run
                     loop = asyncio.get_running_loop()
