@@ -168,6 +168,45 @@ def _scan(case: dict[str, Any], fig: _Figures) -> None:
         widest = max(widest, alpha)
 
 
+# A slide told by its lean stalling: over STALL_WINDOW iterations without a reversal, the plans
+# asked a contact to lean STALL_PUSH degrees further in all while its measured lean rose less
+# than STALL_RISE, and it leans at least STALL_LEAN (the lowest friction angle the lab expects,
+# ``wedge_limit``: below it no object slides). One setting, to see whether such a rule could
+# tell a slide from a hold; nothing in the controller uses it.
+STALL_WINDOW, STALL_PUSH, STALL_RISE, STALL_LEAN = 6, 2.0, 0.2, 16.0
+
+
+def stalls(rows: Sequence[Sequence[Any]]) -> list[tuple[int, str, bool]]:
+    """Where a contact's lean stalled (see STALL_WINDOW): (row index, contact, whether the
+    simulation had it slipping at any iteration of the window)."""
+    out: list[tuple[int, str, bool]] = []
+    rev = _COL["reversal"]
+    for x in "AB":
+        lean, plan, slip = _COL[f"lean_{x}"], _COL[f"plan_{x}"], _COL[f"slip_{x}"]
+        for k in range(STALL_WINDOW, len(rows)):
+            win = rows[k - STALL_WINDOW : k + 1]
+            if any(r[rev] for r in win[:-1]) or any(r[lean] is None for r in win):
+                continue
+            if any(r[plan] is None for r in win[:-1]) or win[-1][lean] < STALL_LEAN:
+                continue
+            push = sum(r[plan] - r[lean] for r in win[:-1])
+            if push > STALL_PUSH and win[-1][lean] - win[0][lean] < STALL_RISE:
+                out.append((k, x, any(bool(r[slip]) for r in win)))
+    return out
+
+
+def _stall_line(runs: Sequence[dict[str, Any]]) -> str:
+    slid = [c for c in runs if any(r[_COL["slip_A"]] or r[_COL["slip_B"]] for r in c["rows"])]
+    held = [c for c in runs if c not in slid]
+    caught = sum(any(s for _, _, s in stalls(c["rows"])) for c in slid)
+    false = sum(bool(stalls(c["rows"])) for c in held)
+    return (f"A lean that stalls ({STALL_WINDOW} iterations without a reversal, a lean of at "
+            f"least {STALL_LEAN:g}°, plans asking {STALL_PUSH:g}° more in all, a rise under "
+            f"{STALL_RISE:g}°) is seen during a slide in {caught} of the {len(slid)} runs "
+            f"whose contacts slid, and in {false} of the {len(held)} runs whose contacts "
+            "never slid.")  # fmt: skip
+
+
 def report(paths: Sequence[Path]) -> str:
     """The figures, as markdown."""
     runs = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line]
@@ -200,6 +239,8 @@ def report(paths: Sequence[Path]) -> str:
         "How far a contact's measured lean followed a plan that leaned it further (the change "
         "of the measured lean over the planned one, from one iteration to the next), median: "
         f"{followed or 'no such plan'}.",
+        "",
+        _stall_line(runs),
     ])  # fmt: skip
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import sdh2svc.control.runner as runner
-from experiments.friction_proxy import COLUMNS, main, probe_case, report
+from experiments.friction_proxy import COLUMNS, main, probe_case, report, stalls
 from sdh2svc.campaign.case import load_suite
 from sdh2svc.campaign.run import run_case
 
@@ -72,3 +72,25 @@ def test_bad_input_is_refused_with_a_message(
     other.write_text('{"id": "x"}\n')
     assert main(["report", str(other)]) == 2
     assert "not the output of `friction_proxy run`" in capsys.readouterr().err
+
+
+def _rows(leans: list[float], plan_ahead: float, slipping: bool) -> list[list[object]]:
+    """Rows in which contact A leans as given, each plan asking ``plan_ahead`` more."""
+    return [[i, lean, 5.0, lean + plan_ahead, 5.0, lean, 5.0, slipping, False, 22.0, None]
+            for i, lean in enumerate(leans)]  # fmt: skip
+
+
+def test_a_stalled_lean_is_told_from_one_that_follows_its_plan() -> None:
+    """Stalled: pushed 0.5° an iteration, the lean held at 19°; it slid or it held (the rule
+    cannot tell which, so both are found, with the truth beside them). Following the plan, or
+    stalled below 16°, or across a reversal: not found."""
+    stalled = _rows([19.0] * 8, 0.5, True)
+    found = stalls(stalled)
+    assert [(k, x) for k, x, _ in found] == [(6, "A"), (7, "A")] and all(s for *_, s in found)
+    assert all(not s for *_, s in stalls(_rows([19.0] * 8, 0.5, False)))
+    assert stalls(_rows([19.0 + 0.1 * i for i in range(8)], 0.5, True)) == []  # follows
+    assert stalls(_rows([12.0] * 8, 0.5, True)) == []  # below the lowest friction angle
+    assert stalls(_rows([19.0] * 8, 0.2, True)) == []  # plans asking too little
+    reversed_ = _rows([19.0] * 8, 0.5, True)
+    reversed_[3][COLUMNS.index("reversal")] = "cone_A"
+    assert stalls(reversed_) == []
