@@ -196,10 +196,13 @@ def stalls(rows: Sequence[Sequence[Any]]) -> list[tuple[int, str, bool]]:
 
 
 def _stall_line(runs: Sequence[dict[str, Any]]) -> str:
-    slid = [c for c in runs if any(r[_COL["slip_A"]] or r[_COL["slip_B"]] for r in c["rows"])]
-    held = [c for c in runs if c not in slid]
-    caught = sum(any(s for _, _, s in stalls(c["rows"])) for c in slid)
-    false = sum(bool(stalls(c["rows"])) for c in held)
+    found: dict[bool, list[list[tuple[int, str, bool]]]] = {True: [], False: []}  # by "slid"
+    for c in runs:
+        slid = any(r[_COL["slip_A"]] or r[_COL["slip_B"]] for r in c["rows"])
+        found[slid].append(stalls(c["rows"]))
+    slid, held = found[True], found[False]
+    caught = sum(any(s for _, _, s in st) for st in slid)
+    false = sum(bool(st) for st in held)
     return (f"A lean that stalls ({STALL_WINDOW} iterations without a reversal, a lean of at "
             f"least {STALL_LEAN:g}°, plans asking {STALL_PUSH:g}° more in all, a rise under "
             f"{STALL_RISE:g}°) is seen during a slide in {caught} of the {len(slid)} runs "
