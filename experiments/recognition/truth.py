@@ -30,10 +30,15 @@ EDGE_RADIUS_MM = 4.0  # below about one cell pitch (3.4 mm) a rounding is an edg
 CORNER_MARGIN_MM = 1.5
 
 
+RIGHT_ANGLE_TOL_DEG = 1.0  # a polygon's four corners this near 90° make it a rectangle
+
+
 def true_class(family: str, spec: Shape) -> ObjectClass:
-    """The right answer per family: the generator's "rounded" family (boxes with rounded
-    corners, up to a stadium) is a box; the thesis's presets by their shape."""
-    if family == "rounded":
+    """The right answer by the object's shape, not by the family that generated it: the
+    generator's "rounded" family (boxes with rounded corners, up to a stadium) is a box, and so
+    is a polygon that is a rectangle (the polygon family's regular 4-gons are squares: the same
+    object as a box of equal sides); the thesis's presets by their shape."""
+    if family == "rounded" or rectangle_sides(spec) is not None:
         return ObjectClass.BOX
     return {
         Box: ObjectClass.BOX,
@@ -44,8 +49,27 @@ def true_class(family: str, spec: Shape) -> ObjectClass:
     }[type(spec)]
 
 
+def rectangle_sides(spec: Shape) -> tuple[float, float] | None:
+    """A four-cornered polygon's sides (longer first) if every corner is a right angle within
+    RIGHT_ANGLE_TOL_DEG, else None."""
+    if not isinstance(spec, Polygon) or len(spec.vertices_mm) != 4:
+        return None
+    v = np.asarray(spec.vertices_mm, dtype=float)
+    edges = np.roll(v, -1, axis=0) - v
+    lengths = np.linalg.norm(edges, axis=1)
+    nxt = np.roll(edges, -1, axis=0)
+    cos = np.einsum("ij,ij->i", edges, nxt) / (lengths * np.roll(lengths, -1))
+    if np.max(np.abs(np.degrees(np.arcsin(np.clip(cos, -1.0, 1.0))))) > RIGHT_ANGLE_TOL_DEG:
+        return None
+    a, b = (lengths[0] + lengths[2]) / 2, (lengths[1] + lengths[3]) / 2
+    return float(max(a, b)), float(min(a, b))
+
+
 def true_sizes(spec: Shape) -> tuple[float, float | None]:
-    """size_a, size_b as :class:`~sdh2svc.control.recognition.Recognition` defines them."""
+    """size_a, size_b as :class:`~sdh2svc.control.recognition.Recognition` defines them (a
+    rectangular polygon's as a box's)."""
+    if (sides := rectangle_sides(spec)) is not None:
+        return sides
     if isinstance(spec, Circle):
         return spec.diameter_mm / 2, None
     if isinstance(spec, Ellipse):

@@ -454,6 +454,32 @@ def test_the_truth_draws_one_line_between_edge_and_curve() -> None:
     assert not near_the_line(Stick(length_mm=60.0, diameter_mm=6.0, depth_mm=10.0), (30.0, 0.0))
 
 
+def test_the_truth_classes_a_shape_by_its_shape_not_its_family() -> None:
+    """A polygon whose four corners are right angles (the polygon family's regular 4-gons are
+    squares) is a box, with a box's sides; one corner 3° off, or a fifth corner, is a polygon."""
+    from experiments.recognition.truth import true_class, true_sizes
+    from sdh2svc.sim.objects import Box, Polygon
+
+    c, s = math.cos(0.4), math.sin(0.4)
+    square = Polygon(depth_mm=10.0, vertices_mm=tuple(
+        (round(20 * (x * c - y * s), 3), round(20 * (x * s + y * c), 3))
+        for x, y in ((1, 1), (-1, 1), (-1, -1), (1, -1))
+    ))  # fmt: skip
+    assert true_class("polygon", square) is ObjectClass.BOX
+    assert true_sizes(square) == pytest.approx((40.0, 40.0), abs=1e-3)
+    rect = Polygon(depth_mm=10.0, vertices_mm=((0, 0), (50, 0), (50, 20), (0, 20)))
+    assert true_class("polygon", rect) is ObjectClass.BOX
+    assert true_sizes(rect) == pytest.approx((50.0, 20.0))
+    lean = 20 * math.tan(math.radians(3))  # two corners 3° off a right angle
+    tilted = Polygon(depth_mm=10.0, vertices_mm=((0, 0), (50, 0), (50 + lean, 20), (0, 20)))
+    assert true_class("polygon", tilted) is ObjectClass.POLYGON
+    pentagon = Polygon(depth_mm=10.0, vertices_mm=((0, 0), (50, 0), (50, 20), (25, 30), (0, 20)))
+    assert true_class("polygon", pentagon) is ObjectClass.POLYGON
+    assert true_class("box", Box(width_mm=40.0, height_mm=30.0, depth_mm=10.0)) is ObjectClass.BOX
+    assert true_class("rounded", Box(width_mm=40.0, height_mm=30.0, corner_radius_mm=8.0,
+                                     depth_mm=10.0)) is ObjectClass.BOX  # fmt: skip
+
+
 # --- fast simulated runs of the thesis's objects (200 iterations each), against their truth
 
 
