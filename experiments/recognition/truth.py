@@ -28,8 +28,6 @@ from sdh2svc.sim.objects import Box, Circle, Ellipse, Polygon, Shape, Stick, par
 
 EDGE_RADIUS_MM = 4.0  # below about one cell pitch (3.4 mm) a rounding is an edge to the pad
 CORNER_MARGIN_MM = 1.5
-
-
 RIGHT_ANGLE_TOL_DEG = 1.0  # a polygon's four corners this near 90° make it a rectangle
 
 
