@@ -29,6 +29,10 @@ them all boxes (circles). So ``1 − (box-like polygons + circle-like ellipses) 
 the class's share right after the first stroke from above, even with every other class right.
 
     python -m experiments.recognition.identifiable /tmp/recog/test-17*.jsonl
+
+With ``--misses EVAL_JSON`` (the file ``evaluate --json`` wrote for the same captures) it also
+sorts the recognizer's misses after the first stroke: those read as the class the stroke looks
+like, which no estimator at this resolution avoids, and the rest, by true class → estimate.
 """
 
 from __future__ import annotations
@@ -223,12 +227,47 @@ def bound(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "bound": (n - lost) / n if n else math.nan}  # fmt: skip
 
 
+def misses(rows: list[dict[str, Any]], evaluated: dict[str, Any]) -> dict[str, Any]:
+    """The recognizer's misses after the first stroke (``evaluated``: what
+    :mod:`experiments.recognition.evaluate` writes with ``--json``), each beside its verdict
+    here: *inherent* where it was read as the class its first stroke looks like (no estimator
+    at this resolution reads both it and that class right), else counted by true class →
+    estimate. Cases judged here but not evaluated (or the reverse) are left out."""
+    alike = {r["id"]: r["looks_like"] for r in rows}
+    listed: list[dict[str, Any]] = []
+    other: dict[str, int] = {}
+    inherent = 0
+    for case in evaluated["cases"]:
+        est = case.get("class_first_stroke")
+        if est is None or case["id"] not in alike or est == case["class"]:
+            continue
+        looks = alike[case["id"]]
+        listed.append({"id": case["id"], "class": case["class"], "estimate": est,
+                       "looks_like": looks})  # fmt: skip
+        if looks == est:
+            inherent += 1
+        else:
+            key = f"{case['class']} -> {est}"
+            other[key] = other.get(key, 0) + 1
+    right_alike = sum(
+        1 for c in evaluated["cases"]
+        if alike.get(c["id"]) and c.get("class_first_stroke") == c["class"]
+    )  # fmt: skip
+    return {"misses": listed, "inherent": inherent, "look_alikes_read_right": right_alike,
+            "other": dict(sorted(other.items(), key=lambda kv: -kv[1]))}  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("captures", nargs="+", help="capture files (experiments.recognition.capture)")
     ap.add_argument("--tol-deg", type=float, default=2.0)
     ap.add_argument("--tol-radius", type=float, default=0.05)
     ap.add_argument("--list", action="store_true", help="print every case's verdict")
+    ap.add_argument(
+        "--misses", metavar="EVAL_JSON",
+        help="the recognizer's misses after the first stroke, from evaluate's --json file, "
+        "beside these verdicts",
+    )  # fmt: skip
     a = ap.parse_args()
     ctx = load_config(use_env=False).model_context()
     rows = [r for raw in cases(a.captures)
@@ -236,7 +275,10 @@ def main() -> None:
     if a.list:
         for r in rows:
             print(r["id"], r["class"], r["looks_like"] or "-")
-    print(json.dumps(bound(rows), indent=1))
+    out = bound(rows)
+    if a.misses:
+        out["misses"] = misses(rows, json.loads(Path(a.misses).read_text()))
+    print(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

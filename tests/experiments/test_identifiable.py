@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from experiments.recognition.identifiable import Touch, bound, box_like, circle_like
+from experiments.recognition.identifiable import Touch, bound, box_like, circle_like, misses
 from sdh2svc.sim.objects import Ellipse, Polygon
 
 
@@ -81,3 +81,25 @@ def test_the_bound_counts_what_cannot_be_split() -> None:
     got = bound(rows)
     assert got["runs"] == 10 and got["looks_like_another"] == {"polygon": 1, "ellipse": 1}
     assert got["bound"] == 0.8
+
+
+def test_misses_are_sorted_into_look_alikes_and_the_rest() -> None:
+    rows = [
+        {"id": "p1", "class": "polygon", "looks_like": "box"},
+        {"id": "p2", "class": "polygon", "looks_like": "box"},
+        {"id": "p3", "class": "polygon", "looks_like": "box"},
+        {"id": "e1", "class": "ellipse", "looks_like": None},
+        {"id": "b1", "class": "box", "looks_like": None},
+    ]
+    evaluated = {"cases": [
+        {"id": "p1", "class": "polygon", "class_first_stroke": "box"},  # inherent
+        {"id": "p2", "class": "polygon", "class_first_stroke": "stick"},  # looks like a box
+        {"id": "p3", "class": "polygon", "class_first_stroke": "polygon"},  # a look-alike, right
+        {"id": "e1", "class": "ellipse", "class_first_stroke": "circle"},
+        {"id": "b1", "class": "box", "class_first_stroke": None},  # no first stroke
+        {"id": "x9", "class": "box", "class_first_stroke": "stick"},  # not judged here
+    ]}  # fmt: skip
+    got = misses(rows, evaluated)
+    assert [m["id"] for m in got["misses"]] == ["p1", "p2", "e1"]
+    assert got["inherent"] == 1 and got["look_alikes_read_right"] == 1
+    assert got["other"] == {"polygon -> stick": 1, "ellipse -> circle": 1}
