@@ -248,9 +248,9 @@ async def test_estop_mid_run_and_release(svc: LiveService) -> None:
         slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
         run_id = (await c.start_run(slow, "egg"))["run_id"]
         await tm.until(lambda: tm.samples(run_id))
-        t0 = time.monotonic()
+        # answered while the run goes on, not behind it: this run takes many minutes, and
+        # the client gives up on an answer after 30 s
         assert (await c.estop())["estopped"] is True
-        assert time.monotonic() - t0 < 5.0  # generous: answered, not hung behind the run
         st = await wait_run_end(c, run_id)
         assert st["estopped"] is True and st["run"]["state"] == "e-stopped"
         assert st["last_run"]["status"] == "e-stopped"
