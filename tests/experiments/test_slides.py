@@ -40,11 +40,13 @@ def test_the_summary_counts_runs_by_whether_they_slid() -> None:
 
     quiet = pad(0, None, None, [], 0)
     rows = [
-        {"friction_angle_deg": 18.0, "pads": [pad(9, 30, 19.0, [33, 34], 2), quiet]},
-        {"friction_angle_deg": 20.0, "pads": [quiet, pad(3, 12, 19.5, [], 0)]},
-        {"friction_angle_deg": 30.0, "pads": [quiet, pad(0, None, None, [50], 0)]},
-        {"friction_angle_deg": 30.0, "pads": [quiet, quiet]},
-    ]
+        {"friction_angle_deg": 18.0, "pads": [pad(9, 30, 19.0, [33, 34], 2), quiet],
+         "moves": {"edge sliding": [0.3, 0.2], "edge holding": [0.01]}},
+        {"friction_angle_deg": 20.0, "pads": [quiet, pad(3, 12, 19.5, [], 0)],
+         "moves": {"edge holding": [0.03]}},
+        {"friction_angle_deg": 30.0, "pads": [quiet, pad(0, None, None, [50], 0)], "moves": {}},
+        {"friction_angle_deg": 30.0, "pads": [quiet, quiet], "moves": {}},
+    ]  # fmt: skip
     got = summary(rows)
     assert got["runs"] == 4 and got["runs_that_slid"] == 2
     assert got["lean_at_first_slide_minus_friction_angle_deg"] == {
@@ -53,3 +55,7 @@ def test_the_summary_counts_runs_by_whether_they_slid() -> None:
     assert got["edge_slides_fired_in_runs_that_slid"] == 1
     assert got["edge_slides_fired_in_runs_that_never_slid"] == 1
     assert got["fires"] == 3 and got["fires_outside_a_slide"] == 1
+    moves = got["moves"]
+    assert list(moves) == ["edge holding", "edge sliding"]  # pooled over the runs
+    assert moves["edge holding"]["n"] == 2 and abs(moves["edge holding"]["median"] - 0.02) < 1e-12
+    assert abs(moves["edge sliding"]["median"] - 0.25) < 1e-12
