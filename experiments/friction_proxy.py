@@ -38,7 +38,8 @@ COLUMNS = ("iteration", "lean_A", "lean_B", "plan_A", "plan_B", "true_A", "true_
            "slip_A", "slip_B", "alpha", "reversal")  # fmt: skip
 
 
-def _lean(w: float | None) -> float | None:
+def lean_deg(w: float | None) -> float | None:
+    """A contact's lean |ω − 90°| (deg) from its ω (rad; None: no contact)."""
     return None if w is None else abs(math.degrees(w) - 90.0)
 
 
@@ -62,9 +63,9 @@ def _probed_step(rows: list[list[Any]], bench: list[Any]) -> Iterator[None]:
 
         (ta, sa), (tb, sb) = true("distal1"), true("distal2")
         plan = r.plan if r.targets is not None else None
-        rows.append([state.iteration, _lean(r.obs.omega_A), _lean(r.obs.omega_B),
-                     _lean(plan.omega_A_d) if plan else None,
-                     _lean(plan.omega_B_d) if plan else None, ta, tb, sa, sb,
+        rows.append([state.iteration, lean_deg(r.obs.omega_A), lean_deg(r.obs.omega_B),
+                     lean_deg(plan.omega_A_d) if plan else None,
+                     lean_deg(plan.omega_B_d) if plan else None, ta, tb, sa, sb,
                      math.degrees(r.alpha), r.reversal.value if r.reversal else None])  # fmt: skip
         return r
 

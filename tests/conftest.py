@@ -33,6 +33,7 @@ HOGS = frozenset({
 # a joint reply 0.3 s late faults the run: tests/service/conftest.py's PATIENT is not for
 # them): in the hogs' group, so that none of the hogs runs beside them.
 REAL_TIME = frozenset({"tests/service/test_motion_safety.py"})
+SERIAL = HOGS | REAL_TIME  # the files of the "hogs" group
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own, which reads the groups
@@ -42,7 +43,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     root = Path(config.rootpath)
     for item in items:
         rel = Path(item.path).relative_to(root).as_posix()
-        item.add_marker(pytest.mark.xdist_group("hogs" if rel in HOGS | REAL_TIME else rel))
+        item.add_marker(pytest.mark.xdist_group("hogs" if rel in SERIAL else rel))
 
 
 @pytest.hookimpl(optionalhook=True)

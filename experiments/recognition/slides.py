@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from experiments.friction_proxy import lean_deg
 from experiments.recognition.evaluate import Case, context, load_cases
 from sdh2svc.control.recognition import ContactKind, Recognizer, packaged_model
 from sdh2svc.model.observe import ModelContext
@@ -76,7 +77,7 @@ def judge_case(raw: dict[str, Any], case: Case, ctx: ModelContext) -> dict[str, 
             kinds[pad].append(kind)
             x3[pad].append(contact.x3_mm if obs.points is not None else None)
             slid[pad].append(bool((it["truth"].get(name) or {}).get("slipping", False)))
-            lean[pad].append(None if omega is None else abs(math.degrees(omega) - 90.0))
+            lean[pad].append(lean_deg(omega))
     angle = math.degrees(math.atan(mu))
     out: dict[str, Any] = {"id": raw["id"], "status": raw["status"], "mu": mu,
                            "friction_angle_deg": angle, "pads": [], "moves": {}}  # fmt: skip
