@@ -182,6 +182,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     if (args.no_pty or not cfg.sim.links.pty) and args.no_tcp:
         _fail(Exit.USAGE, "nothing to serve: --no-tcp, and no pty (--no-pty or sim.links.pty)")
+    if args.dsa_port is not None and args.dsa_port == args.sdh_port and args.dsa_port != 0:
+        _fail(Exit.USAGE, f"--dsa-port and --sdh-port are both {args.dsa_port}: one port each")
     # ports default to the configuration's; the lab assistant to sim.replace_after_s
     spec = Simulated(
         obj=obj,
@@ -639,9 +641,18 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
             with open(path, "wb") as fh:
                 n = store.export_mcap(args.id, fh, cfg)
             print(f"{path}: {n} messages", file=sys.stderr)
+    except BrokenPipeError:  # the reader had enough (`… | head`): not an error
+        _quiet_stdout()
     except OSError as e:
         _fail(Exit.UNAVAILABLE, f"cannot write {path or 'stdout'}: {e.strerror or e}")
     return Exit.OK
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: Python's flush of a closed pipe at exit would complain."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 def cmd_campaign(args: argparse.Namespace) -> int:
@@ -664,7 +675,10 @@ def cmd_campaign(args: argparse.Namespace) -> int:
             from sdh2svc.campaign.report import write_report
 
             _only_for(args, "report")
-            path = write_report(Path(args.dir))
+            try:
+                path = write_report(Path(args.dir))
+            except PermissionError as e:  # (a missing folder is NOT_FOUND, below)
+                _fail(Exit.UNAVAILABLE, f"cannot write the report: {e.filename}: {e.strerror}")
             print(path)
             return Exit.OK
         from sdh2svc.campaign.report import compare
@@ -687,13 +701,16 @@ def cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def _only_for(args: argparse.Namespace, action: str) -> None:
-    """``report`` and ``compare`` take none of ``run``'s options: given, they are mistakes
-    (a --set the user thinks applies), not silently dropped; ``report`` takes one folder."""
+    """``report``, ``compare`` and ``generate`` take none of ``run``'s options: given, they are
+    mistakes (a --set the user thinks applies), not silently dropped; ``report`` takes one
+    folder. (A suite is generated from the packaged configuration alone: the same seed, the
+    same cases.)"""
     if action == "report" and args.dir_b is not None:
         _fail(Exit.USAGE, f"report takes one campaign folder, not {clip(args.dir_b)!r} too")
     given = [flag for flag, value in (("--set", args.overrides), ("--config", args.config),
                                       ("--workers", args.workers), ("--ray", args.ray),
-                                      ("--out", args.out)) if value]  # fmt: skip
+                                      ("--out", args.out))
+             if value is not None and value != []]  # fmt: skip
     if given:
         _fail(Exit.USAGE, f"{', '.join(given)}: options of campaign run, not of {action}")
 
@@ -704,11 +721,13 @@ def _campaign_generate(args: argparse.Namespace) -> int:
     objects it was not chosen on)."""
     from pathlib import Path
 
+    from sdh2svc.campaign.case import SEED_MAX
     from sdh2svc.campaign.generate import generated_suite
 
     name = args.dir
     if args.dir_b is not None:
         _fail(Exit.USAGE, f"generate takes one suite name, not {clip(args.dir_b)!r} too")
+    _only_for(args, "generate")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", name):
         _fail(Exit.USAGE, f"suite name {clip(name)!r}: letters, digits, '_', '.', '-' (at most "
                           "64, starting with a letter or digit)")  # fmt: skip
@@ -717,8 +736,8 @@ def _campaign_generate(args: argparse.Namespace) -> int:
                           "the same cases)")  # fmt: skip
     if not 1 <= args.cases <= 10_000:
         _fail(Exit.USAGE, f"--cases {args.cases}: 1 to 10000 (about 35 ms each to generate)")
-    if args.seed < 0:
-        _fail(Exit.USAGE, f"--seed {args.seed}: 0 or more")
+    if not 0 <= args.seed <= SEED_MAX:
+        _fail(Exit.USAGE, f"--seed {clip(str(args.seed))}: 0 to {SEED_MAX}")
     out = Path(args.output or f"{name}.json")
     if out.exists():
         _fail(Exit.USAGE, f"{out} exists: a suite is never rewritten (give another -o FILE)")

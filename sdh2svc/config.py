@@ -347,8 +347,12 @@ def format_errors(
     ``rolling.k = 0.5 (lab.toml): …``.
     """
     lines = []
-    for e in err.errors():
-        loc = tuple(e["loc"])
+    errors = err.errors()
+    locs = [tuple(e["loc"]) for e in errors]
+    for e, loc in zip(errors, locs, strict=True):
+        if e["type"] == "too_short" and any(len(x) > len(loc) and x[: len(loc)] == loc
+                                            for x in locs):  # fmt: skip
+            continue  # a list short only because its bad items were dropped: they say why
         key = error_key(loc)
         value = e.get("input")
         shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 import socket
 import subprocess
@@ -511,3 +512,48 @@ def test_config_does_not_print_the_token(
     status, out, _ = call(capsys, "config")
     assert status == Exit.OK and "sekrit" not in out
     assert json.loads(out)["service"]["token"] == "***"
+
+
+def test_a_write_protected_database_is_unavailable_not_a_bug(one_run: Path) -> None:
+    """SQLite opens a write-protected file read-only without a word; the first write (a run's
+    start) then failed as an unexpected error. Root writes anyway: its capabilities dropped."""
+    import shutil
+
+    one_run.chmod(0o444)
+    drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-all"] if os.geteuid() == 0 else []
+    assert not drop or shutil.which("setpriv"), "setpriv (util-linux) is needed as root"
+    r = subprocess.run([*drop, sys.executable, "-m", "sdh2svc", "run", "--sim", "--fast",
+                        *db_set(one_run)], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    line = one_line(r.stderr, "run")
+    assert f"cannot open the run database {one_run}" in line and "readonly" in line
+
+
+def test_export_into_a_pipe_its_reader_closed_is_quiet(one_run: Path) -> None:
+    """`runs export 1 | head`: the reader had enough; no error, no traceback."""
+    store = RunStore(one_run)
+    try:
+        cols = ", ".join(f'"{c}"' for c in ("iteration", "t"))
+        with store.db:
+            store.db.executemany(f"INSERT INTO samples (run_id, {cols}) VALUES (1, ?, ?)",
+                                 [(i, i * 0.01) for i in range(20_000)])  # fmt: skip
+    finally:
+        store.close()
+    proc = subprocess.Popen([sys.executable, "-m", "sdh2svc", "runs", "export", "1",
+                             *db_set(one_run)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    head = proc.stdout.readline()
+    proc.stdout.close()  # far more than a pipe's buffer is still to come
+    err = proc.stderr.read()
+    proc.stderr.close()
+    assert proc.wait(timeout=60) == Exit.OK, err
+    assert head.startswith("iteration") and err == ""
+
+
+def test_sim_with_one_port_for_both_links_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    status, _, err = call(capsys, "sim", "--dsa-port", "5001", "--sdh-port", "5001")
+    assert status == Exit.USAGE
+    assert "--dsa-port and --sdh-port are both 5001" in one_line(err, "sim")

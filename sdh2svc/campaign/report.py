@@ -14,13 +14,17 @@ from sdh2svc.campaign.case import FAMILIES
 Row = Mapping[str, Any]
 
 
-def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """A campaign's rows and metadata: ``results.parquet`` rewritten from ``cases.jsonl``.
-    A folder that holds no campaign is refused before anything is written into it; a file of
-    a campaign that cannot be read (cut short, overwritten) is refused naming it (exit 2)."""
+def load(out: Path, *, refresh: bool = False) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """A campaign's rows and metadata, from ``cases.jsonl`` where there is one (the newest:
+    a killed campaign's ``results.parquet`` lags behind it), else ``results.parquet``.
+    ``refresh``: ``results.parquet`` is rewritten from ``cases.jsonl`` too (``report``, which
+    writes into the folder anyway); else nothing in the folder is written (``compare``'s inputs
+    may be read-only, or a reference). A folder that holds no campaign is refused; a file of a
+    campaign that cannot be read (cut short, overwritten) is refused naming it (exit 2), one
+    that cannot be written (exit 4)."""
     from pyarrow import ArrowException
 
-    from sdh2svc.campaign.results import read_results, write_results
+    from sdh2svc.campaign.results import read_results, results_from_rows, write_results
     from sdh2svc.campaign.run import (
         CAMPAIGN_FILE,
         CASES_FILE,
@@ -39,7 +43,12 @@ def load(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
                                     f"{CAMPAIGN_FILE} a campaign run writes first")  # fmt: skip
             if not read_rows(out):  # (it keeps only results)
                 raise CampaignError(2, f"{cases}: no case's result in it")
-            write_results(out)
+            if refresh:
+                try:
+                    write_results(out)
+                except OSError as e:
+                    raise CampaignError(4, f"cannot write {results}: {e.strerror or e}") from None
+            return results_from_rows(out)
         return read_results(out)
     except (ArrowException, ValueError, TypeError, OSError) as e:  # json's are ValueErrors
         if isinstance(e, FileNotFoundError):
@@ -193,8 +202,9 @@ def _interval_line(rows: Sequence[Row], generated: bool = True) -> list[str]:
 
 
 def write_report(out: Path) -> Path:
-    """``OUT/report.md`` and its plots (``OUT/plots/*.png``)."""
-    rows, info = load(out)
+    """``OUT/report.md`` and its plots (``OUT/plots/*.png``); ``OUT/results.parquet`` brought
+    up to date with ``OUT/cases.jsonl``."""
+    rows, info = load(out, refresh=True)
     plots = out / "plots"
     plots.mkdir(exist_ok=True)
     lines = [f"# Campaign {info.get('suite', out.name)}", ""]
@@ -396,13 +406,20 @@ def compare(a: Path, b: Path) -> str:
     fa, fb = by(ra, lambda r: r["family"]), by(rb, lambda r: r["family"])
     for fam in _family_order(set(fa) | set(fb)):
         lines.append(f"| {fam} | {rate(fa.get(fam, []))} | {rate(fb.get(fam, []))} |")
-    better = [i for i in common if not da[i]["success"] and db[i]["success"]]
-    worse = [i for i in common if da[i]["success"] and not db[i]["success"]]
-    changed = [i for i in common if not da[i]["success"] and not db[i]["success"]
+    # a crash is no result (the campaign runs it again): no verdict to pair, either way
+    crashed = [i for i in common if "crashed" in (da[i]["status"], db[i]["status"])]
+    judged = [i for i in common if i not in set(crashed)]
+    better = [i for i in judged if not da[i]["success"] and db[i]["success"]]
+    worse = [i for i in judged if da[i]["success"] and not db[i]["success"]]
+    changed = [i for i in judged if not da[i]["success"] and not db[i]["success"]
                and da[i]["failure"] != db[i]["failure"]]  # fmt: skip
     lines += ["", f"{len(common)} cases in both; only in A: {len(set(da) - set(common))}, "
-              f"only in B: {len(set(db) - set(common))}.", "", _paired(len(better), len(worse)),
-              ""]  # fmt: skip
+              f"only in B: {len(set(db) - set(common))}."]  # fmt: skip
+    if crashed:
+        lines += ["", f"**{len(crashed)} of them crashed in A or B: no verdict, not compared** "
+                  f"(e.g. {', '.join(crashed[:3])}; the same `campaign run` runs a crashed "
+                  "case again)."]  # fmt: skip
+    lines += ["", _paired(len(better), len(worse)), ""]
     for title, ids in (("Better in B (failed in A, succeeded in B)", better),
                        ("Worse in B (succeeded in A, failed in B)", worse),
                        ("Failed in both, for another reason", changed)):  # fmt: skip

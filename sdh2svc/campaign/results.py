@@ -53,11 +53,10 @@ def to_table(rows: Sequence[Mapping[str, Any]], info: Mapping[str, Any] | None =
     return pa.Table.from_pydict(data, schema=SCHEMA.with_metadata(meta))
 
 
-def write_results(out: Path, *, suite: Suite | None = None,
-                  info: Mapping[str, Any] | None = None) -> Path:  # fmt: skip
-    """(Re)write ``OUT/results.parquet`` from ``OUT/cases.jsonl`` (in the suite's order; the
-    last row of a case recorded twice wins)."""
-    from sdh2svc.campaign.run import CAMPAIGN_FILE, RESULTS_FILE, read_rows
+def _table(out: Path, suite: Suite | None, info: Mapping[str, Any] | None) -> pa.Table:
+    """``OUT/cases.jsonl`` as the results' table (in the suite's order; the last row of a case
+    recorded twice wins)."""
+    from sdh2svc.campaign.run import CAMPAIGN_FILE, read_rows
 
     rows = {r["id"]: r for r in read_rows(out) if "id" in r}
     if suite is not None:
@@ -66,11 +65,26 @@ def write_results(out: Path, *, suite: Suite | None = None,
         ordered = list(rows.values())
     if info is None and (out / CAMPAIGN_FILE).exists():
         info = json.loads((out / CAMPAIGN_FILE).read_text())
+    return to_table(ordered, info)
+
+
+def write_results(out: Path, *, suite: Suite | None = None,
+                  info: Mapping[str, Any] | None = None) -> Path:  # fmt: skip
+    """(Re)write ``OUT/results.parquet`` from ``OUT/cases.jsonl`` (see :func:`_table`)."""
+    from sdh2svc.campaign.run import RESULTS_FILE
+
     path = out / RESULTS_FILE
     tmp = path.with_suffix(".parquet.tmp")
-    pq.write_table(to_table(ordered, info), tmp)
+    pq.write_table(_table(out, suite, info), tmp)
     tmp.replace(path)
     return path
+
+
+def results_from_rows(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """What :func:`read_results` would read after :func:`write_results`, without writing."""
+    table = _table(out, None, None)
+    meta = table.schema.metadata or {}
+    return table.to_pylist(), json.loads(meta.get(METADATA_KEY, b"{}"))
 
 
 def read_results(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:

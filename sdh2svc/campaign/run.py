@@ -25,6 +25,7 @@ import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -390,8 +391,23 @@ class Appender:
         self.fh.close()
 
 
+def source_digest(root: Path | None = None) -> str:
+    """SHA-256 of the package's own files (its code and the data it loads: the recognition
+    model, the configuration, the suites), path by path: two trees that would run a case
+    differently differ here, where ``git describe --dirty`` reads the same for any two edits.
+    ``root``: the package's folder (default: this one)."""
+    root = root or Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and path.suffix in (".py", ".json", ".toml"):
+            h.update(path.relative_to(root).as_posix().encode() + b"\0")
+            h.update(hashlib.sha256(path.read_bytes()).digest())
+    return h.hexdigest()
+
+
 def code_version() -> dict[str, Any]:
-    """sdh2svc's version and, from a git checkout, ``git describe``."""
+    """sdh2svc's version, the digest of its source (:func:`source_digest`) and, from a git
+    checkout, ``git describe``."""
     import subprocess
 
     from sdh2svc import __version__
@@ -403,7 +419,7 @@ def code_version() -> dict[str, Any]:
                            text=True, timeout=10, check=False)  # fmt: skip
         if r.returncode == 0:
             describe = r.stdout.strip() or None
-    return {"version": __version__, "git_describe": describe}
+    return {"version": __version__, "git_describe": describe, "source": source_digest()}
 
 
 def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | None,
@@ -430,7 +446,7 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
         raise CampaignError(2, f"--out {out}: not a directory")
     path = out / CAMPAIGN_FILE
     if not path.exists():
-        if any(out.iterdir()):
+        if any(p.name != LOCK_FILE and not p.name.startswith(".work-") for p in out.iterdir()):
             raise CampaignError(2, f"{out} is not empty and holds no campaign ({CAMPAIGN_FILE}): "
                                 "give a new or empty --out")  # fmt: skip
         return
@@ -441,7 +457,7 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
     except (OSError, ValueError) as e:
         raise CampaignError(2, f"{path} cannot be read ({e}): is {out} a campaign? "
                             "give another --out") from None  # fmt: skip
-    for key in ("suite_digest", "overrides", "config", "code"):
+    for key in ("suite_digest", "overrides", "config", "code", "judge"):
         if old.get(key) != info[key]:
             shown = (f"{clip(repr(old.get(key)))} there, {clip(repr(info[key]))} now"
                      if key != "config" else _config_change(old.get(key), info[key]))  # fmt: skip
@@ -467,17 +483,28 @@ def _config_change(old: Any, new: Mapping[str, Any]) -> str:
     return shown + (f"; and {len(keys) - 3} more" if len(keys) > 3 else "")
 
 
-def check_overrides(overrides: Sequence[str]) -> None:
-    """No ``--set`` of a key each case sets itself (Case.overrides: where the object is placed,
-    the seed, the sensor's variation): the case's value would win without a word, while the
-    campaign recorded the --set as in effect. ``sim.sensor.gain_vs_library`` is the nominal
-    gain every case's ``gain_factor`` scales: that one may be set."""
+def check_overrides(overrides: Sequence[str], config_path: str | None = None) -> None:
+    """No key each case sets itself (Case.overrides: where the object is placed, the seed, the
+    sensor's variation) changed by ``--set``, ``--config`` or the environment: the case's value
+    would win without a word, while the campaign recorded the change as in effect.
+    ``sim.sensor.gain_vs_library`` is the nominal gain every case's ``gain_factor`` scales:
+    that one may be set."""
     for text in overrides:
         key = text.partition("=")[0].strip()
         if key in CASE_KEYS:
             raise CampaignError(2, f"--set {clip(text)}: {key} is set by each case (its "
                                 "placement, seed or sensor); change it in the suite's "
                                 "cases")  # fmt: skip
+    given = load_config(config_path, overrides).model_dump(mode="json")
+    default = load_config(use_env=False).model_dump(mode="json")
+    for key in sorted(CASE_KEYS):
+        a, b = given, default
+        for part in key.split("."):
+            a, b = a[part], b[part]
+        if a != b:
+            raise CampaignError(2, f"{key} = {clip(repr(a))} (from --set, --config or the "
+                                "environment): it is set by each case (its placement, seed "
+                                "or sensor); change it in the suite's cases")  # fmt: skip
 
 
 RAY_CONNECT_S = 10.0
@@ -489,6 +516,9 @@ def _check_ray_address(address: str) -> None:
     if address in ("auto", "local") or "://" in address:
         return
     host, _, port = address.rpartition(":")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise CampaignError(2, f"--ray {clip(address)}: give auto, local, HOST:PORT or "
+                            "ray://HOST:PORT")  # fmt: skip
     try:
         with socket.create_connection((host or "127.0.0.1", int(port)), timeout=RAY_CONNECT_S):
             pass
@@ -504,7 +534,13 @@ def validate_cases(suite: Suite, overrides: Sequence[str], config_path: str | No
         try:
             load_config(config_path, [*overrides, *case.overrides(gain)])
         except ConfigError as e:
-            raise ConfigError(e.problems, f"case {case.id}") from None
+            problems = list(e.problems)
+            if any("gain_vs_library" in p for p in problems):
+                problems.append(
+                    f"(the case's sensor gain: the nominal sim.sensor.gain_vs_library "
+                    f"{gain!r} × its gain_factor {case.sensor.gain_factor!r})"
+                )
+            raise ConfigError(problems, f"case {case.id}") from None
 
 
 def run_campaign(
@@ -525,24 +561,65 @@ def run_campaign(
     or ``local`` (start one here); ignored once Ray is initialised in this process.
     ``case_fn`` replaces :func:`run_case` (tests; in a pool it must be picklable by name).
     """
-    from sdh2svc.campaign.results import write_results
-
     t0 = time.perf_counter()
     out = Path(out)
     overrides = list(overrides)
-    check_overrides(overrides)
     info = campaign_info(suite, overrides, config_path)  # --set values are checked here
+    check_overrides(overrides, config_path)
     validate_cases(suite, overrides, config_path)
     if ray_address is not None:
         _check_ray_address(ray_address)
     _check_same(out, info)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        (out / CAMPAIGN_FILE).write_text(json.dumps(info, indent=1, ensure_ascii=False) + "\n")
-        appender = Appender(out / CASES_FILE)
-        work = tempfile.mkdtemp(prefix=".work-", dir=out)  # its own: removed at the end
+        lock = _lock(out)
     except OSError as e:
         raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
+    with lock:
+        _check_same(out, info)  # again, now that no other run can be writing it
+        try:
+            for stale in out.glob(".work-*"):  # a killed run's, never removed
+                shutil.rmtree(stale, ignore_errors=True)
+            text = json.dumps(info, indent=1, ensure_ascii=False) + "\n"
+            (out / CAMPAIGN_FILE).write_text(text)
+            appender = Appender(out / CASES_FILE)
+            work = tempfile.mkdtemp(prefix=".work-", dir=out)  # its own: removed at the end
+        except OSError as e:
+            raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
+        return _run_todo(suite, out, info, t0, appender, work, workers=workers,
+                         ray_address=ray_address, overrides=overrides, config_path=config_path,
+                         progress=progress, case_fn=case_fn)  # fmt: skip
+
+
+LOCK_FILE = ".lock"
+
+
+def _lock(out: Path) -> contextlib.AbstractContextManager[Any]:
+    """An exclusive lock on ``OUT`` for as long as the campaign runs there (held by an open
+    file, so a killed run leaves none behind): a second run on the same folder would run
+    every case again beside the first, and each would be recorded twice."""
+    fh = (out / LOCK_FILE).open("a+")
+    try:
+        import fcntl
+    except ImportError:  # (Windows: no lock)
+        return fh
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.close()
+        raise CampaignError(2, f"another campaign is running in {out}: wait for it to end, "
+                            "or use another --out") from None  # fmt: skip
+    return fh
+
+
+def _run_todo(suite: Suite, out: Path, info: Mapping[str, Any], t0: float, appender: Appender,
+              work: str, *, workers: int | None, ray_address: str | None,
+              overrides: list[str], config_path: str | None, progress: bool,
+              case_fn: Callable[..., dict[str, Any]] | None) -> Outcome:  # fmt: skip
+    """The cases of ``suite`` not yet in ``OUT/cases.jsonl``, run and recorded (see
+    :func:`run_campaign`)."""
+    from sdh2svc.campaign.results import write_results
+
     # the last row of each case decides; a crashed case runs again (a crash is no result)
     last = {r["id"]: r for r in read_rows(out)}
     ids = {c.id for c in suite.cases}
@@ -585,11 +662,14 @@ def run_campaign(
 
 
 class _Progress:
-    """A progress line on stderr: cases done, ETA (tqdm) and the running success rate."""
+    """A progress line on stderr: cases done, ETA (tqdm) and the running success rate. To a
+    file or a pipe (a log), a plain line at every 5 % of the cases instead of a redrawn one."""
 
     def __init__(self, total: int, done: int, succeeded: int, enabled: bool) -> None:
         self.done, self.succeeded, self.bar = done, succeeded, None
-        if enabled:
+        self.total, self.log = total, enabled and not sys.stderr.isatty()
+        self.t0, self.first = time.monotonic(), done
+        if enabled and not self.log:
             from tqdm import tqdm
 
             self.bar = tqdm(total=total, initial=done, file=sys.stderr, unit="case",
@@ -606,6 +686,14 @@ class _Progress:
         if self.bar is not None:
             self.bar.update(1)
             self._postfix()
+        step = max(1, math.ceil(self.total / 20))
+        if self.log and (self.done % step == 0 or self.done == self.total):
+            ran = self.done - self.first
+            left = (time.monotonic() - self.t0) / ran * (self.total - self.done)
+            eta = f"{left:.0f} s" if left < 90 else f"{left / 60:.0f} min"
+            print(f"{self.done}/{self.total} cases, success "
+                  f"{100 * self.succeeded / self.done:.0f} %, about {eta} left",
+                  file=sys.stderr, flush=True)  # fmt: skip
 
     def close(self) -> None:
         if self.bar is not None:
@@ -616,9 +704,23 @@ def _progress(total: int, done: int, succeeded: int, *, enabled: bool) -> _Progr
     return _Progress(total, done, succeeded, enabled)
 
 
-def _ignore_sigint() -> None:
-    """Pool workers leave Ctrl-C to the parent, which keeps every finished case and stops them."""
+def _worker_init(campaign_pid: int) -> None:
+    """A pool worker leaves Ctrl-C to the campaign, which keeps every finished case and stops
+    the workers; and ends itself once the campaign's process is gone (killed: nothing would
+    ever read its result, and it would hold the pool's pipes, and its forkserver, open)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch() -> None:
+        while True:
+            time.sleep(1.0)
+            try:
+                os.kill(campaign_pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except OSError:  # alive, and not ours to signal
+                pass
+
+    threading.Thread(target=watch, name="campaign-watch", daemon=True).start()
 
 
 def _run_pool(todo: Sequence[Case], args: tuple[Any, ...], workers: int,
@@ -643,7 +745,8 @@ def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
                 fn: Callable[..., dict[str, Any]]) -> list[Case]:  # fmt: skip
     """Run cases from ``queue`` until it is empty or the pool breaks; the cases lost then."""
     ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                               initargs=(os.getpid(),))  # fmt: skip
     pending: dict[Future[dict[str, Any]], Case] = {}
     lost: list[Case] = []
 

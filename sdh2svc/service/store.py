@@ -152,6 +152,9 @@ def connect(
             raise StoreError(f"{p} is not a run database (it has no runs table)")
         db.executescript(SCHEMA)
         _add_new_sample_columns(db)
+        if create:  # a write-protected file opens read-only: find out now, not at a run's end
+            version = int(db.execute("PRAGMA user_version").fetchone()[0])
+            db.execute(f"PRAGMA user_version = {version}")
     except (OSError, sqlite3.Error) as e:
         if db is not None:
             db.close()

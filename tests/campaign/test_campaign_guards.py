@@ -237,3 +237,138 @@ def test_a_resume_with_nothing_left_starts_no_ray(
     monkeypatch.setattr(camp, "_run_ray", no_ray)
     res = camp.run_campaign(suite(1), out, ray_address="local", progress=False)
     assert (res.ran, res.skipped) == (0, 1)
+
+
+def test_a_resume_under_other_code_or_another_judge_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two edits of one commit both read `git describe` `…-dirty`: the source's digest tells
+    them apart; and a verdict judged by other rules is not mixed with these either."""
+    out = tmp_path / "out"
+    run(suite(1, 2), out)
+    with monkeypatch.context() as m:
+        m.setattr(camp, "source_digest", lambda: "0" * 64)
+        with pytest.raises(camp.CampaignError, match="code differs"):
+            run(suite(1, 2), out)
+    with monkeypatch.context() as m:
+        m.setattr(camp, "MIN_HALF_STROKE_DEG", 90.0)
+        with pytest.raises(camp.CampaignError, match="judge differs"):
+            run(suite(1, 2), out)
+    assert run(suite(1, 2), out).ran == 0  # as it was: resumed
+
+
+def test_the_source_digest_changes_with_any_edit_of_the_package(tmp_path: Path) -> None:
+    import shutil
+
+    pkg = tmp_path / "sdh2svc"
+    shutil.copytree(Path(camp.__file__).parents[1], pkg,
+                    ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    before = camp.source_digest(pkg)
+    assert before == camp.source_digest()  # the same files, the same digest
+    (pkg / "__pycache__").mkdir()
+    (pkg / "__pycache__" / "x.pyc").write_bytes(b"compiled")
+    assert camp.source_digest(pkg) == before  # what Python caches is no source
+    model = pkg / "control" / "recognition_model.json"
+    model.write_text(model.read_text() + " ")
+    assert camp.source_digest(pkg) != before
+
+
+@pytest.mark.parametrize("how", ["table", "config", "env"])
+def test_a_case_key_changed_by_any_layer_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, how: str
+) -> None:
+    """Not only `--set sim.seed=3`: a table, a file or a variable that sets what every case
+    sets would be overridden by the case without a word, and recorded as if in effect."""
+    kw: dict[str, Any] = {}
+    if how == "table":
+        kw["overrides"] = ["sim.sensor={creep_gain=0.5}"]
+    elif how == "config":
+        (tmp_path / "c.toml").write_text("[sim]\nobject_angle_deg = 45.0\n")
+        kw["config_path"] = str(tmp_path / "c.toml")
+    else:
+        monkeypatch.setenv("SDH2SVC_SIM__SEED", "3")
+    key = {"table": "sim.sensor.creep_gain", "config": "sim.object_angle_deg",
+           "env": "sim.seed"}[how]  # fmt: skip
+    with pytest.raises(camp.CampaignError, match=f"{key} = .*is set by each case"):
+        run(suite(1), tmp_path / "o", **kw)
+    assert not (tmp_path / "o").exists()
+    monkeypatch.delenv("SDH2SVC_SIM__SEED", raising=False)
+    # the nominal gain the cases scale may be set, in any form
+    assert run(suite(1), tmp_path / "ok", overrides=["sim.sensor={gain_vs_library=10.0}"]).ran == 1
+
+
+def test_one_folder_one_running_campaign_and_a_killed_runs_scratch_is_removed(
+    tmp_path: Path,
+) -> None:
+    import fcntl
+
+    out = tmp_path / "o"
+    run(suite(1, 2), out)
+    cases = out / camp.CASES_FILE
+    cases.write_text(cases.read_text().splitlines(keepends=True)[0])  # as if cut short
+    with (out / camp.LOCK_FILE).open("a+") as fh:  # as a campaign running there holds it
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(camp.CampaignError, match=f"another campaign is running in {out}"):
+            run(suite(1, 2), out)
+    assert [r["id"] for r in camp.read_rows(out)] == ["rubber-1"]
+    (out / ".work-killed").mkdir()  # a SIGKILLed run's scratch, its run database in it
+    (out / ".work-killed" / "case-rubber-2.sqlite").write_text("")
+    assert run(suite(1, 2), out).ran == 1
+    assert not [p for p in out.iterdir() if p.name.startswith(".work")]
+
+
+def test_progress_to_a_log_is_plain_lines(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not a terminal (captured here, as a file or a pipe would be): one line per 5 % of the
+    cases, not a bar redrawn with carriage returns."""
+    camp.run_campaign(suite(*range(1, 41)), tmp_path / "o", workers=1, case_fn=stopped)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    lines = err.splitlines()
+    assert len(lines) == 20
+    assert lines[0].startswith("2/40 cases, success 0 %, about ") and lines[0].endswith(" left")
+    assert lines[-1].startswith("40/40 cases")
+
+
+def test_an_invalid_case_is_named_without_a_second_complaint_about_the_list(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = json.loads(suite(1).to_json())
+    data["cases"][0]["object"]["material"]["friction"] = 7.5
+    (tmp_path / "s.json").write_text(json.dumps(data))
+    assert main(["campaign", "run", str(tmp_path / "s.json"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "friction = 7.5" in err and "allowed: 0.0 < friction ≤ 3.0" in err
+    assert "at least 1 item" not in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--config", "/nonexistent.toml"], "--config: options of campaign run, not of generate"),
+        (["--set", "rolling.k=3"], "--set: options of campaign run, not of generate"),
+        (["--workers", "0"], "--workers: options of campaign run"),
+    ],
+)
+def test_generate_refuses_the_options_of_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], fragment: str
+) -> None:
+    out = tmp_path / "g.json"
+    cmd = ["campaign", "generate", "g", "--seed", "1", "--cases", "1", "-o", str(out), *args]
+    assert main(cmd) == 2
+    assert fragment in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_seed_beyond_64_bits_and_a_ray_address_without_a_port_are_usage_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    big = str(2**64)
+    cmd = ["campaign", "generate", "g", "--seed", big, "--cases", "1", "-o", str(tmp_path / "g")]
+    assert main(cmd) == 2
+    assert f"--seed {big}: 0 to {2**63 - 1}" in capsys.readouterr().err
+    with pytest.raises(camp.CampaignError, match="--ray nohost: give auto, local, HOST:PORT"):
+        run(suite(1), tmp_path / "o", ray_address="nohost")
+    assert not (tmp_path / "o").exists()

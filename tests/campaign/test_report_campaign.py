@@ -125,6 +125,28 @@ def test_compare_shows_what_got_better_and_worse(
     assert (tmp_path / "b" / "compare.md").read_text() == text
 
 
+def test_compare_writes_nothing_into_its_inputs_and_pairs_no_crash(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A reference campaign may be read-only (or must stay as committed); a crashed case has
+    no verdict to be better or worse than."""
+    cs = [case(i, "box") for i in range(3)]
+    write(tmp_path / "a", [good(cs[0]), good(cs[1]), good(cs[2])])
+    write(tmp_path / "b", [good(cs[0], status="crashed", traceback="x"), good(cs[1], f_min=0.1),
+                           good(cs[2])])  # fmt: skip
+    before = {p: p.stat().st_mtime_ns for d in "ab" for p in (tmp_path / d).iterdir()}
+    out = tmp_path / "c.md"
+    assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b"), "-o",
+                 str(out)]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for d in "ab" for p in (tmp_path / d).iterdir()} == before
+    assert "**1 of them crashed in A or B: no verdict, not compared** (e.g. box-0;" in text
+    assert "## Worse in B (succeeded in A, failed in B): 1" in text
+    assert "| box-1 | box | success | F below band |" in text
+    assert "| box-0 |" not in text
+    assert out.read_text() == text
+
+
 def test_report_on_a_directory_without_a_campaign_is_not_found(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

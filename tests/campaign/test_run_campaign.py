@@ -226,6 +226,50 @@ def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(
     assert sorted(r["id"] for r in lines(out)) == sorted(c.id for c in suite.cases)
 
 
+def test_a_killed_campaign_leaves_no_process_behind_and_its_rerun_completes(
+    tmp_path: Path,
+) -> None:
+    """SIGKILL (no chance to stop the pool): the workers see their campaign gone and end;
+    nothing they were running is recorded, and the same command finishes the campaign."""
+    n = 24
+    suite = tiny_suite(*(("rubber", seed) for seed in range(1, n + 1)))
+    suite.dump(tmp_path / "s.json")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "sdh2svc", "campaign", "run", str(tmp_path / "s.json"),
+           "--out", str(out), "--workers", "2", "--quiet", "--set", ONE_STROKE[0]]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        _wait_for_line(out / camp.CASES_FILE, proc, 240)
+        below = _descendants(proc.pid)
+        assert below, "no pool processes"
+        proc.kill()
+        proc.wait(timeout=60)
+        end = time.monotonic() + 60  # a deadline to give up, not a measure of speed
+        while any(_alive(p) for p in below) and time.monotonic() < end:
+            time.sleep(0.05)
+        assert not [p for p in below if _alive(p)]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()  # type: ignore[union-attr]
+    done = [r["id"] for r in lines(out)]
+    assert 1 <= len(done) < n and len(set(done)) == len(done)
+    assert [p.name for p in out.glob(".work-*")]  # the killed run's scratch is still there
+    calls: list[str] = []
+
+    def recorded(case_json: str, *args: Any) -> dict[str, Any]:
+        calls.append(json.loads(case_json)["id"])
+        case = Case.model_validate_json(case_json)
+        return camp.finish_row({**camp.case_columns(case), "status": "completed"})
+
+    res = camp.run_campaign(suite, out, workers=1, overrides=ONE_STROKE, progress=False,
+                            case_fn=recorded)  # fmt: skip
+    assert sorted(calls) == sorted({c.id for c in suite.cases} - set(done))
+    assert res.ran == n - len(done)
+    assert not list(out.glob(".work-*"))
+
+
 def test_a_crashing_case_is_recorded_with_its_traceback_and_the_rest_run(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
