@@ -468,8 +468,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
             overrides.append(f"service.{key}={json.dumps(value)}")
     if args.no_viewer:
         overrides.append("service.viewer=false")
+    setup_logging(args.log_format, args.log_level)  # first: a bad configuration is logged too
     cfg = load_config(args.config, overrides)
-    setup_logging(args.log_format, args.log_level)
     obj = None
     if args.sim:
         _no_lines_with_sim(args)

@@ -557,3 +557,11 @@ def test_sim_with_one_port_for_both_links_is_a_usage_error(
     status, _, err = call(capsys, "sim", "--dsa-port", "5001", "--sdh-port", "5001")
     assert status == Exit.USAGE
     assert "--dsa-port and --sdh-port are both 5001" in one_line(err, "sim")
+
+
+def test_serve_logging_json_logs_a_bad_configuration_as_json() -> None:
+    """A service under a log collector: its one line of failure is a JSON record too."""
+    r = run("serve", "--sim", "--log-format", "json", "--set", "rolling.k=0")
+    assert r.returncode == Exit.USAGE, r.stderr
+    records = [json.loads(line) for line in r.stderr.strip().splitlines()]
+    assert records[-1]["level"] == "ERROR" and "rolling.k = 0" in records[-1]["msg"]
