@@ -17,6 +17,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import re
 import threading
 import time
 import weakref
@@ -53,6 +54,7 @@ __all__ = [
     "SamplePage",
     "StatusCheck",
     "TelemetryMessage",
+    "TooSlow",
     "Unauthorized",
     "Unavailable",
     "Unreachable",
@@ -70,6 +72,7 @@ _WS_MAX_BYTES = 2**24  # a hello carries the whole status; a tactile frame six m
 # Closes that end the telemetry as the service meant it: normal, going away, restarting. Any
 # other end of the socket (no close frame, a keepalive ping unanswered) is a lost service.
 _SERVICE_CLOSES = frozenset({1000, 1001, 1012})
+_SLOW_CLOSE = 1008  # the service cut this client off: it took no message in time (docs/api.md)
 # The WebSocket library's own log (a keepalive that failed, …): the client says what went wrong
 # in the exception it raises; a lab script that configures logging still sees it.
 _WS_LOG = logging.getLogger(__name__ + ".websocket")
@@ -136,6 +139,12 @@ class Unavailable(ApiError):
 class Unreachable(ConnectionError):
     """The service did not answer at all (not running, wrong URL, a network fault, a timeout):
     names the URL and the reason."""
+
+
+class TooSlow(Unreachable):
+    """The service cut this client's telemetry off: the client took no message within the
+    service's send timeout (``service.send_timeout_s``); reconnect, and read faster (or ask
+    for less: ``decimate``, ``tactile=False``)."""
 
 
 _ERRORS: dict[int, type[ApiError]] = {
@@ -214,8 +223,12 @@ async def _ws_open(url: str, headers: dict[str, str], timeout: float) -> ClientC
 
 def _lost(e: ConnectionClosed, url: str) -> Unreachable | None:
     """None when the telemetry ended as the service (or this client) closed it; else the
-    :class:`Unreachable` to raise (the service died, hung, or the network went)."""
+    :class:`Unreachable` to raise (the service died, hung, or the network went), or
+    :class:`TooSlow` (the service cut this client off: it read too slowly)."""
     code = e.rcvd.code if e.rcvd is not None else None
+    if code == _SLOW_CLOSE:
+        return TooSlow(f"{url}: the service cut the telemetry off: this client read "
+                       f"{e.rcvd.reason if e.rcvd else 'too slowly'}")  # fmt: skip
     if isinstance(e, ConnectionClosedOK) or code in _SERVICE_CLOSES:
         return None
     return Unreachable(f"{url}: the telemetry was cut off ({e})")
@@ -328,7 +341,7 @@ def _row_ended(row: JSON) -> JSON | None:
 
 
 def _ws_url(base_url: str, decimate: int, tactile: bool, max_queue: int | None) -> str:
-    url = base_url.rstrip("/").replace("http", "ws", 1)  # https → wss
+    url = re.sub(r"^http", "ws", base_url.rstrip("/"), count=1, flags=re.IGNORECASE)  # https → wss
     query = f"?decimate={decimate}&tactile={int(tactile)}"
     return f"{url}/ws/telemetry{query}" + (
         f"&max_queue={max_queue}" if max_queue is not None else ""

@@ -22,7 +22,9 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
   targets, §2.4) with precedence: commands queued behind it fail with :class:`EmergencyStopped`,
   the one in flight finishes first. Our addition: the stop *latches* — until :meth:`release`,
   commands that could move the hand (any set form except power-off, and ``m``) are refused with
-  :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5).
+  :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5); and a
+  power-off the hand did not confirm (a silent line) is sent again, before anything else, as
+  soon as the line answers.
 * Reconnect: when the port is lost (exception or EOF) the link reopens it with back-off
   (:func:`sdh2svc.bus.reconnect.reconnect`: 0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake;
   meanwhile commands raise :class:`LinkLost`. :class:`LinkEvent` values (the type both links
@@ -454,6 +456,9 @@ class JointLink:
         self._estopped = False
         self._releasing = False  # a release is out (estopped until the hand takes it)
         self._estop_pending = 0
+        # a latched e-stop whose power-off the hand has not confirmed (a silent line, a line
+        # down): sent again before anything else once the line answers (_transact, _handshake)
+        self._power_off_owed = False
         self.reading: JointReading | None = None  # the newest actual angles (pos, tpap)
         self._may_be_moving = False  # a command that can start motion went out since the last hold
         self._poller: asyncio.Task[None] | None = None
@@ -745,11 +750,24 @@ class JointLink:
             else:
                 self._silent = False
                 self._may_be_moving = self._may_be_moving or req.moves
+                if self._power_off_owed and not self._estop_pending and req.keyword != "power":
+                    await self._pay_power_off(conn, timeout_s)
                 return reply
         assert failure is not None
         self.stats.failures += 1
         self._emit(LinkEventKind.ERROR, str(failure))
         raise failure
+
+    async def _pay_power_off(self, conn: _Conn, timeout_s: float) -> None:
+        """The latched e-stop's power-off, owed since the line stopped answering: the line
+        answers again. A failure leaves it owed (the next answer tries again)."""
+        try:
+            await self._attempt(conn, self._request("power", (0,) * NUM_AXES), timeout_s)
+        except (JointLinkError, _Garbled, TimeoutError) as exc:
+            self._emit(LinkEventKind.ERROR, f"the e-stop's power-off, sent again: {exc}")
+            return
+        self._power_off_owed = False
+        self._emit(LinkEventKind.EMERGENCY_STOP, "powered off once the line answered again")
 
     async def _attempt(self, conn: _Conn, req: _Request, timeout_s: float) -> Reply:
         conn.discard()  # late replies of earlier exchanges
@@ -887,6 +905,7 @@ class JointLink:
         if self._estopped:  # a latched e-stop holds on a new connection too (the controller
             # may have been reset, or powered on by hand, while the line was down)
             await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
+            self._power_off_owed = False
         # Whatever the last host left running (a velocity, a move), it stops now: the firmware
         # keeps its last command forever, and no loop of ours commands it yet.
         await self._hold_on(conn)
@@ -1139,8 +1158,9 @@ class JointLink:
 
     def latch(self) -> None:
         """Latch an emergency stop without a word to the hand (e.g. one found latched on disk
-        while the line is down): motion commands are refused and the next connect powers off."""
-        self._estopped = True
+        while the line is down): motion commands are refused and the hand is powered off as soon
+        as the line answers (the next connect, or the next reply on this one)."""
+        self._estopped = self._power_off_owed = True
 
     async def emergency_stop(self) -> Vec:
         """SCHUNK's e-stop with precedence; returns the angles written as targets.
@@ -1154,7 +1174,7 @@ class JointLink:
         """
         if self._closed:
             raise LinkLost("link closed")
-        self._estopped = True
+        self._estopped = self._power_off_owed = True  # until the hand confirms it
         self._estop_pending += 1
         try:
             self._gate.fail_waiting(
@@ -1174,6 +1194,7 @@ class JointLink:
         first_error: JointLinkError | None = None
         try:
             await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
+            self._power_off_owed = False
         except JointLinkError as exc:
             first_error = exc  # still hold the hand where it is
         actual = self._took_actual((await self._urgent(conn, self._request("pos"))).values)
@@ -1184,13 +1205,19 @@ class JointLink:
         return held
 
     async def release(self) -> tuple[bool, ...]:
-        """Clear a latched emergency stop and power all axes on again. :attr:`estopped` stays
-        true until the hand has answered (the link lets the power command through meanwhile)."""
-        self._releasing, self._estopped = True, False
+        """Clear a latched emergency stop and power all axes on again, holding them where they
+        are: the targets are first set to the actual angles (fingers that sagged, or were moved
+        by hand, while unpowered would otherwise be driven back to the targets the e-stop
+        wrote). :attr:`estopped` stays true until the hand has answered (the link lets these
+        commands through meanwhile)."""
+        self._releasing, self._estopped, self._power_off_owed = True, False, False
         try:
+            await self.set_targets(self.clip_to_limits(await self.get_actual()))
             flags = await self.power([True] * NUM_AXES)
         except BaseException:
-            self._estopped = True  # not released until the hand took it
+            # not released until the hand took it; and, latched, the hand is to be powered off
+            # (the power-on may have reached it, its answer not)
+            self._estopped = self._power_off_owed = True
             raise
         finally:
             self._releasing = False

@@ -21,11 +21,9 @@ import math
 import multiprocessing
 import os
 import shutil
-import signal
 import socket
 import sys
 import tempfile
-import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -38,6 +36,7 @@ from typing import Any
 from sdh2svc.campaign.case import CASE_KEYS, Case, Suite
 from sdh2svc.config import ConfigError, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
+from sdh2svc.workers import worker_init
 
 CASES_FILE = "cases.jsonl"
 CAMPAIGN_FILE = "campaign.json"
@@ -704,25 +703,6 @@ def _progress(total: int, done: int, succeeded: int, *, enabled: bool) -> _Progr
     return _Progress(total, done, succeeded, enabled)
 
 
-def _worker_init(campaign_pid: int) -> None:
-    """A pool worker leaves Ctrl-C to the campaign, which keeps every finished case and stops
-    the workers; and ends itself once the campaign's process is gone (killed: nothing would
-    ever read its result, and it would hold the pool's pipes, and its forkserver, open)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-    def watch() -> None:
-        while True:
-            time.sleep(1.0)
-            try:
-                os.kill(campaign_pid, 0)
-            except ProcessLookupError:
-                os._exit(1)
-            except OSError:  # alive, and not ours to signal
-                pass
-
-    threading.Thread(target=watch, name="campaign-watch", daemon=True).start()
-
-
 def _run_pool(todo: Sequence[Case], args: tuple[Any, ...], workers: int,
               record: Callable[[dict[str, Any]], None],
               fn: Callable[..., dict[str, Any]] = run_case) -> None:  # fmt: skip
@@ -745,7 +725,8 @@ def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
                 fn: Callable[..., dict[str, Any]]) -> list[Case]:  # fmt: skip
     """Run cases from ``queue`` until it is empty or the pool breaks; the cases lost then."""
     ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+    # a worker leaves Ctrl-C to the campaign, which keeps every finished case and stops them
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=worker_init,
                                initargs=(os.getpid(),))  # fmt: skip
     pending: dict[Future[dict[str, Any]], Case] = {}
     lost: list[Case] = []

@@ -13,6 +13,8 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from sdh2svc.model.base import Finite
 
+MIN_STEP_DEG = 0.01  # |Δφ| and |dσ| at least (both signed: the sign is the direction)
+
 
 class RollingParams(Finite):
     """Parameters of the rolling loop. Angles in degrees (converted by the properties below)."""
@@ -100,6 +102,10 @@ class RollingParams(Finite):
     def _nonzero(cls, v: float) -> float:
         if v == 0.0:
             raise ValueError("must not be 0 (its sign is the rotation direction)")
+        if abs(v) < MIN_STEP_DEG:  # a run that never moves, and never faults either
+            per_degree = round(1 / MIN_STEP_DEG)
+            raise ValueError(f"must be at least {MIN_STEP_DEG:g}° either way (a smaller step "
+                             f"needs over {per_degree} iterations per degree)")  # fmt: skip
         return v
 
     @model_validator(mode="after")

@@ -88,8 +88,15 @@ class AxisMap(Frozen):
         return out
 
 
+# The SDH2's own range per wire axis (SCHUNK's library, protocols.md §2.2): configured limits
+# may narrow it, never widen it (a target beyond it is the firmware's to refuse or to drive to)
+HAND_MIN_DEG = (0.0, -90.0, -90.0, -90.0, -90.0, -90.0, -90.0)
+HAND_MAX_DEG = (90.0, 90.0, 90.0, 90.0, 90.0, 90.0, 90.0)
+
+
 class JointLimits(Frozen):
-    """Joint limits per wire axis 0…6, degrees."""
+    """Joint limits per wire axis 0…6, degrees: within the hand's range (HAND_MIN_DEG …
+    HAND_MAX_DEG)."""
 
     min_deg: tuple[AngleDeg, ...]
     max_deg: tuple[AngleDeg, ...]
@@ -108,6 +115,12 @@ class JointLimits(Frozen):
         ]
         if bad:
             raise ValueError(f"min_deg must be below max_deg for every axis; not so for axes {bad}")
+        lo, hi = self.min_deg, self.max_deg
+        wide = [i for i in range(NUM_AXES) if lo[i] < HAND_MIN_DEG[i] or hi[i] > HAND_MAX_DEG[i]]
+        if wide:
+            ranges = ", ".join(f"axis {i}: {HAND_MIN_DEG[i]:g}…{HAND_MAX_DEG[i]:g}°" for i in wide)
+            raise ValueError(f"limits beyond the SDH2's own range ({ranges}): they may narrow "
+                             "it, never widen it")  # fmt: skip
         return self
 
 

@@ -16,14 +16,14 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 
 from sdh2svc import __version__
 from sdh2svc.config import Settings
 from sdh2svc.connect import Where
 from sdh2svc.service.api import dashboard, estop, hand, params, runs, sim, telemetry
 from sdh2svc.service.api.dashboard import docs_assets_dir, web_dir
-from sdh2svc.service.api.deps import Services
+from sdh2svc.service.api.deps import Services, known_query
 from sdh2svc.service.api.errors import install_errors
 from sdh2svc.service.foxglove_live import FoxgloveLive
 from sdh2svc.service.guard import Guard
@@ -67,6 +67,7 @@ async def close_services(services: Services) -> None:
     if services.foxglove is not None:
         services.foxglove.stop()
         services.foxglove = None
+    services.reads.close()
 
 
 def create_app(services: Services) -> FastAPI:
@@ -82,7 +83,7 @@ def create_app(services: Services) -> FastAPI:
     app = FastAPI(
         title="sdh2svc", version=__version__, lifespan=lifespan,
         description="Tactile in-hand rolling on a SCHUNK SDH2 hand (docs/api.md).",
-        docs_url=None, redoc_url=None,
+        docs_url=None, redoc_url=None, dependencies=[Depends(known_query)],
     )  # fmt: skip
     app.state.services = services
     sc = services.cfg.service

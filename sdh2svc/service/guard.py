@@ -172,7 +172,8 @@ class Guard:
     async def _http(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = _headers(scope)
         method = scope.get("method", "GET")
-        estop = method == "POST" and scope.get("path") == ESTOP_PATH
+        # (with a trailing slash too: a client that writes one must stop the hand all the same)
+        estop = method == "POST" and scope.get("path", "").rstrip("/") == ESTOP_PATH
         refusal = self._host_refusal(headers)
         lengths = headers.get("content-length", [])
         if refusal is None:

@@ -57,6 +57,9 @@ class ServiceError(Exception):
         super().__init__(message)
         self.status, self.message, self.details = status, message, details or []
 
+    def __reduce__(self) -> tuple[Any, ...]:  # from a read's worker process, whole
+        return (type(self), (self.status, self.message, self.details))
+
 
 def validate_params(current: RollingParams, patch: dict[str, Any]) -> RollingParams:
     """``current`` with ``patch`` laid over it, validated whole (422 naming each bad field).
@@ -96,7 +99,11 @@ def _failure(stop: asyncio.Future[None]) -> str | None:
 def _log_late_stop(stop: asyncio.Future[None]) -> None:
     """How an e-stop that outlived its answer ended."""
     if (e := _failure(stop)) is not None:
-        log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
+        log.error(
+            "e-stop latched, but the hand was not reached: %s (its power-off is sent "
+            "again as soon as the joint line answers)",
+            e,
+        )
     else:
         log.warning("e-stop: the hand confirmed the stop late")
 
@@ -260,14 +267,19 @@ class HandService:
         if not done:
             reached = False
             problems.append("the hand has not confirmed the stop yet (the joint line does not "
-                            "answer); it is being retried")  # fmt: skip
+                            "answer); its power-off is sent again as soon as the line "
+                            "answers")  # fmt: skip
             self._late_stop = stop  # (held: the loop keeps only a weak reference to a task)
             stop.add_done_callback(_log_late_stop)
         elif (e := _failure(stop)) is not None:
             reached = False
-            problems.append(f"the hand was not reached ({e}); the stop is sent when the line "
-                            "is back")  # fmt: skip
-            log.error("e-stop latched, but the hand was not reached: %s (sent on reconnect)", e)
+            problems.append(f"the hand was not reached ({e}); its power-off is sent again as "
+                            "soon as the line answers")  # fmt: skip
+            log.error(
+                "e-stop latched, but the hand was not reached: %s (its power-off is sent "
+                "again as soon as the joint line answers)",
+                e,
+            )
         self.publish_status()
         recorded = await self._recorded(record, since)
         if recorded is None:

@@ -142,8 +142,9 @@ class TelemetryHub:
             for c in takers:
                 c.put(text)
 
-    async def serve(self, client: Client, send: Send) -> None:
-        """Send ``client`` its messages until the connection fails or stalls past the timeout.
+    async def serve(self, client: Client, send: Send) -> str | None:
+        """Send ``client`` its messages until the connection fails or stalls past the timeout;
+        returns why a stalled client is cut off (None: the connection failed).
 
         One timeout context for the client's life, re-armed per message (``asyncio.wait_for``
         would create a task for every message: thousands a second with 20 clients)."""
@@ -167,8 +168,11 @@ class TelemetryHub:
             self.disconnected_slow += 1
             log.warning("telemetry client stalled for %.1f s: disconnected (dropped %d)",
                         self.send_timeout_s, client.dropped)  # fmt: skip
+            return (f"too slow: took no message for {self.send_timeout_s:g} s "
+                    f"({client.dropped} dropped)")  # fmt: skip
         finally:
             self.clients.discard(client)
+        return None
 
     def stats(self) -> dict[str, Any]:
         return {

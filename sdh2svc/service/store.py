@@ -152,9 +152,8 @@ def connect(
             raise StoreError(f"{p} is not a run database (it has no runs table)")
         db.executescript(SCHEMA)
         _add_new_sample_columns(db)
-        if create:  # a write-protected file opens read-only: find out now, not at a run's end
-            version = int(db.execute("PRAGMA user_version").fetchone()[0])
-            db.execute(f"PRAGMA user_version = {version}")
+        if create:
+            _check_writable(db, busy_timeout_s)
     except (OSError, sqlite3.Error) as e:
         if db is not None:
             db.close()
@@ -166,6 +165,21 @@ def connect(
         raise
     db.row_factory = sqlite3.Row
     return db
+
+
+def _check_writable(db: sqlite3.Connection, busy_timeout_s: float) -> None:
+    """SQLite opens a write-protected file read-only without a word, and the first write — a
+    run's start, or its end — fails: find out now, with a write that changes nothing. A lock
+    another program holds is no answer either way (and is not waited for)."""
+    db.execute("PRAGMA busy_timeout = 0")
+    try:
+        version = int(db.execute("PRAGMA user_version").fetchone()[0])
+        db.execute(f"PRAGMA user_version = {version}")
+    except sqlite3.OperationalError as e:
+        if e.sqlite_errorcode & 0xFF == sqlite3.SQLITE_READONLY:
+            raise
+    finally:
+        db.execute(f"PRAGMA busy_timeout = {round(busy_timeout_s * 1000)}")
 
 
 def _add_new_sample_columns(db: sqlite3.Connection) -> None:

@@ -4,8 +4,9 @@ Every connection the host opens to :attr:`Cable.url` is forwarded, byte for byte
 device's TCP port. :meth:`Cable.cut` drops every connection on both sides at once and refuses
 new ones until :meth:`Cable.plug` — what pulling the RS-232 plug looks like through a
 serial-to-TCP adapter. :meth:`Cable.hold` keeps the connections open but carries nothing either
-way until :meth:`Cable.resume` (then what was held back goes on): a line that falls silent — a
-controller that hangs, a converter that stalls — while the port stays open.
+way until :meth:`Cable.resume` (then what was held back goes on, or, with ``lose=True``, what
+was sent meanwhile is lost): a line that falls silent — a converter that stalls, a controller
+that hangs and forgets its input — while the port stays open.
 
 :meth:`Cable.unix` is the same cable between Unix sockets, for the simulated hand in fast mode
 (its virtual clock needs a transport that delivers at once, :mod:`sdh2svc.sim.clock`).
@@ -29,6 +30,7 @@ class Cable:
         self._writers: set[asyncio.StreamWriter] = set()
         self._flowing = asyncio.Event()
         self._flowing.set()
+        self._losing = False  # held with lose=True: bytes are dropped, not held back
 
     @classmethod
     def unix(cls, device_url: str, path: str) -> Cable:
@@ -70,11 +72,15 @@ class Cable:
             with contextlib.suppress(Exception):
                 await server.wait_closed()
 
-    def hold(self) -> None:
-        """Carry nothing either way (the connections stay open) until :meth:`resume`."""
-        self._flowing.clear()
+    def hold(self, *, lose: bool = False) -> None:
+        """Carry nothing either way (the connections stay open) until :meth:`resume`; what is
+        sent meanwhile goes on then, or with ``lose`` is lost."""
+        self._losing = lose
+        if not lose:
+            self._flowing.clear()
 
     def resume(self) -> None:
+        self._losing = False
         self._flowing.set()
 
     async def close(self) -> None:
@@ -90,8 +96,8 @@ class Cable:
             w.transport.abort()
             return
         self._writers |= {w, dw}
-        pipes = [asyncio.create_task(self._pump(r, dw, self._flowing)),
-                 asyncio.create_task(self._pump(dr, w, self._flowing))]  # fmt: skip
+        pipes = [asyncio.create_task(self._pump(r, dw)),
+                 asyncio.create_task(self._pump(dr, w))]  # fmt: skip
         self._pipes.update(pipes)
         try:
             await asyncio.wait(pipes, return_when=asyncio.FIRST_COMPLETED)
@@ -103,12 +109,11 @@ class Cable:
                 writer.transport.abort()
                 self._writers.discard(writer)
 
-    @staticmethod
-    async def _pump(
-        src: asyncio.StreamReader, dst: asyncio.StreamWriter, flowing: asyncio.Event
-    ) -> None:
+    async def _pump(self, src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:
         with contextlib.suppress(OSError, asyncio.IncompleteReadError):
             while data := await src.read(65536):
-                await flowing.wait()
+                await self._flowing.wait()
+                if self._losing:
+                    continue
                 dst.write(data)
                 await dst.drain()

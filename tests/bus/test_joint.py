@@ -404,6 +404,48 @@ async def test_a_release_the_hand_has_not_taken_shows_latched() -> None:
         assert seen and all(seen) and link.estopped
 
 
+async def test_a_release_holds_the_fingers_where_they_sagged_while_unpowered() -> None:
+    """Unpowered, fingers sag (or a hand moves them); powered on again, the firmware drives to
+    its targets — those the e-stop wrote. The release writes the actual angles first."""
+    world = ScriptedWorld(SHAPES)
+    dev = Sdh2Emulator(world)
+    async with serve_device(dev, "pty") as ep:
+        link = await JointLink.open(ep.url)
+        try:
+            held = await link.emergency_stop()
+            assert not any(dev.powered)
+            world._angles = tuple(a - 3.0 if i in (1, 2) else a  # (a test's hand on the world)
+                                  for i, a in enumerate(world._angles))  # fmt: skip
+            await link.release()
+            assert all(dev.powered)
+            sagged = await link.get_actual()
+            assert not _close(sagged, held, 1.0)
+            assert _close(dev.target_deg, sagged, 1e-3)
+            await asyncio.sleep(0.5)
+            assert _close(await link.get_actual(), sagged, 1e-3)  # nothing moved
+        finally:
+            await link.close()
+
+
+async def test_an_estop_the_line_lost_is_sent_again_once_it_answers() -> None:
+    """A silent line (its port open) swallows the e-stop's power-off; the link owes it, and
+    the first command the line answers again is followed by it."""
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.1, retries=1)
+        await link.power([True] * NUM_AXES)
+        rig.ep.disconnect(1.0)
+        with pytest.raises(JointLinkError):
+            await link.emergency_stop()
+        assert link.estopped and all(rig.dev.powered)
+        async with asyncio.timeout(30):
+            while True:
+                with contextlib.suppress(JointLinkError):
+                    await link.get_actual()
+                    break
+                await asyncio.sleep(0.1)
+        assert not any(rig.dev.powered) and link.estopped
+
+
 async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
     seen: list[LinkEvent] = []
     link = await tcp_rig.open(on_event=seen.append)

@@ -108,6 +108,8 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         assert any(d.startswith("k = 0.5") and "1.0 < k ≤ 10.0" in d for d in bad.value.details)
         with pytest.raises(InvalidRequest, match="must not be 0"):
             await c.patch_params({"delta_phi_deg": 0})
+        with pytest.raises(InvalidRequest, match=r"at least 0\.01° either way"):
+            await c.patch_params({"delta_phi_deg": 1e-300})  # a run that would never move
         with pytest.raises(InvalidRequest) as bad:
             await c.patch_params({"no_such": 1})
         assert bad.value.status == 422 and "no_such" in bad.value.details[0]
@@ -309,6 +311,13 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
             # stopping needs no token (nor JSON, nor an Origin of its own)
             r = await raw.post("/api/estop", headers={"Origin": "http://evil.example"})
             assert r.status_code == 200 and r.json()["estopped"] is True
+            r = await raw.post("/api/estop/")  # a trailing slash: answered, not redirected
+            assert r.status_code == 200 and r.json()["estopped"] is True
+            # the scheme's name in any case; a command with a query parameter it does not
+            # take is refused (FastAPI would ignore it: a misspelt one would do the default)
+            r = await raw.post("/api/runs/stop?now=1", json={},
+                               headers={"Authorization": "bearer s3cret"})  # fmt: skip
+            assert r.status_code == 422 and "now: no such query parameter" in r.text, r.text
             # with the token too, a command must be JSON; and a huge body is refused before the
             # token is even looked at
             text = {"Authorization": "Bearer s3cret", "Content-Type": "text/plain"}
@@ -358,6 +367,16 @@ def _stalled_client(url: str) -> socket.socket:
     return sock
 
 
+def _read_to_the_end(sock: socket.socket, limit_s: float = 60.0) -> bytes:
+    """What a stalled client finds once it reads again: the frames the service had sent it,
+    up to the close frame and the end of the connection (``limit_s``: a deadline to give up)."""
+    sock.settimeout(limit_s)
+    data = bytearray()
+    while chunk := sock.recv(65536):
+        data += chunk
+    return bytes(data[-4096:])
+
+
 async def _cut_off(c: AsyncClient, n: int, limit_s: float = RUN_TIMEOUT_S) -> int:
     """How many stalled telemetry clients the service has cut off, once it is ``n`` (the pads
     stream on between runs, so a stalled client's buffers keep filling until its send times out:
@@ -380,12 +399,14 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
                 run_id = summary["run_id"]
             samples = tm.samples(run_id)
             cut = await _cut_off(c, 3)
+            told = await asyncio.to_thread(_read_to_the_end, stalled[0])
         finally:
             for s in stalled:
                 s.close()
     assert summary["status"] == "completed", summary
-    # the stalled clients were cut off after the send timeout …
+    # the stalled clients were cut off after the send timeout, and told why (close 1008) …
     assert cut >= 3
+    assert b"\x03\xf0too slow: took no message for" in told
     # … the reading client got every iteration, in order, none dropped
     assert [s["iteration"] for s in samples] == list(range(1, summary["iterations"] + 1))
     assert not tm.of("dropped")

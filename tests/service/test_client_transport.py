@@ -9,6 +9,7 @@ import asyncio
 import copy
 import json
 import pickle
+import re
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -16,7 +17,7 @@ import pytest
 from websockets.asyncio.server import ServerConnection, serve
 
 import sdh2svc.client as client_module
-from sdh2svc.client import AsyncClient, Client, NotFound, Unreachable
+from sdh2svc.client import AsyncClient, Client, NotFound, TooSlow, Unreachable
 
 Handler = Callable[[ServerConnection], Any]
 
@@ -59,6 +60,12 @@ async def dying(ws: ServerConnection) -> None:
     ws.transport.abort()
 
 
+async def cutting_off(ws: ServerConnection) -> None:
+    """hello, then the close a service sends a client that took no message in time."""
+    await ws.send(json.dumps({"type": "hello"}))
+    await ws.close(1008, "too slow: took no message for 2 s (37 dropped)")
+
+
 @pytest.fixture
 async def stand(request: pytest.FixtureRequest) -> AsyncIterator[Stand]:
     st = Stand(request.param)
@@ -93,6 +100,19 @@ async def test_a_service_that_dies_is_unreachable(stand: Stand) -> None:
             await _drain(c.telemetry())
     with pytest.raises(Unreachable, match="the telemetry was cut off"):
         await asyncio.to_thread(_sync_drain, stand.url)
+
+
+@pytest.mark.parametrize("stand", [cutting_off], indirect=True)
+async def test_a_client_cut_off_for_reading_slowly_is_told_so(stand: Stand) -> None:
+    """Not "the service is unreachable" (it is well), nor a normal end: TooSlow, with the
+    service's reason (still an Unreachable, for scripts that catch that)."""
+    why = "this client read too slow: took no message for 2 s (37 dropped)"
+    async with AsyncClient(stand.url, timeout=5.0) as c:
+        with pytest.raises(TooSlow, match=re.escape(why)):
+            await _drain(c.telemetry())
+    with pytest.raises(TooSlow, match=re.escape(why)):
+        await asyncio.to_thread(_sync_drain, stand.url)
+    assert issubclass(TooSlow, Unreachable)
 
 
 async def test_a_handshake_that_is_no_handshake_is_unreachable() -> None:
@@ -173,6 +193,11 @@ def test_the_exceptions_a_script_catches_are_exported() -> None:
         client_module.__all__
     )
     assert all(hasattr(client_module, name) for name in client_module.__all__)
+
+
+def test_the_telemetry_url_keeps_the_scheme_whatever_its_case() -> None:
+    assert client_module._ws_url("HTTP://h:1", 1, True, None).startswith("ws://h:1/ws/")
+    assert client_module._ws_url("Https://h", 1, True, None).startswith("wss://h/ws/")
 
 
 def test_a_telemetry_option_of_0_reaches_the_service() -> None:

@@ -700,6 +700,8 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
     try:
         async with dashboard(svc) as page:
             await expect(page.locator("#links-state")).to_have_text("links up")
+            # the page's own first loads are in (not cut off by the kill below)
+            await expect(page.locator("#runs tbody")).to_contain_text("no runs recorded yet")
             svc.stop(signal.SIGKILL)  # no goodbye: the socket just closes
 
             banner = page.locator("#dead-banner")

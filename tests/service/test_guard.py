@@ -152,7 +152,8 @@ async def test_estop_is_exempt_from_origin_and_content_type_but_not_host() -> No
     assert (await call(g, "POST", "/api/estop/release"))[0] == 415
     assert (await call(g, "POST", "/api/estop", {"host": "evil.example"}))[0] == 400
     assert (await call(g, "POST", "/api/estop", {"content-length": "5000"}))[0] == 413
-    assert [c["path"] for c in app.calls] == ["/api/estop", "/api/estop"]
+    assert (await call(g, "POST", "/api/estop/", foreign))[0] == 200  # a trailing slash too
+    assert [c["path"] for c in app.calls] == ["/api/estop", "/api/estop", "/api/estop/"]
 
 
 async def test_body_limit_from_content_length_and_from_counted_chunks() -> None:

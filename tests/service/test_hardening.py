@@ -364,6 +364,8 @@ async def test_integers_are_written_in_digits_and_values_as_typed(svc: LiveServi
         huge = '{"cycles": ' + "9" * 5000 + "}"  # beyond what json.loads reads
         r = await raw.patch("/api/params", content=huge, headers=JSON)
         assert r.status_code == 400 and "4300 digits" in r.json()["error"]
+        r = await raw.patch("/api/params", content=b'{"k": "\xff"}', headers=JSON)
+        assert r.status_code == 400 and "not UTF-8" in r.json()["error"], r.text
         assert (await raw.get("/api/params")).json()["cycles"] != "2"
 
 

@@ -113,15 +113,16 @@ async def test_cable_cut_during_the_grasp_leaves_the_fingers_still(
 
 @contextlib.asynccontextmanager
 async def _silenced_mid_grasp(
-    hand: tuple[SimulatedHand, Cable], tmp: Path
+    hand: tuple[SimulatedHand, Cable], tmp: Path, *, lose: bool = False
 ) -> AsyncIterator[tuple[LiveService, tuple[float, ...]]]:
-    """A service mid-grasp whose joint line has just fallen silent, its port still open: the
-    service and the angles when it fell silent; the line answers again on leaving."""
+    """A service mid-grasp whose joint line has just fallen silent, its port still open (with
+    ``lose``, what is sent meanwhile is lost): the service and the angles when it fell silent;
+    the line answers again on leaving."""
     sim, cable = hand
     svc = await _serve(tmp, sim, cable)
     try:
         await _start_grasp(svc, sim)
-        cable.hold()
+        cable.hold(lose=lose)
         yield svc, _angles(sim)
     finally:
         cable.resume()
@@ -143,6 +144,26 @@ async def test_the_estop_answers_while_the_joint_line_is_silent(
         st = await client.wait_run((await client.status())["run"]["id"], timeout=60.0)
         assert st["status"] == "e-stopped", st
         await client.wait_status(lambda st: not any(sim.sdh.powered), 30.0)
+        assert _moved(_angles(sim), at_hold) <= STEP_DEG
+
+
+async def test_an_estop_the_silent_line_lost_powers_the_hand_off_once_it_answers(
+    hand: tuple[SimulatedHand, Cable], tmp_path: Path
+) -> None:
+    """A hung controller loses what was sent to it: the e-stop's power-off never arrives, and
+    the stop's attempts end in failure. Once the line answers again (the link's next poll),
+    the power-off it owes goes out first."""
+    sim, cable = hand
+    async with _silenced_mid_grasp(hand, tmp_path, lose=True) as (svc, at_hold), \
+            svc.client() as client:  # fmt: skip
+        out = await client.estop()
+        assert out["estopped"] is True and out["hand_reached"] is False, out
+        st = await client.wait_run((await client.status())["run"]["id"], timeout=60.0)
+        assert st["status"] == "e-stopped", st
+        assert all(sim.sdh.powered)  # nothing reached the hand
+        cable.resume()
+        await client.wait_status(lambda st: not any(sim.sdh.powered), 30.0)
+        assert (await client.status())["estopped"] is True
         assert _moved(_angles(sim), at_hold) <= STEP_DEG
 
 

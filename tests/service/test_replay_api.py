@@ -269,14 +269,15 @@ async def test_the_runs_recognition_in_its_summary_and_samples(
     r = await c.get(f"/api/runs/{run_id}")
     assert r.status_code == 200 and r.json()["summary"]["recognition"] == rec
 
-    monkeypatch.setattr(telemetry, "outline", lambda rec, a, b, n: np.array([a, b, a]))
     plain = (await c.get(f"/api/runs/{run_id}/samples")).json()["samples"]
     assert "estimate_outline" not in plain[0]
     asked = {"outline": "true", "limit": 100}
     page = (await c.get(f"/api/runs/{run_id}/samples", params=asked)).json()
     outlines = [s["estimate_outline"] for s in page["samples"]]
     assert outlines[:ITERATIONS] == [[]] * ITERATIONS  # no class: nothing reconstructed
-    assert outlines[ITERATIONS] == [[20.0, 110.0], [46.0, 110.0], [20.0, 110.0]]
+    # (made in a read process: as the live message would make it from the same sample)
+    assert outlines[ITERATIONS] == telemetry.estimate_outline(plain[ITERATIONS]).tolist()
+    assert len(outlines[ITERATIONS]) > 3
     r = await c.get(f"/api/runs/{run_id}/samples", params={**asked, "limit": 101})
     assert r.status_code == 422 and "at most 100" in r.json()["details"][0]
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import re
 import secrets
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from fastapi import Depends
@@ -15,10 +15,12 @@ from pydantic import BeforeValidator
 from pydantic_core import PydanticCustomError
 from starlette.requests import HTTPConnection, Request
 
-from sdh2svc.config import Settings
+from sdh2svc.config import Settings, clip
 from sdh2svc.service.hand_service import HandService, ServiceError
 from sdh2svc.service.hub import TelemetryHub
+from sdh2svc.service.reads import ReadPool
 
+READ_ROUTES = "sdh2svc.service.api.runs"  # where the read processes' functions are
 SQL_INT_MAX = 2**63 - 1  # SQLite's largest integer: run ids, sample offsets
 
 
@@ -31,6 +33,9 @@ class Services:
     station: HandService
     viewer: Any = None  # a Viewer or ViewerProcess (sdh2svc.service.viewer*), when on
     foxglove: Any = None  # the live Foxglove view (sdh2svc.service.foxglove_live), when on
+    # the run database's reads for the API (sdh2svc.service.reads), the read routes' module
+    # imported once by the processes' server
+    reads: ReadPool = field(default_factory=lambda: ReadPool(preload=(READ_ROUTES,)))
 
     @property
     def viewer_url(self) -> str | None:
@@ -63,8 +68,10 @@ async def authorised(request: HTTPConnection) -> None:
     token = _services(request).cfg.service.token
     if not token:
         return
-    given = request.headers.get("authorization", "")
-    if not secrets.compare_digest(given.encode(), f"Bearer {token}".encode()):
+    scheme, _, given = request.headers.get("authorization", "").strip().partition(" ")
+    # the scheme's name is case-insensitive (RFC 9110 §11.1), the token is not
+    if scheme.lower() != "bearer" or not secrets.compare_digest(given.strip().encode(),
+                                                                token.encode()):  # fmt: skip
         raise ServiceError(401, "missing or wrong bearer token: send 'Authorization: "
                            "Bearer <token>' (the service's SDH2SVC_SERVICE__TOKEN)")  # fmt: skip
 
@@ -83,6 +90,31 @@ async def no_body(request: Request) -> None:
     if value != {}:
         raise ServiceError(422, "invalid request", ["body: this command takes no body: send "
                                                     "nothing, or {}"])  # fmt: skip
+
+
+async def known_query(conn: HTTPConnection) -> None:
+    """An API request names only query parameters its route takes: FastAPI ignores the others,
+    so a misspelt one (``?ofset=100``, ``POST /api/runs?cycles=1``) would do the default
+    silently. (The app's dependency, for every route.)"""
+    route = conn.scope.get("route")
+    if conn.scope["type"] != "http" or route is None or not conn.url.path.startswith("/api/"):
+        return
+    known = _query_names(getattr(route, "dependant", None))
+    unknown = sorted(set(conn.query_params) - known)
+    if unknown:
+        takes = ", ".join(sorted(known)) or "none"
+        raise ServiceError(422, "invalid request", [
+            f"{clip(k)}: no such query parameter here (this one takes: {takes})" for k in unknown
+        ])  # fmt: skip
+
+
+def _query_names(dependant: Any) -> set[str]:
+    if dependant is None:
+        return set()
+    names = {p.alias for p in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _query_names(sub)
+    return names
 
 
 Svc = Annotated[Services, Depends(services)]

@@ -114,6 +114,7 @@ def install_errors(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, e: StarletteHTTPException) -> JSONResponse:
         if e.status_code == 400 and e.detail == _UNPARSED:  # JSON that json.loads gave up on
-            return error(400, "the body is JSON this service cannot read: a number of over "
-                         "4300 digits, or arrays and objects nested too deep")  # fmt: skip
+            return error(400, "the body is no JSON this service can read: text that is not "
+                         "UTF-8, a number of over 4300 digits, or arrays and objects nested "
+                         "too deep")  # fmt: skip
         return error(e.status_code, str(e.detail))

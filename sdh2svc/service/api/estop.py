@@ -14,6 +14,7 @@ router = APIRouter()
 
 
 @router.post("/api/estop", responses=responses(400, 413, 503), openapi_extra=EMPTY_BODY)
+@router.post("/api/estop/", include_in_schema=False)  # answered, not redirected: stop now
 async def estop(st: St) -> dict[str, Any]:
     return await st.estop()
 

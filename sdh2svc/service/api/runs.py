@@ -2,8 +2,11 @@
 frames, the simulation's truth, exports), and showing one recorded iteration in the 3-D view
 (the dashboard's replay).
 
-Reads of the run database happen on worker threads (sync routes, or ``asyncio.to_thread``) with
-their own connection, so a large export never takes time from the control loop."""
+Reads of the run database run in the service's read processes (:mod:`sdh2svc.service.reads`:
+a read in a thread of the service shares the GIL with the control loop), each with its own
+connection, and make their JSON there (:func:`json_body`: FastAPI would encode a returned dict
+or model on the event loop, the control loop's thread). The replay's one iteration is read on a
+worker thread (``asyncio.to_thread``)."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ import asyncio
 import base64
 import contextlib
 import io
+import json
 from collections.abc import Iterator
 from typing import Annotated, Any, Literal
 
@@ -19,11 +23,12 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.config import Settings
-from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Cfg, Digits, NoBody, RunId, St, Svc
+from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Digits, NoBody, RunId, St, Svc
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
+from sdh2svc.service.reads import Payload
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
-from sdh2svc.service.store import RunStore
+from sdh2svc.service.store import RunStore, StoreError
 from sdh2svc.service.telemetry import clean_json, estimate_outline, matrix_shapes
 
 router = APIRouter()
@@ -69,10 +74,35 @@ async def stop_run(st: St) -> dict[str, Any]:
     return st.stop_run()
 
 
-@router.get("/api/runs", responses=responses(*READ))
-def list_runs(cfg: Cfg) -> list[dict[str, Any]]:
+def _dumps(value: Any) -> bytes:
+    # as FastAPI's JSONResponse writes it (NaN and infinity, which JSON lacks, as null)
+    try:
+        text = json.dumps(value, ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+    except ValueError:
+        text = json.dumps(clean_json(value), ensure_ascii=False, allow_nan=False,
+                          separators=(",", ":"))  # fmt: skip
+    return text.encode()
+
+
+def json_body(value: Any) -> Payload:
+    """``value`` as a JSON answer, as FastAPI would write it (a model: by its aliases)."""
+    if isinstance(value, BaseModel):
+        value = value.model_dump(mode="json", by_alias=True)
+    return Payload(_dumps(value))
+
+
+def _answer(body: Payload) -> Response:
+    return Response(body.content, media_type=body.media_type, headers=body.headers)
+
+
+def _list_body(cfg: Settings) -> Payload:
     with _store(cfg) as store:
-        return clean_json(store.runs())  # type: ignore[no-any-return]
+        return json_body(store.runs())
+
+
+@router.get("/api/runs", response_model=list[dict[str, Any]], responses=responses(*READ))
+async def list_runs(svc: Svc) -> Response:
+    return _answer(await svc.reads(_list_body, svc.cfg))
 
 
 class RecognitionSummary(BaseModel):
@@ -134,13 +164,17 @@ class RunDetail(BaseModel):
 _RUN_RESPONSES = {200: {"model": RunDetail, "description": "the run"}, **responses(*READ, 404, 422)}
 
 
-@router.get("/api/runs/{run_id}", responses=_RUN_RESPONSES)
-def get_run(cfg: Cfg, run_id: RunId) -> dict[str, Any]:
-    """One run: its metadata, summary (with the recognition's estimate) and events."""
+def _run_body(cfg: Settings, run_id: int) -> Payload:
     with _store(cfg) as store:
         run = _run_or_404(store, run_id)
         run["events"] = store.events(run_id)
-        return clean_json(run)  # type: ignore[no-any-return]
+        return json_body(run)
+
+
+@router.get("/api/runs/{run_id}", response_model=dict[str, Any], responses=_RUN_RESPONSES)
+async def get_run(svc: Svc, run_id: RunId) -> Response:
+    """One run: its metadata, summary (with the recognition's estimate) and events."""
+    return _answer(await svc.reads(_run_body, svc.cfg, run_id))
 
 
 MAX_OUTLINES = 100  # samples per page with their outlines (each costs milliseconds to make)
@@ -151,16 +185,21 @@ OUTLINE_DOC = (
 )
 
 
-@router.get("/api/runs/{run_id}/samples", responses=responses(*READ, 404, 422))
-def samples(
-    cfg: Cfg,
+@router.get("/api/runs/{run_id}/samples", response_model=dict[str, Any],
+            responses=responses(*READ, 404, 422))  # fmt: skip
+async def samples(
+    svc: Svc,
     run_id: RunId,
     offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX), Digits] = 0,
     limit: Annotated[int, Query(ge=1, le=10_000), Digits] = 1000,
     outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
-) -> dict[str, Any]:
+) -> Response:
     if outline and limit > MAX_OUTLINES:
         raise ServiceError(422, "invalid request", [f"limit: at most {MAX_OUTLINES} with outline"])
+    return _answer(await svc.reads(_samples_body, svc.cfg, run_id, offset, limit, outline))
+
+
+def _samples_body(cfg: Settings, run_id: int, offset: int, limit: int, outline: bool) -> Payload:
     with _store(cfg) as store:
         _run_or_404(store, run_id)
         rows = store.samples(run_id, offset, limit)
@@ -171,7 +210,7 @@ def samples(
             "run_id": run_id, "offset": offset, "limit": limit,
             "total": store.sample_count(run_id), "samples": rows,
         }  # fmt: skip
-        return clean_json(page)  # type: ignore[no-any-return]
+        return json_body(page)
 
 
 FRAME_ENCODING = "base64-u16le"
@@ -211,18 +250,22 @@ class FramePage(BaseModel):
 
 @router.get("/api/runs/{run_id}/frames", response_model=FramePage,
             responses=responses(*READ, 404, 422))  # fmt: skip
-def frames(
-    cfg: Cfg,
+async def frames(
+    svc: Svc,
     run_id: RunId,
     first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX), Digits] = 0,
     to: Annotated[int | None, Query(ge=0, le=SQL_INT_MAX), Digits] = None,
     limit: Annotated[int, Query(ge=1, le=2000), Digits] = 500,
-) -> FramePage:
+) -> Response:
     """The run's tactile frames of iterations `from`…`to`, `limit` at most; follow `next` for
     the rest. Frames recorded without an iteration are not listed."""
-    last = SQL_INT_MAX if to is None else to
-    if last < first:
+    if to is not None and to < first:
         raise ServiceError(422, "invalid request", [f"to: must be at least from ({first})"])
+    return _answer(await svc.reads(_frames_body, svc.cfg, run_id, first, to, limit))
+
+
+def _frames_body(cfg: Settings, run_id: int, first: int, to: int | None, limit: int) -> Payload:
+    last = SQL_INT_MAX if to is None else to
     with _store(cfg) as store:
         _run_or_404(store, run_id)
         rows = store.frames_from(run_id, first, last, limit + 1)
@@ -231,11 +274,11 @@ def frames(
                           texels=base64.b64encode(texels).decode("ascii"))
             for it, t, ts, texels in rows[:limit]
         ]  # fmt: skip
-        return FramePage(
+        return json_body(FramePage(
             run_id=run_id, from_=first, to=to, limit=limit, total=store.framed_count(run_id),
             next=rows[limit][0] if len(rows) > limit else None, encoding=FRAME_ENCODING,
             shapes=list(matrix_shapes(cfg.tactile, cfg.axes)), frames=page,
-        )  # fmt: skip
+        ))  # fmt: skip
 
 
 class RecordedTruth(BaseModel):
@@ -278,24 +321,28 @@ class TruthPage(BaseModel):
 
 @router.get("/api/runs/{run_id}/truth", response_model=TruthPage,
             responses=responses(*READ, 404, 422))  # fmt: skip
-def truth(
-    cfg: Cfg,
+async def truth(
+    svc: Svc,
     run_id: RunId,
     first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX), Digits] = 0,
     limit: Annotated[int, Query(ge=1, le=10000), Digits] = 2000,
-) -> TruthPage:
+) -> Response:
     """In simulation, the object's true pose and state at each iteration from `from` on,
     `limit` at most, and its outline; follow `next` for the rest."""
+    return _answer(await svc.reads(_truth_body, svc.cfg, run_id, first, limit))
+
+
+def _truth_body(cfg: Settings, run_id: int, first: int, limit: int) -> Payload:
     with _store(cfg) as store:
         _run_or_404(store, run_id)
         rows = store.truth(run_id, first, limit + 1)
         outline = store.outline(run_id)
-        return TruthPage(
+        return json_body(TruthPage(
             run_id=run_id, from_=first, limit=limit, total=store.truth_count(run_id),
             next=rows[limit]["iteration"] if len(rows) > limit else None,
             outline=None if outline is None else RecordedOutline(**outline),
             truth=[RecordedTruth(**r) for r in rows[:limit]],
-        )  # fmt: skip
+        ))  # fmt: skip
 
 
 class ReplayAt(BaseModel):
@@ -353,23 +400,31 @@ def _viewer(svc: Any) -> Any:
 
 
 @router.get("/api/runs/{run_id}/export", response_class=Response, responses=_EXPORT_RESPONSES)
-def export(cfg: Cfg, run_id: RunId, format: Literal["csv", "mcap"] = "csv") -> Response:
+async def export(svc: Svc, run_id: RunId, format: Literal["csv", "mcap"] = "csv") -> Response:
+    return _answer(await svc.reads(_export_body, svc.cfg, run_id, format))
+
+
+def _export_body(cfg: Settings, run_id: int, format: str) -> Payload:
     with _store(cfg) as store:
         _run_or_404(store, run_id)
         headers = {"Content-Disposition": f'attachment; filename="run-{run_id}.{format}"'}
         if format == "csv":
             text = io.StringIO()
             store.export_csv(run_id, text)
-            return Response(text.getvalue(), media_type="text/csv", headers=headers)
+            return Payload(text.getvalue().encode(), "text/csv; charset=utf-8", headers)
         data = io.BytesIO()
         store.export_mcap(run_id, data, cfg)
-        return Response(data.getvalue(), media_type="application/octet-stream", headers=headers)
+        return Payload(data.getvalue(), "application/octet-stream", headers)
 
 
 @contextlib.contextmanager
 def _store(cfg: Settings) -> Iterator[RunStore]:
-    """A connection of this worker thread's own (SQLite WAL: readers never block the recorder)."""
-    store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
+    """A connection of this read's own (SQLite WAL: readers never block the recorder)."""
+    try:
+        store = RunStore(cfg.storage.db_path, create=False,
+                         busy_timeout_s=cfg.storage.busy_timeout_s)  # fmt: skip
+    except StoreError as e:
+        raise ServiceError(503, f"the run database cannot be read: {e}") from None
     try:
         yield store
     finally:

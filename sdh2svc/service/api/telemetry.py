@@ -40,15 +40,23 @@ async def telemetry(
     client.put(encode(Hello(svc.station.status())))
     sender = asyncio.create_task(svc.hub.serve(client, ws.send_text))
     receiver = asyncio.create_task(_drain(ws))
+    slow: str | None = None
     try:
         await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
+        if sender.done() and not sender.cancelled() and sender.exception() is None:
+            slow = sender.result()
     finally:
         for task in (sender, receiver):
             task.cancel()
             with contextlib.suppress(BaseException):
                 await task
         with contextlib.suppress(Exception):
-            await ws.close()
+            # a client cut off for being slow is told so (docs/api.md), not closed as normal
+            await (ws.close() if slow is None else ws.close(SLOW_CLOSE, slow[:MAX_REASON]))
+
+
+SLOW_CLOSE = 1008  # the close code for a client cut off because it took no message in time
+MAX_REASON = 120  # a close reason's length at most (RFC 6455: 123 bytes of UTF-8)
 
 
 async def _drain(ws: WebSocket) -> None:
