@@ -12,6 +12,7 @@ SECTIONS = {
     "sim": "bench.sim_world",
     "control": "bench.control",
     "service": "bench.service",
+    "reads": "bench.reads",
     "faults": "bench.faults",
     "campaign": "bench.campaign",
 }

@@ -2,12 +2,12 @@
 
 A page of 10 000 samples or a run's MCAP export is 0.1–1 s of Python. In a thread of the service
 it shares the GIL with the control loop, and FastAPI encodes a returned dict on the loop
-itself. Measured with two clients reading pages of 10 000 samples during a run (simulated hand,
-2 cores), the tactile frame's way to its joint command took 0.8 ms at the median but 190 ms at
-the 99th percentile, and the run made 105 iterations in 8 s instead of 240; two clients
-exporting MCAP: 28 ms and 67 ms. With the reads here, in worker processes below the service's
-CPU priority (``nice``): 0.6 and 6.0 ms, 243 iterations; MCAP 0.5 and 3.0 ms (alone: 0.5 and
-1.6 ms). A read takes nothing from the loop but the CPU the loop leaves.
+itself: with two clients reading pages of 10 000 samples, or exporting MCAP, during a run
+(simulated hand, 2 cores), the grasp closed at 0.55–0.79°/s of the 3°/s commanded and the run
+faulted (``python -m bench reads``, on the code before). With the reads here, in worker
+processes below the service's CPU priority (``nice``), the loop keeps its 29.5 Hz and the
+tactile frame's way to its joint command its 0.6 ms median (p99 4.2 ms, alone 1.3 ms): a
+read takes nothing from the loop but the CPU the loop leaves.
 
 A read is a module-level function (picklable by name) of plain arguments that returns a
 :class:`Payload`, or raises :class:`~sdh2svc.service.hand_service.ServiceError`.
