@@ -1,4 +1,5 @@
-"""Worker processes that never outlive their parent (campaign cases, the service's reads).
+"""Worker processes that never outlive their parent (campaign cases, the service's reads), and
+how to stop them at once.
 
 A :class:`~concurrent.futures.ProcessPoolExecutor`'s workers wait on its pipes; killed outright
 (SIGKILL, out of memory), the parent closes nothing, and the workers — and the forkserver and
@@ -7,10 +8,12 @@ resource tracker they hold open — would wait for ever. Each worker watches its
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 WATCH_S = 1.0  # how often a worker looks for its parent
 
@@ -34,3 +37,15 @@ def worker_init(parent_pid: int, nice: int = 0) -> None:
                 pass
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what has not started and end the workers now (what they were doing is lost)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(timeout=5)

@@ -82,7 +82,10 @@ def write_results(out: Path, *, suite: Suite | None = None,
 
 def results_from_rows(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """What :func:`read_results` would read after :func:`write_results`, without writing."""
-    table = _table(out, None, None)
+    return _rows_and_info(_table(out, None, None))
+
+
+def _rows_and_info(table: pa.Table) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     meta = table.schema.metadata or {}
     return table.to_pylist(), json.loads(meta.get(METADATA_KEY, b"{}"))
 
@@ -91,7 +94,4 @@ def read_results(out: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """The rows and the campaign's metadata of ``OUT/results.parquet``."""
     from sdh2svc.campaign.run import RESULTS_FILE
 
-    table = pq.read_table(out / RESULTS_FILE)
-    meta = table.schema.metadata or {}
-    info = json.loads(meta.get(METADATA_KEY, b"{}"))
-    return table.to_pylist(), info
+    return _rows_and_info(pq.read_table(out / RESULTS_FILE))

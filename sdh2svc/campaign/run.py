@@ -36,7 +36,7 @@ from typing import Any
 from sdh2svc.campaign.case import CASE_KEYS, Case, Suite
 from sdh2svc.config import ConfigError, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
-from sdh2svc.workers import worker_init
+from sdh2svc.workers import stop_pool, worker_init
 
 CASES_FILE = "cases.jsonl"
 CAMPAIGN_FILE = "campaign.json"
@@ -757,7 +757,7 @@ def _pool_round(queue: Iterator[Case], args: tuple[Any, ...], workers: int,
                     for nxt in _take(queue, 1):
                         submit(nxt)
     except BaseException:
-        _stop_pool(pool)
+        stop_pool(pool)  # (their cases are not recorded)
         raise
     pool.shutdown(wait=True)
     return lost
@@ -771,18 +771,6 @@ def _take(it: Iterator[Case], n: int) -> list[Case]:
         except StopIteration:
             break
     return out
-
-
-def _stop_pool(pool: ProcessPoolExecutor) -> None:
-    """Cancel what has not started and end the workers now (their cases are not recorded)."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for p in procs:
-        with contextlib.suppress(Exception):
-            p.terminate()
-    for p in procs:
-        with contextlib.suppress(Exception):
-            p.join(timeout=5)
 
 
 def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | None,

@@ -16,7 +16,6 @@ A read is a module-level function (picklable by name) of plain arguments that re
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import multiprocessing
 import os
 import sys
@@ -27,7 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from sdh2svc.service.hand_service import ServiceError
-from sdh2svc.workers import worker_init
+from sdh2svc.workers import stop_pool, worker_init
 
 READ_WORKERS = 2  # reads at once (a long export does not hold up a page of samples)
 READ_NICE = 10  # CPU priority steps below the service's
@@ -79,13 +78,5 @@ class ReadPool:
     def close(self) -> None:
         """End the workers now (a read still going is abandoned); idempotent."""
         pool, self._pool = self._pool, None
-        if pool is None:
-            return
-        procs = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for p in procs:
-            with contextlib.suppress(Exception):
-                p.terminate()
-        for p in procs:
-            with contextlib.suppress(Exception):
-                p.join(timeout=5)
+        if pool is not None:
+            stop_pool(pool)

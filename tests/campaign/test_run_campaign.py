@@ -171,6 +171,32 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+def _all_gone(pids: set[int], deadline_s: float) -> bool:
+    """Whether every one of ``pids`` has ended within ``deadline_s`` (a deadline to give up,
+    not a measure of speed)."""
+    end = time.monotonic() + deadline_s
+    while any(_alive(p) for p in pids) and time.monotonic() < end:
+        time.sleep(0.05)
+    return not [p for p in pids if _alive(p)]
+
+
+def _resume_runs_only_the_rest(suite: Suite, out: Path, done: list[str]) -> camp.Outcome:
+    """The same campaign again (its cases recorded as run, not simulated): it runs exactly the
+    cases not in ``done``."""
+    calls: list[str] = []
+
+    def recorded(case_json: str, *args: Any) -> dict[str, Any]:  # the resume, not the runs
+        calls.append(json.loads(case_json)["id"])
+        case = Case.model_validate_json(case_json)
+        return camp.finish_row({**camp.case_columns(case), "status": "completed"})
+
+    res = camp.run_campaign(suite, out, workers=1, overrides=ONE_STROKE, progress=False,
+                            case_fn=recorded)  # fmt: skip
+    assert sorted(calls) == sorted({c.id for c in suite.cases} - set(done))
+    assert res.ran == len(suite.cases) - len(done)
+    return res
+
+
 # the pool: a single process is the simpler case; SIGTERM (`kill`) stops it as Ctrl-C does
 @pytest.mark.parametrize(("workers", "sig"), [(2, signal.SIGINT), (2, signal.SIGTERM)])
 def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(
@@ -198,10 +224,7 @@ def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(
         err = proc.stderr.read().decode()  # type: ignore[union-attr]
         assert "interrupted; every finished case is in" in err, err
         # no worker outlives the campaign (a SIGTERM used to orphan them, running)
-        end = time.monotonic() + 30
-        while any(_alive(p) for p in below) and time.monotonic() < end:
-            time.sleep(0.05)
-        assert not [p for p in below if _alive(p)]
+        assert _all_gone(below, 30)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -212,17 +235,7 @@ def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(
     assert 1 <= len(done) < n and len(set(done)) == len(done)
     assert sorted(pq.read_table(out / camp.RESULTS_FILE).column("id").to_pylist()) == sorted(done)
     assert all(r["status"] == "completed" for r in lines(out))
-    calls: list[str] = []
-
-    def recorded(case_json: str, *args: Any) -> dict[str, Any]:  # the resume, not the runs
-        calls.append(json.loads(case_json)["id"])
-        case = Case.model_validate_json(case_json)
-        return camp.finish_row({**camp.case_columns(case), "status": "completed"})
-
-    res = camp.run_campaign(suite, out, workers=1, overrides=ONE_STROKE, progress=False,
-                            case_fn=recorded)  # fmt: skip
-    assert sorted(calls) == sorted({c.id for c in suite.cases} - set(done))
-    assert res.ran == n - len(done)
+    _resume_runs_only_the_rest(suite, out, done)
     assert sorted(r["id"] for r in lines(out)) == sorted(c.id for c in suite.cases)
 
 
@@ -244,10 +257,7 @@ def test_a_killed_campaign_leaves_no_process_behind_and_its_rerun_completes(
         assert below, "no pool processes"
         proc.kill()
         proc.wait(timeout=60)
-        end = time.monotonic() + 60  # a deadline to give up, not a measure of speed
-        while any(_alive(p) for p in below) and time.monotonic() < end:
-            time.sleep(0.05)
-        assert not [p for p in below if _alive(p)]
+        assert _all_gone(below, 60)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -256,17 +266,7 @@ def test_a_killed_campaign_leaves_no_process_behind_and_its_rerun_completes(
     done = [r["id"] for r in lines(out)]
     assert 1 <= len(done) < n and len(set(done)) == len(done)
     assert [p.name for p in out.glob(".work-*")]  # the killed run's scratch is still there
-    calls: list[str] = []
-
-    def recorded(case_json: str, *args: Any) -> dict[str, Any]:
-        calls.append(json.loads(case_json)["id"])
-        case = Case.model_validate_json(case_json)
-        return camp.finish_row({**camp.case_columns(case), "status": "completed"})
-
-    res = camp.run_campaign(suite, out, workers=1, overrides=ONE_STROKE, progress=False,
-                            case_fn=recorded)  # fmt: skip
-    assert sorted(calls) == sorted({c.id for c in suite.cases} - set(done))
-    assert res.ran == n - len(done)
+    _resume_runs_only_the_rest(suite, out, done)
     assert not list(out.glob(".work-*"))
 
 
