@@ -106,6 +106,9 @@ CONNECT_DRAIN_S: Final = 0.1  # §2.3: discard whatever arrives within 100 ms of
 VER_TIMEOUT_S: Final = 1.0  # §2.3: no `ver` reply within 1 s means "SDH not connected"
 BACKOFF: Final = Backoff(initial_s=0.5, max_s=5.0)  # before each attempt to reopen the line
 POLL_IDLE_S: Final = 0.05  # polling with no command to follow: the angles are read this often
+# A message that stops for this long is broken off (a flipped length byte, a lost line end): the
+# SDH2 sends a reply in one burst (≤ 6 ms at 115200 baud), a USB adapter in 16 ms packets
+BYTE_GAP_S: Final = 0.1
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
 _WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
@@ -272,6 +275,7 @@ class _Conn:
         self.parser = parser
         self.events: asyncio.Queue[ReplyEvent | _Lost] = asyncio.Queue()
         self.rx_bytes = 0
+        self._gap: asyncio.TimerHandle | None = None  # the rest of a message is due by then
         self.dirty = False  # the line may hold leftovers of an unfinished exchange
         self.lost: BaseException | None = None
         self._closing = False
@@ -287,11 +291,33 @@ class _Conn:
         if self._closing:
             return
         try:
-            self.rx_bytes += len(data)
-            for event in self.parser.feed(data):
-                self.events.put_nowait(event)
+            self._feed(data)
         except Exception as exc:  # as the reading task would: the connection ends
             self._die(exc)
+
+    def _feed(self, data: bytes) -> None:
+        self.rx_bytes += len(data)
+        for event in self.parser.feed(data):
+            self.events.put_nowait(event)
+        if self._gap is not None or self.parser.buffered:
+            self._watch_gap()
+
+    def _watch_gap(self) -> None:
+        """A message left unfinished must go on within :data:`BYTE_GAP_S`, else it is broken off
+        and reported as garbage at once: the command's retry need not wait for its reply's
+        timeout (a second of joint angles growing old under a control loop)."""
+        if self._gap is not None:
+            self._gap.cancel()
+            self._gap = None
+        if self.parser.buffered:
+            self._gap = asyncio.get_running_loop().call_later(BYTE_GAP_S, self._broken_off)
+
+    def _broken_off(self) -> None:
+        self._gap = None
+        held = self.parser.flush()
+        if held and self.lost is None and not self._closing:
+            why = f"a message broken off after {len(held)} bytes (then {BYTE_GAP_S:g} s of nothing)"
+            self.events.put_nowait(Garbage(held, why))
 
     def _ended(self, exc: BaseException | None) -> None:
         if not self._closing:
@@ -303,9 +329,7 @@ class _Conn:
                 data = await self._reader.read(4096)
                 if not data:
                     raise ConnectionResetError("end of stream")
-                self.rx_bytes += len(data)
-                for event in self.parser.feed(data):
-                    self.events.put_nowait(event)
+                self._feed(data)
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # serial/socket errors end the connection
@@ -348,6 +372,8 @@ class _Conn:
 
     async def close(self) -> None:
         self._closing = True  # nothing received from now on counts (as a cancelled reader)
+        if self._gap is not None:
+            self._gap.cancel()
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):

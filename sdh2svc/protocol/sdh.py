@@ -994,6 +994,13 @@ class _Framer(ABC, Generic[E]):
         """Bytes held for an incomplete line or frame."""
         return len(self._buf)
 
+    def flush(self) -> bytes:
+        """Drop and return the bytes held for an incomplete line or frame: the I/O layer knows
+        its rest is not coming (e.g. nothing more arrived for a while)."""
+        held = bytes(self._buf)
+        self.reset()
+        return held
+
     def _step(self, events: list[E]) -> bool:
         buf = self._buf
         if self._discarding:

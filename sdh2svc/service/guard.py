@@ -17,6 +17,9 @@ before the app reads a byte of a body:
   ``text/plain`` anywhere without asking; JSON it cannot without the browser's CORS preflight,
   which this service never grants.
 
+* **HEAD** is answered as its GET, without the body (the routes answer GET only; monitors and
+  ``curl -I`` ask with HEAD), after the same rules.
+
 ``POST /api/estop`` is exempt from the Origin and content-type rules (and, in the app, from the
 token): stopping the hand must always work, from anything. The Host and size rules still apply.
 """
@@ -172,6 +175,8 @@ class Guard:
     async def _http(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = _headers(scope)
         method = scope.get("method", "GET")
+        if method == "HEAD":
+            scope, send = {**scope, "method": "GET"}, _without_body(send)
         # (with a trailing slash too: a client that writes one must stop the hand all the same)
         estop = method == "POST" and scope.get("path", "").rstrip("/") == ESTOP_PATH
         refusal = self._host_refusal(headers)
@@ -247,6 +252,17 @@ class Guard:
             await send({"type": "websocket.http.response.body", "body": body})
         else:
             await send({"type": "websocket.close", "code": 1008})
+
+
+def _without_body(send: Send) -> Send:
+    """``send`` for a HEAD request: the GET's status and headers (its length too), no body."""
+
+    async def headless(message: Message) -> None:
+        if message["type"] == "http.response.body":
+            message = {**message, "body": b""}
+        await send(message)
+
+    return headless
 
 
 def _headers(scope: Scope) -> dict[str, list[str]]:

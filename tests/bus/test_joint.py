@@ -12,11 +12,13 @@ import math
 import random
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from sdh2svc.bus.joint import (
+    BYTE_GAP_S,
     DEFAULT_LIMITS,
     ControllerMode,
     EmergencyStopped,
@@ -28,7 +30,8 @@ from sdh2svc.bus.joint import (
     LinkLost,
 )
 from sdh2svc.protocol.sdh import NUM_AXES, AxisState, SdhError
-from sdh2svc.sim.endpoint import Endpoint, FaultConfig, FaultKind, serve_device
+from sdh2svc.sim.clock import run_fast
+from sdh2svc.sim.endpoint import Endpoint, FaultConfig, FaultKind, UnixEndpoint, serve_device
 from sdh2svc.sim.sdh2 import Sdh2Emulator
 from sdh2svc.sim.world import ScriptedWorld
 
@@ -351,6 +354,38 @@ async def test_bit_errors_are_retried(kind: str, binary: bool) -> None:
         assert stats.resyncs > 0 and stats.failures == 0
         assert _close(rig.dev.target_deg, targets, 1e-4)  # host→device is clean
         assert len(await link.get_actual()) == NUM_AXES
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
+def test_a_reply_broken_off_is_retried_at_once_not_after_its_timeout(
+    tmp_path: Path, binary: bool
+) -> None:
+    """A reply cut short (a flipped length byte, a lost line end) leaves the parser waiting for
+    bytes that never come: after BYTE_GAP_S of nothing more the link resyncs and retries, not
+    after the reply's timeout (1 s), so a control loop's joint angles do not age by a second.
+    Only a reply cut before its first byte (the line silent) waits for the timeout."""
+
+    async def main() -> None:
+        dev = Sdh2Emulator(ScriptedWorld(SHAPES))
+        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
+            link = await JointLink.open(ep.url, binary=binary, timeout_s=1.0, retries=5)
+            try:
+                ep.set_faults(FaultConfig(truncate_packet_rate=0.2, seed=3))
+                loop = asyncio.get_running_loop()
+                slow = 0
+                for _ in range(300):
+                    t0 = loop.time()
+                    assert len(await link.get_actual()) == NUM_AXES
+                    slow += loop.time() - t0 >= BYTE_GAP_S + 0.3
+                cut = ep.stats.faults[FaultKind.TRUNCATE_PACKET]
+                stats = link.stats
+                assert cut >= 40 and stats.failures == 0, (cut, stats)
+                assert stats.garbled >= cut * 3 // 4, (cut, stats)  # found, retried
+                assert slow == stats.timeouts <= cut // 8, (slow, cut, stats)  # cut at byte 0
+            finally:
+                await link.close()
+
+    run_fast(main())
 
 
 async def test_pty_unplugged_times_out_then_recovers() -> None:

@@ -667,6 +667,14 @@ def test_reset_drops_partial_frame() -> None:
     assert parser.feed(b"pos\r\n") == [AsciiCommand("pos")]
 
 
+def test_flush_hands_over_a_partial_reply_and_starts_afresh() -> None:
+    parser = ReplyParser()
+    assert parser.feed(b"POS=1,2,3") == []
+    assert parser.flush() == b"POS=1,2,3" and parser.buffered == 0
+    assert parser.flush() == b""
+    assert parser.feed(b"POS=1,2,3,4,5,6,7\r\n")[0].keyword == "POS"  # not glued to the rest
+
+
 def test_suggested_replies() -> None:
     line_err = ProtocolErrorEvent(SdhError.CMD_UNKNOWN, "x", b"x", ErrorSource.LINE)
     assert line_err.suggested_reply() == b"E13\r\n"

@@ -263,6 +263,21 @@ async def test_open_hand_route(svc: LiveService) -> None:
         assert (await raw.post("/api/hand/open")).status_code == 415  # JSON, as every command
 
 
+async def test_head_answers_as_get_without_the_body(svc: LiveService) -> None:
+    """Monitors and ``curl -I`` ask with HEAD: the GET's status and headers, no body."""
+    async with plain(svc) as c:
+        for path in ("/api/params", "/openapi.json", "/", "/api/runs", "/api/status"):
+            got, head = await c.get(path), await c.head(path)
+            assert head.status_code == got.status_code == 200, path
+            assert head.content == b"", path
+            assert head.headers["content-type"] == got.headers["content-type"], path
+            if path in ("/api/params", "/openapi.json", "/"):  # (the others change as they go)
+                assert int(head.headers["content-length"]) == len(got.content), path
+        assert (await c.head("/api/runs/999999")).status_code == 404
+        assert (await c.head("/api/params", headers={"Host": "evil.example"})).status_code == 400
+        assert (await c.head("/api/estop")).status_code == 405  # GET's route only: no command
+
+
 async def test_docs_are_served_from_the_package(svc: LiveService) -> None:
     async with plain(svc) as c:  # pages for a browser
         for page in ("/docs", "/redoc"):
