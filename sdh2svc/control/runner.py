@@ -423,6 +423,7 @@ class Runner:
             if v is not None:  # record what tripped it, command nothing
                 latency_ms = (loop.time() - frame.arrival) * 1000
                 self._record(r, pose, frame, age_ms, joint_age_ms, latency_ms)
+                self.state = r.state  # the fault is this iteration's, as its sample and events
                 _raise(v)
             commanded = None
             if r.targets is not None:

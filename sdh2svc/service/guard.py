@@ -17,6 +17,9 @@ before the app reads a byte of a body:
   ``text/plain`` anywhere without asking; JSON it cannot without the browser's CORS preflight,
   which this service never grants.
 
+* **Framing**: every answer forbids other sites' pages to frame it (``frame-ancestors 'self'``,
+  ``X-Frame-Options``): a page that framed the dashboard, its own Origin being the service's,
+  could have a click on it drive the hand (clickjacking).
 * **HEAD** is answered as its GET, without the body (the routes answer GET only; monitors and
   ``curl -I`` ask with HEAD), after the same rules.
 
@@ -175,6 +178,7 @@ class Guard:
     async def _http(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = _headers(scope)
         method = scope.get("method", "GET")
+        send = _unframeable(send)
         if method == "HEAD":
             scope, send = {**scope, "method": "GET"}, _without_body(send)
         # (with a trailing slash too: a client that writes one must stop the hand all the same)
@@ -252,6 +256,21 @@ class Guard:
             await send({"type": "websocket.http.response.body", "body": body})
         else:
             await send({"type": "websocket.close", "code": 1008})
+
+
+FRAME_HEADERS = ((b"content-security-policy", b"frame-ancestors 'self'"),
+                 (b"x-frame-options", b"SAMEORIGIN"))  # fmt: skip
+
+
+def _unframeable(send: Send) -> Send:
+    """``send`` whose answer forbids framing by other sites' pages (:data:`FRAME_HEADERS`)."""
+
+    async def framed(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            message = {**message, "headers": [*message.get("headers", []), *FRAME_HEADERS]}
+        await send(message)
+
+    return framed
 
 
 def _without_body(send: Send) -> Send:

@@ -134,7 +134,8 @@ _PAYLOAD = {  # message type → the field carrying its payload (docs/api.md)
     "hello": "status",
 }
 EDIT_GRACE_S = 1.5  # a slider the user just moved is not reset by a status still in flight
-FINISHED = {"idle", "done", "stopped", "faulted", "e-stopped"}
+NOTE_S = 10.0  # a refusal shown in the panel goes after this (not left for the next visitor)
+FINISHED = {"done", "stopped", "faulted", "e-stopped"}  # a run's ends ("idle": it just began)
 
 
 # --- pure geometry, shared by the renderer and the tests --------------------------------------
@@ -370,11 +371,28 @@ def origin_allowed(origin: str, settings: Settings, view_port: int) -> bool:
     return key[1] in hosts and key[2] in ports
 
 
+def frame_ancestors(settings: Settings) -> str:
+    """The pages that may frame the view (a CSP ``frame-ancestors`` list): the view's own and
+    the dashboard's, at the names :func:`origin_allowed` allows (IPv6 literals cannot be named
+    in CSP), and every ``service.allowed_origins`` entry."""
+    svc = settings.service
+    port = str(svc.port) if svc.port else "*"
+    names = dict.fromkeys([*LOOPBACK_NAMES, _host_name(svc.host),
+                           *(_host_name(h) for h in svc.allowed_hosts)])  # fmt: skip
+    pages = [f"{scheme}://{name}:{port}" for name in names if ":" not in name and "[" not in name
+             for scheme in ("http", "https")]  # fmt: skip
+    return " ".join(["'self'", *pages, *svc.allowed_origins])
+
+
 OriginCheck = Callable[[str, int], bool]  # (Origin header, the port it reached) → allowed?
 
 
-def _checking_origin(inner: Any, allowed: OriginCheck) -> Callable[..., Any]:
-    """viser's ``process_request`` behind an Origin check of WebSocket handshakes (403)."""
+def _checking_origin(inner: Any, allowed: OriginCheck, ancestors: str | None) -> Callable[..., Any]:
+    """viser's ``process_request`` behind an Origin check of WebSocket handshakes (403); its
+    pages may be framed only by ``ancestors`` (None: by anyone).
+
+    Why both: a page of another site that framed the view would open the WebSocket with the
+    view's own Origin, and a click it lured into the frame would drive the hand."""
 
     def process_request(connection: ServerConnection, request: Request) -> Any:
         if "websocket" in request.headers.get("Upgrade", "").lower():
@@ -384,7 +402,10 @@ def _checking_origin(inner: Any, allowed: OriginCheck) -> Callable[..., Any]:
                 log.warning("3-D view: WebSocket from origin %r refused (service.allowed_hosts, "
                             "service.allowed_origins)", ", ".join(origins))  # fmt: skip
                 return connection.respond(HTTPStatus.FORBIDDEN, "Origin not allowed\n")
-        return inner(connection, request) if inner is not None else None
+        response = inner(connection, request) if inner is not None else None
+        if response is not None and ancestors is not None:
+            response.headers["Content-Security-Policy"] = f"frame-ancestors {ancestors}"
+        return response
 
     return process_request
 
@@ -394,12 +415,14 @@ class _GuardedServe(websockets.asyncio.server.serve):
     ``process_request``; other servers pass through unchanged. See :func:`start_viser`."""
 
     check: OriginCheck | None = None  # set, under _SERVE_LOCK, while a ViserServer starts
+    ancestors: str | None = None
     installed = False
 
     def __init__(self, handler: Any, *args: Any, **kwargs: Any) -> None:
         check = _GuardedServe.check
         if check is not None and getattr(handler, "__module__", None) == "viser.infra._infra":
-            kwargs["process_request"] = _checking_origin(kwargs.get("process_request"), check)
+            kwargs["process_request"] = _checking_origin(kwargs.get("process_request"), check,
+                                                         _GuardedServe.ancestors)  # fmt: skip
             _GuardedServe.installed = True
         super().__init__(handler, *args, **kwargs)
 
@@ -407,9 +430,12 @@ class _GuardedServe(websockets.asyncio.server.serve):
 _SERVE_LOCK = threading.Lock()
 
 
-def start_viser(host: str, port: int, allowed: OriginCheck) -> viser.ViserServer:
+def start_viser(
+    host: str, port: int, allowed: OriginCheck, ancestors: str | None = None
+) -> viser.ViserServer:
     """``viser.ViserServer(host, port)`` whose WebSocket refuses a handshake carrying a foreign
-    ``Origin`` with 403 (blocking: call it on a worker thread).
+    ``Origin`` with 403, and whose pages only ``ancestors`` may frame (a CSP ``frame-ancestors``
+    list; None: anyone) (blocking: call it on a worker thread).
 
     Why: WebSockets are not covered by the same-origin policy or CORS, so without this any web
     page a person on the lab PC opens could connect to ws://127.0.0.1:8080 and click the panel's
@@ -430,11 +456,12 @@ def start_viser(host: str, port: int, allowed: OriginCheck) -> viser.ViserServer
         original = ws_server.serve
         ws_server.serve = _GuardedServe  # type: ignore[misc]
         _GuardedServe.check, _GuardedServe.installed = allowed, False
+        _GuardedServe.ancestors = ancestors
         try:
             server = _quietly(viser.ViserServer, host=host, port=port, verbose=False)
         finally:
             ws_server.serve = original  # type: ignore[misc]
-            _GuardedServe.check = None
+            _GuardedServe.check, _GuardedServe.ancestors = None, None
         installed = _GuardedServe.installed
     if not installed:
         _quietly(server.stop)
@@ -483,7 +510,7 @@ class Viewer:
         self._edited: dict[str, float] = {}
         self._applied = {f: float(getattr(settings.rolling, f)) for f in SLIDERS}  # last known
         self._sync_thread: int | None = None
-        self._note = ""
+        self._note, self._note_at = "", 0.0
         self._tactile_idx: dict[str, np.ndarray] = {}
         self._failures = 0
         self._sent: dict[tuple[int, str], Any] = {}  # (node id, property) → value last sent
@@ -505,7 +532,11 @@ class Viewer:
         def allowed(origin: str, port: int) -> bool:
             return origin_allowed(origin, settings, port)
 
-        self.server = await asyncio.to_thread(start_viser, self._host, self._port, allowed)
+        # read-only (a token): the panel only stops, and the dashboard that frames it may be
+        # at any name the lab's network gives the PC: framing it lures no one into driving
+        ancestors = None if self._read_only else frame_ancestors(settings)
+        self.server = await asyncio.to_thread(start_viser, self._host, self._port, allowed,
+                                              ancestors)  # fmt: skip
         self._build_scene()
         self._build_gui()
         self._dirty |= {"pose", "status"}
@@ -765,6 +796,8 @@ class Viewer:
             parts.append("**E-STOP latched**")
         if isinstance(replay := st.get("replay"), dict):
             parts.append(f"replay of run {replay.get('run_id')}, it {replay.get('iteration')}")
+        if self._note and time.monotonic() - self._note_at > NOTE_S:
+            self._note = ""
         text = " · ".join(parts) + (f"\n\n{self._note}" if self._note else "")
         self._set(self.nodes["gui/state"], "content", text)
         self._sync_sliders(st.get("params") or {})
@@ -802,9 +835,10 @@ class Viewer:
 
     def _refusal(self, kind: str) -> str | None:
         """Why the panel may not do ``kind`` now; None: it may. With a token (ours, or the
-        service's status says one is set) only the e-stop: the view cannot authenticate. Open
-        hand also needs a known status with no run, no e-stop latched and no opening under way.
-        Read on viser's threads too (a dictionary read)."""
+        service's status says one is set) only the e-stop: the view cannot authenticate.
+        Otherwise as the dashboard: the others need a known status; Grasp & roll and Open hand
+        no run, no e-stop latched and no opening under way; Stop a run or an opening to stop;
+        Release a latched e-stop. Read on viser's threads too (dictionary reads)."""
         if kind not in KINDS:
             return "not a control of this panel"
         if kind in ALWAYS_ALLOWED:
@@ -813,19 +847,22 @@ class Viewer:
         st = st if isinstance(st, dict) else None
         if self._read_only or (st is not None and st.get("auth_required")):
             return NEEDS_TOKEN
-        if kind != "open":
+        if kind == "params":
             return None
         if st is None:
             return "waiting for the service's status"
+        run, hand = st.get("run") or {}, st.get("hand") or {}
+        running = not isinstance(run, dict) or (bool(run) and run.get("state") not in FINISHED)
+        opening = not isinstance(hand, dict) or bool(hand.get("opening"))
+        if kind == "release":
+            return None if st.get("estopped") else "the e-stop is not latched"
+        if kind == "stop":
+            return None if running or opening else "no run is active"
         if st.get("estopped"):
             return "the e-stop is latched: release it first"
-        run = st.get("run") or {}
-        if not isinstance(run, dict) or (run and run.get("state") not in FINISHED):
+        if running:
             return "a run is running: stop it first"
-        hand = st.get("hand") or {}
-        if not isinstance(hand, dict) or hand.get("opening"):
-            return "the hand is opening"
-        return None
+        return "the hand is opening" if opening else None
 
     def _gate(self, kind: str, handle: Any) -> bool:
         """Whether a click or a slider's move may become a command (viser's threads).
@@ -854,7 +891,7 @@ class Viewer:
     def _show_note(self, note: str) -> None:
         """A short line under the state (the last refusal; empty after a command succeeds);
         redrawing the status also puts a refused slider back to the parameter in force."""
-        self._note = note
+        self._note, self._note_at = note, time.monotonic()
         self._dirty.add("status")
         self._wake.set()
 

@@ -18,6 +18,7 @@ import pytest
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Simulated, connect_hand
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
+from sdh2svc.control import runner as runner_module
 from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.protocol.sdh import AxisState
@@ -126,6 +127,36 @@ def test_force_ceiling_stops_and_opens_the_hand(tmp_path: Path) -> None:
     tripped = float(result.message.split("F = ")[1].split()[0])  # the frame that tripped it
     assert tripped > 1.05 * cfg.rolling.grasp_force
     assert phases[-2:] == ["releasing", "faulted"] and not held_after
+
+
+def test_a_step_the_supervisor_refuses_is_the_faults_iteration(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The refused step is recorded (its sample, its reversal) and the fault is that same
+    iteration's, the run's stroke count the one its events show: not the iteration before,
+    with a reversal after the fault and a stroke count behind the events."""
+    cfg = cfg_with(tmp_path, "rolling.cycles=3")
+    real = runner_module.safety.rolling_step
+
+    def refuse_the_third_reversal(r: Any, fd: float, s: Any) -> Any:
+        if r.reversal is not None and r.state.half_strokes == 3:
+            return runner_module.safety.Violation(runner_module.Fault.STUCK, "(the test's)")
+        return real(r, fd, s)
+
+    monkeypatch.setattr(runner_module.safety, "rolling_step", refuse_the_third_reversal)
+
+    async def main() -> tuple[Any, list[Event], list[Sample]]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            events: list[Event] = []
+            seen(runner).hooks.append(events.append)
+            return await runner.run(), events, seen(runner).samples
+
+    result, events, samples = fast(main)
+    assert result.status == "faulted" and "(the test's)" in result.message
+    fault = next(e for e in events if e.kind is EventKind.FAULT)
+    last = [e for e in events if e.kind is EventKind.REVERSAL][-1]
+    assert fault.iteration == last.iteration == samples[-1].iteration
+    assert last.detail["half_strokes"] == 3 and result.strokes == last.detail["stroke"] == 1
 
 
 def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:

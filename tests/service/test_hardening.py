@@ -278,6 +278,16 @@ async def test_head_answers_as_get_without_the_body(svc: LiveService) -> None:
         assert (await c.head("/api/estop")).status_code == 405  # GET's route only: no command
 
 
+async def test_no_other_site_may_frame_the_dashboard(svc: LiveService) -> None:
+    """A page that framed the dashboard would make its requests with the service's own Origin:
+    a click it lured onto a button would drive the hand (clickjacking)."""
+    async with plain(svc) as c:
+        for r in (await c.get("/"), await c.get("/api/status"), await c.get("/nope"),
+                  await c.post("/api/runs", headers={"Origin": EVIL})):  # fmt: skip
+            assert r.headers["content-security-policy"] == "frame-ancestors 'self'", r
+            assert r.headers["x-frame-options"] == "SAMEORIGIN", r
+
+
 async def test_docs_are_served_from_the_package(svc: LiveService) -> None:
     async with plain(svc) as c:  # pages for a browser
         for page in ("/docs", "/redoc"):

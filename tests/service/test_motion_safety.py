@@ -211,9 +211,14 @@ async def test_kill_during_the_grasp_then_restart_leaves_the_fingers_still(
     again = await _serve(tmp_path, sim, cable)
     try:
         async with again.client() as client:
-            assert (await client.status())["hand"]["connected"]["joints"]
+            st = await client.status()
+            assert st["hand"]["connected"]["joints"]
             runs = await client.runs()
         assert runs[0]["status"] == "interrupted"
+        # the status says so too: a person should look (the object may still be held)
+        assert st["last_run"]["id"] == runs[0]["id"], st["last_run"]
+        assert st["last_run"]["status"] == "interrupted", st["last_run"]
+        assert "may still hold the object" in st["last_run"]["message"]
         await asyncio.sleep(WATCH_S / 2)
         assert _moved(_angles(sim), at_kill) <= STEP_DEG
     finally:

@@ -42,7 +42,6 @@ from sdh2svc.service.telemetry import (
 )
 from sdh2svc.service.viewer import (
     BUTTONS,
-    COMMANDS,
     GREEN,
     MM,
     NEEDS_TOKEN,
@@ -418,11 +417,17 @@ async def test_the_reconstructed_outline_is_drawn_while_a_class_is_known(
 # --- (d) GUI → on_command --------------------------------------------------------------------
 
 
-async def test_buttons_and_sliders_reach_on_command(viewer: Viewer, commands: Recorder) -> None:
+async def _show(viewer: Viewer, status: dict[str, Any]) -> None:
+    """The panel redrawn for ``status``."""
     n = viewer.frames
-    viewer.handle({"type": "status", "status": IDLE})  # Open hand waits for a status
+    viewer.handle({"type": "status", "status": status})
     await next_frame(viewer, n)
-    for kind in ("start", "stop", "open", "estop", "release"):
+
+
+async def test_buttons_and_sliders_reach_on_command(viewer: Viewer, commands: Recorder) -> None:
+    for kind, status in (("start", IDLE), ("stop", ROLLING), ("open", IDLE), ("estop", IDLE),
+                         ("release", {**IDLE, "estopped": True})):  # fmt: skip
+        await _show(viewer, status)  # each when it may be sent
         await click(viewer.buttons[kind])
     slider = viewer.sliders["k"]
     slider._impl.value = 3.5  # what viser does with a client's update, then the callbacks
@@ -451,6 +456,7 @@ async def test_refused_command_shows_in_the_panel(cfg: Settings) -> None:
     await v.start()
     try:
         async with watching(v):
+            await _show(v, ROLLING)
             await click(v.buttons["stop"])
             await wait_for(lambda: "already running" in v.nodes["gui/state"].content)
     finally:
@@ -504,20 +510,24 @@ async def test_read_only_view_only_stops(cfg: Settings) -> None:
 
 
 async def test_controls_follow_token_estop_and_run(viewer: Viewer, commands: Recorder) -> None:
-    """Open hand is enabled only with no run, no e-stop latched and a known status; a token
-    reported by the status disables all but E-STOP; every state change redraws the panel, and
-    a click on a control disabled at that moment is refused, not sent."""
-    everything = {*COMMANDS, *viewer.sliders}
-    assert enabled(viewer) == everything - {"open"}  # no status yet: Open waits for one
+    """As on the dashboard: Grasp & roll and Open hand only with no run, no e-stop latched, no
+    opening and a known status; Stop only with a run or an opening to stop; Release only with
+    the e-stop latched; a token reported by the status disables all but E-STOP; every state
+    change redraws the panel, and a click on a control disabled at that moment is refused, not
+    sent."""
+    sliders = set(viewer.sliders)
+    assert enabled(viewer) == {"estop", *sliders}  # no status yet: the others wait for one
     assert viewer.buttons["open"].hint == "waiting for the service's status"
+    rest = {"estop", *sliders}
     states = [
-        (IDLE, everything, None),
-        ({**IDLE, "estopped": True}, everything - {"open"}, "the e-stop is latched"),
-        (ROLLING, everything - {"open"}, "a run is running"),
-        ({**IDLE, "hand": {"opening": True}}, everything - {"open"}, "the hand is opening"),
-        ({**IDLE, "run": {"id": 1, "state": "done"}}, everything, None),
+        (IDLE, rest | {"start", "open"}, None),
+        ({**IDLE, "estopped": True}, rest | {"release"}, "the e-stop is latched"),
+        (ROLLING, rest | {"stop"}, "a run is running"),
+        ({**IDLE, "run": {"id": 2, "state": "idle"}}, rest | {"stop"}, "a run is running"),
+        ({**IDLE, "hand": {"opening": True}}, rest | {"stop"}, "the hand is opening"),
+        ({**IDLE, "run": {"id": 1, "state": "done"}}, rest | {"start", "open"}, None),
         ({**IDLE, "auth_required": True}, {"estop"}, NEEDS_TOKEN),
-        (IDLE, everything, None),
+        (IDLE, rest | {"start", "open"}, None),
     ]
     async with browser(viewer.url) as b:
         await wait_for(lambda: viewer.watched)
@@ -526,14 +536,26 @@ async def test_controls_follow_token_estop_and_run(viewer: Viewer, commands: Rec
             viewer.handle({"type": "status", "status": status})
             await next_frame(viewer, n)
             assert enabled(viewer) == want, status
-            hint = viewer.buttons["open"].hint
-            assert (why is None and hint == BUTTONS["open"][2]) or (why and why in hint), hint
+            for kind in ("open", "start"):
+                hint = viewer.buttons[kind].hint
+                assert (why is None and hint == BUTTONS[kind][2]) or (why and why in hint), hint
             if why is not None:
                 await b.send_gui(viewer.buttons["open"]._impl.uuid, True)
                 await wait_for(lambda w=why: f"open: {w}" in viewer.nodes["gui/state"].content)
+        await b.send_gui(viewer.buttons["release"]._impl.uuid, True)  # nothing latched
+        await wait_for(
+            lambda: "release: the e-stop is not latched" in viewer.nodes["gui/state"].content
+        )
         assert commands.calls == []
         await b.send_gui(viewer.buttons["open"]._impl.uuid, True)
         await wait_for(lambda: commands.calls == [("open", {})])
+        # the refusal shown goes after NOTE_S, not left for the next visitor
+        assert "release:" in viewer.nodes["gui/state"].content
+        viewer._note_at -= viewer_module.NOTE_S
+        n = viewer.frames
+        viewer.handle({"type": "status", "status": IDLE})
+        await next_frame(viewer, n)
+        assert "release:" not in viewer.nodes["gui/state"].content
 
 
 async def test_websocket_refuses_other_sites(cfg: Settings) -> None:
@@ -552,6 +574,11 @@ async def test_websocket_refuses_other_sites(cfg: Settings) -> None:
             async with browser(v.url, origin=origin):
                 await wait_for(lambda: v.watched)
             await wait_for(lambda: not v.watched)
+        # …nor frame the view's page, where a click it lured would pass that check
+        page = await asyncio.to_thread(urllib.request.urlopen, v.url, timeout=10)
+        with page:
+            policy = page.headers["Content-Security-Policy"]
+        assert policy == f"frame-ancestors {viewer_module.frame_ancestors(cfg)}", policy
     finally:
         await v.stop()
 
@@ -579,6 +606,14 @@ def test_origin_policy(cfg: Settings) -> None:
     assert origin_allowed("http://localhost", s, 80)  # the scheme's default port
     unknown = cfg.model_copy(update={"service": svc.model_copy(update={"port": 0})})
     assert not origin_allowed("http://localhost:0", unknown, 8080)
+    # the pages that may frame the view: itself, the dashboard (any port while unknown)
+    pages = viewer_module.frame_ancestors(s).split()
+    assert pages[0] == "'self'" and "https://ops.example:9443" in pages
+    for page in ("http://127.0.0.1:8000", "https://localhost:8000", "http://lab-pc.local:8000",
+                 "http://192.168.1.42:8000"):  # fmt: skip
+        assert page in pages, pages
+    assert not any("evil" in p or "::1" in p or ":8080" in p for p in pages), pages
+    assert "http://127.0.0.1:*" in viewer_module.frame_ancestors(unknown).split()
 
 
 async def test_unguarded_viser_is_not_served(monkeypatch: pytest.MonkeyPatch) -> None:

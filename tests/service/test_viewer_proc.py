@@ -151,6 +151,10 @@ async def test_gui_commands_reach_on_command_and_refusals_show(cfg: Settings) ->
         await wait_for(lambda: v.watched)
         stop = b.gui_uuid("GuiButtonMessage", "Stop")
         k = b.gui_uuid("GuiSliderMessage", "k")
+        rolling = {"auth_required": False, "estopped": False, "hand": {"opening": False},
+                   "run": {"id": 1, "state": "rolling"}}  # fmt: skip
+        v.handle({"type": "status", "status": rolling})  # Stop: a run to stop
+        await wait_for(lambda: any("rolling" in t for t in b.panel()))
 
         await b.send_gui(stop, True)  # refused by the parent: the note shows in the child's panel
         await wait_for(lambda: any("stop: a run is already running" in t for t in b.panel()))
