@@ -74,6 +74,10 @@ class ServiceConfig(Frozen):
     foxglove_port: Annotated[int, Field(ge=0, le=65535)] = 0  # the live Foxglove view; 0: off
 
 
+#: The sections a run's recording keeps (Settings.recorded).
+RECORDED_SECTIONS = ("hand", "axes", "limits", "tactile", "calibration", "run", "safety")
+
+
 class Settings(BaseSettings):
     """The whole configuration of sdh2svc; see ``config/default.toml`` for every key and unit."""
 
@@ -128,6 +132,19 @@ class Settings(BaseSettings):
             safety=self.safety,
             rolling=self.rolling,
         )
+
+    def recorded(self) -> dict[str, Any]:
+        """The sections a run's recording keeps (the hand, its wiring and the run's model), as
+        JSON: what its export needs, whatever the configuration is when it is exported."""
+        return {k: getattr(self, k).model_dump(mode="json") for k in RECORDED_SECTIONS}
+
+    def as_recorded(self, sections: Mapping[str, Any]) -> Settings:
+        """This configuration with a recording's sections (:meth:`recorded`) in place of its
+        own; :class:`ConfigError` if they are not valid here (e.g. a newer version's)."""
+        try:
+            return self.model_validate({**self.model_dump(), **sections})
+        except ValidationError as e:
+            raise ConfigError(format_errors(e, Settings), "recorded configuration") from None
 
     def finger_limits(self, finger: Finger) -> FingerLimits:
         """Joint limits of a coupled finger in radians (for IK and the safety clamp)."""

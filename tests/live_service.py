@@ -16,6 +16,7 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from sdh2svc.client import AsyncClient, Client
 
@@ -31,6 +32,7 @@ class LiveService:
     db_path: Path
     log: list[str] = field(default_factory=list)
     readers: list[threading.Thread] = field(default_factory=list)
+    announced: dict[str, Any] = field(default_factory=dict)  # serve --json's line
 
     @property
     def ws_url(self) -> str:
@@ -112,7 +114,7 @@ def start_service(
         raise RuntimeError(f"the service did not start ({line!r}):\n" + "".join(log))
     out = threading.Thread(target=_collect, args=(proc.stdout, log), daemon=True)
     out.start()
-    return LiveService(proc, info["url"], info["viewer_url"], token, db, log, [err, out])
+    return LiveService(proc, info["url"], info["viewer_url"], token, db, log, [err, out], info)
 
 
 def _collect(stream: object, out: list[str]) -> None:

@@ -402,14 +402,17 @@ def main(argv: list[str] | None = None) -> None:
     """``python -m sdh2svc.model.urdf [--config FILE] > sdh2.urdf``: the configuration's URDF."""
     import argparse
 
-    from sdh2svc.config import load_config  # the entry point composes; the model never does
+    from sdh2svc.config import ConfigError, load_config  # the entry point composes
 
     p = argparse.ArgumentParser(
         prog="python -m sdh2svc.model.urdf",
         description="Print the SDH2's URDF, generated from the configuration's geometry.",
     )
     p.add_argument("--config", metavar="FILE", help="a TOML file overriding the defaults")
-    cfg = load_config(p.parse_args(argv).config)
+    try:
+        cfg = load_config(p.parse_args(argv).config)
+    except ConfigError as e:  # as sdh2svc's commands say it: the problems, exit 2
+        p.exit(2, f"{p.prog}: {e}\n")
     print(sdh2_urdf(cfg.hand, cfg.axes, cfg.limits, cfg.tactile), end="")
 
 

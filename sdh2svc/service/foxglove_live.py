@@ -49,6 +49,7 @@ from sdh2svc.service.foxglove_mcap import (
     sample_json,
     sample_schema,
 )
+from sdh2svc.service.pacing import Throttle
 from sdh2svc.service.telemetry import (
     AnyMessage,
     Event,
@@ -89,9 +90,8 @@ class FoxgloveLive:
         self.host, self.port = host, port
         self._hand = HandFrames.of(cfg, live_outline)  # the live views' one outline
         self._alpha = math.radians(cfg.rolling.alpha_deg)
-        self._period_s = 1.0 / max_hz
-        self._last_3d = -math.inf  # when /tf and /scene were last fed (monotonic)
-        self._last_pads = -math.inf
+        self._pace_3d = Throttle(1.0 / max_hz)  # /tf and /scene
+        self._pace_pads = Throttle(1.0 / max_hz)
         self._urdf = to_xml(self._hand.desc).encode()
         ctx = foxglove.Context()  # this service's channels only (tests run several)
         schema = foxglove.Schema(
@@ -109,6 +109,11 @@ class FoxgloveLive:
 
     def start(self) -> None:
         """Listen (:class:`FoxgloveStartError` when it cannot, e.g. the port is taken)."""
+        # The SDK logs through Python's logging from its own threads, a line per bad message a
+        # client sends: a client sending junk fast took the interpreter from the control loop
+        # (runs faulted) and filled the log. Off (FOXGLOVE_LOG_LEVEL still overrides it); a
+        # client's errors are answered to the client.
+        foxglove.set_log_level(logging.CRITICAL)
         try:
             self._server = foxglove.start_server(
                 name="sdh2svc", host=self.host, port=self.port, capabilities=[],
@@ -177,20 +182,14 @@ class FoxgloveLive:
             self._events.log(log_message(msg.json(), ns), log_time=ns)
 
     def _tactile(self, msg: Tactile) -> None:
-        now = time.monotonic()
-        if now - self._last_pads < self._period_s:
-            return
         if not any(ch.has_sinks() for ch in self._pads.values()):
             return
-        self._last_pads = now
+        if not self._pace_pads.due(time.monotonic()):
+            return
         ns = time.time_ns()
         for pad, grid in self._hand.pad_grids(msg.matrices, ns).items():
             if self._pads[pad].has_sinks():
                 self._pads[pad].log(grid, log_time=ns)
 
     def _due_3d(self) -> bool:
-        now = time.monotonic()
-        if now - self._last_3d < self._period_s:
-            return False
-        self._last_3d = now
-        return True
+        return self._pace_3d.due(time.monotonic())

@@ -77,30 +77,35 @@ def pad_topic(pad: str) -> str:
 
 
 def sample_json(s: Mapping[str, Any]) -> bytes:
-    """A ``/samples`` message: the sample's columns (non-finite numbers as null)."""
-    return json.dumps({k: _finite(s[k]) for k in COLUMNS}, allow_nan=False).encode()
+    """A ``/samples`` message: the sample's columns that have a value (a non-finite number has
+    none): Foxglove's plots take a missing field as a gap."""
+    row = {k: _finite(s[k]) for k in COLUMNS}
+    return json.dumps({k: v for k, v in row.items() if v is not None}, allow_nan=False).encode()
 
 
 def sample_schema() -> Json:
-    """The JSON schema of ``/samples``, from :class:`Sample`'s fields and their types."""
+    """The JSON schema of ``/samples``, from :class:`Sample`'s fields and their types: one type
+    each (Foxglove's reader of JSON schemas takes no list of types, and refused the whole
+    channel for a ``["number", "null"]``); a field that may have no value is not required."""
     hints = typing.get_type_hints(Sample)
     docs = Sample.descriptions()
     props: Json = {}
+    required = []
     for f in fields(Sample):
         tp = hints[f.name]
         args = typing.get_args(tp) if isinstance(tp, types.UnionType) else (tp,)
-        kinds = [_JSON_TYPES[a] if a is not type(None) else "null" for a in args]
-        props[f.name] = {
-            "type": kinds[0] if len(kinds) == 1 else kinds,
-            "description": docs[f.name],
-        }
+        kinds = [_JSON_TYPES[a] for a in args if a is not type(None)]
+        assert len(kinds) == 1, f"{f.name}: one JSON type, not {kinds}"
+        props[f.name] = {"type": kinds[0], "description": docs[f.name]}
+        if type(None) not in args:
+            required.append(f.name)
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": SAMPLE_SCHEMA,
         "description": "One rolling iteration (control/sample.py); frame 0 as in hand-model.md §2",
         "type": "object",
         "properties": props,
-        "required": [f.name for f in fields(Sample)],
+        "required": required,
         "additionalProperties": False,
     }
 
@@ -459,13 +464,12 @@ def _write_records(
     w: Writer, cfg: Settings, run: Mapping[str, Any], desc: HandDescription, t0_ns: int
 ) -> None:
     meta = run.get("meta") or {}
-    rest = {k: v for k, v in meta.items() if k not in ("params", "object")}
+    rest = {k: v for k, v in meta.items() if k not in ("params", "object", "configuration")}
     info = {k: run.get(k) for k in ("id", "started_at", "ended_at", "status", "summary")}
     w.add_metadata("run", _strings(info))
     w.add_metadata("parameters", _strings(meta.get("params")))
     w.add_metadata("object", _strings(meta.get("object") or "none (a real hand)", "name"))
-    sections = {k: getattr(cfg, k).model_dump(mode="json") for k in _CONFIG_SECTIONS}
-    w.add_metadata("configuration", _strings({**rest, **sections}))
+    w.add_metadata("configuration", _strings({**rest, **cfg.recorded()}))
     w.add_attachment(
         create_time=t0_ns,
         log_time=t0_ns,
@@ -473,15 +477,3 @@ def _write_records(
         media_type="application/xml",
         data=to_xml(desc).encode(),
     )
-
-
-#: The configuration's sections a recording states (the hand, its wiring and the run's model).
-_CONFIG_SECTIONS: Sequence[str] = (
-    "hand",
-    "axes",
-    "limits",
-    "tactile",
-    "calibration",
-    "run",
-    "safety",
-)

@@ -63,6 +63,7 @@ class RecordedRun:
         full_meta = {
             "params": params.model_dump(),
             "object": bench.obj.model_dump() if bench else None,
+            "configuration": cfg.recorded(),  # its export draws it as it was, not as is
             **(meta or {}),
         }
         self.run_id = store.create_run(full_meta)

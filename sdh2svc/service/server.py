@@ -220,9 +220,10 @@ def _announce(server: uvicorn.Server, services: Services, as_json: bool) -> None
     url = f"http://{host if ':' not in host else f'[{host}]'}:{sock[1]}"
     st = services.station
     sim = st.bench is not None
+    fox = services.foxglove
     info = {"url": url, "dashboard": f"{url}/", "docs": f"{url}/docs",
-            "viewer_url": services.viewer_url, "sim": sim,
-            "dsa_url": st.dsa_url, "sdh_url": st.sdh_url}  # fmt: skip
+            "viewer_url": services.viewer_url, "foxglove_url": fox.url if fox else None,
+            "sim": sim, "dsa_url": st.dsa_url, "sdh_url": st.sdh_url}  # fmt: skip
     if as_json:
         print(json.dumps(info), flush=True)
         return
@@ -231,4 +232,5 @@ def _announce(server: uvicorn.Server, services: Services, as_json: bool) -> None
           f"  dashboard  {info['dashboard']}\n"
           f"  API docs   {info['docs']}\n"
           f"  3-D view   {info['viewer_url'] or '(off)'}\n"
+          f"  Foxglove   {info['foxglove_url'] or '(off: service.foxglove_port)'}\n"
           "Ctrl-C stops motion, then the service.", flush=True)  # fmt: skip

@@ -432,16 +432,22 @@ class RunStore:
     def export_mcap(self, run_id: int, out: IO[bytes], cfg: Settings | None = None) -> int:
         """The run as Foxglove-native MCAP (:mod:`sdh2svc.service.foxglove_mcap`): samples,
         the hand's transforms, contacts and friction cones, the pads as grids, events as logs,
-        the run's metadata and the URDF; in simulation the object's true outline. ``cfg``: the
-        configuration the run was recorded with (default: the packaged one). Returns the message
-        count."""
+        the run's metadata and the URDF; in simulation the object's true outline. The hand is
+        drawn as the run recorded its configuration (``Settings.recorded``), in ``cfg`` (default:
+        the packaged one), which a run recorded without one is drawn with. Returns the message
+        count; :class:`~sdh2svc.config.ConfigError` if the recorded sections are not valid in
+        this version."""
         from sdh2svc.config import default_config
         from sdh2svc.service.foxglove_mcap import write_mcap
 
         run = self.run(run_id) or {}
         t0 = _epoch_ns(run["started_at"]) if run else 0
+        cfg = cfg or default_config()
+        recorded = (run.get("meta") or {}).get("configuration")
+        if isinstance(recorded, dict):
+            cfg = cfg.as_recorded(recorded)
         return write_mcap(
-            out, cfg or default_config(), run, t0,
+            out, cfg, run, t0,
             self.samples(run_id, 0, 10**9), self.events(run_id), self.frames(run_id),
             self.outline(run_id), self.truth(run_id),
         )  # fmt: skip

@@ -17,8 +17,8 @@ import pytest
 
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Simulated, connect_hand
-from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control import runner as runner_module
+from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.control.sample import Sample
 from sdh2svc.protocol.sdh import AxisState

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import math
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -207,3 +208,17 @@ def test_the_entry_point_prints_the_configurations_urdf(
 ) -> None:
     main([])
     assert capsys.readouterr().out == text
+
+
+def test_the_entry_point_names_a_bad_configuration_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for config in (tmp_path / "missing.toml", tmp_path / "typo.toml"):
+        if config.name == "typo.toml":
+            config.write_text("[limits]\nmax_deg = [90, -80, 90, 90, 90, 90, 90]\n")
+        with pytest.raises(SystemExit) as ended:
+            main(["--config", str(config)])
+        assert ended.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("python -m sdh2svc.model.urdf: invalid configuration")
+        assert "Traceback" not in err and len(err.splitlines()) == 1, err

@@ -140,6 +140,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveService,
     extra = (*LONG_RUNS, *PATIENT, "--set", f"service.foxglove_port={port}")
     s = start_service(tmp_path_factory.mktemp("lab"), viewer=False, extra=extra, token=TOKEN)
     try:
+        assert s.announced["foxglove_url"] == f"ws://127.0.0.1:{port}", s.announced
         yield s, port
     finally:
         assert s.stop() == 0, "".join(s.log)

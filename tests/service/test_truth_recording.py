@@ -120,6 +120,28 @@ def test_a_replayed_iteration_shows_the_object_where_it_was(sim_run: SimRun) -> 
     assert sim.json()["type"] == "sim" and sim.truth["object"] == "rubber"
 
 
+def test_the_export_draws_the_hand_as_the_run_recorded_it(sim_run: SimRun) -> None:
+    """Exported by a process configured otherwise (another finger length, another pad layout:
+    the old export drew the links 8.5 mm off and failed on the grids), the file is the one the
+    run's own configuration gives."""
+    other = sim_run.cfg.as_recorded({
+        "hand": {**sim_run.cfg.hand.model_dump(mode="json"), "proximal_length_mm": 95.0},
+        "tactile": {**sim_run.cfg.tactile.model_dump(mode="json"),
+                    "proximal": {"rows": 15, "cols": 6}},
+    })  # fmt: skip
+    store = _store(sim_run)
+    run_id = sim_run.summary["run_id"]
+    files = []
+    try:
+        for cfg in (sim_run.cfg, other):
+            raw = io.BytesIO()
+            store.export_mcap(run_id, raw, cfg)
+            files.append(raw.getvalue())
+    finally:
+        store.close()
+    assert files[0] == files[1]
+
+
 def test_the_mcap_scene_carries_the_object(sim_run: SimRun) -> None:
     store = _store(sim_run)
     run_id = sim_run.summary["run_id"]

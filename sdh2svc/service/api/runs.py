@@ -22,7 +22,7 @@ from fastapi import APIRouter, Body, Query
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from sdh2svc.config import Settings
+from sdh2svc.config import ConfigError, Settings
 from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Digits, NoBody, RunId, St, Svc
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
@@ -51,7 +51,7 @@ _EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
             "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
         },
     },
-    **responses(*READ, 404, 422),
+    **responses(*READ, 404, 409, 422),
 }
 
 
@@ -413,7 +413,10 @@ def _export_body(cfg: Settings, run_id: int, format: str) -> Payload:
             store.export_csv(run_id, text)
             return Payload(text.getvalue().encode(), "text/csv; charset=utf-8", headers)
         data = io.BytesIO()
-        store.export_mcap(run_id, data, cfg)
+        try:
+            store.export_mcap(run_id, data, cfg)
+        except ConfigError as e:  # recorded by a version whose configuration this one refuses
+            raise ServiceError(409, f"run {run_id} cannot be drawn by this version: {e}") from None
         return Payload(data.getvalue(), "application/octet-stream", headers)
 
 
