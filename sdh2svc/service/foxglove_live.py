@@ -31,7 +31,6 @@ from typing import Any
 
 import foxglove
 from foxglove import channels as fc
-from foxglove import messages as fm
 
 from sdh2svc.config import Settings
 from sdh2svc.control.observer import EventKind
@@ -44,6 +43,7 @@ from sdh2svc.service.foxglove_mcap import (
     SCENE,
     TF,
     HandFrames,
+    clear_contacts,
     log_message,
     pad_topic,
     sample_json,
@@ -65,18 +65,6 @@ __all__ = ["URDF_URI", "FoxgloveLive", "FoxgloveStartError"]
 log = logging.getLogger(__name__)
 
 URDF_URI = "package://sdh2svc/sdh2.urdf"  # what the URDF layer asks the server for
-
-
-def _clear_contacts(ns: int) -> fm.SceneUpdate:
-    return fm.SceneUpdate(
-        deletions=[
-            fm.SceneEntityDeletion(
-                timestamp=fm.Timestamp(ns // 10**9, ns % 10**9),
-                type=fm.SceneEntityDeletionType.MatchingId,
-                id="contacts",
-            )
-        ]
-    )
 
 
 class FoxgloveStartError(RuntimeError):
@@ -176,7 +164,7 @@ class FoxgloveLive:
                 self._alpha = math.radians(alpha)
         if msg.kind is EventKind.END and self._scene.has_sinks():  # no contacts between runs
             ns = time.time_ns()
-            self._scene.log(_clear_contacts(ns), log_time=ns)
+            self._scene.log(clear_contacts(ns), log_time=ns)
         if self._events.has_sinks():
             ns = time.time_ns()
             self._events.log(log_message(msg.json(), ns), log_time=ns)

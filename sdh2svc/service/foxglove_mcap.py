@@ -36,6 +36,7 @@ from foxglove import messages as fm
 from mcap.writer import Writer
 
 from sdh2svc.config import Settings
+from sdh2svc.control.observer import EventKind
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.geometry import pad_slope
 from sdh2svc.model.urdf import (
@@ -108,6 +109,14 @@ def sample_schema() -> Json:
         "required": required,
         "additionalProperties": False,
     }
+
+
+def clear_contacts(ns: int) -> fm.SceneUpdate:
+    """The scene's contacts (A, B, AB, the cones) taken away: a run has ended."""
+    deletion = fm.SceneEntityDeletion(
+        timestamp=_ts(ns), type=fm.SceneEntityDeletionType.MatchingId, id="contacts"
+    )
+    return fm.SceneUpdate(deletions=[deletion])
 
 
 def _finite(v: Any) -> Any:
@@ -451,6 +460,8 @@ def write_mcap(
     for e in events:
         ns = t0_ns + round(e["t"] * 1e9)
         put(ch_log, ns, log_message(e, ns).encode())
+        if e.get("kind") == EventKind.END:  # as live: no contacts once the run has ended
+            put(ch_scene, ns, clear_contacts(ns).encode())
     for t, _it, _stamp, texels in frames:
         ns = t0_ns + round(t * 1e9)
         for pad, grid in hand.grids(texels, ns).items():

@@ -153,8 +153,10 @@ def test_the_mcap_scene_carries_the_object(sim_run: SimRun) -> None:
         store.close()
     assert outline is not None
     got = read(raw.getvalue())  # every message validated against the SDK's schema
-    scenes = got.messages["/scene"]
+    *scenes, end = got.messages["/scene"]
     assert len(scenes) == len(rows)
+    # as live, the contacts go when the run ends (by id: the type's default, MatchingId)
+    assert [d["id"] for d in end["deletions"]] == ["contacts"] and not end.get("entities")
     for scene, row in zip(scenes, rows, strict=True):
         (obj,) = [e for e in scene["entities"] if e["id"] == "object"]
         assert obj["frame_id"] == "frame0"
