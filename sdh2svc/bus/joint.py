@@ -112,6 +112,13 @@ BYTE_GAP_S: Final = 0.1
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
 _WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
+# The firmware could not read a command this link encoded from its table: the line spoilt it on
+# the way (a flipped bit, a lost byte), so it is retried as a spoilt reply is
+_SPOILT_ON_THE_LINE: Final = frozenset({
+    SdhError.CHECKSUM_ERROR, SdhError.NOT_ENOUGH_PARAMS, SdhError.NO_PARAMS_EXPECTED,
+    SdhError.CMD_UNKNOWN, SdhError.CMD_FORMAT_ERROR, SdhError.MAX_COMMANDLINE_EXCEEDED,
+    SdhError.CRC_ERROR,
+})  # fmt: skip
 
 
 # -- errors, events, statistics -----------------------------------------------------------------
@@ -210,6 +217,7 @@ class _Request:
     moves: bool  # refused while an emergency stop is latched
     n_values: int | None  # reply value count, when known
     check: Callable[[Vec], bool] | None = None  # plausibility of the reply values
+    from_table: bool = False  # encoded from the command table: the firmware can read it
 
     @property
     def label(self) -> str:
@@ -675,7 +683,7 @@ class JointLink:
         elif kw in _ACTUAL_ANGLES:
             check = self._plausible_actual
         return _Request(kw, data, axis, code, axis_cmd, _may_move(kw, vals), n_values,
-                        check)  # fmt: skip
+                        check, spec is not None or code is not None)  # fmt: skip
 
     def _plausible_actual(self, values: Vec) -> bool:
         """Actual angles a hand can have: within the limits (± a margin) and no further from the
@@ -757,7 +765,8 @@ class JointLink:
                 reply = await self._attempt(conn, req, timeout_s)
             except FirmwareError as exc:
                 self.stats.errors += 1
-                if not req.retry_on_error:
+                spoilt = req.from_table and exc.error in _SPOILT_ON_THE_LINE
+                if not (req.retry_on_error or spoilt):
                     raise
                 failure, conn.dirty = exc, True  # SDHLibrary resyncs before retrying
             except _Garbled as exc:

@@ -388,6 +388,28 @@ def test_a_reply_broken_off_is_retried_at_once_not_after_its_timeout(
     run_fast(main())
 
 
+@pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
+def test_a_command_the_line_spoilt_on_its_way_is_sent_again(tmp_path: Path, binary: bool) -> None:
+    """The firmware answers E13 / E14 to a command a flipped bit made unreadable: one encoded
+    from the command table was spoilt on the line, and is retried as a spoilt reply is, not
+    raised as the firmware's refusal (runs faulted on `m: firmware error 13`)."""
+
+    async def main() -> None:
+        dev = Sdh2Emulator(ScriptedWorld(SHAPES))
+        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
+            link = await JointLink.open(ep.url, binary=binary, timeout_s=0.2, retries=5)
+            try:
+                ep.set_faults(FaultConfig(bit_error_rate=1e-3, host_to_device=True, seed=5))
+                for _ in range(400):  # `m`: no axis command, not retried after an error before
+                    await link.move()
+                assert ep.stats.faults[FaultKind.RX_BIT_ERROR] > 0
+                assert link.stats.errors > 0 and link.stats.failures == 0, link.stats
+            finally:
+                await link.close()
+
+    run_fast(main())
+
+
 async def test_pty_unplugged_times_out_then_recovers() -> None:
     async with _rig("pty") as rig:
         link = await rig.open(timeout_s=0.1, retries=1)
