@@ -15,7 +15,8 @@ const $ = (sel) => document.querySelector(sel);
 const ACTIVE = new Set(["idle", "connecting", "pre-shape", "grasping", "rolling", "releasing"]);
 const CONTACT_STALE_MS = 1500;
 // How a run can end that needs a person to look (status.last_run.status, the `end` event).
-const NOTICE_STATUSES = new Set(["faulted", "dropped", "e-stopped", "stopped"]);
+// "interrupted": the service was killed or crashed during the run (status.last_run after a restart).
+const NOTICE_STATUSES = new Set(["faulted", "dropped", "e-stopped", "stopped", "interrupted"]);
 const TOAST_MS = { error: 15000, info: 4000 }; // how long a toast stays, unless renewed
 // The browser's note that a ResizeObserver's callback resized something: benign, never an error.
 const BENIGN_ERRORS = /ResizeObserver loop/;
@@ -41,7 +42,11 @@ const state = {
   replayId: null,
   openPending: false, // an Open hand request in flight, or answered and not yet in a status
   openAnsweredAt: 0,
-  notice: null, // {id, status, message, released, opened, error}
+  startPending: false, // a Grasp & roll request in flight, or answered and its run not yet in a status
+  startedRun: null, // the run id the start request was answered with
+  presets: null, // the simulated object's preset names (GET /api/sim/object), a Set
+  objectPuts: 0, // object choices sent and not yet answered: the selector keeps the user's pick
+  notice: null, // {id, status, message, opened, openStopped (why an opening stopped), error}
   dismissedRun: null,
   releasedRuns: new Set(), // runs seen in their releasing phase (the fingers opened)
 };
@@ -56,7 +61,8 @@ let telemetry = null;
 /**
  * A toast under the page: errors stay TOAST_MS.error, notes TOAST_MS.info (or `timeoutMs`).
  * `key` names the problem (the action that failed): clearToasts(key) removes it once that
- * action succeeds. The same text again renews the toast it has (counted) instead of stacking.
+ * action succeeds. The same text again renews the toast it has (counted) instead of stacking,
+ * with the newest details. `timeoutMs: Infinity`: it stays until dismissed or cleared.
  */
 function toast(message, { details = [], kind = "error", timeoutMs = 0, key = "" } = {}) {
   const host = $("#errors");
@@ -67,6 +73,7 @@ function toast(message, { details = [], kind = "error", timeoutMs = 0, key = "" 
       old.dataset.count = String(n);
       old.dataset.expires = String(expires);
       old.querySelector(".toast-text").textContent = `${message} (×${n})`;
+      setDetails(old, details); // the same sentence may come with other details (another field)
       return old;
     }
   }
@@ -80,15 +87,7 @@ function toast(message, { details = [], kind = "error", timeoutMs = 0, key = "" 
   text.className = "toast-text";
   text.textContent = message;
   box.appendChild(text);
-  if (details.length) {
-    const ul = document.createElement("ul");
-    for (const d of details) {
-      const li = document.createElement("li");
-      li.textContent = String(d);
-      ul.appendChild(li);
-    }
-    box.appendChild(ul);
-  }
+  setDetails(box, details);
   const close = document.createElement("button");
   close.className = "close";
   close.type = "button";
@@ -100,6 +99,20 @@ function toast(message, { details = [], kind = "error", timeoutMs = 0, key = "" 
   while (host.children.length > 6) host.firstElementChild.remove();
   sdh2.toasts = host.children.length;
   return box;
+}
+
+/** A toast's list of details, replacing the one it had (none: no list). */
+function setDetails(box, details) {
+  const old = box.querySelector("ul");
+  if (old) old.remove();
+  if (!details.length) return;
+  const ul = document.createElement("ul");
+  for (const d of details) {
+    const li = document.createElement("li");
+    li.textContent = String(d);
+    ul.appendChild(li);
+  }
+  box.querySelector(".toast-text").after(ul);
 }
 
 /** Remove the toasts whose time is up (`now`: a test may pass a later time). */
@@ -173,10 +186,19 @@ const form = new ParamsForm($("#params-form"), {
 /** Open (or with false, close) the parameter drawer; none: toggle. */
 function openDrawer(open) {
   const drawer = $("#params-drawer");
-  const want = open ?? !drawer.classList.contains("open");
+  const was = drawer.classList.contains("open");
+  const want = open ?? !was;
   drawer.classList.toggle("open", want);
   drawer.setAttribute("aria-hidden", String(!want));
   $("#params-toggle").setAttribute("aria-expanded", String(want));
+  if (want && !was) {
+    // the drawer is last in the page: without this, Tab walks the whole page to reach it
+    const field = drawer.querySelector(".field.invalid input, .field.invalid select")
+      ?? drawer.querySelector("#params-fields input, #params-fields select");
+    if (field) field.focus({ preventScroll: true });
+  } else if (!want && drawer.contains(document.activeElement)) {
+    $("#params-toggle").focus(); // back where the keyboard came from
+  }
 }
 $("#params-toggle").addEventListener("click", () => openDrawer());
 $("#params-close").addEventListener("click", () => openDrawer(false));
@@ -191,7 +213,9 @@ const layoutWatch = new ResizeObserver(() => requestAnimationFrame(() => {
   root.setProperty("--header-h", `${$("#controls").offsetHeight}px`);
   root.setProperty("--stage-top", `${$(".stage").getBoundingClientRect().top + window.scrollY}px`);
 }));
-for (const sel of ["#controls", "#dead-banner", "#run-notice"]) layoutWatch.observe($(sel));
+for (const sel of ["#controls", "#dead-banner", "#estop-banner", "#run-notice"]) {
+  layoutWatch.observe($(sel));
+}
 
 async function applyParams(patch) {
   form.clearErrors();
@@ -217,6 +241,7 @@ async function applyParams(patch) {
 // --- run control ------------------------------------------------------------------------------
 
 async function startRun() {
+  if (state.startPending) return; // a double click: one request
   const body = {};
   const { patch, blocked } = form.collect(true);
   if (blocked) {
@@ -225,34 +250,52 @@ async function startRun() {
     return;
   }
   if (Object.keys(patch).length) body.params = patch;
-  if (state.sim && $("#object-select").value) body.object = $("#object-select").value;
+  const object = objectToSend();
+  if (object) body.object = object;
   form.clearErrors();
+  // Grasp & roll stays disabled from the click until a status shows the run (or the refusal)
+  state.startPending = true;
+  state.startedRun = null;
+  updateControls();
   try {
     const r = await api.startRun(body);
+    state.startedRun = r.run_id;
     clearToasts("start");
     toast(`Run ${r.run_id} started`, { kind: "info", timeoutMs: 3000 });
     plots.resetLive();
     state.liveRunId = r.run_id;
     if (plots.replaying) backToLive();
   } catch (e) {
+    state.startPending = false;
     if (e instanceof ApiError && e.status === 422) {
       form.showServerErrors(e.details, e.error);
       openDrawer(true);
     }
     showError(e, "start");
   }
+  updateControls();
+}
+
+/**
+ * The `object` Grasp & roll asks for: the preset picked, unless it is the current object
+ * already (its PUT is answered). None: the run uses the current object, whatever it is — a
+ * custom one's name is no preset and must never be sent as one.
+ */
+function objectToSend() {
+  if (!state.sim || !state.presets) return null;
+  const picked = $("#object-select").value;
+  const current = state.status && state.status.object ? state.status.object.name : null;
+  return state.presets.has(picked) && picked !== current ? picked : null;
 }
 
 $("#start").addEventListener("click", startRun);
 $("#stop").addEventListener("click", () => guard("stop", async () => {
   const r = await api.stopRun();
-  toast(`Stopping run ${r.run_id} (${r.state})`, { kind: "info", timeoutMs: 3000 });
+  const what = r.run_id == null ? "Stopping the opening: the fingers hold where they are"
+    : `Stopping run ${r.run_id} (${r.state})`;
+  toast(what, { kind: "info", timeoutMs: 3000 });
 }));
-$("#estop").addEventListener("click", () => guard("e-stop", async () => {
-  await api.estop(); // no token needed: stopping is always allowed
-  $("#estop").classList.add("latched");
-  refreshStatus();
-}));
+$("#estop").addEventListener("click", estop);
 $("#open-hand").addEventListener("click", openHand);
 $("#notice-open-hand").addEventListener("click", openHand);
 $("#notice-dismiss").addEventListener("click", () => {
@@ -281,9 +324,108 @@ async function openHand() {
 }
 $("#estop-release").addEventListener("click", () => guard("release e-stop", async () => {
   await api.release();
-  $("#estop").classList.remove("latched");
+  clearEstopAnswer();
+  renderEstopBanner();
+  renderEstop(false);
   refreshStatus();
 }));
+
+// --- e-stop -----------------------------------------------------------------------------------
+
+const USE_SWITCH = "use the hand's own emergency-stop switch";
+
+// What POST /api/estop could not do (its answer's hand_reached / recorded false), shown in
+// #estop-banner until a status shows it done: the joint line back after being seen down (the
+// service then sends the power-off it owes first), or the latch on disk; the release ends both.
+// `lineDown`: a status since the answer showed the joint line down; `latched`: one showed the
+// e-stop latched (a later one that does not is the release).
+const estopAnswer = { unreached: false, unrecorded: false, detail: "", lineDown: false, latched: false };
+
+// status.estop.recorded: the latch is in the hand, not (yet) in the run database
+const DISK_NOTES = {
+  pending: "The e-stop is latched, but not on disk yet: the run database is busy (another " +
+    "program holds it locked); until it is written, a restart of the service would not keep it.",
+  no: "The e-stop is latched in the hand, but not on disk (the run database did not take it; " +
+    "the service's log says why): a restart of the service would not keep it.",
+};
+
+/**
+ * E-STOP: always sent, even when the page believes the service is gone (it may only be slow).
+ * The answer may say the hand or the disk did not take it; a failure says to use the hand's
+ * own switch, in a toast that stays.
+ */
+async function estop() {
+  try {
+    const r = await api.estop(); // no token needed: stopping is always allowed
+    heard();
+    clearToasts("e-stop");
+    takeEstopAnswer(r || {});
+    renderEstop(true);
+    refreshStatus();
+  } catch (e) {
+    if (e instanceof ApiError && e.status !== 0) heard(); // it answered, with an error
+    const msg = e instanceof ApiError ? e.error : String((e && e.message) || e);
+    sdh2.lastError = `e-stop: ${msg}`;
+    console.warn("sdh2svc:", sdh2.lastError);
+    toast(`The E-STOP did not go through (${msg}): ${USE_SWITCH}.`,
+      { key: "e-stop", timeoutMs: Infinity });
+  }
+}
+
+function takeEstopAnswer(r) {
+  const st = state.status || {};
+  estopAnswer.unreached = r.hand_reached === false;
+  estopAnswer.unrecorded = r.recorded === false;
+  estopAnswer.detail = r.detail ? String(r.detail) : "";
+  estopAnswer.lineDown = Boolean(st.hand && st.hand.connected && st.hand.connected.joints === false);
+  estopAnswer.latched = Boolean(st.estopped);
+  renderEstopBanner();
+}
+
+function clearEstopAnswer() {
+  Object.assign(estopAnswer, { unreached: false, unrecorded: false, detail: "", lineDown: false,
+    latched: false });
+}
+
+/** The e-stop banner from the last status and the last e-stop answer. */
+function renderEstopBanner() {
+  const st = state.status || {};
+  const a = estopAnswer;
+  if (st.estopped) a.latched = true;
+  else if (a.latched) clearEstopAnswer(); // released (here or elsewhere)
+  const joints = st.hand && st.hand.connected ? st.hand.connected.joints : undefined;
+  if (joints === false) a.lineDown = true;
+  else if (joints && a.lineDown) a.unreached = false; // the line is back: the power-off went first
+  const recorded = st.estop ? st.estop.recorded : undefined;
+  if (a.unrecorded && st.estop && !DISK_NOTES[recorded]) a.unrecorded = false; // on disk now
+  const hand = a.unreached
+    ? `The hand has not confirmed the e-stop: the motors may still be on — ${USE_SWITCH}.` : "";
+  const disk = DISK_NOTES[recorded] || (a.unrecorded ? DISK_NOTES.pending : "");
+  const detail = (a.unreached || a.unrecorded) && a.detail ? `The service says: ${a.detail}.` : "";
+  for (const [sel, text] of [["#estop-hand", hand], ["#estop-disk", disk], ["#estop-detail", detail]]) {
+    $(sel).textContent = text;
+    $(sel).hidden = !text;
+  }
+  $("#estop-banner").hidden = !hand && !disk;
+}
+
+/** The E-STOP button: latched or not in its text and aria-pressed too, not only its colour;
+ * never disabled. */
+function renderEstop(latched = Boolean(state.status && state.status.estopped)) {
+  const b = $("#estop");
+  const e = (state.status && state.status.estop) || {};
+  b.classList.toggle("latched", latched);
+  b.textContent = latched ? "E-STOP (latched)" : "E-STOP";
+  b.setAttribute("aria-pressed", String(latched));
+  let title = "POST /api/estop: motors off at once";
+  if (latched) {
+    title = `The e-stop is latched${e.since ? ` since ${shortTime(e.since)}` : ""}` +
+      `${e.reason ? ` (${e.reason})` : ""}: the motors are off until it is released. ` +
+      "A click sends it again.";
+  }
+  if (live.dead) title = `The service is not answering: a click tries all the same; ${USE_SWITCH}.`;
+  b.title = title;
+}
 
 // --- token ------------------------------------------------------------------------------------
 
@@ -292,20 +434,19 @@ $("#token").addEventListener("change", () => setToken($("#token").value.trim()))
 
 // --- object (simulation) ----------------------------------------------------------------------
 
+// The custom entry's value: no preset's name (a custom object's name is not one the API takes).
+const CUSTOM = "";
+
 async function loadObject() {
   const sel = $("#object-select");
   try {
     const info = await api.simObject();
     state.sim = true;
+    state.presets = new Set(info.presets || []);
     sel.innerHTML = "";
-    for (const name of info.presets || []) sel.add(new Option(name, name));
-    const current = info.object && info.object.name;
-    if (current && ![...sel.options].some((o) => o.value === current)) {
-      sel.add(new Option(`${current} (custom)`, current));
-    }
-    if (current) sel.value = current;
-    sel.disabled = false;
-    sel.dataset.current = current || "";
+    for (const name of state.presets) sel.add(new Option(name, name));
+    syncObject(info.object);
+    updateControls();
   } catch (e) {
     if (e instanceof ApiError && e.status === 404) {
       state.sim = false; // a real hand: no object choice
@@ -316,18 +457,47 @@ async function loadObject() {
   }
 }
 
+/**
+ * The selector shows the current object (`obj`: status.object or an answer's): its preset, or
+ * one "NAME (custom)" entry for any other (set by another client, `--object-file`). Left alone
+ * while the user's own pick is on its way.
+ */
+function syncObject(obj) {
+  const sel = $("#object-select");
+  if (!state.presets || !obj || state.objectPuts > 0) return;
+  const name = obj.name || "";
+  let custom = sel.querySelector("option[data-custom]");
+  if (state.presets.has(name)) {
+    if (custom) custom.remove();
+  } else {
+    const label = `${name || obj.kind || "object"} (custom)`;
+    if (!custom) {
+      custom = new Option(label, CUSTOM);
+      custom.dataset.custom = "true";
+      sel.add(custom);
+    }
+    if (custom.textContent !== label) custom.textContent = label;
+  }
+  const want = state.presets.has(name) ? name : CUSTOM;
+  if (sel.value !== want) sel.value = want;
+}
+
 $("#object-select").addEventListener("change", async (ev) => {
   const sel = ev.target;
+  if (!state.presets || !state.presets.has(sel.value)) return; // the custom entry: current already
+  state.objectPuts += 1;
+  let now = null;
   try {
     const r = await api.putSimObject(sel.value);
-    const name = (r && (r.object?.name ?? r.name)) || sel.value;
-    sel.dataset.current = name;
+    now = (r && (r.object ?? r)) || null;
     clearToasts("object");
-    toast(`Object: ${name}`, { kind: "info", timeoutMs: 2500 });
+    toast(`Object: ${(now && now.name) || sel.value}`, { kind: "info", timeoutMs: 2500 });
   } catch (e) {
     showError(e, "object");
-    sel.value = sel.dataset.current || sel.value;
+  } finally {
+    state.objectPuts -= 1;
   }
+  syncObject(now ?? (state.status && state.status.object)); // refused: back to the current
 });
 
 // --- status -----------------------------------------------------------------------------------
@@ -392,19 +562,19 @@ function renderStatus(st) {
   $("#run-message").textContent = msg;
   $("#run-message").title = msg;
 
-  $("#estop").classList.toggle("latched", Boolean(st.estopped));
   // an Open hand answered 202 is pending until a status produced after the answer says so
   if (state.openPending && state.openAnsweredAt && Date.now() - state.openAnsweredAt > 600) {
     state.openPending = false;
   }
+  // a start answered 201 is pending until a status shows its run
+  if (state.startPending && state.startedRun != null && run && run.id >= state.startedRun) {
+    state.startPending = false;
+  }
   updateControls();
+  renderEstopBanner();
 
   $("#mode-badge").textContent = st.sim ? "simulated hand" : "real hand";
-  const conn = st.hand && st.hand.connected;
-  const ok = conn && conn.joints && conn.tactile;
-  const ls = $("#links-state");
-  ls.textContent = ok ? "links up" : "links down";
-  ls.className = `badge ${ok ? "links-ok" : "links-bad"}`;
+  renderLinks(st.hand && st.hand.connected);
   if (st.auth_required) $("#token-field").hidden = false;
 
   if (st.params) {
@@ -412,13 +582,7 @@ function renderStatus(st) {
     form.setValues(st.params);
     sketch.setAlpha(st.params.alpha_deg);
   }
-  if (st.object && st.object.name && document.activeElement !== $("#object-select")) {
-    const sel = $("#object-select");
-    if ([...sel.options].some((o) => o.value === st.object.name)) {
-      sel.value = st.object.name;
-      sel.dataset.current = st.object.name;
-    }
-  }
+  if (state.sim) syncObject(st.object);
   if (st.hand && Array.isArray(st.hand.angles_deg)) setPose(st.hand.angles_deg);
   noticeFromStatus(st);
   if (run && run.state !== "rolling" && Date.now() - state.lastSampleAt > CONTACT_STALE_MS) {
@@ -434,6 +598,19 @@ function renderStatus(st) {
   }
 }
 
+/** The links badge, its tooltip naming the line that is down (goDead's tooltip never stays). */
+function renderLinks(conn) {
+  const ok = Boolean(conn && conn.joints && conn.tactile);
+  const down = [];
+  if (!(conn && conn.joints)) down.push("the joint line");
+  if (!(conn && conn.tactile)) down.push("the tactile line");
+  const ls = $("#links-state");
+  ls.textContent = ok ? "links up" : "links down";
+  ls.className = `badge ${ok ? "links-ok" : "links-bad"}`;
+  ls.title = ok ? "the hand's two links: the joint line and the tactile line are up"
+    : `${down.join(" and ")} ${down.length > 1 ? "are" : "is"} down (see the tactile bus card)`;
+}
+
 async function refreshStatus() {
   const st = await guard("status", () => api.status(STATUS_PROBE_TIMEOUT_MS));
   if (st) {
@@ -447,11 +624,12 @@ function runActive(st) {
   return Boolean(run && (run.status === "running" || ACTIVE.has(run.state)));
 }
 
-function setButton(sel, disabled, why = "") {
+/** `why`: the tooltip while disabled; `title`: while enabled, if not the button's own. */
+function setButton(sel, disabled, why = "", title = "") {
   const b = $(sel);
   b.disabled = disabled;
   if (!b.dataset.title) b.dataset.title = b.title;
-  b.title = disabled && why ? why : b.dataset.title;
+  b.title = disabled && why ? why : title || b.dataset.title;
 }
 
 /** Every control's enabled state, from the last status, the liveness and pending requests. */
@@ -460,12 +638,17 @@ function updateControls() {
   const dead = live.dead;
   const active = runActive(st);
   const estopped = Boolean(st.estopped);
-  const opening = Boolean(st.hand && st.hand.opening) || state.openPending;
+  const handOpening = Boolean(st.hand && st.hand.opening);
+  const opening = handOpening || state.openPending;
   const gone = "the service is not answering";
-  setButton("#start", dead || active || estopped || opening,
-    dead ? gone : estopped ? "release the e-stop first" : active ? "a run is active" : "the hand is opening");
-  setButton("#stop", dead || !active, dead ? gone : "no run is active");
-  setButton("#estop", dead, `${gone}: use the hand's own emergency stop switch`);
+  setButton("#start", dead || active || estopped || opening || state.startPending,
+    dead ? gone : estopped ? "release the e-stop first" : active ? "a run is active"
+      : opening ? "the hand is opening" : "the run is being started");
+  // Stop halts an opening too (POST /api/runs/stop): the fingers hold where they are
+  setButton("#stop", dead || !(active || handOpening),
+    dead ? gone : "no run is active and the hand is not opening",
+    !active && handOpening ? "POST /api/runs/stop: halt the opening; the fingers hold where they are" : "");
+  renderEstop(); // never disabled: a page that thinks the service is gone may be wrong
   setButton("#estop-release", dead || !estopped, dead ? gone : "the e-stop is not latched");
   let why = "";
   if (dead) why = gone;
@@ -503,7 +686,7 @@ function noticeFromStatus(st) {
 
 function showNotice(n) {
   const prev = state.notice && state.notice.id === n.id ? state.notice : {};
-  state.notice = { opened: false, error: "", ...prev, ...n };
+  state.notice = { opened: false, openStopped: "", error: "", ...prev, ...n };
   renderNotice();
 }
 
@@ -547,16 +730,27 @@ function renderNotice() {
       body = "the motors were switched off at once.";
       next = "The fingers are not driven; the object may still be held.";
       break;
+    case "interrupted": // the service was killed or crashed: nothing ended the run
+      title = `Run ${n.id} was interrupted:`;
+      body = "the service stopped during it (it was killed or crashed).";
+      next = "The fingers stopped where they were; the object may still be held.";
+      break;
     default: // stopped
       title = `Run ${n.id} was stopped`;
       body = "on request; the fingers released the object.";
       next = "";
   }
+  // an Open hand stopped part-way (Stop, an e-stop) left the fingers where they were
+  const toOpen = !n.opened && (n.status !== "stopped" || Boolean(n.openStopped));
+  if (n.openStopped) {
+    next = `Opening the hand was stopped part-way (${n.openStopped}): the fingers hold where ` +
+      "they are; the object may still be held.";
+  }
   if (n.opened) {
     next = "The hand is open now.";
   } else if (estopped) {
     next = `${next} Release the e-stop when it is safe, then open the hand.`.trim();
-  } else if (n.status !== "stopped") {
+  } else if (toOpen) {
     next = `${next} Open the hand to let go of whatever it holds, or start the next run.`.trim();
   }
   $("#run-notice-title").textContent = title;
@@ -567,9 +761,9 @@ function renderNotice() {
   err.hidden = !n.error;
   const box = $("#run-notice");
   box.dataset.status = n.status;
-  box.classList.toggle("resolved", Boolean(n.opened) || n.status === "stopped");
+  box.classList.toggle("resolved", !toOpen);
   // after a stop the run itself opened the fingers; Open hand stays in the control bar
-  $("#notice-open-hand").hidden = Boolean(n.opened) || n.status === "stopped";
+  $("#notice-open-hand").hidden = !toOpen;
   box.hidden = false;
   sdh2.notice = `${title} ${body} ${next}`;
 }
@@ -602,6 +796,7 @@ function goDead() {
   ls.textContent = "links unknown";
   ls.className = "badge links-unknown";
   ls.title = "the service does not answer: nothing is known about the hand's links";
+  state.startPending = false; // its run may never show (a restarted service numbers anew)
   const rs = $("#run-state");
   const lastSeen = rs.textContent;
   rs.textContent = "unknown";
@@ -624,6 +819,7 @@ function revive() {
     { kind: "info", timeoutMs: 5000 });
   updateControls();
   loadRuns();
+  if (state.sim === null) loadObject(); // the page loaded while the service was gone
 }
 
 /** Ask for the status once: true if the service answered (even with an error). */
@@ -779,8 +975,14 @@ function eventNotice(m) {
     }
   } else if (m.kind === "estop" && m.run_id != null && m.run_id !== state.dismissedRun) {
     showNotice({ id: m.run_id, status: "e-stopped", message: "emergency stop" });
+  } else if (m.kind === "open" && state.notice) {
+    state.notice.openStopped = ""; // opening (again)
+    renderNotice();
   } else if (m.kind === "opened" && state.notice) {
-    state.notice.opened = true;
+    // `completed: false`: stopped part-way (Stop, an e-stop): the hand is not open
+    const done = d.completed !== false;
+    state.notice.opened = done;
+    state.notice.openStopped = done ? "" : plainMessage(d.message) || "stopped";
     state.notice.error = "";
     renderNotice();
   }
@@ -923,6 +1125,7 @@ function onWsState(s, info) {
     el.textContent = "live";
     el.title = "telemetry WebSocket";
     heard();
+    if (sdh2.connects > 1) loadViewer(); // the service may be another one, or its view gone
     clearTimeout(live.timer);
     live.delay = 1000;
   } else if (s === "connecting") {
@@ -1212,16 +1415,27 @@ $("#runs-refresh").addEventListener("click", () => loadRuns());
 
 // --- 3-D view ---------------------------------------------------------------------------------
 
+const VIEWER_OFF = "The 3-D view is not available: the service was started with --no-viewer, " +
+  "viser is missing, or the view's process ended (the service's log says which; a restart of " +
+  "the service starts the view again).";
+// The iframe loads when its card first scrolls into sight; from then on a new address loads at once.
+const viewerLoad = { observer: null, seen: false };
+
+/** GET /api/viewer, at start and at every reconnection: the view may have gone, or come. */
 async function loadViewer() {
   const frame = $("#viewer");
   const note = $("#viewer-note");
+  const link = $("#viewer-link");
   try {
     const v = await api.viewer();
     if (!v || !v.url) {
-      note.textContent = "The 3-D view is off on this service (started with --no-viewer, or viser " +
-        "is not available).";
+      note.textContent = VIEWER_OFF;
       note.hidden = false;
       frame.hidden = true;
+      frame.dataset.url = "";
+      if (frame.getAttribute("src") !== "about:blank") frame.src = "about:blank"; // not a frozen view
+      link.hidden = true;
+      replayData.viewer = false;
       return;
     }
     const url = new URL(v.url);
@@ -1230,24 +1444,36 @@ async function loadViewer() {
     if (local.includes(url.hostname) && !local.includes(location.hostname)) {
       url.hostname = location.hostname;
     }
-    // The WebGL view is heavy (a software renderer can starve a small machine): load it when its
-    // card first scrolls into sight, and keep it from then on.
-    frame.hidden = false;
-    frame.dataset.url = url.toString();
-    const seen = new IntersectionObserver((entries) => {
-      if (!entries.some((e) => e.isIntersecting)) return;
-      seen.disconnect();
-      frame.src = frame.dataset.url;
-    }, { rootMargin: "80px" });
-    seen.observe(frame);
-    const link = $("#viewer-link");
+    note.hidden = true;
     link.href = url.toString();
     link.hidden = false;
+    if (frame.dataset.url === url.toString() && !frame.hidden) return; // the same view: kept
+    frame.hidden = false;
+    frame.dataset.url = url.toString();
+    showViewer(frame);
   } catch (e) {
     note.textContent = "The 3-D view's address is unknown (GET /api/viewer failed).";
     note.hidden = false;
     showError(e, "3-D view");
   }
+}
+
+/** The WebGL view is heavy (a software renderer can starve a small machine): load it when its
+ * card first scrolls into sight, and keep it from then on. */
+function showViewer(frame) {
+  if (viewerLoad.seen) {
+    frame.src = frame.dataset.url;
+    return;
+  }
+  if (viewerLoad.observer) return; // still out of sight: it loads dataset.url when seen
+  viewerLoad.observer = new IntersectionObserver((entries) => {
+    if (!entries.some((e) => e.isIntersecting)) return;
+    viewerLoad.observer.disconnect();
+    viewerLoad.observer = null;
+    viewerLoad.seen = true;
+    frame.src = frame.dataset.url;
+  }, { rootMargin: "80px" });
+  viewerLoad.observer.observe(frame);
 }
 
 // --- start ------------------------------------------------------------------------------------

@@ -63,12 +63,26 @@ function params(p, only = null) {
     .join(", ");
 }
 
-/** The part of a fault's or run's message a person reads ("no_contact: …" in plain words). */
+const words = (s) => String(s).toLowerCase().match(/[\p{L}\p{N}]+/gu) ?? [];
+
+/** Whether `rest` says nothing that `said` does not (the same words, in any order). */
+function repeats(said, rest) {
+  const have = new Set(words(said));
+  return words(rest).every((w) => have.has(w));
+}
+
+/**
+ * The part of a fault's or run's message a person reads ("no_contact: …" in plain words). The
+ * service's own text follows in brackets when it tells more (numbers, a line's name), not when
+ * it says the same again ("dropped: both contacts lost: the object is no longer held").
+ */
 export function plainMessage(message) {
   const m = String(message || "").trim();
   const i = m.indexOf(": ");
-  if (i > 0 && FAULT_WORDS[m.slice(0, i)]) return `${FAULT_WORDS[m.slice(0, i)]} (${m.slice(i + 2)})`;
-  return FAULT_WORDS[m] || m;
+  const plain = FAULT_WORDS[i > 0 ? m.slice(0, i) : m];
+  if (!plain) return m;
+  const rest = i > 0 ? m.slice(i + 2).trim() : "";
+  return rest && !repeats(plain, rest) ? `${plain} (${rest})` : plain;
 }
 
 // How close ω was to the cone's edge 90° ± α (degrees; negative: beyond it).

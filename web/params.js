@@ -123,14 +123,19 @@ export class ParamsForm {
     return f.input.value === "" || Number(f.input.value) !== Number(sv);
   }
 
-  /** New server values: fields being edited (dirty or focused) keep what the user typed. */
+  /**
+   * New server values: a field the user changed keeps what they typed while it differs from
+   * the server's value; once the server's value is what they typed (sent with Grasp & roll,
+   * now in force) it is no longer marked changed. Other fields show the server's value, the
+   * focused one too (the drawer focuses its first field when it opens).
+   */
   setValues(values, force = false) {
     this.server = { ...values };
     for (const [name, f] of Object.entries(this.inputs)) {
       if (!(name in values)) continue;
-      const editing = f.row.classList.contains("dirty") || document.activeElement === f.input;
-      if (force || !editing) {
-        f.input.value = String(values[name]);
+      const typed = f.row.classList.contains("dirty") && this.isDirty(name);
+      if (force || !typed) {
+        if (f.input.value !== String(values[name])) f.input.value = String(values[name]);
         f.row.classList.remove("dirty");
         if (force) this.setFieldError(name, "");
       }

@@ -8,8 +8,10 @@ replays with one scrubber driving plots, pads, sketch and the 3-D view, and its 
 download. At 1024×768 the pads and plots fit the first screen (the parameters in a drawer);
 toasts expire, and clear once their problem is gone. A faulted run leaves a notice saying what
 happened and offering Open hand; a service that dies (or freezes) greys the dashboard out under
-a banner, and one that comes back restores it. Every mutating request the page makes carries a
-JSON body and its content type.
+a banner, and one that comes back restores it (its E-STOP is still tried, and says to use the
+hand's own switch when it fails). An e-stop the hand has not confirmed, or the disk not taken,
+is said in a banner; a custom object (``--object-file``) is run as it is. Every mutating request
+the page makes carries a JSON body and its content type.
 """
 
 from __future__ import annotations
@@ -227,8 +229,13 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
     assert await k.is_hidden()
     await page.click("#params-toggle")
     await expect(k).to_be_visible()
+    # the keyboard lands in the drawer's first field (not at the end of the page), and back
+    await expect(
+        page.locator("#params-fields .field").first.locator("input, select")
+    ).to_be_focused()
     await page.keyboard.press("Escape")
     await expect(k).to_be_hidden()
+    await expect(page.locator("#params-toggle")).to_be_focused()
     await page.set_viewport_size({"width": 1500, "height": 1200})
 
     # an error toast clears once its problem is gone (the run history loads again) …
@@ -244,6 +251,23 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
     await expect(page.locator("#errors .toast")).to_have_count(1)
     await page.evaluate("window.sdh2debug.expireToasts(Date.now() + 60000)")
     await expect(page.locator("#errors .toast")).to_have_count(0)
+    # the same error again with other details (another field): the toast shows the new ones
+    details = await page.evaluate("""() => {
+        window.sdh2debug.toast('bad parameters', {details: ['k = 0.5: too small']});
+        const box = window.sdh2debug.toast('bad parameters', {details: ['cycles = 0: too few']});
+        const got = [...box.querySelectorAll('li')].map((li) => li.textContent);
+        box.remove();
+        return got;
+    }""")
+    assert details == ["cycles = 0: too few"], details
+    # a fault's message is not said twice when the service's words repeat the plain ones
+    said = await page.evaluate("""async () => {
+        const m = await import('/web/events.js');
+        return [m.plainMessage('dropped: both contacts lost: the object is no longer held'),
+                m.plainMessage('force_ceiling: F = 6.73 above 3 × Fd')];
+    }""")
+    assert said == ["both contacts were lost; the object is no longer held",
+                    "the grip force went too high (F = 6.73 above 3 × Fd)"], said  # fmt: skip
     # the browser's benign ResizeObserver note is no error
     await page.evaluate(
         "window.dispatchEvent(new ErrorEvent('error', {message: "
@@ -293,9 +317,22 @@ async def test_run_plots_pads_viewer_estop_replay(service: LiveService, page: An
 async def _run_plots_pads_viewer_estop_replay(service: LiveService, page: Any) -> None:
     await page.select_option("#object-select", "egg")
     await page.wait_for_function("!document.querySelector('#start').disabled")
-    await page.click("#start")
+    # a changed parameter goes with Grasp & roll (one stroke more than the service's)
+    cycles = page.locator(".field[data-field=cycles]")
+    await page.click("#params-toggle")
+    await cycles.locator("input").fill(str(ESTOP_RUN_CYCLES + 1))
+    await page.keyboard.press("Escape")
+    await expect(cycles).to_have_class(re.compile("dirty"))
+    # an impatient double click starts one run: one request, no "already running" error
+    starts: list[str] = []
+    page.on("request", lambda r: starts.append(r.method) if r.url.endswith("/api/runs") else None)
+    await page.dblclick("#start")
     # while a run is active the hand cannot be opened from here
     await expect(page.locator("#open-hand")).to_be_disabled(timeout=30_000)
+    assert starts.count("POST") == 1, starts
+    # the field sent is the run's parameter in force now: no longer marked changed
+    await expect(cycles).not_to_have_class(re.compile("dirty"))
+    await expect(cycles.locator("input")).to_have_value(str(ESTOP_RUN_CYCLES + 1))
     await page.wait_for_function(
         "window.sdh2.samples > 40 && window.sdh2.tactile > 40", timeout=RUN_TIMEOUT_MS
     )
@@ -303,7 +340,7 @@ async def _run_plots_pads_viewer_estop_replay(service: LiveService, page: Any) -
     assert c["lastError"] is None, c["lastError"]
     assert await page.inner_text("#run-state") in ACTIVE
     assert int(await page.inner_text("#iteration")) > 0
-    assert (await page.inner_text("#stroke")).endswith(f" of {ESTOP_RUN_CYCLES}")
+    assert (await page.inner_text("#stroke")).endswith(f" of {ESTOP_RUN_CYCLES + 1}")
     assert "frames/s" in await page.inner_text("#bus-stats")
 
     # the plots have lines, the distal pads (matrices 1 and 5) show pressure, the sketch is drawn
@@ -570,21 +607,30 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
     svc = start_service(tmp_path, viewer=False, token=token)
     try:
         async with dashboard(svc) as page:
-            # stopping needs no token: E-STOP with the token field empty sends none (as JSON)
+            # stopping needs no token: E-STOP with the token field empty sends none (as JSON);
+            # the service's answer is made to say what a silent joint line and a locked run
+            # database make it say (the stop itself is real)
+            await page.route("**/api/estop", unconfirmed_estop)
             async with page.expect_response(lambda r: r.url.endswith("/api/estop")) as answer:
                 await page.click("#estop")
             resp = await answer.value
             assert resp.request.method == "POST" and resp.request.post_data == "{}"
             assert "authorization" not in resp.request.headers
             assert resp.status == 200
-            await expect(page.locator("#estop")).to_have_class(re.compile("latched"))
+            await page.unroute("**/api/estop")
+            estop = page.locator("#estop")
+            await expect(estop).to_have_class(re.compile("latched"))
             await expect(page.locator("#open-hand")).to_be_disabled()
             await expect(page.locator("#open-hand-hint")).to_contain_text(
                 "release the e-stop first"
             )
+            await estop_shown_and_unconfirmed(svc, page)
             r = httpx.post(svc.url + "/api/estop/release", json={}, headers=svc.headers())
             assert r.status_code == 200
             await expect(page.locator("#estop-release")).to_be_disabled()
+            await expect(page.locator("#estop-banner")).to_be_hidden()
+            await expect(estop).to_have_text("E-STOP")
+            await expect(estop).to_have_attribute("aria-pressed", "false")
             # the status says a token is needed: the field shows; without it a change is refused
             assert await page.is_visible("#token-field")
             before = httpx.get(svc.url + "/api/params").json()
@@ -612,18 +658,108 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
         assert svc.stop() == 0, "".join(svc.log)
 
 
+UNCONFIRMED = (
+    "the hand has not confirmed the stop yet (the joint line does not answer); its power-off "
+    "is sent again as soon as the line answers; the latch is still being written to the run "
+    "database (runs.sqlite: another program holds it locked)"
+)
+
+
+async def unconfirmed_estop(route: Any) -> None:
+    """POST /api/estop goes to the service; its answer says the hand has not confirmed it and
+    the disk has not taken it yet."""
+    real = await route.fetch()
+    body = {**await real.json(), "hand_reached": False, "recorded": False, "detail": UNCONFIRMED}
+    await route.fulfill(response=real, json=body)
+
+
+# The last status the page got with one value changed (`path`: its keys), fed as a status
+# message; what the e-stop banner then shows (in the same turn: no real status comes between).
+FEED_STATUS = """([path, value]) => {
+  const st = structuredClone(window.sdh2debug.status());
+  let at = st;
+  for (const key of path.slice(0, -1)) at = at[key];
+  at[path[path.length - 1]] = value;
+  window.sdh2debug.onMessage({type: 'status', status: st});
+  const text = (sel) => {
+    const e = document.querySelector(sel);
+    return e.hidden ? null : e.textContent;
+  };
+  return {banner: !document.querySelector('#estop-banner').hidden, hand: text('#estop-hand'),
+          disk: text('#estop-disk')};
+}"""
+
+
+async def estop_shown_and_unconfirmed(svc: LiveService, page: Any) -> None:
+    """(In the token test's page, the e-stop latched by a click the hand did not confirm.) The
+    latch is in the button's text and state, its tooltip says since when and why; what the hand
+    and the disk have not confirmed is in a banner until a status shows it done."""
+    estop = page.locator("#estop")
+    await expect(estop).to_have_text("E-STOP (latched)")
+    await expect(estop).to_have_attribute("aria-pressed", "true")
+    reason = httpx.get(svc.url + "/api/status").json()["estop"]["reason"]
+    await expect(estop).to_have_attribute(
+        "title", re.compile(rf"latched since .*\({re.escape(reason)}\)")
+    )
+    banner = page.locator("#estop-banner")
+    await expect(banner).to_be_visible()
+    await expect(page.locator("#estop-hand")).to_contain_text(
+        "The hand has not confirmed the e-stop"
+    )
+    await expect(page.locator("#estop-hand")).to_contain_text(
+        "use the hand's own emergency-stop switch"
+    )
+    await expect(page.locator("#estop-detail")).to_contain_text(UNCONFIRMED)
+    # the status says the latch is on disk: that note goes; the hand's stays (its line was
+    # never seen down, so nothing says the owed power-off went out)
+    await expect(page.locator("#estop-disk")).to_be_hidden()
+    seen = (await counters(page))["statusMsgs"]
+    await page.wait_for_function(f"window.sdh2.statusMsgs > {seen}")
+    await expect(page.locator("#estop-hand")).to_be_visible()
+    # a status saying the latch is not (yet) on disk shows a note saying so, and what it means
+    for recorded, says in (("pending", "not on disk yet"), ("no", "did not take it")):
+        shown = await page.evaluate(FEED_STATUS, [["estop", "recorded"], recorded])
+        assert shown["banner"] and says in (shown["disk"] or ""), shown
+        assert "a restart of the service would not keep it" in shown["disk"], shown
+    # the joint line seen down, then back: the service sent the power-off it owed first
+    shown = await page.evaluate(FEED_STATUS, [["hand", "connected", "joints"], False])
+    assert shown["hand"] is not None, shown
+    await expect(page.locator("#estop-hand")).to_be_hidden()  # the next real status: line up
+    await expect(banner).to_be_hidden()
+
+
+# A custom object (no preset), as `serve --object-file` or a lab script's PUT gives it.
+LAB_BLOCK = {
+    "kind": "box", "name": "lab-block", "width_mm": 40, "height_mm": 30, "corner_radius_mm": 2,
+    "depth_mm": 30, "material": {"mass_g": 40, "friction": 0.6, "stiffness_n_per_mm3": 3.0},
+}  # fmt: skip
+
+
 async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: Path) -> None:
-    # a grasp that gives up at once: the run faults with no_contact and the fingers hold still
-    svc = start_service(tmp_path, viewer=False, extra=("--set", "run.grasp_timeout_s=0.3"))
+    # a grasp that gives up at once: the run faults with no_contact and the fingers hold still;
+    # the object is a custom one, from a file
+    block = tmp_path / "block.json"
+    block.write_text(json.dumps(LAB_BLOCK))
+    extra = ("--set", "run.grasp_timeout_s=0.3", "--object-file", str(block))
+    svc = start_service(tmp_path, viewer=False, extra=extra)
     try:
         async with dashboard(svc) as page:
             notice = page.locator("#run-notice")
             assert await notice.is_hidden()
             await expect(page.locator("#open-hand")).to_be_enabled()  # idle, no e-stop
-            await page.click("#start")
+            # the custom object is the one selected; Grasp & roll sends no preset's name for
+            # it (the API takes the current object): the run starts
+            select = page.locator("#object-select")
+            await expect(select.locator("option:checked")).to_have_text("lab-block (custom)")
+            async with page.expect_response(lambda r: r.url.endswith("/api/runs")) as started:
+                await page.click("#start")
+            resp = await started.value
+            assert resp.status == 201, await resp.text()
+            assert "object" not in json.loads(resp.request.post_data or ""), resp.request.post_data
             await expect(notice).to_be_visible(timeout=RUN_TIMEOUT_MS)
             st = httpx.get(svc.url + "/api/status").json()
             run_id = st["run"]["id"]
+            assert st["object"]["name"] == "lab-block", st["object"]
             await expect(notice).to_contain_text(f"Run {run_id} faulted:")
             await expect(notice).to_contain_text("the grasp found nothing between the fingertips")
             await expect(notice).to_contain_text(
@@ -634,6 +770,17 @@ async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: P
             await expect(page.locator("#open-hand")).to_be_enabled()
             assert httpx.get(svc.url + "/api/status").json()["last_run"]["status"] == "faulted"
             await screenshot(page, "fault-notice")
+
+            # another client changes the object: the selector follows, to a preset and back
+            for body, shown in (
+                ({"name": "egg"}, "egg"),
+                ({"spec": LAB_BLOCK}, "lab-block (custom)"),
+            ):
+                assert httpx.put(svc.url + "/api/sim/object", json=body).status_code == 200
+                await expect(select.locator("option:checked")).to_have_text(shown)
+                await expect(select.locator("option", has_text="(custom)")).to_have_count(
+                    1 if "custom" in shown else 0
+                )
 
             # Open hand sends POST /api/hand/open (JSON); a refusal is shown in the notice
             route = "**/api/hand/open"
@@ -658,19 +805,30 @@ async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: P
                 await page.click("#open-hand")
             await expect(page.locator("#run-notice-error")).to_be_hidden()
             # while the status says the hand is opening, Open hand waits
+            # (Stop can halt the opening: POST /api/runs/stop holds the fingers where they are)
             opening = await page.evaluate("""() => {
                 const st = structuredClone(window.sdh2debug.status());
                 st.hand.opening = true;
                 window.sdh2debug.onMessage({type: 'status', status: st});
+                const stop = document.querySelector('#stop');
                 return [document.querySelector('#open-hand').disabled,
                         document.querySelector('#start').disabled,
-                        document.querySelector('#open-hand-hint').textContent];
+                        document.querySelector('#open-hand-hint').textContent,
+                        stop.disabled, stop.title];
             }""")
-            assert opening == [True, True, "opening…"]
-            await page.evaluate(
-                f"window.sdh2debug.onMessage({{type: 'event', run_id: {run_id}, t: null,"
-                " iteration: null, kind: 'opened', detail: {}})"
+            assert opening[:4] == [True, True, "opening…", False], opening
+            assert "halt the opening" in opening[4], opening
+            # an opening stopped part-way: the hand is not open, Open hand is offered still
+            opened = (
+                "(detail) => window.sdh2debug.onMessage({type: 'event', run_id: null, t: null,"
+                " iteration: null, kind: 'opened', detail})"
             )
+            await page.evaluate(opened, {"completed": False, "message": "stopped"})
+            await expect(notice).to_contain_text("Opening the hand was stopped part-way")
+            await expect(notice).to_contain_text("the object may still be held")
+            await expect(notice).not_to_have_class(re.compile("resolved"))
+            await expect(open_in_notice).to_be_visible()
+            await page.evaluate(opened, {"completed": True})
             await expect(notice).to_contain_text("The hand is open now.")
             await expect(notice).to_have_class(re.compile("resolved"))
             await expect(open_in_notice).to_be_hidden()
@@ -686,6 +844,21 @@ async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: P
             await expect(page.locator("#open-hand")).to_be_enabled()
             await page.click("#notice-dismiss")
             await expect(notice).to_be_hidden()
+
+            # after a restart the status names the run the service was killed during
+            message = "the service stopped during this run (killed or crashed)"
+            await page.evaluate(
+                """(message) => {
+                    const st = structuredClone(window.sdh2debug.status());
+                    st.last_run = {id: 99, status: 'interrupted', message};
+                    window.sdh2debug.onMessage({type: 'status', status: st});
+                }""",
+                message,
+            )
+            await expect(notice).to_contain_text("Run 99 was interrupted:")
+            await expect(notice).to_contain_text("the object may still be held")
+            await expect(open_in_notice).to_be_visible()
+            await expect(open_in_notice).to_be_enabled()
             assert (await counters(page))["lastError"] is None
     finally:
         assert svc.stop() == 0, "".join(svc.log)
@@ -714,9 +887,18 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
             await expect(page.locator("#ws-state")).not_to_have_text("live")
             await expect(page.locator("#run-state")).to_have_text("unknown")
             await expect(page.locator("body")).to_have_class(re.compile("service-dead"))
-            for sel in ("#start", "#stop", "#estop", "#estop-release", "#open-hand",
-                        "#object-select", "#params-apply"):  # fmt: skip
+            for sel in ("#start", "#stop", "#estop-release", "#open-hand", "#object-select",
+                        "#params-apply"):  # fmt: skip
                 await expect(page.locator(sel)).to_be_disabled()
+            # … but not the E-STOP: the page may be wrong about the service, the click tries;
+            # when it fails the page says to use the hand's own switch, until dismissed
+            async with page.expect_request(lambda r: r.url.endswith("/api/estop")):
+                await page.click("#estop")
+            failed = page.locator("#errors .toast", has_text="use the hand's own emergency-stop")
+            await expect(failed).to_be_visible()
+            await page.evaluate("window.sdh2debug.expireToasts(Date.now() + 3600e3)")
+            await expect(failed).to_be_visible()
+            await page.evaluate("window.sdh2.lastError = null")
             # the live widgets are greyed out and take no clicks
             style = await page.evaluate(
                 "() => { const s = getComputedStyle(document.querySelector('main'));"
@@ -727,13 +909,24 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
             await screenshot(page, "dead-service")
 
             # a service on the same port again: everything comes back by itself
-            second = start_service(tmp_path / "second", viewer=False, extra=("--port", port))
-            assert second.url == svc.url
-            await expect(banner).to_be_hidden(timeout=60_000)
-            await page.wait_for_function(
-                "window.sdh2.ws === 'open' && window.sdh2.serviceAlive", timeout=30_000
+            # (the page asks again where the 3-D view is: the service may be another one)
+            viewer_asked = page.expect_request(
+                lambda r: r.url.endswith("/api/viewer"), timeout=90_000
             )
+            async with viewer_asked:
+                second = start_service(tmp_path / "second", viewer=False, extra=("--port", port))
+                assert second.url == svc.url
+                await expect(banner).to_be_hidden(timeout=60_000)
+                await page.wait_for_function(
+                    "window.sdh2.ws === 'open' && window.sdh2.serviceAlive", timeout=30_000
+                )
+            await expect(page.locator("#viewer-note")).to_contain_text(
+                "The 3-D view is not available"
+            )
+            await expect(page.locator("#viewer-note")).to_contain_text("the view's process ended")
             await expect(page.locator("#links-state")).to_have_text("links up")
+            # its tooltip is no longer the dead service's
+            await expect(page.locator("#links-state")).to_have_attribute("title", re.compile("up"))
             await expect(page.locator("body")).not_to_have_class(re.compile("service-dead"))
             await expect(page.locator("#start")).to_be_enabled()
             await expect(page.locator("#estop")).to_be_enabled()

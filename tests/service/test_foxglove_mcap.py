@@ -16,7 +16,7 @@ from foxglove import messages as fm
 from mcap_check import Recording, _no_unknown_fields, _proto_class, read
 from test_store import _frame, _samples
 
-from sdh2svc.config import Settings
+from sdh2svc.config import ConfigError, Settings
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.urdf import FINGERS, PADS, describe
 from sdh2svc.service.foxglove_mcap import HandFrames, sample_schema
@@ -298,3 +298,19 @@ def test_the_cones_open_as_wide_as_the_sample_recorded(cfg: Settings) -> None:
         assert len(entity.cylinders) == 2
         for c in entity.cylinders:
             assert c.size.x / c.size.z == pytest.approx(2 * math.tan(math.radians(opening)))
+
+
+def test_a_recorded_configuration_this_version_refuses_is_named(
+    cfg: Settings, tmp_path: Path
+) -> None:
+    """A run recorded by a version whose configuration this one refuses cannot be drawn as it
+    was: the export says which key (the API answers 409 with it), it draws nothing wrong."""
+    store = RunStore(tmp_path / "runs.sqlite")
+    recorded = cfg.recorded()
+    recorded["tactile"] = {**recorded["tactile"], "texel_pitch_mm": -3.4}
+    run_id = store.create_run({"configuration": recorded})
+    try:
+        with pytest.raises(ConfigError, match=r"recorded configuration.*tactile\.texel_pitch_mm"):
+            store.export_mcap(run_id, io.BytesIO(), cfg)
+    finally:
+        store.close()

@@ -313,7 +313,7 @@ async def test_openapi_lists_every_status_and_content_type(svc: LiveService) -> 
         ("post", "/api/runs/stop"): {202, 400, 401, 403, 409, 413, 415},
         ("get", "/api/runs/{run_id}"): {200, 400, 404, 422},
         ("get", "/api/runs/{run_id}/samples"): {200, 400, 404, 422},
-        ("get", "/api/runs/{run_id}/export"): {200, 400, 404, 422},
+        ("get", "/api/runs/{run_id}/export"): {200, 400, 404, 409, 422},
         ("post", "/api/estop"): {200, 400, 413, 503},
         ("post", "/api/estop/release"): {200, 400, 401, 403, 413, 415, 422, 503},
         ("post", "/api/hand/open"): {202, 400, 401, 403, 409, 413, 415, 422, 503},
