@@ -366,9 +366,16 @@ def origin_allowed(origin: str, settings: Settings, view_port: int) -> bool:
     svc = settings.service
     if key in {_origin_key(o) for o in svc.allowed_origins}:
         return True
-    hosts = {*LOOPBACK_NAMES, _host_name(svc.host), *(_host_name(h) for h in svc.allowed_hosts)}
     ports = {view_port, svc.port} - {0}
-    return key[1] in hosts and key[2] in ports
+    return key[1] in _host_names(settings) and key[2] in ports
+
+
+def _host_names(settings: Settings) -> list[str]:
+    """The names a page of this service may be at: loopback, ``service.host`` and
+    ``service.allowed_hosts`` (as :func:`_origin_key` spells them)."""
+    svc = settings.service
+    names = [*LOOPBACK_NAMES, _host_name(svc.host), *(_host_name(h) for h in svc.allowed_hosts)]
+    return list(dict.fromkeys(names))
 
 
 def frame_ancestors(settings: Settings) -> str:
@@ -377,9 +384,7 @@ def frame_ancestors(settings: Settings) -> str:
     in CSP), and every ``service.allowed_origins`` entry."""
     svc = settings.service
     port = str(svc.port) if svc.port else "*"
-    names = dict.fromkeys([*LOOPBACK_NAMES, _host_name(svc.host),
-                           *(_host_name(h) for h in svc.allowed_hosts)])  # fmt: skip
-    pages = [f"{scheme}://{name}:{port}" for name in names if ":" not in name and "[" not in name
+    pages = [f"{scheme}://{name}:{port}" for name in _host_names(settings) if ":" not in name
              for scheme in ("http", "https")]  # fmt: skip
     return " ".join(["'self'", *pages, *svc.allowed_origins])
 
