@@ -339,7 +339,9 @@ const USE_SWITCH = "use the hand's own emergency-stop switch";
 // service then sends the power-off it owes first), or the latch on disk; the release ends both.
 // `lineDown`: a status since the answer showed the joint line down; `latched`: one showed the
 // e-stop latched (a later one that does not is the release).
-const estopAnswer = { unreached: false, unrecorded: false, detail: "", lineDown: false, latched: false };
+const NO_ESTOP_ANSWER = Object.freeze(
+  { unreached: false, unrecorded: false, detail: "", lineDown: false, latched: false });
+const estopAnswer = { ...NO_ESTOP_ANSWER };
 
 // status.estop.recorded: the latch is in the hand, not (yet) in the run database
 const DISK_NOTES = {
@@ -383,8 +385,7 @@ function takeEstopAnswer(r) {
 }
 
 function clearEstopAnswer() {
-  Object.assign(estopAnswer, { unreached: false, unrecorded: false, detail: "", lineDown: false,
-    latched: false });
+  Object.assign(estopAnswer, NO_ESTOP_ANSWER);
 }
 
 /** The e-stop banner from the last status and the last e-stop answer. */

@@ -80,8 +80,8 @@ def pad_topic(pad: str) -> str:
 def sample_json(s: Mapping[str, Any]) -> bytes:
     """A ``/samples`` message: the sample's columns that have a value (a non-finite number has
     none): Foxglove's plots take a missing field as a gap."""
-    row = {k: _finite(s[k]) for k in COLUMNS}
-    return json.dumps({k: v for k, v in row.items() if v is not None}, allow_nan=False).encode()
+    row = {k: v for k in COLUMNS if (v := _finite(s[k])) is not None}
+    return json.dumps(row, allow_nan=False).encode()
 
 
 def sample_schema() -> Json:
