@@ -335,13 +335,14 @@ $("#estop-release").addEventListener("click", () => guard("release e-stop", asyn
 const USE_SWITCH = "use the hand's own emergency-stop switch";
 
 // What POST /api/estop could not do (its answer's hand_reached / recorded false), shown in
-// #estop-banner until a status shows it done: the joint line back after being seen down (the
-// service then sends the power-off it owes first), or the latch on disk; the release ends both.
-// `lineDown`: a status since the answer showed the joint line down; `latched`: one showed the
-// e-stop latched (a later one that does not is the release).
+// #estop-banner until a status says otherwise: status.estop.hand_reached (the service's word on
+// the power-off, for every page) and status.estop.recorded; the release ends both. `latched`: a
+// status since the answer showed the e-stop latched (a later one that does not is the release);
+// `seq`: the statuses rendered before the answer came (only a later one overrules it).
 const NO_ESTOP_ANSWER = Object.freeze(
-  { unreached: false, unrecorded: false, detail: "", lineDown: false, latched: false });
+  { unreached: false, unrecorded: false, detail: "", latched: false, seq: 0 });
 const estopAnswer = { ...NO_ESTOP_ANSWER };
+let statusSeq = 0; // statuses rendered so far (from either the socket or GET /api/status)
 
 // status.estop.recorded: the latch is in the hand, not (yet) in the run database
 const DISK_NOTES = {
@@ -379,7 +380,7 @@ function takeEstopAnswer(r) {
   estopAnswer.unreached = r.hand_reached === false;
   estopAnswer.unrecorded = r.recorded === false;
   estopAnswer.detail = r.detail ? String(r.detail) : "";
-  estopAnswer.lineDown = Boolean(st.hand && st.hand.connected && st.hand.connected.joints === false);
+  estopAnswer.seq = statusSeq;
   estopAnswer.latched = Boolean(st.estopped);
   renderEstopBanner();
 }
@@ -394,9 +395,8 @@ function renderEstopBanner() {
   const a = estopAnswer;
   if (st.estopped) a.latched = true;
   else if (a.latched) clearEstopAnswer(); // released (here or elsewhere)
-  const joints = st.hand && st.hand.connected ? st.hand.connected.joints : undefined;
-  if (joints === false) a.lineDown = true;
-  else if (joints && a.lineDown) a.unreached = false; // the line is back: the power-off went first
+  const confirmed = st.estop ? st.estop.hand_reached : undefined;
+  if (typeof confirmed === "boolean" && statusSeq > a.seq) a.unreached = !confirmed; // its word
   const recorded = st.estop ? st.estop.recorded : undefined;
   if (a.unrecorded && st.estop && !DISK_NOTES[recorded]) a.unrecorded = false; // on disk now
   const hand = a.unreached
@@ -550,6 +550,7 @@ function renderBus(st) {
 
 function renderStatus(st) {
   state.status = st;
+  statusSeq += 1;
   const run = st.run;
   const runState = run ? run.state : "no run";
   sdh2.runState = run ? run.state : null;

@@ -602,6 +602,12 @@ class JointLink:
         out, until the hand has taken it."""
         return self._estopped or self._releasing
 
+    @property
+    def power_off_confirmed(self) -> bool:
+        """False while the hand owes an e-stop's power-off: not yet confirmed by a reply (a
+        silent or down line, a latch taken from disk before the line answered)."""
+        return not self._power_off_owed
+
     # -- events ---------------------------------------------------------------------------------
 
     def subscribe(self) -> asyncio.Queue[LinkEvent]:

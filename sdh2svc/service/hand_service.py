@@ -513,7 +513,7 @@ class HandService:
             "sim": self.bench is not None,
             "auth_required": bool(self.cfg.service.token),
             "estopped": bool(j and j.estopped),
-            "estop": self._latch,
+            "estop": self._estop_status(j),
             "hand": {
                 "connected": connected,
                 "opening": self.opening,
@@ -530,6 +530,13 @@ class HandService:
             "object": self.bench.obj.model_dump() if self.bench else None,
             "telemetry": self.hub.stats(),
         }
+
+    def _estop_status(self, j: JointLink | None) -> dict[str, Any] | None:
+        """The latch as on disk, and whether the hand confirmed its power-off (every page sees
+        what the e-stop's answer told only the one that asked)."""
+        if self._latch is None:
+            return None
+        return {**self._latch, "hand_reached": bool(j is None or j.power_off_confirmed)}
 
     def publish_status(self) -> None:
         self.hub.publish(Status(self.status()))

@@ -92,9 +92,12 @@ SCREENSHOTS = os.environ.get("SDH2SVC_SCREENSHOTS")  # a directory: the tests le
 
 
 @contextlib.asynccontextmanager
-async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncIterator[Any]:
+async def dashboard(
+    svc: LiveService, *, token: str | None = None, lie: StatusLie | None = None
+) -> AsyncIterator[Any]:
     """A headless chromium page on ``svc``'s dashboard (``token`` stored beforehand, as the token
-    field does); fails on any script error in the page."""
+    field does; ``lie`` between the page and the service's statuses); fails on any script error
+    in the page."""
     async with playwright_api.async_playwright() as pw:
         browser = await pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
@@ -105,6 +108,9 @@ async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncItera
             errors: list[str] = []
             pg.on("pageerror", lambda e: errors.append(str(e)))
             pg.on("request", lambda req: errors.extend(bad_request(req)))
+            if lie is not None:
+                await pg.route("**/api/status", lie.http)
+                await pg.route_web_socket("**/ws/telemetry*", lie.ws)
             await pg.goto(svc.url + "/")
             await pg.wait_for_function(
                 "window.sdh2 && window.sdh2.statusMsgs > 0 && window.sdh2.ws === 'open'",
@@ -115,6 +121,34 @@ async def dashboard(svc: LiveService, *, token: str | None = None) -> AsyncItera
             assert errors == [], f"script errors on the dashboard: {errors}"
         finally:
             await browser.close()
+
+
+class StatusLie:
+    """While ``on``, every status the page gets (the telemetry socket's and GET /api/status's)
+    says the hand has not confirmed the latched e-stop, as a silent joint line makes the service
+    say (``estop.hand_reached`` false); the rest passes as it is."""
+
+    def __init__(self) -> None:
+        self.on = False
+
+    def status(self, st: dict[str, Any]) -> dict[str, Any]:
+        if self.on and st.get("estop"):
+            st["estop"]["hand_reached"] = False
+        return st
+
+    def message(self, m: str | bytes) -> str | bytes:
+        msg = json.loads(m)
+        if msg.get("type") in ("hello", "status"):
+            msg["status"] = self.status(msg["status"])
+        return json.dumps(msg)
+
+    async def http(self, route: Any) -> None:
+        real = await route.fetch()
+        await route.fulfill(response=real, json=self.status(await real.json()))
+
+    def ws(self, ws: Any) -> None:
+        server = ws.connect_to_server()
+        server.on_message(lambda m: ws.send(self.message(m)))
 
 
 def bad_request(req: Any) -> list[str]:
@@ -605,11 +639,13 @@ async def test_bad_parameter_shows_the_422_next_to_the_field(
 async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
     token = "dashboard-test-token"
     svc = start_service(tmp_path, viewer=False, token=token)
+    lie = StatusLie()
     try:
-        async with dashboard(svc) as page:
+        async with dashboard(svc, lie=lie) as page:
             # stopping needs no token: E-STOP with the token field empty sends none (as JSON);
             # the service's answer is made to say what a silent joint line and a locked run
             # database make it say (the stop itself is real)
+            lie.on = True
             await page.route("**/api/estop", unconfirmed_estop)
             async with page.expect_response(lambda r: r.url.endswith("/api/estop")) as answer:
                 await page.click("#estop")
@@ -624,7 +660,7 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
             await expect(page.locator("#open-hand-hint")).to_contain_text(
                 "release the e-stop first"
             )
-            await estop_shown_and_unconfirmed(svc, page)
+            await estop_shown_and_unconfirmed(svc, page, lie)
             r = httpx.post(svc.url + "/api/estop/release", json={}, headers=svc.headers())
             assert r.status_code == 200
             await expect(page.locator("#estop-release")).to_be_disabled()
@@ -690,10 +726,11 @@ FEED_STATUS = """([path, value]) => {
 }"""
 
 
-async def estop_shown_and_unconfirmed(svc: LiveService, page: Any) -> None:
-    """(In the token test's page, the e-stop latched by a click the hand did not confirm.) The
-    latch is in the button's text and state, its tooltip says since when and why; what the hand
-    and the disk have not confirmed is in a banner until a status shows it done."""
+async def estop_shown_and_unconfirmed(svc: LiveService, page: Any, lie: StatusLie) -> None:
+    """(In the token test's page, the e-stop latched by a click the hand did not confirm, and
+    statuses saying so.) The latch is in the button's text and state, its tooltip says since
+    when and why; what the hand and the disk have not confirmed is in a banner until a status
+    shows it done."""
     estop = page.locator("#estop")
     await expect(estop).to_have_text("E-STOP (latched)")
     await expect(estop).to_have_attribute("aria-pressed", "true")
@@ -710,21 +747,26 @@ async def estop_shown_and_unconfirmed(svc: LiveService, page: Any) -> None:
         "use the hand's own emergency-stop switch"
     )
     await expect(page.locator("#estop-detail")).to_contain_text(UNCONFIRMED)
-    # the status says the latch is on disk: that note goes; the hand's stays (its line was
-    # never seen down, so nothing says the owed power-off went out)
+    # the status says the latch is on disk: that note goes; the hand's stays (the status says
+    # it has not confirmed the power-off)
     await expect(page.locator("#estop-disk")).to_be_hidden()
     seen = (await counters(page))["statusMsgs"]
     await page.wait_for_function(f"window.sdh2.statusMsgs > {seen}")
     await expect(page.locator("#estop-hand")).to_be_visible()
+    # the service's word, not the click's answer: a status saying the hand confirmed it clears
+    # the note, one saying it has not shows it (as on a page that never sent the e-stop)
+    shown = await page.evaluate(FEED_STATUS, [["estop", "hand_reached"], True])
+    assert shown["hand"] is None, shown
+    shown = await page.evaluate(FEED_STATUS, [["estop", "hand_reached"], False])
+    assert shown["banner"] and "has not confirmed" in (shown["hand"] or ""), shown
     # a status saying the latch is not (yet) on disk shows a note saying so, and what it means
     for recorded, says in (("pending", "not on disk yet"), ("no", "did not take it")):
         shown = await page.evaluate(FEED_STATUS, [["estop", "recorded"], recorded])
         assert shown["banner"] and says in (shown["disk"] or ""), shown
         assert "a restart of the service would not keep it" in shown["disk"], shown
-    # the joint line seen down, then back: the service sent the power-off it owed first
-    shown = await page.evaluate(FEED_STATUS, [["hand", "connected", "joints"], False])
-    assert shown["hand"] is not None, shown
-    await expect(page.locator("#estop-hand")).to_be_hidden()  # the next real status: line up
+    # the service says the hand confirmed it (the owed power-off went out): the banner goes
+    lie.on = False
+    await expect(page.locator("#estop-hand")).to_be_hidden()
     await expect(banner).to_be_hidden()
 
 

@@ -145,9 +145,13 @@ async def test_an_estop_the_silent_line_lost_powers_the_hand_off_once_it_answers
         st = await client.wait_run((await client.status())["run"]["id"], timeout=60.0)
         assert st["status"] == "e-stopped", st
         assert all(sim.sdh.powered)  # nothing reached the hand
+        # every client sees it in the status, not only the one that asked
+        await client.wait_status(lambda st: st["estop"] is not None, 10.0)
+        assert (await client.status())["estop"]["hand_reached"] is False
         cable.resume()
         await client.wait_status(lambda st: not any(sim.sdh.powered), 30.0)
-        assert (await client.status())["estopped"] is True
+        st = await client.wait_status(lambda st: st["estop"]["hand_reached"], 10.0)
+        assert st["estopped"] is True
         assert _moved(_angles(sim), at_hold) <= STEP_DEG
 
 
@@ -237,6 +241,9 @@ async def test_the_estop_latch_survives_a_restart(tmp_path: Path) -> None:
         async with again.client() as client, AsyncClient(again.url) as anon:
             st = await client.status()
             assert st["estopped"] and st["estop"]["since"]
+            # the latch from disk powered the hand off in the new connection's handshake
+            st = await client.wait_status(lambda st: st["estop"]["hand_reached"], 10.0)
+            assert st["estopped"] and st["hand"]["connected"]["joints"]
             with pytest.raises(Conflict, match="e-stop"):
                 await client.start_run()
             with pytest.raises(Conflict):
