@@ -14,7 +14,11 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
   Garbage, a mismatched reply or a timeout cause a resync (:data:`RESYNC` blank lines, drain until
   the line is quiet, parser reset) and a retry — but first, if anything since the last hold could
   have started motion, a ``stop`` (our addition: a bad line must not let the hand move on while
-  the retries take their time). :attr:`JointLink.stats` counts all of it.
+  the retries take their time). :attr:`JointLink.stats` counts all of it. Our additions: a
+  first attempt's reply must begin within :data:`REPLY_START_S` (or three of the line's recent
+  round trips), a message must not stop for :data:`BYTE_GAP_S`, so a lost or broken reply is
+  retried at once rather than after its timeout; and a reply to an exchange given up, arriving
+  during a later one, is skipped there (``_Conn.owed``).
 * ASCII by default; ``binary=True`` sends the 11 commands SDHLibrary-CPP sends in binary (§2.6),
   with CRC on serial lines and without over ``socket://`` (PART 4 item 1; ``binary_crc``).
 * Targets outside the joint limits are refused with ``ValueError`` before any byte is written.
@@ -50,6 +54,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from functools import partial
 from numbers import Real
 from types import TracebackType
 from typing import Final, Self, TypeAlias
@@ -109,6 +114,17 @@ POLL_IDLE_S: Final = 0.05  # polling with no command to follow: the angles are r
 # A message that stops for this long is broken off (a flipped length byte, a lost line end): the
 # SDH2 sends a reply in one burst (≤ 6 ms at 115200 baud), a USB adapter in 16 ms packets
 BYTE_GAP_S: Final = 0.1
+# A reply not begun by then is lost (a command the line spoilt on its way, a reply lost whole),
+# and the command's retry goes at once, with the whole timeout, instead of one second of joint
+# angles growing old under a control loop: every command but `ref` answers at once (§2.4), its
+# first byte due within a few ms plus a USB adapter's 16 ms latency twice. A line slower than
+# that (a serial server on a network) stretches it: RTT_MARGIN × its slowest recent round trip
+REPLY_START_S: Final = 0.1
+RTT_MARGIN: Final = 3.0
+STALL_GRACE_S: Final = 0.05  # a lost reply's wait once more, past a stall of this process
+RTTS_KEPT: Final = 16
+_ANSWERS_LATE: Final = frozenset({"ref"})  # answers when its moves end (SDHLibrary waits 10 s)
+OWED_KEPT: Final = 4  # replies still owed to given-up exchanges that are remembered
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
 _WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
@@ -284,7 +300,11 @@ class _Conn:
         self.events: asyncio.Queue[ReplyEvent | _Lost] = asyncio.Queue()
         self.rx_bytes = 0
         self._gap: asyncio.TimerHandle | None = None  # the rest of a message is due by then
+        self.on_bytes: Callable[[], object] | None = None  # called once, at the next bytes
         self.dirty = False  # the line may hold leftovers of an unfinished exchange
+        # the replies still owed to exchanges given up (timed out, spoilt): one that comes late,
+        # during a later exchange, is skipped there, not taken for that one's reply spoilt
+        self.owed: deque[str | BinaryCommand] = deque(maxlen=OWED_KEPT)
         self.lost: BaseException | None = None
         self._closing = False
         self._reader = reader
@@ -305,6 +325,9 @@ class _Conn:
 
     def _feed(self, data: bytes) -> None:
         self.rx_bytes += len(data)
+        if self.on_bytes is not None:
+            began, self.on_bytes = self.on_bytes, None
+            began()
         for event in self.parser.feed(data):
             self.events.put_nowait(event)
         if self._gap is not None or self.parser.buffered:
@@ -494,6 +517,7 @@ class JointLink:
         # down): sent again before anything else once the line answers (_transact, _handshake)
         self._power_off_owed = False
         self.reading: JointReading | None = None  # the newest actual angles (pos, tpap)
+        self._rtts: deque[float] = deque(maxlen=RTTS_KEPT)  # recent round trips (_reply_start_s)
         self._may_be_moving = False  # a command that can start motion went out since the last hold
         self._poller: asyncio.Task[None] | None = None
         self._polling = False
@@ -762,13 +786,23 @@ class JointLink:
                 if self._estop_pending and not urgent:
                     raise EmergencyStopped(f"{req.label} abandoned for an emergency stop")
                 self.stats.retries += 1
-            if conn.dirty:
+            resynced = conn.dirty
+            if resynced:
                 await self._resync(conn)
             if attempt and self._may_be_moving:
                 await self._stop_motion(conn, timeout_s)
             rx = conn.rx_bytes
+            # only a first attempt on a line in step must begin its reply early (and tells the
+            # line's round trip): a resync's blank lines may hold the next reply back (the
+            # firmware works through them), and a line is silent, or an answer given up for
+            # good, only after a whole timeout
+            in_step = attempt == 0 and not resynced
+            early = (in_step and retries > 0 and bool(self._rtts)
+                     and req.keyword not in _ANSWERS_LATE)  # fmt: skip
+            start_s = min(timeout_s, self._reply_start_s()) if early else timeout_s
             try:
-                reply = await self._attempt(conn, req, timeout_s)
+                reply = await self._attempt(conn, req, timeout_s, start_s=start_s,
+                                            typical=in_step)  # fmt: skip
             except FirmwareError as exc:
                 self.stats.errors += 1
                 spoilt = req.from_table and exc.error in _SPOILT_ON_THE_LINE
@@ -780,8 +814,12 @@ class JointLink:
                 failure = JointLinkError(f"{req.label}: bad reply ({exc})")
             except TimeoutError:
                 self.stats.timeouts += 1
-                failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s")
                 silent = conn.rx_bytes == rx
+                if silent and start_s < timeout_s:
+                    failure = JointLinkError(f"{req.label}: no reply begun within "
+                                             f"{start_s:.3g} s")  # fmt: skip
+                else:
+                    failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s")
                 if silent and silent_before:
                     self._silent = True
                     failure = JointLinkError(f"{req.label}: no reply within {timeout_s} s, "
@@ -810,19 +848,64 @@ class JointLink:
         self._power_off_owed = False
         self._emit(LinkEventKind.EMERGENCY_STOP, "powered off once the line answered again")
 
-    async def _attempt(self, conn: _Conn, req: _Request, timeout_s: float) -> Reply:
+    async def _attempt(
+        self,
+        conn: _Conn,
+        req: _Request,
+        timeout_s: float,
+        *,
+        start_s: float | None = None,
+        typical: bool = False,
+    ) -> Reply:
+        """One exchange; its reply must begin within ``start_s`` (default: ``timeout_s``);
+        ``typical``: its round trip is the line's own (no resync's backlog before it)."""
         conn.discard()  # late replies of earlier exchanges
         loop = asyncio.get_running_loop()
         start = loop.time()
         conn.dirty = True  # until the reply is in (also if the caller cancels us)
         await conn.send(req.data)
-        self._sent_at = loop.time()
-        async with asyncio.timeout(timeout_s):
-            while (reply := self._match(req, await conn.events.get(), conn)) is None:
-                pass
+        self._sent_at = sent = loop.time()
+        rx, end = conn.rx_bytes, sent + timeout_s
+        try:
+            if start_s is None or start_s >= timeout_s:
+                reply = await self._reply(conn, req, end, end)
+            else:
+                try:
+                    reply = await self._reply(conn, req, sent + start_s, end)
+                except TimeoutError:
+                    if conn.rx_bytes != rx:
+                        raise  # it began, and then took the whole timeout
+                    # this process may have stood still (a loaded machine: its own loop and an
+                    # in-process device alike) while the reply was due: it counts as lost only
+                    # once the loop has run STALL_GRACE_S more without a byte of it
+                    grace = min(end, loop.time() + STALL_GRACE_S)
+                    reply = await self._reply(conn, req, grace, end)
+        except BaseException:
+            if conn.dirty:  # its reply may still come
+                conn.owed.append(req.binary or req.keyword)
+            raise
         conn.dirty = False
-        self.stats.record_rtt(loop.time() - start)
+        rtt = loop.time() - start
+        self.stats.record_rtt(rtt)
+        if typical:
+            self._rtts.append(rtt)
         return reply
+
+    async def _reply(self, conn: _Conn, req: _Request, begin_by: float, end_by: float) -> Reply:
+        """The reply to ``req``: its first byte by ``begin_by``, all of it by ``end_by``."""
+        try:
+            async with asyncio.timeout_at(begin_by) as within:
+                if begin_by < end_by:
+                    conn.on_bytes = partial(within.reschedule, end_by)
+                while (reply := self._match(req, await conn.events.get(), conn)) is None:
+                    pass
+        finally:
+            conn.on_bytes = None  # (a Timeout left cannot be rescheduled)
+        return reply
+
+    def _reply_start_s(self) -> float:
+        """How soon a reply must begin (:data:`REPLY_START_S`, or longer on a slow line)."""
+        return max(REPLY_START_S, RTT_MARGIN * max(self._rtts))
 
     def _match(self, req: _Request, event: ReplyEvent | _Lost, conn: _Conn) -> Reply | None:
         """The reply for ``req``, None to keep waiting; raises for anything else."""
@@ -839,18 +922,23 @@ class JointLink:
             case BinaryReply():
                 return self._match_binary(req, event, conn)
             case Reply():
-                return self._match_ascii(req, event)
+                return self._match_ascii(req, event, conn)
         raise _Garbled(f"unexpected event {event!r}")
 
-    def _match_binary(self, req: _Request, event: BinaryReply, conn: _Conn) -> Reply:
+    def _match_binary(self, req: _Request, event: BinaryReply, conn: _Conn) -> Reply | None:
         if event.cmd != req.binary:
+            if _late(conn, event.cmd):
+                return None
             raise _Garbled(f"binary reply {event.cmd.name} to {req.label}")
         if not event.ok:
             conn.dirty = False
             raise FirmwareError(event.status, req.label)
         return self._checked(req, Reply(req.keyword.upper(), None, event.values, ""))
 
-    def _match_ascii(self, req: _Request, event: Reply) -> Reply:
+    def _match_ascii(self, req: _Request, event: Reply, conn: _Conn) -> Reply | None:
+        ours = req.binary is None and event.keyword == req.keyword.upper()
+        if not ours and _late(conn, event.keyword.lower()):
+            return None
         if req.binary is not None:
             raise _Garbled(f"ASCII reply {event.keyword} to binary {req.label}")
         free_text = req.n_values is None and event.keyword == ""  # e.g. the [U] `stop` reply
@@ -1264,6 +1352,15 @@ class JointLink:
             self._releasing = False
         self._emit(LinkEventKind.RELEASED)
         return flags
+
+
+def _late(conn: _Conn, reply_to: str | BinaryCommand) -> bool:
+    """Whether a reply that is not the awaited one answers an exchange given up earlier (taken
+    off what is owed: it came)."""
+    if reply_to in conn.owed:
+        conn.owed.remove(reply_to)
+        return True
+    return False
 
 
 def _seven_values(values: Sequence[float], what: str) -> Vec:

@@ -18,8 +18,8 @@ from typing import Any
 import pytest
 
 from sdh2svc.bus.joint import (
-    BYTE_GAP_S,
     DEFAULT_LIMITS,
+    REPLY_START_S,
     ControllerMode,
     EmergencyStopped,
     FirmwareError,
@@ -32,7 +32,7 @@ from sdh2svc.bus.joint import (
 from sdh2svc.protocol.sdh import NUM_AXES, AxisState, SdhError
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.endpoint import Endpoint, FaultConfig, FaultKind, UnixEndpoint, serve_device
-from sdh2svc.sim.sdh2 import Sdh2Emulator
+from sdh2svc.sim.sdh2 import Sdh2Emulator, Sdh2Options
 from sdh2svc.sim.world import ScriptedWorld
 
 SHAPES = [(14, 6), (13, 6)] * 3
@@ -363,7 +363,7 @@ def test_a_reply_broken_off_is_retried_at_once_not_after_its_timeout(
     """A reply cut short (a flipped length byte, a lost line end) leaves the parser waiting for
     bytes that never come: after BYTE_GAP_S of nothing more the link resyncs and retries, not
     after the reply's timeout (1 s), so a control loop's joint angles do not age by a second.
-    Only a reply cut before its first byte (the line silent) waits for the timeout."""
+    A reply cut before its first byte (lost whole) is given up after REPLY_START_S."""
 
     async def main() -> None:
         dev = Sdh2Emulator(ScriptedWorld(SHAPES))
@@ -376,12 +376,112 @@ def test_a_reply_broken_off_is_retried_at_once_not_after_its_timeout(
                 for _ in range(300):
                     t0 = loop.time()
                     assert len(await link.get_actual()) == NUM_AXES
-                    slow += loop.time() - t0 >= BYTE_GAP_S + 0.3
+                    slow += loop.time() - t0 >= REPLY_START_S + 0.3
                 cut = ep.stats.faults[FaultKind.TRUNCATE_PACKET]
                 stats = link.stats
                 assert cut >= 40 and stats.failures == 0, (cut, stats)
                 assert stats.garbled >= cut * 3 // 4, (cut, stats)  # found, retried
-                assert slow == stats.timeouts <= cut // 8, (slow, cut, stats)  # cut at byte 0
+                assert 1 <= stats.timeouts <= cut // 8, (cut, stats)  # cut at byte 0
+                assert slow == 0, (slow, cut, stats)  # none waited for its reply's timeout
+            finally:
+                await link.close()
+
+    run_fast(main())
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
+def test_a_reply_lost_whole_is_given_up_once_it_has_not_begun_in_time(
+    tmp_path: Path, binary: bool
+) -> None:
+    """Not one byte of a reply by REPLY_START_S (every command but `ref` answers at once): the
+    reply is lost (a command spoilt on its way, a reply lost whole), and the retry goes then, not
+    after the reply's timeout (1 s) — a control loop's joint angles age by a fraction of it."""
+
+    async def main() -> None:
+        dev = Sdh2Emulator(ScriptedWorld(SHAPES))
+        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
+            link = await JointLink.open(ep.url, binary=binary, timeout_s=1.0, retries=3)
+            try:
+                loop = asyncio.get_running_loop()
+                ep.set_faults(FaultConfig(drop_byte_rate=1.0))  # every reply lost
+                t0 = loop.time()
+                read = asyncio.ensure_future(link.get_actual())
+                await asyncio.sleep(REPLY_START_S / 2)
+                ep.set_faults(FaultConfig())  # the line good again before the retry
+                assert len(await read) == NUM_AXES
+                took = loop.time() - t0
+                assert link.stats.timeouts == 1 and link.stats.failures == 0, link.stats
+                assert REPLY_START_S <= took < REPLY_START_S + 0.2, took
+            finally:
+                await link.close()
+
+    run_fast(main())
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
+def test_a_slow_line_stretches_how_soon_a_reply_must_begin(tmp_path: Path, binary: bool) -> None:
+    """A line whose replies all take longer than REPLY_START_S (a serial server on a network, a
+    slow converter) is not a line losing every reply: the deadline follows its round trips."""
+
+    async def main() -> None:
+        slow = Sdh2Options(ascii_latency_s=0.2, binary_latency_s=0.2)
+        dev = Sdh2Emulator(ScriptedWorld(SHAPES), options=slow)
+        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
+            link = await JointLink.open(ep.url, binary=binary, timeout_s=1.0, retries=3)
+            try:
+                for _ in range(20):
+                    assert len(await link.get_actual()) == NUM_AXES
+                    await link.move()
+                assert link.stats.timeouts == link.stats.retries == 0, link.stats
+                assert link.stats.rtt_min_s > REPLY_START_S, link.stats
+            finally:
+                await link.close()
+
+    run_fast(main())
+
+
+class _NoiseBeforeStop(Sdh2Emulator):
+    """Once armed, the next `stop` is answered by a noise burst on the line at once, its own
+    reply only after the firmware's processing time (30 ms: after the host's resync has drained
+    the line for 20 ms quiet)."""
+
+    armed = False
+
+    def receive(self, data: bytes, now: float) -> None:
+        super().receive(data, now)
+        if self.armed and b"stop" in data:
+            self.armed = False
+            self._outbox.append(b"#\x01noise\r\n")
+
+
+def test_a_late_reply_to_an_exchange_given_up_is_skipped_not_taken_for_garbage(
+    tmp_path: Path,
+) -> None:
+    """A reply that comes after its exchange was given up (spoilt by noise before it, its first
+    byte late) arrives during the next exchange: it is skipped there, not taken for that
+    exchange's reply spoilt — which resynced again, and the `stop` sent before each retry left
+    every later reply one exchange behind until the command failed (seen: `p: bad reply (ASCII
+    reply STOP to binary p)` under host→device bit errors)."""
+
+    async def main() -> None:
+        dev = _NoiseBeforeStop(ScriptedWorld(SHAPES), options=Sdh2Options(ascii_latency_s=0.0049))
+        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
+            link = await JointLink.open(ep.url, binary=True, timeout_s=1.0, retries=3)
+            try:
+                await link.move()  # the hand may be moving: a retry sends `stop` first
+                # one `pos` lost whole; its retry's `stop` spoilt by noise, its reply late
+                ep.set_faults(FaultConfig(drop_byte_rate=1.0))
+                dev.armed = True
+                read = asyncio.ensure_future(link.get_actual())
+                await asyncio.sleep(REPLY_START_S / 2)
+                ep.set_faults(FaultConfig())
+                assert len(await read) == NUM_AXES
+                for _ in range(10):
+                    assert len(await link.get_actual()) == NUM_AXES
+                    await link.move()
+                st = link.stats
+                assert not dev.armed and st.motion_stops == 1, st
+                assert st.failures == 0 and st.garbled == 0, st
             finally:
                 await link.close()
 
