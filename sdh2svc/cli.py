@@ -834,7 +834,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-pty", action="store_true", help="serve on TCP only")
     p.add_argument("--no-tcp", action="store_true", help="serve on ptys only")
     p.add_argument("--baud", type=int, help="line pacing in bits/s (default 115200)")
-    p.add_argument("--boot-s", type=float, help="DSACON32m boot silence (8.0 = the real one)")
+    p.add_argument(
+        "--boot-s",
+        type=float,
+        help="DSACON32m boot silence (8.0 = the real one), "
+        "counted from the first host's connection: the controller powers up then",
+    )
     p.add_argument("--ber", type=float, help="bit-error rate injected on device→host bytes")
     p.add_argument("--seed", type=int, help="random seed of the simulated world")
     p.add_argument("--replace-after", type=float, metavar="S",

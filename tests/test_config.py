@@ -188,6 +188,7 @@ def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None
         ),
         (["sim.physics.pad_stiffness_n_per_mm3=inf"], "finite number"),
         (["sim.physics.gravity_m_per_s2=[0,nan,0]"], "gravity_m_per_s2.1 = nan"),
+        (["sim.physics.gravity_m_per_s2=[-9.81,0,0]"], "out of the fingers' plane"),
         (["sim.physics.proximal_pad_start_mm=80"], "must be below proximal_pad_end_mm"),
         (["sim.object='nonsense'"], "unknown object 'nonsense' (the presets: rubber"),
         (['storage.db_path=""'], "storage.db_path = ''"),

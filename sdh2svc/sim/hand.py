@@ -163,6 +163,7 @@ class PhysicsWorld:
     def move_joints(
         self, now: float, reference_deg: Sequence[float], powered: Sequence[bool]
     ) -> tuple[float, ...]:
+        self._physics.clock = now
         on = self._powered
         if type(powered) is not tuple or powered != on:  # (the emulator passes a tuple of bools)
             on = tuple(bool(p) for p in powered)
@@ -186,6 +187,7 @@ class PhysicsWorld:
         self, now: float, sensitivity: Sequence[float], threshold: Sequence[int]
     ) -> np.ndarray:
         self.before_read()
+        self._physics.clock = now
         self._flush()
         phys = self._physics
         pressed = self.presses.pressure(now)

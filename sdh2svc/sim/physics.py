@@ -23,9 +23,11 @@ The fingers are position-controlled bodies; the object is free. Each step finds 
   the pad without slipping; at the cap it slides and a slip is recorded.
 * The object starts held by a *fixture* (a person's hand placing it between the fingertips) and
   is released once both distal pads press it and hold it (a balance exists without the
-  fixture; a person does not let go of an object the fingers touch on two corners but cannot
-  yet hold); a step without a force balance, or with no contact force left on a distal pad,
-  means the object is no longer held: it is dropped.
+  fixture, every contact sticking; a person does not let go of an object the fingers touch on
+  two corners, or grip too lightly for its weight), or once their squeeze has stopped growing
+  for a second (the object then stays or falls on its own); it is pulled back if a finger
+  sweeps through it before both distal pads press it. A step without a force balance, or with
+  no contact force left on a distal pad, means the object is no longer held: it is dropped.
 
 Joint torques from the contact forces are checked against the motor limits: a joint whose next
 step would need more torque stalls at its last angle (the firmware's "blocked"), so a finger
@@ -99,6 +101,16 @@ class PhysicsConfig(Finite):
     torque_limit_distal_n_mm: Annotated[float, Field(gt=0.0, le=1e5)]
 
     @model_validator(mode="after")
+    def _in_plane(self) -> PhysicsConfig:
+        if self.gravity_m_per_s2[0] != 0.0:
+            raise ValueError(
+                f"gravity_m_per_s2's first component ({self.gravity_m_per_s2[0]:g}, x0: out of "
+                "the fingers' plane) must be 0: the contacts are planar, friction across the "
+                "plane is not modelled (point the hand so gravity lies in its y0-z0 plane)"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _proximal_pad(self) -> PhysicsConfig:
         if self.proximal_pad_start_mm >= self.proximal_pad_end_mm:
             raise ValueError(
@@ -109,6 +121,10 @@ class PhysicsConfig(Finite):
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
+# The placing fixture (a person's hand) lets go once the fingers hold the object, or once their
+# squeeze has not grown by FIXTURE_GROWTH for FIXTURE_PATIENCE_S (simulated seconds)
+FIXTURE_GROWTH = 1.05
+FIXTURE_PATIENCE_S = 1.0
 MAX_HALVINGS = 3  # a substep without a balance is retried in halves down to 1/8 of its length
 # The sampled surfaces make the contact forces jump by one sample's share as a sample enters or
 # leaves a contact; on a thin object's few contact samples that can leave no exact balance
@@ -340,6 +356,8 @@ class PhysicsState:
     pose: np.ndarray  # object (y, z, ψ) in frame 0
     held_by_fixture: bool = True
     present: bool = False  # placed between the fingers (while in the fixture)
+    squeeze: float = 0.0  # the lesser distal pad's largest force on it, N (in the fixture)
+    squeeze_t: float = 0.0  # when that squeeze came (ContactPhysics.clock)
     dropped: bool = False
     anchors: dict[int, Anchor] = field(default_factory=dict)
     slips: int = 0
@@ -378,6 +396,7 @@ class ContactPhysics:
         self.state = PhysicsState(np.asarray(object_pose, dtype=float))
         self._jacobian: Mat3 | None = None
         self._motion: list[tuple[tuple[float, ...], Vec3]] = []  # last two (Δq, Δx)
+        self.clock = 0.0  # simulated seconds, set by the world (the fixture's patience)
         self._last = _Eval(_ZERO3, {}, {})
         self._world_key: tuple[float, ...] | None = None
         self._world: _World = []
@@ -719,29 +738,49 @@ class ContactPhysics:
             return
         if st.held_by_fixture:
             ev = self._evaluate(st.pose.tolist(), world)
+            n1 = ev.contacts.get(DISTAL1, (None, None, 0.0))[2]
+            n2 = ev.contacts.get(DISTAL2, (None, None, 0.0))[2]
+            squeeze = min(n1, n2)
+            gripped = squeeze > max(self.cfg.release_force_n, 0.0)
             # A person places the object only where the fingers leave room for it, and pulls
-            # it back if a finger sweeps through it before the grasp.
+            # it back if a finger sweeps through it before the grasp; once both distal pads
+            # press it, it is the grasp's (a heavy object's grip grows deeper than that)
             limit = self.cfg.fixture_max_overlap_mm if st.present else 0.0
-            st.present = ev.max_depth <= limit
+            st.present = ev.max_depth <= limit or (st.present and gripped)
             if not st.present:
                 self._last = _Eval(_ZERO3, {}, {})
                 return
-            n1 = ev.contacts.get(DISTAL1, (None, None, 0.0))[2]
-            n2 = ev.contacts.get(DISTAL2, (None, None, 0.0))[2]
             self._last = ev
-            if min(n1, n2) > max(self.cfg.release_force_n, 0.0) and min(n1, n2) > 0.0:
-                st.held_by_fixture = False
-                self._anchor(ev, st.pose, carry=False)
-                if not self._solve(world, None):
-                    # the person lets go only once the fingers hold the object: two pads
-                    # touching two corners lightly, or in no balance, cannot yet
-                    st.held_by_fixture, st.anchors, st.slipping = True, {}, set()
+            if gripped:
+                self._fixture_grip(ev, world, squeeze)
             return
         if self._solve(world, dq):
             return
         if halvings >= MAX_HALVINGS and self._solve(world, dq, loose=True):
             return
         self._halve_or_drop(prev, pose, halvings)
+
+    def _fixture_grip(self, ev: _Eval, world: _World, squeeze: float) -> None:
+        """Both distal pads press the object in the fixture. The person lets go once the fingers
+        hold it (a balance with every contact sticking: not two corners touched lightly, nor a
+        grip its weight slides through), or once their squeeze has not grown for
+        :data:`FIXTURE_PATIENCE_S` (they stopped closing on it): the object then stays, or
+        falls, on its own."""
+        st = self.state
+        if squeeze > st.squeeze * FIXTURE_GROWTH:
+            st.squeeze, st.squeeze_t = squeeze, self.clock
+        waited = self.clock - st.squeeze_t >= FIXTURE_PATIENCE_S
+        kept = (st.pose, st.psi_min, st.psi_max, st.slips, st.slip_distance_mm)
+        st.held_by_fixture = False
+        self._anchor(ev, st.pose, carry=False)
+        if self._solve(world, None) and (waited or not st.slipping):
+            return
+        if waited:
+            self._drop()
+            return
+        st.pose, st.psi_min, st.psi_max, st.slips, st.slip_distance_mm = kept  # still held
+        st.held_by_fixture, st.anchors, st.slipping = True, {}, set()
+        self._last = ev
 
     def _halve_or_drop(self, prev: HandPose, pose: HandPose, halvings: int) -> None:
         """No balance found at ``pose``: try the way from ``prev`` in halves before calling the

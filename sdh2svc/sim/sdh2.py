@@ -99,8 +99,10 @@ Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, 
   ``binary_latency_s`` after its last byte arrived (0 by default; the simulated hand takes them
   from ``config/sim.toml``, calibrated so that the vendor's benchmark loop runs at its published
   rate). The firmware takes one command at a time: one that arrives while another is processed
-  waits its turn. A command received before a host disconnect still takes effect; its reply is
-  dropped.
+  waits its turn. A line, blank or not, is a command; line noise that frames nothing (garbage,
+  answered by silence) takes no time: a burst of it would otherwise hold every later reply
+  back by a command's time per stray byte. A command received before a host disconnect still
+  takes effect; its reply is dropped.
 * Its own clock: :meth:`Sdh2Emulator.attach_clock` hands the servo ticks to an outside clock
   (the simulated hand's, :mod:`sdh2svc.sim.lab`), so motion goes on while no host is connected;
   :meth:`~Sdh2Emulator.next_wakeup` then asks only for replies. A lazy outside clock
@@ -127,6 +129,7 @@ from sdh2svc.protocol.sdh import (
     AxisState,
     BinaryRequest,
     BlankLine,
+    ErrorSource,
     HostEvent,
     HostStreamParser,
     ProtocolErrorEvent,
@@ -627,6 +630,9 @@ class Sdh2Emulator:
         self._advance(now)
         o = self.options
         for event in self._parser.feed(data):
+            if isinstance(event, ProtocolErrorEvent) and event.source is ErrorSource.GARBAGE:
+                self.stats.errors += 1  # line noise: nothing to execute or answer, no time taken
+                continue
             binary = isinstance(event, BinaryRequest)
             latency = o.binary_latency_s if binary else o.ascii_latency_s
             ready = max(now, self._busy_until) + latency

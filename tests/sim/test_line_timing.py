@@ -76,6 +76,29 @@ def test_host_bytes_take_their_line_time_and_the_firmware_its_processing_time() 
     assert t2 - t0 == pytest.approx(5 * BYTE_TIME + 2 * latency + 47 * BYTE_TIME, abs=1e-9)
 
 
+def test_line_noise_takes_the_firmware_no_time() -> None:
+    """100 stray bytes that frame nothing before `pos`: they take their line time and get no
+    answer, but no processing time — a burst of noise must not hold every later reply back by a
+    command's time per byte (1000 bytes were 5 s; 200 kB left the SDH2 deaf for 15 minutes)."""
+    chunks: list[tuple[float, bytes]] = []
+    latency = 0.0049
+
+    async def main() -> float:
+        emu = Sdh2Emulator(ScriptedWorld(SHAPES), options=Sdh2Options(ascii_latency_s=latency))
+        ep = MemoryEndpoint(emu, whole_packets=True, on_output=lambda d, t: chunks.append((t, d)))
+        async with ep:
+            await asyncio.sleep(0.1)
+            t0 = asyncio.get_running_loop().time()
+            ep.write(b"\xff" * 100 + b"\r\npos\r\n")
+            await asyncio.sleep(1.0)
+        return t0
+
+    t0 = run_fast(main())
+    ((t1, r1),) = chunks  # (the noise's line, ended by the CR LF, is a blank line: no answer)
+    assert r1.startswith(b"POS=")
+    assert t1 - t0 == pytest.approx((107 * BYTE_TIME) + 2 * latency + len(r1) * BYTE_TIME, abs=1e-9)
+
+
 def test_joint_loop_runs_at_the_real_hands_rates(tmp_path: Path) -> None:
     async def body(hand: SimulatedHand) -> dict[str, float]:
         url = hand.urls("sdh")[0]

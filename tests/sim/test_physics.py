@@ -21,7 +21,7 @@ from sdh2svc.model.kinematics import (
     segment,
 )
 from sdh2svc.sim.hand import PhysicsWorld
-from sdh2svc.sim.objects import get_object, parse_object
+from sdh2svc.sim.objects import Shape, get_object, parse_object
 from sdh2svc.sim.physics import DISTAL1, DISTAL2, PALM, PROXIMAL1, PROXIMAL2
 
 rad, deg = math.radians, math.degrees
@@ -38,9 +38,10 @@ def quiet(**extra: str) -> Settings:
 class Rig:
     """A PhysicsWorld driven directly in degrees, as the joint emulator would."""
 
-    def __init__(self, cfg: Settings, name: str) -> None:
+    def __init__(self, cfg: Settings, name: str | Shape) -> None:
         self.cfg, self.ctx = cfg, cfg.model_context()
-        self.w = PhysicsWorld(hand_model(cfg), cfg.sim, get_object(name))
+        shape = get_object(name) if isinstance(name, str) else name
+        self.w = PhysicsWorld(hand_model(cfg), cfg.sim, shape)
         self.q = list(OPEN)
         self.t = 0.0
         self.move(self.q)
@@ -703,3 +704,68 @@ def test_a_flat_face_pressed_flat_is_compressed_by_its_distance_as_before(spec, 
         assert flat.sum() > 20
         assert np.allclose(got[flat], depth, atol=1e-9)
         assert np.allclose(got[flat], -o.sdf(obj[flat]), atol=1e-9)
+
+
+UPRIGHT = "[0.0, 0.0, -9.81]"  # the hand upright: gravity towards the palm (m/s²)
+
+
+def _box(mass_g: float, mu: float, stiffness: float = 2.0) -> Shape:
+    return parse_object({"kind": "box", "width_mm": 50.0, "height_mm": 20.0, "depth_mm": 15.0,
+                         "material": {"mass_g": mass_g, "friction": mu,
+                                      "stiffness_n_per_mm3": stiffness}})  # fmt: skip
+
+
+def _squeeze(rig: Rig, step: float) -> tuple[float, float]:
+    """Both coupled fingers one mirror step closer (negative: apart); the distal pads' true
+    normal forces."""
+    q = rig.q
+    q[1] += step
+    q[5] += step
+    q[2] -= step
+    q[6] -= step
+    rig.move(q)
+    n = {c.surface: c.normal_force_n for c in rig.w.truth().contacts}
+    return n.get("distal1", 0.0), n.get("distal2", 0.0)
+
+
+def test_the_person_placing_a_heavy_object_lets_go_once_the_grip_bears_its_weight() -> None:
+    """Gravity on: a 250 g box of μ 0.3 needs 2·μ·N ≥ m·g, N ≥ 4.1 N a pad, and the pads press
+    its soft faces deeper than the fixture's overlap limit (1 mm) before that. The person
+    placing it keeps holding it (not pulled back as from a finger sweeping through it) until
+    the fingers bear its weight; then it hangs between them on friction alone."""
+    cfg = quiet(**{"sim.physics.gravity_m_per_s2": UPRIGHT})
+    box = _box(250.0, 0.3, stiffness=0.02)
+    rig = Rig(cfg, box)
+    need = box.material.mass_g / 1000 * 9.81 / (2 * box.material.friction)
+    deepest = 0.0
+    while rig.w.truth().in_fixture:
+        assert rig.q[1] < 40, "never let go"
+        n1, n2 = _squeeze(rig, 0.02)
+        deepest = max(deepest, rig.w.physics._last.max_depth)
+        assert rig.w.physics.state.present, (rig.q[1], n1, n2)
+    assert deepest > cfg.sim.physics.fixture_max_overlap_mm
+    assert min(n1, n2) > 0.8 * need  # (the pads' rounded ends carry a little of it)
+    for _ in range(20):
+        _squeeze(rig, 0.02)
+        t = rig.w.truth()
+        assert t.held and not t.dropped
+
+
+def test_fingers_that_stop_closing_before_they_bear_the_weight_let_the_object_fall() -> None:
+    """Gravity on: the fingers press the 250 g box at about a quarter of the grip its weight
+    needs, then stop closing (they dither in place): after a second of a squeeze that no longer
+    grows, the person lets go, and it falls. Weightless, that grip holds it (the person let go
+    as soon as the fingers held it)."""
+    for gravity, falls in ((UPRIGHT, True), ("[0.0, 0.0, 0.0]", False)):
+        rig = Rig(quiet(**{"sim.physics.gravity_m_per_s2": gravity}), _box(250.0, 0.3))
+        while min(_squeeze(rig, 0.02)) < 1.0:
+            assert rig.q[1] < 40, "no touch"
+        start = rig.t
+        while rig.t - start < 0.9:  # (each move is 0.02 s)
+            _squeeze(rig, 0.001 if round((rig.t - start) / 0.02) % 2 else -0.001)
+            assert rig.w.truth().in_fixture is falls  # waiting for the fingers, with weight
+        for _ in range(10):
+            _squeeze(rig, -0.001)
+            _squeeze(rig, 0.001)
+        t = rig.w.truth()
+        assert t.dropped is falls and t.in_fixture is False, (gravity, t)
