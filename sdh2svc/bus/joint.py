@@ -896,7 +896,7 @@ class JointLink:
         try:
             async with asyncio.timeout_at(begin_by) as within:
                 if begin_by < end_by:
-                    conn.on_bytes = partial(within.reschedule, end_by)
+                    conn.on_bytes = partial(_extend, within, end_by)
                 while (reply := self._match(req, await conn.events.get(), conn)) is None:
                     pass
         finally:
@@ -1352,6 +1352,13 @@ class JointLink:
             self._releasing = False
         self._emit(LinkEventKind.RELEASED)
         return flags
+
+
+def _extend(within: asyncio.Timeout, when: float) -> None:
+    """A reply's deadline moved on as its first byte came; not once it has fired (its waiter is
+    being cancelled: a Timeout that fired cannot be rescheduled)."""
+    if not within.expired():
+        within.reschedule(when)
 
 
 def _late(conn: _Conn, reply_to: str | BinaryCommand) -> bool:
