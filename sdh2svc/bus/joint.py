@@ -865,21 +865,9 @@ class JointLink:
         conn.dirty = True  # until the reply is in (also if the caller cancels us)
         await conn.send(req.data)
         self._sent_at = sent = loop.time()
-        rx, end = conn.rx_bytes, sent + timeout_s
+        began = timeout_s if start_s is None else min(start_s, timeout_s)
         try:
-            if start_s is None or start_s >= timeout_s:
-                reply = await self._reply(conn, req, end, end)
-            else:
-                try:
-                    reply = await self._reply(conn, req, sent + start_s, end)
-                except TimeoutError:
-                    if conn.rx_bytes != rx:
-                        raise  # it began, and then took the whole timeout
-                    # this process may have stood still (a loaded machine: its own loop and an
-                    # in-process device alike) while the reply was due: it counts as lost only
-                    # once the loop has run STALL_GRACE_S more without a byte of it
-                    grace = min(end, loop.time() + STALL_GRACE_S)
-                    reply = await self._reply(conn, req, grace, end)
+            reply = await self._reply_begun(conn, req, sent + began, sent + timeout_s)
         except BaseException:
             if conn.dirty:  # its reply may still come
                 conn.owed.append(req.binary or req.keyword)
@@ -890,6 +878,22 @@ class JointLink:
         if typical:
             self._rtts.append(rtt)
         return reply
+
+    async def _reply_begun(
+        self, conn: _Conn, req: _Request, begin_by: float, end_by: float
+    ) -> Reply:
+        """:meth:`_reply`, and past a first byte not come by ``begin_by``, STALL_GRACE_S more:
+        this process may have stood still (a loaded machine: its own loop and an in-process
+        device alike) while the reply was due; it counts as lost only once the loop has run
+        that much longer without a byte of it."""
+        rx = conn.rx_bytes
+        try:
+            return await self._reply(conn, req, begin_by, end_by)
+        except TimeoutError:
+            if begin_by >= end_by or conn.rx_bytes != rx:
+                raise  # the whole timeout: it never began, or began and did not end
+            grace = min(end_by, asyncio.get_running_loop().time() + STALL_GRACE_S)
+            return await self._reply(conn, req, grace, end_by)
 
     async def _reply(self, conn: _Conn, req: _Request, begin_by: float, end_by: float) -> Reply:
         """The reply to ``req``: its first byte by ``begin_by``, all of it by ``end_by``."""

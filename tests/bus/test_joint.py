@@ -356,6 +356,19 @@ async def test_bit_errors_are_retried(kind: str, binary: bool) -> None:
         assert len(await link.get_actual()) == NUM_AXES
 
 
+@contextlib.asynccontextmanager
+async def _whole_packets(
+    tmp_path: Path, dev: Sdh2Emulator, **open_kw: Any
+) -> AsyncIterator[tuple[Endpoint, JointLink]]:
+    """``dev`` on a Unix socket that delivers whole packets (fast mode), and a link open on it."""
+    async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
+        link = await JointLink.open(ep.url, **open_kw)
+        try:
+            yield ep, link
+        finally:
+            await link.close()
+
+
 @pytest.mark.parametrize("binary", [False, True], ids=["ascii", "binary"])
 def test_a_reply_broken_off_is_retried_at_once_not_after_its_timeout(
     tmp_path: Path, binary: bool
@@ -367,24 +380,23 @@ def test_a_reply_broken_off_is_retried_at_once_not_after_its_timeout(
 
     async def main() -> None:
         dev = Sdh2Emulator(ScriptedWorld(SHAPES))
-        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
-            link = await JointLink.open(ep.url, binary=binary, timeout_s=1.0, retries=5)
-            try:
-                ep.set_faults(FaultConfig(truncate_packet_rate=0.2, seed=3))
-                loop = asyncio.get_running_loop()
-                slow = 0
-                for _ in range(300):
-                    t0 = loop.time()
-                    assert len(await link.get_actual()) == NUM_AXES
-                    slow += loop.time() - t0 >= REPLY_START_S + 0.3
-                cut = ep.stats.faults[FaultKind.TRUNCATE_PACKET]
-                stats = link.stats
-                assert cut >= 40 and stats.failures == 0, (cut, stats)
-                assert stats.garbled >= cut * 3 // 4, (cut, stats)  # found, retried
-                assert 1 <= stats.timeouts <= cut // 8, (cut, stats)  # cut at byte 0
-                assert slow == 0, (slow, cut, stats)  # none waited for its reply's timeout
-            finally:
-                await link.close()
+        async with _whole_packets(tmp_path, dev, binary=binary, timeout_s=1.0, retries=5) as (
+            ep,
+            link,
+        ):
+            ep.set_faults(FaultConfig(truncate_packet_rate=0.2, seed=3))
+            loop = asyncio.get_running_loop()
+            slow = 0
+            for _ in range(300):
+                t0 = loop.time()
+                assert len(await link.get_actual()) == NUM_AXES
+                slow += loop.time() - t0 >= REPLY_START_S + 0.3
+            cut = ep.stats.faults[FaultKind.TRUNCATE_PACKET]
+            stats = link.stats
+            assert cut >= 40 and stats.failures == 0, (cut, stats)
+            assert stats.garbled >= cut * 3 // 4, (cut, stats)  # found, retried
+            assert 1 <= stats.timeouts <= cut // 8, (cut, stats)  # cut at byte 0
+            assert slow == 0, (slow, cut, stats)  # none waited for its reply's timeout
 
     run_fast(main())
 
@@ -399,21 +411,20 @@ def test_a_reply_lost_whole_is_given_up_once_it_has_not_begun_in_time(
 
     async def main() -> None:
         dev = Sdh2Emulator(ScriptedWorld(SHAPES))
-        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
-            link = await JointLink.open(ep.url, binary=binary, timeout_s=1.0, retries=3)
-            try:
-                loop = asyncio.get_running_loop()
-                ep.set_faults(FaultConfig(drop_byte_rate=1.0))  # every reply lost
-                t0 = loop.time()
-                read = asyncio.ensure_future(link.get_actual())
-                await asyncio.sleep(REPLY_START_S / 2)
-                ep.set_faults(FaultConfig())  # the line good again before the retry
-                assert len(await read) == NUM_AXES
-                took = loop.time() - t0
-                assert link.stats.timeouts == 1 and link.stats.failures == 0, link.stats
-                assert REPLY_START_S <= took < REPLY_START_S + 0.2, took
-            finally:
-                await link.close()
+        async with _whole_packets(tmp_path, dev, binary=binary, timeout_s=1.0, retries=3) as (
+            ep,
+            link,
+        ):
+            loop = asyncio.get_running_loop()
+            ep.set_faults(FaultConfig(drop_byte_rate=1.0))  # every reply lost
+            t0 = loop.time()
+            read = asyncio.ensure_future(link.get_actual())
+            await asyncio.sleep(REPLY_START_S / 2)
+            ep.set_faults(FaultConfig())  # the line good again before the retry
+            assert len(await read) == NUM_AXES
+            took = loop.time() - t0
+            assert link.stats.timeouts == 1 and link.stats.failures == 0, link.stats
+            assert REPLY_START_S <= took < REPLY_START_S + 0.2, took
 
     run_fast(main())
 
@@ -426,16 +437,15 @@ def test_a_slow_line_stretches_how_soon_a_reply_must_begin(tmp_path: Path, binar
     async def main() -> None:
         slow = Sdh2Options(ascii_latency_s=0.2, binary_latency_s=0.2)
         dev = Sdh2Emulator(ScriptedWorld(SHAPES), options=slow)
-        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
-            link = await JointLink.open(ep.url, binary=binary, timeout_s=1.0, retries=3)
-            try:
-                for _ in range(20):
-                    assert len(await link.get_actual()) == NUM_AXES
-                    await link.move()
-                assert link.stats.timeouts == link.stats.retries == 0, link.stats
-                assert link.stats.rtt_min_s > REPLY_START_S, link.stats
-            finally:
-                await link.close()
+        async with _whole_packets(tmp_path, dev, binary=binary, timeout_s=1.0, retries=3) as (
+            _,
+            link,
+        ):
+            for _ in range(20):
+                assert len(await link.get_actual()) == NUM_AXES
+                await link.move()
+            assert link.stats.timeouts == link.stats.retries == 0, link.stats
+            assert link.stats.rtt_min_s > REPLY_START_S, link.stats
 
     run_fast(main())
 
@@ -465,25 +475,24 @@ def test_a_late_reply_to_an_exchange_given_up_is_skipped_not_taken_for_garbage(
 
     async def main() -> None:
         dev = _NoiseBeforeStop(ScriptedWorld(SHAPES), options=Sdh2Options(ascii_latency_s=0.0049))
-        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
-            link = await JointLink.open(ep.url, binary=True, timeout_s=1.0, retries=3)
-            try:
-                await link.move()  # the hand may be moving: a retry sends `stop` first
-                # one `pos` lost whole; its retry's `stop` spoilt by noise, its reply late
-                ep.set_faults(FaultConfig(drop_byte_rate=1.0))
-                dev.armed = True
-                read = asyncio.ensure_future(link.get_actual())
-                await asyncio.sleep(REPLY_START_S / 2)
-                ep.set_faults(FaultConfig())
-                assert len(await read) == NUM_AXES
-                for _ in range(10):
-                    assert len(await link.get_actual()) == NUM_AXES
-                    await link.move()
-                st = link.stats
-                assert not dev.armed and st.motion_stops == 1, st
-                assert st.failures == 0 and st.garbled == 0, st
-            finally:
-                await link.close()
+        async with _whole_packets(tmp_path, dev, binary=True, timeout_s=1.0, retries=3) as (
+            ep,
+            link,
+        ):
+            await link.move()  # the hand may be moving: a retry sends `stop` first
+            # one `pos` lost whole; its retry's `stop` spoilt by noise, its reply late
+            ep.set_faults(FaultConfig(drop_byte_rate=1.0))
+            dev.armed = True
+            read = asyncio.ensure_future(link.get_actual())
+            await asyncio.sleep(REPLY_START_S / 2)
+            ep.set_faults(FaultConfig())
+            assert len(await read) == NUM_AXES
+            for _ in range(10):
+                assert len(await link.get_actual()) == NUM_AXES
+                await link.move()
+            st = link.stats
+            assert not dev.armed and st.motion_stops == 1, st
+            assert st.failures == 0 and st.garbled == 0, st
 
     run_fast(main())
 
@@ -496,16 +505,15 @@ def test_a_command_the_line_spoilt_on_its_way_is_sent_again(tmp_path: Path, bina
 
     async def main() -> None:
         dev = Sdh2Emulator(ScriptedWorld(SHAPES))
-        async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
-            link = await JointLink.open(ep.url, binary=binary, timeout_s=0.2, retries=5)
-            try:
-                ep.set_faults(FaultConfig(bit_error_rate=1e-3, host_to_device=True, seed=5))
-                for _ in range(400):  # `m`: no axis command, not retried after an error before
-                    await link.move()
-                assert ep.stats.faults[FaultKind.RX_BIT_ERROR] > 0
-                assert link.stats.errors > 0 and link.stats.failures == 0, link.stats
-            finally:
-                await link.close()
+        async with _whole_packets(tmp_path, dev, binary=binary, timeout_s=0.2, retries=5) as (
+            ep,
+            link,
+        ):
+            ep.set_faults(FaultConfig(bit_error_rate=1e-3, host_to_device=True, seed=5))
+            for _ in range(400):  # `m`: no axis command, not retried after an error before
+                await link.move()
+            assert ep.stats.faults[FaultKind.RX_BIT_ERROR] > 0
+            assert link.stats.errors > 0 and link.stats.failures == 0, link.stats
 
     run_fast(main())
 

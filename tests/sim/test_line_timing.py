@@ -51,11 +51,10 @@ def fast(tmp_path: Path, body: Callable[[SimulatedHand], Awaitable[T]]) -> T:
     return run_fast(main())
 
 
-def test_host_bytes_take_their_line_time_and_the_firmware_its_processing_time() -> None:
-    """`pos`: 5 bytes in, the processing time, 47 bytes out; a second command sent at once
-    waits until the firmware is done with the first."""
+def sdh2_replies(latency: float, *writes: bytes, wait_s: float = 0.1) -> list[tuple[float, bytes]]:
+    """The SDH2 emulator (``latency`` s to process an ASCII command) sent ``writes`` at once on
+    the virtual clock: its replies, each with when it was out, from the writes on."""
     chunks: list[tuple[float, bytes]] = []
-    latency = 0.006  # longer than a reply's line time, so the second waits for the firmware
 
     async def main() -> float:
         emu = Sdh2Emulator(ScriptedWorld(SHAPES), options=Sdh2Options(ascii_latency_s=latency))
@@ -63,40 +62,35 @@ def test_host_bytes_take_their_line_time_and_the_firmware_its_processing_time() 
         async with ep:
             await asyncio.sleep(0.1)
             t0 = asyncio.get_running_loop().time()
-            ep.write(b"pos\r\n")
-            ep.write(b"pos\r\n")
-            await asyncio.sleep(0.1)
+            for data in writes:
+                ep.write(data)
+            await asyncio.sleep(wait_s)
         return t0
 
     t0 = run_fast(main())
-    (t1, r1), (t2, r2) = chunks
+    return [(t - t0, data) for t, data in chunks]
+
+
+def test_host_bytes_take_their_line_time_and_the_firmware_its_processing_time() -> None:
+    """`pos`: 5 bytes in, the processing time, 47 bytes out; a second command sent at once
+    waits until the firmware is done with the first."""
+    latency = 0.006  # longer than a reply's line time, so the second waits for the firmware
+    (t1, r1), (t2, r2) = sdh2_replies(latency, b"pos\r\n", b"pos\r\n")
     assert r1 == r2 and len(r1) == 47
-    assert t1 - t0 == pytest.approx(5 * BYTE_TIME + latency + 47 * BYTE_TIME, abs=1e-9)
+    assert t1 == pytest.approx(5 * BYTE_TIME + latency + 47 * BYTE_TIME, abs=1e-9)
     # the second command was in after 10 bytes; its processing began when the first's ended
-    assert t2 - t0 == pytest.approx(5 * BYTE_TIME + 2 * latency + 47 * BYTE_TIME, abs=1e-9)
+    assert t2 == pytest.approx(5 * BYTE_TIME + 2 * latency + 47 * BYTE_TIME, abs=1e-9)
 
 
 def test_line_noise_takes_the_firmware_no_time() -> None:
     """100 stray bytes that frame nothing before `pos`: they take their line time and get no
     answer, but no processing time — a burst of noise must not hold every later reply back by a
     command's time per byte (1000 bytes were 5 s; 200 kB left the SDH2 deaf for 15 minutes)."""
-    chunks: list[tuple[float, bytes]] = []
     latency = 0.0049
-
-    async def main() -> float:
-        emu = Sdh2Emulator(ScriptedWorld(SHAPES), options=Sdh2Options(ascii_latency_s=latency))
-        ep = MemoryEndpoint(emu, whole_packets=True, on_output=lambda d, t: chunks.append((t, d)))
-        async with ep:
-            await asyncio.sleep(0.1)
-            t0 = asyncio.get_running_loop().time()
-            ep.write(b"\xff" * 100 + b"\r\npos\r\n")
-            await asyncio.sleep(1.0)
-        return t0
-
-    t0 = run_fast(main())
-    ((t1, r1),) = chunks  # (the noise's line, ended by the CR LF, is a blank line: no answer)
+    ((t1, r1),) = sdh2_replies(latency, b"\xff" * 100 + b"\r\npos\r\n", wait_s=1.0)
+    # (the noise's line, ended by the CR LF, is a blank line: no answer, a command's time)
     assert r1.startswith(b"POS=")
-    assert t1 - t0 == pytest.approx((107 * BYTE_TIME) + 2 * latency + len(r1) * BYTE_TIME, abs=1e-9)
+    assert t1 == pytest.approx(107 * BYTE_TIME + 2 * latency + len(r1) * BYTE_TIME, abs=1e-9)
 
 
 def test_joint_loop_runs_at_the_real_hands_rates(tmp_path: Path) -> None:
