@@ -141,14 +141,14 @@ class HandService:
         self.store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
         interrupted = self.store.mark_interrupted()
         if interrupted:
-            log.warning("runs %s were still 'running' in %s: marked interrupted",
-                        interrupted, cfg.storage.db_path)  # fmt: skip
+            log.warning("runs %s were still 'running' in %s, their process gone: marked "
+                        "interrupted", interrupted, cfg.storage.db_path)  # fmt: skip
             # the status says so until the next run: the fingers stopped where they were (a
             # real hand may still hold the object), a person should look
             self.last_run = {"id": max(interrupted), "status": "interrupted",
-                             "message": "the service stopped during this run (killed or "
-                             "crashed): the fingers stopped where they were and may still "
-                             "hold the object"}  # fmt: skip
+                             "message": "the process recording this run stopped during it "
+                             "(killed or crashed): the fingers stopped where they were and may "
+                             "still hold the object"}  # fmt: skip
         self._latch = latch = self.store.estop_latch()
         if latch is not None:
             log.warning("the e-stop is latched (since %s: %s): motors off until released",

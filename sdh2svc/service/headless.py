@@ -7,6 +7,7 @@ recorded in the run database.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -16,6 +17,8 @@ from sdh2svc.control.observer import RunObserver
 from sdh2svc.control.runner import Runner
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import EstopLatched, RunStore
+
+log = logging.getLogger(__name__)
 
 
 async def run_once(
@@ -33,6 +36,9 @@ async def run_once(
     """
     store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
     try:
+        if interrupted := store.mark_interrupted():  # as the service does when it starts
+            log.warning("runs %s were still 'running' in %s, their process gone: marked "
+                        "interrupted", interrupted, cfg.storage.db_path)  # fmt: skip
         async with connect_hand(cfg, where) as hand:
             # the latch belongs to the real hand, not a simulated one; checked before it moves
             if hand.real and (latch := store.estop_latch()) is not None:

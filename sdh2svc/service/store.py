@@ -15,6 +15,8 @@ import csv
 import json
 import logging
 import math
+import os
+import socket
 import sqlite3
 import threading
 import time
@@ -94,7 +96,50 @@ CREATE TABLE IF NOT EXISTS estop (
     since TEXT NOT NULL,
     reason TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS owners (
+    run_id INTEGER PRIMARY KEY REFERENCES runs(id),
+    host TEXT NOT NULL,
+    pid INTEGER NOT NULL,
+    started TEXT NOT NULL
+);
 """
+
+
+def _process_start(pid: int) -> str | None:
+    """When the process ``pid`` started, as the kernel counts it (/proc/PID/stat's field 22,
+    clock ticks since boot: a later process with the same pid has another), or None where there
+    is no such entry."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]  # the fields after the command's name start at 3
+
+
+def _this_process() -> tuple[str, int, str]:
+    """(host, pid, start) of the calling process: who records a run it creates."""
+    pid = os.getpid()
+    return socket.gethostname(), pid, _process_start(pid) or ""
+
+
+def _owner_alive(host: str | None, pid: int | None, started: str | None) -> bool:
+    """Whether the process that recorded a run still runs. No owner (a run recorded before
+    owners were kept) or another host (SQLite's WAL keeps a run database on one machine: a copy
+    from elsewhere) is not."""
+    if host is None or pid is None or host != socket.gethostname():
+        return False
+    now = _process_start(pid)
+    if now is not None:
+        return not started or now == started
+    if Path("/proc/self/stat").exists():
+        return False  # /proc lists every live process: this one is gone
+    try:
+        os.kill(pid, 0)  # no /proc: ask the kernel whether the pid is in use
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 class StoreError(Exception):
@@ -219,12 +264,15 @@ class RunStore:
         self.db.close()
 
     def create_run(self, meta: dict[str, Any]) -> int:
+        """A new run, 'running', owned by this process (see :meth:`mark_interrupted`)."""
         with self._lock, self.db:
             cur = self.db.execute(
                 "INSERT INTO runs (started_at, status, meta) VALUES (?, 'running', ?)",
                 (now_iso(), json.dumps(meta)),
             )
-        assert cur.lastrowid is not None
+            assert cur.lastrowid is not None
+            self.db.execute("INSERT INTO owners (run_id, host, pid, started) VALUES (?, ?, ?, ?)",
+                            (cur.lastrowid, *_this_process()))  # fmt: skip
         return cur.lastrowid
 
     def finish_run(self, run_id: int, status: str, summary: dict[str, Any]) -> None:
@@ -235,10 +283,17 @@ class RunStore:
             )
 
     def mark_interrupted(self) -> list[int]:
-        """Runs left 'running' by a process that died: mark them so (their data stays)."""
+        """Runs left 'running' by a process that died (killed, crashed, the PC lost power):
+        mark them so (their data stays). A run another live process records (a second service,
+        an ``sdh2svc run``, on the same file) is left running."""
         with self._lock, self.db:
-            ids = [r[0] for r in self.db.execute("SELECT id FROM runs WHERE status = 'running'")]
-            self.db.execute("UPDATE runs SET status = 'interrupted' WHERE status = 'running'")
+            rows = self.db.execute(
+                "SELECT r.id, o.host, o.pid, o.started FROM runs r "
+                "LEFT JOIN owners o ON o.run_id = r.id WHERE r.status = 'running'"
+            ).fetchall()
+            ids = [r[0] for r in rows if not _owner_alive(r[1], r[2], r[3])]
+            self.db.executemany("UPDATE runs SET status = 'interrupted' WHERE id = ?",
+                                [(i,) for i in ids])  # fmt: skip
         return ids
 
     # --- the e-stop latch: durable until an explicit release ------------------------------------
@@ -276,24 +331,27 @@ class RunStore:
         row = self.db.execute("SELECT COUNT(*) FROM samples WHERE run_id = ?", (run_id,)).fetchone()
         return int(row[0])
 
+    # a run as read: 'running' only while its owner lives (read-only: mark_interrupted writes)
+    _RUN_SELECT = (
+        "SELECT r.*, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS iterations, "
+        "o.host AS owner_host, o.pid AS owner_pid, o.started AS owner_started "
+        "FROM runs r LEFT JOIN owners o ON o.run_id = r.id"
+    )
+
     def runs(self) -> list[dict[str, Any]]:
-        rows = self.db.execute(
-            "SELECT r.*, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS iterations "
-            "FROM runs r ORDER BY r.id DESC"
-        ).fetchall()
+        rows = self.db.execute(self._RUN_SELECT + " ORDER BY r.id DESC").fetchall()
         return [self._run_dict(r) for r in rows]
 
     def run(self, run_id: int) -> dict[str, Any] | None:
-        r = self.db.execute(
-            "SELECT r.*, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS iterations "
-            "FROM runs r WHERE r.id = ?",
-            (run_id,),
-        ).fetchone()
+        r = self.db.execute(self._RUN_SELECT + " WHERE r.id = ?", (run_id,)).fetchone()
         return None if r is None else self._run_dict(r)
 
     @staticmethod
     def _run_dict(r: sqlite3.Row) -> dict[str, Any]:
         d = dict(r)
+        owner = d.pop("owner_host"), d.pop("owner_pid"), d.pop("owner_started")
+        if d["status"] == "running" and not _owner_alive(*owner):
+            d["status"] = "interrupted"  # its process died; the next service or run marks it
         d["meta"] = json.loads(d["meta"])
         d["summary"] = json.loads(d["summary"]) if d["summary"] else None
         return d

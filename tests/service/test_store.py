@@ -131,8 +131,78 @@ def test_durable_through_sigkill(tmp_path: Path) -> None:
     store = RunStore(db)
     (run,) = store.runs()
     assert run["iterations"] >= durable
-    assert run["status"] == "running"  # it never finished: a crash, not a stop
+    # it never finished, and its process is gone: a crash, not a stop (read so; the database
+    # says so once a service or a run starts on it: test_a_run_whose_process_died_…)
+    assert run["status"] == "interrupted"
     store.close()
+
+
+OWNER = """
+import sys
+from sdh2svc.service.store import RunStore
+store = RunStore(sys.argv[1])
+print(store.create_run({"who": "child"}), flush=True)
+sys.stdin.readline()  # alive until the test closes stdin
+"""
+
+
+def _raw_status(db: Path, run_id: int) -> str:
+    with contextlib.closing(sqlite3.connect(db)) as raw:
+        return str(raw.execute("SELECT status FROM runs WHERE id = ?", (run_id,)).fetchone()[0])
+
+
+def test_a_run_another_live_process_records_stays_running_until_it_dies(tmp_path: Path) -> None:
+    """A second service or an `sdh2svc run` on the same file: its live run is not taken for
+    one a crash left behind; once its process is gone, it is."""
+    db = tmp_path / "runs.sqlite"
+    child = subprocess.Popen([sys.executable, "-c", OWNER, str(db)], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert child.stdout is not None and child.stdin is not None
+    run_id = int(child.stdout.readline())
+    store = RunStore(db)
+    try:
+        assert store.mark_interrupted() == []
+        assert store.run(run_id)["status"] == "running"  # type: ignore[index]
+        child.stdin.close()
+        assert child.wait(timeout=60) == 0
+        child.stdout.close()
+        # read as interrupted at once, without a write (a reader never writes the status) …
+        reader = RunStore(db, create=False)
+        assert reader.run(run_id)["status"] == "interrupted"  # type: ignore[index]
+        assert [r["status"] for r in reader.runs()] == ["interrupted"]
+        reader.close()
+        assert _raw_status(db, run_id) == "running"
+        # … and marked so by the next service or run
+        assert store.mark_interrupted() == [run_id]
+        assert _raw_status(db, run_id) == "interrupted"
+        assert store.mark_interrupted() == []
+    finally:
+        store.close()
+
+
+def test_a_run_whose_process_died_is_marked_interrupted_and_this_ones_are_not(
+    tmp_path: Path,
+) -> None:
+    """Runs from before owners were kept, and a pid reused by another process, are not alive;
+    this process's own run is."""
+    db = tmp_path / "runs.sqlite"
+    store = RunStore(db)
+    try:
+        mine = store.create_run({})
+        with store.db:
+            legacy = store.db.execute("INSERT INTO runs (started_at, status, meta) "
+                                      "VALUES ('x', 'running', '{}')").lastrowid  # fmt: skip
+            reused = store.db.execute("INSERT INTO runs (started_at, status, meta) "
+                                      "VALUES ('x', 'running', '{}')").lastrowid  # fmt: skip
+            host, pid = store.db.execute("SELECT host, pid FROM owners WHERE run_id = ?",
+                                         (mine,)).fetchone()  # fmt: skip
+            store.db.execute("INSERT INTO owners VALUES (?, ?, ?, 'started before')",
+                             (reused, host, pid))  # fmt: skip
+        assert store.run(mine)["status"] == "running"  # type: ignore[index]
+        assert sorted(store.mark_interrupted()) == sorted([legacy, reused])
+        assert store.run(mine)["status"] == "running"  # type: ignore[index]
+    finally:
+        store.close()
 
 
 def test_an_older_database_gets_new_sample_columns(tmp_path: Path) -> None:
