@@ -21,7 +21,7 @@ import numpy as np
 
 from sdh2svc.config import Settings
 from sdh2svc.control.sample import Sample
-from sdh2svc.service.store import RunStore
+from sdh2svc.service.store import RunStore, recorded_settings
 from sdh2svc.service.telemetry import (
     AnyMessage,
     Message,
@@ -61,6 +61,7 @@ def recorded_iteration(store: RunStore, cfg: Settings, run_id: int, it: int) -> 
     row = store.sample_at(run_id, it)
     if row is None:
         return None
+    cfg = recorded_settings(store.run(run_id) or {}, cfg)  # its pads' shapes, its hand
     sample = Sample(**row)
     msgs: list[Message] = [SampleMsg(run_id, sample).with_view(cfg.hand, live=False)]
     texels = store.frame_at(run_id, it, sample.t)

@@ -500,15 +500,21 @@ class RunStore:
 
         run = self.run(run_id) or {}
         t0 = _epoch_ns(run["started_at"]) if run else 0
-        cfg = cfg or default_config()
-        recorded = (run.get("meta") or {}).get("configuration")
-        if isinstance(recorded, dict):
-            cfg = cfg.as_recorded(recorded)
+        cfg = recorded_settings(run, cfg or default_config())
         return write_mcap(
             out, cfg, run, t0,
             self.samples(run_id, 0, 10**9), self.events(run_id), self.frames(run_id),
             self.outline(run_id), self.truth(run_id),
         )  # fmt: skip
+
+
+def recorded_settings(run: dict[str, Any], cfg: Settings) -> Settings:
+    """The configuration ``run`` (a :meth:`RunStore.run`) was recorded with: ``cfg`` with the
+    run's recorded sections (``Settings.recorded``) in place of its own — its matrices' shapes
+    and order, its hand — or ``cfg`` itself for a run recorded without them.
+    :class:`~sdh2svc.config.ConfigError` if they are not valid in this version."""
+    recorded = (run.get("meta") or {}).get("configuration")
+    return cfg.as_recorded(recorded) if isinstance(recorded, dict) else cfg
 
 
 def _truth_dict(r: sqlite3.Row) -> dict[str, Any]:

@@ -152,7 +152,7 @@ async def test_frames_are_in_the_openapi_with_models(client: tuple[Any, Any]) ->
     frame = doc["components"]["schemas"]["RecordedFrame"]["properties"]
     assert "base64" in frame["texels"]["description"]
     expect = {
-        ("get", "/api/runs/{run_id}/frames"): {200, 400, 404, 422},
+        ("get", "/api/runs/{run_id}/frames"): {200, 400, 404, 409, 422},
         ("put", "/api/viewer/replay"): {200, 400, 401, 403, 404, 409, 413, 415, 422},
         ("delete", "/api/viewer/replay"): {200, 400, 401, 403, 409, 413, 415, 422},
     }

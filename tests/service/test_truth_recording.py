@@ -3,8 +3,10 @@ in a replayed iteration's ``sim`` message — and none on a real hand or in an o
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
+import json
 import sqlite3
 from pathlib import Path
 from typing import Any
@@ -25,7 +27,7 @@ from sdh2svc.service.hub import TelemetryHub
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.replay_feed import recorded_iteration
 from sdh2svc.service.store import SCHEMA, TRUTH_COLUMNS, Recorder, RunStore
-from sdh2svc.service.telemetry import OUTLINE_POINTS, Sim, recorded_truth
+from sdh2svc.service.telemetry import OUTLINE_POINTS, Sim, Tactile, matrix_shapes, recorded_truth
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.hand import Truth
 
@@ -277,3 +279,49 @@ async def test_the_truth_api_pages_in_iteration_order(sim_run: SimRun, tmp_path:
     async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as c:
         page = (await c.get(f"/api/runs/{real_id}/truth")).json()
     assert page["outline"] is None and page["truth"] == [] and page["next"] is None
+
+
+async def test_frames_and_replay_split_the_pads_as_the_run_recorded_them(
+    sim_run: SimRun, tmp_path: Path
+) -> None:
+    """Read by a service whose matrix map differs (Finger 1's pads swapped), a run's frames are
+    still split as recorded: `/frames`' shapes and a replayed iteration's matrices are the run's.
+    A recorded configuration this version cannot read is a 409, not a wrong split."""
+    run_id, it = sim_run.summary["run_id"], sim_run.summary["iterations"] // 2
+    other = load_config(overrides=[f"storage.db_path='{sim_run.cfg.storage.db_path}'",
+                                   "axes.finger1_proximal_matrix=1",
+                                   "axes.finger1_distal_matrix=0"], use_env=False)  # fmt: skip
+    want_shapes = [list(s) for s in matrix_shapes(sim_run.cfg.tactile, sim_run.cfg.axes)]
+    assert want_shapes != [list(s) for s in matrix_shapes(other.tactile, other.axes)]
+    store = _store(sim_run)
+    try:
+        recs = [recorded_iteration(store, c, run_id, it) for c in (sim_run.cfg, other)]
+    finally:
+        store.close()
+    mats = [next(m for m in r.messages if isinstance(m, Tactile)).matrices for r in recs if r]
+    assert len(mats) == 2 and [m.shape for m in mats[1]] == [tuple(s) for s in want_shapes]
+    assert all((a == b).all() for a, b in zip(*mats, strict=True))
+    app = create_app(Services(other, TelemetryHub(), station=None))  # type: ignore[arg-type]
+    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                 base_url="http://127.0.0.1") as c:  # fmt: skip
+        r = await c.get(f"/api/runs/{run_id}/frames", params={"limit": 1})
+    assert r.status_code == 200, r.text
+    assert r.json()["shapes"] == want_shapes
+    # a recorded configuration this version refuses
+    db = tmp_path / "odd.sqlite"
+    src = sqlite3.connect(sim_run.cfg.storage.db_path)
+    with contextlib.closing(sqlite3.connect(db)) as dst:
+        src.backup(dst)
+    src.close()
+    with contextlib.closing(sqlite3.connect(db)) as raw, raw:
+        meta = json.loads(
+            raw.execute("SELECT meta FROM runs WHERE id = ?", (run_id,)).fetchone()[0]
+        )
+        meta["configuration"]["tactile"]["proximal"]["rows"] = -1
+        raw.execute("UPDATE runs SET meta = ? WHERE id = ?", (json.dumps(meta), run_id))
+    odd = load_config(overrides=[f"storage.db_path='{db}'"], use_env=False)
+    app = create_app(Services(odd, TelemetryHub(), station=None))  # type: ignore[arg-type]
+    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                 base_url="http://127.0.0.1") as c:  # fmt: skip
+        r = await c.get(f"/api/runs/{run_id}/frames")
+    assert r.status_code == 409 and "cannot be read by this version" in r.text, r.text

@@ -28,7 +28,7 @@ from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.reads import Payload
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
-from sdh2svc.service.store import RunStore, StoreError
+from sdh2svc.service.store import RunStore, StoreError, recorded_settings
 from sdh2svc.service.telemetry import clean_json, estimate_outline, matrix_shapes
 
 router = APIRouter()
@@ -249,7 +249,7 @@ class FramePage(BaseModel):
 
 
 @router.get("/api/runs/{run_id}/frames", response_model=FramePage,
-            responses=responses(*READ, 404, 422))  # fmt: skip
+            responses=responses(*READ, 404, 409, 422))  # fmt: skip
 async def frames(
     svc: Svc,
     run_id: RunId,
@@ -267,7 +267,7 @@ async def frames(
 def _frames_body(cfg: Settings, run_id: int, first: int, to: int | None, limit: int) -> Payload:
     last = SQL_INT_MAX if to is None else to
     with _store(cfg) as store:
-        _run_or_404(store, run_id)
+        cfg = _as_recorded(_run_or_404(store, run_id), cfg)  # its matrices, however split now
         rows = store.frames_from(run_id, first, last, limit + 1)
         page = [
             RecordedFrame(iteration=it, t=t, timestamp_ms=ts,
@@ -375,7 +375,7 @@ async def show_replay(svc: Svc, at: ReplayAt) -> ReplayShown:
 
     def read() -> Recorded | None:
         with _store(svc.cfg) as store:
-            _run_or_404(store, at.run_id)
+            _as_recorded(_run_or_404(store, at.run_id), svc.cfg)  # drawable by this version
             return recorded_iteration(store, svc.cfg, at.run_id, at.iteration)
 
     rec = await asyncio.to_thread(read)
@@ -439,3 +439,11 @@ def _run_or_404(store: RunStore, run_id: int) -> dict[str, Any]:
     if run is None:
         raise ServiceError(404, f"no run {run_id} (GET /api/runs lists them)")
     return run
+
+
+def _as_recorded(run: dict[str, Any], cfg: Settings) -> Settings:
+    """The configuration ``run`` was recorded with; 409 if this version cannot read it."""
+    try:
+        return recorded_settings(run, cfg)
+    except ConfigError as e:
+        raise ServiceError(409, f"run {run['id']} cannot be read by this version: {e}") from None
