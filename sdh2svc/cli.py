@@ -579,6 +579,13 @@ def cmd_estop(args: argparse.Namespace) -> int:
 RUN_IDS = range(-(2**63), 2**63)  # SQLite's integers: any other ID names no run
 
 
+def _run_id(text: str) -> int:
+    """A run ID as the API takes it: the digits 0–9 only (int() would read "1_0" as run 10)."""
+    if not (text.isascii() and text.isdigit()):
+        raise argparse.ArgumentTypeError(f"{text!r}: a run ID is written in the digits 0–9")
+    return int(text)
+
+
 def cmd_runs(args: argparse.Namespace) -> int:
     """Recorded runs: list them, show one, export one as CSV or MCAP. Never creates a database."""
     import sqlite3
@@ -638,6 +645,13 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
                     out.close()
         else:
             assert path is not None  # an MCAP export goes to a file, always
+            from sdh2svc.service.store import recorded_settings
+
+            try:  # before the file is opened: a refused run leaves no empty file behind
+                recorded_settings(run, cfg)
+            except ConfigError as e:
+                _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
+                                  + "; ".join(e.problems))  # fmt: skip
             with open(path, "wb") as fh:
                 n = store.export_mcap(args.id, fh, cfg)
             print(f"{path}: {n} messages", file=sys.stderr)
@@ -898,7 +912,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description=cmd_runs.__doc__)  # fmt: skip
     _add_config_args(p)
     p.add_argument("action", choices=["list", "show", "export"])
-    p.add_argument("id", nargs="?", type=int, help="run ID (show, export)")
+    p.add_argument("id", nargs="?", type=_run_id, help="run ID (show, export)")
     p.add_argument("--format", choices=["csv", "mcap"], help="export format (default csv)")
     p.add_argument(
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"

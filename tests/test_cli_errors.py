@@ -279,6 +279,57 @@ def test_which_run_is_a_usage_error(one_run: Path, capsys: pytest.CaptureFixture
     assert "which run?" in one_line(err, "runs")
 
 
+@pytest.mark.parametrize("run_id", ["1_0", "+1", " 1", "١"])
+def test_a_run_id_is_written_in_the_digits_0_to_9(
+    run_id: str, one_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As the API takes it: int() would read "1_0" as run 10 and "+1" as run 1."""
+    with pytest.raises(SystemExit) as bad:
+        main(["runs", "show", run_id, *db_set(one_run)])
+    assert bad.value.code == Exit.USAGE
+    assert "a run ID is written in the digits 0–9" in capsys.readouterr().err
+
+
+def test_a_run_database_of_another_shape_is_unusable_not_a_bug(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A runs table without the columns every version had (someone else's, or a newer
+    version's): refused by name, for reading and for recording, and nothing is added to it."""
+    import sqlite3
+
+    other = tmp_path / "future.sqlite"
+    with contextlib.closing(sqlite3.connect(other)) as db, db:
+        db.execute("CREATE TABLE runs (id INTEGER PRIMARY KEY, began TEXT, state TEXT)")
+        db.execute("INSERT INTO runs (began, state) VALUES ('x', 'y')")
+    for args in (("runs", "list"), ("runs", "show", "1")):
+        status, _, err = call(capsys, *args, *db_set(other))
+        assert status == Exit.UNAVAILABLE, err
+        line = one_line(err, "runs")
+        assert f"{other} is not a run database this version can read" in line
+        assert "runs table lacks ended_at, meta, started_at, status, summary" in line
+    with pytest.raises(Exception, match="this version can read"):
+        RunStore(other)  # what `run` and `serve` open: refused too
+    with contextlib.closing(sqlite3.connect(other)) as db:
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    assert tables == {"runs"}
+
+
+def test_an_export_this_version_cannot_draw_leaves_no_file(
+    one_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(one_run)) as db, db:
+        odd = {"configuration": {"limits": {"max_deg": [500] * 7}}}
+        db.execute("UPDATE runs SET meta = ? WHERE id = 1", (json.dumps(odd),))
+    target = tmp_path / "run.mcap"
+    status, _, err = call(capsys, "runs", "export", "1", "--format", "mcap", "-o", str(target),
+                          *db_set(one_run))  # fmt: skip
+    assert status == Exit.USAGE
+    assert "run 1 cannot be drawn by this version: limits" in one_line(err, "runs")
+    assert not target.exists()
+
+
 # --- devices and ports -----------------------------------------------------------------------
 
 

@@ -195,6 +195,7 @@ def connect(
         db.execute("PRAGMA synchronous=NORMAL")
         if not create and not _has_runs_table(db):
             raise StoreError(f"{p} is not a run database (it has no runs table)")
+        _check_tables(db, p)  # before a table of another shape is added to
         db.executescript(SCHEMA)
         _add_new_sample_columns(db)
         if create:
@@ -233,6 +234,24 @@ def _add_new_sample_columns(db: sqlite3.Connection) -> None:
     for column in SAMPLE_COLUMNS:
         if column not in have:
             db.execute(f'ALTER TABLE samples ADD COLUMN "{column}"')
+
+
+# the columns every version's tables have had (a table of the same name without them is someone
+# else's, or a newer version's: not read, and nothing added to it)
+_KEY_COLUMNS = {
+    "runs": {"id", "started_at", "ended_at", "status", "meta", "summary"},
+    "samples": {"run_id", "iteration", "t"},
+    "frames": {"run_id", "t", "iteration", "timestamp_ms", "texels"},
+    "events": {"run_id", "t", "iteration", "kind", "detail"},
+}
+
+
+def _check_tables(db: sqlite3.Connection, p: Path) -> None:
+    for table, need in _KEY_COLUMNS.items():
+        have = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+        if have and not need <= have:
+            raise StoreError(f"{p} is not a run database this version can read: its {table} "
+                             f"table lacks {', '.join(sorted(need - have))}")  # fmt: skip
 
 
 def _has_runs_table(db: sqlite3.Connection) -> bool:
