@@ -262,8 +262,10 @@ def _start(params: Mapping[str, Any] | None, obj: str | Mapping[str, Any] | None
     return _Call("POST", "/api/runs", body)
 
 
-def _samples(run_id: int, offset: int, limit: int, outline: bool = False) -> _Call:
-    query: dict[str, Any] = {"offset": offset, "limit": limit}
+def _samples(run_id: int, offset: int, limit: int | None, outline: bool = False) -> _Call:
+    query: dict[str, Any] = {"offset": offset}
+    if limit is not None:
+        query["limit"] = limit
     if outline:
         query["outline"] = "true"
     return _Call("GET", f"/api/runs/{run_id}/samples", query=query)
@@ -450,10 +452,10 @@ class Client:
         return cast(list[JSON], self.run(run_id)["events"])
 
     def samples(
-        self, run_id: int, offset: int = 0, limit: int = 1000, outline: bool = False
+        self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False
     ) -> SamplePage:
-        """A page of a run's samples (``outline``: each with its ``estimate_outline``; ``limit``
-        then at most 100)."""
+        """A page of a run's samples, ``limit`` of them (default 1000, or 100 with ``outline``:
+        each with its ``estimate_outline``; ``limit`` then at most 100)."""
         return cast(SamplePage, self._call(_samples(run_id, offset, limit, outline)))
 
     def iter_samples(self, run_id: int, page: int = 1000) -> Iterator[JSON]:
@@ -707,7 +709,7 @@ class AsyncClient:
         return cast(list[JSON], (await self.run(run_id))["events"])
 
     async def samples(
-        self, run_id: int, offset: int = 0, limit: int = 1000, outline: bool = False
+        self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False
     ) -> SamplePage:
         return cast(SamplePage, await self._call(_samples(run_id, offset, limit, outline)))
 

@@ -280,6 +280,11 @@ async def test_the_runs_recognition_in_its_summary_and_samples(
     assert len(outlines[ITERATIONS]) > 3
     r = await c.get(f"/api/runs/{run_id}/samples", params={**asked, "limit": 101})
     assert r.status_code == 422 and "at most 100" in r.json()["details"][0]
+    # the flag alone: its own default page (100), not the plain one's 1000 and a 422
+    alone = await c.get(f"/api/runs/{run_id}/samples", params={"outline": "true"})
+    assert alone.status_code == 200 and alone.json()["limit"] == 100, alone.text
+    assert alone.json()["samples"] == page["samples"]
+    assert (await c.get(f"/api/runs/{run_id}/samples")).json()["limit"] == 1000
 
     doc = (await c.get("/openapi.json")).json()
     ok = doc["paths"]["/api/runs/{run_id}"]["get"]["responses"]["200"]

@@ -191,9 +191,12 @@ async def samples(
     svc: Svc,
     run_id: RunId,
     offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX), Digits] = 0,
-    limit: Annotated[int, Query(ge=1, le=10_000), Digits] = 1000,
+    limit: Annotated[int | None, Query(ge=1, le=10_000, description=f"1000; {MAX_OUTLINES} "
+                                       "with outline"), Digits] = None,
     outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> Response:
+    if limit is None:
+        limit = MAX_OUTLINES if outline else 1000
     if outline and limit > MAX_OUTLINES:
         raise ServiceError(422, "invalid request", [f"limit: at most {MAX_OUTLINES} with outline"])
     return _answer(await svc.reads(_samples_body, svc.cfg, run_id, offset, limit, outline))
