@@ -350,20 +350,40 @@ def _object(args: argparse.Namespace, default: str = "") -> Shape:
 T = TypeVar("T")
 
 
-async def _terminable(work: Coroutine[Any, Any, T]) -> T:
-    """``work``, cancelled by SIGTERM (systemd's stop, kill) as Ctrl-C cancels it: the run
-    stops, the hand with it, the run is recorded as stopped. (A background job started by a
-    non-interactive shell ignores SIGINT: SIGTERM is what stops it.)"""
-    import asyncio
+class _Stopper:
+    """SIGTERM (systemd's stop, kill) and SIGINT (Ctrl-C) stop a run as the service's stop does:
+    once :meth:`started` has been handed the runner, the run releases the object, ends
+    ``stopped`` and its summary is printed (:attr:`asked`); before that, or at a second signal,
+    the work is cancelled (the run recorded stopped, the hand left where it is). (A background
+    job started by a non-interactive shell ignores SIGINT: SIGTERM is what stops it.)"""
 
-    loop = asyncio.get_running_loop()
-    task = asyncio.current_task()
-    assert task is not None
-    loop.add_signal_handler(signal.SIGTERM, task.cancel)
-    try:
-        return await work
-    finally:
-        loop.remove_signal_handler(signal.SIGTERM)
+    def __init__(self) -> None:
+        self.asked = False
+        self._runner: Any = None
+        self._task: Any = None
+
+    def started(self, runner: Any) -> None:
+        self._runner = runner
+
+    def _signalled(self) -> None:
+        if self._runner is not None and not self.asked:
+            self.asked = True
+            self._runner.request_stop()
+        else:
+            self._task.cancel()
+
+    async def run(self, work: Coroutine[Any, Any, T]) -> T:
+        import asyncio
+
+        loop = asyncio.get_running_loop()
+        self._task = asyncio.current_task()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._signalled)
+        try:
+            return await work
+        finally:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -399,14 +419,17 @@ def cmd_run(args: argparse.Namespace) -> int:
               file=sys.stderr)  # fmt: skip
 
     where = Simulated(obj, fast=args.fast) if args.sim else real_hand(cfg, args.dsa, args.sdh)
+
+    stopper = _Stopper()
+    work = stopper.run(run_once(cfg, where, progress=progress, started=stopper.started))
     try:
         if args.fast:
             from sdh2svc.sim.clock import run_fast
 
-            summary = run_fast(_terminable(run_once(cfg, where, progress=progress)))
+            summary = run_fast(work)
         else:
-            summary = asyncio.run(_terminable(run_once(cfg, where, progress=progress)))
-    except asyncio.CancelledError:  # SIGTERM: stopped like Ctrl-C (the run recorded stopped)
+            summary = asyncio.run(work)
+    except asyncio.CancelledError:  # a signal before the run began, or a second one
         return Exit.INTERRUPTED
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, str(e))
@@ -447,7 +470,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     # the summary is the output (stdout); the failure is also the one line on stderr
     print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: "
           f"{_one_line(summary['message']) or 'no message'}", file=sys.stderr)  # fmt: skip
-    return Exit.FAILED
+    return Exit.INTERRUPTED if stopper.asked else Exit.FAILED
 
 
 def _mm(value: float | None) -> str:

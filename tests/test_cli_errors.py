@@ -333,27 +333,45 @@ def test_an_export_this_version_cannot_draw_leaves_no_file(
 # --- devices and ports -----------------------------------------------------------------------
 
 
-def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path: Path) -> None:
-    """systemd's stop (or kill) mid-run: the run stops and is recorded as stopped, exit 130."""
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signal_stops_a_run_as_the_services_stop_does(sig: str, tmp_path: Path) -> None:
+    """systemd's stop, kill or Ctrl-C mid-run: the run releases the object and is recorded as
+    stopped with its end, its summary printed and its one line on stderr; exit 130."""
     import signal
     import time
 
     db = tmp_path / "r.sqlite"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "sdh2svc", "run", "--sim", *db_set(db)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        [sys.executable, "-m", "sdh2svc", "run", "--sim", "--json", *db_set(db)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 60
-        while not _runs(db) and time.monotonic() < deadline:  # the run has begun
+        while not _phases(db) and time.monotonic() < deadline:  # the run has begun
             time.sleep(0.05)
         assert _runs(db) == [(1, "running")]
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=60)
+        proc.send_signal(getattr(signal, sig))
+        out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
     assert proc.returncode == Exit.INTERRUPTED == 130, err
     assert _runs(db) == [(1, "stopped")]
+    assert json.loads(out)["status"] == "stopped"
+    assert one_line(err, "run").startswith("sdh2svc run: run 1 stopped")
+    assert _phases(db)[-2:] == ["releasing", "stopped"]  # the object let go, the end recorded
+
+
+def _phases(db: Path) -> list[str]:
+    import sqlite3
+
+    if not db.exists():
+        return []
+    with contextlib.closing(sqlite3.connect(db)) as con:
+        try:
+            rows = con.execute("SELECT detail FROM events WHERE kind = 'phase'").fetchall()
+        except sqlite3.OperationalError:  # the tables are not made yet
+            return []
+    return [json.loads(r[0]).get("phase") for r in rows]
 
 
 def _runs(db: Path) -> list[tuple[int, str]]:

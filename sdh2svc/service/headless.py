@@ -27,12 +27,15 @@ async def run_once(
     *,
     progress: Callable[[Runner], None] | None = None,
     observer: Callable[[Bench | None], RunObserver] | None = None,
+    started: Callable[[Runner], None] | None = None,
 ) -> dict[str, Any]:
     """Run once and return the summary (the ``--json`` object of ``sdh2svc run``).
 
     ``observer``, if given, is called once the links are up with the bench (None on a real
     hand) and returns what watches the run's events and samples, e.g. to sample the
-    simulation's truth along the run (:mod:`sdh2svc.campaign.run`).
+    simulation's truth along the run (:mod:`sdh2svc.campaign.run`). ``started``, if given, is
+    handed the run's runner before it starts (its ``request_stop`` stops the run as the
+    service's stop does: the object released, the run recorded ``stopped``).
     """
     store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
     try:
@@ -47,6 +50,8 @@ async def run_once(
             obs = observer(hand.bench) if observer else None
             run = RecordedRun(cfg, hand.joints, hand.tactile, store, meta=meta, bench=hand.bench,
                               observer=obs)  # fmt: skip
+            if started is not None:
+                started(run.runner)
             ticker = asyncio.create_task(_tick(run.runner, progress)) if progress else None
             try:
                 return await run.execute()
