@@ -205,10 +205,13 @@ def _handshake(url: str) -> Iterator[None]:
 
 def _ws_options(timeout: float) -> dict[str, Any]:
     """The handshake within ``timeout``, and a keepalive ping every ``min(10, timeout)`` s that
-    must be answered within ``timeout``: a hung service ends the telemetry within about twice
-    the client's timeout, whatever the messages' rate."""
+    must be answered within ``timeout``; then the closing handshake a hung service never answers
+    is waited for ``min(2, timeout)`` s (the library's 10 s default made a 1 s client learn of
+    a hung service after 12 s): a hung service ends the telemetry within three times the
+    client's timeout (timeout + 12 s beyond 10 s), whatever the messages' rate."""
     return {"max_size": _WS_MAX_BYTES, "open_timeout": timeout, "logger": _WS_LOG,
-            "ping_interval": min(10.0, timeout), "ping_timeout": timeout}  # fmt: skip
+            "ping_interval": min(10.0, timeout), "ping_timeout": timeout,
+            "close_timeout": min(2.0, timeout)}  # fmt: skip
 
 
 def _ws_open_sync(url: str, headers: dict[str, str], timeout: float) -> SyncClientConnection:
