@@ -191,8 +191,9 @@ async def samples(
     svc: Svc,
     run_id: RunId,
     offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX), Digits] = 0,
-    limit: Annotated[int | None, Query(ge=1, le=10_000, description=f"1000; {MAX_OUTLINES} "
-                                       "with outline"), Digits] = None,
+    limit: Annotated[
+        int | None, Query(ge=1, le=10_000, description=f"1000; {MAX_OUTLINES} with outline"), Digits
+    ] = None,
     outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> Response:
     if limit is None:
