@@ -379,8 +379,11 @@ async def show_replay(svc: Svc, at: ReplayAt) -> ReplayShown:
 
     def read() -> Recorded | None:
         with _store(svc.cfg) as store:
-            _as_recorded(_run_or_404(store, at.run_id), svc.cfg)  # drawable by this version
-            return recorded_iteration(store, svc.cfg, at.run_id, at.iteration)
+            _run_or_404(store, at.run_id)
+            try:  # drawn as the run recorded its configuration
+                return recorded_iteration(store, svc.cfg, at.run_id, at.iteration)
+            except ConfigError as e:
+                raise ServiceError(409, _unreadable(at.run_id, e)) from None
 
     rec = await asyncio.to_thread(read)
     if rec is None:
@@ -450,4 +453,8 @@ def _as_recorded(run: dict[str, Any], cfg: Settings) -> Settings:
     try:
         return recorded_settings(run, cfg)
     except ConfigError as e:
-        raise ServiceError(409, f"run {run['id']} cannot be read by this version: {e}") from None
+        raise ServiceError(409, _unreadable(run["id"], e)) from None
+
+
+def _unreadable(run_id: int, e: ConfigError) -> str:
+    return f"run {run_id} cannot be read by this version: {e}"
