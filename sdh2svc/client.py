@@ -20,7 +20,6 @@ import logging
 import re
 import threading
 import time
-import weakref
 from collections.abc import AsyncIterator, Callable, Generator, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -588,11 +587,17 @@ class AsyncTelemetry:
     soon as the block is left (its client's ``aclose`` disconnects it too). Tasks may share
     it: each message goes to one of them."""
 
-    def __init__(self, url: str, headers: dict[str, str], timeout: float = 30.0) -> None:
+    def __init__(
+        self, url: str, headers: dict[str, str], timeout: float = 30.0,
+        ended: Callable[[AsyncTelemetry], None] | None = None,
+    ) -> None:  # fmt: skip
+        """``ended``: told once the stream is closed or its connection over (its client keeps
+        every open stream, dropped by the program or not, to close it with itself)."""
         self._url, self._headers, self._timeout = url, headers, timeout
         self._ws: ClientConnection | None = None
         self._lock = asyncio.Lock()  # one connection, one reader at a time
         self._closed = False
+        self._ended = ended
 
     async def __aenter__(self) -> AsyncTelemetry:
         async with self._lock:
@@ -607,8 +612,15 @@ class AsyncTelemetry:
     async def aclose(self) -> None:
         """Disconnect (a task waiting for a message gets the end of the iteration)."""
         self._closed = True
-        if self._ws is not None:
-            await self._ws.close()
+        try:
+            if self._ws is not None:
+                await self._ws.close()
+        finally:
+            self._end()
+
+    def _end(self) -> None:
+        if self._ended is not None:
+            self._ended(self)
 
     def __aiter__(self) -> AsyncIterator[TelemetryMessage]:
         return self
@@ -621,6 +633,7 @@ class AsyncTelemetry:
             try:
                 text = await ws.recv()
             except ConnectionClosed as e:
+                self._end()
                 if (lost := _lost(e, self._url)) is not None and not self._closed:
                     raise lost from e
                 raise StopAsyncIteration from None
@@ -642,7 +655,9 @@ class AsyncClient:
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
         self.url, self.token, self.timeout = url.rstrip("/"), token, timeout
         self._http = httpx.AsyncClient(base_url=self.url, headers=_headers(token), timeout=timeout)
-        self._telemetry: weakref.WeakSet[AsyncTelemetry] = weakref.WeakSet()
+        # every stream not yet ended, held here: one the program dropped still has its
+        # connection (its keepalive and reader tasks hold it), which aclose must close
+        self._telemetry: set[AsyncTelemetry] = set()
 
     async def __aenter__(self) -> AsyncClient:
         return self
@@ -804,8 +819,7 @@ class AsyncClient:
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
     ) -> AsyncTelemetry:
         """``async with client.telemetry() as tm: async for msg in tm: …``"""
-        tm = AsyncTelemetry(
-            _ws_url(self.url, decimate, tactile, max_queue), _headers(self.token), self.timeout
-        )
+        url = _ws_url(self.url, decimate, tactile, max_queue)
+        tm = AsyncTelemetry(url, _headers(self.token), self.timeout, self._telemetry.discard)
         self._telemetry.add(tm)
         return tm

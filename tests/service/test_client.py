@@ -181,6 +181,32 @@ async def test_a_bad_telemetry_query_is_an_invalid_request(svc: LiveService) -> 
     ]
 
 
+async def test_closing_the_client_disconnects_telemetry_the_program_dropped(
+    svc: LiveService,
+) -> None:
+    """A stream read once and dropped (``async for … break``, then forgotten) still has its
+    connection: closing its client closes it. A stream that ended is forgotten by its client."""
+    import gc
+
+    c = AsyncClient(svc.url, token=TOKEN)
+    connections = []
+    for _ in range(3):
+        tm = c.telemetry(tactile=False)
+        async for _msg in tm:
+            break
+        connections.append(tm._ws)  # (the connection only: the stream itself is dropped)
+        del tm
+    gc.collect()
+    assert all(ws is not None and ws.state.name == "OPEN" for ws in connections)
+    await c.aclose()
+    assert all(ws is not None and ws.state.name == "CLOSED" for ws in connections)
+    async with AsyncClient(svc.url, token=TOKEN) as c2:
+        async with c2.telemetry(tactile=False) as tm2:
+            async for _msg in tm2:
+                break
+        assert not c2._telemetry  # closed: no longer held
+
+
 def test_calls_and_refusals(svc: LiveService) -> None:
     with Client(svc.url, token=TOKEN) as c:
         assert c.viewer() == {"url": None}
