@@ -22,7 +22,10 @@ from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
 
 if TYPE_CHECKING:
+    import asyncio
+
     from sdh2svc.connect import Bench
+    from sdh2svc.control.runner import Runner
     from sdh2svc.sim.objects import Shape
     from sdh2svc.sim.press import Press
 
@@ -359,17 +362,17 @@ class _Stopper:
 
     def __init__(self) -> None:
         self.asked = False
-        self._runner: Any = None
-        self._task: Any = None
+        self._runner: Runner | None = None
+        self._task: asyncio.Task[Any] | None = None
 
-    def started(self, runner: Any) -> None:
+    def started(self, runner: Runner) -> None:
         self._runner = runner
 
     def _signalled(self) -> None:
         if self._runner is not None and not self.asked:
             self.asked = True
             self._runner.request_stop()
-        else:
+        elif self._task is not None:
             self._task.cancel()
 
     async def run(self, work: Coroutine[Any, Any, T]) -> T:
@@ -394,7 +397,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sdh2svc.bus.joint import JointLinkError
     from sdh2svc.bus.tactile import TactileError
     from sdh2svc.connect import Simulated, real_hand
-    from sdh2svc.control.runner import Runner
     from sdh2svc.service.headless import run_once
     from sdh2svc.service.store import EstopLatched, StoreError
 
