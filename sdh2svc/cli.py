@@ -514,20 +514,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def status_url(url: str) -> str:
     """The service's status URL from what ``health --url`` was given: its base URL
-    (``http://127.0.0.1:8000``, with or without a trailing slash, or a path prefix behind a
-    proxy) or the full ``…/api/status``; ``http://`` when no scheme is given."""
+    (:func:`sdh2svc.client.service_url`: ``http://`` when no scheme is given) or the full
+    ``…/api/status``."""
     from urllib.parse import urlsplit, urlunsplit
 
-    text = url.strip()
-    if "://" not in text:
-        text = f"http://{text}"
+    from sdh2svc.client import service_url
+
     try:
-        parts = urlsplit(text)
-        _ = parts.port  # a ValueError if the port is not a number in range
+        parts = urlsplit(service_url(url))
     except ValueError as e:
-        _fail(Exit.USAGE, f"--url {url!r}: {e}")
-    if parts.scheme not in ("http", "https") or not parts.hostname:
-        _fail(Exit.USAGE, f"--url {url!r}: give the service's http://HOST:PORT (or …/api/status)")
+        _fail(Exit.USAGE, f"--url {e} (or …/api/status)")
     path = parts.path.rstrip("/")
     if not path.endswith("/api/status"):
         path += "/api/status"

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, TypedDict, cast
+from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 from websockets.asyncio.client import ClientConnection
@@ -58,6 +59,7 @@ __all__ = [
     "Unavailable",
     "Unreachable",
     "run_state",
+    "service_url",
 ]
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -67,6 +69,7 @@ JSON = dict[str, Any]
 # dropped) as JSON: each has a "type"
 TelemetryMessage = JSON
 StatusCheck = Callable[[JSON], bool]  # a condition on the status (Client.wait_status)
+ESTOP_TIMEOUT_S = 2.0  # the e-stop's own limit: an unanswered stop must be known at once
 _WS_MAX_BYTES = 2**24  # a hello carries the whole status; a tactile frame six matrices
 # Closes that end the telemetry as the service meant it: normal, going away, restarting. Any
 # other end of the socket (no close frame, a keepalive ping unanswered) is a lost service.
@@ -247,11 +250,14 @@ class _Call:
     path: str
     body: Any = _NONE
     query: dict[str, Any] = field(default_factory=dict)
+    timeout: float | None = None  # a limit of its own, below the client's (the e-stop)
 
-    def kwargs(self) -> dict[str, Any]:
+    def kwargs(self, client_timeout: float) -> dict[str, Any]:
         kw: dict[str, Any] = {"params": self.query} if self.query else {}
         if self.body is not _NONE:
             kw["json"] = self.body
+        if self.timeout is not None:
+            kw["timeout"] = min(self.timeout, client_timeout)
         return kw
 
 
@@ -294,6 +300,7 @@ def _press(pad: int, x_mm: float, y_mm: float, force_n: float, radius_mm: float 
     return _Call("POST", "/api/sim/press", body)
 
 
+_ESTOP = _Call("POST", "/api/estop", timeout=ESTOP_TIMEOUT_S)
 _RELEASE_PRESS = _Call("DELETE", "/api/sim/press", {})
 _END_REPLAY = _Call("DELETE", "/api/viewer/replay", {})
 
@@ -358,6 +365,23 @@ def run_state(*states: str) -> StatusCheck:
     return lambda st: bool(st.get("run")) and st["run"]["state"] in states
 
 
+def service_url(url: str) -> str:
+    """The service's base URL from what a user gave: ``http://`` when no scheme is given (as
+    curl does), no trailing slash, a path prefix (behind a proxy) kept. ValueError naming the
+    URL when it cannot be one (another scheme, no host, a bad port)."""
+    text = url.strip()
+    if "://" not in text:
+        text = f"http://{text}"
+    try:
+        parts = urlsplit(text)
+        _ = parts.port  # a ValueError if the port is not a number in range
+    except ValueError as e:
+        raise ValueError(f"{url!r}: {e}") from None
+    if parts.scheme.lower() not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"{url!r}: give the service's URL as http://HOST:PORT")
+    return urlunsplit((parts.scheme, parts.netloc, parts.path.rstrip("/"), "", ""))
+
+
 def _headers(token: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"} if token else {}
 
@@ -371,7 +395,7 @@ class Client:
     :class:`Unreachable`. Closing it (or leaving ``with``) also disconnects its telemetry."""
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
-        self.url, self.token, self.timeout = url.rstrip("/"), token, timeout
+        self.url, self.token, self.timeout = service_url(url), token, timeout
         self._http = httpx.Client(base_url=self.url, headers=_headers(token), timeout=timeout)
         self._sockets: set[SyncClientConnection] = set()  # open telemetry, closed with it
         self._sockets_lock = threading.Lock()
@@ -395,7 +419,7 @@ class Client:
     def _send(self, call: _Call) -> httpx.Response:
         """The service's answer to ``call``; a refusal raised (ApiError), no answer too."""
         with _answered(f"{call.method} {self.url}{call.path}"):
-            r = self._http.request(call.method, call.path, **call.kwargs())
+            r = self._http.request(call.method, call.path, **call.kwargs(self.timeout))
         _raise_for(r)
         return r
 
@@ -409,7 +433,10 @@ class Client:
         return cast(JSON, self._call(_Call("POST", "/api/hand/open", {})))
 
     def estop(self) -> JSON:
-        return cast(JSON, self._call(_Call("POST", "/api/estop")))
+        """Latch the e-stop; :class:`Unreachable` within :data:`ESTOP_TIMEOUT_S` (or the
+        client's timeout, if shorter) when the service does not answer — stop the hand another
+        way then."""
+        return cast(JSON, self._call(_ESTOP))
 
     def release_estop(self) -> JSON:
         return cast(JSON, self._call(_Call("POST", "/api/estop/release", {})))
@@ -489,7 +516,7 @@ class Client:
         call = _export(run_id, _format_of(path, format))
         with (
             _answered(f"{call.method} {self.url}{call.path}"),
-            self._http.stream(call.method, call.path, **call.kwargs()) as r,
+            self._http.stream(call.method, call.path, **call.kwargs(self.timeout)) as r,
         ):
             if not r.is_success:
                 r.read()
@@ -653,7 +680,7 @@ class AsyncClient:
     closing it also disconnects its telemetry."""
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
-        self.url, self.token, self.timeout = url.rstrip("/"), token, timeout
+        self.url, self.token, self.timeout = service_url(url), token, timeout
         self._http = httpx.AsyncClient(base_url=self.url, headers=_headers(token), timeout=timeout)
         # every stream not yet ended, held here: one the program dropped still has its
         # connection (its keepalive and reader tasks hold it), which aclose must close
@@ -675,7 +702,7 @@ class AsyncClient:
 
     async def _send(self, call: _Call) -> httpx.Response:
         with _answered(f"{call.method} {self.url}{call.path}"):
-            r = await self._http.request(call.method, call.path, **call.kwargs())
+            r = await self._http.request(call.method, call.path, **call.kwargs(self.timeout))
         _raise_for(r)
         return r
 
@@ -687,7 +714,8 @@ class AsyncClient:
         return cast(JSON, await self._call(_Call("POST", "/api/hand/open", {})))
 
     async def estop(self) -> JSON:
-        return cast(JSON, await self._call(_Call("POST", "/api/estop")))
+        """As :meth:`Client.estop`."""
+        return cast(JSON, await self._call(_ESTOP))
 
     async def release_estop(self) -> JSON:
         return cast(JSON, await self._call(_Call("POST", "/api/estop/release", {})))
@@ -758,7 +786,7 @@ class AsyncClient:
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
         with _answered(f"{call.method} {self.url}{call.path}"):
-            async with self._http.stream(call.method, call.path, **call.kwargs()) as r:
+            async with self._http.stream(call.method, call.path, **call.kwargs(self.timeout)) as r:
                 if not r.is_success:
                     await r.aread()
                     _raise_for(r)

@@ -10,9 +10,11 @@ import copy
 import json
 import pickle
 import re
-from collections.abc import AsyncIterator, Callable
-from typing import Any
+import socket
+from collections.abc import AsyncIterator, Callable, Iterator
+from typing import Any, cast
 
+import httpx
 import pytest
 from websockets.asyncio.server import ServerConnection, serve
 
@@ -204,3 +206,66 @@ def test_a_telemetry_option_of_0_reaches_the_service() -> None:
     """max_queue=0 was dropped from the URL (the service's default used without a word)."""
     url = client_module._ws_url("http://h:1", 1, True, 0)
     assert url.endswith("&max_queue=0")  # the service's 422 for it: tests/service/test_client.py
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ("http://127.0.0.1:8000/", "http://127.0.0.1:8000"),
+        ("127.0.0.1:8000", "http://127.0.0.1:8000"),
+        ("localhost:8000", "http://localhost:8000"),
+        (" HTTPS://lab.example/hand/ ", "https://lab.example/hand"),
+        ("[::1]:8000", "http://[::1]:8000"),
+    ],
+)
+def test_a_url_without_its_scheme_is_http(given: str, expected: str) -> None:
+    """``Client("localhost:8000")`` used to be Unreachable ("unsupported protocol
+    'localhost://'"), as if no service ran there."""
+    with Client(given) as c:
+        assert c.url == expected
+    assert client_module.service_url(given) == expected  # AsyncClient's too
+
+
+@pytest.mark.parametrize("bad", ["ftp://127.0.0.1/", "http://127.0.0.1:99999", "http://", ":80"])
+def test_a_url_that_cannot_be_a_service_is_refused_at_once(bad: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(repr(bad))):
+        Client(bad)
+
+
+@pytest.fixture
+def mute_port() -> Iterator[int]:
+    """A port that takes connections and never answers (a hung service)."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        yield server.getsockname()[1]
+
+
+def _limits(e: BaseException) -> dict[str, float]:
+    """The timeouts the request that failed was sent with."""
+    cause = e.__cause__
+    assert isinstance(cause, httpx.TimeoutException), repr(cause)
+    return cast(dict[str, float], cause.request.extensions["timeout"])
+
+
+def test_an_estop_a_hung_service_does_not_answer_fails_within_its_own_limit(
+    mute_port: int,
+) -> None:
+    """A 30 s client learnt that its e-stop went unanswered after 30 s; the e-stop has its own
+    limit (the other calls keep the client's)."""
+    with Client(f"127.0.0.1:{mute_port}", timeout=30.0) as c:
+        with pytest.raises(Unreachable, match=r"POST .*/api/estop") as raised:
+            c.estop()
+        assert _limits(raised.value)["read"] == client_module.ESTOP_TIMEOUT_S
+    with Client(f"127.0.0.1:{mute_port}", timeout=0.5) as c:  # a shorter client's own
+        with pytest.raises(Unreachable) as raised:
+            c.estop()
+        assert _limits(raised.value)["read"] == 0.5
+        with pytest.raises(Unreachable) as raised:
+            c.status()
+        assert _limits(raised.value)["read"] == 0.5
+
+
+async def test_the_async_estop_has_its_own_limit_too(mute_port: int) -> None:
+    async with AsyncClient(f"127.0.0.1:{mute_port}", timeout=30.0) as c:
+        with pytest.raises(Unreachable) as raised:
+            await c.estop()
+        assert _limits(raised.value)["read"] == client_module.ESTOP_TIMEOUT_S
