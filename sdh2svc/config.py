@@ -26,9 +26,9 @@ from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDic
 
 from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.safety import RunConfig, SafetyConfig
+from sdh2svc.control.safety import RunConfig, SafetyConfig, params_outside
 from sdh2svc.model.base import Frozen
-from sdh2svc.model.contact import TactileCalibration
+from sdh2svc.model.contact import TactileCalibration, saturated_force
 from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig
 from sdh2svc.model.kinematics import Finger, FingerLimits, HandGeometry
 from sdh2svc.model.observe import ModelContext
@@ -78,6 +78,15 @@ class ServiceConfig(Frozen):
 RECORDED_SECTIONS = ("hand", "axes", "limits", "tactile", "calibration", "run", "safety")
 
 
+def _laid_over(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``top``'s values in place, tables merged key by key."""
+    out = dict(base)
+    for k, v in top.items():
+        b = out.get(k)
+        out[k] = _laid_over(b, v) if isinstance(b, Mapping) and isinstance(v, Mapping) else v
+    return out
+
+
 class Settings(BaseSettings):
     """The whole configuration of sdh2svc; see ``config/default.toml`` for every key and unit."""
 
@@ -100,8 +109,18 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _consistent(self) -> Settings:
-        """Checks across sections: a pre-shape inside the joint limits; distinct ports."""
+        """Checks across sections: a pre-shape inside the joint limits; rolling parameters the
+        supervisor's limits allow; a force ceiling the pads can reach; distinct ports."""
         problems = self.run.preshape_outside(self.limits)
+        problems += params_outside(self.rolling, self.safety)
+        full = saturated_force(self.tactile.distal, self.tactile.texel_pitch_mm,
+                               self.calibration, self.hand.pad)  # fmt: skip
+        if self.safety.force_ceiling_max >= full:
+            problems.append(
+                f"safety.force_ceiling_max = {self.safety.force_ceiling_max:g}: a saturated pad "
+                f"reads F = {full:.3g} with this calibration (calibration.*), so the ceiling "
+                f"could never trip (allowed: force_ceiling_max < {full:.3g})"
+            )
         svc = self.service
         ports = {"port": svc.port, "viser_port": svc.viser_port, "foxglove_port": svc.foxglove_port}
         for a, b in itertools.combinations(ports, 2):
@@ -140,9 +159,10 @@ class Settings(BaseSettings):
 
     def as_recorded(self, sections: Mapping[str, Any]) -> Settings:
         """This configuration with a recording's sections (:meth:`recorded`) in place of its
-        own; :class:`ConfigError` if they are not valid here (e.g. a newer version's)."""
+        own, key by key: a key an older version did not record keeps this configuration's
+        value. :class:`ConfigError` if they are not valid here (e.g. a newer version's)."""
         try:
-            return self.model_validate({**self.model_dump(), **sections})
+            return self.model_validate(_laid_over(self.model_dump(), sections))
         except ValidationError as e:
             raise ConfigError(format_errors(e, Settings), "recorded configuration") from None
 
@@ -363,7 +383,7 @@ def format_errors(
     ``origin`` names where a location's value came from (a file, a variable, an option), if known:
     ``rolling.k = 0.5 (lab.toml): …``.
     """
-    lines = []
+    lines: list[str] = []
     errors = err.errors()
     locs = [tuple(e["loc"]) for e in errors]
     for e, loc in zip(errors, locs, strict=True):
@@ -374,7 +394,8 @@ def format_errors(
         value = e.get("input")
         shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"
         if not loc:  # a check across fields (a model validator): its message says it all
-            lines.extend(error_message(e).removeprefix("Value error, ").split("; "))
+            parts = str(e["msg"]).removeprefix("Value error, ").split("; ")
+            lines.extend(clip(part, 4 * CLIP_CHARS) for part in parts)  # each clipped alone
             continue
         source = origin(loc) if origin is not None else None
         if source:

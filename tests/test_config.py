@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from sdh2svc.config import ConfigError, default_config_path, load_config
+from sdh2svc.config import ConfigError, Settings, default_config_path, load_config
 from sdh2svc.model.kinematics import Finger
 
 
@@ -193,6 +193,18 @@ def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None
         (["sim.object='nonsense'"], "unknown object 'nonsense' (the presets: rubber"),
         (['storage.db_path=""'], "storage.db_path = ''"),
         (["rolling.route=true"], "'thesis' or 'workspace'"),
+        # no run parameter loosens a safety limit (the API changes run parameters)
+        (
+            ["rolling.grasp_force=4.5"],
+            "rolling.grasp_force = 4.5: its ceiling, "
+            "safety.force_ceiling_factor × Fd = 13.5, is above safety.force_ceiling_max = 12",
+        ),
+        (["safety.force_ceiling_factor=4", "rolling.grasp_force=3.5"], "grasp_force ≤ 3:"),
+        (["rolling.finger1_max_step_deg=1.5"], "above safety.max_step_deg = 1"),
+        # a ceiling the pads cannot reach: a calibration that reads every force 185× lower
+        (["calibration.force_reference_area_mm2=1"], "a saturated pad reads F = 0.229"),
+        (["safety.force_ceiling_max=50"], "allowed: force_ceiling_max < 42.4"),
+        (["safety.stale_frame_ms=2000"], "stale_frame_ms ≤ 1000"),
     ],
 )
 def test_values_that_would_mislead_the_hand_are_refused(
@@ -215,3 +227,17 @@ def test_settings_are_immutable() -> None:
     s = load_config(use_env=False)
     with pytest.raises(ValueError, match="frozen"):
         s.rolling.k = 3.0  # type: ignore[misc]
+
+
+def test_a_recording_older_than_a_key_reads_with_this_versions_value(cfg: Settings) -> None:
+    """A run recorded before safety.force_ceiling_max existed: its frames, replay and export
+    read it with today's value; a key this version does not know stays refused."""
+    recorded = cfg.recorded()
+    del recorded["safety"]["force_ceiling_max"]
+    recorded["safety"]["stale_frame_ms"] = 250.0
+    old = cfg.as_recorded(recorded)
+    assert old.safety.force_ceiling_max == cfg.safety.force_ceiling_max
+    assert old.safety.stale_frame_ms == 250.0
+    recorded["safety"]["from_the_future"] = 1
+    with pytest.raises(ConfigError, match=r"safety\.from_the_future"):
+        cfg.as_recorded(recorded)

@@ -15,6 +15,7 @@ from typing import Annotated
 
 from pydantic import Field, field_validator, model_validator
 
+from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import StepResult
 from sdh2svc.model.base import Frozen
 from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
@@ -66,13 +67,46 @@ class RunConfig(Frozen):
 
 
 class SafetyConfig(Frozen):
-    """The supervisor's limits (config [safety])."""
+    """The supervisor's limits (config [safety]). A stale line is lost within a second at most:
+    the pre-shape and the release move on joint round trips alone and see the ceiling only
+    through fresh tactile frames."""
 
     max_step_deg: Annotated[float, Field(gt=0.0, le=1.0)]
     force_ceiling_factor: Annotated[float, Field(gt=1.0, le=20.0)]
-    stale_frame_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
-    stale_joint_ms: Annotated[float, Field(gt=0.0, le=10000.0)]
+    # the ceiling's highest, whatever Fd (a run parameter, which the API may change)
+    force_ceiling_max: Annotated[float, Field(gt=0.0, le=1000.0)]
+    stale_frame_ms: Annotated[float, Field(gt=0.0, le=1000.0)]
+    stale_joint_ms: Annotated[float, Field(gt=0.0, le=1000.0)]
     max_consecutive_reversals: Annotated[int, Field(ge=2, le=1000)]
+
+    def ceiling(self, grasp_force: float) -> float:
+        """The force ceiling for Fd = ``grasp_force``: factor × Fd, never above the maximum."""
+        return min(self.force_ceiling_factor * grasp_force, self.force_ceiling_max)
+
+
+def params_outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
+    """One line per rolling parameter the supervisor's limits would void (none: all within):
+    an Fd whose ceiling the maximum would cut (no headroom left between the grip and the stop),
+    and a Finger 1 step the step limit would clip (Finger 1 would lag its plan, which squeezes
+    or drops the object, instead of the iteration slowing down as the step means it to).
+    Finger 2's k·Δφ beyond the step limit is clipped, not refused: the thesis's sticks roll at
+    k = 5 (1.25° a step, Finger 2 following its route at 1°)."""
+    out = []
+    top = safety.force_ceiling_max / safety.force_ceiling_factor
+    if p.grasp_force > top:
+        out.append(
+            f"rolling.grasp_force = {p.grasp_force:g}: its ceiling, safety.force_ceiling_factor "
+            f"× Fd = {safety.force_ceiling_factor * p.grasp_force:g}, is above "
+            f"safety.force_ceiling_max = {safety.force_ceiling_max:g} (allowed: grasp_force ≤ "
+            f"{top:g}: a firmer grip needs a higher safety.force_ceiling_max in the configuration)"
+        )
+    step = safety.max_step_deg
+    if p.finger1_max_step_deg > step:
+        out.append(
+            f"rolling.finger1_max_step_deg = {p.finger1_max_step_deg:g}: above "
+            f"safety.max_step_deg = {step:g}, the supervisor's step limit (allowed: ≤ {step:g})"
+        )
+    return out
 
 
 class Fault(StrEnum):
@@ -143,9 +177,13 @@ def joint_age(age_s: float | None, safety: SafetyConfig) -> Violation | None:
 
 
 def force_ceiling(F: float, grasp_force: float, safety: SafetyConfig) -> Violation | None:
-    """The grip's F above ``force_ceiling_factor`` × Fd."""
-    if F > safety.force_ceiling_factor * grasp_force:
+    """The grip's F above the ceiling (:meth:`SafetyConfig.ceiling`)."""
+    limit = safety.ceiling(grasp_force)
+    if F > limit:
         factor = safety.force_ceiling_factor
+        if limit < factor * grasp_force:
+            return Violation(Fault.FORCE_CEILING, f"F = {F:.2f} above the ceiling's maximum "
+                             f"{limit:g} (safety.force_ceiling_max)")  # fmt: skip
         return Violation(Fault.FORCE_CEILING, f"F = {F:.2f} above {factor:g} × Fd")
     return None
 

@@ -270,6 +270,18 @@ def _row_profile(flat: list[Any], cells: list[int], grid: _Grid
     return [float(q) for q in load], [float(p) for p in peak]
 
 
+FULL_SCALE_COUNTS = 4095  # a cell's highest reading: the DSACON32m's 12-bit converter
+
+
+def saturated_force(
+    layout: MatrixLayout, pitch_mm: float, calib: TactileCalibration, pad: PadProfile
+) -> float:
+    """The controller's force F on a pad whose every cell reads full scale: no pad reads more,
+    so a force limit at or above it can never trip."""
+    full = np.full((layout.rows, layout.cols), FULL_SCALE_COUNTS, dtype=np.uint16)
+    return estimate_contact(full, layout, pitch_mm, calib, pad).force
+
+
 def estimate_contact(
     counts: np.ndarray,
     layout: MatrixLayout,

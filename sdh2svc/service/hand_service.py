@@ -28,6 +28,7 @@ from sdh2svc.control.observer import BaseObserver, EventKind
 from sdh2svc.control.observer import Event as RunEvent
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
+from sdh2svc.control.safety import SafetyConfig, params_outside
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
@@ -61,15 +62,21 @@ class ServiceError(Exception):
         return (type(self), (self.status, self.message, self.details))
 
 
-def validate_params(current: RollingParams, patch: dict[str, Any]) -> RollingParams:
-    """``current`` with ``patch`` laid over it, validated whole (422 naming each bad field).
+def validate_params(
+    current: RollingParams, patch: dict[str, Any], safety: SafetyConfig
+) -> RollingParams:
+    """``current`` with ``patch`` laid over it, validated whole and against the supervisor's
+    limits (422 naming each bad field: no parameter loosens a limit, :func:`params_outside`).
     Strictly: a value is taken as it is typed ("2" is no number; configuration files and
     --set, which are text, go through the lax path of sdh2svc.config)."""
     try:
-        return RollingParams.model_validate({**current.model_dump(), **patch}, strict=True)
+        new = RollingParams.model_validate({**current.model_dump(), **patch}, strict=True)
     except ValidationError as e:
         lines = format_errors(e, RollingParams)
         raise ServiceError(422, "invalid rolling parameters", lines) from None
+    if problems := params_outside(new, safety):
+        raise ServiceError(422, "invalid rolling parameters", problems)
+    return new
 
 
 def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Shape:
@@ -224,7 +231,9 @@ class HandService:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
         self._require_lines(joints, tactile)
-        run_params = validate_params(self.params, params) if params else self.params
+        run_params = (
+            validate_params(self.params, params, self.cfg.safety) if params else self.params
+        )
         if self.bench is not None:  # as in a lab: the object is put back in the fixture first
             self.set_object(obj or self.bench.obj)
         assert self._hand is not None  # open: _links() says so
@@ -431,9 +440,9 @@ class HandService:
     def patch_params(self, patch: dict[str, Any]) -> RollingParams:
         """Validate and take ``patch`` for later runs and — applied whole at its next iteration —
         for the running one (laid over its own parameters, e.g. its cycles)."""
-        new = validate_params(self.params, patch)
+        new = validate_params(self.params, patch, self.cfg.safety)
         if self.running and self.run is not None and self._run_params is not None:
-            self._run_params = validate_params(self._run_params, patch)
+            self._run_params = validate_params(self._run_params, patch, self.cfg.safety)
             self.run.runner.set_params(self._run_params)
         self.params = new
         log.info("parameters changed: %s", patch)

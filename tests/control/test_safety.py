@@ -51,6 +51,25 @@ def test_force_ceiling_is_the_factor_times_fd(cfg: Settings) -> None:
     assert v == Violation(Fault.FORCE_CEILING, "F = 6.01 above 3 × Fd")
 
 
+def test_the_force_ceiling_never_rises_above_its_maximum(cfg: Settings) -> None:
+    """Fd is a run parameter; the ceiling's maximum is not (a model_copy skips the checks that
+    keep Fd below it, as a future route to Fd might)."""
+    s = cfg.safety  # 3 × Fd, at most 12
+    assert s.ceiling(2.0) == 6.0 and s.ceiling(4.0) == 12.0 and s.ceiling(50.0) == 12.0
+    assert safety.force_ceiling(12.0, 50.0, s) is None
+    v = safety.force_ceiling(12.01, 50.0, s)
+    assert v == Violation(Fault.FORCE_CEILING, "F = 12.01 above the ceiling's maximum 12 "
+                          "(safety.force_ceiling_max)")  # fmt: skip
+
+
+def test_parameters_within_the_supervisors_limits_pass(cfg: Settings) -> None:
+    assert safety.params_outside(cfg.rolling, cfg.safety) == []
+    k5 = cfg.rolling.model_copy(update={"k": 5.0})  # Finger 2 clipped to 1° a step: allowed
+    assert safety.params_outside(k5, cfg.safety) == []
+    fast = cfg.rolling.model_copy(update={"finger1_max_step_deg": 1.01, "grasp_force": 4.01})
+    assert len(safety.params_outside(fast, cfg.safety)) == 2
+
+
 @pytest.mark.parametrize(
     ("c1", "c2", "want"),
     [(True, True, None), (True, False, None), (False, True, None), (False, False, Fault.DROPPED)],

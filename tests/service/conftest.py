@@ -23,7 +23,7 @@ LONG_RUNS = ("--set", "safety.force_ceiling_factor=4.0", *FAST_GRASP)
 # (seen once in CI: 395 ms). They are about the dashboard, the API and the client; the
 # watchdogs are tested on the virtual clock (tests/control, test_faults_by_phase.py), where load
 # cannot move them, and in real time by test_motion_safety.py, which keeps them at 0.3 s.
-PATIENT = ("--set", "safety.stale_frame_ms=2000", "--set", "safety.stale_joint_ms=2000")
+PATIENT = ("--set", "safety.stale_frame_ms=1000", "--set", "safety.stale_joint_ms=1000")
 
 
 @pytest.fixture(scope="session")

@@ -113,7 +113,17 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         with pytest.raises(InvalidRequest) as bad:
             await c.patch_params({"no_such": 1})
         assert bad.value.status == 422 and "no_such" in bad.value.details[0]
+        # no parameter loosens a safety limit: an Fd whose ceiling the maximum would cut (at 50
+        # the ceiling was 150, above any pad's reading), steps the step limit would clip
+        with pytest.raises(InvalidRequest) as bad:
+            await c.patch_params({"grasp_force": 50.0, "finger1_max_step_deg": 10.0})
+        assert bad.value.details[0].startswith("rolling.grasp_force = 50: its ceiling")
+        assert "safety.force_ceiling_max = 12" in bad.value.details[0]
+        assert bad.value.details[1].startswith("rolling.finger1_max_step_deg = 10: above")
+        with pytest.raises(InvalidRequest, match="force_ceiling_max"):
+            await c.start_run({"grasp_force": 4.5})
         assert (await c.params())["k"] == 2.0  # nothing half-applied
+        assert (await c.params())["grasp_force"] == 2.0
 
         with pytest.raises(Conflict) as none:
             await c.stop_run()
