@@ -22,8 +22,9 @@ from pathlib import Path
 from typing import Any
 
 from sdh2svc.bus.joint import JointLink
-from sdh2svc.bus.tactile import TactileBus
-from sdh2svc.config import Settings
+from sdh2svc.bus.tactile import TactileBus, TactileOptions
+from sdh2svc.config import ConfigError, Settings
+from sdh2svc.model.hand import matrix_pads
 from sdh2svc.sim.hand import HandModel, ObjectNow, Truth
 from sdh2svc.sim.lab import SimulatedHand, start_simulated_hand
 from sdh2svc.sim.objects import Outline, Shape
@@ -164,12 +165,18 @@ async def simulated_hand(cfg: Settings, spec: Simulated) -> AsyncIterator[Bench]
 
 
 async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:
-    """Both of the hand's lines, the joint controller first (its limits from the config)."""
+    """Both of the hand's lines, the joint controller first (its limits from the config); the
+    hand as the configuration expects it — its speeds within the joints' velocity limits, its
+    pads laid out as configured — or a ConfigError / TactileError saying how it differs."""
     lim = cfg.limits
     limits = list(zip(lim.min_deg, lim.max_deg, strict=True))
     joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits)
+    if problems := cfg.run.speeds_outside(joints.velocity_limits):
+        await joints.close()  # before a run or Open hand commands what the hand refuses
+        raise ConfigError(problems)
     try:
-        tactile = await TactileBus.open(dsa_url)
+        expect = tuple((pad, lay.rows, lay.cols) for pad, lay in matrix_pads(cfg.axes, cfg.tactile))
+        tactile = await TactileBus.open(dsa_url, TactileOptions(expect=expect))
     except BaseException:
         await joints.close()
         raise

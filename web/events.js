@@ -10,6 +10,7 @@ export const FAULT_WORDS = {
   stuck: "the rolling kept reversing without turning the object (stuck)",
   joint_error: "the joint controller failed",
   sensor_error: "the tactile sensor's controller failed",
+  internal_error: "an unexpected error in sdh2svc (a bug: the log has its traceback)",
 };
 
 const PHASES = {

@@ -30,7 +30,7 @@ import contextlib
 import logging
 import math
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Self, TypeVar
 
@@ -139,6 +139,22 @@ class TactileOptions:
     push_cap_fps: float = 30.0  # "highest possible rate (for now: 30 FPS)", §1.6
     rle: bool = True
     events_maxlen: int = 256
+    # the matrices the controller must report, in wire order: (name, rows, cols) each; a
+    # controller that reports others is refused at every open (empty: any)
+    expect: tuple[tuple[str, int, int], ...] = ()
+
+
+def _unlike(mats: Sequence[dsa.MatrixInfo], expect: Sequence[tuple[str, int, int]]) -> str:
+    """How the controller's matrices differ from those expected ("": they do not)."""
+    if len(mats) != len(expect):
+        return (f"the controller reports {len(mats)} tactile matrices, the configuration "
+                f"expects {len(expect)}")  # fmt: skip
+    return "; ".join(
+        f"matrix {i} ({name}) is {m.cells_y} × {m.cells_x} cells on the controller, "
+        f"{rows} × {cols} in the configuration"
+        for i, (m, (name, rows, cols)) in enumerate(zip(mats, expect, strict=True))
+        if m.shape != (rows, cols)
+    )
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -467,6 +483,8 @@ class TactileBus:
         )
         if self.matrix_infos and [m.shape for m in mats] != [m.shape for m in self.matrix_infos]:
             raise TactileError("matrix geometry changed across a reconnect")
+        if o.expect and (unlike := _unlike(mats, o.expect)):
+            raise TactileError(unlike)
         self.controller_info, self.sensor_info, self.matrix_infos = ci, si, mats
 
     async def _flush_input(self) -> None:

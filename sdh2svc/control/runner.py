@@ -236,6 +236,12 @@ class Runner:
             self._say_fault(fault, str(e))
             await self._halt()
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")
+        except Exception as e:  # a bug: the hand held and the run ended as any fault ends it
+            log.exception("the run failed unexpectedly")
+            message = f"{type(e).__name__}: {e}"
+            self._say_fault(Fault.INTERNAL, message)
+            await self._halt()
+            self._finish(Phase.FAULTED, "faulted", f"{Fault.INTERNAL.value}: {message}")
         except asyncio.CancelledError:
             if not self._estopping:
                 raise

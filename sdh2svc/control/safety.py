@@ -55,6 +55,20 @@ class RunConfig(Frozen):
             )
         return self
 
+    def speeds_outside(self, vlim: Sequence[float]) -> list[str]:
+        """One line per run speed the hand cannot reach (``vlim``: its axes' velocity limits,
+        read from it at connect; a run commands each speed on every axis)."""
+        if not vlim:
+            return []
+        top = min(vlim)
+        axis = list(vlim).index(top)
+        return [
+            f"run.{key} = {v:g}: above the hand's velocity limit, {top:g} °/s on axis {axis} "
+            f"(its vlim; allowed: {key} ≤ {top:g})"
+            for key in ("preshape_velocity_deg_s", "grasp_max_velocity_deg_s")
+            if (v := getattr(self, key)) > top
+        ]
+
     def preshape_outside(self, limits: JointLimits) -> list[str]:
         """One line per pre-shape angle outside its axis's joint limits (none: all inside)."""
         bounds = zip(self.preshape_deg, limits.min_deg, limits.max_deg, strict=True)
@@ -119,6 +133,7 @@ class Fault(StrEnum):
     STUCK = "stuck"  # reversing again and again without a half stroke
     JOINT_ERROR = "joint_error"
     SENSOR_ERROR = "sensor_error"
+    INTERNAL = "internal_error"  # an unexpected error in the run's own code (a bug)
 
 
 def clamp_targets(

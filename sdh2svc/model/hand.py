@@ -130,3 +130,26 @@ class TactileConfig(Frozen):
     texel_pitch_mm: Annotated[float, Field(gt=0.0, le=20.0)]
     proximal: MatrixLayout
     distal: MatrixLayout
+
+
+def matrix_pads(axes: AxisMap, tactile: TactileConfig) -> tuple[tuple[str, MatrixLayout], ...]:
+    """Each tactile matrix in wire order (a frame's texels are these matrices one after the
+    other, each row-major): the pad it is, as the configuration wires it (with its layout's
+    key), and its layout."""
+    pads = {
+        axes.finger1_proximal_matrix: ("Finger 1 proximal", "proximal"),
+        axes.finger1_distal_matrix: ("Finger 1 distal", "distal"),
+        axes.thumb_proximal_matrix: ("thumb proximal", "proximal"),
+        axes.thumb_distal_matrix: ("thumb distal", "distal"),
+        axes.finger2_proximal_matrix: ("Finger 2 proximal", "proximal"),
+        axes.finger2_distal_matrix: ("Finger 2 distal", "distal"),
+    }
+    return tuple(
+        (f"{name} pad, tactile.{key}", getattr(tactile, key))
+        for name, key in (pads[m] for m in sorted(pads))
+    )
+
+
+def matrix_shapes(tactile: TactileConfig, axes: AxisMap) -> tuple[tuple[int, int], ...]:
+    """(rows, columns) of each tactile matrix, in wire order (:func:`matrix_pads`)."""
+    return tuple((lay.rows, lay.cols) for _, lay in matrix_pads(axes, tactile))

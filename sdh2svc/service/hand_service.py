@@ -587,6 +587,9 @@ class HandService:
         except Exception as e:  # a bug must not take the service down; the run row says why
             log.exception("run %d crashed", run.run_id)
             summary = {"status": "faulted", "message": f"internal error: {e}"}
+            result = run.runner.result  # the status shows the run as it ended, not running
+            if result.status == "running":
+                result.status, result.message = "faulted", summary["message"]
             with contextlib.suppress(Exception):
                 run.store.finish_run(run.run_id, "faulted", summary)
         self.last_run = {"id": run.run_id, "status": summary.get("status"),

@@ -21,6 +21,7 @@ import numpy as np
 
 from sdh2svc.config import Settings
 from sdh2svc.control.sample import Sample
+from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.service.store import RunStore, recorded_settings
 from sdh2svc.service.telemetry import (
     AnyMessage,
@@ -31,7 +32,6 @@ from sdh2svc.service.telemetry import (
     Tactile,
     frame_matrices,
     kind_of,
-    matrix_shapes,
     recorded_truth,
     to_json,
 )

@@ -33,7 +33,6 @@ from sdh2svc.control.observer import EventKind
 from sdh2svc.control.recognition import outline
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.friction import pad_tangent
-from sdh2svc.model.hand import AxisMap, TactileConfig
 from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
 
 log = logging.getLogger(__name__)
@@ -379,19 +378,6 @@ def recorded_truth(outline: Mapping[str, Any], row: Mapping[str, Any]) -> dict[s
 
 
 # --- recorded frames: the same matrices as the live ``tactile`` message ------------------------
-
-_PADS = ("finger1_proximal", "finger1_distal", "thumb_proximal", "thumb_distal",
-         "finger2_proximal", "finger2_distal")  # fmt: skip
-
-
-def matrix_shapes(tactile: TactileConfig, axes: AxisMap) -> tuple[tuple[int, int], ...]:
-    """(rows, columns) of each tactile matrix, in matrix index order (a frame's flat texels
-    are these matrices one after the other, each row-major)."""
-    by_index = {}
-    for pad in _PADS:
-        lay = tactile.proximal if pad.endswith("proximal") else tactile.distal
-        by_index[getattr(axes, f"{pad}_matrix")] = (lay.rows, lay.cols)
-    return tuple(by_index[i] for i in range(len(by_index)))
 
 
 def frame_matrices(

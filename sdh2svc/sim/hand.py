@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from sdh2svc.model.contact import TactileCalibration
-from sdh2svc.model.hand import AxisMap, TactileConfig
+from sdh2svc.model.hand import AxisMap, TactileConfig, matrix_pads
 from sdh2svc.model.kinematics import HandGeometry, HandPose
 from sdh2svc.sim.objects import Outline, Shape, get_object
 from sdh2svc.sim.physics import (
@@ -128,7 +128,7 @@ class PhysicsWorld:
     def __init__(self, model: HandModel, sim: SimConfig, obj: Shape | None = None) -> None:
         self.model, self.sim = model, sim
         self.axes = model.axes
-        layouts = [model.tactile.proximal, model.tactile.distal] * 3
+        layouts = [lay for _, lay in matrix_pads(model.axes, model.tactile)]  # as wired
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
         self._angles = [0.0] * 7
         self._angles[self.axes.thumb_proximal], self._angles[self.axes.thumb_distal] = (
@@ -257,7 +257,7 @@ class PhysicsWorld:
             PROXIMAL1: (a.finger1_proximal_matrix, raster(PROXIMAL1, prox_centre, True)),
             PROXIMAL2: (a.finger2_proximal_matrix, raster(PROXIMAL2, prox_centre, True)),
         }
-        layouts = [s.tactile.proximal, s.tactile.distal] * 3
+        layouts = [lay for _, lay in matrix_pads(s.axes, s.tactile)]
         per_count = s.calibration.pressure_per_count_n_per_mm2
         self.sensor = TactileSensorModel(sim.sensor, layouts, rasters, per_count, self._seed)
 

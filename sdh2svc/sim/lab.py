@@ -19,6 +19,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sdh2svc.model.hand import matrix_pads
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Device, Endpoint, PtyEndpoint, TcpEndpoint, UnixEndpoint
 from sdh2svc.sim.faults import FaultConfig
@@ -224,7 +225,7 @@ async def start_simulated_hand(
     """
     links = sim.links
     world = PhysicsWorld(model, sim, obj)
-    masks = [layout.valid() for layout in (model.tactile.proximal, model.tactile.distal) * 3]
+    masks = [layout.valid() for _, layout in matrix_pads(model.axes, model.tactile)]
     dsa = DsaconEmulator(world, options=DsaconOptions(boot_s=links.dsa_boot_s), static_masks=masks)
     latency = Sdh2Options(ascii_latency_s=links.sdh_ascii_latency_ms / 1000,
                           binary_latency_s=links.sdh_binary_latency_ms / 1000)  # fmt: skip

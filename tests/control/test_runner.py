@@ -400,3 +400,34 @@ def test_lost_joint_line_faults_the_run(tmp_path: Path) -> None:
 
     result = fast(main)
     assert result.status == "faulted" and result.message.startswith("joint_error")
+
+
+def test_an_unexpected_error_holds_the_hand_and_ends_the_run_faulted(tmp_path: Path) -> None:
+    """An error the run does not expect (a bug; a pad unlike its configured layout raised
+    ValueError in the contact estimate) ended the run's task with the fingers at their last
+    target, no end event and the run's status `running`: now the hand is held and the run ends
+    as a fault ends it, with the error named."""
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[Any, list[tuple[str, dict[str, Any]]], Any, Any]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            task = asyncio.create_task(runner.run())
+            while runner.phase is not Phase.GRASPING:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(2.0)  # closing on the object
+
+            def broken(_frame: Any) -> Any:
+                raise RuntimeError("a bug")
+
+            runner._contacts = broken  # type: ignore[method-assign]
+            result = await task
+            held = await runner.joints.get_actual()
+            await asyncio.sleep(1.0)
+            return result, seen(runner).events, held, await runner.joints.get_actual()
+
+    result, events, held, later = fast(main)
+    assert result.status == "faulted"
+    assert result.message == "internal_error: RuntimeError: a bug"
+    assert [d["fault"] for k, d in events if k == EventKind.FAULT] == ["internal_error"]
+    assert events[-1][0] == EventKind.END and events[-1][1]["status"] == "faulted"
+    assert later == pytest.approx(held, abs=0.01)  # held: nothing moves on

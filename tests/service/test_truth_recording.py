@@ -20,6 +20,7 @@ from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Bench, Simulated
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.sample import Sample
+from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.service import headless
 from sdh2svc.service.api.deps import Services
 from sdh2svc.service.app import create_app
@@ -27,7 +28,7 @@ from sdh2svc.service.hub import TelemetryHub
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.replay_feed import recorded_iteration
 from sdh2svc.service.store import SCHEMA, TRUTH_COLUMNS, Recorder, RunStore
-from sdh2svc.service.telemetry import OUTLINE_POINTS, Sim, Tactile, matrix_shapes, recorded_truth
+from sdh2svc.service.telemetry import OUTLINE_POINTS, Sim, Tactile, recorded_truth
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.hand import Truth
 
