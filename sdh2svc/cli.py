@@ -389,6 +389,18 @@ class _Stopper:
                 loop.remove_signal_handler(sig)
 
 
+def _quiet_log(args: argparse.Namespace) -> None:
+    """A command's failure is its one line on stderr: the links' log records (a retry, a
+    reply gone missing) reached stderr beside it through logging's last resort. --debug (or
+    SDH2SVC_DEBUG=1) shows them."""
+    if logging.getLogger().handlers:  # a program that configured logging has them its way
+        return
+    if args.debug or os.environ.get("SDH2SVC_DEBUG", "") not in ("", "0"):
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    else:
+        logging.getLogger("sdh2svc").addHandler(logging.NullHandler())
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """One rolling run: pre-shape, grasp, roll for N strokes, release — on the simulated hand
     (--sim) or a real one (--dsa/--sdh or the config's links). Exit status 0 only if completed."""
@@ -400,6 +412,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sdh2svc.service.headless import run_once
     from sdh2svc.service.store import EstopLatched, StoreError
 
+    _quiet_log(args)
     overrides = list(args.overrides)
     if args.cycles is not None:
         overrides.append(f"rolling.cycles={args.cycles}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import tempfile
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -164,10 +165,21 @@ async def simulated_hand(cfg: Settings, spec: Simulated) -> AsyncIterator[Bench]
             await sim.stop()
 
 
+def _port(url: str) -> str:
+    """What a line's URL opens: a device by its real path (a symlink is the device), a URL as
+    written."""
+    url = url.strip()
+    return url.lower() if "://" in url else os.path.realpath(url)
+
+
 async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:
     """Both of the hand's lines, the joint controller first (its limits from the config); the
     hand as the configuration expects it — its speeds within the joints' velocity limits, its
     pads laid out as configured — or a ConfigError / TactileError saying how it differs."""
+    if _port(dsa_url) == _port(sdh_url):
+        same = f"the tactile and the joint line are both {sdh_url!r}"
+        raise ConfigError([f"{same}: each controller has a line of its own (--dsa/--sdh, "
+                           "links.dsa_url/sdh_url)"])  # fmt: skip
     lim = cfg.limits
     limits = list(zip(lim.min_deg, lim.max_deg, strict=True))
     joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits)

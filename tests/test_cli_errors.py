@@ -388,7 +388,8 @@ def _runs(db: Path) -> list[tuple[int, str]]:
 
 def test_run_against_a_nonexistent_device(tmp_path: Path) -> None:
     missing = tmp_path / "ttyUSB9"
-    r = run("run", "--dsa", str(missing), "--sdh", str(missing), *db_set(tmp_path / "r.sqlite"))
+    r = run("run", "--dsa", str(tmp_path / "ttyUSB8"), "--sdh", str(missing),
+            *db_set(tmp_path / "r.sqlite"))  # fmt: skip
     assert r.returncode == Exit.UNAVAILABLE == 4, r.stderr
     line = one_line(r.stderr, "run")
     assert "cannot reach the hand" in line and str(missing) in line
@@ -396,10 +397,31 @@ def test_run_against_a_nonexistent_device(tmp_path: Path) -> None:
 
 def test_run_against_a_refused_socket(tmp_path: Path, closed_port: int) -> None:
     url = f"socket://127.0.0.1:{closed_port}"
-    r = run("run", "--dsa", url, "--sdh", url, *db_set(tmp_path / "r.sqlite"))
+    r = run("run", "--dsa", "socket://127.0.0.1:1", "--sdh", url, *db_set(tmp_path / "r.sqlite"))
     assert r.returncode == Exit.UNAVAILABLE, r.stderr
     line = one_line(r.stderr, "run")
     assert url in line and "refused" in line
+
+
+def test_run_against_a_joint_controller_that_never_answers_says_it_in_one_line(
+    tmp_path: Path,
+) -> None:
+    """The joint link's own warning ("… error ver: no reply within 1.0 s") reached stderr
+    beside the failure's line, through logging's last resort."""
+    with socket.create_server(("127.0.0.1", 0)) as mute:
+        url = f"socket://127.0.0.1:{mute.getsockname()[1]}"
+        r = run("run", "--dsa", "socket://127.0.0.1:1", "--sdh", url,
+                *db_set(tmp_path / "r.sqlite"))  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "no reply" in one_line(r.stderr, "run")
+
+
+def test_run_with_one_port_for_both_lines_is_a_usage_error(tmp_path: Path) -> None:
+    tty = str(tmp_path / "ttyUSB0")
+    r = run("run", "--dsa", tty, "--sdh", tty, *db_set(tmp_path / "r.sqlite"))
+    assert r.returncode == Exit.USAGE, r.stderr
+    assert "the tactile and the joint line are both" in one_line(r.stderr, "run")
 
 
 def test_serve_with_the_viser_port_in_use(tmp_path: Path, taken_port: int) -> None:

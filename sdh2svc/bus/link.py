@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import socket
 import urllib.parse
 from collections.abc import Callable, Iterable
@@ -26,6 +27,8 @@ import serial_asyncio
 from sdh2svc.protocol.line import BAUD
 
 __all__ = ["PushReader", "close_streams", "is_socket_url", "open_streams"]
+
+CLOSE_WAIT_S = 2.0  # a port's transport that has not closed by then is left to the collector
 
 
 class PushReader(asyncio.StreamReader):
@@ -88,6 +91,8 @@ async def open_streams(
     if url.strip().lower().startswith("unix://"):
         return await _open_unix(url, limit)
     loop = asyncio.get_running_loop()
+    if "://" not in url:  # a device: ours alone (flock), as a port in use must be refused
+        serial_kwargs.setdefault("exclusive", True)
     opening = asyncio.ensure_future(asyncio.to_thread(
         serial.serial_for_url, url, baudrate=baudrate, rtscts=False, xonxoff=False,
         **serial_kwargs,
@@ -97,6 +102,13 @@ async def open_streams(
     except asyncio.CancelledError:
         opening.add_done_callback(_close_orphan)  # the thread may still open it
         raise
+    except serial.SerialException as e:
+        if e.errno in (errno.EAGAIN, errno.EWOULDBLOCK):  # the lock: another program has it
+            raise serial.SerialException(
+                e.errno, f"{url} is in use by another program (it holds the port's lock)"
+            ) from None
+        raise
+    _need_fileno(port, url)
     _tune_socket(port)
     try:
         reader = PushReader(limit=limit, loop=loop)
@@ -120,6 +132,19 @@ async def _open_unix(url: str, limit: int) -> tuple[asyncio.StreamReader, asynci
     except OSError as e:
         raise serial.SerialException(f"Could not open port {url}: {e}") from None
     return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
+
+
+def _need_fileno(port: serial.SerialBase, url: str) -> None:
+    """The event loop watches a port's file descriptor: a pyserial URL without one (loop://,
+    rfc2217://) would fail at its first write and hang as it closed."""
+    try:
+        port.fileno()
+    except (OSError, ValueError, AttributeError):  # io.UnsupportedOperation is both of the first
+        port.close()
+        raise serial.SerialException(
+            f"{url}: this kind of port has no file descriptor, which sdh2svc's links need "
+            "(give a device path, socket://HOST:PORT or unix://PATH)"
+        ) from None
 
 
 def _close_orphan(opening: asyncio.Future[serial.Serial]) -> None:
@@ -151,5 +176,5 @@ async def close_streams(writer: asyncio.StreamWriter) -> None:
     """Close the port behind ``writer``; never raises (the port may already be gone)."""
     with contextlib.suppress(Exception):
         writer.close()
-    with contextlib.suppress(Exception):
-        await writer.wait_closed()
+    with contextlib.suppress(Exception):  # bounded: a transport that never closes must not hang us
+        await asyncio.wait_for(writer.wait_closed(), CLOSE_WAIT_S)

@@ -727,8 +727,11 @@ class TactileBus:
             raise TactileCommandError(name, code)
 
     def _fail_waiter(self, exc: Exception) -> None:
-        if self._waiter is not None and not self._waiter[1].done():
-            self._waiter[1].set_exception(exc)
+        if self._waiter is not None and not (waiter := self._waiter[1]).done():
+            waiter.set_exception(exc)
+            # marked as seen: a pull's ACK is not always awaited (its frame is the answer),
+            # and asyncio would log the unawaited failure as "never retrieved", an ERROR
+            waiter.exception()
 
     # -- scheduling --------------------------------------------------------------------------
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import re
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from sdh2svc.bus.tactile import (
     Subscription,
     TactileBus,
     TactileCommandError,
+    TactileConnectionError,
     TactileError,
     TactileFrame,
     TactileOptions,
@@ -418,3 +420,26 @@ def test_a_held_line_is_silent_while_a_stream_runs_then_reconnects(tmp_path: Pat
     assert min(quiet_then) <= options.silent_s + gap + 0.02  # but at once after
     assert all(silent for quiet, silent, _ in seen if quiet >= options.silent_s + gap + 0.02)
     assert max(quiet for quiet, _, _ in seen) <= options.stall_s + gap + 0.2  # then lost
+
+
+async def test_a_failed_waiter_nobody_awaits_is_not_logged_as_never_retrieved() -> None:
+    """A pull's ACK is not always awaited (its frame answers it): failed as the line was lost,
+    asyncio logged "Future exception was never retrieved" at ERROR, which reads as a crash in
+    the service's journal after a hand's power cycle."""
+    loop = asyncio.get_running_loop()
+    logged: list[dict[str, object]] = []
+    loop.set_exception_handler(lambda _loop, context: logged.append(context))
+    bus = TactileBus("socket://127.0.0.1:1")
+    pid = dsa.PacketId.CONFIGURE_DATA_ACQUISITION
+    awaited: asyncio.Future[bytes] = loop.create_future()
+    waiting = asyncio.ensure_future(awaited)
+    await asyncio.sleep(0)
+    bus._waiter = (pid, awaited)
+    bus._fail_waiter(TactileConnectionError("connection closed"))
+    with pytest.raises(TactileConnectionError):  # a task awaiting its reply still gets it
+        await waiting
+    bus._waiter = (pid, loop.create_future())
+    bus._fail_waiter(TactileConnectionError("no good packet for 1.72 s"))
+    bus._waiter = None  # the failed future dropped, never awaited
+    gc.collect()
+    assert logged == []
