@@ -142,9 +142,12 @@ class Hand:
         return self.bench is None
 
     def describe(self) -> dict[str, Any]:
-        """The hand as a run's record names it."""
+        """The hand as a run's record names it: where, and which firmware answered."""
+        info = self.tactile.controller_info
         return {"sim": not self.real, "fast": self.fast, "dsa_url": self.dsa_url,
-                "sdh_url": self.sdh_url}  # fmt: skip
+                "sdh_url": self.sdh_url, "sdh_firmware": self.joints.version,
+                "dsacon_firmware": info.sw_version if info else None,
+                "dsacon_serial": info.serial_no if info else None}  # fmt: skip
 
 
 @contextlib.asynccontextmanager

@@ -181,7 +181,7 @@ def test_database_in_an_unwritable_place(tmp_path: Path, closed_port: int) -> No
     blocker = tmp_path / "data"
     blocker.write_text("a file where a directory should be")
     url = f"socket://127.0.0.1:{closed_port}"
-    r = run("run", "--dsa", url, "--sdh", url, *db_set(blocker / "runs.sqlite"))
+    r = run("run", "--dsa", "socket://127.0.0.1:1", "--sdh", url, *db_set(blocker / "runs.sqlite"))
     assert r.returncode == Exit.UNAVAILABLE, r.stderr
     assert f"{blocker} is not a directory" in one_line(r.stderr, "run")
 

@@ -20,6 +20,8 @@ def test_a_simulated_hand_comes_with_its_bench_and_closes_in_order() -> None:
             assert bench is not None and not hand.real
             assert hand.joints.connected and hand.tactile.connected
             assert hand.dsa_url.startswith("unix://") and hand.sdh_url.startswith("unix://")
+            said = hand.describe()  # a run's record: which firmware answered, too
+            assert (said["sdh_firmware"], said["dsacon_firmware"]) == ("0.0.3.3", 0x2900)
             truth = bench.truth()
             assert truth.object == "egg" and truth.in_fixture and not truth.held
             assert truth.summary()["object"] == "egg"

@@ -509,6 +509,11 @@ function fmt(v, digits = 1) {
   return String(v);
 }
 
+// a line's state, and why it is down (the status's links.*_down: silent, the port gone, …)
+function linkState(up, why) {
+  return up ? "connected" : `down${why ? `: ${why}` : ""}`;
+}
+
 function renderBus(st) {
   const t = st.links && st.links.tactile;
   const hub = st.telemetry || {};
@@ -525,14 +530,15 @@ function renderBus(st) {
       ["timeouts", fmt(t.timeouts), t.timeouts > 0],
       ["bad frames", fmt(t.bad_frames), t.bad_frames > 0],
       ["reconnects", fmt(t.reconnects), t.reconnects > 0],
-      ["tactile link", !t.connected ? "down" : t.silent ? "silent (no frames)" : "connected",
+      ["tactile link", linkState(t.connected && !t.silent, st.links.tactile_down),
        !t.connected || t.silent],
     );
   } else {
     rows.push(["tactile link", "not open", true]);
   }
   const j = st.hand && st.hand.connected;
-  rows.push(["joint link", j && j.joints ? "connected" : "down", !(j && j.joints)]);
+  rows.push(["joint link", linkState(j && j.joints, st.links && st.links.joints_down),
+             !(j && j.joints)]);
   rows.push(["telemetry clients", fmt(hub.clients)]);
   if (hub.dropped !== undefined) rows.push(["messages dropped", fmt(hub.dropped)]);
   const dl = $("#bus-stats");

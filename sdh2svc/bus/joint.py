@@ -50,6 +50,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import re
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -63,7 +64,14 @@ import serial
 
 from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
 from sdh2svc.bus.polling import PollPlan
-from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, reconnect
+from sdh2svc.bus.reconnect import (
+    LINE_DOWN,
+    LINE_UP,
+    Backoff,
+    LinkEvent,
+    LinkEventKind,
+    reconnect,
+)
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
@@ -126,6 +134,8 @@ RTTS_KEPT: Final = 16
 _ANSWERS_LATE: Final = frozenset({"ref"})  # answers when its moves end (SDHLibrary waits 10 s)
 OWED_KEPT: Final = 4  # replies still owed to given-up exchanges that are remembered
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
+_VERSION: Final = re.compile(r"\d+(\.\d+){1,4}")  # the firmware's, as ver answers it
+BINARY_SINCE: Final = (0, 0, 2, 15)  # the first firmware with the binary frames (protocols §2.6)
 _WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
 # The firmware could not read a command this link encoded from its table: the line spoilt it on
@@ -500,6 +510,7 @@ class JointLink:
         self.stats = JointStats()
         self.version = ""
         self.velocity_limits: Vec = ()
+        self.failure: str | None = None  # why the line went down, until it is back up
         self.acceleration_limits: Vec = ()
         self.controller: ControllerMode | None = None
         self._reconnect = reconnect
@@ -570,7 +581,7 @@ class JointLink:
         try:
             self._conn = await self._connect_once()
         except JointLinkError as e:  # which line it was (a lab plugs in two)
-            if type(e) is not JointLinkError or self.url in str(e):
+            if type(e) is not JointLinkError or str(e).startswith("joint line"):
                 raise
             raise JointLinkError(f"joint line {self.url}: {e}") from e
         self._emit(LinkEventKind.CONNECTED, f"firmware {self.version}")
@@ -642,6 +653,8 @@ class JointLink:
 
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
         event = LinkEvent(kind, self.url, asyncio.get_running_loop().time(), detail)
+        if kind in LINE_DOWN or kind in LINE_UP:
+            self.failure = detail if kind in LINE_DOWN else None
         level = logging.WARNING if kind in _WARNINGS else logging.INFO
         logger.log(level, "%s %s %s", self.url, kind, detail)
         for queue in self._subscribers:
@@ -1009,7 +1022,7 @@ class JointLink:
         try:
             reader, writer = await open_streams(self.url)
         except (OSError, serial.SerialException, ValueError) as exc:
-            raise JointLinkError(f"cannot open {self.url}: {exc}") from exc
+            raise JointLinkError(f"cannot open: {exc}") from exc
         parser = ReplyParser(crc=self.binary_crc, binary=self.binary)
         conn = _Conn(reader, writer, parser, self._conn_lost)
         self._silent = False  # a new connection is given its retries
@@ -1028,11 +1041,12 @@ class JointLink:
             ver = await self._transact(conn, self._request("ver"), timeout_s=VER_TIMEOUT_S,
                                        retries=0, urgent=True)  # fmt: skip
         except JointLinkError as exc:
-            raise JointLinkError(f"SDH not connected at {self.url}: {exc}") from exc
+            raise JointLinkError(f"SDH not connected: {exc}") from exc
+        version = self._identified(ver)
         vlim = await self._agreed(conn, "vlim")
         alim = await self._agreed(conn, "alim")
         con = await self._urgent(conn, self._request("con"))
-        self.version = ver.text
+        self.version = version
         self.velocity_limits, self.acceleration_limits = vlim, alim
         self.controller = ControllerMode(int(con.values[0]))
         if self._estopped:  # a latched e-stop holds on a new connection too (the controller
@@ -1042,6 +1056,21 @@ class JointLink:
         # Whatever the last host left running (a velocity, a move), it stops now: the firmware
         # keeps its last command forever, and no loop of ours commands it yet.
         await self._hold_on(conn)
+
+    def _identified(self, ver: Reply) -> str:
+        """The firmware's version from its answer to ``ver``: an SDH2 says ``VER=x.x.x.x``; any
+        other line (a device that echoes, another controller) is not one. Binary frames need
+        firmware that speaks them."""
+        text = ver.text.strip()
+        if ver.keyword != "VER" or not _VERSION.fullmatch(text):
+            said = f"{ver.keyword}={ver.text}" if ver.keyword else ver.text
+            raise JointLinkError(f"SDH not connected: {said!r} is no SDH2's answer to ver "
+                                 "(VER=x.x.x.x): another device on this port, or one that "
+                                 "echoes?")  # fmt: skip
+        if self.binary and tuple(int(x) for x in text.split(".")) < BINARY_SINCE:
+            raise JointLinkError(f"firmware {text} does not speak the binary frames (from "
+                                 "0.0.2.15 on): set links.binary = false")  # fmt: skip
+        return text
 
     async def _agreed(self, conn: _Conn, keyword: str, tries: int = 4) -> Vec:
         """Values read twice alike: the limits every later command is checked against must not

@@ -107,6 +107,12 @@ async def open_streams(
             raise serial.SerialException(
                 e.errno, f"{url} is in use by another program (it holds the port's lock)"
             ) from None
+        if e.errno == errno.EACCES:  # in a lab: a user not in the device's group
+            raise serial.SerialException(
+                e.errno,
+                f"no permission to open {url}: add this user to the group that owns "
+                f"it (usually dialout; ls -l {url}), then log in again",
+            ) from None
         raise
     _need_fileno(port, url)
     _tune_socket(port)

@@ -39,6 +39,11 @@ class LinkEventKind(StrEnum):
     MODE = "mode"  # the acquisition mode changed (detail: the new one)
 
 
+# A line's life as the log and the status tell it: why it went down (and stays down), and back up
+LINE_DOWN = frozenset({LinkEventKind.LOST, LinkEventKind.RECONNECT_FAILED})
+LINE_UP = frozenset({LinkEventKind.CONNECTED, LinkEventKind.RECONNECTED})
+
+
 @dataclass(frozen=True, slots=True)
 class LinkEvent:
     kind: LinkEventKind

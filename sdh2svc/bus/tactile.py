@@ -50,7 +50,14 @@ from sdh2svc.bus.acquisition import (
     push_framerate,
 )
 from sdh2svc.bus.link import close_streams, open_streams
-from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, reconnect
+from sdh2svc.bus.reconnect import (
+    LINE_DOWN,
+    LINE_UP,
+    Backoff,
+    LinkEvent,
+    LinkEventKind,
+    reconnect,
+)
 from sdh2svc.protocol import dsa
 from sdh2svc.protocol.line import BAUD
 
@@ -277,6 +284,7 @@ class TactileBus:
         self._listeners: list[Callable[[LinkEvent], None]] = []
         self._frame_listeners: list[Callable[[TactileFrame], None]] = []
         self.history: deque[LinkEvent] = deque(maxlen=self.options.events_maxlen)
+        self.failure: str | None = None  # why the line went down, until it is back up
         # connection state
         self._writer: asyncio.StreamWriter | None = None
         self._reader_task: asyncio.Task[None] | None = None
@@ -446,7 +454,10 @@ class TactileBus:
 
     async def _establish(self) -> None:
         """Connect, start reading, run the open sequence, start the scheduler."""
-        reader, writer = await open_streams(self.url, baudrate=self.options.baud)
+        try:
+            reader, writer = await open_streams(self.url, baudrate=self.options.baud)
+        except (OSError, serial.SerialException, ValueError) as exc:  # no port, no such URL…
+            raise TactileConnectionError(f"cannot open: {exc}") from exc
         self._writer = writer
         self._lost.clear()
         self._opening = True
@@ -518,7 +529,7 @@ class TactileBus:
             self._emit(LinkEventKind.RECONNECTED, self.url)
 
     def _reconnect_failed(self, exc: Exception) -> None:
-        self._emit(LinkEventKind.RECONNECT_FAILED, repr(exc))
+        self._emit(LinkEventKind.RECONNECT_FAILED, str(exc) or type(exc).__name__)
 
     def _task_done(self, task: asyncio.Task[None]) -> None:
         """A crashed reader or scheduler is a bug: log it and start over on a new connection."""
@@ -875,6 +886,10 @@ class TactileBus:
     def _emit(self, kind: LinkEventKind, detail: str = "", now: float | None = None) -> None:
         event = LinkEvent(kind, self.url, self._loop.time() if now is None else now, detail)
         self.history.append(event)
+        if kind in LINE_DOWN or kind in LINE_UP:  # the line's life, logged as the joint line's
+            self.failure = detail if kind in LINE_DOWN else None
+            level = logging.WARNING if kind in LINE_DOWN else logging.INFO
+            logger.log(level, "tactile line %s %s %s", self.url, kind, detail)
         for sub in self._subs:
             sub._event(event)
         for callback in self._listeners:

@@ -532,6 +532,8 @@ class HandService:
                 "dsa_url": self.dsa_url,
                 "sdh_url": self.sdh_url,
                 "tactile": _stats(t) if t else None,
+                "joints_down": _why_down(j, joints_up, "does not answer (its port is open)"),
+                "tactile_down": _why_down(t, tactile_up, "sends no frames (its port is open)"),
             },
             "run": run,
             "last_run": self.last_run,
@@ -647,6 +649,18 @@ class _RunTelemetry(BaseObserver):
                                        event.detail))  # fmt: skip
         if event.kind is EventKind.PHASE:
             self.service.publish_status()
+
+
+def _why_down(link: JointLink | TactileBus | None, up: bool, silent: str) -> str | None:
+    """Why a line is down, for the status (None while it is up): silent, or the last loss or
+    failed reconnect (the port gone, refused, another controller answering, …)."""
+    if up:
+        return None
+    if link is None:
+        return "not open yet"
+    if link.connected and link.silent:
+        return silent
+    return link.failure or "connecting"
 
 
 def _stats(t: TactileBus) -> dict[str, Any]:

@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import math
 import random
+import re
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -122,13 +123,49 @@ async def test_open_silent_device_fails_clearly() -> None:
     async with serve_device(dev, "pty", faults=FaultConfig(boot_delay_s=30.0)) as ep:
         loop = asyncio.get_running_loop()
         start = loop.time()
-        with pytest.raises(JointLinkError, match=f"SDH not connected at {ep.url}"):
+        with pytest.raises(
+            JointLinkError, match=re.escape(f"joint line {ep.url}: SDH not connected")
+        ):
             await JointLink.open(ep.url)
         assert loop.time() - start >= 1.0  # the 1 s `ver` timeout
 
 
+async def test_firmware_without_binary_frames_is_refused_when_they_are_asked_for() -> None:
+    """VER=0.0.1.0 was taken with links.binary on: its first binary command would have failed
+    as line noise, retried as a spoilt reply."""
+    dev = Sdh2Emulator(ScriptedWorld(SHAPES), options=Sdh2Options(version="0.0.1.0"))
+    async with serve_device(dev, "tcp") as ep:
+        said = "firmware 0.0.1.0 does not speak the binary frames (from 0.0.2.15 on): set links"
+        with pytest.raises(JointLinkError, match=re.escape(said)):
+            await JointLink.open(ep.url, binary=True)
+        link = await JointLink.open(ep.url, binary=False)  # ASCII: as it was
+        assert link.version == "0.0.1.0"
+        await link.close()
+
+
+async def test_a_device_that_echoes_is_no_sdh2() -> None:
+    """An echo took `ver` for the firmware's answer and failed a step later, at vlim, with a
+    message that did not say why."""
+
+    done = asyncio.Event()
+
+    async def echo(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while data := await reader.read(100):
+                writer.write(data)
+        finally:
+            writer.close()
+            done.set()
+
+    async with await asyncio.start_server(echo, "127.0.0.1", 0) as server:
+        port = server.sockets[0].getsockname()[1]
+        with pytest.raises(JointLinkError, match="'ver' is no SDH2's answer to ver"):
+            await JointLink.open(f"socket://127.0.0.1:{port}")
+        await done.wait()  # the link closed its end
+
+
 async def test_open_missing_port() -> None:
-    with pytest.raises(JointLinkError, match="cannot open"):
+    with pytest.raises(JointLinkError, match=r"^joint line /dev/does-not-exist-sdh2: cannot open"):
         await JointLink.open("/dev/does-not-exist-sdh2")
 
 

@@ -213,9 +213,16 @@ OUTAGES = [  # (line, how, phase, after_s, outage_s)
 ]
 
 
-def _down(st: dict[str, Any], line: str) -> bool:
-    connected = st["hand"]["connected"]
-    return not connected["joints" if line == "sdh" else "tactile"]
+def _down(st: dict[str, Any], line: str, reasons: set[str] | None = None) -> bool:
+    """Whether the status shows ``line`` down; it then says why (and only then): kept in
+    ``reasons``."""
+    key = "joints" if line == "sdh" else "tactile"
+    down = not st["hand"]["connected"][key]
+    why = st["links"][f"{key}_down"]
+    assert (why is not None) == down, st["links"]
+    if why is not None and reasons is not None:
+        reasons.add(why)
+    return down
 
 
 @pytest.mark.parametrize(("line", "how", "phase", "after_s", "outage_s"), OUTAGES)
@@ -261,12 +268,13 @@ async def _outage(
     else:
         cable.hold()
     down_at = said_at = None
+    reasons: set[str] = set()
     while loop.time() - t0 < outage_s:
         await asyncio.sleep(0.1)
         assert _moved(sim.sdh.actual_deg, began) <= step + EPS  # one increment (or as above)
         st = (await c.get("/api/status")).json()
         run = st["run"]
-        if down_at is None and _down(st, line):
+        if _down(st, line, reasons) and down_at is None:
             down_at = loop.time()
         if said_at is None and run["message"]:
             said_at = loop.time()
@@ -274,6 +282,10 @@ async def _outage(
             assert run["status"] == "faulted" and _down(st, line), st
             assert (await c.post("/api/runs", json={})).status_code == 503
     assert down_at is not None and said_at is not None
+    # the status said why: the line silent with its port open, or the cable's end and the
+    # refused reconnects
+    said = ("(its port is open)",) if how == "silent" else ("end of stream", "refused")
+    assert any(w in r for r in reasons for w in said), reasons
     fault = {"sdh": "joint_error: ", "dsa": "stale_sensor: "}[line]
     assert station.last_run is not None and station.last_run["message"].startswith(fault)
     # a silent joint line fails a command within two replies' timeouts; the run says so then,
