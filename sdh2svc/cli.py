@@ -13,6 +13,7 @@ import sys
 import traceback
 from collections.abc import Callable, Coroutine, Sequence
 from enum import IntEnum
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 from sdh2svc import __version__
@@ -516,7 +517,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
             _fail(Exit.USAGE, "--object and --object-file need --sim")
         obj = _object(args)
     # no lab assistant: the service puts the object back itself before every run
-    where = Simulated(obj) if args.sim else real_hand(cfg, args.dsa, args.sdh)
+    # a service waits for its hand (powered on after the PC, an adapter plugged in later): its
+    # status says why a line is not up, its e-stop is owed to the hand until it answers
+    where = Simulated(obj) if args.sim else real_hand(cfg, args.dsa, args.sdh, patient=True)
     try:
         return asyncio.run(serve(cfg, where, announce_json=args.json))
     except ExposureError as e:
@@ -585,14 +588,17 @@ def cmd_estop(args: argparse.Namespace) -> int:
     from sdh2svc.service.store import NoDatabase, RunStore, StoreError
 
     cfg = load_config(args.config, args.overrides)
+    # where the latch is kept, in full: a relative storage.db_path is another database (and
+    # another latch) in another working directory
+    where = Path(cfg.storage.db_path).absolute()
     try:
         store = RunStore(
             cfg.storage.db_path, create=args.latch, busy_timeout_s=cfg.storage.busy_timeout_s
         )
     except NoDatabase:
         if args.release:
-            _fail(Exit.NOT_FOUND, f"no run database at {cfg.storage.db_path}: nothing latched")
-        print("released (no run database yet)")
+            _fail(Exit.NOT_FOUND, f"no run database at {where}: nothing latched")
+        print(f"released (no run database at {where} yet)")
         return Exit.OK
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
@@ -606,7 +612,8 @@ def cmd_estop(args: argparse.Namespace) -> int:
         _fail(Exit.UNAVAILABLE, f"the run database {cfg.storage.db_path} is unusable: {e}")
     finally:
         store.close()
-    print("released" if latch is None else f"latched since {latch['since']}: {latch['reason']}")
+    said = "released" if latch is None else f"latched since {latch['since']}: {latch['reason']}"
+    print(f"{said} (in {where})")
     return Exit.OK
 
 
@@ -708,7 +715,6 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     simulation's truth) into OUT/results.parquet; report on one; compare two; generate a new
     suite from a seed. `run` is resumable: the same command on the same --out runs only the
     cases not yet recorded."""
-    from pathlib import Path
 
     from sdh2svc.campaign.run import CampaignError
 
@@ -767,7 +773,6 @@ def _campaign_generate(args: argparse.Namespace) -> int:
     """A new suite of ``--cases`` generated cases from ``--seed``: the same seed and count, the
     same cases (a suite of objects none of the packaged suites holds, e.g. to check a change on
     objects it was not chosen on)."""
-    from pathlib import Path
 
     from sdh2svc.campaign.case import SEED_MAX
     from sdh2svc.campaign.generate import generated_suite
@@ -807,7 +812,6 @@ def _campaign_generate(args: argparse.Namespace) -> int:
 
 
 def _campaign_run(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
     from sdh2svc.campaign.case import load_suite
     from sdh2svc.campaign.run import run_campaign

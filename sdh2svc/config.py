@@ -356,14 +356,15 @@ def clip(text: str, n: int = CLIP_CHARS) -> str:
     return text if len(text) <= n else text[:n] + "…"
 
 
-def error_message(e: Any) -> str:
+def error_message(e: Any, limit: int | None = 4 * CLIP_CHARS) -> str:
     """A pydantic error's message, with any long value it quotes (its input, its context) clipped
-    (e.g. a discriminator's tag: "Input tag '…' found using 'kind' does not match …")."""
+    (e.g. a discriminator's tag: "Input tag '…' found using 'kind' does not match …"), and the
+    whole clipped to ``limit`` characters (None: not)."""
     msg = str(e["msg"])
     for v in (e.get("input"), *(e.get("ctx") or {}).values()):
         if isinstance(v, str) and len(v) > CLIP_CHARS:
             msg = msg.replace(v, clip(v))
-    return clip(msg, 4 * CLIP_CHARS)
+    return msg if limit is None else clip(msg, limit)
 
 
 def error_key(loc: Iterable[int | str]) -> str:
@@ -394,7 +395,7 @@ def format_errors(
         value = e.get("input")
         shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"
         if not loc:  # a check across fields (a model validator): its message says it all
-            parts = str(e["msg"]).removeprefix("Value error, ").split("; ")
+            parts = error_message(e, None).removeprefix("Value error, ").split("; ")
             lines.extend(clip(part, 4 * CLIP_CHARS) for part in parts)  # each clipped alone
             continue
         source = origin(loc) if origin is not None else None

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sdh2svc.bus.joint import JointLink
+from sdh2svc.bus.joint import HandRefused, JointLink
 from sdh2svc.bus.tactile import TactileBus, TactileOptions
 from sdh2svc.config import ConfigError, Settings
 from sdh2svc.model.hand import matrix_pads
@@ -35,10 +35,13 @@ from sdh2svc.sim.press import Press
 
 @dataclass(frozen=True, slots=True)
 class Real:
-    """A real hand: its DSACON32m (tactile) and SDH2 (joints) lines, device paths or URLs."""
+    """A real hand: its DSACON32m (tactile) and SDH2 (joints) lines, device paths or URLs.
+    ``patient``: the lines are opened in the background until the hand answers (a service that
+    starts before its hand is on), not refused at once."""
 
     dsa_url: str
     sdh_url: str
+    patient: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,9 +67,12 @@ class Simulated:
 Where = Real | Simulated
 
 
-def real_hand(cfg: Settings, dsa_url: str | None = None, sdh_url: str | None = None) -> Real:
+def real_hand(
+    cfg: Settings, dsa_url: str | None = None, sdh_url: str | None = None, *,
+    patient: bool = False,
+) -> Real:  # fmt: skip
     """The real hand at the given lines, else at the configuration's ``links``."""
-    return Real(dsa_url or cfg.links.dsa_url, sdh_url or cfg.links.sdh_url)
+    return Real(dsa_url or cfg.links.dsa_url, sdh_url or cfg.links.sdh_url, patient)
 
 
 def hand_model(cfg: Settings) -> HandModel:
@@ -175,23 +181,29 @@ def _port(url: str) -> str:
     return url.lower() if "://" in url else os.path.realpath(url)
 
 
-async def open_links(cfg: Settings, dsa_url: str, sdh_url: str) -> tuple[JointLink, TactileBus]:
+async def open_links(
+    cfg: Settings, dsa_url: str, sdh_url: str, *, patient: bool = False
+) -> tuple[JointLink, TactileBus]:
     """Both of the hand's lines, the joint controller first (its limits from the config); the
     hand as the configuration expects it — its speeds within the joints' velocity limits, its
-    pads laid out as configured — or a ConfigError / TactileError saying how it differs."""
+    pads laid out as configured — or a ConfigError / TactileError saying how it differs.
+    ``patient``: each line connects in the background until its controller answers (as a
+    lost line reconnects; its link says why it is not up yet), and the same checks refuse a
+    hand unlike the configuration at every connection."""
     if _port(dsa_url) == _port(sdh_url):
         same = f"the tactile and the joint line are both {sdh_url!r}"
         raise ConfigError([f"{same}: each controller has a line of its own (--dsa/--sdh, "
                            "links.dsa_url/sdh_url)"])  # fmt: skip
     lim = cfg.limits
     limits = list(zip(lim.min_deg, lim.max_deg, strict=True))
-    joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits)
-    if problems := cfg.run.speeds_outside(joints.velocity_limits):
-        await joints.close()  # before a run or Open hand commands what the hand refuses
-        raise ConfigError(problems)
+    try:
+        joints = await JointLink.open(sdh_url, binary=cfg.links.binary, limits=limits,
+                                      accept=cfg.run.speeds_outside, patient=patient)  # fmt: skip
+    except HandRefused as e:  # a run or Open hand would command what the hand refuses
+        raise ConfigError(e.problems) from None
     try:
         expect = tuple((pad, lay.rows, lay.cols) for pad, lay in matrix_pads(cfg.axes, cfg.tactile))
-        tactile = await TactileBus.open(dsa_url, TactileOptions(expect=expect))
+        tactile = await TactileBus.open(dsa_url, TactileOptions(expect=expect), patient=patient)
     except BaseException:
         await joints.close()
         raise
@@ -210,7 +222,8 @@ async def connect_hand(cfg: Settings, where: Where) -> AsyncIterator[Hand]:
             dsa_url, sdh_url = bench.sim.urls("dsa")[0], bench.sim.urls("sdh")[0]
         else:
             dsa_url, sdh_url = where.dsa_url, where.sdh_url
-        joints, tactile = await open_links(cfg, dsa_url, sdh_url)
+        patient = isinstance(where, Real) and where.patient
+        joints, tactile = await open_links(cfg, dsa_url, sdh_url, patient=patient)
         stack.push_async_callback(_close_quietly, joints)
         stack.push_async_callback(_close_quietly, tactile)
         yield Hand(joints, tactile, dsa_url, sdh_url, bench, fast)

@@ -87,8 +87,11 @@ def start_service(
     env: dict[str, str] | None = None,
     token: str | None = None,
     sim: bool = True,
+    wait_hand: bool = True,
 ) -> LiveService:
-    """Start the service and wait for its announcement line (the URLs)."""
+    """Start the service and wait for its announcement line (the URLs) — and, on a real hand
+    (``sim=False``), for both its lines to be up (the service opens them in the background),
+    unless ``wait_hand`` is False."""
     db = tmp / "runs.sqlite"
     full_env = {**os.environ, **(env or {})}
     if token:
@@ -114,7 +117,11 @@ def start_service(
         raise RuntimeError(f"the service did not start ({line!r}):\n" + "".join(log))
     out = threading.Thread(target=_collect, args=(proc.stdout, log), daemon=True)
     out.start()
-    return LiveService(proc, info["url"], info["viewer_url"], token, db, log, [err, out], info)
+    svc = LiveService(proc, info["url"], info["viewer_url"], token, db, log, [err, out], info)
+    if not sim and wait_hand:
+        with svc.sync_client() as c:
+            c.wait_status(lambda st: all(st["hand"]["connected"].values()), START_TIMEOUT_S)
+    return svc
 
 
 def _collect(stream: object, out: list[str]) -> None:

@@ -203,7 +203,7 @@ def test_estop_on_a_locked_database_is_unavailable(
     finally:
         lock.execute("ROLLBACK")
         lock.close()
-    assert call(capsys, "estop", *db_set(one_run))[1] == "released\n"
+    assert call(capsys, "estop", *db_set(one_run))[1] == f"released (in {one_run})\n"
 
 
 @pytest.mark.parametrize(

@@ -165,6 +165,14 @@ class FirmwareError(JointLinkError):
         super().__init__(f"{command or 'command'}: firmware error {code} ({self.name})")
 
 
+class HandRefused(JointLinkError):
+    """The hand answered, but is not the one this host can drive (``accept`` said why)."""
+
+    def __init__(self, problems: Sequence[str]) -> None:
+        super().__init__("; ".join(problems))
+        self.problems = list(problems)
+
+
 class LinkLost(JointLinkError):
     """The port is gone (or closed); a reconnect may be under way."""
 
@@ -498,10 +506,14 @@ class JointLink:
         on_event: Callable[[LinkEvent], None] | None = None,
         resync_quiet_s: float = 0.02,
         resync_max_s: float = 0.5,
+        accept: Callable[[Vec], Sequence[str]] | None = None,
     ) -> None:
+        """``accept``: told the hand's velocity limits at every handshake; the problems it
+        returns refuse the hand (:class:`HandRefused`) before anything else is sent to it."""
         if timeout_s <= 0 or retries < 0:
             raise ValueError("timeout_s must be > 0 and retries >= 0")
         self.url = url
+        self._accept = accept
         self.binary = binary
         self.binary_crc = not is_socket_url(url) if binary_crc is None else binary_crc
         self.timeout_s = timeout_s
@@ -557,8 +569,13 @@ class JointLink:
         limits: Limits | None = None,
         reconnect: bool = True,
         on_event: Callable[[LinkEvent], None] | None = None,
+        accept: Callable[[Vec], Sequence[str]] | None = None,
+        patient: bool = False,
     ) -> Self:
-        """Open ``url`` and run the handshake; raises :class:`JointLinkError` on failure."""
+        """Open ``url`` and run the handshake; raises :class:`JointLinkError` on failure — or,
+        ``patient``, connect in the background as a lost line reconnects (now, then after each
+        back-off delay, every failure reported) until the hand answers: a service that starts
+        before its hand is on."""
         link = cls(
             url,
             binary=binary,
@@ -568,9 +585,24 @@ class JointLink:
             limits=limits,
             reconnect=reconnect,
             on_event=on_event,
+            accept=accept,
         )
-        await link.connect()
+        if patient:
+            link._reconnect_task = asyncio.get_running_loop().create_task(
+                link._first_connection(), name="sdh-joint-connect"
+            )
+        else:
+            await link.connect()
         return link
+
+    async def _first_connection(self) -> None:
+        try:
+            self._conn = await self._reconnect_once()
+        except Exception as exc:
+            self._reconnect_failed(exc)
+            self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed)
+        self._reconnect_task = None
+        self._emit(LinkEventKind.CONNECTED, f"firmware {self.version}")
 
     async def connect(self) -> None:
         """Open the port and run the handshake (first connection)."""
@@ -1044,6 +1076,8 @@ class JointLink:
             raise JointLinkError(f"SDH not connected: {exc}") from exc
         version = self._identified(ver)
         vlim = await self._agreed(conn, "vlim")
+        if self._accept is not None and (problems := self._accept(vlim)):
+            raise HandRefused(problems)
         alim = await self._agreed(conn, "alim")
         con = await self._urgent(conn, self._request("con"))
         self.version = version

@@ -321,9 +321,16 @@ class TactileBus:
     # -- public API --------------------------------------------------------------------------
 
     @classmethod
-    async def open(cls, url: str, options: TactileOptions | None = None) -> TactileBus:
-        """Open ``url`` (device path or pyserial URL) and run the SDHLibrary open sequence."""
+    async def open(
+        cls, url: str, options: TactileOptions | None = None, *, patient: bool = False
+    ) -> TactileBus:
+        """Open ``url`` (device path or pyserial URL) and run the SDHLibrary open sequence — or,
+        ``patient``, do so in the background as a lost line reconnects (now, then after each
+        back-off delay, every failure reported) until the controller answers."""
         bus = cls(url, options)
+        if patient:
+            bus._supervisor = bus._loop.create_task(bus._first_connection(), name="tactile-connect")
+            return bus
         try:
             await bus._establish()
         except TactileError as e:  # which line it was: a lab plugs in two
@@ -380,9 +387,9 @@ class TactileBus:
         fewer, so ``matrices`` only declares (and validates) what this subscriber reads.
         """
         mats = frozenset(matrices)
-        if not mats or not mats <= set(range(len(self.matrix_infos))):
-            last = len(self.matrix_infos) - 1
-            raise ValueError(f"matrices must be a non-empty subset of 0…{last}")
+        n = len(self.matrix_infos) or len(self.options.expect)  # (expected: not open yet)
+        if not mats or (n and not mats <= set(range(n))):
+            raise ValueError(f"matrices must be a non-empty subset of 0…{n - 1}")
         if not rate_hz > 0.0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
         if self._closed:
@@ -527,6 +534,17 @@ class TactileBus:
             await reconnect(self._establish, backoff, self._reconnect_failed)
             self._reconnects += 1
             self._emit(LinkEventKind.RECONNECTED, self.url)
+
+    async def _first_connection(self) -> None:
+        o = self.options
+        try:
+            await self._establish()
+        except Exception as exc:
+            self._reconnect_failed(exc)
+            await reconnect(self._establish, Backoff(o.backoff_initial_s, o.backoff_max_s),
+                            self._reconnect_failed)  # fmt: skip
+        self._emit(LinkEventKind.CONNECTED, self.url)
+        await self._supervise()
 
     def _reconnect_failed(self, exc: Exception) -> None:
         self._emit(LinkEventKind.RECONNECT_FAILED, str(exc) or type(exc).__name__)

@@ -167,7 +167,12 @@ class HandService:
             self._monitor = self.tactile.subscribe(range(6), cfg.service.monitor_rate_hz)
         self._tasks = [asyncio.create_task(self._status_loop(), name="status"),
                        asyncio.create_task(self._pose_loop(), name="pose")]  # fmt: skip
-        log.info("hand ready: dsa=%s sdh=%s sim=%s", self.dsa_url, self.sdh_url, not hand.real)
+        ready = (
+            "hand ready"
+            if self.joints.connected and self.tactile.connected
+            else ("waiting for the hand (each line opens as its controller answers)")
+        )
+        log.info("%s: dsa=%s sdh=%s sim=%s", ready, self.dsa_url, self.sdh_url, not hand.real)
 
     async def close(self) -> None:
         """Stop motion first (the run stops and releases; e-stop past the timeout), then close."""

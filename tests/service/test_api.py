@@ -347,6 +347,11 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
             conf = await c.config()
             assert conf["service"]["token"] == "***" and "s3cret" not in json.dumps(conf)
             assert conf["hand"]["pad"]["arc_radius_mm"] == 60.0 and conf["axes"]["phi4"] == 5
+            # what is in force, not what the service started with: the patched k, the lines
+            # of the simulated hand (the configuration's are a real hand's /dev/ttyS*)
+            assert conf["rolling"]["k"] == 3
+            status = await c.status()
+            assert conf["links"]["sdh_url"] == status["links"]["sdh_url"] != "/dev/ttyS0"
             assert (await c.viewer()) == {"url": None}
     finally:
         assert await asyncio.to_thread(svc.stop) == 0
@@ -459,20 +464,28 @@ async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
         store.close()
 
 
-def test_unreachable_hand_and_taken_port_fail_with_a_reason(tmp_path: Path) -> None:
+def test_unreachable_hand_waits_and_taken_port_fails_with_a_reason(tmp_path: Path) -> None:
+    """A real hand nobody answers for: the service comes up anyway and says why each line is
+    down (it exited 4, taking the dashboard and the e-stop with it); a taken HTTP port is still
+    refused at once."""
     import subprocess
     import sys
 
-    base = [sys.executable, "-m", "sdh2svc", "serve", "--no-viewer",
-            "--set", f"storage.db_path={json.dumps(str(tmp_path / 'r.sqlite'))}"]  # fmt: skip
     with socket.socket() as free:
         free.bind(("127.0.0.1", 0))
         dead = free.getsockname()[1]  # nothing listens here once closed
-    r = subprocess.run([*base, "--port", "0", "--sdh", f"socket://127.0.0.1:{dead}",
-                        "--dsa", "socket://127.0.0.1:1"],
-                       capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert r.returncode == 4 and "cannot open the hand" in r.stderr
-    assert "Traceback" not in r.stderr
+    waiting = start_service(tmp_path, viewer=False, sim=False, wait_hand=False, extra=(
+        "--sdh", f"socket://127.0.0.1:{dead}", "--dsa", "socket://127.0.0.1:1"))  # fmt: skip
+    try:
+        with waiting.sync_client() as c:
+            st = c.status()
+    finally:
+        assert waiting.stop() == 0, "".join(waiting.log)
+    assert st["hand"]["connected"] == {"joints": False, "tactile": False}
+    assert st["links"]["joints_down"] in ("connecting",) or "refused" in st["links"]["joints_down"]
+    assert "Traceback" not in "".join(waiting.log)
+    base = [sys.executable, "-m", "sdh2svc", "serve", "--no-viewer",
+            "--set", f"storage.db_path={json.dumps(str(tmp_path / 'r.sqlite'))}"]  # fmt: skip
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()

@@ -466,3 +466,53 @@ def test_stop_and_estop_work_from_every_phase(tmp_path: Path, phase: str, action
                 assert last is not None and last["status"] == "e-stopped", last
 
     run_fast(main())
+
+
+# --- a service started before its hand ---------------------------------------------------------
+
+
+def test_a_service_started_before_its_hand_waits_for_it(tmp_path: Path) -> None:
+    """The PC boots first: the service used to exit at once (4) with the hand off or its
+    adapters not plugged in, and with it the dashboard, the status and the e-stop. It comes up
+    now: both lines down with why, runs refused, an e-stop taken and owed to the hand; once the
+    hand is on, the owed power-off reaches it before anything else, and after a release a run
+    works. Nothing moves meanwhile."""
+    cfg = _cfg(tmp_path)
+
+    async def main() -> None:
+        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
+            sim = bench.sim
+            cables = {n: Cable.unix(sim.urls(n)[0], str(tmp_path / f"{n}.sock"))
+                      for n in ("dsa", "sdh")}  # fmt: skip
+            try:
+                where = Real(cables["dsa"].url, cables["sdh"].url, patient=True)
+                async with service(cfg, where) as (c, services):
+                    station = services.station
+                    began = sim.sdh.actual_deg
+                    await asyncio.sleep(3.0)
+                    st = (await c.get("/api/status")).json()
+                    assert st["hand"]["connected"] == {"joints": False, "tactile": False}
+                    for line in ("joints", "tactile"):
+                        assert "cannot open" in st["links"][f"{line}_down"], st["links"]
+                    r = await c.post("/api/runs", json={})
+                    assert r.status_code == 503 and "is down" in r.text, r.text
+                    assert (await c.post("/api/estop")).status_code == 200
+                    st = (await c.get("/api/status")).json()
+                    assert st["estopped"] and st["estop"]["hand_reached"] is False
+                    for cable in cables.values():  # the hand switched on
+                        await cable.plug()
+                    async with asyncio.timeout(30):
+                        while not all((await c.get("/api/status")).json()["hand"]
+                                      ["connected"].values()):  # fmt: skip
+                            await asyncio.sleep(0.1)
+                    st = (await c.get("/api/status")).json()
+                    assert st["links"]["joints_down"] is None is st["links"]["tactile_down"]
+                    assert st["estop"]["hand_reached"] is True  # powered off first
+                    assert _moved(sim.sdh.actual_deg, began) < EPS
+                    assert (await c.post("/api/estop/release", json={})).status_code == 200
+                    await _new_run_works(c, station)
+            finally:
+                for cable in cables.values():
+                    await cable.close()
+
+    run_fast(main())

@@ -29,9 +29,13 @@ async def patch_params(st: St, patch: Annotated[dict[str, Any], Body()]) -> dict
 
 
 @router.get("/api/config", responses=responses(*READ))
-async def config(cfg: Cfg) -> dict[str, Any]:
+async def config(cfg: Cfg, st: St) -> dict[str, Any]:
     """The effective configuration (hand geometry, axis and matrix maps, limits, safety),
-    without the token."""
+    without the token: the rolling parameters in force and the lines in use (the simulated
+    hand's, or --dsa/--sdh), not those the service started with."""
     data = cfg.model_dump(mode="json")
     data["service"]["token"] = "***" if cfg.service.token else ""
+    data["rolling"] = st.params_in_force.model_dump(mode="json")
+    if st.dsa_url and st.sdh_url:
+        data["links"].update(dsa_url=st.dsa_url, sdh_url=st.sdh_url)
     return data
