@@ -609,7 +609,7 @@ def cmd_estop(args: argparse.Namespace) -> int:
             store.release_estop()
         latch = store.estop_latch()
     except sqlite3.Error as e:  # locked by another program past the busy timeout, a bad disk
-        _fail(Exit.UNAVAILABLE, f"the run database {cfg.storage.db_path} is unusable: {e}")
+        _fail(Exit.UNAVAILABLE, f"the run database {where} is unusable: {e}")
     finally:
         store.close()
     said = "released" if latch is None else f"latched since {latch['since']}: {latch['reason']}"

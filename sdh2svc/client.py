@@ -69,7 +69,9 @@ JSON = dict[str, Any]
 # dropped) as JSON: each has a "type"
 TelemetryMessage = JSON
 StatusCheck = Callable[[JSON], bool]  # a condition on the status (Client.wait_status)
-ESTOP_TIMEOUT_S = 2.0  # the e-stop's own limit: an unanswered stop must be known at once
+# The e-stop's own limit: an unanswered stop must be known soon. The service answers within
+# 2.5 s at worst (1.5 s for a silent joint line, then 1 s for a locked run database).
+ESTOP_TIMEOUT_S = 4.0
 _WS_MAX_BYTES = 2**24  # a hello carries the whole status; a tactile frame six matrices
 # Closes that end the telemetry as the service meant it: normal, going away, restarting. Any
 # other end of the socket (no close frame, a keepalive ping unanswered) is a lost service.
@@ -252,12 +254,13 @@ class _Call:
     query: dict[str, Any] = field(default_factory=dict)
     timeout: float | None = None  # a limit of its own, below the client's (the e-stop)
 
-    def kwargs(self, client_timeout: float) -> dict[str, Any]:
+    def kwargs(self, client_timeout: float | None) -> dict[str, Any]:
+        """httpx's arguments; the call's own limit, or the client's if shorter (None: none)."""
         kw: dict[str, Any] = {"params": self.query} if self.query else {}
         if self.body is not _NONE:
             kw["json"] = self.body
         if self.timeout is not None:
-            kw["timeout"] = min(self.timeout, client_timeout)
+            kw["timeout"] = min(self.timeout, client_timeout or self.timeout)
         return kw
 
 

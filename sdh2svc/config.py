@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import annotated_types as at
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, ValidationInfo, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
 from sdh2svc.control.config import ControlConfig
@@ -76,6 +76,7 @@ class ServiceConfig(Frozen):
 
 #: The sections a run's recording keeps (Settings.recorded).
 RECORDED_SECTIONS = ("hand", "axes", "limits", "tactile", "calibration", "run", "safety")
+_READ_SECTIONS = ("hand", "axes", "limits", "tactile", "calibration")  # a recording read back
 
 
 def _laid_over(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
@@ -108,9 +109,12 @@ class Settings(BaseSettings):
     sim: SimConfig
 
     @model_validator(mode="after")
-    def _consistent(self) -> Settings:
+    def _consistent(self, info: ValidationInfo) -> Settings:
         """Checks across sections: a pre-shape inside the joint limits; rolling parameters the
-        supervisor's limits allow; a force ceiling the pads can reach; distinct ports."""
+        supervisor's limits allow; a force ceiling the pads can reach; distinct ports. Not for
+        a recording read back (:meth:`as_recorded`): it is what was, and drives nothing."""
+        if info.context and info.context.get("recorded"):
+            return self
         problems = self.run.preshape_outside(self.limits)
         problems += params_outside(self.rolling, self.safety)
         full = saturated_force(self.tactile.distal, self.tactile.texel_pitch_mm,
@@ -126,6 +130,10 @@ class Settings(BaseSettings):
         for a, b in itertools.combinations(ports, 2):
             if ports[a] and ports[a] == ports[b]:
                 problems.append(f"service.{a} and service.{b} are both {ports[a]}: one port each")
+        sim = self.sim.links
+        if sim.dsa_tcp_port and sim.dsa_tcp_port == sim.sdh_tcp_port:
+            problems.append(f"sim.links.dsa_tcp_port and sdh_tcp_port are both "
+                            f"{sim.dsa_tcp_port}: one port each")  # fmt: skip
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -158,11 +166,19 @@ class Settings(BaseSettings):
         return {k: getattr(self, k).model_dump(mode="json") for k in RECORDED_SECTIONS}
 
     def as_recorded(self, sections: Mapping[str, Any]) -> Settings:
-        """This configuration with a recording's sections (:meth:`recorded`) in place of its
-        own, key by key: a key an older version did not record keeps this configuration's
-        value. :class:`ConfigError` if they are not valid here (e.g. a newer version's)."""
+        """This configuration with what reading a recording needs of its sections
+        (:meth:`recorded`) in place of its own — its hand, wiring, pads and calibration, and the
+        pre-shape of the joints the model leaves out — key by key: a key an older version did
+        not record keeps this configuration's value. Its safety limits and speeds are not read
+        (limits tightened since must not make an old run unreadable). :class:`ConfigError` if
+        what is read is not valid here (e.g. a newer version's)."""
+        picked = {k: v for k, v in sections.items() if k in _READ_SECTIONS}
+        run = sections.get("run")
+        if isinstance(run, Mapping) and "preshape_deg" in run:
+            picked["run"] = {"preshape_deg": run["preshape_deg"]}
         try:
-            return self.model_validate(_laid_over(self.model_dump(), sections))
+            data = _laid_over(self.model_dump(), picked)
+            return self.model_validate(data, context={"recorded": True})
         except ValidationError as e:
             raise ConfigError(format_errors(e, Settings), "recorded configuration") from None
 

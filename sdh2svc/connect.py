@@ -23,7 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from sdh2svc.bus.joint import HandRefused, JointLink
-from sdh2svc.bus.tactile import TactileBus, TactileOptions
+from sdh2svc.bus.link import check_url
+from sdh2svc.bus.tactile import HandUnlike, TactileBus, TactileOptions
 from sdh2svc.config import ConfigError, Settings
 from sdh2svc.model.hand import matrix_pads
 from sdh2svc.sim.hand import HandModel, ObjectNow, Truth
@@ -176,9 +177,12 @@ async def simulated_hand(cfg: Settings, spec: Simulated) -> AsyncIterator[Bench]
 
 def _port(url: str) -> str:
     """What a line's URL opens: a device by its real path (a symlink is the device), a URL as
-    written."""
+    written (its scheme in any case)."""
     url = url.strip()
-    return url.lower() if "://" in url else os.path.realpath(url)
+    if "://" not in url:
+        return os.path.realpath(url)
+    scheme, _, rest = url.partition("://")
+    return f"{scheme.lower()}://{rest}"
 
 
 async def open_links(
@@ -190,6 +194,11 @@ async def open_links(
     ``patient``: each line connects in the background until its controller answers (as a
     lost line reconnects; its link says why it is not up yet), and the same checks refuse a
     hand unlike the configuration at every connection."""
+    try:
+        for url in (dsa_url, sdh_url):
+            check_url(url)
+    except ValueError as e:
+        raise ConfigError([str(e)]) from None
     if _port(dsa_url) == _port(sdh_url):
         same = f"the tactile and the joint line are both {sdh_url!r}"
         raise ConfigError([f"{same}: each controller has a line of its own (--dsa/--sdh, "
@@ -204,6 +213,9 @@ async def open_links(
     try:
         expect = tuple((pad, lay.rows, lay.cols) for pad, lay in matrix_pads(cfg.axes, cfg.tactile))
         tactile = await TactileBus.open(dsa_url, TactileOptions(expect=expect), patient=patient)
+    except HandUnlike as e:  # reached, but not the hand the configuration describes
+        await joints.close()
+        raise ConfigError([str(e)]) from None
     except BaseException:
         await joints.close()
         raise

@@ -205,6 +205,11 @@ def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None
         (["calibration.force_reference_area_mm2=1"], "a saturated pad reads F = 0.229"),
         (["safety.force_ceiling_max=50"], "allowed: force_ceiling_max < 42.4"),
         (["safety.stale_frame_ms=2000"], "stale_frame_ms ≤ 1000"),
+        (["run.tactile_rate_hz=60"], "tactile_rate_hz ≤ 30"),  # the controller streams 30 at most
+        (
+            ["sim.links.dsa_tcp_port=47130", "sim.links.sdh_tcp_port=47130"],
+            "sim.links.dsa_tcp_port and sdh_tcp_port are both 47130: one port each",
+        ),
     ],
 )
 def test_values_that_would_mislead_the_hand_are_refused(
@@ -229,15 +234,20 @@ def test_settings_are_immutable() -> None:
         s.rolling.k = 3.0  # type: ignore[misc]
 
 
-def test_a_recording_older_than_a_key_reads_with_this_versions_value(cfg: Settings) -> None:
-    """A run recorded before safety.force_ceiling_max existed: its frames, replay and export
-    read it with today's value; a key this version does not know stays refused."""
+def test_a_recording_older_than_a_key_or_a_limit_reads_back(cfg: Settings) -> None:
+    """A run recorded before a key existed reads with today's value; one recorded under limits
+    tightened since (stale_frame_ms 2000, a 50 Hz loop, a ceiling factor of 10 with Fd = 2)
+    reads back as it was drawn — its pads, its hand, its pre-shape —, none of its safety
+    limits or speeds taken in; a key this version does not know stays refused."""
     recorded = cfg.recorded()
-    del recorded["safety"]["force_ceiling_max"]
-    recorded["safety"]["stale_frame_ms"] = 250.0
+    del recorded["calibration"]["spread_mm"]  # (a key an older version did not record)
+    recorded["tactile"]["texel_pitch_mm"] = 3.5
+    recorded["run"].update(preshape_deg=[10, 20, -20, 30, 20, -20, 30], tactile_rate_hz=50.0)
+    recorded["safety"].update(stale_frame_ms=2000.0, force_ceiling_factor=10.0)
     old = cfg.as_recorded(recorded)
-    assert old.safety.force_ceiling_max == cfg.safety.force_ceiling_max
-    assert old.safety.stale_frame_ms == 250.0
-    recorded["safety"]["from_the_future"] = 1
-    with pytest.raises(ConfigError, match=r"safety\.from_the_future"):
+    assert old.calibration.spread_mm == cfg.calibration.spread_mm
+    assert old.tactile.texel_pitch_mm == 3.5 and old.run.preshape_deg[0] == 10
+    assert old.run.tactile_rate_hz == cfg.run.tactile_rate_hz and old.safety == cfg.safety
+    recorded["tactile"]["from_the_future"] = 1
+    with pytest.raises(ConfigError, match=r"tactile\.from_the_future"):
         cfg.as_recorded(recorded)

@@ -610,6 +610,9 @@ class JointLink:
             raise LinkLost("link closed")
         if self._conn is not None:
             return
+        if self._reconnect_task is not None:  # opened patiently: that connection, not a second
+            await asyncio.shield(self._reconnect_task)
+            return
         try:
             self._conn = await self._connect_once()
         except JointLinkError as e:  # which line it was (a lab plugs in two)
@@ -1076,8 +1079,6 @@ class JointLink:
             raise JointLinkError(f"SDH not connected: {exc}") from exc
         version = self._identified(ver)
         vlim = await self._agreed(conn, "vlim")
-        if self._accept is not None and (problems := self._accept(vlim)):
-            raise HandRefused(problems)
         alim = await self._agreed(conn, "alim")
         con = await self._urgent(conn, self._request("con"))
         self.version = version
@@ -1088,13 +1089,16 @@ class JointLink:
             await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
             self._power_off_owed = False
         # Whatever the last host left running (a velocity, a move), it stops now: the firmware
-        # keeps its last command forever, and no loop of ours commands it yet.
+        # keeps its last command forever, and no loop of ours commands it yet. (A hand this
+        # host then refuses is held all the same.)
         await self._hold_on(conn)
+        if self._accept is not None and (problems := self._accept(vlim)):
+            raise HandRefused(problems)
 
     def _identified(self, ver: Reply) -> str:
         """The firmware's version from its answer to ``ver``: an SDH2 says ``VER=x.x.x.x``; any
-        other line (a device that echoes, another controller) is not one. Binary frames need
-        firmware that speaks them."""
+        other line (a device that echoes, another controller) is not one, and is sent nothing
+        more. Firmware older than the binary frames is spoken to in ASCII."""
         text = ver.text.strip()
         if ver.keyword != "VER" or not _VERSION.fullmatch(text):
             said = f"{ver.keyword}={ver.text}" if ver.keyword else ver.text
@@ -1102,8 +1106,9 @@ class JointLink:
                                  "(VER=x.x.x.x): another device on this port, or one that "
                                  "echoes?")  # fmt: skip
         if self.binary and tuple(int(x) for x in text.split(".")) < BINARY_SINCE:
-            raise JointLinkError(f"firmware {text} does not speak the binary frames (from "
-                                 "0.0.2.15 on): set links.binary = false")  # fmt: skip
+            logger.warning("%s firmware %s does not speak the binary frames (from 0.0.2.15 "
+                           "on): this line speaks ASCII", self.url, text)  # fmt: skip
+            self.binary = False
         return text
 
     async def _agreed(self, conn: _Conn, keyword: str, tries: int = 4) -> Vec:

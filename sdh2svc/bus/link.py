@@ -16,7 +16,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import fcntl
+import os
 import socket
+import termios
 import urllib.parse
 from collections.abc import Callable, Iterable
 from typing import Any, SupportsIndex
@@ -26,9 +29,16 @@ import serial_asyncio
 
 from sdh2svc.protocol.line import BAUD
 
-__all__ = ["PushReader", "close_streams", "is_socket_url", "open_streams"]
+__all__ = [
+    "URL_SCHEMES",
+    "PushReader",
+    "check_url",
+    "close_streams",
+    "is_socket_url",
+    "open_streams",
+]
 
-CLOSE_WAIT_S = 2.0  # a port's transport that has not closed by then is left to the collector
+CLOSE_WAIT_S = 2.0  # a port's transport that has not closed by then is aborted
 
 
 class PushReader(asyncio.StreamReader):
@@ -75,6 +85,20 @@ class PushReader(asyncio.StreamReader):
             on_end(exc)
 
 
+# the pyserial URLs a line can be (the others have no file descriptor for the event loop to
+# watch, or are no line to a device): socket://, and hwgrep:// and spy:// in front of a device
+URL_SCHEMES = ("socket", "unix", "hwgrep", "spy")
+
+
+def check_url(url: str) -> None:
+    """ValueError, naming ``url``, if it cannot be a line: a scheme :func:`open_streams` cannot
+    use, or none of pyserial's (a typo a patient service would retry for ever)."""
+    scheme = url.strip().partition("://")[0].lower() if "://" in url else ""
+    if scheme and scheme not in URL_SCHEMES:
+        allowed = ", ".join(f"{s}://" for s in URL_SCHEMES)
+        raise ValueError(f"{url}: a line is a device path or one of {allowed}")
+
+
 def is_socket_url(url: str) -> bool:
     """Whether ``url`` is pyserial's raw TCP transport (``socket://host:port``)."""
     return url.strip().lower().startswith("socket://")
@@ -115,6 +139,7 @@ async def open_streams(
             ) from None
         raise
     _need_fileno(port, url)
+    _exclusive_tty(port)
     _tune_socket(port)
     try:
         reader = PushReader(limit=limit, loop=loop)
@@ -153,6 +178,17 @@ def _need_fileno(port: serial.SerialBase, url: str) -> None:
         ) from None
 
 
+def _exclusive_tty(port: serial.SerialBase) -> None:
+    """A terminal device in exclusive mode (TIOCEXCL): pyserial's lock is advisory, and a
+    program that opens the line plainly (SDHLibrary, a terminal, ``echo > /dev/ttyUSB0``) could
+    still write into it; the kernel refuses it (EBUSY) while the line is ours — except to root.
+    :func:`close_streams` ends the mode."""
+    fd = getattr(port, "fd", None)
+    if isinstance(fd, int) and os.isatty(fd):
+        with contextlib.suppress(OSError):
+            fcntl.ioctl(fd, termios.TIOCEXCL)
+
+
 def _close_orphan(opening: asyncio.Future[serial.Serial]) -> None:
     if not opening.cancelled() and opening.exception() is None:
         opening.result().close()
@@ -180,7 +216,15 @@ def _tune_socket(port: serial.SerialBase) -> None:
 
 async def close_streams(writer: asyncio.StreamWriter) -> None:
     """Close the port behind ``writer``; never raises (the port may already be gone)."""
+    port = getattr(writer.transport, "serial", None)  # pyserial-asyncio's transport
+    fd = getattr(port, "fd", None)
+    if isinstance(fd, int) and fd >= 0 and os.isatty(fd):  # others may open it once we are done
+        with contextlib.suppress(OSError):
+            fcntl.ioctl(fd, termios.TIOCNXCL)
     with contextlib.suppress(Exception):
         writer.close()
-    with contextlib.suppress(Exception):  # bounded: a transport that never closes must not hang us
+    try:  # bounded: a converter that takes no more bytes must not hold us, nor keep the port
         await asyncio.wait_for(writer.wait_closed(), CLOSE_WAIT_S)
+    except Exception:
+        with contextlib.suppress(Exception):
+            writer.transport.abort()

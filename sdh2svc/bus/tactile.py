@@ -93,6 +93,10 @@ class TactileConnectionError(TactileError):
     """The line is down (or went down while a command waited)."""
 
 
+class HandUnlike(TactileError):
+    """The controller reports other matrices than those expected (``TactileOptions.expect``)."""
+
+
 class TactileTimeoutError(TactileError, TimeoutError):
     """A command got no reply after all its tries."""
 
@@ -334,7 +338,8 @@ class TactileBus:
         try:
             await bus._establish()
         except TactileError as e:  # which line it was: a lab plugs in two
-            raise TactileError(f"tactile line {url}: {e}") from e
+            kind = HandUnlike if isinstance(e, HandUnlike) else TactileError
+            raise kind(f"tactile line {url}: {e}") from e
         bus._emit(LinkEventKind.CONNECTED, url)
         bus._supervisor = bus._loop.create_task(bus._supervise(), name="tactile-supervisor")
         return bus
@@ -502,7 +507,7 @@ class TactileBus:
         if self.matrix_infos and [m.shape for m in mats] != [m.shape for m in self.matrix_infos]:
             raise TactileError("matrix geometry changed across a reconnect")
         if o.expect and (unlike := _unlike(mats, o.expect)):
-            raise TactileError(unlike)
+            raise HandUnlike(unlike)
         self.controller_info, self.sensor_info, self.matrix_infos = ci, si, mats
 
     async def _flush_input(self) -> None:

@@ -36,8 +36,10 @@ class RunConfig(Frozen):
     grasp_settle_s: Annotated[float, Field(ge=0.0, le=60.0)]
     grasp_timeout_s: Annotated[float, Field(gt=0.0, le=600.0)]
     grasp_max_close_deg: Annotated[float, Field(ge=-90.0, le=90.0)]
-    tactile_rate_hz: Annotated[float, Field(gt=0.0, le=100.0)]
-    watch_rate_hz: Annotated[float, Field(gt=0.0, le=100.0)]
+    # the DSACON32m streams at 30 frames a second at most (protocols.md §1.6): a faster loop
+    # would wait for frames that never come (and its grasp close that much slower)
+    tactile_rate_hz: Annotated[float, Field(gt=0.0, le=30.0)]
+    watch_rate_hz: Annotated[float, Field(gt=0.0, le=30.0)]
 
     @field_validator("preshape_deg")
     @classmethod

@@ -24,6 +24,7 @@ from sdh2svc.bus.joint import (
     ControllerMode,
     EmergencyStopped,
     FirmwareError,
+    HandRefused,
     JointLink,
     JointLinkError,
     LinkEvent,
@@ -130,17 +131,41 @@ async def test_open_silent_device_fails_clearly() -> None:
         assert loop.time() - start >= 1.0  # the 1 s `ver` timeout
 
 
-async def test_firmware_without_binary_frames_is_refused_when_they_are_asked_for() -> None:
-    """VER=0.0.1.0 was taken with links.binary on: its first binary command would have failed
-    as line noise, retried as a spoilt reply."""
+async def test_firmware_without_binary_frames_is_spoken_to_in_ascii() -> None:
+    """VER=0.0.1.0 was taken with binary frames asked for: its first binary command would have
+    failed as line noise, retried as a spoilt reply. The link speaks ASCII to it instead."""
     dev = Sdh2Emulator(ScriptedWorld(SHAPES), options=Sdh2Options(version="0.0.1.0"))
     async with serve_device(dev, "tcp") as ep:
-        said = "firmware 0.0.1.0 does not speak the binary frames (from 0.0.2.15 on): set links"
-        with pytest.raises(JointLinkError, match=re.escape(said)):
-            await JointLink.open(ep.url, binary=True)
-        link = await JointLink.open(ep.url, binary=False)  # ASCII: as it was
-        assert link.version == "0.0.1.0"
-        await link.close()
+        link = await JointLink.open(ep.url, binary=True)
+        try:
+            assert (link.version, link.binary) == ("0.0.1.0", False)
+            assert len(await link.get_actual()) == 7
+        finally:
+            await link.close()
+
+
+def test_a_hand_refused_is_held_first() -> None:
+    """A hand this host refuses (``accept``: its speeds) was left as the last program left it:
+    an axis driving at 5 °/s drove on. Every handshake that reaches an SDH2 holds it."""
+    from sdh2svc.config import load_config
+    from sdh2svc.connect import Simulated, simulated_hand
+
+    async def main() -> tuple[float, float]:
+        async with simulated_hand(load_config(use_env=False), Simulated(fast=True)) as bench:
+            sim, url = bench.sim, bench.sim.urls("sdh")[0]
+            first = await JointLink.open(url)
+            await first.power([True] * 7)
+            await first.set_controller(ControllerMode.VELOCITY)
+            await first.set_velocities([0, 5, 0, 0, 0, 0, 0])  # axis 1 driving at 5 °/s
+            await first.close()
+            with pytest.raises(HandRefused, match="too slow for us"):
+                await JointLink.open(url, accept=lambda vlim: ["too slow for us"])
+            held = sim.sdh.actual_deg[1]
+            await asyncio.sleep(5.0)
+            return held, sim.sdh.actual_deg[1]
+
+    held, later = run_fast(main())
+    assert later == pytest.approx(held, abs=0.01)
 
 
 async def test_a_device_that_echoes_is_no_sdh2() -> None:

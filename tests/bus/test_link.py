@@ -7,6 +7,9 @@ import asyncio
 import errno
 import os
 import pty
+import shutil
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -101,3 +104,47 @@ def test_a_device_without_permission_says_what_to_do(monkeypatch: pytest.MonkeyP
 
     assert "no permission to open /dev/ttyUSB0: add this user to the group that owns it " \
            "(usually dialout" in asyncio.run(main())  # fmt: skip
+
+
+def _open_as_nobody(path: str) -> int:
+    """errno of a plain open() of ``path`` by another user (0: it opened)."""
+    probe = (
+        "import os, sys\n"
+        "try:\n    os.close(os.open(sys.argv[1], os.O_RDWR | os.O_NOCTTY))\n"
+        "except OSError as e:\n    sys.exit(e.errno)\n"
+    )
+    python = shutil.which("python3", path="/usr/bin:/bin") or sys.executable  # (not in our venv)
+    r = subprocess.run([python, "-c", probe, path], user=65534, timeout=30)
+    return r.returncode
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root, to run a probe as another user")
+def test_a_plain_open_by_another_program_is_refused_while_the_line_is_ours(tty: str) -> None:
+    """pyserial's lock is advisory: SDHLibrary, a terminal or `echo > /dev/ttyUSB0` opened a
+    line the service held and could write into it (root is let in by the kernel whatever)."""
+    os.chmod(tty, 0o666)
+
+    async def main() -> tuple[int, int]:
+        _, writer = await open_streams(tty)
+        try:
+            held = _open_as_nobody(tty)
+        finally:
+            await close_streams(writer)
+        return held, _open_as_nobody(tty)
+
+    assert asyncio.run(main()) == (errno.EBUSY, 0)
+
+
+@pytest.mark.parametrize("url", ["loop://", "rfc2217://lab:2217", "foo://x"])
+def test_a_url_no_line_can_be_is_refused_before_anything_opens(url: str) -> None:
+    """A service that waits for its hand retried such a typo every 5 s for ever, looking up."""
+    cfg = load_config(use_env=False)
+    with pytest.raises(ConfigError, match="a line is a device path or one of socket://"):
+        asyncio.run(open_links(cfg, url, "/dev/ttyUSB0", patient=True))
+
+
+def test_two_sockets_whose_names_differ_in_case_are_two_lines() -> None:
+    from sdh2svc.connect import _port
+
+    assert _port("unix:///tmp/A.sock") != _port("UNIX:///tmp/a.sock")
+    assert _port("SOCKET://lab:23") == _port("socket://lab:23")

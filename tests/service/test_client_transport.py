@@ -12,6 +12,7 @@ import pickle
 import re
 import socket
 from collections.abc import AsyncIterator, Callable, Iterator
+from dataclasses import replace
 from typing import Any, cast
 
 import httpx
@@ -246,26 +247,38 @@ def _limits(e: BaseException) -> dict[str, float]:
     return cast(dict[str, float], cause.request.extensions["timeout"])
 
 
+@pytest.fixture
+def estop_limit(monkeypatch: pytest.MonkeyPatch) -> float:
+    """The e-stop's own limit, shortened for the tests (waited for against a mute port)."""
+    assert client_module._ESTOP.timeout == client_module.ESTOP_TIMEOUT_S  # the call uses it
+    monkeypatch.setattr(client_module, "_ESTOP", replace(client_module._ESTOP, timeout=0.3))
+    return 0.3
+
+
 def test_an_estop_a_hung_service_does_not_answer_fails_within_its_own_limit(
-    mute_port: int,
+    mute_port: int, estop_limit: float
 ) -> None:
     """A 30 s client learnt that its e-stop went unanswered after 30 s; the e-stop has its own
-    limit (the other calls keep the client's)."""
+    limit (the other calls keep the client's), also in a client without a timeout."""
     with Client(f"127.0.0.1:{mute_port}", timeout=30.0) as c:
         with pytest.raises(Unreachable, match=r"POST .*/api/estop") as raised:
             c.estop()
-        assert _limits(raised.value)["read"] == client_module.ESTOP_TIMEOUT_S
-    with Client(f"127.0.0.1:{mute_port}", timeout=0.5) as c:  # a shorter client's own
+        assert _limits(raised.value)["read"] == estop_limit
+    with Client(f"127.0.0.1:{mute_port}", timeout=0.2) as c:  # a shorter client's own
         with pytest.raises(Unreachable) as raised:
             c.estop()
-        assert _limits(raised.value)["read"] == 0.5
+        assert _limits(raised.value)["read"] == 0.2
         with pytest.raises(Unreachable) as raised:
             c.status()
-        assert _limits(raised.value)["read"] == 0.5
+        assert _limits(raised.value)["read"] == 0.2
+    with Client(f"127.0.0.1:{mute_port}", timeout=None) as c:  # type: ignore[arg-type]
+        with pytest.raises(Unreachable) as raised:
+            c.estop()
+        assert _limits(raised.value)["read"] == estop_limit
 
 
-async def test_the_async_estop_has_its_own_limit_too(mute_port: int) -> None:
+async def test_the_async_estop_has_its_own_limit_too(mute_port: int, estop_limit: float) -> None:
     async with AsyncClient(f"127.0.0.1:{mute_port}", timeout=30.0) as c:
         with pytest.raises(Unreachable) as raised:
             await c.estop()
-        assert _limits(raised.value)["read"] == client_module.ESTOP_TIMEOUT_S
+        assert _limits(raised.value)["read"] == estop_limit

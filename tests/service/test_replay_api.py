@@ -16,6 +16,7 @@ import pytest
 from sdh2svc.client import AsyncClient
 from sdh2svc.config import Settings, load_config
 from sdh2svc.control.sample import Sample
+from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.service.api.deps import Services
 from sdh2svc.service.app import create_app
 from sdh2svc.service.hub import TelemetryHub
@@ -28,7 +29,6 @@ from sdh2svc.service.telemetry import (
     Tactile,
     frame_matrices,
     kind_of,
-    matrix_shapes,
 )
 
 ITERATIONS = 12

@@ -26,6 +26,7 @@ from websockets.typing import Origin, Subprotocol
 from sdh2svc.config import Settings
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.geometry import pad_point_from_L, pad_y3
+from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.model.kinematics import Finger, Point, frame3_axes, pad_point
 from sdh2svc.service import telemetry, viewer_proc
 from sdh2svc.service import viewer as viewer_module
@@ -38,7 +39,6 @@ from sdh2svc.service.telemetry import (
     SampleMsg,
     SampleView,
     contact_normal,
-    matrix_shapes,
 )
 from sdh2svc.service.viewer import (
     BUTTONS,
