@@ -509,7 +509,7 @@ class JointLink:
         accept: Callable[[Vec], Sequence[str]] | None = None,
     ) -> None:
         """``accept``: told the hand's velocity limits at every handshake; the problems it
-        returns refuse the hand (:class:`HandRefused`) before anything else is sent to it."""
+        returns refuse the hand (:class:`HandRefused`) once the handshake has held it."""
         if timeout_s <= 0 or retries < 0:
             raise ValueError("timeout_s must be > 0 and retries >= 0")
         self.url = url
