@@ -390,13 +390,21 @@ class _Stopper:
                 loop.remove_signal_handler(sig)
 
 
+def _debug(args: argparse.Namespace) -> bool:
+    """--debug, or SDH2SVC_DEBUG set (not to 0): tracebacks and the links' log records."""
+    return bool(getattr(args, "debug", False)) or os.environ.get("SDH2SVC_DEBUG", "") not in (
+        "",
+        "0",
+    )
+
+
 def _quiet_log(args: argparse.Namespace) -> None:
     """A command's failure is its one line on stderr: the links' log records (a retry, a
     reply gone missing) reached stderr beside it through logging's last resort. --debug (or
     SDH2SVC_DEBUG=1) shows them."""
     if logging.getLogger().handlers:  # a program that configured logging has them its way
         return
-    if args.debug or os.environ.get("SDH2SVC_DEBUG", "") not in ("", "0"):
+    if _debug(args):
         logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     else:
         logging.getLogger("sdh2svc").addHandler(logging.NullHandler())
@@ -993,7 +1001,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    debug = args.debug or os.environ.get("SDH2SVC_DEBUG", "") not in ("", "0")
+    debug = _debug(args)
     try:
         return int(args.func(args))
     except CliError as e:

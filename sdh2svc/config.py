@@ -79,15 +79,6 @@ RECORDED_SECTIONS = ("hand", "axes", "limits", "tactile", "calibration", "run", 
 _READ_SECTIONS = ("hand", "axes", "limits", "tactile", "calibration")  # a recording read back
 
 
-def _laid_over(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
-    """``base`` with ``top``'s values in place, tables merged key by key."""
-    out = dict(base)
-    for k, v in top.items():
-        b = out.get(k)
-        out[k] = _laid_over(b, v) if isinstance(b, Mapping) and isinstance(v, Mapping) else v
-    return out
-
-
 class Settings(BaseSettings):
     """The whole configuration of sdh2svc; see ``config/default.toml`` for every key and unit."""
 
@@ -177,7 +168,7 @@ class Settings(BaseSettings):
         if isinstance(run, Mapping) and "preshape_deg" in run:
             picked["run"] = {"preshape_deg": run["preshape_deg"]}
         try:
-            data = _laid_over(self.model_dump(), picked)
+            data = deep_merge(self.model_dump(), picked)
             return self.model_validate(data, context={"recorded": True})
         except ValidationError as e:
             raise ConfigError(format_errors(e, Settings), "recorded configuration") from None

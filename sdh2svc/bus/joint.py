@@ -64,14 +64,7 @@ import serial
 
 from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
 from sdh2svc.bus.polling import PollPlan
-from sdh2svc.bus.reconnect import (
-    LINE_DOWN,
-    LINE_UP,
-    Backoff,
-    LinkEvent,
-    LinkEventKind,
-    reconnect,
-)
+from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, failure_after, reconnect
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
@@ -596,11 +589,8 @@ class JointLink:
         return link
 
     async def _first_connection(self) -> None:
-        try:
-            self._conn = await self._reconnect_once()
-        except Exception as exc:
-            self._reconnect_failed(exc)
-            self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed)
+        self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed,
+                                     at_once=True)  # fmt: skip
         self._reconnect_task = None
         self._emit(LinkEventKind.CONNECTED, f"firmware {self.version}")
 
@@ -688,8 +678,7 @@ class JointLink:
 
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
         event = LinkEvent(kind, self.url, asyncio.get_running_loop().time(), detail)
-        if kind in LINE_DOWN or kind in LINE_UP:
-            self.failure = detail if kind in LINE_DOWN else None
+        self.failure = failure_after(kind, detail, self.failure)
         level = logging.WARNING if kind in _WARNINGS else logging.INFO
         logger.log(level, "%s %s %s", self.url, kind, detail)
         for queue in self._subscribers:

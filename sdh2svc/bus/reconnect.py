@@ -66,15 +66,27 @@ class Backoff:
             delay = min(2.0 * delay, self.max_s)
 
 
+def failure_after(kind: LinkEventKind, detail: str, failure: str | None) -> str | None:
+    """Why a line is down once an event of ``kind`` happened (``failure``: why it was): a loss
+    or failed reconnect says why, its coming up clears it, anything else leaves it."""
+    if kind in LINE_DOWN:
+        return detail
+    return None if kind in LINE_UP else failure
+
+
 async def reconnect(
     connect: Callable[[], Awaitable[T]],
     backoff: Backoff,
     failed: Callable[[Exception], None],
+    *,
+    at_once: bool = False,
 ) -> T:
-    """``connect()`` after each back-off delay until it succeeds; ``failed(exc)`` for every
-    attempt that raised (whatever went wrong, the next attempt follows)."""
-    for delay in backoff.delays():
-        await asyncio.sleep(delay)
+    """``connect()`` after each back-off delay (``at_once``: the first attempt without one, as
+    a line opened in the background) until it succeeds; ``failed(exc)`` for every attempt that
+    raised (whatever went wrong, the next attempt follows)."""
+    for i, delay in enumerate(backoff.delays()):
+        if not (at_once and i == 0):
+            await asyncio.sleep(delay)
         try:
             return await connect()
         except Exception as exc:

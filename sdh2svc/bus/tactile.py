@@ -56,6 +56,7 @@ from sdh2svc.bus.reconnect import (
     Backoff,
     LinkEvent,
     LinkEventKind,
+    failure_after,
     reconnect,
 )
 from sdh2svc.protocol import dsa
@@ -542,12 +543,8 @@ class TactileBus:
 
     async def _first_connection(self) -> None:
         o = self.options
-        try:
-            await self._establish()
-        except Exception as exc:
-            self._reconnect_failed(exc)
-            await reconnect(self._establish, Backoff(o.backoff_initial_s, o.backoff_max_s),
-                            self._reconnect_failed)  # fmt: skip
+        await reconnect(self._establish, Backoff(o.backoff_initial_s, o.backoff_max_s),
+                        self._reconnect_failed, at_once=True)  # fmt: skip
         self._emit(LinkEventKind.CONNECTED, self.url)
         await self._supervise()
 
@@ -909,8 +906,8 @@ class TactileBus:
     def _emit(self, kind: LinkEventKind, detail: str = "", now: float | None = None) -> None:
         event = LinkEvent(kind, self.url, self._loop.time() if now is None else now, detail)
         self.history.append(event)
+        self.failure = failure_after(kind, detail, self.failure)
         if kind in LINE_DOWN or kind in LINE_UP:  # the line's life, logged as the joint line's
-            self.failure = detail if kind in LINE_DOWN else None
             level = logging.WARNING if kind in LINE_DOWN else logging.INFO
             logger.log(level, "tactile line %s %s %s", self.url, kind, detail)
         for sub in self._subs:

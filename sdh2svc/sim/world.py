@@ -18,9 +18,10 @@ from typing import Protocol
 
 import numpy as np
 
+from sdh2svc.model.contact import FULL_SCALE_COUNTS
 from sdh2svc.protocol.sdh import NUM_AXES
 
-MAX_COUNT = 4095
+MAX_COUNT = FULL_SCALE_COUNTS  # a cell's highest reading, as the controller's model has it
 FACTORY_SENSITIVITY = 0.5  # protocols.md §1.4.4
 
 
