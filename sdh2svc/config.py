@@ -257,10 +257,16 @@ def load_config(
     overrides: Iterable[str] = (),
     *,
     use_env: bool = True,
+    base: Mapping[str, Any] | None = None,
 ) -> Settings:
-    """Load and validate the configuration: defaults ← ``path`` ← environment ← ``overrides``."""
-    data = _read_toml(default_config_path())
-    data["sim"] = _read_toml(default_config_path("sim.toml"))
+    """Load and validate the configuration: defaults ← ``path`` ← environment ← ``overrides``.
+    ``base``, a configuration already made (``Settings.model_dump``), stands for the defaults:
+    what a campaign's workers start from, wherever they run, whatever their environment."""
+    if base is not None:
+        data = dict(base)
+    else:
+        data = _read_toml(default_config_path())
+        data["sim"] = _read_toml(default_config_path("sim.toml"))
     # each layer with what names the origin of a value in it (a file, a variable, a --set)
     layers: list[tuple[Callable[[tuple[int | str, ...]], str], Mapping[str, Any]]] = []
     if path is not None:

@@ -78,7 +78,7 @@ def real_hand(
 
 def hand_model(cfg: Settings) -> HandModel:
     """The model's sections of the configuration that the simulation copies."""
-    return HandModel(cfg.hand, cfg.axes, cfg.tactile, cfg.calibration)
+    return HandModel(cfg.hand, cfg.axes, cfg.tactile)
 
 
 class Bench:

@@ -29,6 +29,9 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
   :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5); and a
   power-off the hand did not confirm (a silent line) is sent again, before anything else, as
   soon as the line answers.
+* A line that fell silent and answers again may have a hand behind it that was switched off and
+  on (or another hand, behind an adapter that stayed plugged in): the link drops that connection
+  and reconnects at once, so the handshake identifies and holds the hand anew (our addition).
 * Reconnect: when the port is lost (exception or EOF) the link reopens it with back-off
   (:func:`sdh2svc.bus.reconnect.reconnect`: 0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake;
   meanwhile commands raise :class:`LinkLost`. :class:`LinkEvent` values (the type both links
@@ -65,6 +68,7 @@ import serial
 from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
 from sdh2svc.bus.polling import PollPlan
 from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, failure_after, reconnect
+from sdh2svc.protocol.dsa import PREAMBLE as DSACON_PREAMBLE
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
@@ -126,6 +130,7 @@ STALL_GRACE_S: Final = 0.05  # a lost reply's wait once more, past a stall of th
 RTTS_KEPT: Final = 16
 _ANSWERS_LATE: Final = frozenset({"ref"})  # answers when its moves end (SDHLibrary waits 10 s)
 OWED_KEPT: Final = 4  # replies still owed to given-up exchanges that are remembered
+HEARD_KEPT: Final = 256  # a connection's first bytes kept, to tell another device by them
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
 _VERSION: Final = re.compile(r"\d+(\.\d+){1,4}")  # the firmware's, as ver answers it
 BINARY_SINCE: Final = (0, 0, 2, 15)  # the first firmware with the binary frames (protocols §2.6)
@@ -168,6 +173,11 @@ class HandRefused(JointLinkError):
 
 class LinkLost(JointLinkError):
     """The port is gone (or closed); a reconnect may be under way."""
+
+
+class AnsweredAgain(LinkLost):
+    """A silent line answered again: the connection is dropped, so that the reconnect's
+    handshake identifies the hand anew (it may have been switched off and on meanwhile)."""
 
 
 class EmergencyStopped(JointLinkError):
@@ -310,6 +320,7 @@ class _Conn:
         self.parser = parser
         self.events: asyncio.Queue[ReplyEvent | _Lost] = asyncio.Queue()
         self.rx_bytes = 0
+        self.heard = bytearray()
         self._gap: asyncio.TimerHandle | None = None  # the rest of a message is due by then
         self.on_bytes: Callable[[], object] | None = None  # called once, at the next bytes
         self.dirty = False  # the line may hold leftovers of an unfinished exchange
@@ -332,9 +343,11 @@ class _Conn:
         try:
             self._feed(data)
         except Exception as exc:  # as the reading task would: the connection ends
-            self._die(exc)
+            self.die(exc)
 
     def _feed(self, data: bytes) -> None:
+        if self.rx_bytes < HEARD_KEPT:  # the first bytes, to tell what answers (_handshake)
+            self.heard += data[: HEARD_KEPT - self.rx_bytes]
         self.rx_bytes += len(data)
         if self.on_bytes is not None:
             began, self.on_bytes = self.on_bytes, None
@@ -363,7 +376,7 @@ class _Conn:
 
     def _ended(self, exc: BaseException | None) -> None:
         if not self._closing:
-            self._die(exc if exc is not None else ConnectionResetError("end of stream"))
+            self.die(exc if exc is not None else ConnectionResetError("end of stream"))
 
     async def _pump(self) -> None:
         try:
@@ -375,9 +388,10 @@ class _Conn:
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # serial/socket errors end the connection
-            self._die(exc)
+            self.die(exc)
 
-    def _die(self, exc: BaseException) -> None:
+    def die(self, exc: BaseException) -> None:
+        """The connection ends (its port is closed by the owner's ``on_lost``)."""
         if self.lost is None:
             self.lost = exc
             self.events.put_nowait(_Lost(exc))
@@ -390,7 +404,7 @@ class _Conn:
             self.writer.write(data)
             await self.writer.drain()
         except (OSError, serial.SerialException, RuntimeError) as exc:
-            self._die(exc)
+            self.die(exc)
             raise LinkLost(f"write failed: {exc}") from exc
 
     def discard(self) -> None:
@@ -864,10 +878,13 @@ class JointLink:
                     break
                 silent_before = silent
             else:
-                self._silent = False
+                was_silent, self._silent = self._silent, False
                 self._may_be_moving = self._may_be_moving or req.moves
                 if self._power_off_owed and not self._estop_pending and req.keyword != "power":
                     await self._pay_power_off(conn, timeout_s)
+                if was_silent:
+                    conn.die(AnsweredAgain("the line answers again after being silent: the "
+                                           "hand is identified anew"))  # fmt: skip
                 return reply
         assert failure is not None
         self.stats.failures += 1
@@ -1065,11 +1082,17 @@ class JointLink:
             ver = await self._transact(conn, self._request("ver"), timeout_s=VER_TIMEOUT_S,
                                        retries=0, urgent=True)  # fmt: skip
         except JointLinkError as exc:
+            if DSACON_PREAMBLE in conn.heard:
+                raise JointLinkError(f"SDH not connected: {exc}; what came back is a DSACON32m's "
+                                     "packets: this is the tactile line (are the two lines "
+                                     "swapped?)") from exc  # fmt: skip
             raise JointLinkError(f"SDH not connected: {exc}") from exc
         version = self._identified(ver)
         vlim = await self._agreed(conn, "vlim")
         alim = await self._agreed(conn, "alim")
         con = await self._urgent(conn, self._request("con"))
+        if self.version and version != self.version:  # another hand behind the same port?
+            logger.warning("%s: firmware %s, was %s", self.url, version, self.version)
         self.version = version
         self.velocity_limits, self.acceleration_limits = vlim, alim
         self.controller = ControllerMode(int(con.values[0]))
@@ -1119,16 +1142,18 @@ class JointLink:
         self._emit(LinkEventKind.LOST, str(exc))
         if self._reconnect:
             self._reconnect_task = asyncio.get_running_loop().create_task(
-                self._reconnect_loop(conn), name="sdh-joint-reconnect"
+                self._reconnect_loop(conn, at_once=isinstance(exc, AnsweredAgain)),
+                name="sdh-joint-reconnect",
             )
         else:
             task = asyncio.get_running_loop().create_task(conn.close())
             self._background.add(task)
             task.add_done_callback(self._background.discard)
 
-    async def _reconnect_loop(self, old: _Conn) -> None:
+    async def _reconnect_loop(self, old: _Conn, *, at_once: bool = False) -> None:
         await old.close()
-        self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed)
+        self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed,
+                                     at_once=at_once)  # fmt: skip
         self._reconnect_task = None
         self.stats.reconnects += 1
         self._emit(LinkEventKind.RECONNECTED, f"firmware {self.version}")

@@ -300,6 +300,8 @@ class TactileBus:
         self._connected = asyncio.Event()
         self._opening = True
         self._discarding = False
+        self._opening_rx = 0  # bytes received while opening…
+        self._heard_dsacon = False  # …and whether any of them was a DSACON32m packet
         self._closed = False
         self._cmd_lock = asyncio.Lock()
         self._waiter: tuple[int, asyncio.Future[bytes]] | None = None
@@ -474,10 +476,20 @@ class TactileBus:
         self._writer = writer
         self._lost.clear()
         self._opening = True
+        self._opening_rx, self._heard_dsacon = 0, False
         self._reader_task = self._loop.create_task(self._read_loop(reader), name="tactile-rx")
         self._reader_task.add_done_callback(self._task_done)
         try:
             await self._open_sequence()
+        except TactileTimeoutError as exc:
+            await self._teardown()
+            if self._opening_rx and not self._heard_dsacon:  # answers, but not a DSACON32m's
+                raise TactileTimeoutError(
+                    f"{exc}; {self._opening_rx} bytes came back, none of them a DSACON32m "
+                    "packet: another device on this port (the SDH2's joint line, if the two "
+                    "lines are swapped?)"
+                ) from exc
+            raise
         except BaseException:
             await self._teardown()
             raise
@@ -597,6 +609,8 @@ class TactileBus:
         self._last_rx = now
         self._rx_pulse.set()
         self._byte_meter.add(now, len(data))
+        if self._opening:
+            self._opening_rx += len(data)
         if not self._discarding:
             self._dispatch(self._parser.feed(data), now)
         self._check_health(now)
@@ -612,6 +626,8 @@ class TactileBus:
 
     def _dispatch(self, events: list[dsa.Event], now: float) -> None:
         for ev in events:
+            if self._opening and isinstance(ev, dsa.Packet | dsa.BadCrc | dsa.Oversized):
+                self._heard_dsacon = True  # a preamble: a DSACON32m speaks on this line
             match ev:
                 case dsa.Packet(id=dsa.PacketId.FULL_FRAME):
                     self._on_frame(ev.payload, now)

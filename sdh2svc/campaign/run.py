@@ -74,13 +74,18 @@ def _workdir(root: str) -> Path:
 
 
 def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
-                  db_path: Path | None = None) -> Any:  # fmt: skip
-    """The configuration of one case: the campaign's ``--set`` values, then the case's keys."""
-    base = load_config(config_path, overrides)
-    keys = [*overrides, *case.overrides(base.sim.sensor.gain_vs_library)]
-    if db_path is not None:
-        keys.append(f"storage.db_path={json.dumps(str(db_path))}")
-    return load_config(config_path, keys)
+                  db_path: Path | None = None, base: Mapping[str, Any] | None = None,
+                  ) -> Any:  # fmt: skip
+    """The configuration of one case: the campaign's ``--set`` values, then the case's keys.
+    ``base``: the campaign's effective configuration (its file, environment and ``--set``
+    values in it already; ``overrides`` and ``config_path`` are then not read again), so a
+    worker on another machine runs what the campaign recorded, not what its own node says."""
+    at = [] if db_path is None else [f"storage.db_path={json.dumps(str(db_path))}"]
+    if base is not None:
+        keys = case.overrides(base["sim"]["sensor"]["gain_vs_library"])
+        return load_config(overrides=[*keys, *at], use_env=False, base=base)
+    gain = load_config(config_path, overrides).sim.sensor.gain_vs_library
+    return load_config(config_path, [*overrides, *case.overrides(gain), *at])
 
 
 class TruthProbe(BaseObserver):
@@ -181,10 +186,12 @@ def case_columns(case: Case) -> dict[str, Any]:
 
 
 def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | None = None,
-             workdir: str | None = None) -> dict[str, Any]:  # fmt: skip
+             workdir: str | None = None, base: Mapping[str, Any] | None = None,
+             ) -> dict[str, Any]:  # fmt: skip
     """Run one case and return its judged row; never raises for the case's own failure: an
     exception becomes a row with status ``crashed`` and its traceback. The run database goes
-    to a per-process directory under ``workdir`` (else a temporary one) and is deleted after."""
+    to a per-process directory under ``workdir`` (else a temporary one) and is deleted after.
+    ``base``: the campaign's effective configuration (:func:`case_settings`)."""
     from sdh2svc.connect import Simulated
     from sdh2svc.service.headless import run_once
     from sdh2svc.sim.clock import run_fast
@@ -197,7 +204,7 @@ def run_case(case_json: str, overrides: Sequence[str] = (), config_path: str | N
             workdir = stack.enter_context(tempfile.TemporaryDirectory(prefix="sdh2svc-case-"))
         db = _workdir(workdir) / f"case-{case.id}.sqlite"
         try:
-            cfg = case_settings(case, overrides, config_path, db)
+            cfg = case_settings(case, overrides, config_path, db, base)
             probe = TruthProbe()
             where = Simulated(obj=case.object, fast=True)
             summary = run_fast(run_once(cfg, where, observer=probe))
@@ -637,13 +644,13 @@ def _run_todo(suite: Suite, out: Path, info: Mapping[str, Any], t0: float, appen
 
     try:
         if ray_address is not None and todo:  # (nothing left to run starts no Ray)
-            _run_ray(todo, overrides, config_path, ray_address, record)
+            _run_ray(todo, overrides, config_path, info["config"], ray_address, record)
         elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1:
             fn = case_fn or run_case
             for case in todo:
-                record(fn(case.model_dump_json(), overrides, config_path, work))
+                record(fn(case.model_dump_json(), overrides, config_path, work, info["config"]))
         else:
-            args = (overrides, config_path, work)
+            args = (overrides, config_path, work, info["config"])
             _run_pool(todo, args, workers or os.cpu_count() or 1, record, case_fn or run_case)
     except KeyboardInterrupt:
         appender.close()
@@ -774,7 +781,8 @@ def _take(it: Iterator[Case], n: int) -> list[Case]:
 
 
 def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | None,
-             address: str, record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
+             base: Mapping[str, Any], address: str,
+             record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
     try:
         import ray
     except ImportError:
@@ -786,7 +794,8 @@ def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | 
             raise CampaignError(4, f"cannot reach the Ray cluster at {address}: "
                                 f"{type(e).__name__}: {e}") from None  # fmt: skip
     remote = ray.remote(num_cpus=1, max_retries=0)(run_case)
-    refs = {remote.remote(c.model_dump_json(), list(overrides), config_path): c for c in todo}
+    args = (list(overrides), config_path, None, dict(base))
+    refs = {remote.remote(c.model_dump_json(), *args): c for c in todo}
     try:
         while refs:
             ready, _ = ray.wait(list(refs), num_returns=1)

@@ -34,7 +34,6 @@ from typing import Any
 
 import numpy as np
 
-from sdh2svc.model.contact import TactileCalibration
 from sdh2svc.model.hand import AxisMap, TactileConfig, matrix_pads
 from sdh2svc.model.kinematics import HandGeometry, HandPose
 from sdh2svc.sim.objects import Outline, Shape, get_object
@@ -59,12 +58,12 @@ MIDDLE_PARKED_DEG = (-90.0, 0.0)
 @dataclass(frozen=True, slots=True)
 class HandModel:
     """What the simulation copies of the real hand (the model's sections of the configuration):
-    its geometry, which wire axis and matrix is which, the pads' layouts and their calibration."""
+    its geometry, which wire axis and matrix is which, the pads' layouts. Not the controller's
+    calibration: the simulated pads have their own (sim.sensor), which it may misjudge."""
 
     geometry: HandGeometry
     axes: AxisMap
     tactile: TactileConfig
-    calibration: TactileCalibration
 
 
 @dataclass(frozen=True, slots=True)
@@ -258,8 +257,7 @@ class PhysicsWorld:
             PROXIMAL2: (a.finger2_proximal_matrix, raster(PROXIMAL2, prox_centre, True)),
         }
         layouts = [lay for _, lay in matrix_pads(s.axes, s.tactile)]
-        per_count = s.calibration.pressure_per_count_n_per_mm2
-        self.sensor = TactileSensorModel(sim.sensor, layouts, rasters, per_count, self._seed)
+        self.sensor = TactileSensorModel(sim.sensor, layouts, rasters, self._seed)
 
     # --- joints -------------------------------------------------------------------------------
 

@@ -7,8 +7,10 @@
 * The pad's rubber spreads a load: pressure along the pad is blurred with a Gaussian of
   ``spread_mm`` before each cell averages what falls on it, so a point contact lights two or
   three rows and an edge concentrates while a face spreads.
-* Counts: the inverse of the library pressure formula of the configuration (pressure per count),
-  scaled by ``gain_vs_library`` (1.0: exactly the library's nominal calibration; see sim.toml),
+* Counts: the inverse of SDHLibrary's nominal pressure formula (:data:`LIBRARY_PRESSURE_PER_COUNT`)
+  scaled by ``gain_vs_library`` (1.0: exactly the library's nominal calibration; see sim.toml) —
+  the simulated pads' own, whatever the controller's configuration believes (a mis-set
+  ``calibration`` reads forces wrong in simulation as on a real hand),
   plus seeded Gaussian noise on loaded cells (an unloaded resistive cell reads a clean 0),
   then the controller's sensitivity, threshold and saturation at 4095.
 * Pressure from outside the physics (a person pressing a pad, :mod:`sdh2svc.sim.press`) is
@@ -24,7 +26,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Annotated
+from typing import Annotated, Final
 
 import numpy as np
 from pydantic import Field, Strict, field_validator
@@ -34,6 +36,8 @@ from sdh2svc.model.base import Frozen
 from sdh2svc.model.contact import MatrixLayout
 from sdh2svc.sim.world import FACTORY_SENSITIVITY, MAX_COUNT
 
+# SDHLibrary's nominal calibration, 0.000473 N/mm² per 592.1 counts: what gain_vs_library scales
+LIBRARY_PRESSURE_PER_COUNT: Final = 7.988515453e-7  # N/mm² per count
 MATRICES, MAX_ROWS, MAX_COLS = 6, 14, 6  # the DSA's six matrices; the largest (proximal) 14 × 6
 DeadIndex = Annotated[int, Strict(), Field(ge=0)]
 _Settings = tuple[tuple[float, ...], tuple[int, ...], np.ndarray, np.ndarray | None]
@@ -114,14 +118,13 @@ class TactileSensorModel:
         cfg: SensorModelConfig,
         layouts: Sequence[MatrixLayout],
         rasters: Mapping[int, tuple[int, PadRaster]],
-        pressure_per_count: float,
         seed: int,
     ) -> None:
         self.cfg = cfg
         self.layouts = tuple(layouts)
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
         self.rasters = dict(rasters)  # surface index → (matrix index, raster)
-        self.per_count = pressure_per_count / cfg.gain_vs_library
+        self.per_count = LIBRARY_PRESSURE_PER_COUNT / cfg.gain_vs_library
         self.rng = np.random.default_rng(seed)
         sizes = [r * c for r, c in self.shapes]
         self.offsets = [0, *np.cumsum(sizes).tolist()]  # each matrix's start in a frame

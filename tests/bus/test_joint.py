@@ -12,7 +12,7 @@ import math
 import random
 import re
 from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +31,10 @@ from sdh2svc.bus.joint import (
     LinkEventKind,
     LinkLost,
 )
+from sdh2svc.protocol import dsa
 from sdh2svc.protocol.sdh import NUM_AXES, AxisState, SdhError
 from sdh2svc.sim.clock import run_fast
+from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Endpoint, FaultConfig, FaultKind, UnixEndpoint, serve_device
 from sdh2svc.sim.sdh2 import Sdh2Emulator, Sdh2Options
 from sdh2svc.sim.world import ScriptedWorld
@@ -614,6 +616,48 @@ async def test_a_silent_line_fails_after_two_silent_attempts_not_every_retry() -
         assert not link.silent
 
 
+async def _answered(link: JointLink) -> None:
+    """Until a command is answered (a silent line coming back)."""
+    async with asyncio.timeout(30):
+        while True:
+            with contextlib.suppress(JointLinkError):
+                await link.get_actual()
+                return
+            await asyncio.sleep(0.1)
+
+
+async def test_a_silent_line_that_answers_again_is_identified_anew() -> None:
+    """A hand switched off and on behind an adapter that stayed plugged in: its line falls
+    silent, then answers again. The link drops that connection and reconnects at once, so the
+    handshake reads the firmware anew and holds the hand; a hand it no longer accepts is not
+    driven (the link stays down, each attempt saying why)."""
+    refuse: list[str] = []
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.1, retries=1, accept=lambda vlim: refuse)
+        events = link.subscribe()
+        await link.set_targets(POSE_A)  # (not moved to: `m` never sent)
+        assert rig.dev.target_deg != pytest.approx(await link.get_actual(), abs=1.0)
+        rig.ep.disconnect(1.0)
+        with pytest.raises(JointLinkError, match="the line is silent"):
+            await link.get_actual()
+        rig.dev.options = replace(rig.dev.options, version="0.0.3.4")  # the hand that came back
+        await _answered(link)
+        lost = await _next_event(events, LinkEventKind.LOST)
+        assert "answers again after being silent" in lost.detail
+        back = await _next_event(events, LinkEventKind.RECONNECTED)
+        assert link.version == "0.0.3.4" and "0.0.3.4" in back.detail
+        assert rig.dev.target_deg == pytest.approx(await link.get_actual(), abs=1e-3)  # held
+
+        refuse.append("not the hand this host was set up for")
+        rig.ep.disconnect(1.0)
+        with pytest.raises(JointLinkError, match="the line is silent"):
+            await link.get_actual()
+        await _answered(link)
+        failed = await _next_event(events, LinkEventKind.RECONNECT_FAILED)
+        assert "not the hand this host was set up for" in failed.detail
+        assert not link.connected
+
+
 async def test_a_release_the_hand_has_not_taken_shows_latched() -> None:
     """While the release's power command is out (a silent line), the link says e-stopped: the
     status showed it released for the seconds the release took to fail."""
@@ -723,3 +767,25 @@ async def test_latched_estop_is_reasserted_after_a_reconnect(tcp_rig: Rig) -> No
     await _next_event(events, LinkEventKind.RECONNECTED)
     assert link.estopped
     assert tcp_rig.dev.powered == (False,) * NUM_AXES
+
+
+def test_a_joint_line_opened_on_the_tactile_controller_says_the_lines_may_be_swapped(
+    tmp_path: Path,
+) -> None:
+    """Pointed at a DSACON32m that streams (a previous host left it so), the handshake's `ver`
+    goes unanswered among its packets; the error says what answered and that the lines may be
+    swapped."""
+
+    async def main() -> None:
+        options = DsaconOptions(stream_survives_disconnect=True)
+        dsa_emu = DsaconEmulator(ScriptedWorld([(14, 6), (13, 6)] * 3), options=options)
+        async with UnixEndpoint(dsa_emu, str(tmp_path / "dsa.sock")) as ep:
+            reader, writer = await asyncio.open_unix_connection(str(tmp_path / "dsa.sock"))
+            writer.write(dsa.configure_acquisition(acquire=True, framerate=30))  # another host
+            await reader.read(1)
+            writer.close()
+            await writer.wait_closed()
+            with pytest.raises(JointLinkError, match=r"DSACON32m's packets.*swapped"):
+                await JointLink.open(ep.url, reconnect=False)
+
+    run_fast(main())

@@ -38,6 +38,7 @@ from sdh2svc.sim.cable import Cable
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import Endpoint, FaultConfig, PtyEndpoint, TcpEndpoint, UnixEndpoint
+from sdh2svc.sim.sdh2 import Sdh2Emulator
 from sdh2svc.sim.world import Pattern, ScriptedWorld
 
 SHAPES = [(14, 6), (13, 6)] * 3
@@ -443,3 +444,18 @@ async def test_a_failed_waiter_nobody_awaits_is_not_logged_as_never_retrieved() 
     bus._waiter = None  # the failed future dropped, never awaited
     gc.collect()
     assert logged == []
+
+
+def test_a_tactile_line_opened_on_the_joint_controller_says_the_lines_may_be_swapped(
+    tmp_path: Path,
+) -> None:
+    """Pointed at the SDH2, the open sequence's commands are answered with bytes, never a
+    DSACON32m packet; the error says so and that the lines may be swapped."""
+
+    async def main() -> None:
+        sdh = Sdh2Emulator(ScriptedWorld(SHAPES))
+        async with UnixEndpoint(sdh, str(tmp_path / "sdh.sock")) as ep:
+            with pytest.raises(TactileError, match=r"none of them a DSACON32m packet.*swapped"):
+                await TactileBus.open(ep.url, TactileOptions(reconnect=False))
+
+    run_fast(main())

@@ -437,3 +437,24 @@ def test_generate_writes_a_new_suite(tmp_path: Path, capsys: pytest.CaptureFixtu
                 ["run", "smoke", "--seed", "1"]):  # fmt: skip
         assert main(["campaign", *bad, "-o", str(tmp_path / "bad.json")]) == 2, bad
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_a_worker_runs_the_configuration_the_campaign_recorded(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Workers start from the campaign's effective configuration (what `campaign.json`
+    records), not from their own node's environment and files: the same settings as the
+    driver's, whatever a Ray node's `SDH2SVC_*` variables or missing `--config` file say."""
+    conf = tmp_path / "lab.toml"
+    conf.write_text("[rolling]\nk = 3.0\n")
+    suite = load_suite("smoke")
+    info = camp.campaign_info(suite, ONE_STROKE, str(conf))
+    for case in suite.cases[:6]:
+        made = camp.case_settings(case, ONE_STROKE, str(conf), tmp_path / "r.sqlite")
+        shipped = camp.case_settings(case, [], None, tmp_path / "r.sqlite", info["config"])
+        assert shipped.model_dump() == made.model_dump(), case.id
+    conf.unlink()  # a node without the file, with variables of its own
+    monkeypatch.setenv("SDH2SVC_ROLLING__K", "1.5")
+    monkeypatch.setenv("SDH2SVC_ROLLING__CYCLES", "4")
+    cfg = camp.case_settings(suite.cases[0], [], None, None, info["config"])
+    assert (cfg.rolling.k, cfg.rolling.cycles) == (3.0, 1)

@@ -156,3 +156,22 @@ def test_the_smallest_press_is_still_a_disc() -> None:
     assert np.isfinite(cells).all() and cells.sum() * PITCH**2 == pytest.approx(1e-300, rel=1e-3)
     with pytest.raises(ValueError, match="radius_mm"):
         Press(pad=1, x_mm=10.2, y_mm=22.1, force_n=1, radius_mm=5e-324)
+
+
+def test_the_pads_keep_their_own_sensitivity_whatever_the_controller_believes(
+    cfg: Settings,
+) -> None:
+    """A mis-set calibration in the controller's configuration (here twice the nominal) changes
+    what the controller reads, never what the simulated pads measure: the same press gives the
+    same counts, so simulation shows a calibration error as a real hand would."""
+    x = 2 * cfg.calibration.pressure_per_count_n_per_mm2
+    doubled = load_config(overrides=["sim.object='egg'", "sim.sensor.noise=false",
+                                     f"calibration.pressure_per_count_n_per_mm2={x!r}"],
+                          use_env=False)  # fmt: skip
+    plain = load_config(overrides=["sim.object='egg'", "sim.sensor.noise=false"], use_env=False)
+    frames = []
+    for c in (plain, doubled):
+        world = PhysicsWorld(hand_model(c), c.sim)
+        world.press(Press(pad=2, x_mm=10.0, y_mm=20.0, force_n=1.0), 0.0)
+        frames.append(world.tactile_frame(0.1, [0.5] * 6, [0] * 6))
+    assert frames[0].max() > 0 and np.array_equal(frames[0], frames[1])
