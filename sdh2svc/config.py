@@ -27,7 +27,7 @@ from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDic
 from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.safety import RunConfig, SafetyConfig, params_outside
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import TactileCalibration, saturated_force
 from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig
 from sdh2svc.model.kinematics import Finger, FingerLimits, HandGeometry
@@ -35,7 +35,7 @@ from sdh2svc.model.observe import ModelContext
 from sdh2svc.sim.simconfig import SimConfig
 
 
-class LinksConfig(Frozen):
+class LinksConfig(Finite):
     """The real hand's two serial lines (``--dsa``/``--sdh`` override them)."""
 
     dsa_url: str
@@ -43,14 +43,14 @@ class LinksConfig(Frozen):
     binary: bool
 
 
-class StorageConfig(Frozen):
+class StorageConfig(Finite):
     """Where runs are recorded."""
 
     db_path: Annotated[str, Field(min_length=1)]
     busy_timeout_s: Annotated[float, Field(gt=0.0, le=600.0)] = 10.0
 
 
-class ServiceConfig(Frozen):
+class ServiceConfig(Finite):
     """``sdh2svc serve``: where it listens, who may command it, how telemetry flows."""
 
     host: str

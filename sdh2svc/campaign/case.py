@@ -19,7 +19,7 @@ import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
 from sdh2svc.config import ConfigError, clip, format_errors
-from sdh2svc.model.base import Finite, Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.sim.objects import Ellipse, ObjectSpec, Shape
 
 Family = Literal["box", "polygon", "ellipse", "circle", "stick", "rounded", "thesis"]
@@ -31,7 +31,7 @@ SUITES_DIR = Path(__file__).parent / "suites"  # the named suites, packaged with
 GAIN_FACTOR = (0.5, 1.5)  # × sim.sensor.gain_vs_library
 
 
-class Texel(Frozen):
+class Texel(Finite):
     """One cell of one of the six matrices (wire order), e.g. a dead texel."""
 
     matrix: Annotated[int, Field(ge=0, le=5)]
@@ -39,7 +39,7 @@ class Texel(Frozen):
     col: Annotated[int, Field(ge=0, le=5)]
 
 
-class SensorVariation(Frozen):
+class SensorVariation(Finite):
     """How this run's pads differ from the nominal sensor (None: the configuration's value)."""
 
     gain_factor: Annotated[float, Field(ge=GAIN_FACTOR[0], le=GAIN_FACTOR[1])] = 1.0
@@ -118,7 +118,7 @@ class Case(Finite):
         return out
 
 
-class Suite(Frozen):
+class Suite(Finite):
     """A named, versioned list of cases, and the generator seed that made it (None: by hand)."""
 
     name: str = Field(pattern=NAME_PATTERN, description="a plain file name: its campaign's folder")

@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.geometry import PadProfile
 
 TablePoint = tuple[
@@ -23,7 +23,7 @@ TablePoint = tuple[
 ]
 
 
-class DistanceMap(Frozen):
+class DistanceMap(Finite):
     """S → measured distance (mm from the active area's upper edge).
 
     ``kind = "linear"`` is the thesis's map (|error| ≤ 1 mm over real distances −1 … 45 mm,
@@ -37,6 +37,8 @@ class DistanceMap(Frozen):
 
     @model_validator(mode="after")
     def _table_valid(self) -> DistanceMap:
+        if self.kind == "linear" and self.table:  # measured, then never used: say so
+            raise ValueError("a table is used only with kind = 'table' (this map is 'linear')")
         if self.kind == "table":
             if len(self.table) < 2:
                 raise ValueError(

@@ -27,13 +27,13 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.calibration import DistanceMap
 from sdh2svc.model.depth import NO_DEPTH, ContactDepth, PadCompliance, row_depth
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope, virtual_joint
 
 
-class MatrixLayout(Frozen):
+class MatrixLayout(Finite):
     """Shape of one tactile matrix and which of its positions are real cells.
 
     ``mask`` is one string per row (row 0 first), one character per column: ``#`` a real cell,
@@ -138,7 +138,7 @@ def _label(flat: list[Any], threshold: float, neighbours: tuple[tuple[int, ...],
     return groups
 
 
-class TactileCalibration(Frozen):
+class TactileCalibration(Finite):
     """Raw counts → pressure, the contact threshold, and the S → distance map."""
 
     pressure_per_count_n_per_mm2: Annotated[float, Field(gt=0.0, le=1.0)]

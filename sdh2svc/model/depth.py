@@ -49,13 +49,13 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 
 # pressure-weighted mean compression ≈ KAPPA · P' / (k_r σ_p) for convex contact profiles
 KAPPA = 0.27
 
 
-class ContactDepthModel(Frozen):
+class ContactDepthModel(Finite):
     """Which contact-depth model the hand model uses (``[hand.contact_depth]``).
 
     ``model = "none"``: the thesis's model, every contact on the undeformed pad surface.

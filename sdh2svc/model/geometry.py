@@ -11,12 +11,12 @@ from typing import Annotated
 
 from pydantic import Field, model_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 
 PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
 
 
-class PadProfile(Frozen):
+class PadProfile(Finite):
     """The distal pad surface in frame 3: a flat segment, then a circular arc (thesis eqs 2.4, 2.5).
 
     Flat part: y3 = flat_y3 for flat_start < x3 ≤ flat_end. Arc: centre K = (flat_end,

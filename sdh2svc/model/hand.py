@@ -12,7 +12,7 @@ from typing import Annotated
 
 from pydantic import Field, field_validator, model_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import MatrixLayout
 from sdh2svc.model.kinematics import Finger, HandPose
 from sdh2svc.protocol.sdh import NUM_AXES  # the wire's count, written once
@@ -22,7 +22,7 @@ MatrixIndex = Annotated[int, Field(ge=0, le=5)]
 AngleDeg = Annotated[float, Field(ge=-180.0, le=180.0)]
 
 
-class AxisMap(Frozen):
+class AxisMap(Finite):
     """Thesis joint names → SDH2 wire axes, and finger pads → DSACON32m matrix indices."""
 
     phi1: AxisIndex
@@ -94,7 +94,7 @@ HAND_MIN_DEG = (0.0, -90.0, -90.0, -90.0, -90.0, -90.0, -90.0)
 HAND_MAX_DEG = (90.0, 90.0, 90.0, 90.0, 90.0, 90.0, 90.0)
 
 
-class JointLimits(Frozen):
+class JointLimits(Finite):
     """Joint limits per wire axis 0…6, degrees: within the hand's range (HAND_MIN_DEG …
     HAND_MAX_DEG)."""
 
@@ -124,7 +124,7 @@ class JointLimits(Frozen):
         return self
 
 
-class TactileConfig(Frozen):
+class TactileConfig(Finite):
     """Layouts of the proximal (6 × 14) and distal (6 × 13) matrices and their pitch."""
 
     texel_pitch_mm: Annotated[float, Field(gt=0.0, le=20.0)]

@@ -15,7 +15,7 @@ from typing import Annotated, NamedTuple
 
 from pydantic import Field
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.depth import ContactDepthModel
 from sdh2svc.model.geometry import PadProfile
 
@@ -36,7 +36,7 @@ class Point(NamedTuple):
     z: float
 
 
-class HandGeometry(Frozen):
+class HandGeometry(Finite):
     """Link lengths of the coupled fingers and the fingertip pad (hand-model §2–§3)."""
 
     proximal_length_mm: PositiveMm

@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, Strict, TypeAdapter, model_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 
 # What the two fingertips could hold. Their proximal joints are 66 mm apart (hand.base_offset_mm)
 # and each finger is 86.5 + 68 mm long, with a 44 mm sensing pad near its tip: an object much
@@ -52,7 +52,7 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
-class Material(Frozen):
+class Material(Finite):
     """Mass, friction with the pads and contact stiffness of an object."""
 
     mass_g: Annotated[float, Strict(), Field(gt=0.0, le=5000.0)] = 20.0
@@ -62,7 +62,7 @@ class Material(Frozen):
     )
 
 
-class _ShapeBase(Frozen):
+class _ShapeBase(Finite):
     name: str = Field("", max_length=64)
     depth_mm: Mm = Field(description="extent across the pad (how many texel columns it presses)")
     material: Material = Material()

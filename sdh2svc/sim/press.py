@@ -24,7 +24,7 @@ import numpy as np
 from pydantic import Field, Strict, ValidationError
 from scipy.special import ndtr
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import MatrixLayout
 
 MAX_FORCE_N = 50.0  # a firm press of a fingertip is ~10 N; more is a typo
@@ -32,7 +32,7 @@ MAX_DURATION_S = 60.0
 MIN_RADIUS_MM, MAX_RADIUS_MM = 0.5, 25.0  # a point of a pen … a palm (a pad is 20.4 mm wide)
 
 
-class Press(Frozen):
+class Press(Finite):
     """One press on one pad (see the module docstring for the frame). Strict: numbers, never
     true/false or strings; finite (the bounds)."""
 

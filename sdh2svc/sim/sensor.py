@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import Field, Strict, field_validator
 from scipy.special import ndtr
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import MatrixLayout
 from sdh2svc.sim.world import FACTORY_SENSITIVITY, MAX_COUNT
 
@@ -43,7 +43,7 @@ DeadIndex = Annotated[int, Strict(), Field(ge=0)]
 _Settings = tuple[tuple[float, ...], tuple[int, ...], np.ndarray, np.ndarray | None]
 
 
-class SensorModelConfig(Frozen):
+class SensorModelConfig(Finite):
     """Imperfections of the simulated tactile sensor (see config/sim.toml)."""
 
     spread_mm: Annotated[float, Field(gt=0.0, le=10.0)]

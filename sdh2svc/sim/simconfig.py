@@ -6,13 +6,13 @@ from typing import Annotated
 
 from pydantic import Field, field_validator
 
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.sim.objects import get_object
 from sdh2svc.sim.physics import PhysicsConfig
 from sdh2svc.sim.sensor import SensorModelConfig
 
 
-class LinksConfig(Frozen):
+class LinksConfig(Finite):
     """Where and how the simulated devices are served."""
 
     host: str
@@ -26,7 +26,7 @@ class LinksConfig(Frozen):
     sdh_binary_latency_ms: Annotated[float, Field(ge=0.0, le=100.0)]
 
 
-class SimConfig(Frozen):
+class SimConfig(Finite):
     """The object, its placement, the contact physics and the sensor's imperfections."""
 
     seed: Annotated[int, Field(ge=0)]

@@ -79,3 +79,10 @@ def test_table_map_interpolates_and_extrapolates(cfg: Settings) -> None:
 def test_bad_tables_rejected(table, match) -> None:
     with pytest.raises(ValidationError, match=match):
         DistanceMap(kind="table", table=table)
+
+
+def test_a_table_with_the_linear_map_is_refused_not_ignored() -> None:
+    """A lab that measured its table but left kind = "linear" would run on the thesis's map."""
+    with pytest.raises(ValidationError, match="only with kind = 'table'"):
+        DistanceMap(kind="linear", table=((0.0, 0.0), (44.0, 44.0)))
+    assert DistanceMap(kind="linear").kind == "linear"
