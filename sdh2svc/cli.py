@@ -186,8 +186,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     if (args.no_pty or not cfg.sim.links.pty) and args.no_tcp:
         _fail(Exit.USAGE, "nothing to serve: --no-tcp, and no pty (--no-pty or sim.links.pty)")
-    if args.dsa_port is not None and args.dsa_port == args.sdh_port and args.dsa_port != 0:
-        _fail(Exit.USAGE, f"--dsa-port and --sdh-port are both {args.dsa_port}: one port each")
+    ports = (cfg.sim.links.dsa_tcp_port if args.dsa_port is None else args.dsa_port,
+             cfg.sim.links.sdh_tcp_port if args.sdh_port is None else args.sdh_port)  # fmt: skip
+    if not args.no_tcp and ports[0] == ports[1] != 0:  # (a flag against the configuration's)
+        _fail(Exit.USAGE, f"the DSACON32m and the SDH2 would both serve on TCP port {ports[0]}: "
+                          "one port each (--dsa-port, --sdh-port)")  # fmt: skip
+    if args.no_tcp and (args.dsa_port is not None or args.sdh_port is not None):
+        _fail(Exit.USAGE, "--no-tcp serves no TCP port: drop --dsa-port/--sdh-port")
     # ports default to the configuration's; the lab assistant to sim.replace_after_s
     spec = Simulated(
         obj=obj,
@@ -307,22 +312,36 @@ def sim_command(bench: Bench, line: str) -> str | None:
 def _read_presses(bench: Bench, loop: Any) -> None:
     """Lines typed (or piped) into `sdh2svc sim` while it runs (:func:`sim_command`), answered
     on stderr. A thread reads them (a daemon: it never holds up the exit); the loop acts on
-    them. Nothing is read unless stdin is a terminal or a pipe."""
+    them. Nothing is read unless stdin is a terminal or a pipe. A sim run in the background of
+    its terminal (`sdh2svc sim &`) reads nothing until brought to the foreground: the terminal
+    would stop the whole process (SIGTTIN), and the controllers with it, at its first read."""
+    import signal
     import stat
     import threading
+    import time
 
     try:
-        if not (sys.stdin.isatty() or stat.S_ISFIFO(os.fstat(sys.stdin.fileno()).st_mode)):
+        terminal = sys.stdin.isatty()
+        if not (terminal or stat.S_ISFIFO(os.fstat(sys.stdin.fileno()).st_mode)):
             return
     except (OSError, ValueError, AttributeError):  # no usable stdin
         return
+    if terminal:  # a read from the background then fails (EIO) instead of stopping us
+        signal.signal(signal.SIGTTIN, signal.SIG_IGN)
 
     def act(line: str) -> None:
         if (message := sim_command(bench, line)) is not None:
             print(f"sdh2svc sim: {message}", file=sys.stderr, flush=True)
 
     def read() -> None:
-        for line in sys.stdin:
+        while True:
+            try:
+                line = sys.stdin.readline()
+            except OSError:  # in the background of the terminal: again once in the foreground
+                time.sleep(0.5)
+                continue
+            if not line:
+                return
             loop.call_soon_threadsafe(act, line)
 
     threading.Thread(target=read, name="sim-stdin", daemon=True).start()
@@ -478,13 +497,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 f"  F mean {f['mean']:.2f} (sd {f['sd'] or 0:.2f}, {f['min']:.2f}…{f['max']:.2f})"
                 f", loop {summary['loop_hz'] or 0:.1f} Hz"
             )
-        if (rec := summary.get("recognition")) and rec.get("object_class"):
-            sizes = ", ".join(f"{rec[k]:.1f}" for k in ("size_a_mm", "size_b_mm") if rec.get(k))
-            cls = rec["object_class"]
-            print(f"  recognised {'an' if cls[0] in 'aeiou' else 'a'} {cls} "
-                  f"({rec.get('confidence', 0):.0%}; "
-                  f"{sizes} mm), estimated rotation at the end "
-                  f"{rec.get('rotation_deg') or 0:.1f}°")  # fmt: skip
+        if rec := summary.get("recognition"):
+            print(f"  {_recognised(rec)}")
         if truth := summary.get("truth"):
             print(f"  simulation truth: {truth['object']} ({truth['size_mm']:.1f} mm), turned over "
                   f"{truth['rotation_range_deg']:.1f}°, {truth['slips']} slips"
@@ -495,6 +509,34 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: "
           f"{_one_line(summary['message']) or 'no message'}", file=sys.stderr)  # fmt: skip
     return Exit.INTERRUPTED if stopper.asked else Exit.FAILED
+
+
+# what each class's two sizes are (control.recognition.Recognition), as the dashboard names them
+_SIZES = {"circle": ("radius", None), "ellipse": ("semi-axes", "and"),
+          "box": ("side held", None), "stick": ("length", "diameter"),
+          "polygon": ("circumradius", None)}  # fmt: skip
+
+
+def _recognised(rec: dict[str, Any]) -> str:
+    """The recognition's summary in one line, its sizes named (they are radii, semi-axes…)."""
+    cls = rec.get("object_class")
+    if cls:
+        first, second = _SIZES.get(cls, ("size", "and"))
+        a, b = rec.get("size_a_mm"), rec.get("size_b_mm")
+        size = f"{first} {a:.1f} mm" if a is not None else ""
+        if b is not None and second is not None:
+            size += f" {second} {b:.1f} mm" if second == "and" else f", {second} {b:.1f} mm"
+        what = (f"recognised {'an' if cls[0] in 'aeiou' else 'a'} {cls} "
+                f"({rec.get('confidence') or 0:.0%}{'; ' + size if size else ''})")  # fmt: skip
+    else:
+        what = "no class recognised"
+    turned = rec.get("rotation_range_deg")
+    if turned is not None:
+        end = rec.get("rotation_deg") or 0.0
+        what += f", estimated to turn over {turned:.1f}° (at the end {end:.1f}°)"
+    if failed := rec.get("failed"):
+        what += f"; the recognition failed at iteration {failed['iteration']}: {failed['message']}"
+    return what
 
 
 def _mm(value: float | None) -> str:

@@ -647,7 +647,13 @@ def test_sim_with_one_port_for_both_links_is_a_usage_error(
 ) -> None:
     status, _, err = call(capsys, "sim", "--dsa-port", "5001", "--sdh-port", "5001")
     assert status == Exit.USAGE
-    assert "--dsa-port and --sdh-port are both 5001" in one_line(err, "sim")
+    assert "would both serve on TCP port 5001: one port each" in one_line(err, "sim")
+    # a flag against the configuration's port for the other line (not "address in use")
+    status, _, err = call(capsys, "sim", "--no-pty", "--dsa-port", "13023")
+    assert status == Exit.USAGE
+    assert "would both serve on TCP port 13023" in one_line(err, "sim")
+    status, _, err = call(capsys, "sim", "--no-tcp", "--dsa-port", "5001")
+    assert status == Exit.USAGE and "--no-tcp serves no TCP port" in one_line(err, "sim")
 
 
 def test_serve_logging_json_logs_a_bad_configuration_as_json() -> None:

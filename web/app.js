@@ -1094,7 +1094,11 @@ function onMessage(m) {
       state.lastSampleAt = Date.now();
       state.lastSample = s;
       sketch.setContact(s);
-      if (!replay.active) showObject(readout, s); // a replay shows its own iteration's
+      if (m.run_id !== liveTurn.runId) { // ψ at the grasp: only from the run's first samples
+        liveTurn.runId = m.run_id;
+        liveTurn.psi0 = s.iteration <= 1 ? liveTurn.psi : null;
+      }
+      if (!replay.active) showObject(readout, s, turnedDeg(liveTurn.psi, liveTurn.psi0));
       break;
     }
     case "tactile":
@@ -1107,6 +1111,7 @@ function onMessage(m) {
       break;
     case "sim":
       sketch.setTruth(m.truth);
+      liveTurn.psi = m.truth && m.truth.pose ? m.truth.pose[2] : null;
       break;
     case "event":
       sdh2.events += 1;
@@ -1222,9 +1227,16 @@ function renderRuns(runs) {
       bits.push(`F ${fmt(sum.force.mean, 2)}±${fmt(sum.force.sd, 2)}`);
     }
     if (sum.loop_hz) bits.push(`${fmt(sum.loop_hz)} Hz`);
-    if (sum.truth && sum.truth.rotation_range_deg !== undefined) {
-      bits.push(`rot ${fmt(sum.truth.rotation_range_deg)}°`);
+    const rec = sum.recognition;
+    if (rec && rec.object_class) {
+      bits.push(`${rec.object_class} ${Math.round(100 * (rec.confidence ?? 0))} %`);
     }
+    const est = rec && typeof rec.rotation_range_deg === "number" ? rec.rotation_range_deg : null;
+    const truly = sum.truth && typeof sum.truth.rotation_range_deg === "number"
+      ? sum.truth.rotation_range_deg : null;
+    if (est !== null && truly !== null) bits.push(`rot ${fmt(est)}° (true ${fmt(truly)}°)`);
+    else if (est !== null) bits.push(`rot ${fmt(est)}°`);
+    else if (truly !== null) bits.push(`rot ${fmt(truly)}° (true)`);
     cell(tr, bits.join(" · "));
     const td = cell(tr, "", "actions");
     const replay = document.createElement("button");
@@ -1245,7 +1257,15 @@ function renderRuns(runs) {
   }
 }
 
-const replayData = { runId: null, frames: new Map(), truth: null, viewer: false };
+const replayData = { runId: null, frames: new Map(), truth: null, viewer: false, psi0: null };
+
+// In simulation, the object's true angle ψ (rad): the newest, and the live run's at its grasp
+const liveTurn = { runId: null, psi: null, psi0: null };
+
+/** How far the object truly turned from ψ0 to ψ (rad), in degrees; null: either unknown. */
+function turnedDeg(psi, psi0) {
+  return typeof psi === "number" && typeof psi0 === "number" ? ((psi - psi0) * 180) / Math.PI : null;
+}
 
 /** The sim truth recorded with sample `s` of the replayed run, as the live `sim` message's
  * (null: none recorded, e.g. a real hand's run). */
@@ -1264,8 +1284,9 @@ function showReplayIndex(idx, s) {
   const frame = replayData.frames.get(it);
   if (frame) pads.update(frame, it);
   else pads.update([], it);
-  sketch.setOverride(s, replayTruth(s));
-  showObject(readout, s);
+  const truth = replayTruth(s);
+  sketch.setOverride(s, truth);
+  showObject(readout, s, truth ? turnedDeg(truth.pose[2], replayData.psi0) : null);
   feedOutline(idx);
   feedViewer(replayData.runId, it);
 }
@@ -1374,6 +1395,8 @@ async function replayRun(r) {
     replayData.runId = r.id;
     replayData.frames = frames;
     replayData.truth = truth;
+    const first = samples.length ? replayTruth(samples[0]) : null; // ψ at the grasp
+    replayData.psi0 = first ? first.pose[2] : null;
     replayData.viewer = !$("#viewer").hidden && Boolean($("#viewer").dataset.url);
     const reversals = markers.filter((m) => m.kind === "reversal").length;
     $("#replay-text").textContent = `Run ${r.id} (${r.status}): ${samples.length} iterations, ` +
@@ -1398,7 +1421,7 @@ function backToLive() {
   endViewerReplay();
   plots.showLive();
   sketch.setOverride(null);
-  showObject(readout, state.lastSample ?? null);
+  showObject(readout, state.lastSample ?? null, turnedDeg(liveTurn.psi, liveTurn.psi0));
   pads.update(state.lastTactile ?? [], null);
   if (state.params.alpha_deg !== undefined) sketch.setAlpha(state.params.alpha_deg);
   state.replayId = null;

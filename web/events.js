@@ -172,6 +172,9 @@ export function eventSentence(m, ctx = {}) {
       const how = END_WORDS[d.status] ?? `ended (${d.status ?? "no status"})`;
       return `Run ${run} ${how}${why ? `: ${why}` : ""}${recognised(d.recognition)}`;
     }
+    case "recognition_failed":
+      return `The object's recognition failed${d.message ? ` (${d.message})` : ""}: the rolling ` +
+        "goes on without an estimate";
     case "open":
       return "Opening the hand";
     case "opened":

@@ -19,14 +19,17 @@ function contact(name, kind, radius) {
   return kind === "curved" && num(radius) ? `${name} curved, r ${mm(radius)} mm` : `${name} ${kind}`;
 }
 
-/** Show sample `s`'s recognition in `el` (#object-readout); null: nothing known. */
-export function showObject(el, s) {
+/** Show sample `s`'s recognition in `el` (#object-readout); null: nothing known. In simulation,
+ * `trueTurnDeg` is how far the object truly turned since the run's first rolling sample (null:
+ * not known here), shown beside the estimate. */
+export function showObject(el, s, trueTurnDeg = null) {
   const cls = (s && s.object_class) || "";
   const conf = s && num(s.class_confidence) ? ` ${Math.round(100 * s.class_confidence)} %` : "";
   el.querySelector(".obj-class").textContent = cls ? `${cls}${conf}` : "object –";
   const size = cls && SIZES[cls] ? SIZES[cls](s.size_a, s.size_b) : "";
   el.querySelector(".obj-size").textContent = size;
-  const rot = s && num(s.rotation_est) ? `turned ${s.rotation_est.toFixed(1)}°` : "";
+  const truly = num(trueTurnDeg) ? ` (true ${trueTurnDeg.toFixed(1)}°)` : "";
+  const rot = s && num(s.rotation_est) ? `turned ${s.rotation_est.toFixed(1)}°${truly}` : "";
   el.querySelector(".obj-rot").textContent = rot;
   el.querySelector(".obj-contacts").textContent = s
     ? `${contact("A", s.contact1_kind, s.radius1)} · ${contact("B", s.contact2_kind, s.radius2)}`

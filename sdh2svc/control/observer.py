@@ -27,6 +27,7 @@ class EventKind(StrEnum):
     FAULT = "fault"  # {fault, message}
     ESTOP = "estop"  # {}
     END = "end"  # {status, message}
+    RECOGNITION_FAILED = "recognition_failed"  # {message}: the rolling goes on without it
     # the hand's own, outside a run: the service opening the hand (control.motion)
     OPEN = "open"  # {}
     OPENED = "opened"  # {completed, message?}

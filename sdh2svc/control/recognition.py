@@ -62,7 +62,7 @@ import numpy as np
 
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.geometry import pad_slope
-from sdh2svc.model.kinematics import Finger, HandPose, frame3_axes
+from sdh2svc.model.kinematics import Finger, HandPose, Point, frame3_axes
 from sdh2svc.model.observe import ModelContext, Observation, rolling_turn
 
 MODEL_FILE = "recognition_model.json"
@@ -90,8 +90,12 @@ class ObjectClass(StrEnum):
 class Recognition:
     """What the rolling revealed so far (lengths in mm, angles in degrees).
 
-    ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b); box
-    (side lengths a ≥ b); stick (length, diameter); polygon (circumradius, mean side length).
+    ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b; b is half
+    the narrowest width seen, too large until the object turned across its short axis); box
+    (the side held between the pads, None: the other is not measured); stick (length,
+    diameter); polygon (circumradius, None).
+    ``side``: the side of A→B the object's centre lies on (:func:`centre_side`), which places
+    the reconstructed outline.
     ``axis``: the direction of the outline's first axis (``size_a``'s) at the grasp, deg: σ₀,
     the inclination of AB at the grasp, or σ₀ + 90° for an ellipse held across its minor axis;
     the reconstructed outline's orientation is ``axis + rotation`` (:func:`outline`).
@@ -107,6 +111,8 @@ class Recognition:
     size_b: float | None = None
     rotation: float = 0.0  # the object's rotation since the grasp (rolling kinematics), deg
     axis: float | None = None  # the outline's first axis at the grasp, deg
+    # the side of A→B the object's centre lies on, from the pads' normals (:func:`centre_side`)
+    side: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -829,6 +835,8 @@ class Recognizer:
         (k1, r1), (k2, r2) = self._kinds(obs.Lambda)
         self._gather(obs.Lambda, nus, k1, k2, r1, r2)
         cls, conf, a, b = self._classify()
+        if ev.psi_max - ev.psi_min < MIN_TURN_TO_CLASSIFY:  # a grasp alone is no evidence yet
+            cls, conf, a, b = None, 0.0, None, None
         self.last = Recognition(
             kind1=k1,
             kind2=k2,
@@ -840,12 +848,15 @@ class Recognizer:
             size_b=b,
             rotation=math.degrees(self._psi),
             axis=math.degrees(self._axis) + self._across(cls, a, b),
+            side=centre_side(obs.points.A, obs.points.B, nus[0], nus[1]),
         )
         return self.last
 
     def _across(self, cls: ObjectClass | None, a: float | None, b: float | None) -> float:
-        """90° for an ellipse grasped across its minor axis (Λ₀ nearer 2b than 2a), else 0."""
-        if cls is not ObjectClass.ELLIPSE or a is None or b is None:
+        """90° for an ellipse grasped across its minor axis (Λ₀ nearer 2b than 2a), else 0; an
+        ellipse of nearly equal axes has no side to tell (the outline would turn 90° with
+        every reading)."""
+        if cls is not ObjectClass.ELLIPSE or a is None or b is None or a - b < ROUND * a:
             return 0.0
         return 90.0 if abs(self._lam0 - 2 * b) < abs(self._lam0 - 2 * a) else 0.0
 
@@ -955,23 +966,39 @@ class Recognizer:
         """Both pads' :attr:`_ContactTrack.softness`, averaged."""
         return sum(t.softness for t in self._tracks) / 2
 
-    def summary(self) -> dict[str, Any]:
-        """The run's estimate for its summary: class, confidence, sizes, rotation (JSON)."""
+    def summary(self) -> dict[str, Any] | None:
+        """The run's estimate for its summary: class, confidence, sizes, rotation (JSON; None
+        before a contact was labelled, a class's fields null while none is decided)."""
         r = self.last
         ev = self._ev
-        total = max(1, ev.flat + ev.edge + ev.curved)
-        return {
-            "object_class": r.object_class.value if r.object_class else None,
-            "confidence": r.confidence,
+        total = ev.flat + ev.edge + ev.curved
+        if total == 0:
+            return None
+        cls = r.object_class
+        return _finite({
+            "object_class": None if cls is None else cls.value,
+            "confidence": None if cls is None else r.confidence,
             "size_a_mm": r.size_a,
             "size_b_mm": r.size_b,
             "rotation_deg": r.rotation,
+            "rotation_range_deg": math.degrees(ev.psi_max - ev.psi_min),
             "contacts": {
                 "flat": ev.flat / total,
                 "edge": ev.edge / total,
                 "curved": ev.curved / total,
             },
-        }
+        })  # fmt: skip
+
+
+def _finite(d: dict[str, Any]) -> dict[str, Any]:
+    """``d`` with every non-finite number null (strict JSON wherever a summary goes)."""
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        return _finite(v) if isinstance(v, dict) else v
+
+    return {k: clean(v) for k, v in d.items()}
 
 
 def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
@@ -1016,6 +1043,30 @@ def classify(
     else:
         cls, conf = ObjectClass.POLYGON, 1.0 - f_curved
     return (cls, conf, *sizes(cls, ev))
+
+
+MIN_TURN_TO_CLASSIFY = math.radians(2.0)  # no class before the object has turned this far
+ROUND = 0.05  # an ellipse whose axes differ by less than this fraction has no long axis to show
+SIDE_TILT = 0.05  # the pads' normals' summed tilt off AB below which they do not tell the side
+
+
+def centre_side(A: Point, B: Point, nu1: float, nu2: float) -> int:
+    """The side of A→B the object's centre lies on: +1 to the left (AB turned +90°), −1 to the
+    right, 0 when the pads do not tell. A convex object's surface normals at the ends of a
+    chord tilt away from its centre, so the pads' normals (into the object; ``nu1``, ``nu2``
+    are the pads' surface directions) tilt towards it; flat faces held parallel do not tilt."""
+    uy, uz = B.y - A.y, B.z - A.z
+    n = math.hypot(uy, uz)
+    if n < 1e-9:
+        return 0
+    uy, uz = uy / n, uz / n
+    tilt = 0.0
+    for nu, towards in ((nu1, 1.0), (nu2, -1.0)):
+        ny, nz = -math.sin(nu), math.cos(nu)  # a normal of the pad's surface…
+        if (ny * uy + nz * uz) * towards < 0:  # …the one into the object (towards the other pad)
+            ny, nz = -ny, -nz
+        tilt += -ny * uz + nz * uy  # its part along AB turned +90°
+    return 0 if abs(tilt) < SIDE_TILT else (1 if tilt > 0 else -1)
 
 
 def _template(rec: Recognition) -> np.ndarray | None:
@@ -1082,9 +1133,14 @@ def outline(
         return np.zeros((0, 2))
     along = math.atan2(ab[1], ab[0])
     turn = math.radians((rec.axis or 0.0) + rec.rotation)
-    placed = _place(shape, turn - along, lam)
+    # a curved surface's normals tell the side of its centre (flat faces' do not): where they
+    # do not, the outline is drawn on the chord through its centre, scaled to Λ, if it can be
+    side = rec.side if rec.object_class in _CURVED else 0
+    placed = None if side else _place(shape, turn - along, lam, None)
+    if placed is None:
+        placed = _place(shape, turn - along, lam, side)
     if placed is None:  # the turn and the sizes disagree with AB: the shape along AB instead
-        placed = _place(shape, 0.0, lam)
+        placed = _place(shape, 0.0, lam, side)
     if placed is None:
         return np.zeros((0, 2))
     ux, uy = ab / lam
@@ -1094,17 +1150,24 @@ def outline(
     return _resample(world + np.asarray(a, dtype=float), n)
 
 
-def _place(shape: np.ndarray, rel: float, lam: float) -> np.ndarray | None:
+def _place(shape: np.ndarray, rel: float, lam: float, side: int | None = 0) -> np.ndarray | None:
     """``shape`` turned by ``rel`` against AB (along x) with the chord of length Λ parallel to
-    x nearest its centre starting at the origin; None if that needs a scale outside
-    :data:`_SCALE`."""
+    x nearest its centre starting at the origin — on the ``side`` of AB its centre lies on
+    (+1: +y; 0: either; None: the chord through the centre, scaled to Λ) —; None if that needs
+    a scale outside :data:`_SCALE`."""
     c, s = math.cos(rel), math.sin(rel)
     local = shape @ np.array([[c, s], [-s, c]])
     lo, hi = float(local[:, 1].min()), float(local[:, 1].max())
     offsets = np.linspace(lo, hi, 201)[1:-1]
     x0s, x1s = _chords(local, offsets)
     lengths = x1s - x0s
-    bad = np.abs(lengths - lam) + 1e-3 * np.abs(offsets)
+    if side is None:
+        bad = np.abs(offsets)
+    else:
+        bad = np.abs(lengths - lam) + 1e-3 * np.abs(offsets)
+        wrong = side * offsets > 0  # the chord at offset y leaves the centre at −y
+        if side and not np.isnan(bad[~wrong]).all():
+            bad = np.where(wrong, np.nan, bad)
     if np.isnan(bad).all():
         return None
     k = int(np.nanargmin(bad))  # the first of equals, as a scan would keep it
@@ -1115,6 +1178,7 @@ def _place(shape: np.ndarray, rel: float, lam: float) -> np.ndarray | None:
     return placed
 
 
+_CURVED = frozenset({ObjectClass.CIRCLE, ObjectClass.ELLIPSE, ObjectClass.STICK})
 _SCALE = (0.8, 1.25)  # how far outline() may stretch the estimated sizes to touch A and B
 
 

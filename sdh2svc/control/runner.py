@@ -145,6 +145,8 @@ class Runner:
         self._make_recognizer = recognizer
         # the run's recognition; None once it failed (the rolling goes on without an estimate)
         self._recognizer: Recognizer | None = None
+        self._recognition_failed: dict[str, Any] | None = None  # where and why, if it failed
+        self._recognition_before: dict[str, Any] | None = None  # its summary until then
 
     # --- control from outside ---------------------------------------------------------------
 
@@ -212,6 +214,7 @@ class Runner:
         watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
         self.joints.start_polling()  # iterations take the newest angles, not a round trip
         self._recognizer = self._new_recognizer()
+        self._recognition_failed = self._recognition_before = None
         try:
             self._set_phase(Phase.CONNECTING)
             self._event(EventKind.START, {"params": self.params.model_dump()})
@@ -295,8 +298,8 @@ class Runner:
                     _raise(safety.frame_age(None, s))
                 return
             _raise(safety.frame_age(frame.age(), s))
-            F = grip_force(*self._contacts(frame))
-            _raise(safety.force_ceiling(F, self.params.grasp_force, s))
+            c1, c2 = self._contacts(frame)
+            _raise(safety.force_ceiling(c1.force, c2.force, self.params.grasp_force, s))
 
         return check
 
@@ -349,7 +352,7 @@ class Runner:
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
-            _raise(safety.force_ceiling(F, fd, self.config.safety))
+            _raise(safety.force_ceiling(c1.force, c2.force, fd, self.config.safety))
             actual, _ = self._newest_angles()
             if opened is None:
                 opened = actual
@@ -454,21 +457,29 @@ class Runner:
             return None
 
     def _recognize(self, obs: Observation, frame: TactileFrame) -> Recognition | None:
-        """This iteration's recognition; its failure must never stop the rolling: logged once,
-        and the run goes on without an estimate."""
+        """This iteration's recognition; its failure must never stop the rolling: logged, told
+        as an event, and the run goes on without an estimate (its summary keeps the one made
+        before, with the failure)."""
         if self._recognizer is None:
             return None
         m = frame.matrices
         try:
             return self._recognizer.update(obs, m[self._m1], m[self._m2])
-        except Exception:
+        except Exception as exc:
             log.exception("recognition failed: the run goes on without an estimate")
+            why = f"{type(exc).__name__}: {exc}"
+            self._recognition_failed = {"iteration": self.result.iterations, "message": why}
+            self._recognition_before = self._recognition_summary()
             self._recognizer = None
+            self._event(EventKind.RECOGNITION_FAILED, {"message": why})
             return None
 
     def _recognition_summary(self) -> dict[str, Any] | None:
+        """The recognition's summary; after a failure, the one it made before, and ``failed``."""
         if self._recognizer is None:
-            return None
+            if self._recognition_failed is None:
+                return None
+            return {**(self._recognition_before or {}), "failed": self._recognition_failed}
         try:
             return self._recognizer.summary()
         except Exception:

@@ -17,14 +17,14 @@ from pydantic import Field, field_validator, model_validator
 
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import StepResult
-from sdh2svc.model.base import Frozen
+from sdh2svc.model.base import Finite
 from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 
 Deg7 = tuple[AngleDeg, ...]
 SLOW_CLOSING = 0.5  # an untouched grasp closing below this share of its speed names the lines
 
 
-class RunConfig(Frozen):
+class RunConfig(Finite):
     """How a run pre-shapes and grasps (config [run])."""
 
     preshape_deg: Deg7
@@ -82,7 +82,7 @@ class RunConfig(Frozen):
         ]
 
 
-class SafetyConfig(Frozen):
+class SafetyConfig(Finite):
     """The supervisor's limits (config [safety]). A stale line is lost within a second at most:
     the pre-shape and the release move on joint round trips alone and see the ceiling only
     through fresh tactile frames."""
@@ -193,15 +193,19 @@ def joint_age(age_s: float | None, safety: SafetyConfig) -> Violation | None:
     return None
 
 
-def force_ceiling(F: float, grasp_force: float, safety: SafetyConfig) -> Violation | None:
-    """The grip's F above the ceiling (:meth:`SafetyConfig.ceiling`)."""
+def force_ceiling(F1: float, F2: float, grasp_force: float, safety: SafetyConfig,
+                  ) -> Violation | None:  # fmt: skip
+    """Either pad's force above the ceiling (:meth:`SafetyConfig.ceiling`). Each pad, not the
+    grip's F (their mean): one pad alone can press hard while the other barely touches (an
+    object wedged against it, a person's press), and would reach twice the ceiling unseen."""
     limit = safety.ceiling(grasp_force)
+    pad, F = (1, F1) if F1 >= F2 else (2, F2)
     if F > limit:
         factor = safety.force_ceiling_factor
         if limit < factor * grasp_force:
-            return Violation(Fault.FORCE_CEILING, f"F = {F:.2f} above the ceiling's maximum "
-                             f"{limit:g} (safety.force_ceiling_max)")  # fmt: skip
-        return Violation(Fault.FORCE_CEILING, f"F = {F:.2f} above {factor:g} × Fd")
+            return Violation(Fault.FORCE_CEILING, f"F{pad} = {F:.2f} above the ceiling's "
+                             f"maximum {limit:g} (safety.force_ceiling_max)")  # fmt: skip
+        return Violation(Fault.FORCE_CEILING, f"F{pad} = {F:.2f} above {factor:g} × Fd")
     return None
 
 
@@ -235,7 +239,7 @@ def rolling_step(r: StepResult, grasp_force: float, safety: SafetyConfig) -> Vio
     """A rolling iteration's verdict, the checks in order: force ceiling, dropped, stuck."""
     c1, c2, n = r.obs.contact1, r.obs.contact2, r.state.consecutive_reversals
     return (
-        force_ceiling(r.F, grasp_force, safety)
+        force_ceiling(c1.force, c2.force, grasp_force, safety)
         or dropped(c1.present, c2.present)
         or stuck(n, r.reversal, safety)
     )

@@ -103,21 +103,28 @@ class Sample:
     )
     class_confidence: float | None = _est("confidence in object_class, 0…1")
     size_a: float | None = _est(
-        "estimated size a: circle radius, ellipse semi-axis a, box side a, stick length, "
-        "polygon circumradius",
+        "estimated size a: circle radius, ellipse semi-axis a, the box's side held between the "
+        "pads, stick length, polygon circumradius",
         "mm",
     )
     size_b: float | None = _est(
-        "estimated size b: ellipse semi-axis b, box side b, stick diameter, polygon mean side",
+        "estimated size b: ellipse semi-axis b (half the narrowest width seen: too large until "
+        "the rolling turned the object across its short axis), stick diameter; null for a box "
+        "and a polygon (their other sides are not measured)",
         "mm",
     )
     rotation_est: float | None = _est(
         "the object's estimated rotation since the grasp (rolling kinematics)", "deg"
     )
     axis_est: float | None = _est(
-        "inclination σ of AB at the grasp: the reconstructed outline turns to axis_est + "
-        "rotation_est",
+        "direction of the reconstructed outline's first axis (size_a's) at the grasp: σ of AB "
+        "then, or σ + 90° for an ellipse held across its short axis; the outline turns to "
+        "axis_est + rotation_est",
         "deg",
+    )
+    outline_side: int | None = _est(
+        "the side of A→B the object's centre lies on, from the pads' normals: +1 left (AB "
+        "turned +90°), -1 right, 0 not told (faces held parallel)"
     )
 
     @classmethod
@@ -196,7 +203,7 @@ class Sample:
             object_class=_enum(ObjectClass, self.object_class),
             confidence=self.class_confidence or 0.0,
             size_a=self.size_a, size_b=self.size_b, rotation=self.rotation_est,
-            axis=self.axis_est,
+            axis=self.axis_est, side=self.outline_side or 0,
         )  # fmt: skip
 
 
@@ -216,6 +223,7 @@ def _recognized(rec: Recognition | None) -> dict[str, Any]:
         "contact2_kind": None if rec.kind2 is None else rec.kind2.value,
         "radius1": rec.radius1, "radius2": rec.radius2,
         "object_class": None if rec.object_class is None else rec.object_class.value,
-        "class_confidence": rec.confidence, "size_a": rec.size_a, "size_b": rec.size_b,
-        "rotation_est": rec.rotation, "axis_est": rec.axis,
+        "class_confidence": None if rec.object_class is None else rec.confidence,
+        "size_a": rec.size_a, "size_b": rec.size_b,
+        "rotation_est": rec.rotation, "axis_est": rec.axis, "outline_side": rec.side,
     }  # fmt: skip

@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ctypes
+import errno
 import logging
 import math
 import os
@@ -774,6 +775,10 @@ class TcpEndpoint(Endpoint):
     async def _open(self) -> None:
         loop = self._require_loop()
         self._server = await loop.create_server(lambda: _TcpConnection(self), self.host, self._port)
+        if not self._server.sockets:  # asyncio skips an address whose socket() failed (EMFILE)
+            self._server.close()
+            raise OSError(errno.EMFILE, f"no socket for TCP port {self._port} (too many open "
+                          "files?)")  # fmt: skip
         self._port = self._server.sockets[0].getsockname()[1]
 
     async def _close(self) -> None:
@@ -815,6 +820,9 @@ class TcpEndpoint(Endpoint):
         if not self.running or self._unplugged(self._now()):
             conn.transport.abort()  # refused: stopping, or the cable is out
             return
+        if self._client is not None:  # said, not silent: a second program on the "line"
+            logger.warning("%s: a new host connected; the one connected before is dropped (one "
+                           "host at a time, as on a serial line)", self.url)  # fmt: skip
         self._drop_client()
         self._client = conn
         if self._tcp:

@@ -148,12 +148,16 @@ def parse_spec(spec: str) -> tuple[Press, float]:
     (keys: pad, x, y, force, radius, duration, at). ValueError with one sentence if not."""
     values: dict[str, float] = {}
     at = 0.0
+    seen: set[str] = set()
     for item in (s for s in re.split(r"[,\s]+", spec.strip()) if s):
         key, sep, text = item.partition("=")
         key = key.strip().lower()
         if not sep or key not in (*_KEYS, "at"):
             raise ValueError(f"{item!r}: expected key=value with a key of "
                              f"{', '.join((*_KEYS, 'at'))} ({SPEC_HELP})")  # fmt: skip
+        if key in seen:  # which one was meant? (the last used to win without a word)
+            raise ValueError(f"{key} given twice")
+        seen.add(key)
         try:
             value = float(text)
         except ValueError:

@@ -911,6 +911,8 @@ class Sdh2Emulator:
                 ax.powered[i], ax.blocked[i], ax.rvel[i] = False, 0, 0.0
                 ax.in_move[i] = False
                 ax.ref[i] = ax.actual[i]
+                if self._con != POSE:  # its target velocity too: powered on, it holds still
+                    ax.velocity[i] = 0.0
         if self._move is not None and not any(ax.in_move):
             self._move = None
 

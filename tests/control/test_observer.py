@@ -8,6 +8,7 @@ from sdh2svc.control.observer import Event, EventKind
 
 # what the store, the WebSocket and the dashboard read: the kinds' strings never change
 KINDS = ["start", "phase", "params", "grasped", "reversal", "fault", "estop", "end"]
+KINDS += ["recognition_failed"]
 KINDS += ["open", "opened"]  # the hand's own, outside a run
 
 

@@ -124,7 +124,7 @@ def test_force_ceiling_stops_and_opens_the_hand(tmp_path: Path) -> None:
     result, events, held_after = fast(main)
     phases = [d["phase"] for k, d in events if k == "phase"]
     assert result.status == "faulted" and result.message.startswith("force_ceiling")
-    tripped = float(result.message.split("F = ")[1].split()[0])  # the frame that tripped it
+    tripped = float(re.split(r"F[12] = ", result.message)[1].split()[0])  # the tripping pad
     assert tripped > 1.05 * cfg.rolling.grasp_force
     assert phases[-2:] == ["releasing", "faulted"] and not held_after
 

@@ -60,6 +60,7 @@ class Stopper(BaseObserver):
         self.samples: list[Sample] = []
         self.end: dict[str, Any] | None = None
         self.runner: Runner | None = None
+        self.events: list[Event] = []
 
     def sample(self, sample: Sample) -> None:
         self.samples.append(sample)
@@ -67,6 +68,7 @@ class Stopper(BaseObserver):
             self.runner.request_stop()
 
     def event(self, event: Event) -> None:
+        self.events.append(event)
         if event.kind is EventKind.END:
             self.end = event.detail
 
@@ -120,4 +122,12 @@ def test_a_failing_estimator_is_logged_once_and_the_rolling_goes_on(
     assert [r.message for r in caplog.records].count(
         "recognition failed: the run goes on without an estimate"
     ) == 1
-    assert result.summary()["recognition"] is None
+    # the run says so (an event at the failing iteration), and its summary keeps what the
+    # estimator had made before, with where and why it failed
+    failed = [e for e in seen.events if e.kind is EventKind.RECOGNITION_FAILED]
+    why = "ZeroDivisionError: a broken estimator"
+    assert [(e.iteration, e.detail) for e in failed] == [(3, {"message": why})]
+    want = {"object_class": "box", "confidence": 0.75, "rotation_deg": 1.0,
+            "failed": {"iteration": 3, "message": why}}  # fmt: skip
+    assert result.summary()["recognition"] == want
+    assert seen.end is not None and seen.end["recognition"] == want

@@ -46,9 +46,15 @@ def test_joint_age_allows_up_to_the_limit_and_faults_beyond_or_without_a_reading
 
 def test_force_ceiling_is_the_factor_times_fd(cfg: Settings) -> None:
     s = cfg.safety  # 3 × Fd
-    assert safety.force_ceiling(6.0, 2.0, s) is None
-    v = safety.force_ceiling(6.01, 2.0, s)
-    assert v == Violation(Fault.FORCE_CEILING, "F = 6.01 above 3 × Fd")
+    assert safety.force_ceiling(6.0, 6.0, 2.0, s) is None
+    v = safety.force_ceiling(6.01, 5.0, 2.0, s)
+    assert v == Violation(Fault.FORCE_CEILING, "F1 = 6.01 above 3 × Fd")
+
+
+def test_the_force_ceiling_watches_each_pad_not_their_mean(cfg: Settings) -> None:
+    """One pad pressed hard while the other barely touches (the grip's F, their mean, 3.5)."""
+    v = safety.force_ceiling(0.5, 6.5, 2.0, cfg.safety)
+    assert v == Violation(Fault.FORCE_CEILING, "F2 = 6.50 above 3 × Fd")
 
 
 def test_the_force_ceiling_never_rises_above_its_maximum(cfg: Settings) -> None:
@@ -56,9 +62,9 @@ def test_the_force_ceiling_never_rises_above_its_maximum(cfg: Settings) -> None:
     keep Fd below it, as a future route to Fd might)."""
     s = cfg.safety  # 3 × Fd, at most 12
     assert s.ceiling(2.0) == 6.0 and s.ceiling(4.0) == 12.0 and s.ceiling(50.0) == 12.0
-    assert safety.force_ceiling(12.0, 50.0, s) is None
-    v = safety.force_ceiling(12.01, 50.0, s)
-    assert v == Violation(Fault.FORCE_CEILING, "F = 12.01 above the ceiling's maximum 12 "
+    assert safety.force_ceiling(12.0, 11.0, 50.0, s) is None
+    v = safety.force_ceiling(12.01, 11.0, 50.0, s)
+    assert v == Violation(Fault.FORCE_CEILING, "F1 = 12.01 above the ceiling's maximum 12 "
                           "(safety.force_ceiling_max)")  # fmt: skip
 
 
@@ -146,7 +152,8 @@ def test_rolling_step_checks_ceiling_then_drop_then_stuck(cfg: Settings) -> None
     assert fault(safety.rolling_step(stuck, fd, s)) is Fault.STUCK
     both = replace(none, state=stuck.state)
     assert fault(safety.rolling_step(both, fd, s)) is Fault.DROPPED
-    high = replace(both, F=3 * fd + 0.01)
+    pressed = replace(stuck.obs.contact2, force=3 * fd + 0.01)  # one pad, the other below Fd
+    high = replace(stuck, obs=replace(stuck.obs, contact2=pressed))
     assert fault(safety.rolling_step(high, fd, s)) is Fault.FORCE_CEILING
 
 

@@ -215,7 +215,8 @@ def test_an_older_database_gets_new_sample_columns(tmp_path: Path) -> None:
 
 
 RECOGNITION = ("contact1_kind", "contact2_kind", "radius1", "radius2", "object_class",
-               "class_confidence", "size_a", "size_b", "rotation_est", "axis_est")  # fmt: skip
+               "class_confidence", "size_a", "size_b", "rotation_est", "axis_est",
+               "outline_side")  # fmt: skip
 
 
 def test_the_recognition_round_trips_and_an_older_database_reads_as_none(

@@ -74,6 +74,7 @@ def test_the_spec_parser_reads_a_press(spec: str, want: tuple[Press, float]) -> 
         ("pad=3,x=10,y=12,force=500", "force: Input should be less than or equal to 50"),
         ("pad=3,x=10,y=12,force=1,duration=61", "duration: Input should be less than or equal"),
         ("pad=3,x=10,y=12,force=1,at=-1", "at=-1: a delay is ≥ 0 s"),
+        ("pad=3,pad=4,x=10,y=12,force=1", "pad given twice"),
     ],
 )
 def test_the_spec_parser_says_what_is_wrong(spec: str, why: str) -> None:

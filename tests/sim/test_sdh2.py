@@ -532,6 +532,23 @@ def test_con1_moves_at_the_target_velocity_even_after_power_off() -> None:
     assert host.values("pos")[1] == pytest.approx(10.0, abs=1e-3)
 
 
+def test_an_axis_powered_off_and_on_in_a_velocity_mode_holds_still() -> None:
+    """`power=0` then `power=1` (a host's e-stop and release) does not drive the axis off at
+    the velocity it had before: enabling an axis makes it hold where it is."""
+    host = Host()
+    host.ask("con=1")
+    host.ask("v=0,0,0,0,0,0,30")
+    host.later(0.5)
+    host.ask("power=0,0,0,0,0,0,0")
+    assert host.values("v")[6] == 0.0
+    host.ask("power=1,1,1,1,1,1,1")
+    held = host.values("pos")[6]
+    assert held == pytest.approx(15.0, abs=0.5)
+    host.later(1.0)
+    assert host.values("pos")[6] == pytest.approx(held, abs=1e-3)
+    assert host.values("state")[6] == 0
+
+
 def test_con2_ramps_with_the_acceleration() -> None:
     host = Host()
     host.ask("con=2")

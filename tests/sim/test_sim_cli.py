@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import re
 import signal
 import subprocess
 import sys
@@ -176,3 +177,72 @@ def test_sim_replace_after_reaches_the_lab_assistant(monkeypatch: pytest.MonkeyP
 
     asyncio.run(real_time())
     assert seen == [0.5, 1.5]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _ver(port: int) -> bytes:
+    """The SDH2's answer to `ver` on ``port`` (b"": none within 3 s)."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=3.0) as s:
+        s.sendall(b"ver\r\n")
+        got = b""
+        with contextlib.suppress(TimeoutError):
+            while b"\n" not in got:
+                if not (more := s.recv(256)):
+                    break
+                got += more
+    return got
+
+
+def test_a_sim_in_the_background_of_its_terminal_keeps_serving() -> None:
+    """`sdh2svc sim &` from a terminal: its first read of the terminal used to stop the whole
+    process (SIGTTIN) after it had printed its URLs, and every driver met a silent line. Here a
+    session with a pseudo-terminal starts the sim as a background job of it (a process group of
+    its own, not the terminal's foreground one)."""
+    import os
+    import pty
+    import time
+
+    sdh_port, dsa_port = _free_port(), _free_port()
+    argv = [sys.executable, "-m", "sdh2svc", "sim", "--no-pty", "--sdh-port", str(sdh_port),
+            "--dsa-port", str(dsa_port)]  # fmt: skip
+    pid, fd = pty.fork()
+    if pid == 0:  # the session's leader: the terminal's foreground group is its own
+        job = os.fork()
+        if job == 0:
+            os.setpgid(0, 0)  # a background job: `&`
+            os.execv(sys.executable, argv)
+        os.write(1, f"job {job}\n".encode())
+        os.waitpid(job, 0)
+        os._exit(0)
+    job = None
+    try:
+        seen = b""
+        deadline = time.monotonic() + 20
+        while job is None and time.monotonic() < deadline:
+            seen += os.read(fd, 1024)
+            if m := re.search(rb"job (\d+)", seen):
+                job = int(m.group(1))
+        assert job is not None, seen
+        answer = b""
+        while not answer and time.monotonic() < deadline:
+            with contextlib.suppress(OSError):
+                answer = _ver(sdh_port)
+            time.sleep(0.2)
+        assert answer.startswith(b"VER="), answer
+        with open(f"/proc/{job}/stat") as stat:  # not stopped: running or sleeping
+            assert stat.read().rsplit(")", 1)[1].split()[0] in "RS"
+    finally:
+        if job is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(job, signal.SIGKILL)  # (a stopped job would not take a SIGTERM)
+        os.waitpid(pid, 0)
+        os.close(fd)

@@ -115,20 +115,32 @@ class RecognitionSummary(BaseModel):
     object_class: str | None = Field(
         None, description="box | polygon | ellipse | circle | stick; null: undecided"
     )
-    confidence: float | None = Field(None, description="in object_class, 0…1")
+    confidence: float | None = Field(None, description="in object_class, 0…1; null: undecided")
     size_a_mm: float | None = Field(
-        None, description="circle radius; ellipse semi-axis a; box side a; stick length; "
-        "polygon circumradius, mm",
+        None, description="circle radius; ellipse semi-axis a; the box's side held between the "
+        "pads; stick length; polygon circumradius, mm",
     )  # fmt: skip
     size_b_mm: float | None = Field(
-        None, description="ellipse semi-axis b; box side b; stick diameter; polygon mean side, mm"
-    )
+        None, description="ellipse semi-axis b (half the narrowest width seen: too large until "
+        "the object turned across its short axis); stick diameter; null for a box or a polygon "
+        "(not measured), mm",
+    )  # fmt: skip
     rotation_deg: float | None = Field(
-        None, description="the object's rotation since the grasp (rolling kinematics), deg"
+        None,
+        description="the object's rotation since the grasp at the run's end (rolling "
+        "kinematics), deg",
     )
+    rotation_range_deg: float | None = Field(
+        None, description="how far the object turned over the run, its largest rotation less "
+        "its smallest (rolling kinematics; compare truth.rotation_range_deg in simulation), deg",
+    )  # fmt: skip
     contacts: dict[str, float] | None = Field(
         None, description="the share of contact iterations labelled flat, edge and curved"
     )
+    failed: dict[str, Any] | None = Field(
+        None, description="the recognition failed mid-run: {iteration, message}; the fields "
+        "above are what it had estimated until then (absent: it did not fail)",
+    )  # fmt: skip
 
 
 class RunSummary(BaseModel):
