@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -41,6 +42,7 @@ class Exit(IntEnum):
     UNAVAILABLE = 4  # I/O: the hand unreachable, a port in use, the database unusable
     BUG = 70  # an unexpected error (--debug or SDH2SVC_DEBUG=1 shows the traceback)
     INTERRUPTED = 130  # Ctrl-C
+    BROKEN_PIPE = 141  # the output's reader went away (128 + SIGPIPE, as a shell reports it)
 
 
 EXIT_STATUS_HELP = """\
@@ -53,6 +55,7 @@ exit status:
        database unusable, output file not writable)
   70   unexpected error, a bug (--debug or SDH2SVC_DEBUG=1 prints the traceback)
   130  interrupted (Ctrl-C; SIGTERM to run)
+  141  the output's reader went away (`sdh2svc runs show 7 | head`)
 """
 
 NO_DATABASE_HINT = "set storage.db_path or run from the directory that holds data/"
@@ -1054,6 +1057,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Exit.USAGE
     except KeyboardInterrupt:
         return Exit.INTERRUPTED
+    except BrokenPipeError:  # the reader went away (`runs show 7 | head`): as `cat` does
+        with contextlib.suppress(OSError):  # (the exit's own flush must not fail again)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return Exit.BROKEN_PIPE
     except Exception as e:
         if debug:
             traceback.print_exc()

@@ -662,3 +662,15 @@ def test_serve_logging_json_logs_a_bad_configuration_as_json() -> None:
     assert r.returncode == Exit.USAGE, r.stderr
     records = [json.loads(line) for line in r.stderr.strip().splitlines()]
     assert records[-1]["level"] == "ERROR" and "rolling.k = 0" in records[-1]["msg"]
+
+
+def test_output_whose_reader_went_away_ends_quietly() -> None:
+    """`sdh2svc runs show 7 | head`, the reader gone before the output is written: exit 141
+    (as a shell reports SIGPIPE) and nothing on stderr, not "unexpected error (a bug)"."""
+    proc = subprocess.Popen([sys.executable, "-m", "sdh2svc", "config"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # long before the command has started, let alone written
+    with proc.stderr:
+        err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == Exit.BROKEN_PIPE and err == "", err
