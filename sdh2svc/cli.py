@@ -749,8 +749,9 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
             with open(path, "wb") as fh:
                 n = store.export_mcap(args.id, fh, cfg)
             print(f"{path}: {n} messages", file=sys.stderr)
-    except BrokenPipeError:  # the reader had enough (`… | head`): not an error
+    except BrokenPipeError:  # the reader had enough (`… | head`): as every command, 141
         _quiet_stdout()
+        return Exit.BROKEN_PIPE
     except OSError as e:
         _fail(Exit.UNAVAILABLE, f"cannot write {path or 'stdout'}: {e.strerror or e}")
     return Exit.OK
@@ -795,11 +796,11 @@ def cmd_campaign(args: argparse.Namespace) -> int:
             _fail(Exit.USAGE, "compare needs two campaign folders: DIR_A DIR_B")
         text = compare(Path(args.dir), Path(args.dir_b))
         out = Path(args.output) if args.output else Path(args.dir_b) / "compare.md"
-        print(text, end="")
-        try:
+        try:  # the file first: a reader that goes away (`| head`) must not cost it
             out.write_text(text)
         except OSError as e:
             _fail(Exit.UNAVAILABLE, f"cannot write {out}: {e.strerror or e}")
+        print(text, end="")
         return Exit.OK
     except CampaignError as e:
         _fail(Exit(e.status), _one_line(e))
@@ -1059,7 +1060,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Exit.INTERRUPTED
     except BrokenPipeError:  # the reader went away (`runs show 7 | head`): as `cat` does
         with contextlib.suppress(OSError):  # (the exit's own flush must not fail again)
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            _quiet_stdout()
         return Exit.BROKEN_PIPE
     except Exception as e:
         if debug:

@@ -244,6 +244,9 @@ def test_a_recording_older_than_a_key_or_a_limit_reads_back(cfg: Settings) -> No
     recorded["tactile"]["texel_pitch_mm"] = 3.5
     recorded["run"].update(preshape_deg=[10, 20, -20, 30, 20, -20, 30], tactile_rate_hz=50.0)
     recorded["safety"].update(stale_frame_ms=2000.0, force_ceiling_factor=10.0)
+    # a measured table left with the linear map: refused in a configuration now, not in a
+    # recording an older version made
+    recorded["calibration"]["distance"] = {"kind": "linear", "table": [[0, 0], [40.8, 44]]}
     old = cfg.as_recorded(recorded)
     assert old.calibration.spread_mm == cfg.calibration.spread_mm
     assert old.tactile.texel_pitch_mm == 3.5 and old.run.preshape_deg[0] == 10

@@ -30,8 +30,10 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
   power-off the hand did not confirm (a silent line) is sent again, before anything else, as
   soon as the line answers.
 * A line that fell silent and answers again may have a hand behind it that was switched off and
-  on (or another hand, behind an adapter that stayed plugged in): the link drops that connection
-  and reconnects at once, so the handshake identifies and holds the hand anew (our addition).
+  on (or another hand, behind an adapter that stayed plugged in): once the command sequence
+  that got the answer has run (an e-stop's whole sequence, say), the link drops that connection
+  and reconnects at once, so the handshake identifies and holds the hand anew (our addition;
+  a link opened with ``reconnect=False`` goes on on the same connection instead).
 * Reconnect: when the port is lost (exception or EOF) the link reopens it with back-off
   (:func:`sdh2svc.bus.reconnect.reconnect`: 0.5, 1, 2, 4, 5, 5 … s) and reruns the handshake;
   meanwhile commands raise :class:`LinkLost`. :class:`LinkEvent` values (the type both links
@@ -427,6 +429,8 @@ class _Conn:
         self.discard()
 
     async def close(self) -> None:
+        if self._closing:  # closed (or closing) already
+            return
         self._closing = True  # nothing received from now on counts (as a cancelled reader)
         if self._gap is not None:
             self._gap.cancel()
@@ -560,6 +564,8 @@ class JointLink:
         self._background: set[asyncio.Task[None]] = set()
         self._sent_at = math.nan  # loop time the last request went on the line
         self._silent = False  # the port is open, but the line gave no byte back (_transact)
+        self._answered_again: _Conn | None = None  # a silent line answered: to be dropped
+        self._dropped: _Conn | None = None  # a lost connection the reconnect is to close
         self._bare: dict[tuple[str, bool, bool], _Request] = {}  # requests without values
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -644,6 +650,9 @@ class JointLink:
         conn, self._conn = self._conn, None
         if conn is not None:
             await conn.close()
+        dropped, self._dropped = self._dropped, None
+        if dropped is not None:  # lost just now: the reconnect was cancelled before closing it
+            await dropped.close()
         if self._background:
             await asyncio.gather(*self._background, return_exceptions=True)
         self._emit(LinkEventKind.CLOSED)
@@ -801,10 +810,21 @@ class JointLink:
                 self.poll_plan.command()
             return reply, self._sent_at
         finally:
-            self._gate.release()
+            self._let_go()
             if req.keyword not in _ACTUAL_ANGLES:  # those answer the angles themselves
                 self._poll_wanted = True
                 self._poll_wake.set()
+
+    def _let_go(self) -> None:
+        """Release the turnstile. A connection whose silent line answered again is dropped now,
+        once its holder's whole sequence (an e-stop's power, pos and p) has run on it: the
+        reconnect's handshake identifies and holds the hand anew (it may have been switched
+        off and on, or be another hand behind the same adapter)."""
+        conn, self._answered_again = self._answered_again, None
+        if conn is not None and conn is self._conn:
+            conn.die(AnsweredAgain("the line answers again after being silent: the hand is "
+                                   "identified anew"))  # fmt: skip
+        self._gate.release()
 
     def _check_usable(self, req: _Request) -> None:
         if self._closed:
@@ -882,9 +902,8 @@ class JointLink:
                 self._may_be_moving = self._may_be_moving or req.moves
                 if self._power_off_owed and not self._estop_pending and req.keyword != "power":
                     await self._pay_power_off(conn, timeout_s)
-                if was_silent:
-                    conn.die(AnsweredAgain("the line answers again after being silent: the "
-                                           "hand is identified anew"))  # fmt: skip
+                if was_silent and self._reconnect:  # dropped once its holder's sequence ran
+                    self._answered_again = conn
                 return reply
         assert failure is not None
         self.stats.failures += 1
@@ -1141,6 +1160,7 @@ class JointLink:
         self.stats.link_losses += 1
         self._emit(LinkEventKind.LOST, str(exc))
         if self._reconnect:
+            self._dropped = conn  # closed by the reconnect, or by close() if it comes first
             self._reconnect_task = asyncio.get_running_loop().create_task(
                 self._reconnect_loop(conn, at_once=isinstance(exc, AnsweredAgain)),
                 name="sdh-joint-reconnect",
@@ -1152,6 +1172,7 @@ class JointLink:
 
     async def _reconnect_loop(self, old: _Conn, *, at_once: bool = False) -> None:
         await old.close()
+        self._dropped = None
         self._conn = await reconnect(self._reconnect_once, BACKOFF, self._reconnect_failed,
                                      at_once=at_once)  # fmt: skip
         self._reconnect_task = None
@@ -1306,7 +1327,7 @@ class JointLink:
                 raise LinkLost("link closed")
             return await self._hold_on(self._require_conn())
         finally:
-            self._gate.release()
+            self._let_go()
 
     # -- polling the actual angles ----------------------------------------------------------------
 
@@ -1367,7 +1388,7 @@ class JointLink:
             self._took_actual(reply.values)
             self.poll_plan.polled(start, loop.time())
         finally:
-            self._gate.release()
+            self._let_go()
 
     # -- emergency stop -------------------------------------------------------------------------
 
@@ -1399,7 +1420,7 @@ class JointLink:
             try:
                 held = await self._estop_sequence(self._require_conn())
             finally:
-                self._gate.release()
+                self._let_go()
         finally:
             self._estop_pending -= 1
         self._emit(LinkEventKind.EMERGENCY_STOP, f"holding {held}")

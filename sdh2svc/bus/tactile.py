@@ -487,7 +487,7 @@ class TactileBus:
                 raise TactileTimeoutError(
                     f"{exc}; {self._opening_rx} bytes came back, none of them a DSACON32m "
                     "packet: another device on this port (the SDH2's joint line, if the two "
-                    "lines are swapped?)"
+                    "lines are swapped?), or a line at another baud rate"
                 ) from exc
             raise
         except BaseException:
@@ -609,7 +609,7 @@ class TactileBus:
         self._last_rx = now
         self._rx_pulse.set()
         self._byte_meter.add(now, len(data))
-        if self._opening:
+        if self._opening and not self._discarding:  # (what the flush discards may be boot noise)
             self._opening_rx += len(data)
         if not self._discarding:
             self._dispatch(self._parser.feed(data), now)

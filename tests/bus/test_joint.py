@@ -658,6 +658,35 @@ async def test_a_silent_line_that_answers_again_is_identified_anew() -> None:
         assert not link.connected
 
 
+async def test_an_estop_the_silent_line_answers_completes_before_the_hand_is_identified_anew() -> (
+    None
+):
+    """The line answers again during an e-stop: its whole sequence (power off, read, hold) runs
+    on that connection and reports the hand reached; only then is the line dropped, and the
+    reconnect powers the (latched) hand off and holds it again. A link that does not reconnect
+    goes on on the same connection."""
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.1, retries=1)
+        events = link.subscribe()
+        await link.power([True] * NUM_AXES)
+        rig.ep.disconnect(1.0)
+        with pytest.raises(JointLinkError, match="the line is silent"):
+            await link.get_actual()
+        await asyncio.sleep(1.2)  # the line answers again
+        held = await link.emergency_stop()  # not LinkLost half-way
+        assert len(held) == NUM_AXES and link.power_off_confirmed
+        assert not any(rig.dev.powered)
+        await _next_event(events, LinkEventKind.RECONNECTED)
+        assert link.estopped and not any(rig.dev.powered)
+    async with _rig("pty") as rig:
+        link = await rig.open(timeout_s=0.1, retries=1, reconnect=False)
+        rig.ep.disconnect(1.0)
+        with pytest.raises(JointLinkError, match="the line is silent"):
+            await link.get_actual()
+        await _answered(link)
+        assert len(await link.get_actual()) == NUM_AXES and link.connected
+
+
 async def test_a_release_the_hand_has_not_taken_shows_latched() -> None:
     """While the release's power command is out (a silent line), the link says e-stopped: the
     status showed it released for the seconds the release took to fail."""

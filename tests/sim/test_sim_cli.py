@@ -179,14 +179,6 @@ def test_sim_replace_after_reaches_the_lab_assistant(monkeypatch: pytest.MonkeyP
     assert seen == [0.5, 1.5]
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _ver(port: int) -> bytes:
     """The SDH2's answer to `ver` on ``port`` (b"": none within 3 s)."""
     import socket
@@ -209,11 +201,11 @@ def test_a_sim_in_the_background_of_its_terminal_keeps_serving() -> None:
     its own, not the terminal's foreground one)."""
     import os
     import pty
+    import select
     import time
 
-    sdh_port, dsa_port = _free_port(), _free_port()
-    argv = [sys.executable, "-m", "sdh2svc", "sim", "--no-pty", "--sdh-port", str(sdh_port),
-            "--dsa-port", str(dsa_port)]  # fmt: skip
+    argv = [sys.executable, "-m", "sdh2svc", "sim", "--no-pty", "--sdh-port", "0",
+            "--dsa-port", "0"]  # fmt: skip
     pid, fd = pty.fork()
     if pid == 0:  # the session's leader: the terminal's foreground group is its own
         job = os.fork()
@@ -223,26 +215,29 @@ def test_a_sim_in_the_background_of_its_terminal_keeps_serving() -> None:
         os.write(1, f"job {job}\n".encode())
         os.waitpid(job, 0)
         os._exit(0)
-    job = None
+    job = port = None
     try:
         seen = b""
-        deadline = time.monotonic() + 20
-        while job is None and time.monotonic() < deadline:
-            seen += os.read(fd, 1024)
-            if m := re.search(rb"job (\d+)", seen):
-                job = int(m.group(1))
-        assert job is not None, seen
+        deadline = time.monotonic() + 30
+        while port is None and (left := deadline - time.monotonic()) > 0:
+            if select.select([fd], [], [], left)[0]:
+                seen += os.read(fd, 1024)
+            job = int(m.group(1)) if (m := re.search(rb"job (\d+)", seen)) else None
+            url = re.search(rb"SDH2 \(joints\): +socket://127\.0\.0\.1:(\d+)", seen)
+            port = int(url.group(1)) if url else None
+        assert job is not None and port is not None, seen
         answer = b""
         while not answer and time.monotonic() < deadline:
             with contextlib.suppress(OSError):
-                answer = _ver(sdh_port)
+                answer = _ver(port)
             time.sleep(0.2)
         assert answer.startswith(b"VER="), answer
         with open(f"/proc/{job}/stat") as stat:  # not stopped: running or sleeping
             assert stat.read().rsplit(")", 1)[1].split()[0] in "RS"
     finally:
-        if job is not None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(job, signal.SIGKILL)  # (a stopped job would not take a SIGTERM)
+        for group in (job, pid):  # (a stopped job would not take a SIGTERM)
+            if group is not None:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(group, signal.SIGKILL)
         os.waitpid(pid, 0)
         os.close(fd)
