@@ -41,9 +41,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     """xdist groups (``--dist loadgroup``): a file's tests together; the hogs, and the files
     that must not run beside one, together."""
     root = Path(config.rootpath)
+    serial = set()
     for item in items:
         rel = Path(item.path).relative_to(root).as_posix()
         item.add_marker(pytest.mark.xdist_group("hogs" if rel in SERIAL else rel))
+        if rel in SERIAL:
+            serial.add(item)
+    # the hogs first: the longest group starts at once on one worker while the other takes the
+    # rest, instead of whichever worker reaches it late running it alone at the end
+    items.sort(key=lambda item: item not in serial)
 
 
 @pytest.hookimpl(optionalhook=True)
