@@ -609,9 +609,9 @@ class TactileBus:
         self._last_rx = now
         self._rx_pulse.set()
         self._byte_meter.add(now, len(data))
-        if self._opening and not self._discarding:  # (what the flush discards may be boot noise)
-            self._opening_rx += len(data)
-        if not self._discarding:
+        if not self._discarding:  # (what the flush discards may be boot noise: not counted)
+            if self._opening:
+                self._opening_rx += len(data)
             self._dispatch(self._parser.feed(data), now)
         self._check_health(now)
 

@@ -60,6 +60,7 @@ from typing import Any, Self
 
 import numpy as np
 
+from sdh2svc.model.base import clean_json
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.geometry import pad_slope
 from sdh2svc.model.kinematics import Finger, HandPose, Point, frame3_axes
@@ -975,7 +976,7 @@ class Recognizer:
         if total == 0:
             return None
         cls = r.object_class
-        return _finite({
+        out: dict[str, Any] = clean_json({  # strict JSON wherever a summary goes
             "object_class": None if cls is None else cls.value,
             "confidence": None if cls is None else r.confidence,
             "size_a_mm": r.size_a,
@@ -988,17 +989,7 @@ class Recognizer:
                 "curved": ev.curved / total,
             },
         })  # fmt: skip
-
-
-def _finite(d: dict[str, Any]) -> dict[str, Any]:
-    """``d`` with every non-finite number null (strict JSON wherever a summary goes)."""
-
-    def clean(v: Any) -> Any:
-        if isinstance(v, float) and not math.isfinite(v):
-            return None
-        return _finite(v) if isinstance(v, dict) else v
-
-    return {k: clean(v) for k, v in d.items()}
+        return out
 
 
 def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:

@@ -145,8 +145,8 @@ class Runner:
         self._make_recognizer = recognizer
         # the run's recognition; None once it failed (the rolling goes on without an estimate)
         self._recognizer: Recognizer | None = None
-        self._recognition_failed: dict[str, Any] | None = None  # where and why, if it failed
-        self._recognition_before: dict[str, Any] | None = None  # its summary until then
+        # the summary of a recognition that failed: the one made before, with where and why
+        self._recognition_failed: dict[str, Any] | None = None
 
     # --- control from outside ---------------------------------------------------------------
 
@@ -214,7 +214,7 @@ class Runner:
         watch = self.tactile.subscribe(range(6), self.config.run.watch_rate_hz)
         self.joints.start_polling()  # iterations take the newest angles, not a round trip
         self._recognizer = self._new_recognizer()
-        self._recognition_failed = self._recognition_before = None
+        self._recognition_failed = None
         try:
             self._set_phase(Phase.CONNECTING)
             self._event(EventKind.START, {"params": self.params.model_dump()})
@@ -468,8 +468,8 @@ class Runner:
         except Exception as exc:
             log.exception("recognition failed: the run goes on without an estimate")
             why = f"{type(exc).__name__}: {exc}"
-            self._recognition_failed = {"iteration": self.result.iterations, "message": why}
-            self._recognition_before = self._recognition_summary()
+            failed = {"iteration": self.result.iterations, "message": why}
+            self._recognition_failed = {**(self._recognition_summary() or {}), "failed": failed}
             self._recognizer = None
             self._event(EventKind.RECOGNITION_FAILED, {"message": why})
             return None
@@ -477,9 +477,7 @@ class Runner:
     def _recognition_summary(self) -> dict[str, Any] | None:
         """The recognition's summary; after a failure, the one it made before, and ``failed``."""
         if self._recognizer is None:
-            if self._recognition_failed is None:
-                return None
-            return {**(self._recognition_before or {}), "failed": self._recognition_failed}
+            return self._recognition_failed
         try:
             return self._recognizer.summary()
         except Exception:

@@ -24,7 +24,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from sdh2svc.service.telemetry import AnyMessage, Dropped, clean_json, encode, kind_of
+from sdh2svc.model.base import clean_json
+from sdh2svc.service.telemetry import AnyMessage, Dropped, encode, kind_of
 
 __all__ = ["Client", "Listener", "TelemetryHub", "cancel", "clean_json", "encode"]
 

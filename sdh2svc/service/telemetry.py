@@ -32,6 +32,7 @@ import numpy.typing as npt
 from sdh2svc.control.observer import EventKind
 from sdh2svc.control.recognition import outline
 from sdh2svc.control.sample import Sample
+from sdh2svc.model.base import clean_json
 from sdh2svc.model.friction import pad_tangent
 from sdh2svc.model.kinematics import Finger, HandGeometry, Point, distal_joint, frame3_axes
 
@@ -177,17 +178,6 @@ def kind_of(msg: AnyMessage) -> str:
 
 def to_json(msg: AnyMessage) -> dict[str, Any]:
     return msg if isinstance(msg, dict) else msg.json()
-
-
-def clean_json(obj: Any) -> Any:
-    """JSON has no NaN or infinity: send null (the dashboard treats it as a gap)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: clean_json(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [clean_json(v) for v in obj]
-    return obj
 
 
 def encode(msg: AnyMessage) -> str:

@@ -607,22 +607,16 @@ async def test_a_silent_line_fails_after_two_silent_attempts_not_every_retry() -
         with pytest.raises(JointLinkError, match="the line is silent"):
             await link.get_actual()
         assert link.stats.timeouts == 3  # one attempt while silent
-        async with asyncio.timeout(30):  # the line answers again: so does the link
-            while True:
-                with contextlib.suppress(JointLinkError):
-                    assert len(await link.get_actual()) == NUM_AXES
-                    break
-                await asyncio.sleep(0.1)
+        assert len(await _answered(link)) == NUM_AXES  # the line answers again: so does the link
         assert not link.silent
 
 
-async def _answered(link: JointLink) -> None:
-    """Until a command is answered (a silent line coming back)."""
+async def _answered(link: JointLink) -> tuple[float, ...]:
+    """The actual angles, once a command is answered (a silent line coming back)."""
     async with asyncio.timeout(30):
         while True:
             with contextlib.suppress(JointLinkError):
-                await link.get_actual()
-                return
+                return await link.get_actual()
             await asyncio.sleep(0.1)
 
 
@@ -737,12 +731,7 @@ async def test_an_estop_the_line_lost_is_sent_again_once_it_answers() -> None:
         with pytest.raises(JointLinkError):
             await link.emergency_stop()
         assert link.estopped and all(rig.dev.powered)
-        async with asyncio.timeout(30):
-            while True:
-                with contextlib.suppress(JointLinkError):
-                    await link.get_actual()
-                    break
-                await asyncio.sleep(0.1)
+        await _answered(link)
         assert not any(rig.dev.powered) and link.estopped
 
 

@@ -7,9 +7,9 @@ from typing import Any
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
+from sdh2svc.model.base import clean_json
 from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
-from sdh2svc.service.telemetry import clean_json
 
 router = APIRouter()
 

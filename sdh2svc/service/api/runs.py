@@ -23,6 +23,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.config import ConfigError, Settings
+from sdh2svc.model.base import clean_json
 from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Digits, NoBody, RunId, St, Svc
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
@@ -30,7 +31,7 @@ from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.reads import Payload
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
 from sdh2svc.service.store import RunStore, StoreError, recorded_settings
-from sdh2svc.service.telemetry import clean_json, estimate_outline
+from sdh2svc.service.telemetry import estimate_outline
 
 router = APIRouter()
 
