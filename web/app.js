@@ -1044,6 +1044,7 @@ async function backfill(runId, first, t0) {
       }
     }
     const run = await api.run(runId);
+    await recordedPsi0(runId);
     if (state.liveRunId !== runId) return; // another run began meanwhile
     plots.prependLive(older, state.params);
     const bySample = new Map(older.map((x) => [x.iteration, x]));
@@ -1263,6 +1264,15 @@ const replayData = { runId: null, frames: new Map(), truth: null, viewer: false,
 const liveTurn = { runId: null, psi: null, psi0: null };
 
 /** How far the object truly turned from ψ0 to ψ (rad), in degrees; null: either unknown. */
+/** A page that joined mid-run missed ψ at the grasp: it takes the truth recorded with the run's
+ * first sample, as a replay does (simulation only: a real hand's run has no truth). */
+async function recordedPsi0(runId) {
+  if (liveTurn.runId !== runId || liveTurn.psi0 !== null) return;
+  const page = await api.truth(runId, 0, 1);
+  const row = page.truth && page.truth[0];
+  if (row && liveTurn.runId === runId && liveTurn.psi0 === null) liveTurn.psi0 = row.psi;
+}
+
 function turnedDeg(psi, psi0) {
   return typeof psi === "number" && typeof psi0 === "number" ? ((psi - psi0) * 180) / Math.PI : null;
 }
@@ -1535,7 +1545,7 @@ async function init() {
   // status(): the last status rendered
   // replay: the scrubber; expireToasts(now): toasts past their time at `now` go
   window.sdh2debug = { telemetry, plots, pads, sketch, form, onMessage, replay, expireToasts,
-    toast, status: () => state.status };
+    toast, status: () => state.status, liveTurn };
   telemetry.start();
 }
 

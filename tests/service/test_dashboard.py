@@ -562,6 +562,14 @@ async def joined_mid_run(service: LiveService, page: Any) -> None:
         grasped = [t for t in got["events"] if t.startswith("Grasped with F = ")]
         assert len(grasped) == 1, got["events"]
         assert got["reversals"] >= 1
+        # ψ at the grasp, which it did not see live, from the truth recorded with the first
+        # sample: its readout says how far the object truly turned, as the first page's does
+        truth = httpx.get(f"{service.url}/api/runs/{run_id}/truth?limit=1").json()["truth"]
+        psi0 = await late.evaluate("window.sdh2debug.liveTurn.psi0")
+        assert psi0 == truth[0]["psi"], (psi0, truth[0])
+        await late.wait_for_function(
+            "document.querySelector('#object-readout').textContent.includes('(true ')"
+        )
         assert errors == [], errors
     finally:
         await context.close()
