@@ -54,7 +54,7 @@ exit status:
   4    cannot reach a device or use a resource (hand unreachable, port in use,
        database unusable, output file not writable)
   70   unexpected error, a bug (--debug or SDH2SVC_DEBUG=1 prints the traceback)
-  130  interrupted (Ctrl-C; SIGTERM to run)
+  130  interrupted (Ctrl-C; SIGTERM to run and campaign run)
   141  the output's reader went away (`sdh2svc runs show 7 | head`)
 """
 
@@ -953,7 +953,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 1; 0 = never)")  # fmt: skip
     press_help = (
         "press a pad: pad=0…5,x=MM,y=MM,force=N[,radius=MM][,duration=S][,at=S] "
-        "(x across, y along from the tip; at: s after start; repeatable)"
+        "(x across, y along from the fingertip's end, or a proximal pad's distal end; at: s "
+        "after start; repeatable)"
     )
     p.add_argument("--press", action="append", type=_press_arg, metavar="SPEC", help=press_help)
     p.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")

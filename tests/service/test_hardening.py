@@ -395,7 +395,9 @@ async def test_integers_are_written_in_digits_and_values_as_typed(svc: LiveServi
 
 
 async def test_a_bad_telemetry_query_refuses_the_handshake_with_422(svc: LiveService) -> None:
-    for query in ("decimate=0", "decimate=abc", "tactile=2", "max_queue=0", "decimate=1_0"):
+    # the last one a misspelt name: refused, as by a REST route, not ignored
+    bad = ("decimate=0", "decimate=abc", "tactile=2", "max_queue=0", "decimate=1_0", "tactil=0")
+    for query in bad:
         with pytest.raises(InvalidStatus) as refused:
             async with connect(f"{svc.ws_url}?{query}"):
                 pass
@@ -404,6 +406,8 @@ async def test_a_bad_telemetry_query_refuses_the_handshake_with_422(svc: LiveSer
         assert r.status_code == 422 and body["error"] == "invalid request", query
         name, _, value = query.partition("=")
         assert body["details"][0].startswith(f"query.{name} = {value!r}: "), body
+    assert "tactil = '0': no such query parameter here (this one takes: decimate, max_queue, " \
+        "tactile)" in body["details"][0], body  # fmt: skip
 
 
 async def test_the_estop_stops_a_run_whatever_the_database_does(

@@ -11,6 +11,7 @@ from typing import Annotated, Any
 
 from fastapi import Depends
 from fastapi import Path as PathParam
+from fastapi.exceptions import WebSocketRequestValidationError
 from pydantic import BeforeValidator
 from pydantic_core import PydanticCustomError
 from starlette.requests import HTTPConnection, Request
@@ -93,19 +94,25 @@ async def no_body(request: Request) -> None:
 
 
 async def known_query(conn: HTTPConnection) -> None:
-    """An API request names only query parameters its route takes: FastAPI ignores the others,
-    so a misspelt one (``?ofset=100``, ``POST /api/runs?cycles=1``) would do the default
-    silently. (The app's dependency, for every route.)"""
-    route = conn.scope.get("route")
-    if conn.scope["type"] != "http" or route is None or not conn.url.path.startswith("/api/"):
+    """An API request or a telemetry socket names only query parameters its route takes:
+    FastAPI ignores the others, so a misspelt one (``?ofset=100``, ``POST /api/runs?cycles=1``,
+    ``/ws/telemetry?tactil=0``) would do the default silently. (The app's dependency, for every
+    route; a socket's handshake is refused with a 422 as for a bad value.)"""
+    route, path = conn.scope.get("route"), conn.url.path
+    http = conn.scope["type"] == "http" and path.startswith("/api/")
+    if route is None or not (http or path.startswith("/ws/")):
         return
     known = _query_names(getattr(route, "dependant", None))
     unknown = sorted(set(conn.query_params) - known)
-    if unknown:
-        takes = ", ".join(sorted(known)) or "none"
-        raise ServiceError(422, "invalid request", [
-            f"{clip(k)}: no such query parameter here (this one takes: {takes})" for k in unknown
-        ])  # fmt: skip
+    if not unknown:
+        return
+    why = f"no such query parameter here (this one takes: {', '.join(sorted(known)) or 'none'})"
+    if http:
+        raise ServiceError(422, "invalid request", [f"{clip(k)}: {why}" for k in unknown])
+    raise WebSocketRequestValidationError([
+        {"type": "extra_forbidden", "loc": ("query", k), "msg": why, "input": conn.query_params[k]}
+        for k in unknown
+    ])  # fmt: skip
 
 
 def _query_names(dependant: Any) -> set[str]:
