@@ -18,6 +18,10 @@ Fd − F. Two additions:
   Turned about the joint, a pad pressed on a rigid object squeezes it: F rose to ≈ 2·Fd
   during the turn, and the rubber and the fingers' yield under that force put Λ at grasp
   2–4 mm short on wide objects.
+* **No finger opens while the grip is short of Fd.** Each finger closes by its own pad's force,
+  but once both pads touch, the two forces on the object are equal whatever the pads read: a
+  pad reading higher than the other (gains apart, a needle's end between texels) had its finger
+  open while the other closed, and the grip's F crept towards Fd without reaching it.
 * **The first pad to touch waits for the other** (closes at the speed floor until the other pad
   touches too): closing on at full speed, it pushes the object before the other pad holds it —
   a soft object is pressed a millimetre deep by the time the other finger arrives, and the
@@ -133,6 +137,12 @@ def grasp_step(
         return max(-lim, min(lim, x))
 
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
+    if c1.present and c2.present and c1.force + c2.force < 2 * law.grasp_force:
+        # the grip (their mean) short of Fd: no finger opens. Both pads press one free object
+        # equally hard, so a difference between them is the pads' (their gains, a contact
+        # smaller than the texel pitch): one finger then opened as fast as the other closed,
+        # the object travelled sideways and the mean crept towards Fd without reaching it
+        s1, s2 = max(s1, 0.0), max(s2, 0.0)
     floor = law.min_velocity_deg_s * law.period_s  # the first to touch waits for the other
     if c1.present and not c2.present:
         s1 = min(s1, floor)

@@ -35,7 +35,7 @@ from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
-from sdh2svc.model.kinematics import HandPose
+from sdh2svc.model.kinematics import HandPose, pad_gap
 from sdh2svc.model.observe import ModelContext, Observation
 from sdh2svc.protocol.sdh import NUM_AXES
 
@@ -375,6 +375,8 @@ class Runner:
                 since = started if touched is None else touched
                 untouched = None if touched is not None else (self._closed(opened, actual), free)
                 _raise(safety.grasp_timeout(F, fd, loop.time(), since, run, untouched))
+                if touched is None:
+                    _raise(safety.pads_met(pad_gap(pose, self.ctx.geom)))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(self._clamp(want, actual))

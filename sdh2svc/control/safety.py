@@ -21,7 +21,9 @@ from sdh2svc.model.base import Finite
 from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 
 Deg7 = tuple[AngleDeg, ...]
-SLOW_CLOSING = 0.5  # an untouched grasp closing below this share of its speed names the lines
+SLOW_CLOSING = 0.5  # an untouched grasp closing below this share of its speed times out (a healthy
+# one closes at ≈ 0.63: each frame's increment starts from the newest angles, a step behind)
+MIN_PAD_GAP_MM = 2.0  # an untouched grasp's pads this close: nothing between them
 
 
 class RunConfig(Finite):
@@ -256,19 +258,33 @@ def grasp_timeout(
     """Still under Fd ``run.grasp_timeout_s`` after ``started`` (clock seconds): the grasp's
     start, or the first touch once a pad has touched. ``untouched``, while nothing has touched
     (``started`` is then the grasp's start): how far the proximal joints closed since (°), and
-    how fast the grasp commands them to (°/s). Each frame commands one increment from the
-    newest joint angles, so lines too slow for the run (a wrong baud rate) close the fingers
-    much slower than commanded; the message then says so rather than only "no grasp"."""
-    if F < grasp_force and now > started + run.grasp_timeout_s:
-        msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
-        if untouched is not None:
-            closed_deg, commanded = untouched
-            speed = closed_deg / (now - started)
-            if speed < SLOW_CLOSING * commanded:
-                msg += (f"; untouched, the fingers closed at {speed:.2f}°/s of the "
-                        f"{commanded:g}°/s commanded: the joint angles and the frames come too "
-                        "slowly over the lines for the run (their baud rate?)")  # fmt: skip
-        return Violation(Fault.NO_CONTACT, msg)
+    how fast the grasp commands them to (°/s). An untouched grasp whose fingers still close at
+    ``SLOW_CLOSING`` of that speed or more goes on: the smallest objects are touched after
+    ≈ 20 s of closing, and :func:`closed_empty` ends an approach that meets nothing. Each frame
+    commands one increment from the newest joint angles, so lines too slow for the run (a wrong
+    baud rate) close the fingers much slower than commanded: that one times out, and its
+    message says so rather than only "no grasp"."""
+    if F >= grasp_force or now <= started + run.grasp_timeout_s:
+        return None
+    msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
+    if untouched is not None:
+        closed_deg, commanded = untouched
+        speed = closed_deg / (now - started)
+        if speed >= SLOW_CLOSING * commanded:
+            return None
+        msg += (f"; untouched, the fingers closed at {speed:.2f}°/s of the "
+                f"{commanded:g}°/s commanded: the joint angles and the frames come too "
+                "slowly over the lines for the run (their baud rate?)")  # fmt: skip
+    return Violation(Fault.NO_CONTACT, msg)
+
+
+def pads_met(gap_mm: float) -> Violation | None:
+    """An untouched grasp whose distal pads came within ``MIN_PAD_GAP_MM`` of each other
+    (:func:`~sdh2svc.model.kinematics.pad_gap`): nothing is between them, and pressed
+    together the pads would read as a grip on nothing."""
+    if gap_mm < MIN_PAD_GAP_MM:
+        return Violation(Fault.NO_CONTACT, "fingers closed without touching anything (the pads "
+                         f"{max(gap_mm, 0.0):.1f} mm apart)")  # fmt: skip
     return None
 
 

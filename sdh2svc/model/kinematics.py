@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from enum import IntEnum, StrEnum
 from typing import Annotated, NamedTuple
 
+import numpy as np
 from pydantic import Field
 
 from sdh2svc.model.base import Finite
@@ -130,6 +131,24 @@ def pad_point(
     C = distal_joint(finger, proximal, geom)
     ex, ey = frame3_axes(finger, proximal + distal)
     return Point(C.y + x3 * ex.y + y3 * ey.y, C.z + x3 * ex.z + y3 * ey.z)
+
+
+def pad_gap(pose: HandPose, geom: HandGeometry, samples: int = 12) -> float:
+    """The least distance (mm) between the two distal pads' surfaces, each sampled at
+    ``samples`` points from its flat part's start to its end at the fingertip."""
+    pad = geom.pad
+    x3 = np.linspace(pad.flat_start_x3_mm, pad.tip_end_x3_mm, samples)
+    dx = np.maximum(x3 - pad.flat_end_x3_mm, 0.0)  # pad_y3 for every sample: flat, then the arc
+    R = pad.arc_radius_mm
+    y3 = pad.flat_y3_mm - R + np.sqrt(R * R - dx * dx)
+    ends = []
+    for f in (Finger.ONE, Finger.TWO):
+        prox, dist = pose.finger(f)
+        C = distal_joint(f, prox, geom)
+        ex, ey = frame3_axes(f, prox + dist)
+        ends.append((C.y + x3 * ex.y + y3 * ey.y, C.z + x3 * ex.z + y3 * ey.z))
+    (y1, z1), (y2, z2) = ends
+    return float(np.sqrt(np.min((y1[:, None] - y2) ** 2 + (z1[:, None] - z2) ** 2)))
 
 
 def contact_point(

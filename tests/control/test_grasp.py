@@ -65,6 +65,25 @@ def test_near_fd_the_closing_speed_keeps_its_floor(cfg: Settings) -> None:
     assert above.d_phi[0] < 0 and above.d_phi[2] < 0  # above Fd the fingers open
 
 
+def test_no_finger_opens_while_the_grip_is_short_of_fd(cfg: Settings) -> None:
+    """Pads that read one object's equal forces differently (gains apart, a contact smaller
+    than the texel pitch): the one above Fd holds while the grip's mean is below it, and the
+    other closes; once the mean reaches Fd, the one above it opens again."""
+    ctx = cfg.model_context()
+    high, low = ctx.contact(frame(20.0, 1000.0)), ctx.contact(frame(20.0, 500.0))
+    fd = (high.force + low.force) / 2 + 0.05  # between the pads' readings, above their mean
+    assert low.force < fd < high.force
+    g = grasp_step(PARALLEL, high, low, law(grasp_force=fd, align_gain=0.0), ctx)
+    assert g.d_phi[0] == 0.0 and g.d_phi[1] == 0.0  # Finger 1 holds: it does not open
+    assert g.d_phi[2] >= 0.5 / 30  # Finger 2 closes, at least at the floor
+    for pair in ((high, low), (low, high)):  # the same whichever finger reads higher
+        g = grasp_step(PARALLEL, *pair, law(grasp_force=fd, align_gain=0.0), ctx)
+        assert min(g.d_phi[0], g.d_phi[2]) == 0.0 and max(g.d_phi[0], g.d_phi[2]) > 0.0
+    held = (high.force + low.force) / 2 - 0.05  # the mean above Fd, one pad still below
+    g = grasp_step(PARALLEL, high, low, law(grasp_force=held, align_gain=0.0), ctx)
+    assert g.d_phi[0] < 0.0 < g.d_phi[2]  # each by its own force again
+
+
 def test_the_pads_turn_about_their_contacts_against_their_wedge(cfg: Settings) -> None:
     ctx = cfg.model_context()
     c1, c2 = contacts(cfg, 300.0)

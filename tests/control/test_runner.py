@@ -21,6 +21,7 @@ from sdh2svc.control import runner as runner_module
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.control.sample import Sample
+from sdh2svc.model.kinematics import pad_gap
 from sdh2svc.protocol.sdh import AxisState
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.lab import SimulatedHand
@@ -160,15 +161,21 @@ def test_a_step_the_supervisor_refuses_is_the_faults_iteration(
 
 
 def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:
+    # the fingers close as commanded, so the grasp's timeout does not end it: the pads do,
+    # once they come within 2 mm of each other with nothing touched
     cfg = cfg_with(tmp_path, "sim.object_height_mm=300.0", "run.grasp_timeout_s=5.0")
 
     async def main() -> Any:
         async with rig(cfg, tmp_path) as (_hand, runner):
-            return await runner.run()
+            result = await runner.run()
+            return result, await runner.joints.get_actual()
 
-    result = fast(main)
-    assert result.status == "faulted" and result.message.startswith("no_contact")
-    assert result.iterations == 0
+    result, angles = fast(main)
+    assert result.status == "faulted" and result.iterations == 0
+    assert result.message.startswith("no_contact: fingers closed without touching anything (the "
+                                     "pads "), result.message  # fmt: skip
+    pose = cfg.control().axes.pose(angles)
+    assert 1.0 < pad_gap(pose, cfg.model_context().geom) < 2.5  # stopped as they came close
 
 
 def test_lines_too_slow_for_the_run_are_named_when_the_grasp_times_out(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -23,6 +24,7 @@ from sdh2svc.model.kinematics import (
     frame3_axes,
     hand_points,
     ik_branches,
+    pad_gap,
     pad_point,
     segment,
 )
@@ -236,3 +238,19 @@ def test_slope_is_used_in_tangent(cfg: Settings, geom: HandGeometry) -> None:
     _, _, x3 = vj_for_S(cfg, 5.0)
     t = pad_tangent(Finger.ONE, 0.0, x3, geom.pad)
     assert math.atan2(-t.y, t.z) == pytest.approx(math.atan(-pad_slope(x3, geom.pad)), abs=1e-12)
+
+
+def test_the_pads_gap_is_the_distance_between_their_flat_parts_when_upright(cfg: Settings) -> None:
+    g, pad = cfg.hand, cfg.hand.pad
+    for phi2 in (-30.0, -10.0, 0.0, 5.0):  # upright and facing: the flat parts bound the gap
+        pose = HandPose.from_degrees(phi2, -phi2, phi2, -phi2)
+        c = pad_point(Finger.ONE, rad(phi2), rad(-phi2), pad.flat_start_x3_mm, pad.flat_y3_mm, g)
+        d = pad_point(Finger.TWO, rad(phi2), rad(-phi2), pad.flat_start_x3_mm, pad.flat_y3_mm, g)
+        assert pad_gap(pose, g) == pytest.approx(d.y - c.y, abs=1e-9)
+    assert pad_gap(HandPose.from_degrees(-30, 30, -30, 30), g) == pytest.approx(122.5, abs=0.1)
+    # closing in the mirror pose, the gap shrinks to nothing as the pads meet
+    gaps = [pad_gap(HandPose.from_degrees(a, -a, a, -a), g) for a in range(-30, 12)]
+    assert all(b < a for a, b in itertools.pairwise(gaps)) and gaps[-1] < 10.0
+    # tilted towards each other, their tips meet first
+    tilted = HandPose.from_degrees(5, 10, 5, 10)
+    assert pad_gap(tilted, g) < pad_gap(HandPose.from_degrees(5, -5, 5, -5), g)
