@@ -1044,7 +1044,7 @@ async function backfill(runId, first, t0) {
       }
     }
     const run = await api.run(runId);
-    await recordedPsi0(runId);
+    recordedPsi0(runId).catch(() => {}); // optional: the backfill does not wait for it
     if (state.liveRunId !== runId) return; // another run began meanwhile
     plots.prependLive(older, state.params);
     const bySample = new Map(older.map((x) => [x.iteration, x]));
@@ -1263,7 +1263,6 @@ const replayData = { runId: null, frames: new Map(), truth: null, viewer: false,
 // In simulation, the object's true angle ψ (rad): the newest, and the live run's at its grasp
 const liveTurn = { runId: null, psi: null, psi0: null };
 
-/** How far the object truly turned from ψ0 to ψ (rad), in degrees; null: either unknown. */
 /** A page that joined mid-run missed ψ at the grasp: it takes the truth recorded with the run's
  * first sample, as a replay does (simulation only: a real hand's run has no truth). */
 async function recordedPsi0(runId) {
@@ -1273,6 +1272,7 @@ async function recordedPsi0(runId) {
   if (row && liveTurn.runId === runId && liveTurn.psi0 === null) liveTurn.psi0 = row.psi;
 }
 
+/** How far the object truly turned from ψ0 to ψ (rad), in degrees; null: either unknown. */
 function turnedDeg(psi, psi0) {
   return typeof psi === "number" && typeof psi0 === "number" ? ((psi - psi0) * 180) / Math.PI : null;
 }

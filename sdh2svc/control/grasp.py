@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from sdh2svc.control.plan import grip_force
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import omega, wedge
 from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point
@@ -137,7 +138,7 @@ def grasp_step(
         return max(-lim, min(lim, x))
 
     s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
-    if c1.present and c2.present and c1.force + c2.force < 2 * law.grasp_force:
+    if c1.present and c2.present and grip_force(c1, c2) < law.grasp_force:
         # the grip (their mean) short of Fd: no finger opens. Both pads press one free object
         # equally hard, so a difference between them is the pads' (their gains, a contact
         # smaller than the texel pitch): one finger then opened as fast as the other closed,

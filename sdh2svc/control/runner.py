@@ -16,6 +16,7 @@ import contextlib
 import logging
 import math
 import statistics
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -347,6 +348,7 @@ class Runner:
         # from the pre-shape, and the closing takes most of the timeout before it touches
         touched: float | None = None
         opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
+        progress: deque[tuple[float, float]] = deque()  # (t, closed °) of the untouched frames
         free = closing_speed(0.0, law)  # the speed it commands until something touches
         while not self._stop.is_set():
             frame = await self._fresh(sub)
@@ -375,12 +377,25 @@ class Runner:
                 since = started if touched is None else touched
                 untouched = None if touched is not None else (self._closed(opened, actual), free)
                 _raise(safety.grasp_timeout(F, fd, loop.time(), since, run, untouched))
-                if touched is None:
+                if untouched is not None:
+                    stall = self._approach(progress, loop.time(), untouched[0])
+                    _raise(safety.grasp_stalled(*stall, untouched[0], loop.time() - started, free))
                     _raise(safety.pads_met(pad_gap(pose, self.ctx.geom)))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)
             await self.joints.set_targets(self._clamp(want, actual))
             await self.joints.move()
+
+    @staticmethod
+    def _approach(progress: deque[tuple[float, float]], now: float,
+                  closed: float) -> tuple[float, float]:  # fmt: skip
+        """How far (°) an untouched grasp closed over its last ``safety.STALL_S`` at least, and
+        over how long (s): ``progress`` keeps the frames since, and the one before."""
+        progress.append((now, closed))
+        while len(progress) > 1 and progress[1][0] <= now - safety.STALL_S:
+            progress.popleft()
+        t0, closed0 = progress[0]
+        return closed - closed0, now - t0
 
     def _closed(self, opened: Sequence[float], actual: Sequence[float]) -> float:
         """How far (°) the proximal joints closed, on average, from ``opened`` to ``actual``."""

@@ -23,7 +23,12 @@ from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 Deg7 = tuple[AngleDeg, ...]
 SLOW_CLOSING = 0.5  # an untouched grasp closing below this share of its speed times out (a healthy
 # one closes at ≈ 0.63: each frame's increment starts from the newest angles, a step behind)
-MIN_PAD_GAP_MM = 2.0  # an untouched grasp's pads this close: nothing between them
+# An untouched grasp's pads this close: nothing between them. The margin covers the newest
+# angles' age (≤ safety.stale_joint_ms: ≈ 1 mm of each pad at 1.9 °/s) and the pads' model
+MIN_PAD_GAP_MM = 5.0
+STALL_S = 2.0  # an untouched grasp is judged on how far it closed over this long: …
+SLOWDOWN = 0.5  # …under this share of its own mean speed so far, something stopped it (the
+# encoders go on slowly as the fingers' structure yields: 0.6 °/s against 1.9 °/s in the air)
 
 
 class RunConfig(Finite):
@@ -260,7 +265,8 @@ def grasp_timeout(
     (``started`` is then the grasp's start): how far the proximal joints closed since (°), and
     how fast the grasp commands them to (°/s). An untouched grasp whose fingers still close at
     ``SLOW_CLOSING`` of that speed or more goes on: the smallest objects are touched after
-    ≈ 20 s of closing, and :func:`closed_empty` ends an approach that meets nothing. Each frame
+    ≈ 20 s of closing, :func:`pads_met` ends an approach that meets nothing and
+    :func:`grasp_stalled` one that something stops. Each frame
     commands one increment from the newest joint angles, so lines too slow for the run (a wrong
     baud rate) close the fingers much slower than commanded: that one times out, and its
     message says so rather than only "no grasp"."""
@@ -281,10 +287,29 @@ def grasp_timeout(
 def pads_met(gap_mm: float) -> Violation | None:
     """An untouched grasp whose distal pads came within ``MIN_PAD_GAP_MM`` of each other
     (:func:`~sdh2svc.model.kinematics.pad_gap`): nothing is between them, and pressed
-    together the pads would read as a grip on nothing."""
+    together the pads would read as a grip on nothing. (On the default pre-shape it ends an
+    empty grasp at ≈ 10° of proximal closing, long before :func:`closed_empty`.)"""
     if gap_mm < MIN_PAD_GAP_MM:
         return Violation(Fault.NO_CONTACT, "fingers closed without touching anything (the pads "
                          f"{max(gap_mm, 0.0):.1f} mm apart)")  # fmt: skip
+    return None
+
+
+def grasp_stalled(window_deg: float, window_s: float, closed_deg: float, since_s: float,
+                  commanded: float) -> Violation | None:  # fmt: skip
+    """An untouched grasp whose proximal joints closed ``window_deg`` over the last
+    ``window_s`` (≥ ``STALL_S``), slower than ``SLOWDOWN`` of their own mean speed since the
+    grasp began (``closed_deg`` in ``since_s``): something stopped the fingers where no distal
+    pad senses it (a link, the thumb, an object between pads that do not sense). Lines too slow
+    close slowly from the start, and time out instead (:func:`grasp_timeout`)."""
+    if window_s < STALL_S or since_s <= 0.0:
+        return None
+    rate, mean = window_deg / window_s, closed_deg / since_s
+    if rate < SLOWDOWN * mean:
+        return Violation(Fault.NO_CONTACT, "the fingers stopped closing with nothing touched "
+                         f"({rate:.2f}°/s over the last {window_s:.1f} s, after {mean:.2f}°/s; "
+                         f"{commanded:g}°/s commanded): something stops them where no distal "
+                         "pad senses it")  # fmt: skip
     return None
 
 

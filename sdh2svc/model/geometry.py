@@ -6,9 +6,11 @@ along the distal link towards the fingertip's end, y3 towards the pad, i.e. the 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Annotated
 
+import numpy as np
 from pydantic import Field, model_validator
 
 from sdh2svc.model.base import Finite
@@ -69,6 +71,17 @@ def pad_y3(x3: float, pad: PadProfile) -> float:
         return pad.flat_y3_mm
     R = pad.arc_radius_mm
     return pad.flat_y3_mm - R + math.sqrt(R * R - dx * dx)
+
+
+@functools.lru_cache(maxsize=8)
+def pad_surface(pad: PadProfile, step_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(x3, y3) of points at most ``step_mm`` apart in x3 along the pad's surface, from the flat
+    part's start to the fingertip's end (:func:`pad_y3` at each; read-only arrays)."""
+    n = math.ceil((pad.tip_end_x3_mm - pad.flat_start_x3_mm) / step_mm) + 1
+    x3 = np.linspace(pad.flat_start_x3_mm, pad.tip_end_x3_mm, n)
+    y3 = np.array([pad_y3(float(x), pad) for x in x3])
+    x3.flags.writeable = y3.flags.writeable = False
+    return x3, y3
 
 
 def pad_slope(x3: float, pad: PadProfile) -> float:

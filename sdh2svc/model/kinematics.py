@@ -18,7 +18,7 @@ from pydantic import Field
 
 from sdh2svc.model.base import Finite
 from sdh2svc.model.depth import ContactDepthModel
-from sdh2svc.model.geometry import PadProfile
+from sdh2svc.model.geometry import PadProfile, pad_surface
 
 PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
 
@@ -133,16 +133,13 @@ def pad_point(
     return Point(C.y + x3 * ex.y + y3 * ey.y, C.z + x3 * ex.z + y3 * ey.z)
 
 
-def pad_gap(pose: HandPose, geom: HandGeometry, samples: int = 12) -> float:
-    """The least distance (mm) between the two distal pads' surfaces, each sampled at
-    ``samples`` points from its flat part's start to its end at the fingertip."""
-    pad = geom.pad
-    x3 = np.linspace(pad.flat_start_x3_mm, pad.tip_end_x3_mm, samples)
-    dx = np.maximum(x3 - pad.flat_end_x3_mm, 0.0)  # pad_y3 for every sample: flat, then the arc
-    R = pad.arc_radius_mm
-    y3 = pad.flat_y3_mm - R + np.sqrt(R * R - dx * dx)
+def pad_gap(pose: HandPose, geom: HandGeometry) -> float:
+    """The least distance (mm) between the two distal pads' surfaces (each sampled every 1 mm of
+    x3: :func:`~sdh2svc.model.geometry.pad_surface`; within ≈ 0.3 mm of the exact distance).
+    Unsigned: pads that have passed through each other (only in a simulation) read apart again."""
+    x3, y3 = pad_surface(geom.pad)
     ends = []
-    for f in (Finger.ONE, Finger.TWO):
+    for f in (Finger.ONE, Finger.TWO):  # pad_point for every sample at once
         prox, dist = pose.finger(f)
         C = distal_joint(f, prox, geom)
         ex, ey = frame3_axes(f, prox + dist)

@@ -162,7 +162,7 @@ def test_a_step_the_supervisor_refuses_is_the_faults_iteration(
 
 def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:
     # the fingers close as commanded, so the grasp's timeout does not end it: the pads do,
-    # once they come within 2 mm of each other with nothing touched
+    # once they come within 5 mm of each other with nothing touched
     cfg = cfg_with(tmp_path, "sim.object_height_mm=300.0", "run.grasp_timeout_s=5.0")
 
     async def main() -> Any:
@@ -175,7 +175,29 @@ def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:
     assert result.message.startswith("no_contact: fingers closed without touching anything (the "
                                      "pads "), result.message  # fmt: skip
     pose = cfg.control().axes.pose(angles)
-    assert 1.0 < pad_gap(pose, cfg.model_context().geom) < 2.5  # stopped as they came close
+    assert 4.0 < pad_gap(pose, cfg.model_context().geom) < 5.0  # stopped as they came close
+
+
+def test_an_object_between_pads_that_do_not_sense_stops_the_grasp_at_once(tmp_path: Path) -> None:
+    # every cell of both distal pads dead: the fingers close on the egg, are stopped by it, and
+    # no pad feels it. The grasp ends within its stall window, not after its timeout
+    dead = [[m, r, c] for m in (1, 5) for r in range(13) for c in range(6)]
+    cfg = cfg_with(tmp_path, f"sim.sensor.dead_texels={json.dumps(dead)}")
+
+    async def main() -> Any:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            times: dict[str, float] = {}
+            seen(runner).hooks.append(
+                lambda e: times.setdefault(e.detail.get("phase", e.kind), e.t)
+            )
+            return await runner.run(), times
+
+    result, times = fast(main)
+    assert result.status == "faulted" and result.iterations == 0
+    assert result.message.startswith("no_contact: the fingers stopped closing with nothing "
+                                     "touched"), result.message  # fmt: skip
+    # the fingers close ≈ 27° to the egg at ≈ 1.9 °/s, then stop: a fault ≈ 2 s later
+    assert times["faulted"] - times["grasping"] < cfg.run.grasp_timeout_s
 
 
 def test_lines_too_slow_for_the_run_are_named_when_the_grasp_times_out(tmp_path: Path) -> None:

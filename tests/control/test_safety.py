@@ -118,11 +118,22 @@ def test_a_grasp_timeout_names_lines_too_slow_to_close_the_fingers(cfg: Settings
 
 
 def test_an_untouched_grasp_ends_when_its_pads_come_close() -> None:
-    assert safety.pads_met(2.0) is None and safety.pads_met(50.0) is None
-    assert safety.pads_met(1.94) == Violation(
-        Fault.NO_CONTACT, "fingers closed without touching anything (the pads 1.9 mm apart)"
+    assert safety.pads_met(5.0) is None and safety.pads_met(50.0) is None
+    assert safety.pads_met(4.94) == Violation(
+        Fault.NO_CONTACT, "fingers closed without touching anything (the pads 4.9 mm apart)"
     )
-    assert safety.pads_met(-0.5) is not None
+    assert safety.pads_met(0.0) is not None
+
+
+def test_an_untouched_grasp_that_slows_down_ends_within_its_window() -> None:
+    # (closed over the window °, window s, closed since the start °, since s, commanded °/s)
+    assert safety.grasp_stalled(0.0, 1.99, 30.0, 16.0, 3.0) is None  # not a whole window yet
+    assert safety.grasp_stalled(3.8, 2.0, 30.0, 16.0, 3.0) is None  # 1.9 °/s, as before
+    assert safety.grasp_stalled(0.74, 2.0, 7.4, 20.0, 3.0) is None  # slow from the start: lines
+    v = safety.grasp_stalled(1.2, 2.0, 30.0, 16.0, 3.0)  # 0.6 °/s after 1.88 °/s: stopped
+    assert v == Violation(Fault.NO_CONTACT, "the fingers stopped closing with nothing touched "
+                          "(0.60°/s over the last 2.0 s, after 1.88°/s; 3°/s commanded): "
+                          "something stops them where no distal pad senses it")  # fmt: skip
 
 
 def test_a_grasp_ends_only_with_both_contacts() -> None:

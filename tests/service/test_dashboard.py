@@ -565,6 +565,7 @@ async def joined_mid_run(service: LiveService, page: Any) -> None:
         # ψ at the grasp, which it did not see live, from the truth recorded with the first
         # sample: its readout says how far the object truly turned, as the first page's does
         truth = httpx.get(f"{service.url}/api/runs/{run_id}/truth?limit=1").json()["truth"]
+        await late.wait_for_function("window.sdh2debug.liveTurn.psi0 !== null")
         psi0 = await late.evaluate("window.sdh2debug.liveTurn.psi0")
         assert psi0 == truth[0]["psi"], (psi0, truth[0])
         await late.wait_for_function(
