@@ -266,10 +266,10 @@ def grasp_timeout(
     how fast the grasp commands them to (°/s). An untouched grasp whose fingers still close at
     ``SLOW_CLOSING`` of that speed or more goes on: the smallest objects are touched after
     ≈ 20 s of closing, :func:`pads_met` ends an approach that meets nothing and
-    :func:`grasp_stalled` one that something stops. Each frame
-    commands one increment from the newest joint angles, so lines too slow for the run (a wrong
-    baud rate) close the fingers much slower than commanded: that one times out, and its
-    message says so rather than only "no grasp"."""
+    :func:`grasp_stalled` one that something stops. Each frame commands one increment from the
+    newest joint angles, so lines too slow for the run (a wrong baud rate) close the fingers much
+    slower than commanded: that grasp times out, and its message says so rather than only "no
+    grasp"."""
     if F >= grasp_force or now <= started + run.grasp_timeout_s:
         return None
     msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
