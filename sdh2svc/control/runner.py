@@ -378,8 +378,9 @@ class Runner:
                 untouched = None if touched is not None else (self._closed(opened, actual), free)
                 _raise(safety.grasp_timeout(F, fd, loop.time(), since, run, untouched))
                 if untouched is not None:
-                    stall = self._approach(progress, loop.time(), untouched[0])
-                    _raise(safety.grasp_stalled(*stall, untouched[0], loop.time() - started, free))
+                    now = loop.time()
+                    stall = self._approach(progress, now, untouched[0])
+                    _raise(safety.grasp_stalled(*stall, untouched[0], now - started, free))
                     _raise(safety.pads_met(pad_gap(pose, self.ctx.geom)))
             _raise(safety.closed_empty(actual, self._axes, run))
             want = self._axes.wire_steps(g.d_phi, actual)

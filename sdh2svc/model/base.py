@@ -8,15 +8,10 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict
 
 
-class Frozen(BaseModel):
-    """An immutable, validated value: unknown keys are errors, fields never change once made."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-
-class Finite(Frozen):
-    """A :class:`Frozen` value whose numbers are finite: NaN and ±∞ are refused as no number
-    (named as such, not as a range they fall outside of)."""
+class Finite(BaseModel):
+    """An immutable, validated value: unknown keys are errors, fields never change once made,
+    and numbers are finite: NaN and ±∞ are refused as no number (named as such, not as a range
+    they fall outside of)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
