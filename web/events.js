@@ -6,7 +6,7 @@ export const FAULT_WORDS = {
   no_contact: "the grasp found nothing between the fingertips",
   force_ceiling: "the grip force went too high",
   stale_sensor: "the tactile frames stopped coming",
-  dropped: "both contacts were lost; the object is no longer held",
+  dropped: "both contacts were lost; the object is no longer held, or both distal pads stopped reading it",
   stuck: "the rolling kept reversing without turning the object (stuck)",
   joint_error: "the joint controller failed",
   sensor_error: "the tactile sensor's controller failed",
@@ -75,7 +75,8 @@ function repeats(said, rest) {
 /**
  * The part of a fault's or run's message a person reads ("no_contact: …" in plain words). The
  * service's own text follows in brackets when it tells more (numbers, a line's name), not when
- * it says the same again ("dropped: both contacts lost: the object is no longer held").
+ * it says the same again ("dropped: both contacts lost: the object is no longer held, or both
+ * distal pads stopped reading it").
  */
 export function plainMessage(message) {
   const m = String(message || "").trim();

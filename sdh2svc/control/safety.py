@@ -46,7 +46,6 @@ class RunConfig(Finite):
     # the DSACON32m streams at 30 frames a second at most (protocols.md §1.6): a faster loop
     # would wait for frames that never come (and its grasp close that much slower)
     tactile_rate_hz: Annotated[float, Field(gt=0.0, le=30.0)]
-    watch_rate_hz: Annotated[float, Field(gt=0.0, le=30.0)]
 
     @field_validator("preshape_deg")
     @classmethod
@@ -217,20 +216,31 @@ def force_ceiling(F1: float, F2: float, grasp_force: float, safety: SafetyConfig
 
 
 def dropped(contact1: bool, contact2: bool) -> Violation | None:
-    """Both distal contacts lost while rolling: the object is no longer held."""
+    """Both distal contacts lost while rolling: the object is no longer held (or neither pad
+    reads it any more: the pads alone cannot tell the two apart)."""
     if not contact1 and not contact2:
-        return Violation(Fault.DROPPED, "both contacts lost: the object is no longer held")
+        return Violation(Fault.DROPPED, "both contacts lost: the object is no longer held, or "
+                         "both distal pads stopped reading it")  # fmt: skip
     return None
 
 
-def grasp_lost(contact1: bool, contact2: bool) -> Violation | None:
+def grasp_lost(contact1: bool, contact2: bool, read1: bool = True,
+               read2: bool = True) -> Violation | None:  # fmt: skip
     """A pad without its contact as the grasp ends: the pads' turn against their wedge rolled
     the contact off a pad's end, or the object was never held. The rolling would start from
-    one contact or none; this is a grasp that failed, not a grasp."""
-    if not (contact1 and contact2):
-        lost = "both contacts" if not (contact1 or contact2) else "a contact"
-        return Violation(Fault.NO_CONTACT, f"no grasp: {lost} lost as the grasp settled")
-    return None
+    one contact or none; this is a grasp that failed, not a grasp. ``read1``/``read2``: whether
+    each pad read a contact at any frame of the grasp: one that never did while the other held
+    the grip is named (a dead pad, or the object touching that finger off its distal pad)."""
+    if contact1 and contact2:
+        return None
+    if read1 != read2:
+        silent, other = (1, 2) if read2 else (2, 1)
+        return Violation(Fault.NO_CONTACT, f"no grasp: Finger {silent}'s distal pad read no "
+                         f"contact during the whole grasp while Finger {other}'s gripped (a "
+                         f"dead pad, or the object touches Finger {silent} off its distal "
+                         "pad)")  # fmt: skip
+    lost = "both contacts" if not (contact1 or contact2) else "a contact"
+    return Violation(Fault.NO_CONTACT, f"no grasp: {lost} lost as the grasp settled")
 
 
 def stuck(consecutive: int, last: str | None, safety: SafetyConfig) -> Violation | None:
@@ -284,32 +294,36 @@ def grasp_timeout(
     return Violation(Fault.NO_CONTACT, msg)
 
 
-def pads_met(gap_mm: float) -> Violation | None:
-    """An untouched grasp whose distal pads came within ``MIN_PAD_GAP_MM`` of each other
-    (:func:`~sdh2svc.model.kinematics.pad_gap`): nothing is between them, and pressed
+def pads_met(gap_mm: float, *, lost: bool = False) -> Violation | None:
+    """A grasp with nothing touched whose distal pads came within ``MIN_PAD_GAP_MM`` of each
+    other (:func:`~sdh2svc.model.kinematics.pad_gap`): nothing is between them, and pressed
     together the pads would read as a grip on nothing. (On the default pre-shape it ends an
-    empty grasp at ≈ 10° of proximal closing, long before :func:`closed_empty`.)"""
+    empty grasp at ≈ 10° of proximal closing, long before :func:`closed_empty`.) ``lost``: a
+    pad had touched, and nothing touches now (the object taken away, or the pads gone dead)."""
     if gap_mm < MIN_PAD_GAP_MM:
-        return Violation(Fault.NO_CONTACT, "fingers closed without touching anything (the pads "
+        what = "the contact was lost and the fingers closed" if lost else "fingers closed"
+        return Violation(Fault.NO_CONTACT, f"{what} without touching anything (the pads "
                          f"{max(gap_mm, 0.0):.1f} mm apart)")  # fmt: skip
     return None
 
 
 def grasp_stalled(window_deg: float, window_s: float, closed_deg: float, since_s: float,
-                  commanded: float) -> Violation | None:  # fmt: skip
-    """An untouched grasp whose proximal joints closed ``window_deg`` over the last
+                  commanded: float, *, lost: bool = False) -> Violation | None:  # fmt: skip
+    """A grasp with nothing touched whose proximal joints closed ``window_deg`` over the last
     ``window_s`` (≥ ``STALL_S``), slower than ``SLOWDOWN`` of their own mean speed since the
     grasp began (``closed_deg`` in ``since_s``): something stopped the fingers where no distal
     pad senses it (a link, the thumb, an object between pads that do not sense). Lines too slow
-    close slowly from the start, and time out instead (:func:`grasp_timeout`)."""
+    close slowly from the start, and time out instead (:func:`grasp_timeout`). ``lost``: a pad
+    had touched before (the pads may have gone dead on the object)."""
     if window_s < STALL_S or since_s <= 0.0:
         return None
     rate, mean = window_deg / window_s, closed_deg / since_s
     if rate < SLOWDOWN * mean:
-        return Violation(Fault.NO_CONTACT, "the fingers stopped closing with nothing touched "
-                         f"({rate:.2f}°/s over the last {window_s:.1f} s, after {mean:.2f}°/s; "
-                         f"{commanded:g}°/s commanded): something stops them where no distal "
-                         "pad senses it")  # fmt: skip
+        what = "no pad reads the contact any more, and " if lost else ""
+        return Violation(Fault.NO_CONTACT, f"{what}the fingers stopped closing with nothing "
+                         f"touched ({rate:.2f}°/s over the last {window_s:.1f} s, after "
+                         f"{mean:.2f}°/s; {commanded:g}°/s commanded): something stops them "
+                         "where no distal pad senses it")  # fmt: skip
     return None
 
 

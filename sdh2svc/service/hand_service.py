@@ -321,7 +321,8 @@ class HandService:
         (one that had already ended, and is only being recorded, keeps its end), or an opening
         hand stops."""
         if runner is not None:
-            await runner.emergency_stop()
+            if not await runner.emergency_stop():  # ended, its record still being written
+                self._hand_event(EventKind.ESTOP, {})
         else:
             await self._cancel_opening()
             await joints.emergency_stop()
@@ -443,8 +444,9 @@ class HandService:
         return self._run_params if self.running and self._run_params else self.params
 
     def patch_params(self, patch: dict[str, Any]) -> RollingParams:
-        """Validate and take ``patch`` for later runs and — applied whole at its next iteration —
-        for the running one (laid over its own parameters, e.g. its cycles)."""
+        """Validate and take ``patch`` for later runs and — applied whole at its next grasp
+        frame or rolling iteration — for the running one (laid over its own parameters, e.g.
+        its cycles)."""
         new = validate_params(self.params, patch, self.cfg.safety)
         if self.running and self.run is not None and self._run_params is not None:
             self._run_params = validate_params(self._run_params, patch, self.cfg.safety)

@@ -139,6 +139,13 @@ class TactileSensorModel:
         # (sensitivity, threshold, gain per cell, threshold per cell or None when all are <= 0)
         self._settings: _Settings | None = None
 
+    def fail(self, matrices: Sequence[int]) -> None:
+        """Every cell of ``matrices`` reads 0 from now on, whatever presses it (a matrix that
+        fails mid-run: its ribbon cable pulled; the frames go on)."""
+        for m in matrices:
+            self.valid[self.offsets[m] : self.offsets[m + 1]] = False
+        self._absent = np.flatnonzero(~self.valid)
+
     def _flat_pressures(
         self, by_surface: Mapping[int, tuple[np.ndarray, np.ndarray]], band_mm: float
     ) -> np.ndarray:

@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 
 import pytest
 
+from sdh2svc.bus.joint import JointLink
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Simulated, connect_hand
 from sdh2svc.control import runner as runner_module
@@ -200,6 +201,71 @@ def test_an_object_between_pads_that_do_not_sense_stops_the_grasp_at_once(tmp_pa
     assert times["faulted"] - times["grasping"] < cfg.run.grasp_timeout_s
 
 
+async def _until_touched(hand: Any, runner: Runner, cfg: Settings) -> None:
+    """Until a distal pad reads a contact during the grasp (a subscription of the test's own)."""
+    axes = cfg.control().axes
+    m1, m2 = axes.finger1_distal_matrix, axes.finger2_distal_matrix
+    while runner.phase is not Phase.GRASPING:
+        await asyncio.sleep(0.01)
+    sub = hand.tactile.subscribe({m1, m2}, cfg.run.tactile_rate_hz)
+    while True:
+        f = await sub.next_frame()
+        forces = [runner.ctx.contact(f.matrices[m]).force for m in (m1, m2)]
+        if max(forces) > cfg.rolling.contact_force_min:
+            return
+
+
+def test_an_object_taken_away_after_the_touch_stops_the_fingers_before_the_pads_meet(
+    tmp_path: Path,
+) -> None:
+    # the egg touched, then taken from between the fingers: nothing touches any more, so the
+    # pads' gap ends the grasp as it ends an empty one, not the timeout (the fingers would close
+    # into each other for the rest of it)
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> Any:
+        async with connect_hand(cfg, Simulated(fast=True)) as hand:
+            assert hand.bench is not None
+            runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
+            run = asyncio.create_task(runner.run())
+            await _until_touched(hand, runner, cfg)
+            hand.bench.place(hand.bench.obj, height_mm=400.0)  # out of the fingers' reach
+            result = await run
+            return result, await runner.joints.get_actual()
+
+    result, angles = fast(main)
+    assert result.status == "faulted" and result.iterations == 0
+    assert result.message.startswith("no_contact: the contact was lost and the fingers closed "
+                                     "without touching anything"), result.message  # fmt: skip
+    pose = cfg.control().axes.pose(angles)
+    assert 4.0 < pad_gap(pose, cfg.model_context().geom) < 5.0
+
+
+def test_pads_that_go_dead_on_the_object_during_the_grasp_stop_it_at_once(tmp_path: Path) -> None:
+    # both distal matrices fail just after the touch: the fingers close on at full speed into
+    # an object no pad feels, and stop against it. The stall ends the grasp ≈ 2 s later
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> Any:
+        async with connect_hand(cfg, Simulated(fast=True)) as hand:
+            assert hand.bench is not None
+            runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
+            run = asyncio.create_task(runner.run())
+            await _until_touched(hand, runner, cfg)
+            axes = cfg.control().axes
+            hand.bench.sim.world.sensor.fail([axes.finger1_distal_matrix,
+                                              axes.finger2_distal_matrix])  # fmt: skip
+            dead_at = asyncio.get_running_loop().time()
+            result = await run
+            return result, asyncio.get_running_loop().time() - dead_at
+
+    result, after = fast(main)
+    assert result.status == "faulted" and result.iterations == 0
+    assert result.message.startswith("no_contact: no pad reads the contact any more, and the "
+                                     "fingers stopped closing"), result.message  # fmt: skip
+    assert after < 4.0, after  # the stall window (2 s) and the squeeze's own second
+
+
 def test_lines_too_slow_for_the_run_are_named_when_the_grasp_times_out(tmp_path: Path) -> None:
     """At 9600 baud the joint angles and frames come so slowly that each frame's increment,
     taken from the newest angles, closes the fingers at a fraction of the grasp's speed: the
@@ -288,6 +354,32 @@ def test_an_estop_after_the_run_ended_stops_the_hand_and_keeps_the_end(tmp_path:
     assert result.status == "stopped" and phase is Phase.STOPPED
     assert all(s is AxisState.DISABLED for s in states)  # the hand is e-stopped all the same
     assert not cancelled
+
+
+def test_parameters_changed_during_the_grasp_are_the_grasps_from_its_next_frame(
+    tmp_path: Path,
+) -> None:
+    # a user lowers Fd for a fragile object while the fingers close: the grasp holds at the new
+    # Fd (it squeezed on to the old one while the status showed the new)
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> list[tuple[str, dict[str, Any]]]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            run = asyncio.create_task(runner.run())
+            while runner.phase is not Phase.GRASPING:
+                await asyncio.sleep(0.01)
+            runner.set_params(runner.params.model_copy(update={"grasp_force": 1.0}))
+            while runner.phase is not Phase.ROLLING:
+                await asyncio.sleep(0.01)
+            runner.request_stop()
+            await run
+            return seen(runner).events
+
+    events = fast(main)
+    kinds = [k for k, _ in events]
+    assert kinds.index(EventKind.PARAMS) < kinds.index(EventKind.GRASPED)
+    grasped = next(d for k, d in events if k == EventKind.GRASPED)
+    assert 1.0 <= grasped["F"] < 1.5, grasped  # the default Fd is 2
 
 
 def test_a_force_ceiling_says_so_before_it_opens_and_an_estop_keeps_it(tmp_path: Path) -> None:
@@ -408,6 +500,48 @@ def test_emergency_stop_mid_grasp(tmp_path: Path) -> None:
     result, phase, states = fast(main)
     assert phase is Phase.ESTOPPED and result.status == "e-stopped"
     assert all(s is AxisState.DISABLED for s in states)
+
+
+def test_an_estop_while_the_runs_command_is_on_the_line_powers_off_right_after_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the link stops the hand before the run's task is cancelled: the command on the line
+    # finishes and the power-off follows it. (Cancelled first, the task abandoned the command
+    # mid-reply: the line resynchronised first, ≈ 90 ms instead of ≈ 5–10.)
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> tuple[float, int, Any]:
+        async with connect_hand(cfg, Simulated(fast=True)) as hand:
+            assert hand.bench is not None
+            sdh = hand.bench.sim.sdh
+            runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
+            run = asyncio.create_task(runner.run())
+            while runner.phase is not Phase.ROLLING:
+                await asyncio.sleep(0.01)
+            on_line = asyncio.Event()
+            attempt = JointLink._attempt
+
+            async def watched(self: JointLink, conn: Any, req: Any, *a: Any, **kw: Any) -> Any:
+                if req.keyword == "m":  # the run's move, going out now
+                    on_line.set()
+                return await attempt(self, conn, req, *a, **kw)
+
+            monkeypatch.setattr(JointLink, "_attempt", watched)
+            await on_line.wait()
+            loop = asyncio.get_running_loop()
+            t0, resyncs = loop.time(), hand.joints.stats.resyncs
+            stop = asyncio.create_task(runner.emergency_stop())
+            while any(sdh.powered):
+                await asyncio.sleep(0.0005)
+            off_ms = (loop.time() - t0) * 1000
+            await stop
+            with contextlib.suppress(asyncio.CancelledError):
+                await run
+            return off_ms, hand.joints.stats.resyncs - resyncs, runner.result
+
+    off_ms, resyncs, result = fast(main)
+    assert result.status == "e-stopped"
+    assert resyncs == 0 and off_ms < 30.0, (off_ms, resyncs)
 
 
 def test_lost_joint_line_faults_the_run(tmp_path: Path) -> None:

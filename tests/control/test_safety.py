@@ -123,6 +123,8 @@ def test_an_untouched_grasp_ends_when_its_pads_come_close() -> None:
         Fault.NO_CONTACT, "fingers closed without touching anything (the pads 4.9 mm apart)"
     )
     assert safety.pads_met(0.0) is not None
+    lost = safety.pads_met(4.0, lost=True)  # a pad had touched: the object went, or the pads
+    assert lost is not None and lost.message.startswith("the contact was lost and the fingers ")
 
 
 def test_an_untouched_grasp_that_slows_down_ends_within_its_window() -> None:
@@ -134,6 +136,8 @@ def test_an_untouched_grasp_that_slows_down_ends_within_its_window() -> None:
     assert v == Violation(Fault.NO_CONTACT, "the fingers stopped closing with nothing touched "
                           "(0.60°/s over the last 2.0 s, after 1.88°/s; 3°/s commanded): "
                           "something stops them where no distal pad senses it")  # fmt: skip
+    v = safety.grasp_stalled(1.2, 2.0, 30.0, 16.0, 3.0, lost=True)  # the pads read it, then not
+    assert v is not None and v.message.startswith("no pad reads the contact any more, and the ")
 
 
 def test_a_grasp_ends_only_with_both_contacts() -> None:
@@ -142,6 +146,16 @@ def test_a_grasp_ends_only_with_both_contacts() -> None:
     assert v == Violation(Fault.NO_CONTACT, "no grasp: a contact lost as the grasp settled")
     v = safety.grasp_lost(False, False)
     assert v is not None and "both contacts" in v.message and v.fault is Fault.NO_CONTACT
+    # a pad that never read anything while the other gripped is named, not called "lost"
+    v = safety.grasp_lost(True, False, True, False)
+    assert v is not None and v.message.startswith("no grasp: Finger 2's distal pad read no "
+                                                  "contact during the whole grasp"), v  # fmt: skip
+    v = safety.grasp_lost(False, True, False, True)
+    assert v is not None and "Finger 1's distal pad read no contact" in v.message
+    assert safety.grasp_lost(True, False, True, True) == Violation(
+        Fault.NO_CONTACT, "no grasp: a contact lost as the grasp settled"
+    )  # it had read one
+    assert safety.grasp_lost(True, True, True, False) is None  # (both present: held)
 
 
 def test_closed_empty_on_either_proximal_joint(cfg: Settings) -> None:

@@ -297,10 +297,12 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
     # a fault's message is not said twice when the service's words repeat the plain ones
     said = await page.evaluate("""async () => {
         const m = await import('/web/events.js');
-        return [m.plainMessage('dropped: both contacts lost: the object is no longer held'),
+        return [m.plainMessage('dropped: both contacts lost: the object is no longer held, or '
+                               + 'both distal pads stopped reading it'),
                 m.plainMessage('force_ceiling: F = 6.73 above 3 × Fd')];
     }""")
-    assert said == ["both contacts were lost; the object is no longer held",
+    assert said == ["both contacts were lost; the object is no longer held, or both distal pads "
+                    "stopped reading it",
                     "the grip force went too high (F = 6.73 above 3 × Fd)"], said  # fmt: skip
     # the browser's benign ResizeObserver note is no error
     await page.evaluate(

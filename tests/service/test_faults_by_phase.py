@@ -517,3 +517,45 @@ def test_a_service_started_before_its_hand_waits_for_it(tmp_path: Path) -> None:
                     await cable.close()
 
     run_fast(main())
+
+
+def test_an_estop_while_a_finished_run_is_recorded_is_said_as_the_hands(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run has ended (stopped) and its end is still being written (the database held by
+    another program) when an e-stop comes: the run keeps its end, and the hand's e-stop is
+    published as the hand's own event (it was said nowhere)."""
+    from sdh2svc.service import recording
+    from sdh2svc.service.telemetry import Event
+
+    cfg = _cfg(tmp_path)
+    writing = asyncio.Event()
+    finish = recording.RecordedRun._finish
+
+    async def slow_finish(self: recording.RecordedRun, *args: Any, **kw: Any) -> Any:
+        writing.set()
+        await asyncio.sleep(3.0)
+        return await finish(self, *args, **kw)
+
+    monkeypatch.setattr(recording.RecordedRun, "_finish", slow_finish)
+
+    async def main() -> None:
+        async with service(cfg, Simulated(fast=True)) as (c, services):
+            station = services.station
+            published: list[Any] = []
+            publish = station.hub.publish
+            monkeypatch.setattr(station.hub, "publish",
+                                lambda m: (published.append(m), publish(m))[1])  # fmt: skip
+            await _start(c, station, "rolling", 0.5)
+            assert (await c.post("/api/runs/stop", json={})).status_code == 202
+            await writing.wait()
+            assert station.running  # the run's task is writing its end
+            r = await c.post("/api/estop")
+            assert r.status_code == 200 and r.json()["hand_reached"] is True, r.text
+            await _until_ended(station)
+            kinds = [m.kind for m in published if isinstance(m, Event)]
+            assert kinds.index("end") < kinds.index("estop"), kinds
+            last = station.last_run
+            assert last is not None and last["status"] == "stopped", last
+
+    run_fast(main())
