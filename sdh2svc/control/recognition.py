@@ -91,8 +91,9 @@ class ObjectClass(StrEnum):
 class Recognition:
     """What the rolling revealed so far (lengths in mm, angles in degrees).
 
-    ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b; b is half
-    the narrowest width seen, too large until the object turned across its short axis); box
+    ``size_a``/``size_b`` by class: circle (radius, None); ellipse (semi-axes a ≥ b, from the
+    widest and narrowest caliper widths seen and the product a·b the curved contacts' radii
+    give: :func:`ellipse_axes`); box
     (the side held between the pads, None: the other is not measured); stick (length,
     diameter); polygon (circumradius, None).
     ``side``: the side of A→B the object's centre lies on (:func:`centre_side`), which places
@@ -626,6 +627,38 @@ class _LogHistogram:
         return [self.LO + (bisect.bisect_left(cum, q * self.n) + 0.5) * width for q in qs]
 
 
+class _LogMedian:
+    """The running median of positive values to 1 %: counts of their logs in bins of 0.01 over
+    [``lo``, ``hi``) (values outside count in the end bins), and the median's bin kept as each
+    value comes (it moves a bin or so at a time): constant memory and O(1) per value however
+    long the run."""
+
+    def __init__(self, lo: float, hi: float) -> None:
+        self.lo = lo
+        self.counts = [0] * round((hi - lo) / 0.01)
+        self.n = 0
+        self._m = 0  # the median's bin: the first whose cumulative count reaches n / 2
+        self._cum = 0  # the count of values in bins 0 … _m
+
+    def add(self, value: float) -> None:
+        counts = self.counts
+        i = min(len(counts) - 1, max(0, int((math.log(max(value, 1e-12)) - self.lo) / 0.01)))
+        counts[i] += 1
+        self.n += 1
+        m, cum, half = self._m, self._cum + (i <= self._m), self.n / 2
+        while m > 0 and cum - counts[m] >= half:
+            cum -= counts[m]
+            m -= 1
+        while cum < half:
+            m += 1
+            cum += counts[m]
+        self._m, self._cum = m, cum
+
+    def median(self) -> float | None:
+        """The median (its bin's centre), or None while empty."""
+        return math.exp(self.lo + (self._m + 0.5) * 0.01) if self.n else None
+
+
 MIN_SWEEP = 5  # iterations of an edge run before its sweep counts
 MAX_SWEEPS = 24  # the widest sweeps kept (a run's pivots are few; this bounds the cost)
 _BETAS = np.arange(90.0)  # a box's orientations tried, deg (its directions β + k·90°)
@@ -664,6 +697,11 @@ class _Evidence:
     d_sum: float = 0.0
     d_min: float = math.inf
     d_max: float = 0.0
+    # a·b from each curved contact: an ellipse's radius of curvature where its tangent lies p
+    # from its centre is ρ = (ab)² / p³, and p is half the caliper width, so ab = √ρ · (D/2)^1.5
+    # wherever it touches: the axis the rolling never turned to the pads follows from the other
+    # (mm², from 1 to 22 000)
+    ab: _LogMedian = field(default_factory=lambda: _LogMedian(0.0, 10.0))
     # the touched outline in the object frame (ν − ψ, deg): Σ over the flat contacts of their
     # direction's distance from β + k·90° for every β in _BETAS, and how many; and the pivots'
     # sweeps (each edge run's lowest and highest direction)
@@ -913,6 +951,7 @@ class Recognizer:
         if k1 is None or k2 is None:
             return
         ev.n += 1
+        half_d = lam / math.cos(wedge / 2) / 2
         for k, r in ((k1, r1), (k2, r2)):
             if k is ContactKind.FLAT:
                 ev.flat += 1
@@ -922,6 +961,7 @@ class Recognizer:
                 ev.curved += 1
                 assert r is not None
                 ev.radii.add(r / (lam / 2))
+                ev.ab.add(math.sqrt(r) * half_d**1.5)
         ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
         if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
             ev.both_flat += 1
@@ -1003,12 +1043,25 @@ def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
     if cls is ObjectClass.CIRCLE:  # the caliper width, not the chord Λ (see _Evidence)
         return ev.d_mean / 2, None
     if cls is ObjectClass.ELLIPSE:
-        return ev.d_max / 2, ev.d_min / 2
+        return ellipse_axes(ev.d_max / 2, ev.d_min / 2, ev.ab.median())
     if cls is ObjectClass.STICK:
         return ev.lam_max, max(2 * r_med, 1.0) if r_med is not None else None
     if cls is ObjectClass.BOX:
         return lam_mean, None
     return ev.lam_max / 2, None
+
+
+def ellipse_axes(widest: float, narrowest: float, ab: float | None) -> tuple[float, float]:
+    """An ellipse's semi-axes a ≥ b from the half caliper widths seen (``widest``,
+    ``narrowest``) and the product a·b its curvature gave (None: not known). The widths bound
+    them, a ≥ widest and b ≤ narrowest; with a·b, one of the two is the bound and the other
+    follows (exactly one choice keeps both bounds): a rolling that never turned the object
+    across its short axis showed a but not b, and one that never turned it to its long axis b."""
+    if ab is None:
+        return widest, narrowest
+    if ab <= widest * narrowest:
+        return widest, ab / widest
+    return ab / narrowest, narrowest
 
 
 def classify(
