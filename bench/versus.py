@@ -61,6 +61,10 @@ for case in load_suite("smoke").cases[: int(sys.argv[1])]:
 
 def export(rev: str, into: Path) -> None:
     """``git archive REV`` of this repository, unpacked into ``into``."""
+    known = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet",
+                            f"{rev}^{{commit}}"], capture_output=True, check=False)  # fmt: skip
+    if known.returncode != 0:
+        raise SystemExit(f"python -m bench.versus: {rev!r} is no revision of {ROOT}")
     proc = subprocess.Popen(["git", "-C", str(ROOT), "archive", rev], stdout=subprocess.PIPE)
     assert proc.stdout is not None
     with tarfile.open(fileobj=proc.stdout, mode="r|") as tar:

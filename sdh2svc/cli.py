@@ -774,6 +774,10 @@ def cmd_campaign(args: argparse.Namespace) -> int:
 
     if args.action != "generate" and (args.seed is not None or args.cases is not None):
         _fail(Exit.USAGE, "--seed and --cases go with generate only")
+    if args.action in ("run", "report") and args.output is not None:
+        where = "--out DIR" if args.action == "run" else "DIR/report.md, always"
+        _fail(Exit.USAGE, f"-o/--output goes with compare and generate only ({args.action} "
+                          f"writes into {where})")  # fmt: skip
     try:
         if args.action == "run":
             return _campaign_run(args)
@@ -845,6 +849,11 @@ def _campaign_generate(args: argparse.Namespace) -> int:
         _fail(Exit.USAGE, f"--cases {args.cases}: 1 to 10000 (about 35 ms each to generate)")
     if not 0 <= args.seed <= SEED_MAX:
         _fail(Exit.USAGE, f"--seed {clip(str(args.seed))}: 0 to {SEED_MAX}")
+    longest = f"{name}-polygon-{args.cases - 1:03d}"  # the longest case id, at most 64
+    if len(longest) > 64:
+        _fail(Exit.USAGE, f"suite name {clip(name)!r}: at most {64 - len(longest) + len(name)} "
+                          f"characters for {args.cases} cases (its case ids, such as "
+                          f"{clip(longest)!r}, are at most 64)")  # fmt: skip
     out = Path(args.output or f"{name}.json")
     if out.exists():
         _fail(Exit.USAGE, f"{out} exists: a suite is never rewritten (give another -o FILE)")
@@ -877,6 +886,9 @@ def _campaign_run(args: argparse.Namespace) -> int:
     suite = load_suite(args.dir)
     out = Path(args.out or f"campaigns/{suite.name}")
     previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill`: stopped as by Ctrl-C
+    # SIGINT heard even where the shell had it ignored (a job started in the background):
+    # SIGTERM is sent on as SIGINT
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
                                overrides=args.overrides, config_path=args.config,
@@ -887,6 +899,7 @@ def _campaign_run(args: argparse.Namespace) -> int:
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
     n = outcome.total
     print(f"{out}: {n} cases ({outcome.skipped} already there, {outcome.ran} run in "
           f"{outcome.wall_s:.1f} s), success {outcome.succeeded}/{n}"
@@ -897,8 +910,11 @@ def _campaign_run(args: argparse.Namespace) -> int:
 
 
 def _interrupt(signum: int, frame: object) -> None:
-    """SIGTERM as Ctrl-C: the campaign stops its workers and keeps what has finished."""
-    raise KeyboardInterrupt
+    """SIGTERM as Ctrl-C: the campaign stops its workers and keeps what has finished. Sent on
+    as SIGINT, to SIGINT's own handler: while a case runs in this process that is asyncio's,
+    which cancels the case's task. A KeyboardInterrupt raised here could land inside the event
+    loop's own bookkeeping, and the loop then waited forever for a wake-up it had lost."""
+    signal.raise_signal(signal.SIGINT)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -29,7 +29,7 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.safety import RunConfig, SafetyConfig, params_outside
 from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import TactileCalibration, saturated_force
-from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig
+from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig, matrix_pads
 from sdh2svc.model.kinematics import Finger, FingerLimits, HandGeometry
 from sdh2svc.model.observe import ModelContext
 from sdh2svc.sim.simconfig import SimConfig
@@ -121,6 +121,7 @@ class Settings(BaseSettings):
         for a, b in itertools.combinations(ports, 2):
             if ports[a] and ports[a] == ports[b]:
                 problems.append(f"service.{a} and service.{b} are both {ports[a]}: one port each")
+        problems += self._dead_texels_outside()
         sim = self.sim.links
         if sim.dsa_tcp_port and sim.dsa_tcp_port == sim.sdh_tcp_port:
             problems.append(f"sim.links.dsa_tcp_port and sdh_tcp_port are both "
@@ -128,6 +129,20 @@ class Settings(BaseSettings):
         if problems:
             raise ValueError("; ".join(problems))
         return self
+
+    def _dead_texels_outside(self) -> list[str]:
+        """sim.sensor.dead_texels on a position its matrix does not have (as wired here)."""
+        pads = matrix_pads(self.axes, self.tactile)
+        out = []
+        for m, r, c in self.sim.sensor.dead_texels:
+            name, lay = pads[m]
+            if r >= lay.rows or c >= lay.cols:
+                out.append(f"sim.sensor.dead_texels [{m}, {r}, {c}]: matrix {m}, the {name}, "
+                           f"has rows 0…{lay.rows - 1} and columns 0…{lay.cols - 1}")  # fmt: skip
+            elif not lay.valid()[r, c]:
+                out.append(f"sim.sensor.dead_texels [{m}, {r}, {c}]: matrix {m}, the {name}, "
+                           "has no cell there (its mask's '.')")  # fmt: skip
+        return out
 
     def model_context(self) -> ModelContext:
         """The pure model's view of this configuration."""

@@ -85,6 +85,24 @@ class Case(Finite):
     )
 
     @model_validator(mode="after")
+    def _family_is_the_objects(self) -> Case:
+        """The family names the object's kind (a report's and a comparison's rates by family
+        count it there): a box without rounded corners, a rounded one a box with them; the
+        thesis's family holds its objects, whatever their kind."""
+        if self.family == "thesis":
+            return self
+        kind = self.object.kind
+        rounded = (getattr(self.object, "corner_radius_mm", 0.0) or 0.0) > 0.0
+        want = {"rounded": "box"}.get(self.family, self.family)
+        if kind != want or (kind == "box" and rounded != (self.family == "rounded")):
+            what = f"a {kind}"
+            if kind == "box":
+                what = f"a box with{'' if rounded else 'out'} rounded corners"
+            raise ValueError(f"family {self.family!r} but the object is {what} (box: without "
+                             "rounded corners; rounded: a box with them; thesis: any)")  # fmt: skip
+        return self
+
+    @model_validator(mode="after")
     def _width_is_the_objects(self) -> Case:
         """The stated width is the object's at its angle (a wrong one would skew every Λ error
         the campaign reports), and one the open fingers take."""
@@ -129,7 +147,8 @@ class Suite(Finite):
 
     @classmethod
     def load(cls, path: str | Path) -> Suite:
-        return cls.model_validate_json(Path(path).read_bytes())
+        # strict: a number written as a string ("seed": "3") is a mistake in a file, not a seed
+        return cls.model_validate_json(Path(path).read_bytes(), strict=True)
 
     def dump(self, path: str | Path) -> None:
         Path(path).write_text(self.to_json())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -230,7 +231,7 @@ def write_report(out: Path) -> Path:
         rs = fams[fam]
         errs = sorted(r["lambda_error_mm"] for r in rs if r["lambda_error_mm"] is not None)
         walls = [r["wall_s"] for r in rs if r["wall_s"] is not None]
-        med = errs[len(errs) // 2] if errs else None
+        med = statistics.median(errs) if errs else None  # (the mean of two middle ones)
         lines.append(f"| {fam} | {len(rs)} | {rate(rs)} | {_fmt(med)} | "
                      f"{_fmt(sum(walls) / len(walls) if walls else None, 1)} |")  # fmt: skip
     lines += _headline(rows)

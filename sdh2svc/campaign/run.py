@@ -463,7 +463,9 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
     except (OSError, ValueError) as e:
         raise CampaignError(2, f"{path} cannot be read ({e}): is {out} a campaign? "
                             "give another --out") from None  # fmt: skip
-    for key in ("suite_digest", "overrides", "config", "code", "judge"):
+    # (not the --set text: the same values in another order or spelling are the same campaign,
+    # and the effective configuration they make is compared)
+    for key in ("suite_digest", "config", "code", "judge"):
         if old.get(key) != info[key]:
             shown = (f"{clip(repr(old.get(key)))} there, {clip(repr(info[key]))} now"
                      if key != "config" else _config_change(old.get(key), info[key]))  # fmt: skip
@@ -489,14 +491,24 @@ def _config_change(old: Any, new: Mapping[str, Any]) -> str:
     return shown + (f"; and {len(keys) - 3} more" if len(keys) > 3 else "")
 
 
+# Keys a campaign sets for every case itself: a --set of one would be recorded, and ignored.
+RUN_KEYS = {
+    "sim.object": "each case runs its own object (the suite's)",
+    "storage.db_path": "each case records its run in a database of its own",
+}
+
+
 def check_overrides(overrides: Sequence[str], config_path: str | None = None) -> None:
     """No key each case sets itself (Case.overrides: where the object is placed, the seed, the
     sensor's variation) changed by ``--set``, ``--config`` or the environment: the case's value
     would win without a word, while the campaign recorded the change as in effect.
     ``sim.sensor.gain_vs_library`` is the nominal gain every case's ``gain_factor`` scales:
-    that one may be set."""
+    that one may be set. Nor the keys the campaign decides itself (:data:`RUN_KEYS`)."""
     for text in overrides:
         key = text.partition("=")[0].strip()
+        if key in RUN_KEYS:
+            raise CampaignError(2, f"--set {clip(text)}: {RUN_KEYS[key]}, whatever it is "
+                                "set to")  # fmt: skip
         if key in CASE_KEYS:
             raise CampaignError(2, f"--set {clip(text)}: {key} is set by each case (its "
                                 "placement, seed or sensor); change it in the suite's "

@@ -80,8 +80,9 @@ def test_a_resume_under_another_configuration_is_refused(tmp_path: Path) -> None
     k3.write_text("[rolling]\nk = 3.0\n")
     with pytest.raises(camp.CampaignError, match=r"config differs: rolling\.k: 2\.0 there, 3\.0"):
         run(suite(1, 2), out, overrides=["rolling.cycles=1"], config_path=str(k3))
-    # the same configuration again resumes (nothing left to run)
+    # the same configuration again resumes (nothing left to run), however its --set is spelt
     assert run(suite(1, 2), out, overrides=["rolling.cycles=1"]).ran == 0
+    assert run(suite(1, 2), out, overrides=["rolling.cycles = 1", "rolling.k=2"]).ran == 0
 
 
 @pytest.mark.parametrize(
@@ -100,6 +101,17 @@ def test_a_set_of_what_each_case_sets_is_refused(key: str, tmp_path: Path) -> No
     assert not (tmp_path / "out").exists()
     # the nominal gain the cases scale is the campaign's to set
     assert run(suite(1), tmp_path / "ok", overrides=["sim.sensor.gain_vs_library=0.06"]).ran == 1
+
+
+@pytest.mark.parametrize("key", ['sim.object="rubber"', 'storage.db_path="/tmp/x.sqlite"'])
+def test_a_set_of_what_the_campaign_sets_for_every_case_is_refused(
+    key: str, tmp_path: Path
+) -> None:
+    """Each case runs its own object, recorded in its own database: a --set of either was
+    recorded as in effect and changed nothing."""
+    with pytest.raises(camp.CampaignError, match="whatever it is set to"):
+        run(suite(1), tmp_path / "out", overrides=[key])
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_crashed_case_runs_again_on_resume(tmp_path: Path) -> None:
@@ -148,6 +160,12 @@ def test_suites_that_cannot_be_run_or_judged_are_refused(tmp_path: Path) -> None
     refused({}, {"height_mm": float("nan")}, "finite number")
     wide = get_object("stick119").model_copy(update={"length_mm": 140.0}).model_dump()
     refused({}, {"object": wide, "true_width_mm": 140.0}, "the open fingers take at most 122.5")
+    # a number written as a string is a mistake in the file, not a seed or a height
+    refused({}, {"seed": "3"}, "cases.0.seed = '3'")
+    refused({}, {"height_mm": "124.5"}, "cases.0.height_mm = '124.5'")
+    # the family names the object's kind: the rubber (a box with rounded corners) is no circle
+    refused({}, {"family": "circle"}, "family 'circle' but the object is a box with rounded")
+    refused({}, {"family": "box"}, "family 'box' but the object is a box with rounded corners")
     latin1 = tmp_path / "latin1.json"
     latin1.write_bytes(b'{"name": "b\xe4d", "cases": []}')
     with pytest.raises(ConfigError, match="not a JSON suite file"):
@@ -177,6 +195,8 @@ def test_report_and_compare_take_only_their_own_arguments(
         (["report", str(out), str(out)], "report takes one campaign folder"),
         (["report", str(out), "--set", "rolling.k=3"], "--set: options of campaign run"),
         (["compare", str(out), str(out), "--workers", "2"], "--workers: options of campaign run"),
+        (["report", str(out), "-o", str(tmp_path / "r.md")], "-o/--output goes with compare"),
+        (["run", "smoke", "-o", str(tmp_path / "r")], "-o/--output goes with compare"),
     ):
         assert main(["campaign", *args]) == 2, args
         assert fragment in capsys.readouterr().err
@@ -372,3 +392,14 @@ def test_a_seed_beyond_64_bits_and_a_ray_address_without_a_port_are_usage_errors
     with pytest.raises(camp.CampaignError, match="--ray nohost: give auto, local, HOST:PORT"):
         run(suite(1), tmp_path / "o", ray_address="nohost")
     assert not (tmp_path / "o").exists()
+
+
+def test_a_suite_name_too_long_for_its_case_ids_is_a_usage_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # a 53-character name: the ids NAME-polygon-001 are 65; it ended as "a bug" (exit 70)
+    out = tmp_path / "g.json"
+    cmd = ["campaign", "generate", "a" * 53, "--seed", "1", "--cases", "2", "-o", str(out)]
+    assert main(cmd) == 2
+    assert "at most 52 characters for 2 cases" in capsys.readouterr().err
+    assert not out.exists()

@@ -147,6 +147,15 @@ def test_compare_writes_nothing_into_its_inputs_and_pairs_no_crash(
     assert out.read_text() == text
 
 
+def test_the_familys_lambda_error_is_its_median(tmp_path: Path) -> None:
+    # two boxes, −1 and −2 mm: the median is −1.5 (it read the upper of the middle two)
+    rows = [good(case(1, "box"), lambda_error_mm=-1.0), good(case(2, "box"), lambda_error_mm=-2.0)]
+    write(tmp_path / "a", rows)
+    assert main(["campaign", "report", str(tmp_path / "a")]) == 0
+    md = (tmp_path / "a" / "report.md").read_text()
+    assert any(line.startswith("| box | 2 |") and "| -1.50 |" in line for line in md.splitlines())
+
+
 def test_report_on_a_directory_without_a_campaign_is_not_found(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -197,6 +197,40 @@ def _resume_runs_only_the_rest(suite: Suite, out: Path, done: list[str]) -> camp
     return res
 
 
+def test_sigterm_reaches_a_case_running_here_as_ctrl_c_does() -> None:
+    """SIGTERM is sent on as SIGINT, to asyncio's handler while a case runs in this process: it
+    cancels the case's task, which ends before the interrupt leaves the loop. Raised as a bare
+    KeyboardInterrupt at any point, it could land inside the loop's own bookkeeping, and the
+    campaign then hung (4 of 60 timed SIGTERMs); a bare one leaves the loop first and the task
+    is cancelled only as the loop closes."""
+    import asyncio
+
+    from sdh2svc.cli import _interrupt
+
+    order: list[str] = []
+
+    async def case() -> None:
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            await asyncio.sleep(10.0)
+        except asyncio.CancelledError:
+            order.append("cancelled")
+            raise
+
+    term = signal.signal(signal.SIGTERM, _interrupt)
+    sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with asyncio.Runner() as runner:
+            try:
+                runner.run(case())
+            except KeyboardInterrupt:
+                order.append("interrupted")
+    finally:
+        signal.signal(signal.SIGTERM, term)
+        signal.signal(signal.SIGINT, sigint)
+    assert order == ["cancelled", "interrupted"]
+
+
 # the pool: a single process is the simpler case; SIGTERM (`kill`) stops it as Ctrl-C does
 @pytest.mark.parametrize(("workers", "sig"), [(2, signal.SIGINT), (2, signal.SIGTERM)])
 def test_ctrl_c_keeps_every_finished_case_and_a_rerun_completes(
