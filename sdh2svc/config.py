@@ -131,18 +131,16 @@ class Settings(BaseSettings):
         return self
 
     def _dead_texels_outside(self) -> list[str]:
-        """sim.sensor.dead_texels on a position its matrix does not have (as wired here)."""
+        """sim.sensor.dead_texels outside its matrix's rows and columns (as wired here). A
+        position of the layout without a cell (its mask's '.') reads 0 already: listed, as
+        when a whole pad is listed dead, it changes nothing."""
         pads = matrix_pads(self.axes, self.tactile)
-        out = []
-        for m, r, c in self.sim.sensor.dead_texels:
-            name, lay = pads[m]
-            if r >= lay.rows or c >= lay.cols:
-                out.append(f"sim.sensor.dead_texels [{m}, {r}, {c}]: matrix {m}, the {name}, "
-                           f"has rows 0…{lay.rows - 1} and columns 0…{lay.cols - 1}")  # fmt: skip
-            elif not lay.valid()[r, c]:
-                out.append(f"sim.sensor.dead_texels [{m}, {r}, {c}]: matrix {m}, the {name}, "
-                           "has no cell there (its mask's '.')")  # fmt: skip
-        return out
+        return [
+            f"sim.sensor.dead_texels [{m}, {r}, {c}]: matrix {m}, the {pads[m][0]}, has rows "
+            f"0…{pads[m][1].rows - 1} and columns 0…{pads[m][1].cols - 1}"
+            for m, r, c in self.sim.sensor.dead_texels
+            if r >= pads[m][1].rows or c >= pads[m][1].cols
+        ]
 
     def model_context(self) -> ModelContext:
         """The pure model's view of this configuration."""

@@ -367,6 +367,7 @@ class Runner:
             if self._adopt_pending():  # a new Fd: the grasp closes towards it from this frame
                 fd = self.params.grasp_force
                 law = replace(law, grasp_force=fd)
+                free = closing_speed(0.0, law)
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)

@@ -81,13 +81,11 @@ def test_impossible_dead_texels_are_refused(value: str) -> None:
         load_config(overrides=[f"sim.sensor.dead_texels={value}"], use_env=False)
 
 
-@pytest.mark.parametrize(
-    ("value", "said"),
-    [("[[1, 13, 0]]", "has rows 0…12 and columns 0…5"),  # the distal pads have 13 rows
-     ("[[1, 0, 0]]", "has no cell there")],  # the fingertip end of the pad is 4 cells wide
-)  # fmt: skip
-def test_a_dead_texel_its_matrix_does_not_have_is_refused(value: str, said: str) -> None:
+def test_a_dead_texel_outside_its_matrix_is_refused() -> None:
     # refused with the configuration, before anything runs (a campaign's case crashed at its
-    # run, on every resume)
-    with pytest.raises(ConfigError, match=said):
-        load_config(overrides=[f"sim.sensor.dead_texels={value}"], use_env=False)
+    # run, on every resume); the distal pads have 13 rows
+    with pytest.raises(ConfigError, match="has rows 0…12 and columns 0…5"):
+        load_config(overrides=["sim.sensor.dead_texels=[[1, 13, 0]]"], use_env=False)
+    # a position without a cell (the fingertip end of the pad is 4 cells wide) reads 0 anyway:
+    # a whole pad listed dead lists it too
+    load_config(overrides=["sim.sensor.dead_texels=[[1, 0, 0]]"], use_env=False)
