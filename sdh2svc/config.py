@@ -436,9 +436,16 @@ def format_errors(
         allowed = _allowed_range(model, loc)
         msg = error_message(e).removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            msg = unknown_key(model_keys(model, loc[:-1]))
+            msg = REMOVED_KEYS.get(key) or unknown_key(model_keys(model, loc[:-1]))
         lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
     return lines
+
+
+# Keys an earlier version had: a file that still sets one is told why, not only that it is unknown
+REMOVED_KEYS = {
+    "run.watch_rate_hz": "a key no longer read (every tactile frame carries all six pads at "
+    "the run's rate): drop it from the configuration",
+}
 
 
 def unknown_key(keys: Iterable[str] | None) -> str:

@@ -71,6 +71,7 @@ def _problems(*overrides: str) -> str:
         ("rolling.mode='three-finger'", ["rolling.mode", "'two-finger' or 'one-finger'"]),
         ("rolling.speed=3", ["rolling.speed", "unknown key (the keys there are: mode, route,"]),
         ("rollin.k=3", ["rollin (--set rollin.k=3): unknown key (the keys there are:", "rolling"]),
+        ("run.watch_rate_hz=2", ["run.watch_rate_hz = 2", "a key no longer read", "drop it"]),
         ("limits.max_deg=[90, 90, 90, 90, 90, 90, 200]", ["limits.max_deg.6 = 200", "≤ 180.0"]),
         ("limits.min_deg=[0, 0]", ["limits.min_deg", "7"]),
         ("limits.min_deg=[0, 90, -90, -90, -90, -90, -90]", ["limits", "axes [1]"]),

@@ -523,6 +523,10 @@ def check_overrides(overrides: Sequence[str], config_path: str | None = None) ->
             raise CampaignError(2, f"{key} = {clip(repr(a))} (from --set, --config or the "
                                 "environment): it is set by each case (its placement, seed "
                                 "or sensor); change it in the suite's cases")  # fmt: skip
+    if given["sim"]["object"] != default["sim"]["object"]:  # (storage.db_path: the Dockerfile's)
+        raise CampaignError(2, f"sim.object = {clip(repr(given['sim']['object']))} (from "
+                            f"--config or the environment): {RUN_KEYS['sim.object']}; leave it "
+                            "out of the campaign's configuration")  # fmt: skip
 
 
 RAY_CONNECT_S = 10.0

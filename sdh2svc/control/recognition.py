@@ -709,9 +709,9 @@ class _Evidence:
     faces_n: int = 0
     sweeps: list[tuple[float, float]] = field(default_factory=list)
 
-    def add_width(self, lam: float, psi: float, wedge: float = 0.0) -> None:
+    def add_width(self, lam: float, psi: float, wedge: float = 0.0) -> float:
         """One iteration's Λ (mm) at the object's rotation ψ, between pads whose surfaces
-        meet at ``wedge`` (rad; 0: parallel)."""
+        meet at ``wedge`` (rad; 0: parallel); returns the caliper width D."""
         self.lam_min, self.lam_max = min(self.lam_min, lam), max(self.lam_max, lam)
         self.lam_sum += lam
         self.lam_n += 1
@@ -721,6 +721,7 @@ class _Evidence:
         self.p_sum += psi
         self.pp_sum += psi * psi
         self.pd_sum += psi * d
+        return d
 
     @property
     def d_mean(self) -> float:
@@ -946,12 +947,11 @@ class Recognizer:
         ev = self._ev
         # the pads' wedge: how far their surfaces at the contacts are from parallel
         wedge = abs((nus[0] - nus[1] + math.pi / 2) % math.pi - math.pi / 2)
-        ev.add_width(lam, self._psi, wedge)
+        d = ev.add_width(lam, self._psi, wedge)
         self._trace(nus, (k1, k2))
         if k1 is None or k2 is None:
             return
         ev.n += 1
-        half_d = lam / math.cos(wedge / 2) / 2
         for k, r in ((k1, r1), (k2, r2)):
             if k is ContactKind.FLAT:
                 ev.flat += 1
@@ -961,7 +961,7 @@ class Recognizer:
                 ev.curved += 1
                 assert r is not None
                 ev.radii.add(r / (lam / 2))
-                ev.ab.add(math.sqrt(r) * half_d**1.5)
+                ev.ab.add(ellipse_ab(r, d / 2))
         ev.both_edge += k1 is ContactKind.EDGE and k2 is ContactKind.EDGE
         if k1 is ContactKind.FLAT and k2 is ContactKind.FLAT:
             ev.both_flat += 1
@@ -1049,6 +1049,12 @@ def sizes(cls: ObjectClass, ev: _Evidence) -> tuple[float | None, float | None]:
     if cls is ObjectClass.BOX:
         return lam_mean, None
     return ev.lam_max / 2, None
+
+
+def ellipse_ab(radius: float, p: float) -> float:
+    """a·b of an ellipse whose radius of curvature is ``radius`` where its tangent lies ``p``
+    from its centre (half its caliper width there): ρ = (ab)² / p³."""
+    return float(math.sqrt(radius) * p**1.5)
 
 
 def ellipse_axes(widest: float, narrowest: float, ab: float | None) -> tuple[float, float]:

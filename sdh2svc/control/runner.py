@@ -215,7 +215,7 @@ class Runner:
 
     async def estop_reported(self) -> None:
         """Once an e-stop's events are out (a recording waits for them before it closes: the
-        run's task is cancelled before the stop has latched)."""
+        run's task may end, refused by the latch, before the e-stop has said so)."""
         if self._estopping:
             await self._estopped.wait()
 
@@ -368,6 +368,7 @@ class Runner:
                 fd = self.params.grasp_force
                 law = replace(law, grasp_force=fd)
                 free = closing_speed(0.0, law)
+                progress.clear()  # the stall's window: frames at the new speed only
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)

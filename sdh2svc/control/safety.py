@@ -317,7 +317,8 @@ def grasp_stalled(window_deg: float, window_s: float, closed_deg: float, since_s
     had touched before (the pads may have gone dead on the object)."""
     if window_s < STALL_S or since_s <= 0.0:
         return None
-    rate, mean = window_deg / window_s, closed_deg / since_s
+    # (the mean no faster than commanded now: an Fd lowered mid-grasp slows the closing)
+    rate, mean = window_deg / window_s, min(closed_deg / since_s, commanded)
     if rate < SLOWDOWN * mean:
         what = "no pad reads the contact any more, and " if lost else ""
         return Violation(Fault.NO_CONTACT, f"{what}the fingers stopped closing with nothing "

@@ -321,7 +321,12 @@ class HandService:
         (one that had already ended, and is only being recorded, keeps its end), or an opening
         hand stops."""
         if runner is not None:
-            if not await runner.emergency_stop():  # ended, its record still being written
+            if runner.begin_emergency_stop():
+                await runner.emergency_stop()
+                return
+            try:  # the run has ended, its record still being written: the hand's own e-stop
+                await joints.emergency_stop()
+            finally:
                 self._hand_event(EventKind.ESTOP, {})
         else:
             await self._cancel_opening()

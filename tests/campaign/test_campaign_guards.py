@@ -112,6 +112,11 @@ def test_a_set_of_what_the_campaign_sets_for_every_case_is_refused(
     with pytest.raises(camp.CampaignError, match="whatever it is set to"):
         run(suite(1), tmp_path / "out", overrides=[key])
     assert not (tmp_path / "out").exists()
+    if key.startswith("sim.object"):  # from a file too (the database's path may come from one)
+        toml = tmp_path / "obj.toml"
+        toml.write_text('[sim]\nobject = "rubber"\n')
+        with pytest.raises(camp.CampaignError, match="from --config or the environment"):
+            run(suite(1), tmp_path / "out", config_path=str(toml))
 
 
 def test_a_crashed_case_runs_again_on_resume(tmp_path: Path) -> None:

@@ -33,6 +33,7 @@ from sdh2svc.control.recognition import (
     class_features,
     classify,
     contact_features,
+    ellipse_ab,
     ellipse_axes,
     outline,
     pressure_profile,
@@ -129,7 +130,7 @@ def evidence(
             if k is ContactKind.CURVED:
                 assert radius is not None
                 ev.radii.add(radius / (lam / 2))
-                ev.ab.add(math.sqrt(radius) * (lam / 2) ** 1.5)  # as Recognizer._gather
+                ev.ab.add(ellipse_ab(radius, lam / 2))  # as Recognizer._gather
         if k1 is k2 is ContactKind.FLAT:
             ev.both_flat += 1
             ev.parallel += parallel
@@ -176,7 +177,7 @@ def test_the_ellipses_axes_from_its_widths_and_its_curvature() -> None:
         t = np.linspace(min(lo, reach), max(lo, reach), 50)  # the tangent's direction
         p = np.sqrt(a**2 * np.cos(t) ** 2 + b**2 * np.sin(t) ** 2)  # the half caliper width
         rho = (a * b) ** 2 / p**3
-        ab = float(np.median(np.sqrt(rho) * p**1.5))
+        ab = float(np.median([ellipse_ab(r, q) for r, q in zip(rho, p, strict=True)]))
         got = ellipse_axes(float(p.max()), float(p.min()), ab)
         assert got == pytest.approx((a, b), rel=1e-9)
     assert ellipse_axes(30.0, 20.0, None) == (30.0, 20.0)

@@ -136,6 +136,8 @@ def test_an_untouched_grasp_that_slows_down_ends_within_its_window() -> None:
     assert v == Violation(Fault.NO_CONTACT, "the fingers stopped closing with nothing touched "
                           "(0.60°/s over the last 2.0 s, after 1.88°/s; 3°/s commanded): "
                           "something stops them where no distal pad senses it")  # fmt: skip
+    # Fd lowered mid-grasp: 0.5 °/s commanded now; 0.81 °/s after a mean of 1.67 is no stall
+    assert safety.grasp_stalled(1.62, 2.0, 25.0, 15.0, 0.5) is None
     v = safety.grasp_stalled(1.2, 2.0, 30.0, 16.0, 3.0, lost=True)  # the pads read it, then not
     assert v is not None and v.message.startswith("no pad reads the contact any more, and the ")
 

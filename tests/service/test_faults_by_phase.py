@@ -24,6 +24,7 @@ from typing import Any
 import httpx
 import pytest
 
+from sdh2svc.bus.joint import LinkLost
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Real, Simulated, simulated_hand
 from sdh2svc.service.hand_service import HandService
@@ -519,12 +520,13 @@ def test_a_service_started_before_its_hand_waits_for_it(tmp_path: Path) -> None:
     run_fast(main())
 
 
+@pytest.mark.parametrize("reached", [True, False], ids=["hand-reached", "line-failed"])
 def test_an_estop_while_a_finished_run_is_recorded_is_said_as_the_hands(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, reached: bool
 ) -> None:
     """The run has ended (stopped) and its end is still being written (the database held by
     another program) when an e-stop comes: the run keeps its end, and the hand's e-stop is
-    published as the hand's own event (it was said nowhere)."""
+    published as the hand's own event (it was said nowhere), also when the line fails it."""
     from sdh2svc.service import recording
     from sdh2svc.service.telemetry import Event
 
@@ -550,8 +552,16 @@ def test_an_estop_while_a_finished_run_is_recorded_is_said_as_the_hands(
             assert (await c.post("/api/runs/stop", json={})).status_code == 202
             await writing.wait()
             assert station.running  # the run's task is writing its end
+            if not reached:
+                joints = station.joints
+                assert joints is not None
+
+                async def lost() -> Any:
+                    raise LinkLost("the joint line is gone")
+
+                monkeypatch.setattr(joints, "emergency_stop", lost)
             r = await c.post("/api/estop")
-            assert r.status_code == 200 and r.json()["hand_reached"] is True, r.text
+            assert r.status_code == 200 and r.json()["hand_reached"] is reached, r.text
             await _until_ended(station)
             kinds = [m.kind for m in published if isinstance(m, Event)]
             assert kinds.index("end") < kinds.index("estop"), kinds
