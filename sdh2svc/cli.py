@@ -833,7 +833,7 @@ def _campaign_generate(args: argparse.Namespace) -> int:
     objects it was not chosen on)."""
 
     from sdh2svc.campaign.case import SEED_MAX
-    from sdh2svc.campaign.generate import generated_suite
+    from sdh2svc.campaign.generate import GENERATED, generated_id, generated_suite
 
     name = args.dir
     if args.dir_b is not None:
@@ -849,7 +849,7 @@ def _campaign_generate(args: argparse.Namespace) -> int:
         _fail(Exit.USAGE, f"--cases {args.cases}: 1 to 10000 (about 35 ms each to generate)")
     if not 0 <= args.seed <= SEED_MAX:
         _fail(Exit.USAGE, f"--seed {clip(str(args.seed))}: 0 to {SEED_MAX}")
-    longest = f"{name}-polygon-{args.cases - 1:03d}"  # the longest case id, at most 64
+    longest = max((generated_id(f"{name}-", f, args.cases - 1) for f in GENERATED), key=len)
     if len(longest) > 64:
         _fail(Exit.USAGE, f"suite name {clip(name)!r}: at most {64 - len(longest) + len(name)} "
                           f"characters for {args.cases} cases (its case ids, such as "

@@ -93,9 +93,22 @@ from sdh2svc.sim.physics import (
     link_frame_rows,
 )
 
-__all__ = ["GENERATED", "SUITE_SEEDS", "build_suite", "generate_cases", "load_suite"]
+__all__ = [
+    "GENERATED",
+    "SUITE_SEEDS",
+    "build_suite",
+    "generate_cases",
+    "generated_id",
+    "load_suite",
+]
 
 GENERATED: tuple[str, ...] = tuple(f for f in FAMILIES if f != "thesis")
+
+
+def generated_id(prefix: str, family: str, i: int) -> str:
+    """The id of a suite's ``i``-th generated case (``prefix``: the suite's name and a dash)."""
+    return f"{prefix}{family}-{i:03d}"
+
 
 # ranges (see the module docstring)
 WIDTH_MM = (15.0, 120.0)
@@ -431,7 +444,7 @@ def generate_cases(
     cases: list[Case] = []
     for i in range(n):
         family = GENERATED[i % len(GENERATED)]
-        case_id = f"{prefix}{family}-{i:03d}"
+        case_id = generated_id(prefix, family, i)
         material = Material(
             mass_g=_r(_log_uniform(u["mass"][i], *MASS_G)),
             friction=_r(_lin(u["friction"][i], *FRICTION)),

@@ -183,9 +183,9 @@ class Runner:
             self.result.strokes = self.state.strokes
         return True
 
-    async def emergency_stop(self) -> bool:
-        """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase; False if
-        the run had already ended (it keeps its end, and says nothing of the hand's e-stop).
+    async def emergency_stop(self) -> None:
+        """SCHUNK's e-stop, ahead of anything queued on the joint line, from any phase (a run
+        that had already ended keeps its end, and says nothing of the hand's e-stop).
 
         The run is marked e-stopped (:meth:`begin_emergency_stop`) first, so however the stop
         reaches its task (a command refused by the latch, or the cancellation), it ends
@@ -197,7 +197,7 @@ class Runner:
         """
         if not self.begin_emergency_stop():  # the run has ended as it ended: the hand alone
             await self.joints.emergency_stop()
-            return False
+            return
         try:
             await self.joints.emergency_stop()
         finally:
@@ -211,7 +211,6 @@ class Runner:
                 end = {"status": "e-stopped", "message": self.result.message, "recognition": rec}
                 self._event(EventKind.END, end)
                 self._estopped.set()
-        return True
 
     async def estop_reported(self) -> None:
         """Once an e-stop's events are out (a recording waits for them before it closes: the

@@ -320,17 +320,14 @@ class HandService:
         """The e-stop sent to the hand: the run that was running when it came ends e-stopped
         (one that had already ended, and is only being recorded, keeps its end), or an opening
         hand stops."""
-        if runner is not None:
-            if runner.begin_emergency_stop():
-                await runner.emergency_stop()
-                return
-            try:  # the run has ended, its record still being written: the hand's own e-stop
-                await joints.emergency_stop()
-            finally:
-                self._hand_event(EventKind.ESTOP, {})
-        else:
-            await self._cancel_opening()
+        if runner is not None and runner.begin_emergency_stop():
+            await runner.emergency_stop()
+            return
+        # the hand's own e-stop: no run, or one that has ended and is still being recorded
+        await self._cancel_opening()
+        try:
             await joints.emergency_stop()
+        finally:
             self._hand_event(EventKind.ESTOP, {})
 
     async def _recorded(self, record: asyncio.Future[dict[str, str]], since: str) -> bool | None:

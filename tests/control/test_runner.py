@@ -17,7 +17,7 @@ import pytest
 
 from sdh2svc.bus.joint import JointLink
 from sdh2svc.config import Settings, load_config
-from sdh2svc.connect import Simulated, connect_hand
+from sdh2svc.connect import Bench, Hand, Simulated, connect_hand
 from sdh2svc.control import runner as runner_module
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.runner import Phase, Runner
@@ -42,6 +42,16 @@ async def rig(cfg: Settings, tmp: Path) -> AsyncIterator[tuple[SimulatedHand, Ru
         assert hand.bench is not None
         runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
         yield hand.bench.sim, runner
+
+
+@contextlib.asynccontextmanager
+async def bench_rig(cfg: Settings) -> AsyncIterator[tuple[Hand, Bench, Runner, asyncio.Task[Any]]]:
+    """The simulated hand in fast mode, its bench (the world to change mid-run) and a runner
+    already running."""
+    async with connect_hand(cfg, Simulated(fast=True)) as hand:
+        assert hand.bench is not None
+        runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
+        yield hand, hand.bench, runner, asyncio.create_task(runner.run())
 
 
 class Seen(BaseObserver):
@@ -224,12 +234,9 @@ def test_an_object_taken_away_after_the_touch_stops_the_fingers_before_the_pads_
     cfg = cfg_with(tmp_path)
 
     async def main() -> Any:
-        async with connect_hand(cfg, Simulated(fast=True)) as hand:
-            assert hand.bench is not None
-            runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
-            run = asyncio.create_task(runner.run())
+        async with bench_rig(cfg) as (hand, bench, runner, run):
             await _until_touched(hand, runner, cfg)
-            hand.bench.place(hand.bench.obj, height_mm=400.0)  # out of the fingers' reach
+            bench.place(bench.obj, height_mm=400.0)  # out of the fingers' reach
             result = await run
             return result, await runner.joints.get_actual()
 
@@ -247,14 +254,11 @@ def test_pads_that_go_dead_on_the_object_during_the_grasp_stop_it_at_once(tmp_pa
     cfg = cfg_with(tmp_path)
 
     async def main() -> Any:
-        async with connect_hand(cfg, Simulated(fast=True)) as hand:
-            assert hand.bench is not None
-            runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
-            run = asyncio.create_task(runner.run())
+        async with bench_rig(cfg) as (hand, bench, runner, run):
             await _until_touched(hand, runner, cfg)
             axes = cfg.control().axes
-            hand.bench.sim.world.sensor.fail([axes.finger1_distal_matrix,
-                                              axes.finger2_distal_matrix])  # fmt: skip
+            bench.sim.world.sensor.fail([axes.finger1_distal_matrix,
+                                         axes.finger2_distal_matrix])  # fmt: skip
             dead_at = asyncio.get_running_loop().time()
             result = await run
             return result, asyncio.get_running_loop().time() - dead_at
@@ -511,11 +515,8 @@ def test_an_estop_while_the_runs_command_is_on_the_line_powers_off_right_after_i
     cfg = cfg_with(tmp_path)
 
     async def main() -> tuple[float, int, Any]:
-        async with connect_hand(cfg, Simulated(fast=True)) as hand:
-            assert hand.bench is not None
-            sdh = hand.bench.sim.sdh
-            runner = Runner(cfg.control(), hand.joints, hand.tactile, observer=Seen())
-            run = asyncio.create_task(runner.run())
+        async with bench_rig(cfg) as (hand, bench, runner, run):
+            sdh = bench.sim.sdh
             while runner.phase is not Phase.ROLLING:
                 await asyncio.sleep(0.01)
             on_line = asyncio.Event()
