@@ -227,14 +227,14 @@ class HandService:
         """Start a run (409 while one runs, while the hand opens, or the e-stop is latched; 503
         while a line is down: nothing is recorded, as a run could not even pre-shape)."""
         joints, tactile, store = self._links()
+        if joints.estopped:  # first: an e-stopped run's task may still be ending
+            raise ServiceError(409, "the e-stop is latched: release it first "
+                               "(POST /api/estop/release)")  # fmt: skip
         if self.running and self.run is not None:
             raise ServiceError(409, f"run {self.run.run_id} is already running "
                                f"({self.run.runner.phase.value}); stop it first")  # fmt: skip
         if self.opening:
             raise ServiceError(409, "the hand is opening; start the run when it is open")
-        if joints.estopped:
-            raise ServiceError(409, "the e-stop is latched: release it first "
-                               "(POST /api/estop/release)")  # fmt: skip
         self._require_lines(joints, tactile)
         run_params = (
             validate_params(self.params, params, self.cfg.safety) if params else self.params
@@ -398,14 +398,14 @@ class HandService:
         ``fault`` go to the hub; ``status()["hand"]["opening"]`` is true meanwhile.
         """
         joints, _, _ = self._links()
+        if joints.estopped:  # first: an e-stopped run's task may still be ending
+            raise ServiceError(409, "the e-stop is latched: release it first "
+                               "(POST /api/estop/release)")  # fmt: skip
         if self.running and self.run is not None:
             raise ServiceError(409, f"run {self.run.run_id} is running; stop it first (a stopped "
                                "run opens the hand itself)")  # fmt: skip
         if self.opening:
             raise ServiceError(409, "the hand is already opening")
-        if joints.estopped:
-            raise ServiceError(409, "the e-stop is latched: release it first "
-                               "(POST /api/estop/release)")  # fmt: skip
         self._require_lines(joints)
         self._opening = asyncio.create_task(self._open(joints), name="open-hand")
         self.publish_status()
