@@ -13,6 +13,7 @@ import signal
 import sys
 import traceback
 from collections.abc import Callable, Coroutine, Sequence
+from datetime import datetime, timedelta
 from enum import IntEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
@@ -263,6 +264,13 @@ def _seconds_arg(text: str) -> float:
     if not (math.isfinite(value) and value > 0.0):
         raise argparse.ArgumentTypeError(f"{text}: a number of seconds above 0 expected")
     return value
+
+
+def _count_arg(text: str) -> int:
+    """A count: 0 or more, in the digits 0–9 (argparse's type)."""
+    if not (text.isascii() and text.isdigit()):
+        raise argparse.ArgumentTypeError(f"{text!r}: a count is written in the digits 0–9")
+    return int(text)
 
 
 def _url_arg(text: str) -> str:
@@ -680,24 +688,56 @@ def _run_id(text: str) -> int:
     return int(text)
 
 
+def _when_arg(text: str) -> datetime:
+    """A moment (argparse's type): ``30d`` or ``12h`` ago, or an ISO date or date and time
+    (local time unless it gives its offset)."""
+    t = text.strip()
+    now = datetime.now().astimezone()
+    try:
+        if t[:-1].isascii() and t[:-1].isdigit() and t[-1:] in ("d", "h"):
+            return now - timedelta(**{"days" if t[-1] == "d" else "hours": int(t[:-1])})
+        when = datetime.fromisoformat(t)
+    except OverflowError:  # an age beyond the calendar (1000000d)
+        raise argparse.ArgumentTypeError(f"{text!r}: further back than the calendar goes") from None
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give a date (2026-11-30), a date and time (2026-11-30T14:00) or an age "
+            "(30d, 12h)"
+        ) from None
+    return when.astimezone()  # a time without its offset is local
+
+
 def cmd_runs(args: argparse.Namespace) -> int:
-    """Recorded runs: list them, show one, export one as CSV or MCAP. Never creates a database."""
+    """Recorded runs: list them, show one, export one as CSV or MCAP; delete runs, prune the
+    older ones (--keep N, --before WHEN), vacuum the file so that it shrinks. Never creates a
+    database."""
     import sqlite3
 
     from sdh2svc.service.store import NoDatabase, RunStore, StoreError
 
     cfg = load_config(args.config, args.overrides)
-    if args.action != "list" and args.id is None:
+    ids = args.id
+    if args.action in ("show", "export", "delete") and not ids:
         _fail(Exit.USAGE, f"{args.action}: which run? (give its ID)")
+    if args.action in ("show", "export") and len(ids) > 1:
+        _fail(Exit.USAGE, f"{args.action}: one run at a time ({len(ids)} IDs given)")
+    if args.action == "prune" and args.keep is None and args.before is None:
+        _fail(Exit.USAGE, "prune: which runs? (give --keep N, --before WHEN, or both)")
     # what only another action takes is a mistake here, not dropped without a word
+    named = f"the run ID{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))}"
     extra = [what for what, given, takes in (
-        (f"the run ID {args.id}", args.id is not None, ("show", "export")),
+        (named, bool(ids), ("show", "export", "delete")),
         ("--format", args.format is not None, ("export",)),
         ("--output", args.output is not None, ("export",)),
+        ("--keep", args.keep is not None, ("prune",)),
+        ("--before", args.before is not None, ("prune",)),
+        ("--dry-run", args.dry_run, ("delete", "prune")),
+        ("--vacuum", args.vacuum, ("delete", "prune")),
     ) if given and args.action not in takes]  # fmt: skip
     if extra:
         _fail(Exit.USAGE, f"{', '.join(extra)}: not with runs {args.action}")
     args.format = args.format or "csv"
+    args.id = ids[0] if ids else None
     try:
         store = RunStore(
             cfg.storage.db_path, create=False, busy_timeout_s=cfg.storage.busy_timeout_s
@@ -707,6 +747,8 @@ def cmd_runs(args: argparse.Namespace) -> int:
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
     try:
+        if args.action in ("delete", "prune", "vacuum"):
+            return _retention(args, store, ids)
         return _runs(args, store, cfg)
     except sqlite3.Error as e:
         _fail(Exit.UNAVAILABLE, f"run database {store.path}: {_one_line(e)}")
@@ -714,11 +756,75 @@ def cmd_runs(args: argparse.Namespace) -> int:
         store.close()
 
 
+def _megabytes(n: int) -> str:
+    return f"{n / 1e6:.1f} MB"
+
+
+def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
+    """``runs delete``, ``runs prune`` and ``runs vacuum``: what goes (or would go), and what
+    it gives back."""
+    from sdh2svc.service.store import RunBusy, StoreError
+
+    if args.action == "delete":
+        missing = [i for i in ids if i not in RUN_IDS or store.run(i) is None]
+        if missing:
+            _fail(Exit.NOT_FOUND, f"no run {', '.join(map(str, missing))} in {store.path} "
+                                  "(nothing deleted)")  # fmt: skip
+        doomed = list(dict.fromkeys(ids))
+    elif args.action == "prune":
+        doomed = store.prunable(args.keep, args.before)
+    else:
+        doomed = []
+    try:
+        if args.action != "vacuum":
+            if args.dry_run:
+                busy = sorted(set(doomed) & set(store.recording()))
+                if busy:  # as the delete itself would say
+                    raise RunBusy(f"run {busy[0]} is being recorded: stop it first")
+                said = f"{_n_runs(doomed)}: {_id_ranges(doomed)}" if doomed else "no run"
+                print(f"would delete {said}", file=sys.stderr)
+                return Exit.OK
+            if doomed:
+                done = store.delete_runs(doomed)
+                _, free = store.size()
+                print(f"deleted {_n_runs(done)}: {_id_ranges(done)}; {_megabytes(free)} of "
+                      f"{store.path} now free for new runs", file=sys.stderr)  # fmt: skip
+            else:
+                print("no run to delete", file=sys.stderr)
+        if args.action == "vacuum" or args.vacuum:
+            before, _ = store.size()
+            store.vacuum()
+            after, _ = store.size()
+            print(f"{store.path}: {_megabytes(before)} → {_megabytes(after)}", file=sys.stderr)
+    except StoreError as e:  # RunBusy: a run being recorded, the file open elsewhere
+        _fail(Exit.FAILED, _one_line(e))
+    return Exit.OK
+
+
+def _n_runs(ids: list[int]) -> str:
+    return f"{len(ids)} run{'' if len(ids) == 1 else 's'}"
+
+
+def _id_ranges(ids: list[int]) -> str:
+    """Run IDs as ranges: 1–5, 8, 10–11."""
+    parts: list[tuple[int, int]] = []
+    for i in sorted(ids):
+        if parts and parts[-1][1] == i - 1:
+            parts[-1] = (parts[-1][0], i)
+        else:
+            parts.append((i, i))
+    return ", ".join(str(a) if a == b else f"{a}–{b}" for a, b in parts)
+
+
 def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     if args.action == "list":
-        for r in store.runs():
+        runs = store.runs()
+        for r in runs:
             print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
                   f"{r['iterations']:6d} iterations")  # fmt: skip
+        on_disk, free = store.size()
+        print(f"{len(runs)} runs in {store.path}: {_megabytes(on_disk)}, {_megabytes(free)} of "
+              "it free for new runs (`runs prune` deletes old runs)", file=sys.stderr)  # fmt: skip
         return Exit.OK
     run = store.run(args.id) if args.id in RUN_IDS else None
     if run is None:
@@ -1017,11 +1123,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=_seconds_arg, default=4.0, help="seconds (> 0)")
     p.set_defaults(func=cmd_health)
 
-    p = sub.add_parser("runs", help="recorded runs: list, show, export",
+    p = sub.add_parser("runs", help="recorded runs: list, show, export, delete, prune, vacuum",
                        description=cmd_runs.__doc__)  # fmt: skip
     _add_config_args(p)
-    p.add_argument("action", choices=["list", "show", "export"])
-    p.add_argument("id", nargs="?", type=_run_id, help="run ID (show, export)")
+    p.add_argument("action", choices=["list", "show", "export", "delete", "prune", "vacuum"])
+    p.add_argument("id", nargs="*", type=_run_id, help="run ID (show, export; delete: one or more)")
+    p.add_argument("--keep", type=_count_arg, metavar="N",
+                   help="prune: keep the newest N runs")  # fmt: skip
+    p.add_argument("--before", type=_when_arg, metavar="WHEN",
+                   help="prune: only runs started before WHEN: 30d or 12h ago, or a date (and "
+                   "time) such as 2026-11-30")  # fmt: skip
+    p.add_argument("--dry-run", action="store_true", help="delete, prune: say what would go")
+    p.add_argument("--vacuum", action="store_true",
+                   help="delete, prune: then shrink the file (as `runs vacuum`)")  # fmt: skip
     p.add_argument("--format", choices=["csv", "mcap"], help="export format (default csv)")
     p.add_argument(
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"

@@ -308,6 +308,11 @@ _RELEASE_PRESS = _Call("DELETE", "/api/sim/press", {})
 _END_REPLAY = _Call("DELETE", "/api/viewer/replay", {})
 
 
+def _runs(limit: int | None, before: int | None) -> _Call:
+    query = {k: v for k, v in (("limit", limit), ("before", before)) if v is not None}
+    return _Call("GET", "/api/runs", query=query)
+
+
 def _replay(run_id: int, iteration: int) -> _Call:
     return _Call("PUT", "/api/viewer/replay", {"run_id": run_id, "iteration": iteration})
 
@@ -472,9 +477,15 @@ class Client:
     def stop_run(self) -> RunRef:
         return cast(RunRef, self._call(_Call("POST", "/api/runs/stop", {})))
 
-    def runs(self) -> list[JSON]:
-        """Every recorded run, newest first."""
-        return cast(list[JSON], self._call(_Call("GET", "/api/runs")))
+    def runs(self, limit: int | None = None, before: int | None = None) -> list[JSON]:
+        """Recorded runs, newest first: ``limit`` of them (the service's default: 100), of
+        ids below ``before`` (the next page: the last id of this one)."""
+        return cast(list[JSON], self._call(_runs(limit, before)))
+
+    def delete_run(self, run_id: int) -> JSON:
+        """Delete a recorded run and everything recorded with it (:class:`Conflict` while it
+        is being recorded)."""
+        return cast(JSON, self._call(_Call("DELETE", f"/api/runs/{run_id}", {})))
 
     def run(self, run_id: int) -> JSON:
         """One run with its ``events``."""
@@ -748,8 +759,11 @@ class AsyncClient:
     async def stop_run(self) -> RunRef:
         return cast(RunRef, await self._call(_Call("POST", "/api/runs/stop", {})))
 
-    async def runs(self) -> list[JSON]:
-        return cast(list[JSON], await self._call(_Call("GET", "/api/runs")))
+    async def runs(self, limit: int | None = None, before: int | None = None) -> list[JSON]:
+        return cast(list[JSON], await self._call(_runs(limit, before)))
+
+    async def delete_run(self, run_id: int) -> JSON:
+        return cast(JSON, await self._call(_Call("DELETE", f"/api/runs/{run_id}", {})))
 
     async def run(self, run_id: int) -> JSON:
         return cast(JSON, await self._call(_Call("GET", f"/api/runs/{run_id}")))

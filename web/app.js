@@ -1176,6 +1176,9 @@ function shortTime(s) {
 // started by a run's start or end, brings back).
 let runsLoading = null;
 let runsAgain = false;
+const RUNS_PAGE = 50; // runs listed at first, and more with each "Older runs"
+const RUNS_MOST = 999; // listed at most (the API gives 1000 a page: one more tells of older)
+let runsShown = RUNS_PAGE;
 async function loadRuns() {
   if (runsLoading) {
     runsAgain = true;
@@ -1186,9 +1189,10 @@ async function loadRuns() {
       do {
         runsAgain = false;
         try {
-          const runs = await api.runs();
+          const runs = (await api.runs(runsShown + 1)) || []; // one more: are there older?
           clearToasts("run history");
-          renderRuns(runs || []);
+          renderRuns(runs.slice(0, runsShown));
+          $("#runs-older").hidden = runs.length <= runsShown || runsShown >= RUNS_MOST;
         } catch (e) {
           showError(e, "run history");
         }
@@ -1254,8 +1258,27 @@ function renderRuns(runs) {
       a.className = `export-${f}`;
       td.appendChild(a);
     }
+    if (r.status !== "running") {
+      const del = document.createElement("button");
+      del.className = "btn small secondary delete";
+      del.type = "button";
+      del.textContent = "Delete";
+      del.title = `DELETE /api/runs/${r.id}`;
+      del.addEventListener("click", () => deleteRun(r));
+      td.appendChild(del);
+    }
     tbody.appendChild(tr);
   }
+}
+
+/** Delete a recorded run, once the person has said so (nothing of it can be had back). */
+async function deleteRun(r) {
+  const what = `Delete run ${r.id} (${r.status}, ${r.iterations ?? 0} iterations) and ` +
+    "everything recorded with it? It cannot be undone.";
+  if (!window.confirm(what)) return;
+  const done = await guard(`delete run ${r.id}`, () => api.deleteRun(r.id));
+  if (done && state.replayId === r.id) backToLive();
+  await loadRuns(); // also after a refusal: the list shows what is there now
 }
 
 const replayData = { runId: null, frames: new Map(), truth: null, viewer: false, psi0: null };
@@ -1453,6 +1476,10 @@ window.addEventListener("pagehide", () => {
 
 $("#back-to-live").addEventListener("click", backToLive);
 $("#runs-refresh").addEventListener("click", () => loadRuns());
+$("#runs-older").addEventListener("click", () => {
+  runsShown = Math.min(runsShown + RUNS_PAGE, RUNS_MOST);
+  loadRuns();
+});
 
 // --- 3-D view ---------------------------------------------------------------------------------
 

@@ -16,7 +16,7 @@ from typing import Annotated
 from pydantic import Field, field_validator, model_validator
 
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.rolling import StepResult
+from sdh2svc.control.rolling import Reversal, StepResult
 from sdh2svc.model.base import Finite
 from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 
@@ -243,22 +243,39 @@ def grasp_lost(contact1: bool, contact2: bool, read1: bool = True,
     return Violation(Fault.NO_CONTACT, f"no grasp: {lost} lost as the grasp settled")
 
 
-def stuck(consecutive: int, last: str | None, safety: SafetyConfig) -> Violation | None:
-    """More reversals in a row than allowed (``last``: the latest one's reason)."""
+def stuck(
+    consecutive: int, last: str | None, safety: SafetyConfig, why: str = ""
+) -> Violation | None:
+    """More reversals in a row than allowed (``last``: the latest one's reason; ``why``: what
+    the contacts say of it, added to the message)."""
     if consecutive > safety.max_consecutive_reversals:
-        return Violation(
-            Fault.STUCK, f"{consecutive} reversals in a row without a half stroke (last: {last})"
-        )
+        said = f"{consecutive} reversals in a row without a half stroke (last: {last})"
+        return Violation(Fault.STUCK, f"{said}: {why}" if why else said)
     return None
+
+
+def one_contact_lost(F1: float, F2: float, present1: bool, present2: bool) -> str:
+    """Which pad lost its contact while the other holds one, in words ("" unless exactly one
+    did): the object slid off that pad, or the pad stopped reading — the frames alone cannot
+    tell the two apart, so both are said."""
+    if present1 == present2:
+        return ""
+    gone, held, F = (1, 2, F2) if present2 else (2, 1, F1)
+    return (f"Finger {gone}'s distal pad reads no contact while Finger {held}'s reads "
+            f"F{held} = {F:.2f} (the object slid off that pad, or the pad stopped "
+            "reading)")  # fmt: skip
 
 
 def rolling_step(r: StepResult, grasp_force: float, safety: SafetyConfig) -> Violation | None:
     """A rolling iteration's verdict, the checks in order: force ceiling, dropped, stuck."""
     c1, c2, n = r.obs.contact1, r.obs.contact2, r.state.consecutive_reversals
+    why = ""
+    if r.reversal == Reversal.CONTACT_LOST:
+        why = one_contact_lost(c1.force, c2.force, c1.present, c2.present)
     return (
         force_ceiling(c1.force, c2.force, grasp_force, safety)
         or dropped(c1.present, c2.present)
-        or stuck(n, r.reversal, safety)
+        or stuck(n, r.reversal, safety, why)
     )
 
 

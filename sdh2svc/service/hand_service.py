@@ -32,7 +32,7 @@ from sdh2svc.control.safety import SafetyConfig, params_outside
 from sdh2svc.control.sample import Sample
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
-from sdh2svc.service.store import RunStore, now_iso
+from sdh2svc.service.store import RunStore, locked, now_iso
 from sdh2svc.service.telemetry import (
     OUTLINE_POINTS,
     Event,
@@ -49,6 +49,9 @@ log = logging.getLogger(__name__)
 # How long an e-stop's answer waits for its latch to reach the disk (the stop itself does not
 # wait): a run database another program holds locked would hold it busy_timeout_s.
 RECORD_WAIT_S = 1.0
+# How long a run's creation, on the event loop, waits for a lock another program holds on the
+# run database: longer would hold up the e-stop's answer and the links with it.
+CREATE_WAIT_S = 0.25
 
 
 class ServiceError(Exception):
@@ -243,9 +246,18 @@ class HandService:
             self.set_object(obj or self.bench.obj)
         assert self._hand is not None  # open: _links() says so
         meta = {**self._hand.describe(), "service": True}
-        self._run_params = run_params
-        self.run = RecordedRun(self.cfg, joints, tactile, store, params=run_params, meta=meta,
-                               bench=self.bench, observer=_RunTelemetry(self))  # fmt: skip
+        try:  # on the event loop: a lock another program holds is waited for only briefly
+            run = RecordedRun(self.cfg, joints, tactile, store, params=run_params, meta=meta,
+                              bench=self.bench, observer=_RunTelemetry(self),
+                              create_wait_s=CREATE_WAIT_S)  # fmt: skip
+        except sqlite3.OperationalError as e:
+            if not locked(e):
+                raise
+            why = (f"the run database {store.path} is locked by another program ({e}): no run "
+                   "was started; try again once it lets go (a vacuum, a database browser with "
+                   "unsaved changes)")  # fmt: skip
+            raise ServiceError(503, why) from None
+        self._run_params, self.run = run_params, run
         self._run_task = asyncio.create_task(self._execute(self.run), name="run")
         log.info("run %d started (cycles=%d)", self.run.run_id, run_params.cycles)
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}

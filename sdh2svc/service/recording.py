@@ -57,7 +57,11 @@ class RecordedRun:
         meta: dict[str, Any] | None = None,
         bench: Bench | None = None,
         observer: RunObserver | None = None,
+        create_wait_s: float | None = None,
     ) -> None:
+        """``create_wait_s``: how long the run's creation waits for a lock another program
+        holds on the database (default ``storage.busy_timeout_s``): sqlite3.OperationalError
+        after it, and nothing recorded."""
         self.cfg, self.tactile, self.store, self.bench = cfg, tactile, store, bench
         params = params or cfg.rolling
         full_meta = {
@@ -66,11 +70,11 @@ class RecordedRun:
             "configuration": cfg.recorded(),  # its export draws it as it was, not as is
             **(meta or {}),
         }
-        self.run_id = store.create_run(full_meta)
+        outline = None
         if bench is not None:
             obj, pts = bench.obj, outline_points(bench.outline.perimeter_points)
-            name = obj.name or obj.kind  # as the truth names it
-            store.set_outline(self.run_id, name, float(obj.size_mm), pts.tolist())
+            outline = (obj.name or obj.kind, float(obj.size_mm), pts.tolist())  # as truth names it
+        self.run_id = store.create_run(full_meta, outline, wait_s=create_wait_s)
         self._rec = Recorder(store.path, self.run_id, busy_timeout_s=store.busy_timeout_s)
         self._truth: dict[str, Any] = {}
         self._observer: RunObserver = observer or BaseObserver()

@@ -11,6 +11,7 @@ of the process, so everything recorded more than ~100 ms before a crash is on di
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -22,7 +23,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from datetime import datetime
+from datetime import UTC, datetime
+from enum import Enum
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -100,9 +102,13 @@ CREATE TABLE IF NOT EXISTS owners (
     run_id INTEGER PRIMARY KEY REFERENCES runs(id),
     host TEXT NOT NULL,
     pid INTEGER NOT NULL,
-    started TEXT NOT NULL
+    started TEXT NOT NULL,
+    pidns TEXT
 );
 """
+# Indexes a later version added: made by a writer (the service, a run), never by a reading
+# command, which an older database on a read-only medium must not fail
+WRITER_INDEXES = "CREATE INDEX IF NOT EXISTS events_run ON events(run_id);"
 
 
 def _process_start(pid: int) -> str | None:
@@ -116,30 +122,89 @@ def _process_start(pid: int) -> str | None:
     return stat.rsplit(")", 1)[1].split()[19]  # the fields after the command's name start at 3
 
 
-def _this_process() -> tuple[str, int, str]:
-    """(host, pid, start) of the calling process: who records a run it creates."""
+def _pid_namespace() -> str:
+    """The calling process's pid namespace ("pid:[4026531836]"; "" where there is no /proc):
+    a pid means the same process only within one."""
+    try:
+        return os.readlink("/proc/self/ns/pid")
+    except OSError:
+        return ""
+
+
+def _this_process() -> tuple[str, int, str, str]:
+    """(host, pid, start, pid namespace) of the calling process: who records a run it
+    creates."""
     pid = os.getpid()
-    return socket.gethostname(), pid, _process_start(pid) or ""
+    return socket.gethostname(), pid, _process_start(pid) or "", _pid_namespace()
 
 
-def _owner_alive(host: str | None, pid: int | None, started: str | None) -> bool:
-    """Whether the process that recorded a run still runs. No owner (a run recorded before
-    owners were kept) or another host (SQLite's WAL keeps a run database on one machine: a copy
-    from elsewhere) is not."""
+class Owner(Enum):
+    """What can be told here of the process that recorded a run."""
+
+    ALIVE = "alive"
+    DEAD = "dead"
+    UNKNOWN = "unknown"  # another machine or container, or none recorded: not to be checked
+
+
+def _owner_state(
+    host: str | None, pid: int | None, started: str | None, pidns: str | None = None
+) -> Owner:
+    """Whether the process that recorded a run still runs, as far as this process can tell.
+    Its pid means something here only on this host (SQLite's WAL keeps a run database on one
+    machine; a container has a host name of its own) and in this pid namespace (``pidns``: as
+    recorded since it was; a run recorded before is taken to be of this one)."""
     if host is None or pid is None or host != socket.gethostname():
-        return False
+        return Owner.UNKNOWN
+    if pidns and pidns != _pid_namespace():
+        return Owner.UNKNOWN
     now = _process_start(pid)
     if now is not None:
-        return not started or now == started
+        return Owner.ALIVE if not started or now == started else Owner.DEAD
     if Path("/proc/self/stat").exists():
-        return False  # /proc lists every live process: this one is gone
+        return Owner.DEAD  # /proc lists every live process: this one is gone
     try:
         os.kill(pid, 0)  # no /proc: ask the kernel whether the pid is in use
     except ProcessLookupError:
-        return False
+        return Owner.DEAD
     except PermissionError:
-        return True
-    return True
+        return Owner.ALIVE
+    return Owner.ALIVE
+
+
+def _owner_alive(host: str | None, pid: int | None, started: str | None,
+                 pidns: str | None = None) -> bool:  # fmt: skip
+    """Whether the process that recorded a run is known to run still: a run without an owner
+    (recorded before owners were kept) or of another host (a copy from elsewhere) is read,
+    and marked, as interrupted."""
+    return _owner_state(host, pid, started, pidns) is Owner.ALIVE
+
+
+def openers(path: Path) -> list[int] | None:
+    """The other processes that have the run database at ``path`` open (their pids; 0 for one
+    of another pid namespace), from the kernel's list of file locks: in WAL mode every SQLite
+    connection holds a read lock on byte 128 of the ``-shm`` file for as long as it is open.
+    None where that cannot be told (no /proc/locks). Read from /proc, never by locking: closing
+    a descriptor of the file would drop this process's own SQLite locks on it."""
+    try:
+        st = os.stat(f"{path}-shm")
+        table = Path("/proc/locks").read_text()
+    except FileNotFoundError:
+        return [] if Path("/proc/locks").exists() else None  # no -shm: nobody has it open
+    except OSError:
+        return None
+    inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    me, pids = os.getpid(), []
+    for line in table.splitlines():
+        f = line.split()
+        if "->" in f:  # a waiter, listed after the lock it waits for
+            continue
+        try:
+            pid, where, start, end = int(f[4]), f[5], int(f[6]), f[7]
+        except (IndexError, ValueError):
+            continue
+        if where == inode and pid != me and start <= 128 and (end == "EOF" or int(end) >= 128):
+            pids.append(pid)
+    return sorted(set(pids))
 
 
 class StoreError(Exception):
@@ -154,6 +219,11 @@ class EstopLatched(Exception):
         super().__init__(f"the e-stop is latched (since {latch['since']}: {latch['reason']}); "
                          "release it with `sdh2svc estop --release` or, with the service "
                          "running, POST /api/estop/release")  # fmt: skip
+
+
+class RunBusy(StoreError):
+    """A run is being recorded (by this process or another live one on the same file): it
+    cannot be deleted, nor the file vacuumed under it."""
 
 
 class NoDatabase(StoreError):
@@ -200,6 +270,9 @@ def connect(
         _add_new_sample_columns(db)
         if create:
             _check_writable(db, busy_timeout_s)
+            db.executescript(WRITER_INDEXES)  # (events_run: a deleted run's events found at once)
+            if "pidns" not in _columns(db, "owners"):
+                db.execute("ALTER TABLE owners ADD COLUMN pidns TEXT")
     except (OSError, sqlite3.Error) as e:
         if db is not None:
             db.close()
@@ -226,6 +299,10 @@ def _check_writable(db: sqlite3.Connection, busy_timeout_s: float) -> None:
             raise
     finally:
         db.execute(f"PRAGMA busy_timeout = {round(busy_timeout_s * 1000)}")
+
+
+def _columns(db: sqlite3.Connection, table: str) -> set[str]:
+    return {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
 
 
 def _add_new_sample_columns(db: sqlite3.Connection) -> None:
@@ -282,38 +359,73 @@ class RunStore:
     def close(self) -> None:
         self.db.close()
 
-    def create_run(self, meta: dict[str, Any]) -> int:
-        """A new run, 'running', owned by this process (see :meth:`mark_interrupted`)."""
-        with self._lock, self.db:
+    def create_run(
+        self,
+        meta: dict[str, Any],
+        outline: tuple[str, float, list[tuple[float, float]]] | None = None,
+        wait_s: float | None = None,
+    ) -> int:
+        """A new run, 'running', owned by this process (see :meth:`mark_interrupted`), with
+        its object's ``outline`` (:meth:`set_outline`'s name, size, points) in the same
+        transaction. ``wait_s``: how long to wait for another program's lock (default
+        ``busy_timeout_s``): sqlite3.OperationalError ("database is locked") after it, and
+        nothing written."""
+        with self._lock, self._waiting(wait_s), self.db:
             cur = self.db.execute(
                 "INSERT INTO runs (started_at, status, meta) VALUES (?, 'running', ?)",
                 (now_iso(), json.dumps(meta)),
             )
-            assert cur.lastrowid is not None
-            self.db.execute("INSERT INTO owners (run_id, host, pid, started) VALUES (?, ?, ?, ?)",
-                            (cur.lastrowid, *_this_process()))  # fmt: skip
-        return cur.lastrowid
+            run_id = cur.lastrowid
+            assert run_id is not None
+            self.db.execute("INSERT INTO owners (run_id, host, pid, started, pidns) "
+                            "VALUES (?, ?, ?, ?, ?)", (run_id, *_this_process()))  # fmt: skip
+            if outline is not None:
+                self._insert_outline(run_id, *outline)
+        return run_id
+
+    @contextlib.contextmanager
+    def _waiting(self, wait_s: float | None) -> Iterator[None]:
+        """A lock held by another program waited for ``wait_s`` (None: busy_timeout_s)."""
+        if wait_s is None:
+            yield
+            return
+        self.db.execute(f"PRAGMA busy_timeout = {round(wait_s * 1000)}")
+        try:
+            yield
+        finally:
+            self.db.execute(f"PRAGMA busy_timeout = {round(self.busy_timeout_s * 1000)}")
 
     def finish_run(self, run_id: int, status: str, summary: dict[str, Any]) -> None:
         with self._lock, self.db:
-            self.db.execute(
+            done = self.db.execute(
                 "UPDATE runs SET status = ?, ended_at = ?, summary = ? WHERE id = ?",
                 (status, now_iso(), json.dumps(summary), run_id),
-            )
+            ).rowcount
+        if not done:  # deleted meanwhile, by a program that could not tell it was recorded
+            log.error("run %d ended %s, but it is no longer in %s: its end is not recorded",
+                      run_id, status, self.path)  # fmt: skip
 
     def mark_interrupted(self) -> list[int]:
         """Runs left 'running' by a process that died (killed, crashed, the PC lost power):
         mark them so (their data stays). A run another live process records (a second service,
         an ``sdh2svc run``, on the same file) is left running."""
         with self._lock, self.db:
-            rows = self.db.execute(
-                "SELECT r.id, o.host, o.pid, o.started FROM runs r "
-                "LEFT JOIN owners o ON o.run_id = r.id WHERE r.status = 'running'"
-            ).fetchall()
-            ids = [r[0] for r in rows if not _owner_alive(r[1], r[2], r[3])]
+            owners = self._owners_of_running()
+            shared = bool(openers(self.path) or [])  # (None: cannot tell; taken as not shared)
+            ids = [i for i, owner in owners if owner is Owner.DEAD
+                   or (owner is Owner.UNKNOWN and not shared)]  # fmt: skip
             self.db.executemany("UPDATE runs SET status = 'interrupted' WHERE id = ?",
                                 [(i,) for i in ids])  # fmt: skip
         return ids
+
+    def _owners_of_running(self) -> list[tuple[int, Owner]]:
+        """The runs marked 'running' with what can be told of their owners."""
+        pidns = ", o.pidns" if "pidns" in _columns(self.db, "owners") else ""
+        rows = self.db.execute(
+            f"SELECT r.id, o.host, o.pid, o.started{pidns} FROM runs r "
+            "LEFT JOIN owners o ON o.run_id = r.id WHERE r.status = 'running'"
+        ).fetchall()
+        return [(r[0], _owner_state(*r[1:])) for r in rows]
 
     # --- the e-stop latch: durable until an explicit release ------------------------------------
 
@@ -374,6 +486,95 @@ class RunStore:
         d["meta"] = json.loads(d["meta"])
         d["summary"] = json.loads(d["summary"]) if d["summary"] else None
         return d
+
+    def run_page(self, limit: int, before: int | None = None) -> tuple[list[dict[str, Any]], int]:
+        """Up to ``limit`` runs, newest first, of ids below ``before`` (None: from the newest),
+        and how many runs the database holds in all."""
+        where, args = ("", ()) if before is None else (" WHERE r.id < ?", (before,))
+        rows = self.db.execute(self._RUN_SELECT + where + " ORDER BY r.id DESC LIMIT ?",
+                               (*args, limit)).fetchall()  # fmt: skip
+        total = int(self.db.execute("SELECT COUNT(*) FROM runs").fetchone()[0])
+        return [self._run_dict(r) for r in rows], total
+
+    # --- retention: a run deleted with everything recorded with it; the file shrunk ------------
+
+    def recording(self) -> list[int]:
+        """The runs that may be being recorded now: marked 'running', their process alive — or
+        one that cannot be checked from here (another container or machine) while another
+        process has the file open. Fails closed: what deletes or rewrites runs spares these."""
+        owners = self._owners_of_running()
+        unknown = any(owner is Owner.UNKNOWN for _, owner in owners)
+        shared = unknown and openers(self.path) != []  # (None: cannot tell; taken as shared)
+        return [i for i, owner in owners
+                if owner is Owner.ALIVE or (owner is Owner.UNKNOWN and shared)]  # fmt: skip
+
+    def prunable(self, keep: int | None = None, before: datetime | None = None) -> list[int]:
+        """The runs a prune deletes, oldest first: all but the newest ``keep`` (None: no count
+        kept), and of those only the ones started before ``before`` (None: any time); never
+        one being recorded. ValueError for a ``before`` without its time zone."""
+        if before is not None and before.tzinfo is None:
+            raise ValueError("give `before` with its time zone")
+        rows = self.db.execute("SELECT id, started_at FROM runs ORDER BY id DESC").fetchall()
+        busy = set(self.recording())
+        old = rows[keep or 0 :]
+        return sorted(
+            r["id"] for r in old
+            if r["id"] not in busy and (before is None or _started(r["started_at"]) < before)
+        )  # fmt: skip
+
+    def delete_runs(self, ids: list[int]) -> list[int]:
+        """Delete the runs ``ids`` with everything recorded with them; returns those that
+        existed (the others are not there to delete). :class:`RunBusy`, before anything is
+        deleted, if one is being recorded. One transaction per run, so that a recorder writing
+        meanwhile waits milliseconds, never the whole prune; the pages freed hold the next runs
+        (:meth:`vacuum` gives them back to the file system)."""
+        busy = sorted(set(ids) & set(self.recording()))
+        if busy:
+            raise RunBusy(f"run {busy[0]} is being recorded: stop it first (`runs list` shows "
+                          "it 'running')")  # fmt: skip
+        done = []
+        for run_id in ids:
+            with self._lock, self.db:
+                for table in ("samples", "events", "frames", "truth", "outlines", "owners"):
+                    self.db.execute(f"DELETE FROM {table} WHERE run_id = ?", (run_id,))
+                if self.db.execute("DELETE FROM runs WHERE id = ?", (run_id,)).rowcount:
+                    done.append(run_id)
+        return done
+
+    def size(self) -> tuple[int, int]:
+        """(bytes on disk: the file and its write-ahead log; bytes of it free for new runs)."""
+        on_disk = sum(p.stat().st_size for p in (self.path, Path(f"{self.path}-wal"))
+                      if p.exists())  # fmt: skip
+        free = self.db.execute("PRAGMA freelist_count").fetchone()[0]
+        page = self.db.execute("PRAGMA page_size").fetchone()[0]
+        return on_disk, int(free) * int(page)
+
+    def vacuum(self) -> None:
+        """Rewrite the file without its free pages (SQLite's VACUUM), so that it shrinks.
+
+        :class:`RunBusy` while a run is being recorded, or another program has the database
+        open (a service, idle or not; a reader): VACUUM holds the whole file for as long as it
+        copies it — longer than a run's start or an e-stop's latch waits — and a reader keeps
+        the copy in the write-ahead log, beside the old file, until it lets go. StoreError if
+        a reader came meanwhile and the log could not be given back."""
+        busy = self.recording()
+        if busy:
+            raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")
+        others = openers(self.path)
+        if others:
+            who = ", ".join(str(pid) for pid in others if pid) or "in another container"
+            raise RunBusy(f"another program has the run database open (pid {who}: a running "
+                          "service, a reader): a vacuum rewrites the whole file and holds it "
+                          "meanwhile; vacuum while nothing else uses it")  # fmt: skip
+        with self._lock:
+            self.db.execute("VACUUM")
+            # the log's copy written back and the log emptied (a reader that came meanwhile
+            # keeps it: said, not taken for a shrunk file)
+            busy_log = self.db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
+        if busy_log:
+            raise StoreError(f"{self.path} was vacuumed, but another program read it meanwhile:"
+                             " its write-ahead log keeps the new copy until that program lets "
+                             "go (run `sdh2svc runs vacuum` again then)")  # fmt: skip
 
     def samples(self, run_id: int, offset: int = 0, limit: int = 1000) -> list[dict[str, Any]]:
         rows = self.db.execute(
@@ -451,11 +652,15 @@ class RunStore:
     ) -> None:
         """The run's object: its name, size and outline (object frame, mm; once per run)."""
         with self._lock, self.db:
-            self.db.execute(
-                "INSERT OR REPLACE INTO outlines (run_id, object, size_mm, points) "
-                "VALUES (?, ?, ?, ?)",
-                (run_id, obj, size_mm, json.dumps([[float(x), float(y)] for x, y in points])),
-            )
+            self._insert_outline(run_id, obj, size_mm, points)
+
+    def _insert_outline(
+        self, run_id: int, obj: str, size_mm: float, points: list[tuple[float, float]]
+    ) -> None:
+        self.db.execute(
+            "INSERT OR REPLACE INTO outlines (run_id, object, size_mm, points) VALUES (?, ?, ?, ?)",
+            (run_id, obj, size_mm, json.dumps([[float(x), float(y)] for x, y in points])),
+        )
 
     def outline(self, run_id: int) -> dict[str, Any] | None:
         """The run's object (``object``, ``size_mm``, ``points``: its outline in its own frame,
@@ -541,6 +746,15 @@ def _truth_dict(r: sqlite3.Row) -> dict[str, Any]:
     for k in _TRUTH_BOOLS:
         d[k] = bool(d[k])
     return d
+
+
+def _started(iso: str) -> datetime:
+    """A run's stored start time (one without its offset: local time); one unreadable is taken
+    as long ago."""
+    try:
+        return datetime.fromisoformat(iso).astimezone()
+    except ValueError:
+        return datetime.min.replace(tzinfo=UTC)
 
 
 def _epoch_ns(iso: str) -> int:

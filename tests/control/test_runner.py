@@ -270,6 +270,29 @@ def test_pads_that_go_dead_on_the_object_during_the_grasp_stop_it_at_once(tmp_pa
     assert after < 4.0, after  # the stall window (2 s) and the squeeze's own second
 
 
+def test_a_pad_that_dies_mid_roll_is_named_when_the_run_is_stuck(tmp_path: Path) -> None:
+    # Finger 2's distal matrix fails while the egg rolls, Finger 1's still holding it: every
+    # iteration then reverses for a lost contact until the run is stuck; the fault says which
+    # pad reads nothing while the other holds the grip (the frames cannot tell a pad that
+    # stopped reading from an object slid off it: both are said)
+    cfg = cfg_with(tmp_path)
+
+    async def main() -> Any:
+        async with bench_rig(cfg) as (_hand, bench, runner, run):
+            while runner.phase is not Phase.ROLLING:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.5)
+            bench.sim.world.sensor.fail([cfg.control().axes.finger2_distal_matrix])
+            return await run
+
+    result = fast(main)
+    assert result.status == "faulted", result.message
+    assert result.message.startswith("stuck: "), result.message
+    assert "(last: contact_lost): Finger 2's distal pad reads no contact while Finger 1's " \
+        "reads F1 = " in result.message, result.message  # fmt: skip
+    assert result.message.endswith("(the object slid off that pad, or the pad stopped reading)")
+
+
 def test_lines_too_slow_for_the_run_are_named_when_the_grasp_times_out(tmp_path: Path) -> None:
     """At 9600 baud the joint angles and frames come so slowly that each frame's increment,
     taken from the newest angles, closes the fingers at a fraction of the grasp's speed: the

@@ -91,6 +91,18 @@ def test_stuck_beyond_the_allowed_reversals_in_a_row(cfg: Settings) -> None:
     assert v == Violation(Fault.STUCK, "7 reversals in a row without a half stroke (last: cone_A)")
 
 
+def test_a_stuck_run_names_the_pad_that_reads_nothing(cfg: Settings) -> None:
+    why = safety.one_contact_lost(1.2, 0.0, True, False)
+    assert why == ("Finger 2's distal pad reads no contact while Finger 1's reads F1 = 1.20 "
+                   "(the object slid off that pad, or the pad stopped reading)")  # fmt: skip
+    assert safety.one_contact_lost(0.0, 0.9, False, True).startswith("Finger 1's distal pad")
+    assert safety.one_contact_lost(0.1, 0.9, True, True) == ""  # both read: no pad to name
+    assert safety.one_contact_lost(0.0, 0.0, False, False) == ""  # that is a drop
+    v = safety.stuck(7, Reversal.CONTACT_LOST, cfg.safety, why)
+    assert v is not None and v.message == f"7 reversals in a row without a half stroke (last: " \
+        f"contact_lost): {why}"  # fmt: skip
+
+
 def test_grasp_timeout_only_under_fd_and_after_the_timeout(cfg: Settings) -> None:
     run = cfg.run  # 20 s
     assert safety.grasp_timeout(1.0, 2.0, 120.0, 100.0, run) is None

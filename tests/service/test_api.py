@@ -174,6 +174,8 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
             await c.start_run()
         with pytest.raises(Conflict):
             await c.set_sim_object(name="egg")
+        with pytest.raises(Conflict, match=f"run {run_id} is being recorded"):
+            await c.delete_run(run_id)
 
         # rolling: Finger 2 steps Δφ = 0.05° per iteration (φ4 − φ4d), less where Finger 1's
         # step limit slows an iteration down
@@ -254,6 +256,25 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
         assert truth["object"] == "egg" and len(truth["outline"]) > 20
         assert tm.of("status")
 
+        # the run history a page at a time, following the Link header: every run, once
+        every_run = [r["id"] for r in await c.runs(limit=1000)]
+        assert every_run[0] == run_id
+        paged, url = [], "/api/runs?limit=1"
+        async with httpx.AsyncClient(base_url=svc.url) as raw:
+            while url:
+                r = await raw.get(url)
+                assert int(r.headers["x-total-count"]) == len(every_run)
+                paged += [x["id"] for x in r.json()]
+                link = r.headers.get("link")
+                url = link.split(">")[0].lstrip("<") if link else ""
+        assert paged == every_run
+        # … then the run deleted, with everything recorded with it
+        assert await c.delete_run(run_id) == {"deleted": run_id}
+        for gone in (c.run, c.samples, c.truth, c.delete_run):
+            with pytest.raises(NotFound, match=f"no run {run_id}"):
+                await gone(run_id)
+        assert [r["id"] for r in await c.runs()] == every_run[1:]
+
 
 async def test_estop_mid_run_and_release(svc: LiveService) -> None:
     async with svc.client() as c, telemetry(c, tactile=False) as tm:
@@ -316,6 +337,7 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
                     who.release_estop,
                     who.open_hand,
                     functools.partial(who.set_sim_object, name="egg"),
+                    functools.partial(who.delete_run, 1),
                 ):
                     with pytest.raises(Unauthorized, match="bearer token"):
                         await command()

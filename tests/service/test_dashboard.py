@@ -32,6 +32,7 @@ import pytest
 from playwright.async_api import expect
 
 from sdh2svc.client import Conflict
+from sdh2svc.service.store import RunStore
 from tests.live_service import LiveService, start_service
 
 CHROMIUM = "/usr/bin/chromium"
@@ -87,7 +88,8 @@ PAUSE = """() => {
     document.querySelector('#replay-play').click();
 }"""
 PAD_ZERO_RGB = [24, 27, 38]  # web/pads.js ZERO_COLOR: a taxel reading 0
-MUTATING = ("POST", "PUT", "PATCH")
+MUTATING = ("POST", "PUT", "PATCH", "DELETE")
+RUN_LIST = re.compile(r"/api/runs(\?|$)")  # GET /api/runs, with its query or without
 SCREENSHOTS = os.environ.get("SDH2SVC_SCREENSHOTS")  # a directory: the tests leave PNGs there
 
 
@@ -273,11 +275,11 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
     await page.set_viewport_size({"width": 1500, "height": 1200})
 
     # an error toast clears once its problem is gone (the run history loads again) …
-    await page.route("**/api/runs", lambda r: r.fulfill(status=500, json={"error": "db busy"}))
+    await page.route(RUN_LIST, lambda r: r.fulfill(status=500, json={"error": "db busy"}))
     await page.click("#runs-refresh")
     toast = page.locator("#errors .toast", has_text="run history: db busy")
     await expect(toast).to_be_visible()
-    await page.unroute("**/api/runs")
+    await page.unroute(RUN_LIST)
     await page.click("#runs-refresh")
     await expect(toast).to_have_count(0)
     # … and expires by itself (the dashboard's clock moved on a minute, no waiting)
@@ -595,16 +597,63 @@ async def test_a_refresh_during_a_load_fetches_the_history_again(
             held.append(route)
             asked.set()
 
-    await page.route("**/api/runs", hold)
+    await page.route(RUN_LIST, hold)
     await page.evaluate("document.querySelector('#runs-refresh').click()")  # the earlier load
     await asyncio.wait_for(asked.wait(), 10)
     await page.click("#runs-refresh")  # while the earlier one is out
     # the earlier load fails; then a fresh request goes out and is answered
-    async with page.expect_response(lambda r: r.url.endswith("/api/runs") and r.ok):
+    async with page.expect_response(lambda r: bool(RUN_LIST.search(r.url)) and r.ok):
         await held[0].fulfill(status=500, json={"error": "db busy"})
     await expect(page.locator("#errors .toast", has_text="run history")).to_have_count(0)
     await expect(page.locator("#runs tbody tr").first).to_be_visible()
-    await page.unroute("**/api/runs")
+    await page.unroute(RUN_LIST)
+
+
+async def test_a_run_is_deleted_once_the_person_confirms_and_older_runs_are_listed(
+    service: LiveService, page: Any
+) -> None:
+    """Delete asks first (a dismissed question deletes nothing); the run history lists the
+    newest 50 and, while there are older ones, offers 50 more."""
+    store = RunStore(service.db_path)  # a finished run of its own, whatever ran before
+    try:
+        oldest = store.create_run({"object": {"name": "egg"}})
+        store.finish_run(oldest, "completed", {"status": "completed", "iterations": 0})
+    finally:
+        store.close()
+    # (clicks as events: a click of Playwright's scrolls the history into sight, which loads
+    # the 3-D view's iframe and keeps the page busy for seconds)
+    await page.locator("#runs-refresh").dispatch_event("click")
+    row = page.locator(f"#runs tbody tr[data-run-id='{oldest}']")
+    asked: list[str] = []
+
+    async def dismiss(dialog: Any) -> None:
+        asked.append(dialog.message)
+        await dialog.dismiss()
+
+    async def accept(dialog: Any) -> None:
+        await dialog.accept()
+
+    page.once("dialog", dismiss)
+    await row.locator("button.delete").dispatch_event("click")
+    assert f"Delete run {oldest} (" in asked[0] and "cannot be undone" in asked[0]
+    assert httpx.get(f"{service.url}/api/runs/{oldest}").status_code == 200
+    page.once("dialog", accept)
+    await row.locator("button.delete").dispatch_event("click")
+    await expect(row).to_have_count(0)
+    assert httpx.get(f"{service.url}/api/runs/{oldest}").status_code == 404
+    assert (await counters(page))["lastError"] is None
+
+    # 51 runs where 50 are listed: "Older runs" is offered, and asks for 50 more
+    many = [{"id": i, "started_at": "2026-12-01T09:00:00.000+0000", "ended_at": None,
+             "status": "completed", "iterations": 0, "meta": {}, "summary": None}
+            for i in range(1000, 949, -1)]  # fmt: skip
+    await page.route(re.compile(r"/api/runs\?limit=51$"), lambda r: r.fulfill(json=many))
+    await page.locator("#runs-refresh").dispatch_event("click")
+    await expect(page.locator("#runs tbody tr")).to_have_count(50)
+    async with page.expect_request(re.compile(r"/api/runs\?limit=101$")):
+        await page.locator("#runs-older").dispatch_event("click")
+    await expect(page.locator("#runs-older")).to_be_hidden()  # the service has fewer
+    await page.unroute(re.compile(r"/api/runs\?limit=51$"))
 
 
 async def test_bad_parameter_shows_the_422_next_to_the_field(

@@ -449,16 +449,22 @@ async def test_the_estop_stops_a_run_whatever_the_database_does(
 
 
 async def test_the_estop_answers_at_once_while_its_latch_waits_for_a_lock(tmp_path: Path) -> None:
-    """The run database's writes wait 5 s for another program's lock: the e-stop's answer
-    does not (it waited the whole busy timeout before). It says the latch is not on disk yet,
-    the status says it is pending, and once the lock goes the latch is on disk with the time
-    the e-stop came, not the time the write got through."""
+    """The run database's writes wait 5 s for another program's lock: a run's start and the
+    e-stop's answer do not (each waited the whole busy timeout before). The e-stop says the
+    latch is not on disk yet, the status says it is pending, and once the lock goes the latch
+    is on disk with the time the e-stop came, not the time the write got through."""
     s = start_service(tmp_path, viewer=False, extra=["--set", "storage.busy_timeout_s=5"])
     try:
         async with s.client() as c:
             lock = sqlite3.connect(tmp_path / "runs.sqlite", isolation_level=None)
             try:
                 lock.execute("BEGIN IMMEDIATE")
+                # a run's start, on the service's event loop, waits only a moment for it: a
+                # 503 that names the lock (not a 500 after the whole busy timeout)
+                with pytest.raises(Unavailable, match="locked by another program") as refused:
+                    await c.start_run()
+                assert "no run was started" in refused.value.error
+                assert (await c.status())["run"] is None
                 out = await c.estop()
                 assert out["estopped"] is True and out["recorded"] is False, out
                 assert "still being written" in out["detail"]

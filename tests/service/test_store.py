@@ -196,7 +196,8 @@ def test_a_run_whose_process_died_is_marked_interrupted_and_this_ones_are_not(
                                       "VALUES ('x', 'running', '{}')").lastrowid  # fmt: skip
             host, pid = store.db.execute("SELECT host, pid FROM owners WHERE run_id = ?",
                                          (mine,)).fetchone()  # fmt: skip
-            store.db.execute("INSERT INTO owners VALUES (?, ?, ?, 'started before')",
+            store.db.execute("INSERT INTO owners (run_id, host, pid, started) "
+                             "VALUES (?, ?, ?, 'started before')",
                              (reused, host, pid))  # fmt: skip
         assert store.run(mine)["status"] == "running"  # type: ignore[index]
         assert sorted(store.mark_interrupted()) == sorted([legacy, reused])

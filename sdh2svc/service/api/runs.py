@@ -15,6 +15,7 @@ import base64
 import contextlib
 import io
 import json
+import sqlite3
 from collections.abc import Iterator
 from typing import Annotated, Any, Literal
 
@@ -30,7 +31,7 @@ from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
 from sdh2svc.service.reads import Payload
 from sdh2svc.service.replay_feed import Recorded, recorded_iteration
-from sdh2svc.service.store import RunStore, StoreError, recorded_settings
+from sdh2svc.service.store import RunBusy, RunStore, StoreError, recorded_settings
 from sdh2svc.service.telemetry import estimate_outline
 
 router = APIRouter()
@@ -97,14 +98,52 @@ def _answer(body: Payload) -> Response:
     return Response(body.content, media_type=body.media_type, headers=body.headers)
 
 
-def _list_body(cfg: Settings) -> Payload:
+BEFORE = "only runs of lower ids (the next page: the last id of this one)"
+RUNS_PAGE = 100  # runs per page of GET /api/runs by default (a run's entry is ≈ 3.5 kB)
+
+
+def _list_body(cfg: Settings, limit: int, before: int | None) -> Payload:
     with _store(cfg) as store:
-        return json_body(store.runs())
+        runs, total = store.run_page(limit + 1, before)  # one more: is there a next page?
+    body = json_body(runs[:limit])
+    body.headers["X-Total-Count"] = str(total)
+    if len(runs) > limit:
+        last = runs[limit - 1]["id"]
+        body.headers["Link"] = f'</api/runs?before={last}&limit={limit}>; rel="next"'
+    return body
 
 
-@router.get("/api/runs", response_model=list[dict[str, Any]], responses=responses(*READ))
-async def list_runs(svc: Svc) -> Response:
-    return _answer(await svc.reads(_list_body, svc.cfg))
+@router.get("/api/runs", response_model=list[dict[str, Any]], responses=responses(*READ, 422))
+async def list_runs(
+    svc: Svc,
+    limit: Annotated[int, Query(ge=1, le=1000, description="runs on the page"), Digits] = RUNS_PAGE,
+    before: Annotated[int | None, Query(ge=1, le=SQL_INT_MAX, description=BEFORE), Digits] = None,
+) -> Response:
+    """The recorded runs, newest first, ``limit`` at a time; the header ``X-Total-Count`` says
+    how many the database holds, ``Link: <…>; rel="next"`` where the next page is."""
+    return _answer(await svc.reads(_list_body, svc.cfg, limit, before))
+
+
+@router.delete("/api/runs/{run_id}", dependencies=[Auth, NoBody],
+               responses=responses(*WRITE, 404, 409, 422, 503),
+               openapi_extra=EMPTY_BODY)  # fmt: skip
+async def delete_run(svc: Svc, run_id: RunId) -> Response:
+    """Delete a recorded run with everything recorded with it; 409 while it is being
+    recorded."""
+    return _answer(await svc.reads(_delete_run, svc.cfg, run_id))
+
+
+def _delete_run(cfg: Settings, run_id: int) -> Payload:
+    with _store(cfg) as store:
+        _run_or_404(store, run_id)
+        try:
+            if not store.delete_runs([run_id]):
+                raise ServiceError(404, f"no run {run_id} (GET /api/runs lists them)")
+        except RunBusy as e:
+            raise ServiceError(409, str(e)) from None
+        except sqlite3.OperationalError as e:
+            raise ServiceError(503, f"run {run_id} was not deleted: {e}") from None
+    return json_body({"deleted": run_id})
 
 
 class RecognitionSummary(BaseModel):
