@@ -67,14 +67,21 @@ class LiveService:
         return self.proc.returncode
 
 
+# The simulated hand starts in the pre-shape: the first run's move there from the straight
+# fingers takes 5.5 s of real time, in which these tests look at nothing (the move is tested on
+# the virtual clock: tests/control, tests/service/test_faults_by_phase.py)
+AT_PRESHAPE = ("--set", "sim.start_deg=[90.0, -30.0, 30.0, -90.0, 0.0, -30.0, 30.0]")
+
+
 def service_command(
     db_path: Path, *, viewer: bool, extra: Sequence[str] = (), sim: bool = True
 ) -> list[str]:
     """``sdh2svc serve --sim`` on free ports with the database at ``db_path`` (``sim=False``:
-    without ``--sim``; give the hand's ``--dsa``/``--sdh`` in ``extra``)."""
+    without ``--sim``; give the hand's ``--dsa``/``--sdh`` in ``extra``). The simulated hand
+    starts in the pre-shape (:data:`AT_PRESHAPE`)."""
     cmd = [sys.executable, "-m", "sdh2svc", "serve", "--json", "--port", "0",
            "--set", f"storage.db_path={json.dumps(str(db_path))}"]  # fmt: skip
-    cmd += ["--sim"] if sim else []
+    cmd += ["--sim", *AT_PRESHAPE] if sim else []
     cmd += ["--viser-port", "0"] if viewer else ["--no-viewer"]
     return cmd + list(extra)
 

@@ -49,9 +49,9 @@ from sdh2svc.sim.press import Press, Presses
 from sdh2svc.sim.sensor import PadRaster, TactileSensorModel
 from sdh2svc.sim.simconfig import SimConfig
 
-# The middle finger's (proximal, distal) angles at power-on, deg: opened away from the coupled
-# fingers, out of their plane of work (thesis §2.9), as SCHUNK's grasping demo's start pose and
-# the controller's pre-shape have it.
+# The middle finger's (proximal, distal) angles at power-on by default (config/sim.toml's
+# start_deg), deg: opened away from the coupled fingers, out of their plane of work (thesis
+# §2.9), as SCHUNK's grasping demo's start pose and the controller's pre-shape have it.
 MIDDLE_PARKED_DEG = (-90.0, 0.0)
 
 
@@ -129,10 +129,7 @@ class PhysicsWorld:
         self.axes = model.axes
         layouts = [lay for _, lay in matrix_pads(model.axes, model.tactile)]  # as wired
         self.shapes = tuple((lay.rows, lay.cols) for lay in layouts)
-        self._angles = [0.0] * 7
-        self._angles[self.axes.thumb_proximal], self._angles[self.axes.thumb_distal] = (
-            MIDDLE_PARKED_DEG
-        )
+        self._angles = [float(a) for a in sim.start_deg]
         self._stepped = list(self._angles)  # the joint angles the physics was last stepped to
         self._powered: tuple[bool, ...] | None = None  # as of the last move_joints
         # the last step's joints at their torque limit, (axis, torque), once asked

@@ -7,6 +7,7 @@ from typing import Annotated
 from pydantic import Field, field_validator
 
 from sdh2svc.model.base import Finite
+from sdh2svc.model.hand import HAND_MAX_DEG, HAND_MIN_DEG
 from sdh2svc.sim.objects import get_object
 from sdh2svc.sim.physics import PhysicsConfig
 from sdh2svc.sim.sensor import SensorModelConfig
@@ -34,9 +35,23 @@ class SimConfig(Finite):
     object_height_mm: Annotated[float, Field(ge=0.0, le=400.0)]
     object_angle_deg: Annotated[float, Field(ge=-180.0, le=180.0)]
     replace_after_s: Annotated[float, Field(ge=0.0, le=3600.0)]
+    # the hand's joint angles when the simulation starts (wire axes 0…6, deg): within what the
+    # hand can reach (a configuration's tighter joint limits bound commands, not where a hand
+    # was left)
+    start_deg: Annotated[tuple[float, ...], Field(min_length=7, max_length=7)]
     physics: PhysicsConfig
     sensor: SensorModelConfig
     links: LinksConfig
+
+    @field_validator("start_deg")
+    @classmethod
+    def _reachable(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        outside = [f"axis {i}: {a:g} (the hand reaches {lo:g} … {hi:g})"
+                   for i, (a, lo, hi) in enumerate(zip(v, HAND_MIN_DEG, HAND_MAX_DEG, strict=True))
+                   if not lo <= a <= hi]  # fmt: skip
+        if outside:
+            raise ValueError("; ".join(outside))
+        return v
 
     @field_validator("object")
     @classmethod

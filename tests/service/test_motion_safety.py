@@ -24,7 +24,7 @@ from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.sim.cable import Cable
 from sdh2svc.sim.lab import SimulatedHand
-from tests.live_service import LiveService, start_service
+from tests.live_service import AT_PRESHAPE, LiveService, start_service
 from tests.service.conftest import PATIENT
 
 STEP_DEG = 1.0  # safety.max_step_deg: the furthest a finger may go without a fresh command
@@ -34,7 +34,8 @@ FINGER_AXES = (1, 2, 3, 4, 5, 6)  # the coupled fingers and the thumb
 
 @pytest.fixture
 async def hand() -> AsyncIterator[tuple[SimulatedHand, Cable]]:
-    async with simulated_hand(load_config(), Simulated()) as bench:
+    at_preshape = [AT_PRESHAPE[1]]  # (the services these tests start have it too)
+    async with simulated_hand(load_config(overrides=at_preshape), Simulated()) as bench:
         sim = bench.sim
         host, port = sim.urls("sdh")[0].removeprefix("socket://").rsplit(":", 1)
         cable = Cable(host, int(port))
@@ -176,7 +177,8 @@ async def test_a_silent_joint_line_faults_the_run_and_shows_as_down(
 async def test_a_run_waits_for_the_tactile_line(tmp_path: Path) -> None:
     """With the tactile line down a run is refused (503, nothing recorded); once it is back,
     the same request starts a run."""
-    async with simulated_hand(load_config(), Simulated()) as bench:
+    at_preshape = [AT_PRESHAPE[1]]  # (the services these tests start have it too)
+    async with simulated_hand(load_config(overrides=at_preshape), Simulated()) as bench:
         sim = bench.sim
         host, port = sim.urls("dsa")[0].removeprefix("socket://").rsplit(":", 1)
         dsa = Cable(host, int(port))

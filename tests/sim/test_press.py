@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from sdh2svc.config import Settings, load_config
+from sdh2svc.config import ConfigError, Settings, load_config
 from sdh2svc.connect import Simulated, connect_hand, hand_model
 from sdh2svc.model.contact import MatrixLayout
 from sdh2svc.sim.clock import run_fast
@@ -176,3 +176,19 @@ def test_the_pads_keep_their_own_sensitivity_whatever_the_controller_believes(
         world.press(Press(pad=2, x_mm=10.0, y_mm=20.0, force_n=1.0), 0.0)
         frames.append(world.tactile_frame(0.1, [0.5] * 6, [0] * 6))
     assert frames[0].max() > 0 and np.array_equal(frames[0], frames[1])
+
+
+def test_the_hand_starts_where_the_configuration_says_within_the_joint_limits() -> None:
+    """sim.start_deg: the world's joint angles before anything moves them (a hand left in the
+    pre-shape spares the first run its move there); beyond what the hand reaches it is refused,
+    and tighter joint limits do not bound it (they bound commands, not where a hand was left)."""
+    cfg = load_config(overrides=["sim.start_deg=[90, -30, 30, -90, 0, -30, 30]"], use_env=False)
+    world = PhysicsWorld(hand_model(cfg), cfg.sim)
+    assert world.move_joints(0.0, [0.0] * 7, [False] * 7) == (90, -30, 30, -90, 0, -30, 30)
+    with pytest.raises(ConfigError, match=r"axis 0: -5 \(the hand reaches 0 … 90\)"):
+        load_config(overrides=["sim.start_deg=[-5, 0, 0, -90, 0, 0, 0]"], use_env=False)
+    narrow = ["limits.min_deg=[0, -90, -90, -90, -90, -90, -90]",
+              "limits.max_deg=[90, -20, 90, 90, 90, 90, 90]"]  # fmt: skip
+    assert load_config(overrides=narrow, use_env=False).sim.start_deg[1] == 0.0
+    with pytest.raises(ConfigError, match="start_deg"):
+        load_config(overrides=["sim.start_deg=[0, 0, 0]"], use_env=False)
