@@ -801,8 +801,8 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
     return Exit.OK
 
 
-def _n_runs(ids: list[int]) -> str:
-    return f"{len(ids)} run{'' if len(ids) == 1 else 's'}"
+def _n_runs(runs: list[Any]) -> str:
+    return f"{len(runs)} run{'' if len(runs) == 1 else 's'}"
 
 
 def _id_ranges(ids: list[int]) -> str:
@@ -823,7 +823,7 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
             print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
                   f"{r['iterations']:6d} iterations")  # fmt: skip
         on_disk, free = store.size()
-        print(f"{len(runs)} runs in {store.path}: {_megabytes(on_disk)}, {_megabytes(free)} of "
+        print(f"{_n_runs(runs)} in {store.path}: {_megabytes(on_disk)}, {_megabytes(free)} of "
               "it free for new runs (`runs prune` deletes old runs)", file=sys.stderr)  # fmt: skip
         return Exit.OK
     run = store.run(args.id) if args.id in RUN_IDS else None

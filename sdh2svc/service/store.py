@@ -174,8 +174,9 @@ def _owner_state(
 def _owner_alive(host: str | None, pid: int | None, started: str | None,
                  pidns: str | None = None) -> bool:  # fmt: skip
     """Whether the process that recorded a run is known to run still: a run without an owner
-    (recorded before owners were kept) or of another host (a copy from elsewhere) is read,
-    and marked, as interrupted."""
+    (recorded before owners were kept) or of another host or container (a copy from elsewhere)
+    is read as interrupted (:meth:`RunStore.mark_interrupted` marks it so once nothing else has
+    the file open)."""
     return _owner_state(host, pid, started, pidns) is Owner.ALIVE
 
 
@@ -408,7 +409,9 @@ class RunStore:
     def mark_interrupted(self) -> list[int]:
         """Runs left 'running' by a process that died (killed, crashed, the PC lost power):
         mark them so (their data stays). A run another live process records (a second service,
-        an ``sdh2svc run``, on the same file) is left running."""
+        an ``sdh2svc run``, on the same file) is left running, and so is one whose process
+        cannot be checked from here (another container or machine, or none recorded) while
+        another process has the file open."""
         with self._lock, self.db:
             owners = self._owners_of_running()
             shared = bool(openers(self.path) or [])  # (None: cannot tell; taken as not shared)
