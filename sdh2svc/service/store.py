@@ -103,9 +103,17 @@ CREATE TABLE IF NOT EXISTS owners (
     host TEXT NOT NULL,
     pid INTEGER NOT NULL,
     started TEXT NOT NULL,
-    pidns TEXT
+    pidns TEXT,
+    seen REAL
 );
 """
+# A run's recorder writes the time to its owner's row (``seen``, epoch seconds) at least this
+# often; a run marked 'running' whose owner's process cannot be checked from here (another
+# container or machine) is taken as recorded until the time is this old. A heartbeat works
+# across containers, where a pid means nothing and /proc/locks lists no other namespace's locks.
+HEARTBEAT_S = 1.0
+STALE_S = 30.0
+DELETE_CHUNK = 1000  # rows deleted per transaction: a recorder or a run's start waits ~10 ms
 # Indexes a later version added: made by a writer (the service, a run), never by a reading
 # command, which an older database on a read-only medium must not fail
 WRITER_INDEXES = "CREATE INDEX IF NOT EXISTS events_run ON events(run_id);"
@@ -171,21 +179,26 @@ def _owner_state(
     return Owner.ALIVE
 
 
-def _owner_alive(host: str | None, pid: int | None, started: str | None,
-                 pidns: str | None = None) -> bool:  # fmt: skip
-    """Whether the process that recorded a run is known to run still: a run without an owner
-    (recorded before owners were kept) or of another host or container (a copy from elsewhere)
-    is read as interrupted (:meth:`RunStore.mark_interrupted` marks it so once nothing else has
-    the file open)."""
-    return _owner_state(host, pid, started, pidns) is Owner.ALIVE
+def _owner_now(
+    host: str | None, pid: int | None, started: str | None, pidns: str | None,
+    seen: float | None, now: float,
+) -> Owner:  # fmt: skip
+    """ALIVE or DEAD: the owner's state, one that cannot be checked from here (another
+    container or machine, or none recorded) told by its recorder's heartbeat ``seen`` (alive
+    while younger than STALE_S at ``now``; a run of an older version has none: dead)."""
+    owner = _owner_state(host, pid, started, pidns)
+    if owner is Owner.UNKNOWN:
+        return Owner.ALIVE if seen is not None and now - seen < STALE_S else Owner.DEAD
+    return owner
 
 
 def openers(path: Path) -> list[int] | None:
-    """The other processes that have the run database at ``path`` open (their pids; 0 for one
-    of another pid namespace), from the kernel's list of file locks: in WAL mode every SQLite
-    connection holds a read lock on byte 128 of the ``-shm`` file for as long as it is open.
-    None where that cannot be told (no /proc/locks). Read from /proc, never by locking: closing
-    a descriptor of the file would drop this process's own SQLite locks on it."""
+    """The other processes of this pid namespace that have the run database at ``path`` open
+    (their pids), from the kernel's list of file locks: in WAL mode every SQLite connection
+    holds a read lock on byte 128 of the ``-shm`` file for as long as it is open. Another
+    container's processes are not listed (/proc/locks shows only this namespace's). None where
+    that cannot be told (no /proc/locks). Read from /proc, never by locking: closing a
+    descriptor of the file would drop this process's own SQLite locks on it."""
     try:
         st = os.stat(f"{path}-shm")
         table = Path("/proc/locks").read_text()
@@ -272,8 +285,10 @@ def connect(
         if create:
             _check_writable(db, busy_timeout_s)
             db.executescript(WRITER_INDEXES)  # (events_run: a deleted run's events found at once)
-            if "pidns" not in _columns(db, "owners"):
-                db.execute("ALTER TABLE owners ADD COLUMN pidns TEXT")
+            have = _columns(db, "owners")
+            for column, kind in (("pidns", "TEXT"), ("seen", "REAL")):
+                if column not in have:
+                    db.execute(f"ALTER TABLE owners ADD COLUMN {column} {kind}")
     except (OSError, sqlite3.Error) as e:
         if db is not None:
             db.close()
@@ -378,8 +393,9 @@ class RunStore:
             )
             run_id = cur.lastrowid
             assert run_id is not None
-            self.db.execute("INSERT INTO owners (run_id, host, pid, started, pidns) "
-                            "VALUES (?, ?, ?, ?, ?)", (run_id, *_this_process()))  # fmt: skip
+            self.db.execute("INSERT INTO owners (run_id, host, pid, started, pidns, seen) "
+                            "VALUES (?, ?, ?, ?, ?, ?)",
+                            (run_id, *_this_process(), time.time()))  # fmt: skip
             if outline is not None:
                 self._insert_outline(run_id, *outline)
         return run_id
@@ -410,25 +426,31 @@ class RunStore:
         """Runs left 'running' by a process that died (killed, crashed, the PC lost power):
         mark them so (their data stays). A run another live process records (a second service,
         an ``sdh2svc run``, on the same file) is left running, and so is one whose process
-        cannot be checked from here (another container or machine, or none recorded) while
-        another process has the file open."""
+        cannot be checked from here (another container) while its recorder's heartbeat is
+        fresh."""
         with self._lock, self.db:
-            owners = self._owners_of_running()
-            shared = bool(openers(self.path) or [])  # (None: cannot tell; taken as not shared)
-            ids = [i for i, owner in owners if owner is Owner.DEAD
-                   or (owner is Owner.UNKNOWN and not shared)]  # fmt: skip
+            ids = [i for i, owner in self._owners_of_running() if owner is Owner.DEAD]
             self.db.executemany("UPDATE runs SET status = 'interrupted' WHERE id = ?",
                                 [(i,) for i in ids])  # fmt: skip
         return ids
 
     def _owners_of_running(self) -> list[tuple[int, Owner]]:
-        """The runs marked 'running' with what can be told of their owners."""
-        pidns = ", o.pidns" if "pidns" in _columns(self.db, "owners") else ""
+        """The runs marked 'running' with their owners' state (:func:`_owner_now`)."""
         rows = self.db.execute(
-            f"SELECT r.id, o.host, o.pid, o.started{pidns} FROM runs r "
+            f"SELECT r.id, {self._owner_columns} FROM runs r "
             "LEFT JOIN owners o ON o.run_id = r.id WHERE r.status = 'running'"
         ).fetchall()
-        return [(r[0], _owner_state(*r[1:])) for r in rows]
+        now = time.time()
+        return [(run_id, _owner_now(host, pid, started, pidns, seen, now))
+                for run_id, host, pid, started, pidns, seen in rows]  # fmt: skip
+
+    @property
+    def _owner_columns(self) -> str:
+        """The owner's host, pid, started, pidns, seen (NULL for a column an older database
+        lacks: a reading command adds none)."""
+        have = _columns(self.db, "owners")
+        return ", ".join(f"o.{c}" if c in have else "NULL"
+                         for c in ("host", "pid", "started", "pidns", "seen"))  # fmt: skip
 
     # --- the e-stop latch: durable until an explicit release ------------------------------------
 
@@ -466,25 +488,25 @@ class RunStore:
         return int(row[0])
 
     # a run as read: 'running' only while its owner lives (read-only: mark_interrupted writes)
-    _RUN_SELECT = (
-        "SELECT r.*, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS iterations, "
-        "o.host AS owner_host, o.pid AS owner_pid, o.started AS owner_started "
-        "FROM runs r LEFT JOIN owners o ON o.run_id = r.id"
-    )
+    def _run_select(self) -> str:
+        return ("SELECT r.*, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS "
+                f"iterations, {self._owner_columns} FROM runs r "
+                "LEFT JOIN owners o ON o.run_id = r.id")  # fmt: skip
 
     def runs(self) -> list[dict[str, Any]]:
-        rows = self.db.execute(self._RUN_SELECT + " ORDER BY r.id DESC").fetchall()
+        rows = self.db.execute(self._run_select() + " ORDER BY r.id DESC").fetchall()
         return [self._run_dict(r) for r in rows]
 
     def run(self, run_id: int) -> dict[str, Any] | None:
-        r = self.db.execute(self._RUN_SELECT + " WHERE r.id = ?", (run_id,)).fetchone()
+        r = self.db.execute(self._run_select() + " WHERE r.id = ?", (run_id,)).fetchone()
         return None if r is None else self._run_dict(r)
 
     @staticmethod
     def _run_dict(r: sqlite3.Row) -> dict[str, Any]:
-        d = dict(r)
-        owner = d.pop("owner_host"), d.pop("owner_pid"), d.pop("owner_started")
-        if d["status"] == "running" and not _owner_alive(*owner):
+        *fields, host, pid, started, pidns, seen = tuple(r)
+        d = dict(zip(r.keys()[: len(fields)], fields, strict=True))
+        owner = _owner_now(host, pid, started, pidns, seen, time.time())
+        if d["status"] == "running" and owner is not Owner.ALIVE:
             d["status"] = "interrupted"  # its process died; the next service or run marks it
         d["meta"] = json.loads(d["meta"])
         d["summary"] = json.loads(d["summary"]) if d["summary"] else None
@@ -494,7 +516,7 @@ class RunStore:
         """Up to ``limit`` runs, newest first, of ids below ``before`` (None: from the newest),
         and how many runs the database holds in all."""
         where, args = ("", ()) if before is None else (" WHERE r.id < ?", (before,))
-        rows = self.db.execute(self._RUN_SELECT + where + " ORDER BY r.id DESC LIMIT ?",
+        rows = self.db.execute(self._run_select() + where + " ORDER BY r.id DESC LIMIT ?",
                                (*args, limit)).fetchall()  # fmt: skip
         total = int(self.db.execute("SELECT COUNT(*) FROM runs").fetchone()[0])
         return [self._run_dict(r) for r in rows], total
@@ -502,14 +524,9 @@ class RunStore:
     # --- retention: a run deleted with everything recorded with it; the file shrunk ------------
 
     def recording(self) -> list[int]:
-        """The runs that may be being recorded now: marked 'running', their process alive — or
-        one that cannot be checked from here (another container or machine) while another
-        process has the file open. Fails closed: what deletes or rewrites runs spares these."""
-        owners = self._owners_of_running()
-        unknown = any(owner is Owner.UNKNOWN for _, owner in owners)
-        shared = unknown and openers(self.path) != []  # (None: cannot tell; taken as shared)
-        return [i for i, owner in owners
-                if owner is Owner.ALIVE or (owner is Owner.UNKNOWN and shared)]  # fmt: skip
+        """The runs being recorded now: marked 'running', their process alive — or, one that
+        cannot be checked from here (another container), its recorder's heartbeat fresh."""
+        return [i for i, owner in self._owners_of_running() if owner is Owner.ALIVE]
 
     def prunable(self, keep: int | None = None, before: datetime | None = None) -> list[int]:
         """The runs a prune deletes, oldest first: all but the newest ``keep`` (None: no count
@@ -528,17 +545,25 @@ class RunStore:
     def delete_runs(self, ids: list[int]) -> list[int]:
         """Delete the runs ``ids`` with everything recorded with them; returns those that
         existed (the others are not there to delete). :class:`RunBusy`, before anything is
-        deleted, if one is being recorded. One transaction per run, so that a recorder writing
-        meanwhile waits milliseconds, never the whole prune; the pages freed hold the next runs
-        (:meth:`vacuum` gives them back to the file system)."""
+        deleted, if one is being recorded. The rows go DELETE_CHUNK at a time, each chunk its
+        own transaction, the run's own row last: a recorder, or the service starting a run
+        (which waits only a moment for the lock), waits milliseconds, never a whole run's
+        deletion; a deletion cut short leaves the run listed, to be deleted again. The pages
+        freed hold the next runs (:meth:`vacuum` gives them back to the file system)."""
         busy = sorted(set(ids) & set(self.recording()))
         if busy:
-            raise RunBusy(f"run {busy[0]} is being recorded: stop it first (`runs list` shows "
-                          "it 'running')")  # fmt: skip
+            raise RunBusy(f"run {busy[0]} is being recorded: stop it first")
         done = []
         for run_id in ids:
+            for table in ("samples", "events", "frames", "truth"):
+                chunk = (f"DELETE FROM {table} WHERE rowid IN (SELECT rowid FROM {table} "
+                         "WHERE run_id = ? LIMIT ?)")  # fmt: skip
+                while True:
+                    with self._lock, self.db:
+                        if not self.db.execute(chunk, (run_id, DELETE_CHUNK)).rowcount:
+                            break
             with self._lock, self.db:
-                for table in ("samples", "events", "frames", "truth", "outlines", "owners"):
+                for table in ("outlines", "owners"):
                     self.db.execute(f"DELETE FROM {table} WHERE run_id = ?", (run_id,))
                 if self.db.execute("DELETE FROM runs WHERE id = ?", (run_id,)).rowcount:
                     done.append(run_id)
@@ -555,11 +580,12 @@ class RunStore:
     def vacuum(self) -> None:
         """Rewrite the file without its free pages (SQLite's VACUUM), so that it shrinks.
 
-        :class:`RunBusy` while a run is being recorded, or another program has the database
-        open (a service, idle or not; a reader): VACUUM holds the whole file for as long as it
-        copies it — longer than a run's start or an e-stop's latch waits — and a reader keeps
-        the copy in the write-ahead log, beside the old file, until it lets go. StoreError if
-        a reader came meanwhile and the log could not be given back."""
+        :class:`RunBusy` while a run is being recorded, or another program of this container
+        has the database open (a service, idle or not; a reader): VACUUM holds the whole file
+        for as long as it copies it — longer than a run's start or an e-stop's latch waits —
+        and a reader keeps the copy in the write-ahead log, beside the old file, until it lets
+        go. (A service in another container cannot be seen from here: stop it first.)
+        StoreError if a reader came meanwhile and the log could not be given back."""
         busy = self.recording()
         if busy:
             raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")
@@ -869,11 +895,22 @@ class Recorder:
         buf = self._buf
         pending: list[tuple[str, tuple[Any, ...]]] = []  # taken from the buffer, not on disk
         in_a_row = tries_closing = 0  # refusals of a locked database
+        beat = "UPDATE owners SET seen = ? WHERE run_id = ?"  # the heartbeat (STALE_S)
+        last_beat = time.time()
         try:
             while True:
                 done = self._closing.wait(self.flush_s)
                 while buf:
                     pending.append(buf.popleft())
+                now = time.time()
+                if not pending and now - last_beat >= HEARTBEAT_S:
+                    try:  # nothing to write: the heartbeat alone (a lock: the next time)
+                        with db:
+                            db.execute(beat, (now, self.run_id))
+                        last_beat = now
+                    except sqlite3.OperationalError as e:
+                        if not locked(e):
+                            raise
                 if pending:
                     # one transaction; each table's rows (in their order) in few statements:
                     # the tables' rows come interleaved (a sample, its truth, its frame, …)
@@ -884,6 +921,8 @@ class Recorder:
                         with db:
                             for kind, rows in by_table.items():
                                 insert(kind, rows)
+                            db.execute(beat, (now, self.run_id))
+                        last_beat = now
                     except sqlite3.OperationalError as e:
                         # another program holds the file locked beyond busy_timeout_s: the
                         # rows wait for the next try (they were lost with the thread before);

@@ -342,7 +342,8 @@ def test_docs_assets_are_in_the_installed_package() -> None:
 
 
 NO_BODY = [("post", "/api/estop/release"), ("post", "/api/hand/open"),
-           ("delete", "/api/sim/press"), ("delete", "/api/viewer/replay")]  # fmt: skip
+           ("delete", "/api/sim/press"), ("delete", "/api/viewer/replay"),
+           ("delete", "/api/runs/999999")]  # fmt: skip
 
 
 async def test_a_command_without_a_body_refuses_one(svc: LiveService) -> None:

@@ -10,6 +10,7 @@ import logging
 import sqlite3
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -18,7 +19,14 @@ import numpy as np
 import pytest
 
 from sdh2svc.cli import Exit, main
-from sdh2svc.service.store import Recorder, RunBusy, RunStore, openers
+from sdh2svc.service.store import (
+    DELETE_CHUNK,
+    STALE_S,
+    Recorder,
+    RunBusy,
+    RunStore,
+    openers,
+)
 
 TABLES = ("samples", "events", "frames", "truth", "outlines", "owners")
 STARTS = ["2026-10-01T09:00:00.000+0200", "2026-11-01T09:00:00.000+0000",
@@ -295,28 +303,76 @@ def test_openers_are_the_other_processes_with_the_file_open(four_runs: Path) -> 
 
 
 @pytest.mark.parametrize("where", ["another host", "another pid namespace"])
-def test_a_run_that_cannot_be_checked_is_spared_while_another_process_has_the_file_open(
+def test_a_run_whose_process_cannot_be_checked_is_spared_while_its_heartbeat_is_fresh(
     four_runs: Path, where: str
 ) -> None:
     """A service in a container records a run; `runs prune` runs on the host (or the other way
-    round): the run's pid means nothing here, so it is taken as recorded while anything else
-    has the file open — and deleted only once nothing has."""
+    round): the run's pid means nothing here, and /proc/locks lists no other namespace's locks.
+    Its recorder's heartbeat says it is recorded; once the heartbeat is STALE_S old it is not
+    (its process died with the container), and it is marked interrupted and may go."""
     store = RunStore(four_runs)
     try:
-        run_id = store.create_run({})
+        run_id = store.create_run({})  # its heartbeat: now
         if where == "another host":
             _owned_elsewhere(store, run_id, host="labpc-container")
         else:  # the same host name, another pid namespace (docker --network host)
             _owned_elsewhere(store, run_id, pidns="pid:[1]")
-        with another_process_open(four_runs):
-            assert store.recording() == [run_id]
-            assert run_id not in store.prunable(keep=0)
-            with pytest.raises(RunBusy, match=f"run {run_id} is being recorded"):
-                store.delete_runs([run_id])
-            assert store.mark_interrupted() == []  # nor marked interrupted under it
-        assert store.recording() == []  # nothing else has it open: nobody records it
+        assert store.recording() == [run_id]
+        assert store.run(run_id)["status"] == "running"  # type: ignore[index]  (read so too)
+        assert run_id not in store.prunable(keep=0)
+        with pytest.raises(RunBusy, match=f"run {run_id} is being recorded"):
+            store.delete_runs([run_id])
+        assert store.mark_interrupted() == []  # nor marked interrupted under it
+        with store.db:  # its container stopped a while ago
+            store.db.execute("UPDATE owners SET seen = ? WHERE run_id = ?",
+                             (time.time() - STALE_S - 1, run_id))  # fmt: skip
+        assert store.recording() == []
+        assert store.run(run_id)["status"] == "interrupted"  # type: ignore[index]
         assert store.mark_interrupted() == [run_id]
         assert store.delete_runs([run_id]) == [run_id]
+    finally:
+        store.close()
+
+
+def test_a_recorder_beats_while_it_has_nothing_to_write(four_runs: Path) -> None:
+    """During a grasp nothing is recorded for seconds: the heartbeat goes on regardless."""
+    store = RunStore(four_runs)
+    try:
+        run_id = store.create_run({})
+        with store.db:
+            store.db.execute("UPDATE owners SET seen = 0 WHERE run_id = ?", (run_id,))
+        rec = Recorder(four_runs, run_id, flush_s=0.01)
+        try:
+            deadline = time.monotonic() + 60  # (an event awaited, not a time window)
+            while _seen(store, run_id) == 0 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert time.time() - _seen(store, run_id) < STALE_S
+        finally:
+            rec.close()
+        assert rec.error is None
+    finally:
+        store.close()
+
+
+def _seen(store: RunStore, run_id: int) -> float:
+    row = store.db.execute("SELECT seen FROM owners WHERE run_id = ?", (run_id,)).fetchone()
+    return float(row[0])
+
+
+def test_a_long_run_is_deleted_a_chunk_at_a_time(tmp_path: Path) -> None:
+    """Every row goes, in transactions of DELETE_CHUNK rows (a run's start waits for none
+    longer than a chunk)."""
+    db = tmp_path / "runs.sqlite"
+    store = RunStore(db)
+    try:
+        run_id = _record(store, iterations=3 * DELETE_CHUNK + 7)
+        assert _rows(db, run_id)["frames"] == 3 * DELETE_CHUNK + 7
+        statements: list[str] = []
+        store.db.set_trace_callback(statements.append)
+        assert store.delete_runs([run_id]) == [run_id]
+        store.db.set_trace_callback(None)
+        assert set(_rows(db, run_id).values()) == {0}
+        assert sum("DELETE FROM frames" in q for q in statements) == 4 + 1  # 3 full, 7, none
     finally:
         store.close()
 
