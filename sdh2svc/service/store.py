@@ -323,7 +323,7 @@ def _columns(db: sqlite3.Connection, table: str) -> set[str]:
 
 def _add_new_sample_columns(db: sqlite3.Connection) -> None:
     """A database made before a Sample field was added gets its column (null in older rows)."""
-    have = {row[1] for row in db.execute("PRAGMA table_info(samples)")}
+    have = _columns(db, "samples")
     for column in SAMPLE_COLUMNS:
         if column not in have:
             db.execute(f'ALTER TABLE samples ADD COLUMN "{column}"')
@@ -341,7 +341,7 @@ _KEY_COLUMNS = {
 
 def _check_tables(db: sqlite3.Connection, p: Path) -> None:
     for table, need in _KEY_COLUMNS.items():
-        have = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+        have = _columns(db, table)
         if have and not need <= have:
             raise StoreError(f"{p} is not a run database this version can read: its {table} "
                              f"table lacks {', '.join(sorted(need - have))}")  # fmt: skip

@@ -63,6 +63,16 @@ def _rows(db: Path, run_id: int) -> dict[str, int]:
 
 
 @pytest.fixture
+def store(four_runs: Path) -> Iterator[RunStore]:
+    """A store on ``four_runs`` (closed after the test)."""
+    store = RunStore(four_runs)
+    try:
+        yield store
+    finally:
+        store.close()
+
+
+@pytest.fixture
 def four_runs(tmp_path: Path) -> Path:
     """Runs 1–4, started on STARTS."""
     db = tmp_path / "runs.sqlite"
@@ -74,56 +84,46 @@ def four_runs(tmp_path: Path) -> Path:
     return db
 
 
-def test_a_deleted_run_leaves_nothing_behind_and_the_others_stay_whole(four_runs: Path) -> None:
+def test_a_deleted_run_leaves_nothing_behind_and_the_others_stay_whole(
+    four_runs: Path, store: RunStore
+) -> None:
     before = _rows(four_runs, 3)
     assert min(before.values()) >= 1
-    store = RunStore(four_runs)
-    try:
-        assert store.delete_runs([2, 99]) == [2]  # 99 was never there
-        assert store.run(2) is None and store.events(2) == [] and store.truth(2) == []
-        assert set(_rows(four_runs, 2).values()) == {0}
-        assert _rows(four_runs, 3) == before
-        assert [r["id"] for r in store.runs()] == [4, 3, 1]
-        _, free = store.size()
-        assert free > 50 * 486 * 2  # the frames' pages wait for the next runs
-        assert _record(store) == 5  # ids are never reused (AUTOINCREMENT)
-    finally:
-        store.close()
+    assert store.delete_runs([2, 99]) == [2]  # 99 was never there
+    assert store.run(2) is None and store.events(2) == [] and store.truth(2) == []
+    assert set(_rows(four_runs, 2).values()) == {0}
+    assert _rows(four_runs, 3) == before
+    assert [r["id"] for r in store.runs()] == [4, 3, 1]
+    _, free = store.size()
+    assert free > 50 * 486 * 2  # the frames' pages wait for the next runs
+    assert _record(store) == 5  # ids are never reused (AUTOINCREMENT)
 
 
-def test_a_run_being_recorded_is_never_deleted_nor_the_file_vacuumed(four_runs: Path) -> None:
-    store = RunStore(four_runs)
-    try:
-        live = store.create_run({})  # this process records it: alive
-        with pytest.raises(RunBusy, match=f"run {live} is being recorded"):
-            store.delete_runs([1, live])
-        assert store.run(1) is not None  # nothing deleted: the refusal comes first
-        assert live not in store.prunable(keep=0)
-        with pytest.raises(RunBusy, match="vacuum once it has ended"):
-            store.vacuum()
-        store.finish_run(live, "stopped", {})
-        assert store.delete_runs([live]) == [live]
-    finally:
-        store.close()
+def test_a_run_being_recorded_is_never_deleted_nor_the_file_vacuumed(store: RunStore) -> None:
+    live = store.create_run({})  # this process records it: alive
+    with pytest.raises(RunBusy, match=f"run {live} is being recorded"):
+        store.delete_runs([1, live])
+    assert store.run(1) is not None  # nothing deleted: the refusal comes first
+    assert live not in store.prunable(keep=0)
+    with pytest.raises(RunBusy, match="vacuum once it has ended"):
+        store.vacuum()
+    store.finish_run(live, "stopped", {})
+    assert store.delete_runs([live]) == [live]
 
 
-def test_prune_keeps_the_newest_and_takes_only_the_older_than_asked(four_runs: Path) -> None:
-    store = RunStore(four_runs)
-    try:
-        assert store.prunable(keep=0) == [1, 2, 3, 4]
-        assert store.prunable(keep=1) == [1, 2, 3]
-        assert store.prunable(keep=10) == []
-        nov = datetime(2026, 11, 15, tzinfo=UTC)
-        assert store.prunable(before=nov) == [1, 2]
-        assert store.prunable(keep=3, before=nov) == [1]  # both: beyond the newest 3 and older
-        # run 1 started 09:00 at +02:00, 07:00 UTC: before 08:00 UTC, not before 06:00 UTC
-        at = datetime(2026, 10, 1, 8, tzinfo=UTC)
-        assert store.prunable(before=at) == [1]
-        assert store.prunable(before=at - timedelta(hours=2)) == []
-        with pytest.raises(ValueError, match="time zone"):
-            store.prunable(before=datetime(2026, 11, 15))  # the mistake tested
-    finally:
-        store.close()
+def test_prune_keeps_the_newest_and_takes_only_the_older_than_asked(store: RunStore) -> None:
+    assert store.prunable(keep=0) == [1, 2, 3, 4]
+    assert store.prunable(keep=1) == [1, 2, 3]
+    assert store.prunable(keep=10) == []
+    nov = datetime(2026, 11, 15, tzinfo=UTC)
+    assert store.prunable(before=nov) == [1, 2]
+    assert store.prunable(keep=3, before=nov) == [1]  # both: beyond the newest 3 and older
+    # run 1 started 09:00 at +02:00, 07:00 UTC: before 08:00 UTC, not before 06:00 UTC
+    at = datetime(2026, 10, 1, 8, tzinfo=UTC)
+    assert store.prunable(before=at) == [1]
+    assert store.prunable(before=at - timedelta(hours=2)) == []
+    with pytest.raises(ValueError, match="time zone"):
+        store.prunable(before=datetime(2026, 11, 15))  # the mistake tested
 
 
 def test_vacuum_gives_the_deleted_runs_space_back(tmp_path: Path) -> None:
@@ -191,20 +191,16 @@ def test_runs_delete_prune_and_vacuum_from_the_command_line(
 
 
 def test_a_run_being_recorded_is_refused_by_name(
-    four_runs: Path, capsys: pytest.CaptureFixture[str]
+    four_runs: Path, store: RunStore, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    store = RunStore(four_runs)
-    try:
-        live = store.create_run({})
-        status, _, err = _cli(capsys, four_runs, "delete", str(live))
-        assert status == Exit.FAILED and f"run {live} is being recorded: stop it first" in err
-        status, _, err = _cli(capsys, four_runs, "vacuum")
-        assert status == Exit.FAILED and "vacuum once it has ended" in err
-        status, _, err = _cli(capsys, four_runs, "prune", "--keep", "0")
-        assert status == Exit.OK and "deleted 4 runs: 1–4;" in err  # all but the live one
-        assert store.run(live) is not None
-    finally:
-        store.close()
+    live = store.create_run({})
+    status, _, err = _cli(capsys, four_runs, "delete", str(live))
+    assert status == Exit.FAILED and f"run {live} is being recorded: stop it first" in err
+    status, _, err = _cli(capsys, four_runs, "vacuum")
+    assert status == Exit.FAILED and "vacuum once it has ended" in err
+    status, _, err = _cli(capsys, four_runs, "prune", "--keep", "0")
+    assert status == Exit.OK and "deleted 4 runs: 1–4;" in err  # all but the live one
+    assert store.run(live) is not None
 
 
 @pytest.mark.parametrize(
@@ -291,67 +287,57 @@ def _owned_elsewhere(store: RunStore, run_id: int, host: str | None = None,
             store.db.execute("UPDATE owners SET pidns = ? WHERE run_id = ?", (pidns, run_id))
 
 
-def test_openers_are_the_other_processes_with_the_file_open(four_runs: Path) -> None:
-    store = RunStore(four_runs)  # this process's own connection is not another's
-    try:
-        assert openers(four_runs) == []
-        with another_process_open(four_runs) as pid:
-            assert openers(four_runs) == [pid]
-        assert openers(four_runs) == []
-    finally:
-        store.close()
+def test_openers_are_the_other_processes_with_the_file_open(
+    four_runs: Path, store: RunStore
+) -> None:
+    assert openers(four_runs) == []  # this process's own connection (store's) is no other's
+    with another_process_open(four_runs) as pid:
+        assert openers(four_runs) == [pid]
+    assert openers(four_runs) == []
 
 
 @pytest.mark.parametrize("where", ["another host", "another pid namespace"])
 def test_a_run_whose_process_cannot_be_checked_is_spared_while_its_heartbeat_is_fresh(
-    four_runs: Path, where: str
+    store: RunStore, where: str
 ) -> None:
     """A service in a container records a run; `runs prune` runs on the host (or the other way
     round): the run's pid means nothing here, and /proc/locks lists no other namespace's locks.
     Its recorder's heartbeat says it is recorded; once the heartbeat is STALE_S old it is not
     (its process died with the container), and it is marked interrupted and may go."""
-    store = RunStore(four_runs)
-    try:
-        run_id = store.create_run({})  # its heartbeat: now
-        if where == "another host":
-            _owned_elsewhere(store, run_id, host="labpc-container")
-        else:  # the same host name, another pid namespace (docker --network host)
-            _owned_elsewhere(store, run_id, pidns="pid:[1]")
-        assert store.recording() == [run_id]
-        assert store.run(run_id)["status"] == "running"  # type: ignore[index]  (read so too)
-        assert run_id not in store.prunable(keep=0)
-        with pytest.raises(RunBusy, match=f"run {run_id} is being recorded"):
-            store.delete_runs([run_id])
-        assert store.mark_interrupted() == []  # nor marked interrupted under it
-        with store.db:  # its container stopped a while ago
-            store.db.execute("UPDATE owners SET seen = ? WHERE run_id = ?",
-                             (time.time() - STALE_S - 1, run_id))  # fmt: skip
-        assert store.recording() == []
-        assert store.run(run_id)["status"] == "interrupted"  # type: ignore[index]
-        assert store.mark_interrupted() == [run_id]
-        assert store.delete_runs([run_id]) == [run_id]
-    finally:
-        store.close()
+    run_id = store.create_run({})  # its heartbeat: now
+    if where == "another host":
+        _owned_elsewhere(store, run_id, host="labpc-container")
+    else:  # the same host name, another pid namespace (docker --network host)
+        _owned_elsewhere(store, run_id, pidns="pid:[1]")
+    assert store.recording() == [run_id]
+    assert store.run(run_id)["status"] == "running"  # type: ignore[index]  (read so too)
+    assert run_id not in store.prunable(keep=0)
+    with pytest.raises(RunBusy, match=f"run {run_id} is being recorded"):
+        store.delete_runs([run_id])
+    assert store.mark_interrupted() == []  # nor marked interrupted under it
+    with store.db:  # its container stopped a while ago
+        store.db.execute("UPDATE owners SET seen = ? WHERE run_id = ?",
+                         (time.time() - STALE_S - 1, run_id))  # fmt: skip
+    assert store.recording() == []
+    assert store.run(run_id)["status"] == "interrupted"  # type: ignore[index]
+    assert store.mark_interrupted() == [run_id]
+    assert store.delete_runs([run_id]) == [run_id]
 
 
-def test_a_recorder_beats_while_it_has_nothing_to_write(four_runs: Path) -> None:
+def test_a_recorder_beats_while_it_has_nothing_to_write(four_runs: Path, store: RunStore) -> None:
     """During a grasp nothing is recorded for seconds: the heartbeat goes on regardless."""
-    store = RunStore(four_runs)
+    run_id = store.create_run({})
+    with store.db:
+        store.db.execute("UPDATE owners SET seen = 0 WHERE run_id = ?", (run_id,))
+    rec = Recorder(four_runs, run_id, flush_s=0.01)
     try:
-        run_id = store.create_run({})
-        with store.db:
-            store.db.execute("UPDATE owners SET seen = 0 WHERE run_id = ?", (run_id,))
-        rec = Recorder(four_runs, run_id, flush_s=0.01)
-        try:
-            deadline = time.monotonic() + 60  # (an event awaited, not a time window)
-            while _seen(store, run_id) == 0 and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert time.time() - _seen(store, run_id) < STALE_S
-        finally:
-            rec.close()
-        assert rec.error is None
+        deadline = time.monotonic() + 60  # (an event awaited, not a time window)
+        while _seen(store, run_id) == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert time.time() - _seen(store, run_id) < STALE_S
     finally:
-        store.close()
+        rec.close()
+    assert rec.error is None
 
 
 def _seen(store: RunStore, run_id: int) -> float:
@@ -377,21 +363,19 @@ def test_a_long_run_is_deleted_a_chunk_at_a_time(tmp_path: Path) -> None:
         store.close()
 
 
-def test_vacuum_is_refused_while_another_process_has_the_file_open(four_runs: Path) -> None:
+def test_vacuum_is_refused_while_another_process_has_the_file_open(
+    four_runs: Path, store: RunStore
+) -> None:
     """An idle service holds the file open: a vacuum would hold up its next run's start and an
     e-stop's latch for as long as it copies, and a reader keeps the copy in the log."""
-    store = RunStore(four_runs)
-    try:
-        store.delete_runs([1, 2])
-        with another_process_open(four_runs) as pid, pytest.raises(RunBusy) as refused:
-            store.vacuum()
-        assert f"another program has the run database open (pid {pid}: a running service" in (
-            str(refused.value)
-        )
+    store.delete_runs([1, 2])
+    with another_process_open(four_runs) as pid, pytest.raises(RunBusy) as refused:
         store.vacuum()
-        assert store.size()[1] == 0
-    finally:
-        store.close()
+    assert f"another program has the run database open (pid {pid}: a running service" in (
+        str(refused.value)
+    )
+    store.vacuum()
+    assert store.size()[1] == 0
 
 
 def test_a_run_is_not_created_while_another_program_holds_the_lock_beyond_the_wait(
@@ -415,37 +399,29 @@ def test_a_run_is_not_created_while_another_program_holds_the_lock_beyond_the_wa
 
 
 def test_a_run_deleted_under_its_recorder_says_its_end_was_not_recorded(
-    four_runs: Path, caplog: pytest.LogCaptureFixture
+    store: RunStore, caplog: pytest.LogCaptureFixture
 ) -> None:
-    store = RunStore(four_runs)
-    try:
-        with store.db:  # as another program that deleted it would leave it
-            store.db.execute("DELETE FROM runs WHERE id = 4")
-        with caplog.at_level(logging.ERROR):
-            store.finish_run(4, "completed", {})
-        assert "run 4 ended completed, but it is no longer in" in caplog.text
-    finally:
-        store.close()
+    with store.db:  # as another program that deleted it would leave it
+        store.db.execute("DELETE FROM runs WHERE id = 4")
+    with caplog.at_level(logging.ERROR):
+        store.finish_run(4, "completed", {})
+    assert "run 4 ended completed, but it is no longer in" in caplog.text
 
 
 def test_the_command_line_spares_what_the_store_spares(
-    four_runs: Path, capsys: pytest.CaptureFixture[str]
+    four_runs: Path, store: RunStore, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    store = RunStore(four_runs)
-    try:
-        live = store.create_run({})
-        status, _, err = _cli(capsys, four_runs, "delete", str(live), "--dry-run")
-        assert status == Exit.FAILED and f"run {live} is being recorded" in err
-        store.finish_run(live, "stopped", {})
-        store.delete_runs([1])
-        with another_process_open(four_runs):
-            status, _, err = _cli(capsys, four_runs, "vacuum")
-            assert status == Exit.FAILED and "another program has the run database open" in err
-        # nothing to prune, and --vacuum still vacuums
-        status, _, err = _cli(capsys, four_runs, "prune", "--before", "2000-01-01", "--vacuum")
-        assert status == Exit.OK and "no run to delete" in err and " MB → " in err
-    finally:
-        store.close()
+    live = store.create_run({})
+    status, _, err = _cli(capsys, four_runs, "delete", str(live), "--dry-run")
+    assert status == Exit.FAILED and f"run {live} is being recorded" in err
+    store.finish_run(live, "stopped", {})
+    store.delete_runs([1])
+    with another_process_open(four_runs):
+        status, _, err = _cli(capsys, four_runs, "vacuum")
+        assert status == Exit.FAILED and "another program has the run database open" in err
+    # nothing to prune, and --vacuum still vacuums
+    status, _, err = _cli(capsys, four_runs, "prune", "--before", "2000-01-01", "--vacuum")
+    assert status == Exit.OK and "no run to delete" in err and " MB → " in err
     with pytest.raises(SystemExit) as bad:
         _cli(capsys, four_runs, "prune", "--before", "1000000d")
     assert bad.value.code == Exit.USAGE
