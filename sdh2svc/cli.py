@@ -1176,8 +1176,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """``parser.parse_args``, but run IDs may also follow an option (``runs delete --dry-run 3
+    4``): argparse gives the IDs their (empty) share at the action already, and the rest would
+    be refused as unrecognized arguments."""
+    args, extra = parser.parse_known_args(argv)
+    if extra and args.command == "runs" and not any(x.startswith("-") for x in extra):
+        try:
+            args.id = [*args.id, *(_run_id(x) for x in extra)]
+        except argparse.ArgumentTypeError as e:
+            parser.error(f"argument id: {e}")
+        extra = []
+    if extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(build_parser(), argv)
     debug = _debug(args)
     try:
         return int(args.func(args))

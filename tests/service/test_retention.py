@@ -222,6 +222,20 @@ def test_what_an_action_does_not_take_is_a_usage_error(
     assert _rows(four_runs, 1)["runs"] == 1
 
 
+def test_run_ids_may_follow_an_option(four_runs: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status, _, err = _cli(capsys, four_runs, "delete", "--dry-run", "2", "3")
+    assert status == Exit.OK and "would delete 2 runs: 2–3" in err
+    status, _, err = _cli(capsys, four_runs, "delete", "1", "--vacuum", "4")
+    assert status == Exit.OK and "deleted 2 runs: 1, 4;" in err
+    _, out, _ = _cli(capsys, four_runs, "list")
+    assert [int(line.split()[0]) for line in out.splitlines()] == [3, 2]
+    for bad, said in ((["2x"], "'2x': a run ID is written in the digits 0–9"),
+                      (["2", "--bogus"], "unrecognized arguments: 2 --bogus")):  # fmt: skip
+        with pytest.raises(SystemExit) as refused:
+            _cli(capsys, four_runs, "delete", "--dry-run", *bad)
+        assert refused.value.code == Exit.USAGE and said in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("when", ["yesterday", "30x", "3w", "2026-13-01"])
 def test_prune_before_takes_a_date_or_an_age(
     when: str, four_runs: Path, capsys: pytest.CaptureFixture[str]
