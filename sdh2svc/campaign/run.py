@@ -44,7 +44,7 @@ RESULTS_FILE = "results.parquet"
 
 # What success means (judge()): thesis §4's targets, as the reproduction report checks them.
 MIN_HALF_STROKE_DEG = 1.0  # true rotation of the object in every half stroke
-F_BAND = (0.25, 2.5)  # × Fd: every rolling iteration's F after the grasp
+F_BAND = (0.25, 2.5)  # × Fd: every rolling iteration's true grip after the grasp
 CLUSTER_HINT = "pip install 'sdh2svc[cluster]'"
 
 
@@ -90,7 +90,8 @@ def case_settings(case: Case, overrides: Sequence[str], config_path: str | None,
 
 class TruthProbe(BaseObserver):
     """Watches a run beside it (:class:`~sdh2svc.control.observer.RunObserver`): the simulated
-    object's true angle ψ at the grasp and at every iteration, and where the half strokes end."""
+    object's true angle ψ and the true grip force at the grasp and at every iteration, and
+    where the half strokes end."""
 
     def __init__(self) -> None:
         self.bench: Any = None  # the simulated hand's bench (sdh2svc.connect.Bench)
@@ -101,7 +102,10 @@ class TruthProbe(BaseObserver):
         # object turned by the controller's own estimate, control/rolling.py)
         self.reversals: list[tuple[int | None, bool]] = []
         self._half_strokes = 0
-        self.grasp_F: float | None = None
+        # the true grip (N): the mean of the two distal pads' true normal forces, as the
+        # controller's F is the mean of F1 and F2 — at the grasp and at every rolling iteration
+        self.grasp_grip_n: float | None = None
+        self.grip_n: list[float] = []
         # the distance between the true contact points on the object at the first iteration:
         # the object's width where the pads really touch it
         self.contact_width_mm: float | None = None
@@ -120,7 +124,7 @@ class TruthProbe(BaseObserver):
     def event(self, e: Event) -> None:
         kind, detail = e.kind, e.detail
         if kind is EventKind.GRASPED and self.bench is not None:
-            self.psi_grasp, self.grasp_F = self._psi(), float(detail.get("F", 0.0))
+            self.psi_grasp, self.grasp_grip_n = self._psi(), self._grip_n()
         elif kind is EventKind.REVERSAL:
             n = int(detail.get("half_strokes", self._half_strokes))
             self.reversals.append((e.iteration, n > self._half_strokes))
@@ -130,9 +134,15 @@ class TruthProbe(BaseObserver):
         elif kind is EventKind.END:
             self.end_t = e.t
 
+    def _grip_n(self) -> float:
+        """The true grip as the physics last stepped (N; steps nothing, as :meth:`_psi`)."""
+        forces = {c.surface: c.normal_force_n for c in self.bench.contacts_now()}
+        return float(forces.get("distal1", 0.0) + forces.get("distal2", 0.0)) / 2.0
+
     def sample(self, sample: Any) -> None:
         if self.bench is not None:
             self.psi.append((sample.iteration, self._psi()))
+            self.grip_n.append(self._grip_n())
             if self.contact_width_mm is None:
                 self.contact_width_mm = _contact_width(self.bench.contacts_now())
 
@@ -227,7 +237,7 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
     lam = summary.get("lambda_initial_mm")
     cycles = cfg.rolling.cycles
     strokes_deg = [halves[i] + halves[i + 1] for i in range(0, len(halves) - 1, 2)]
-    peaks = [f for f in (force.get("max"), probe.grasp_F) if f is not None]
+    true_f = true_forces(probe, cfg)
     return {
         "status": summary["status"], "message": summary.get("message", ""),
         "fault": probe.fault, "strokes": summary.get("strokes", 0), "cycles": cycles,
@@ -245,9 +255,25 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
                             if lam is not None and probe.contact_width_mm is not None else None),
         "lambda_error_placement_mm": lam - case.true_width_mm if lam is not None else None,
         "fd": cfg.rolling.grasp_force, "f_min": force.get("min"), "f_max": force.get("max"),
-        "f_mean": force.get("mean"), "peak_force": max(peaks) if peaks else None,
+        "f_mean": force.get("mean"), **true_f,
         "sensor_gain": cfg.sim.sensor.gain_vs_library,
         "sim_s": probe.end_t,
+    }  # fmt: skip
+
+
+def true_forces(probe: TruthProbe, cfg: Any) -> dict[str, float | None]:
+    """The true grip in Fd's units (:meth:`TactileCalibration.force_per_newton`: what pads
+    reading exactly as the calibration says would give): its least, largest and mean over the
+    rolling iterations, and its peak there and at the grasp. All None with the library's force
+    (``calibration.force_reference_area_mm2 = 0``), which no force alone determines: the band
+    is then judged on the controller's own F."""
+    k = cfg.calibration.force_per_newton(cfg.tactile.texel_pitch_mm)
+    f = [k * n for n in probe.grip_n] if k is not None else []
+    at_grasp = [k * probe.grasp_grip_n] if k is not None and probe.grasp_grip_n is not None else []
+    return {
+        "true_f_min": min(f) if f else None, "true_f_max": max(f) if f else None,
+        "true_f_mean": sum(f) / len(f) if f else None,
+        "peak_force": max(f + at_grasp) if f or at_grasp else None,
     }  # fmt: skip
 
 
@@ -258,7 +284,8 @@ COLUMNS_DEFAULTS: dict[str, Any] = {
     "mean_stroke_rotation_deg": None, "dropped": False, "slips": 0,
     "rotation_range_deg": None, "lambda_at_grasp_mm": None, "lambda_error_mm": None,
     "true_contact_width_mm": None, "lambda_error_placement_mm": None,
-    "fd": None, "f_min": None, "f_max": None, "f_mean": None, "peak_force": None,
+    "fd": None, "f_min": None, "f_max": None, "f_mean": None, "true_f_min": None,
+    "true_f_max": None, "true_f_mean": None, "peak_force": None,
     "sensor_gain": None, "sim_s": None, "wall_s": None, "traceback": "",
 }  # fmt: skip
 
@@ -272,9 +299,18 @@ def finish_row(row: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
+def judged_forces(row: Mapping[str, Any]) -> tuple[float | None, float | None]:
+    """The least and largest grip the band judges: the true one (``true_f_*``), else — with the
+    library's force, or in a campaign recorded before the truth was — the controller's F."""
+    if row.get("true_f_min") is not None and row.get("true_f_max") is not None:
+        return row["true_f_min"], row["true_f_max"]
+    return row.get("f_min"), row.get("f_max")
+
+
 def f_in_band(row: Mapping[str, Any]) -> bool | None:
-    """Every rolling iteration's F within [0.25, 2.5] × Fd (None: no rolling iteration)."""
-    lo, hi, fd = row.get("f_min"), row.get("f_max"), row.get("fd")
+    """Every rolling iteration's true grip within [0.25, 2.5] × Fd (None: no rolling
+    iteration)."""
+    (lo, hi), fd = judged_forces(row), row.get("fd")
     if lo is None or hi is None or fd is None:
         return None
     return bool(F_BAND[0] * fd <= lo and hi <= F_BAND[1] * fd)
@@ -292,19 +328,25 @@ def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
        object by at least ``MIN_HALF_STROKE_DEG`` (1°) of true rotation — the largest
        excursion of its true angle ψ from where the half stroke began
        (:meth:`TruthProbe.half_strokes_deg`) — and there were ``2 × cycles`` of them;
-    4. every rolling iteration's F after the grasp lay within ``F_BAND`` (0.25…2.5) × Fd.
+    4. at every rolling iteration after the grasp the true grip — the mean of the two distal
+       pads' true normal forces, in Fd's units through the calibration
+       (:func:`true_forces`) — lay within ``F_BAND`` (0.25…2.5) × Fd. The controller's own F
+       reads the pads, whose gain a campaign varies ×0.5–1.5: holding its F at Fd is no proof
+       of a sane grip.
 
-    The failure reason is the first of: ``crashed``, ``dropped``, ``faulted: FAULT``, the
-    status (``stopped`` …), ``too few strokes``, ``half stroke < 1°``, ``F below band``,
+    The failure reason is the first of: ``crashed``, ``dropped`` (by the truth: the object
+    left the hand and its fixture), ``faulted: FAULT`` (``faulted: dropped``: the controller
+    lost both contacts, the object maybe still in its fixture), the status (``stopped`` …),
+    ``too few strokes``, ``half stroke < 1°``, ``no force recorded``, ``F below band``,
     ``F above band``.
     """
     status = row.get("status")
     if status == "crashed":
         return False, "crashed"
-    if row.get("dropped") or status == "dropped":
+    if row.get("dropped"):
         return False, "dropped"
-    if status == "faulted":
-        return False, f"faulted: {row.get('fault') or 'unknown'}"
+    if status in ("faulted", "dropped"):
+        return False, f"faulted: {row.get('fault') or status}"
     if status != "completed":
         return False, str(status)
     cycles = row.get("cycles") or 0
@@ -313,7 +355,7 @@ def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
     halves = row.get("half_stroke_rotation_deg") or []
     if len(halves) < 2 * cycles or any(h < MIN_HALF_STROKE_DEG for h in halves):
         return False, f"half stroke < {MIN_HALF_STROKE_DEG:g}°"
-    fd, lo, hi = row.get("fd"), row.get("f_min"), row.get("f_max")
+    fd, (lo, hi) = row.get("fd"), judged_forces(row)
     if fd is None or lo is None or hi is None:
         return False, "no force recorded"
     if lo < F_BAND[0] * fd:
@@ -436,7 +478,8 @@ def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | Non
         "generator_seed": suite.generator_seed, "cases": len(suite.cases),
         "overrides": list(overrides), "config_file": config_path,
         "code": code_version(), "config": cfg.model_dump(mode="json"),
-        "judge": {"min_half_stroke_deg": MIN_HALF_STROKE_DEG, "f_band_x_fd": list(F_BAND)},
+        "judge": {"min_half_stroke_deg": MIN_HALF_STROKE_DEG, "f_band_x_fd": list(F_BAND),
+                  "f_band_on": "true grip"},
     }  # fmt: skip
 
 

@@ -152,6 +152,17 @@ class TactileCalibration(Finite):
     physical_pressure_per_count_n_per_mm2: Annotated[float, Field(gt=0.0, le=1.0)] = 1.5977e-5
     spread_mm: Annotated[float, Field(ge=0.0, le=10.0)] = 1.0
 
+    def force_per_newton(self, pitch_mm: float) -> float | None:
+        """The controller's force F for 1 N pressed on a pad whose cells read exactly as this
+        calibration says (its physical pressure per count; no noise, creep, threshold or lost
+        cell): Σp × the reference area, Σp = N / cell area × the library's pressure per count /
+        the physical one. None for the library's force (no reference area), which depends on
+        the contact's area, not on the force alone."""
+        if self.force_reference_area_mm2 <= 0.0:
+            return None
+        scale = self.pressure_per_count_n_per_mm2 / self.physical_pressure_per_count_n_per_mm2
+        return scale * self.force_reference_area_mm2 / (pitch_mm * pitch_mm)
+
 
 @dataclass(frozen=True, slots=True)
 class Blob:
