@@ -90,9 +90,32 @@ def paired_p(better: int, worse: int) -> float:
 
 
 def rate(rows: Sequence[Row]) -> str:
-    n = len(rows)
-    ok = sum(1 for r in rows if r["success"])
+    """Successes over the cases judged: a crashed case is no result (the same ``campaign run``
+    runs it again), counted apart (:func:`crash_note`)."""
+    judged = [r for r in rows if r["status"] != "crashed"]
+    n = len(judged)
+    ok = sum(1 for r in judged if r["success"])
     return f"{ok}/{n} ({percent(ok, n)})" if n else "–"
+
+
+def judged_rows(rows: Sequence[Row]) -> list[Row]:
+    """The cases with a verdict: all but the crashed."""
+    return [r for r in rows if r["status"] != "crashed"]
+
+
+def crash_note(rows: Sequence[Row]) -> list[str]:
+    """A line saying how many cases crashed and are left out of every rate (none: no line)."""
+    n = len(rows) - len(judged_rows(rows))
+    if not n:
+        return []
+    return [f"**{n} case{'' if n == 1 else 's'} crashed: no result, left out of every rate "
+            "below** (the same `campaign run` runs them again).", ""]  # fmt: skip
+
+
+def band_judged_on(info: Mapping[str, Any]) -> str:
+    """What the F band was judged on in a campaign: its ``judge`` record says; campaigns
+    recorded before the truth's grip was judged the controller's own F."""
+    return str((info.get("judge") or {}).get("f_band_on") or "the controller's F")
 
 
 def by(rows: Iterable[Row], key: Callable[[Row], Any]) -> dict[Any, list[Row]]:
@@ -204,22 +227,26 @@ def _interval_line(rows: Sequence[Row], generated: bool = True) -> list[str]:
 
 def write_report(out: Path) -> Path:
     """``OUT/report.md`` and its plots (``OUT/plots/*.png``); ``OUT/results.parquet`` brought
-    up to date with ``OUT/cases.jsonl``."""
-    rows, info = load(out, refresh=True)
+    up to date with ``OUT/cases.jsonl``. Rates, shares and plots are over the judged cases; the
+    crashed ones are counted apart and listed."""
+    every, info = load(out, refresh=True)
+    rows = judged_rows(every)
     plots = out / "plots"
     plots.mkdir(exist_ok=True)
     lines = [f"# Campaign {info.get('suite', out.name)}", ""]
     code = info.get("code") or {}
     lines += [
         f"Suite `{info.get('suite')}` v{info.get('suite_version')} "
-        f"(digest {info.get('suite_digest')}), {len(rows)} of {info.get('cases', len(rows))} "
+        f"(digest {info.get('suite_digest')}), {len(every)} of {info.get('cases', len(every))} "
         f"cases recorded; sdh2svc {code.get('version')} ({code.get('git_describe') or 'no git'})"
         f"; `--set` {' '.join(info.get('overrides') or []) or 'none'}.",
         "",
         "Success (`sdh2svc.campaign.run.judge`): completed every stroke, every half stroke "
         "turned the object ≥ 1° (the largest excursion of its true angle ψ within the half "
-        "stroke), no drop, every F after the grasp within [0.25, 2.5] × Fd.",
+        "stroke), no drop, every grip after the grasp within [0.25, 2.5] × Fd, judged on "
+        f"{band_judged_on(info)}.",
         "",
+        *crash_note(every),
         f"**Success overall: {rate(rows)}**",
         "",
         *_interval_line(rows, info.get("generator_seed") is not None),
@@ -238,7 +265,7 @@ def write_report(out: Path) -> Path:
     lines += ["", "## Failure reasons", "", "| reason | cases |", "|---|---|"]
     reasons = Counter(r["failure"] for r in rows if not r["success"])
     lines += [f"| {k} | {v} |" for k, v in reasons.most_common()] or ["| – | 0 |"]
-    crashed = [r for r in rows if r["status"] == "crashed"]
+    crashed = [r for r in every if r["status"] == "crashed"]
     if crashed:
         lines += ["", "Crashed cases (last line of the traceback):", ""]
         for r in crashed[:20]:
@@ -248,13 +275,17 @@ def write_report(out: Path) -> Path:
             lines.append(f"* … and {len(crashed) - 20} more (see `results.parquet`)")
     lines += ["", "## Distributions", ""]
     lam = [r["lambda_error_mm"] for r in rows if r["lambda_error_mm"] is not None]
-    fmin = [r["f_min"] / r["fd"] for r in rows if r["f_min"] is not None and r["fd"]]
-    fmax = [r["f_max"] / r["fd"] for r in rows if r["f_max"] is not None and r["fd"]]
+
+    def x_fd(key: str) -> list[float]:
+        return [r[key] / r["fd"] for r in rows if r.get(key) is not None and r["fd"]]
+
     rot = [h for r in rows for h in (r["half_stroke_rotation_deg"] or [])]
     lines += [
         f"* Λ at grasp − true contact width (mm): {_stats(lam)}",
-        f"* lowest F after the grasp (× Fd): {_stats(fmin)}",
-        f"* highest F after the grasp (× Fd): {_stats(fmax)}",
+        f"* lowest true grip after the grasp (× Fd): {_stats(x_fd('true_f_min'))}",
+        f"* highest true grip after the grasp (× Fd): {_stats(x_fd('true_f_max'))}",
+        f"* lowest F the controller read after the grasp (× Fd): {_stats(x_fd('f_min'))}",
+        f"* highest F the controller read after the grasp (× Fd): {_stats(x_fd('f_max'))}",
         f"* true rotation per half stroke (°): {_stats(rot)}",
         "",
     ]
@@ -397,6 +428,11 @@ def compare(a: Path, b: Path) -> str:
         notes += ["", f"The suites differ (digest {ia.get('suite_digest')} and "
                   f"{ib.get('suite_digest')}): only cases with the same id and spec are "
                   "paired."]  # fmt: skip
+    if ia.get("judge") != ib.get("judge"):
+        notes += ["", f"**The two were judged by different rules** (A: {ia.get('judge')}, "
+                  f"B: {ib.get('judge')}; the F band on {band_judged_on(ia)} in A, on "
+                  f"{band_judged_on(ib)} in B): a changed verdict may be the rule's, not the "
+                  "controller's."]  # fmt: skip
     if unpaired:
         notes += ["", f"**{len(unpaired)} cases share an id but not their spec (object, "
                   "placement, sensor): they are other cases, not paired** "

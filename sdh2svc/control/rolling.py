@@ -412,13 +412,20 @@ def _attempt(route: _Route, waived: Reversal | None, alpha: float) -> _Attempt:
     if cfg.ik.solution is not None:  # Finger 1 can follow at most its step per iteration
         need = _finger1_step(cfg, pose)
         if need > params.finger1_max_step:
+            # slowed to Finger 1's step; a slowed plan out of reach reverses below as any
+            # unreachable plan does, never falling back to the full step (which the runner's
+            # per-axis clamp would then cut off Finger 1's path)
             slower = route.configure(params.finger1_max_step / need)
-            if slower is not None and slower.ik.solution is not None:
-                cfg = slower
-                # still too far at a fraction of the step: Λ's own correction needs it, near a
-                # stretched Finger 1 (singular); the servo could not follow
-                if _finger1_step(cfg, pose) > FOLLOW_SLACK * params.finger1_max_step:
-                    return Reversal.WORKSPACE, cfg.plan, None
+            if slower is None:
+                return Reversal.WORKSPACE, cfg.plan, None
+            cfg = slower
+            # still too far at a fraction of the step: Λ's own correction needs it, near a
+            # stretched Finger 1 (singular); the servo could not follow
+            if (
+                cfg.ik.solution is not None
+                and _finger1_step(cfg, pose) > FOLLOW_SLACK * params.finger1_max_step
+            ):
+                return Reversal.WORKSPACE, cfg.plan, None
     plan, ik = cfg.plan, cfg.ik
     assert plan.A_d is not None and plan.B_d is not None
     if ik.solution is None:

@@ -40,7 +40,7 @@ def good(c: Case, **kw: Any) -> dict[str, Any]:
     return camp.finish_row(row)
 
 
-def write(out: Path, rows: list[dict[str, Any]]) -> None:
+def write(out: Path, rows: list[dict[str, Any]], judge: dict[str, Any] | None = None) -> None:
     out.mkdir(parents=True)
     with (out / camp.CASES_FILE).open("w") as fh:
         for r in rows:
@@ -50,6 +50,7 @@ def write(out: Path, rows: list[dict[str, Any]]) -> None:
         "overrides": [],
         "code": {"version": "0.1.0"},
         "generator_seed": 7,
+        **({"judge": judge} if judge is not None else {}),
     }
     (out / camp.CAMPAIGN_FILE).write_text(json.dumps(info))
 
@@ -71,6 +72,34 @@ def test_judge_names_the_first_failure() -> None:
     assert good(c, f_max=5.0)["success"]
 
 
+def test_the_band_is_judged_on_the_true_grip_and_a_drop_on_the_truth() -> None:
+    c = case(1, "box")
+    # the controller's F in band; the true grip (a pad reading low) not: the truth decides
+    high = good(c, true_f_min=1.5, true_f_max=5.2, true_f_mean=3.0)
+    assert high["failure"] == "F above band" and high["f_in_band"] is False
+    assert good(c, f_min=0.1, true_f_min=0.6, true_f_max=4.0)["success"]
+    assert good(c, true_f_min=0.4, true_f_max=3.0)["failure"] == "F below band"
+    # the controller lost both contacts; the object is still where the fixture holds it
+    lost = good(c, status="dropped", fault="dropped", dropped=False)
+    assert lost["failure"] == "faulted: dropped"
+
+
+def test_the_true_grip_is_in_fds_units_through_the_calibration() -> None:
+    from sdh2svc.config import load_config
+
+    cfg = load_config(use_env=False)
+    calib, pitch = cfg.calibration, cfg.tactile.texel_pitch_mm
+    # 1 N spread evenly over 16 cells of 3.4 mm: each reads 1/(16 · 3.4²) N/mm² of physical
+    # pressure, i.e. that / physical_pressure_per_count counts; the controller sums the counts'
+    # library pressure and multiplies by its reference area
+    counts = 1.0 / (16 * pitch**2) / calib.physical_pressure_per_count_n_per_mm2
+    f = 16 * counts * calib.pressure_per_count_n_per_mm2 * calib.force_reference_area_mm2
+    assert calib.force_per_newton(pitch) == pytest.approx(f, rel=1e-12)
+    assert calib.force_per_newton(pitch) == pytest.approx(0.80, abs=0.005)  # Fd = 2: ≈ 2.5 N
+    library = calib.model_copy(update={"force_reference_area_mm2": 0.0})
+    assert library.force_per_newton(pitch) is None
+
+
 def test_results_parquet_keeps_one_row_per_case_in_the_suite_order(tmp_path: Path) -> None:
     cases = [case(i, "box") for i in range(3)]
     rows = [good(cases[2]), good(cases[0], status="stopped"), good(cases[0])]  # re-run: last wins
@@ -90,12 +119,16 @@ def test_report_writes_markdown_and_plots(tmp_path: Path) -> None:
     write(tmp_path / "a", rows)
     assert main(["campaign", "report", str(tmp_path / "a")]) == 0
     md = (tmp_path / "a" / "report.md").read_text()
-    assert "**Success overall: 6/11 (54.5 %)**" in md
-    # Wilson's interval for 6 of 11 is 28.009–78.729 %, rounded outwards
-    assert "success rate over everything the suite's generator draws: 28.0–78.8 % " in md
-    assert "| box | 6 | 6/6 (100 %) |" in md and "| circle | 5 | 0/5 (0 %) |" in md
-    assert "| faulted: stuck | 4 |" in md and "| crashed | 1 |" in md
+    # a crashed case is no result: counted apart, in no rate
+    assert "**1 case crashed: no result, left out of every rate below**" in md
+    assert "**Success overall: 6/10 (60 %)**" in md
+    # Wilson's interval for 6 of 10 is 31.267–83.182 %, rounded outwards
+    assert "success rate over everything the suite's generator draws: 31.2–83.2 % " in md
+    assert "| box | 6 | 6/6 (100 %) |" in md and "| circle | 4 | 0/4 (0 %) |" in md
+    assert "| faulted: stuck | 4 |" in md and "| crashed |" not in md
+    assert "* **without a drop**: 10/10 (100 %)" in md
     assert "ValueError: x" in md
+    assert "judged on the controller's F." in md  # a campaign whose judge says no other
     for name in ("success_by_family", "map_width_friction", "map_height_size",
                  "map_gain_family", "failure_reasons", "dist_lambda_error", "dist_force",
                  "dist_rotation"):  # fmt: skip
@@ -125,6 +158,22 @@ def test_compare_shows_what_got_better_and_worse(
     assert (tmp_path / "b" / "compare.md").read_text() == text
 
 
+def test_compare_says_when_the_two_were_judged_by_different_rules(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cs = [case(i, "box") for i in range(2)]
+    rule = {"min_half_stroke_deg": 1.0, "f_band_x_fd": [0.25, 2.5]}
+    write(tmp_path / "a", [good(c) for c in cs], judge=rule)
+    write(tmp_path / "b", [good(c) for c in cs], judge={**rule, "f_band_on": "true grip"})
+    assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    text = capsys.readouterr().out
+    assert "**The two were judged by different rules**" in text
+    assert "the F band on the controller's F in A, on true grip in B" in text
+    write(tmp_path / "c", [good(c) for c in cs], judge={**rule, "f_band_on": "true grip"})
+    assert main(["campaign", "compare", str(tmp_path / "b"), str(tmp_path / "c")]) == 0
+    assert "different rules" not in capsys.readouterr().out
+
+
 def test_compare_writes_nothing_into_its_inputs_and_pairs_no_crash(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -141,6 +190,7 @@ def test_compare_writes_nothing_into_its_inputs_and_pairs_no_crash(
     text = capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for d in "ab" for p in (tmp_path / d).iterdir()} == before
     assert "**1 of them crashed in A or B: no verdict, not compared** (e.g. box-0;" in text
+    assert "| **all** | 3/3 (100 %) | 1/2 (50 %) |" in text  # the crash in no rate
     assert "## Worse in B (succeeded in A, failed in B): 1" in text
     assert "| box-1 | box | success | F below band |" in text
     assert "| box-0 |" not in text

@@ -7,16 +7,20 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sdh2svc.config import Settings
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import (
     ESCAPE_AFTER,
+    FOLLOW_SLACK,
     RETREAT_LIMIT,
     TURN_MARGIN,
     WAY_BACK,
     Reversal,
     RollState,
+    StepResult,
     step,
 )
 from sdh2svc.control.sample import Sample
@@ -537,3 +541,49 @@ def test_a_blocked_way_looks_for_another_move_once_the_rotation_dithers(cfg: Set
     assert (r.plan.sigma_d - r.obs.sigma) * route_turn > 0  # the stroke's way
     assert r.plan.omega_A_d is not None and r.plan.omega_B_d is not None  # every check ran
     assert r.state.travel > 0 and r.state.consecutive_reversals == 2
+
+
+def _finger1_step(r: StepResult, pose: HandPose) -> float:
+    assert r.targets is not None
+    t = r.targets
+    return max(abs(t.phi2 - pose.phi2), abs(t.phi3 - pose.phi3))
+
+
+@pytest.mark.parametrize(
+    ("pose_deg", "S1", "S2", "direction"),
+    [((-7.389, -30.819, 65.72, 22.707), 38.145, 19.739, -1),
+     ((29.373, -19.125, 37.702, -23.55), 22.733, 18.779, 1)],
+)  # fmt: skip
+def test_a_slowed_plan_out_of_reach_reverses_instead_of_taking_the_full_step(
+    cfg: Settings, pose_deg: tuple[float, ...], S1: float, S2: float, direction: int
+) -> None:
+    """Finger 1 stretched to its reach and the grip opening by ΔΛ: its full step (7–9°) is
+    reachable, its step slowed to 1° is not. The full step went out, and the runner's per-axis
+    clamp cut it off Finger 1's path; an unreachable plan reverses, whatever its speed."""
+    ctx, p, pose = cfg.model_context(), cfg.rolling, HandPose.from_degrees(*pose_deg)
+    first = step(RollState(iteration=1, direction=direction), pose, frame(S1), frame(S2), p, ctx)
+    state = RollState(iteration=1, direction=direction, F_prev=first.F - 0.5)  # F rising: Λ opens
+    r = step(state, pose, frame(S1), frame(S2), p, ctx)
+    assert r.targets is None and r.reversal in (Reversal.IK_UNREACHABLE, Reversal.WORKSPACE)
+
+
+@settings(max_examples=200, deadline=None)
+@given(pose_deg=st.tuples(*(st.floats(-90.0, 90.0),) * 4),
+       S=st.tuples(st.floats(2.0, 39.0), st.floats(2.0, 39.0)),
+       direction=st.sampled_from((1, -1)), dF=st.sampled_from((-0.5, 0.0, 0.5)),
+       route=st.sampled_from(("thesis", "workspace")))  # fmt: skip
+def test_finger1_is_never_commanded_beyond_what_it_can_follow(
+    cfg: Settings, pose_deg: tuple[float, float, float, float], S: tuple[float, float],
+    direction: int, dF: float, route: str,
+) -> None:  # fmt: skip
+    """Over random poses and contacts, either route: a commanded step moves Finger 1's joints
+    by at most FOLLOW_SLACK × rolling.finger1_max_step_deg (what the servo follows)."""
+    ctx = cfg.model_context()
+    p = cfg.rolling.model_copy(update={"route": route})
+    pose = HandPose.from_degrees(*pose_deg)
+    m1, m2 = frame(S[0]), frame(S[1])
+    first = step(RollState(iteration=1, direction=direction), pose, m1, m2, p, ctx)
+    r = step(RollState(iteration=1, direction=direction, F_prev=first.F - dF), pose, m1, m2, p,
+             ctx)  # fmt: skip
+    if r.targets is not None:
+        assert _finger1_step(r, pose) <= FOLLOW_SLACK * p.finger1_max_step + 1e-12
