@@ -97,13 +97,15 @@ def x3_from_L(L: float, pad: PadProfile) -> float:
     """Frame-3 x coordinate of the pad point at curved distance L from the pad's base I.
 
     eqs 2.15, 2.16: x3 = 17.5 + L on the flat part (L < 16), x3 = 33.5 + 60·sin((L − 16)/60) on
-    the arc. L beyond the arc's quarter circle is clamped there (sin would fold back).
+    the arc. L off the pad (a measured distance map extrapolated past its ends) is clamped to
+    the pad's base and tip: beyond them there is no pad to touch.
     """
+    L = min(max(L, 0.0), pad.max_L_mm)
     flat = pad.flat_length_mm
     if L < flat:
         return pad.flat_start_x3_mm + L
     R = pad.arc_radius_mm
-    return pad.flat_end_x3_mm + R * math.sin(min((L - flat) / R, math.pi / 2))
+    return pad.flat_end_x3_mm + R * math.sin((L - flat) / R)
 
 
 def L_from_x3(x3: float, pad: PadProfile) -> float:

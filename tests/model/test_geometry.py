@@ -79,6 +79,15 @@ def test_L_x3_inverse(pad: PadProfile) -> None:
         assert L_from_x3(x3_from_L(L, pad), pad) == pytest.approx(L, abs=1e-9)
 
 
+def test_a_point_off_the_pad_is_clamped_to_its_ends(pad: PadProfile) -> None:
+    """A measured distance map extrapolates past its points (L beyond the tip, or below the
+    base): the contact stays on the pad, at its end, not past the fingertip on a circle that is
+    not there."""
+    assert x3_from_L(pad.max_L_mm + 19.0, pad) == pytest.approx(pad.tip_end_x3_mm, abs=1e-9)
+    assert x3_from_L(pad.max_L_mm, pad) == pytest.approx(pad.tip_end_x3_mm, abs=1e-9)
+    assert x3_from_L(-3.0, pad) == pad.flat_start_x3_mm
+
+
 def test_arc_length_is_curved_distance(pad: PadProfile) -> None:
     """L measures along the surface: integrate the profile's length from I to the point."""
     x_end = x3_from_L(40.0, pad)
