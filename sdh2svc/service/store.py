@@ -280,8 +280,15 @@ def connect(
         if not create and not _has_runs_table(db):
             raise StoreError(f"{p} is not a run database (it has no runs table)")
         _check_tables(db, p)  # before a table of another shape is added to
-        db.executescript(SCHEMA)
-        _add_new_sample_columns(db)
+        try:
+            db.executescript(SCHEMA)
+            _add_new_sample_columns(db)
+        except sqlite3.OperationalError as e:
+            # an older file nobody may write (an archive, a read-only share): a reading command
+            # reads it as it is, with what a newer version added to the schema in its place
+            if create or e.sqlite_errorcode != sqlite3.SQLITE_READONLY:
+                raise
+            _read_as_current(db)
         if create:
             _check_writable(db, busy_timeout_s)
             db.executescript(WRITER_INDEXES)  # (events_run: a deleted run's events found at once)
@@ -319,6 +326,23 @@ def _check_writable(db: sqlite3.Connection, busy_timeout_s: float) -> None:
 
 def _columns(db: sqlite3.Connection, table: str) -> set[str]:
     return {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+
+
+def _read_as_current(db: sqlite3.Connection) -> None:
+    """An older database opened read-only, shown to the readers as the current schema: each
+    table it lacks as an empty temporary one, and its samples through a temporary view that
+    adds the newer Sample columns as nulls (temporary objects live in memory and come before
+    the file's own under the same name). Nothing is written to the file."""
+    db.rollback()  # (the failed statement's transaction, if any)
+    for statement in SCHEMA.split(";"):
+        words = statement.split()
+        if words[:5] == ["CREATE", "TABLE", "IF", "NOT", "EXISTS"] and not _columns(db, words[5]):
+            db.execute(statement.replace("CREATE TABLE", "CREATE TEMP TABLE", 1))
+    missing = [c for c in SAMPLE_COLUMNS if c not in _columns(db, "samples")]
+    if missing:
+        nulls = ", ".join(f'NULL AS "{c}"' for c in missing)
+        db.execute(f"CREATE TEMP VIEW samples AS SELECT *, {nulls} FROM main.samples")
+    db.execute("PRAGMA query_only = ON")  # a write is refused as read-only, not by the shims
 
 
 def _add_new_sample_columns(db: sqlite3.Connection) -> None:
@@ -550,6 +574,7 @@ class RunStore:
         (which waits only a moment for the lock), waits milliseconds, never a whole run's
         deletion; a deletion cut short leaves the run listed, to be deleted again. The pages
         freed hold the next runs (:meth:`vacuum` gives them back to the file system)."""
+        self._check_writable_file()
         busy = sorted(set(ids) & set(self.recording()))
         if busy:
             raise RunBusy(f"run {busy[0]} is being recorded: stop it first")
@@ -569,6 +594,12 @@ class RunStore:
                     done.append(run_id)
         return done
 
+    def _check_writable_file(self) -> None:
+        """StoreError for an older version's file opened for reading only (:func:`connect`)."""
+        if self.db.execute("PRAGMA query_only").fetchone()[0]:
+            raise StoreError("attempt to write a readonly database (a file of an older version, "
+                             "read as it is: nothing can be deleted from it here)")  # fmt: skip
+
     def size(self) -> tuple[int, int]:
         """(bytes on disk: the file and its write-ahead log; bytes of it free for new runs)."""
         on_disk = sum(p.stat().st_size for p in (self.path, Path(f"{self.path}-wal"))
@@ -586,6 +617,7 @@ class RunStore:
         and a reader keeps the copy in the write-ahead log, beside the old file, until it lets
         go. (A service in another container cannot be seen from here: stop it first.)
         StoreError if a reader came meanwhile and the log could not be given back."""
+        self._check_writable_file()
         busy = self.recording()
         if busy:
             raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")

@@ -440,3 +440,44 @@ def test_the_command_line_spares_what_the_store_spares(
         _cli(capsys, four_runs, "prune", "--before", "1000000d")
     assert bad.value.code == Exit.USAGE
     assert "'1000000d': further back than the calendar goes" in capsys.readouterr().err
+
+
+def test_an_older_write_protected_database_is_read_as_it_is(four_runs: Path) -> None:
+    """An archive made by an older version (no truth, outlines, owners or e-stop tables; fewer
+    sample columns), its file write-protected: the reading commands read it as that version
+    did, adding nothing to it; deleting from it is refused as read-only. (Root writes anyway:
+    its capabilities dropped.)"""
+    import hashlib
+    import os
+    import shutil
+
+    with contextlib.closing(sqlite3.connect(four_runs)) as c:
+        c.executescript("""
+            DROP TABLE truth; DROP TABLE outlines; DROP TABLE owners; DROP TABLE estop;
+            CREATE TABLE old_samples AS SELECT run_id, iteration, t FROM samples;
+            DROP TABLE samples; ALTER TABLE old_samples RENAME TO samples;
+            PRAGMA wal_checkpoint(TRUNCATE);
+        """)  # fmt: skip
+    four_runs.chmod(0o444)
+    before = hashlib.sha256(four_runs.read_bytes()).hexdigest()
+    drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-all"] if os.geteuid() == 0 else []
+    assert not drop or shutil.which("setpriv"), "setpriv (util-linux) is needed as root"
+
+    def runs(*args: str) -> subprocess.CompletedProcess[str]:
+        where = f"storage.db_path={json.dumps(str(four_runs))}"
+        return subprocess.run([*drop, sys.executable, "-m", "sdh2svc", "runs", *args, "--set",
+                               where], capture_output=True, text=True, timeout=60)  # fmt: skip
+
+    listed = runs("list")
+    assert listed.returncode == Exit.OK, listed.stderr
+    assert [int(line.split()[0]) for line in listed.stdout.splitlines()] == [4, 3, 2, 1]
+    shown = runs("show", "2")
+    assert shown.returncode == Exit.OK and json.loads(shown.stdout)["id"] == 2, shown.stderr
+    csv = runs("export", "2")
+    assert csv.returncode == Exit.OK, csv.stderr
+    header, first = csv.stdout.splitlines()[:2]
+    assert header.startswith("iteration,t [s],") and "object_class" in header  # a newer column
+    assert first.startswith("0,0.0,")
+    refused = runs("delete", "2")
+    assert refused.returncode == Exit.FAILED and "readonly database" in refused.stderr
+    assert hashlib.sha256(four_runs.read_bytes()).hexdigest() == before  # nothing written
