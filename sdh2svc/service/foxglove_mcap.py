@@ -395,6 +395,9 @@ def log_message(e: Mapping[str, Any], ns: int) -> fm.Log:
     )
 
 
+NOT_RECORDED = "none: a run of an older version, drawn with the exporting configuration"
+
+
 def _strings(d: Any, key: str = "value") -> dict[str, str]:
     """A metadata record's values: strings as they are, anything else as JSON (a value that is
     not a mapping becomes one entry, ``key``)."""
@@ -480,7 +483,12 @@ def _write_records(
     w.add_metadata("run", _strings(info))
     w.add_metadata("parameters", _strings(meta.get("params")))
     w.add_metadata("object", _strings(meta.get("object") or "none (a real hand)", "name"))
-    w.add_metadata("configuration", _strings({**rest, **cfg.recorded()}))
+    # the configuration the run recorded, as it stored it (the drawing takes its hand from it:
+    # Settings.as_recorded); a run of a version that recorded none says so, never passing the
+    # exporting process's configuration off as the run's
+    recorded = meta.get("configuration")
+    conf = recorded if isinstance(recorded, Mapping) else {"recorded": NOT_RECORDED}
+    w.add_metadata("configuration", _strings({**rest, **conf}))
     w.add_attachment(
         create_time=t0_ns,
         log_time=t0_ns,

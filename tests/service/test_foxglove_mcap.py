@@ -30,7 +30,8 @@ def recorded(cfg: Settings, tmp_path_factory: pytest.TempPathFactory) -> tuple[l
     db = tmp_path_factory.mktemp("fox") / "runs.sqlite"
     store = RunStore(db)
     obj = {"name": "egg", "shape": "ellipsoid", "size_mm": [53.0, 39.0, 39.0]}
-    run_id = store.create_run({"params": cfg.rolling.model_dump(), "object": obj, "sim": True})
+    run_id = store.create_run({"params": cfg.rolling.model_dump(), "object": obj, "sim": True,
+                               "configuration": cfg.recorded()})  # fmt: skip
     rec = Recorder(db, run_id)
     samples = _samples(cfg, N)
     for s in samples:
@@ -298,6 +299,29 @@ def test_the_cones_open_as_wide_as_the_sample_recorded(cfg: Settings) -> None:
         assert len(entity.cylinders) == 2
         for c in entity.cylinders:
             assert c.size.x / c.size.z == pytest.approx(2 * math.tan(math.radians(opening)))
+
+
+def test_the_configuration_record_is_the_runs_own(cfg: Settings, tmp_path: Path) -> None:
+    """The record says what the run recorded, whatever the exporting process's configuration
+    is now; a run of a version that recorded none says so, rather than passing the exporter's
+    off as its own."""
+    store = RunStore(tmp_path / "runs.sqlite")
+    try:
+        recorded = {**cfg.recorded(), "safety": {"force_ceiling_factor": 2.5}}
+        ids = [store.create_run({"configuration": recorded}), store.create_run({})]
+        for run_id in ids:
+            store.finish_run(run_id, "completed", {})
+        confs = []
+        for run_id in ids:
+            raw = io.BytesIO()
+            store.export_mcap(run_id, raw, cfg)
+            confs.append(read(raw.getvalue()).metadata["configuration"])
+    finally:
+        store.close()
+    assert json.loads(confs[0]["safety"]) == {"force_ceiling_factor": 2.5}
+    assert json.loads(confs[0]["hand"]) == cfg.recorded()["hand"]
+    assert confs[1] == {"recorded": "none: a run of an older version, drawn with the exporting "
+                        "configuration"}  # fmt: skip
 
 
 def test_a_recorded_configuration_this_version_refuses_is_named(
