@@ -508,12 +508,25 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
                             "give another --out") from None  # fmt: skip
     # (not the --set text: the same values in another order or spelling are the same campaign,
     # and the effective configuration they make is compared)
-    for key in ("suite_digest", "config", "code", "judge"):
+    old_code, code = old.get("code") or {}, info["code"]
+    if old_code != code:  # (before the configuration: another version's keys differ anyway)
+        raise CampaignError(2, f"{out} holds a campaign another sdh2svc made ({_code(old_code)} "
+                            f"there, {_code(code)} now): results of two versions are never "
+                            "mixed; finish it with that version, or use another --out")  # fmt: skip
+    for key in ("suite_digest", "config", "judge"):
         if old.get(key) != info[key]:
             shown = (f"{clip(repr(old.get(key)))} there, {clip(repr(info[key]))} now"
                      if key != "config" else _config_change(old.get(key), info[key]))  # fmt: skip
             raise CampaignError(2, f"{out} holds another campaign ({key} differs: {shown}); "
                                 "resume it as it was run, or use another --out")  # fmt: skip
+
+
+def _code(code: Mapping[str, Any]) -> str:
+    """``sdh2svc 0.1.0 (1b32b3b, source 3f9b875b8b66)``: a version as :func:`code_version`
+    records it (the source's digest tells two edits of one commit apart)."""
+    source = str(code.get("source") or "")[:12] or "unknown"
+    return (f"sdh2svc {code.get('version')} ({code.get('git_describe') or 'no git'}, source "
+            f"{source})")  # fmt: skip
 
 
 def _config_change(old: Any, new: Mapping[str, Any]) -> str:

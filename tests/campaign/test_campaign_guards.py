@@ -273,8 +273,9 @@ def test_a_resume_under_other_code_or_another_judge_is_refused(
     run(suite(1, 2), out)
     with monkeypatch.context() as m:
         m.setattr(camp, "source_digest", lambda: "0" * 64)
-        with pytest.raises(camp.CampaignError, match="code differs"):
+        with pytest.raises(camp.CampaignError, match="another sdh2svc made") as other:
             run(suite(1, 2), out)
+        assert "source 000000000000) now" in str(other.value)
     with monkeypatch.context() as m:
         m.setattr(camp, "MIN_HALF_STROKE_DEG", 90.0)
         with pytest.raises(camp.CampaignError, match="judge differs"):
