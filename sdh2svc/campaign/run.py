@@ -479,7 +479,8 @@ def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | Non
         "overrides": list(overrides), "config_file": config_path,
         "code": code_version(), "config": cfg.model_dump(mode="json"),
         "judge": {"min_half_stroke_deg": MIN_HALF_STROKE_DEG, "f_band_x_fd": list(F_BAND),
-                  "f_band_on": "true grip"},
+                  "f_band_on": ("true grip" if cfg.calibration.force_per_newton(
+                      cfg.tactile.texel_pitch_mm) is not None else "the controller's F")},
     }  # fmt: skip
 
 

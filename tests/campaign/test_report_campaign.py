@@ -98,6 +98,13 @@ def test_the_true_grip_is_in_fds_units_through_the_calibration() -> None:
     assert calib.force_per_newton(pitch) == pytest.approx(0.80, abs=0.005)  # Fd = 2: ≈ 2.5 N
     library = calib.model_copy(update={"force_reference_area_mm2": 0.0})
     assert library.force_per_newton(pitch) is None
+    # … so a campaign with the library's force judges the band on the controller's F, and says so
+    from sdh2svc.campaign.case import Suite
+
+    suite = Suite(name="s", cases=(case(1, "box"),))
+    assert camp.campaign_info(suite, [], None)["judge"]["f_band_on"] == "true grip"
+    lib = camp.campaign_info(suite, ["calibration.force_reference_area_mm2=0"], None)
+    assert lib["judge"]["f_band_on"] == "the controller's F"
 
 
 def test_results_parquet_keeps_one_row_per_case_in_the_suite_order(tmp_path: Path) -> None:
