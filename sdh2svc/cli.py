@@ -1008,7 +1008,7 @@ def _campaign_run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, previous_int)
     n = outcome.total
     print(f"{out}: {n} cases ({outcome.skipped} already there, {outcome.ran} run in "
-          f"{outcome.wall_s:.1f} s), success {outcome.succeeded}/{n}"
+          f"{outcome.wall_s:.1f} s), success {outcome.succeeded}/{n - outcome.crashed}"
           + (f", {outcome.crashed} crashed (the same command runs them again)"
              if outcome.crashed else "")
           + f"; {outcome.results}")  # fmt: skip

@@ -112,6 +112,12 @@ def crash_note(rows: Sequence[Row]) -> list[str]:
             "below** (the same `campaign run` runs them again).", ""]  # fmt: skip
 
 
+def _rules(info: Mapping[str, Any]) -> dict[str, Any]:
+    """A campaign's judging rules, with what a campaign recorded before a rule was named (the
+    band on the controller's F) filled in."""
+    return {**(info.get("judge") or {}), "f_band_on": band_judged_on(info)}
+
+
 def band_judged_on(info: Mapping[str, Any]) -> str:
     """What the F band was judged on in a campaign: its ``judge`` record says; campaigns
     recorded before the truth's grip was judged the controller's own F."""
@@ -428,7 +434,7 @@ def compare(a: Path, b: Path) -> str:
         notes += ["", f"The suites differ (digest {ia.get('suite_digest')} and "
                   f"{ib.get('suite_digest')}): only cases with the same id and spec are "
                   "paired."]  # fmt: skip
-    if ia.get("judge") != ib.get("judge"):
+    if _rules(ia) != _rules(ib):
         notes += ["", f"**The two were judged by different rules** (A: {ia.get('judge')}, "
                   f"B: {ib.get('judge')}; the F band on {band_judged_on(ia)} in A, on "
                   f"{band_judged_on(ib)} in B): a changed verdict may be the rule's, not the "

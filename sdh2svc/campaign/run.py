@@ -106,6 +106,7 @@ class TruthProbe(BaseObserver):
         # controller's F is the mean of F1 and F2 — at the grasp and at every rolling iteration
         self.grasp_grip_n: float | None = None
         self.grip_n: list[float] = []
+        self.grasp_F: float | None = None
         # the distance between the true contact points on the object at the first iteration:
         # the object's width where the pads really touch it
         self.contact_width_mm: float | None = None
@@ -125,6 +126,7 @@ class TruthProbe(BaseObserver):
         kind, detail = e.kind, e.detail
         if kind is EventKind.GRASPED and self.bench is not None:
             self.psi_grasp, self.grasp_grip_n = self._psi(), self._grip_n()
+            self.grasp_F = float(detail.get("F", 0.0))  # the controller's, for the library's force
         elif kind is EventKind.REVERSAL:
             n = int(detail.get("half_strokes", self._half_strokes))
             self.reversals.append((e.iteration, n > self._half_strokes))
@@ -238,6 +240,9 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
     cycles = cfg.rolling.cycles
     strokes_deg = [halves[i] + halves[i + 1] for i in range(0, len(halves) - 1, 2)]
     true_f = true_forces(probe, cfg)
+    if true_f["peak_force"] is None:  # the library's force: the controller's peak, as the band
+        peaks = [f for f in (force.get("max"), probe.grasp_F) if f is not None]
+        true_f["peak_force"] = max(peaks) if peaks else None
     return {
         "status": summary["status"], "message": summary.get("message", ""),
         "fault": probe.fault, "strokes": summary.get("strokes", 0), "cycles": cycles,
@@ -266,7 +271,7 @@ def true_forces(probe: TruthProbe, cfg: Any) -> dict[str, float | None]:
     reading exactly as the calibration says would give): its least, largest and mean over the
     rolling iterations, and its peak there and at the grasp. All None with the library's force
     (``calibration.force_reference_area_mm2 = 0``), which no force alone determines: the band
-    is then judged on the controller's own F."""
+    and the peak are then the controller's own F's."""
     k = cfg.calibration.force_per_newton(cfg.tactile.texel_pitch_mm)
     f = [k * n for n in probe.grip_n] if k is not None else []
     at_grasp = [k * probe.grasp_grip_n] if k is not None and probe.grasp_grip_n is not None else []
@@ -509,8 +514,9 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
                             "give another --out") from None  # fmt: skip
     # (not the --set text: the same values in another order or spelling are the same campaign,
     # and the effective configuration they make is compared)
-    old_code, code = old.get("code") or {}, info["code"]
-    if old_code != code:  # (before the configuration: another version's keys differ anyway)
+    old_code, code = old.get("code"), info["code"]
+    old_code = old_code if isinstance(old_code, dict) else {}
+    if not _same_code(old_code, code):  # (first: another version's keys differ anyway)
         raise CampaignError(2, f"{out} holds a campaign another sdh2svc made ({_code(old_code)} "
                             f"there, {_code(code)} now): results of two versions are never "
                             "mixed; finish it with that version, or use another --out")  # fmt: skip
@@ -520,6 +526,14 @@ def _check_same(out: Path, info: Mapping[str, Any]) -> None:
                      if key != "config" else _config_change(old.get(key), info[key]))  # fmt: skip
             raise CampaignError(2, f"{out} holds another campaign ({key} differs: {shown}); "
                                 "resume it as it was run, or use another --out")  # fmt: skip
+
+
+def _same_code(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """The same code: the same version and source digest (a checkout gone ``-dirty`` meanwhile,
+    e.g. by the campaign's own folder in it, is the same code); without a digest, all of it."""
+    if a.get("source") and b.get("source"):
+        return (a.get("version"), a.get("source")) == (b.get("version"), b.get("source"))
+    return dict(a) == dict(b)
 
 
 def _code(code: Mapping[str, Any]) -> str:
@@ -713,7 +727,7 @@ def _run_todo(suite: Suite, out: Path, info: Mapping[str, Any], t0: float, appen
         appender(row)
         succeeded += bool(row.get("success"))
         crashed += row.get("status") == "crashed"
-        bar.update(bool(row.get("success")))
+        bar.update(bool(row.get("success")), judged=row.get("status") != "crashed")
 
     try:
         if ray_address is not None and todo:  # (nothing left to run starts no Ray)
@@ -745,7 +759,9 @@ class _Progress:
     file or a pipe (a log), a plain line at every 5 % of the cases instead of a redrawn one."""
 
     def __init__(self, total: int, done: int, succeeded: int, enabled: bool) -> None:
-        self.done, self.succeeded, self.bar = done, succeeded, None
+        # the rate is over the judged cases, as the report's (a crash is no result); the cases
+        # already there are judged ones (a crashed one runs again)
+        self.done, self.judged, self.succeeded, self.bar = done, done, succeeded, None
         self.total, self.log = total, enabled and not sys.stderr.isatty()
         self.t0, self.first = time.monotonic(), done
         if enabled and not self.log:
@@ -755,12 +771,16 @@ class _Progress:
                             dynamic_ncols=True, smoothing=0.1)  # fmt: skip
             self._postfix()
 
+    def _rate(self) -> str:
+        return f"{100 * self.succeeded / self.judged:.0f} %" if self.judged else "–"
+
     def _postfix(self) -> None:
         if self.bar is not None and self.done:
-            self.bar.set_postfix_str(f"success {100 * self.succeeded / self.done:.0f}%")
+            self.bar.set_postfix_str(f"success {self._rate()}")
 
-    def update(self, success: bool) -> None:
+    def update(self, success: bool, *, judged: bool = True) -> None:
         self.done += 1
+        self.judged += judged
         self.succeeded += success
         if self.bar is not None:
             self.bar.update(1)
@@ -770,8 +790,7 @@ class _Progress:
             ran = self.done - self.first
             left = (time.monotonic() - self.t0) / ran * (self.total - self.done)
             eta = f"{left:.0f} s" if left < 90 else f"{left / 60:.0f} min"
-            print(f"{self.done}/{self.total} cases, success "
-                  f"{100 * self.succeeded / self.done:.0f} %, about {eta} left",
+            print(f"{self.done}/{self.total} cases, success {self._rate()}, about {eta} left",
                   file=sys.stderr, flush=True)  # fmt: skip
 
     def close(self) -> None:

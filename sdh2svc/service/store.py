@@ -275,7 +275,13 @@ def connect(
             p.parent.mkdir(parents=True, exist_ok=True)
         uri = f"{p.absolute().as_uri()}?mode={'rwc' if create else 'rw'}"
         db = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=busy_timeout_s)
-        db.execute("PRAGMA journal_mode=WAL")
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+        except sqlite3.OperationalError as e:
+            # a write-protected file in rollback-journal mode (an archive made by VACUUM INTO,
+            # a copy): read in the mode it is in
+            if create or e.sqlite_errorcode != sqlite3.SQLITE_READONLY:
+                raise
         db.execute("PRAGMA synchronous=NORMAL")
         if not create and not _has_runs_table(db):
             raise StoreError(f"{p} is not a run database (it has no runs table)")
@@ -284,8 +290,8 @@ def connect(
             db.executescript(SCHEMA)
             _add_new_sample_columns(db)
         except sqlite3.OperationalError as e:
-            # an older file nobody may write (an archive, a read-only share): a reading command
-            # reads it as it is, with what a newer version added to the schema in its place
+            # an older file nobody may write (an archive): a reading command reads it as it
+            # is, with what a newer version added to the schema in its place
             if create or e.sqlite_errorcode != sqlite3.SQLITE_READONLY:
                 raise
             _read_as_current(db)
@@ -595,10 +601,12 @@ class RunStore:
         return done
 
     def _check_writable_file(self) -> None:
-        """StoreError for an older version's file opened for reading only (:func:`connect`)."""
+        """An older version's file opened for reading only (:func:`connect`) refuses a write as
+        a write-protected file of this version does (sqlite3.OperationalError), not through
+        the temporary objects it is read through."""
         if self.db.execute("PRAGMA query_only").fetchone()[0]:
-            raise StoreError("attempt to write a readonly database (a file of an older version, "
-                             "read as it is: nothing can be deleted from it here)")  # fmt: skip
+            raise sqlite3.OperationalError("attempt to write a readonly database (a file of an "
+                                           "older version, read as it is)")  # fmt: skip
 
     def size(self) -> tuple[int, int]:
         """(bytes on disk: the file and its write-ahead log; bytes of it free for new runs)."""

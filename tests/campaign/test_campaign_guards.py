@@ -281,6 +281,11 @@ def test_a_resume_under_other_code_or_another_judge_is_refused(
         with pytest.raises(camp.CampaignError, match="judge differs"):
             run(suite(1, 2), out)
     assert run(suite(1, 2), out).ran == 0  # as it was: resumed
+    # the checkout gone -dirty meanwhile (the campaign's own folder in it), the same source
+    same = {**camp.code_version(), "git_describe": "abc1234-dirty"}
+    with monkeypatch.context() as m:
+        m.setattr(camp, "code_version", lambda: same)
+        assert run(suite(1, 2), out).ran == 0
 
 
 def test_the_source_digest_changes_with_any_edit_of_the_package(tmp_path: Path) -> None:
@@ -355,6 +360,14 @@ def test_progress_to_a_log_is_plain_lines(
     assert len(lines) == 20
     assert lines[0].startswith("2/40 cases, success 0 %, about ") and lines[0].endswith(" left")
     assert lines[-1].startswith("40/40 cases")
+
+
+def test_the_running_rate_leaves_a_crashed_case_out(capsys: pytest.CaptureFixture[str]) -> None:
+    """As the report's: a crash is no result (the same command runs it again)."""
+    bar = camp._progress(4, 1, 1, enabled=True)  # one case already there, a success
+    for success, judged in ((False, True), (False, False), (True, True)):
+        bar.update(success, judged=judged)
+    assert capsys.readouterr().err.splitlines()[-1].startswith("4/4 cases, success 67 %, ")
 
 
 def test_an_invalid_case_is_named_without_a_second_complaint_about_the_list(

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from sdh2svc.campaign.case import load_suite
-from sdh2svc.campaign.run import MIN_HALF_STROKE_DEG, run_case
+from sdh2svc.campaign.run import F_BAND, MIN_HALF_STROKE_DEG, run_case
 
 CASES = {c.id: c for c in load_suite("bench-v1").cases}
 UNSEEN = Path(__file__).parents[2] / "experiments" / "campaigns" / "unseen"
@@ -73,16 +73,25 @@ def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) ->
     Its grip is judged apart: the band is the true grip's, and a pad reading low (rounded-011's
     gain is ×0.57) lets the controller's F, held in its band, squeeze the object above it — a
     class of its own, which bench-v1's report counts (F above band)."""
-    rolls_every_stroke(run(case_id), baseline)
+    row = run(case_id)
+    rolls_every_stroke(row, baseline)
+    if case_id not in LOW_PADS:
+        assert row["success"], (baseline, row["failure"], row["message"])
+
+
+# cases whose pads read low enough that the controller, holding its own F in the band, holds
+# the true grip above it (rounded-011: gain ×0.57, true grip up to 3.8 × Fd)
+LOW_PADS = {"rounded-011"}
 
 
 def rolls_every_stroke(row: dict[str, Any], baseline: str = "") -> None:
-    """Completed every stroke, each half stroke turning the object ≥ 1°, no drop; a success but
-    for a true grip above the band (see above)."""
+    """Completed every stroke, each half stroke turning the object ≥ 1°, no drop, and the F the
+    controller read within the band; a success but for a true grip above the band."""
     assert row["status"] == "completed", (baseline, row["failure"], row["message"])
     assert row["strokes"] == row["cycles"] and not row["dropped"]
     assert len(row["half_stroke_rotation_deg"]) == 2 * row["cycles"]
     assert min(row["half_stroke_rotation_deg"]) >= MIN_HALF_STROKE_DEG
+    assert F_BAND[0] * row["fd"] <= row["f_min"] and row["f_max"] <= F_BAND[1] * row["fd"]
     assert row["failure"] in ("", "F above band"), row["failure"]
 
 

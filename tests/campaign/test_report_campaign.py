@@ -179,6 +179,10 @@ def test_compare_says_when_the_two_were_judged_by_different_rules(
     write(tmp_path / "c", [good(c) for c in cs], judge={**rule, "f_band_on": "true grip"})
     assert main(["campaign", "compare", str(tmp_path / "b"), str(tmp_path / "c")]) == 0
     assert "different rules" not in capsys.readouterr().out
+    # a campaign from before the rule was named judged the band on the controller's F, too
+    write(tmp_path / "d", [good(c) for c in cs], judge={**rule, "f_band_on": "the controller's F"})
+    assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "d")]) == 0
+    assert "different rules" not in capsys.readouterr().out
 
 
 def test_compare_writes_nothing_into_its_inputs_and_pairs_no_crash(

@@ -31,7 +31,6 @@ def test_the_smoke_campaign_runs_and_judges_every_case(tmp_path: Path) -> None:
     for row in held:
         ratio = row["f_mean"] / (row["true_f_mean"] * row["gain_factor"])
         assert 0.6 < ratio < 1.5, (row["id"], ratio)
-        assert row["peak_force"] >= row["true_f_max"]
     r = subprocess.run([sys.executable, "-m", "sdh2svc", "campaign", "report", str(out)],
                        capture_output=True, text=True, timeout=120, cwd=tmp_path)  # fmt: skip
     assert r.returncode == 0, r.stderr[-3000:]

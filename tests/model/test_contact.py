@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from sdh2svc.config import Settings
+from sdh2svc.config import Settings, load_config
 from sdh2svc.model.contact import NO_CONTACT, estimate_contact
 
 PITCH = 3.4
@@ -135,3 +135,18 @@ def test_any_frame_gives_a_consistent_estimate(cfg: Settings, counts: np.ndarray
         assert math.isfinite(e.r_mm) and math.isfinite(e.theta_rad)
     else:
         assert e is NO_CONTACT
+
+
+def test_a_measured_map_extrapolated_past_the_pad_leaves_the_contact_on_its_end() -> None:
+    """A table whose line, extrapolated to row 0, puts the contact beyond the fingertip: L and
+    the point both stay at the pad's end (one position for one contact)."""
+    cfg = load_config(None, ['calibration.distance.kind="table"',
+                             "calibration.distance.table=[[2.0, -4.0], [40.8, 44.0]]",
+                             "hand.contact_depth.model=none"], use_env=False)  # fmt: skip
+    ctx = cfg.model_context()
+    pad = ctx.geom.pad
+    m = np.zeros((ctx.distal.rows, ctx.distal.cols), dtype=np.uint16)
+    m[0, :] = 1000  # row 0: the fingertip's end of the pad
+    c = ctx.contact(m)
+    assert c.S_mm == 0.0
+    assert c.L_mm == pytest.approx(pad.max_L_mm) and c.x3_mm == pytest.approx(pad.tip_end_x3_mm)
