@@ -279,9 +279,20 @@ def connect(
             db.execute("PRAGMA journal_mode=WAL")
         except sqlite3.OperationalError as e:
             # a write-protected file in rollback-journal mode (an archive made by VACUUM INTO,
-            # a copy): read in the mode it is in
-            if create or e.sqlite_errorcode != sqlite3.SQLITE_READONLY:
+            # a copy): read in the mode it is in; in a write-protected folder (a read-only
+            # share), where SQLite cannot make the log's index beside it: read as immutable
+            code = e.sqlite_errorcode
+            if (
+                code == sqlite3.SQLITE_CANTOPEN
+                and Path(f"{p}-wal").exists()
+                and not os.access(p.parent, os.W_OK)
+            ):
+                code = sqlite3.SQLITE_READONLY_DIRECTORY  # (a log it cannot index there)
+            if create or code not in _READONLY_PLACES:
                 raise
+            if code != sqlite3.SQLITE_READONLY:
+                db.close()
+                db = _immutable(p)
         db.execute("PRAGMA synchronous=NORMAL")
         if not create and not _has_runs_table(db):
             raise StoreError(f"{p} is not a run database (it has no runs table)")
@@ -313,6 +324,25 @@ def connect(
         raise
     db.row_factory = sqlite3.Row
     return db
+
+
+# a reading command's file it may not write (SQLITE_READONLY), or whose folder it may not write
+# either (no -shm for the log's index: DIRECTORY, CANTINIT)
+_READONLY_PLACES = (sqlite3.SQLITE_READONLY, sqlite3.SQLITE_READONLY_DIRECTORY,
+                    sqlite3.SQLITE_READONLY_CANTINIT)  # fmt: skip
+
+
+def _immutable(p: Path) -> sqlite3.Connection:
+    """A database in a folder nobody may write, opened as immutable (no lock, no log index):
+    nothing can be writing it. A log beside it that still holds pages would be skipped, so such
+    a file is refused rather than read without them."""
+    wal = Path(f"{p}-wal")
+    if wal.exists() and wal.stat().st_size > 0:
+        raise StoreError(f"cannot read the run database {p} where it is: its folder is "
+                         f"write-protected and {wal.name} beside it holds pages not yet in it; "
+                         "copy both to a writable folder")  # fmt: skip
+    uri = f"{p.absolute().as_uri()}?mode=ro&immutable=1"
+    return sqlite3.connect(uri, uri=True, check_same_thread=False)
 
 
 def _check_writable(db: sqlite3.Connection, busy_timeout_s: float) -> None:

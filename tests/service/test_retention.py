@@ -484,3 +484,38 @@ def test_an_older_write_protected_database_is_read_as_it_is(four_runs: Path) -> 
         refused = runs("delete", "2")
         assert refused.returncode == Exit.UNAVAILABLE and "readonly database" in refused.stderr
         assert hashlib.sha256(db.read_bytes()).hexdigest() == before  # nothing written
+
+
+def test_a_database_in_a_write_protected_folder_is_read_as_immutable(
+    four_runs: Path, tmp_path: Path
+) -> None:
+    """A read-only share: SQLite cannot make the log's index beside the file, and every
+    statement failed. Nobody can write there, so the file is read as immutable; unless a log
+    beside it still holds pages, which that would skip: then it says to copy both."""
+    import os
+    import shutil
+
+    drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-all"] if os.geteuid() == 0 else []
+    assert not drop or shutil.which("setpriv"), "setpriv (util-linux) is needed as root"
+    shares = []
+    for name, wal in (("share", b""), ("busy", b"pages not yet in the file")):
+        share = tmp_path / name
+        share.mkdir()
+        shutil.copy(four_runs, share / "runs.sqlite")
+        if wal:
+            (share / "runs.sqlite-wal").write_bytes(wal)
+        share.chmod(0o555)
+        shares.append(share / "runs.sqlite")
+
+    def runs(db: Path, *args: str) -> subprocess.CompletedProcess[str]:
+        where = f"storage.db_path={json.dumps(str(db))}"
+        return subprocess.run([*drop, sys.executable, "-m", "sdh2svc", "runs", *args, "--set",
+                               where], capture_output=True, text=True, timeout=60)  # fmt: skip
+
+    listed = runs(shares[0], "list")
+    assert listed.returncode == Exit.OK, listed.stderr
+    assert [int(line.split()[0]) for line in listed.stdout.splitlines()] == [4, 3, 2, 1]
+    assert sorted(p.name for p in shares[0].parent.iterdir()) == ["runs.sqlite"]
+    busy = runs(shares[1], "list")
+    assert busy.returncode == Exit.UNAVAILABLE
+    assert "runs.sqlite-wal beside it holds pages not yet in it" in busy.stderr
