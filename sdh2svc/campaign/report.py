@@ -89,18 +89,18 @@ def paired_p(better: int, worse: int) -> float:
     return float(binomtest(better, better + worse, 0.5).pvalue)
 
 
-def rate(rows: Sequence[Row]) -> str:
-    """Successes over the cases judged: a crashed case is no result (the same ``campaign run``
-    runs it again), counted apart (:func:`crash_note`)."""
-    judged = [r for r in rows if r["status"] != "crashed"]
-    n = len(judged)
-    ok = sum(1 for r in judged if r["success"])
-    return f"{ok}/{n} ({percent(ok, n)})" if n else "–"
-
-
 def judged_rows(rows: Sequence[Row]) -> list[Row]:
     """The cases with a verdict: all but the crashed."""
     return [r for r in rows if r["status"] != "crashed"]
+
+
+def rate(rows: Sequence[Row]) -> str:
+    """Successes over the cases judged: a crashed case is no result (the same ``campaign run``
+    runs it again), counted apart (:func:`crash_note`)."""
+    judged = judged_rows(rows)
+    n = len(judged)
+    ok = sum(1 for r in judged if r["success"])
+    return f"{ok}/{n} ({percent(ok, n)})" if n else "–"
 
 
 def crash_note(rows: Sequence[Row]) -> list[str]:
@@ -384,7 +384,7 @@ def _plots(rows: Sequence[Row], plots: Path) -> list[str]:
 
     for key, label, name in (
         ("lambda_error_mm", "Λ at grasp − true contact width (mm)", "dist_lambda_error"),
-        ("f_mean", "mean F after the grasp", "dist_force"),
+        ("f_mean", "mean F the controller read after the grasp", "dist_force"),
         ("mean_stroke_rotation_deg", "true rotation per stroke (°)", "dist_rotation"),
     ):
         vals = [r[key] for r in rows if r[key] is not None]

@@ -469,14 +469,12 @@ def write_mcap(
         ns = t0_ns + round(t * 1e9)
         for pad, grid in hand.grids(texels, ns).items():
             put(ch_pads[pad], ns, grid.encode())
-    _write_records(w, cfg, run, hand.desc, t0_ns)
+    _write_records(w, run, hand.desc, t0_ns)
     w.finish()  # type: ignore[no-untyped-call]
     return n
 
 
-def _write_records(
-    w: Writer, cfg: Settings, run: Mapping[str, Any], desc: HandDescription, t0_ns: int
-) -> None:
+def _write_records(w: Writer, run: Mapping[str, Any], desc: HandDescription, t0_ns: int) -> None:
     meta = run.get("meta") or {}
     rest = {k: v for k, v in meta.items() if k not in ("params", "object", "configuration")}
     info = {k: run.get(k) for k in ("id", "started_at", "ended_at", "status", "summary")}
