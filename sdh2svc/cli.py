@@ -266,11 +266,17 @@ def _seconds_arg(text: str) -> float:
     return value
 
 
-def _count_arg(text: str) -> int:
-    """A count: 0 or more, in the digits 0–9 (argparse's type)."""
+def _digits(text: str, what: str) -> int:
+    """A whole number written in the digits 0–9 only (int() would read "1_0" as 10, " 3" as
+    3); argparse's error naming ``what`` it is otherwise."""
     if not (text.isascii() and text.isdigit()):
-        raise argparse.ArgumentTypeError(f"{text!r}: a count is written in the digits 0–9")
+        raise argparse.ArgumentTypeError(f"{text!r}: {what} is written in the digits 0–9")
     return int(text)
+
+
+def _count_arg(text: str) -> int:
+    """A count: 0 or more (argparse's type)."""
+    return _digits(text, "a count")
 
 
 def _url_arg(text: str) -> str:
@@ -682,10 +688,8 @@ RUN_IDS = range(-(2**63), 2**63)  # SQLite's integers: any other ID names no run
 
 
 def _run_id(text: str) -> int:
-    """A run ID as the API takes it: the digits 0–9 only (int() would read "1_0" as run 10)."""
-    if not (text.isascii() and text.isdigit()):
-        raise argparse.ArgumentTypeError(f"{text!r}: a run ID is written in the digits 0–9")
-    return int(text)
+    """A run ID as the API takes it: the digits 0–9 only."""
+    return _digits(text, "a run ID")
 
 
 def _when_arg(text: str) -> datetime:
@@ -763,7 +767,7 @@ def _megabytes(n: int) -> str:
 def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
     """``runs delete``, ``runs prune`` and ``runs vacuum``: what goes (or would go), and what
     it gives back."""
-    from sdh2svc.service.store import RunBusy, StoreError
+    from sdh2svc.service.store import StoreError
 
     if args.action == "delete":
         missing = [i for i in ids if i not in RUN_IDS or store.run(i) is None]
@@ -778,9 +782,7 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
     try:
         if args.action != "vacuum":
             if args.dry_run:
-                busy = sorted(set(doomed) & set(store.recording()))
-                if busy:  # as the delete itself would say
-                    raise RunBusy(f"run {busy[0]} is being recorded: stop it first")
+                store.refuse_recording(doomed)  # as the delete itself would say
                 said = f"{_n_runs(doomed)}: {_id_ranges(doomed)}" if doomed else "no run"
                 print(f"would delete {said}", file=sys.stderr)
                 return Exit.OK

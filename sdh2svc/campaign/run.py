@@ -239,10 +239,7 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
     lam = summary.get("lambda_initial_mm")
     cycles = cfg.rolling.cycles
     strokes_deg = [halves[i] + halves[i + 1] for i in range(0, len(halves) - 1, 2)]
-    true_f = true_forces(probe, cfg)
-    if true_f["peak_force"] is None:  # the library's force: the controller's peak, as the band
-        peaks = [f for f in (force.get("max"), probe.grasp_F) if f is not None]
-        true_f["peak_force"] = max(peaks) if peaks else None
+    true_f = true_forces(probe, cfg, force.get("max"))
     return {
         "status": summary["status"], "message": summary.get("message", ""),
         "fault": probe.fault, "strokes": summary.get("strokes", 0), "cycles": cycles,
@@ -266,15 +263,20 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
     }  # fmt: skip
 
 
-def true_forces(probe: TruthProbe, cfg: Any) -> dict[str, float | None]:
+def true_forces(probe: TruthProbe, cfg: Any, read_max: float | None) -> dict[str, float | None]:
     """The true grip in Fd's units (:meth:`TactileCalibration.force_per_newton`: what pads
     reading exactly as the calibration says would give): its least, largest and mean over the
-    rolling iterations, and its peak there and at the grasp. All None with the library's force
-    (``calibration.force_reference_area_mm2 = 0``), which no force alone determines: the band
-    and the peak are then the controller's own F's."""
+    rolling iterations, and its peak there and at the grasp. With the library's force
+    (``calibration.force_reference_area_mm2 = 0``), which no force alone determines, the three
+    are None and the band and the peak the controller's own F's (``read_max``: the most it
+    read while rolling)."""
     k = cfg.calibration.force_per_newton(cfg.tactile.texel_pitch_mm)
-    f = [k * n for n in probe.grip_n] if k is not None else []
-    at_grasp = [k * probe.grasp_grip_n] if k is not None and probe.grasp_grip_n is not None else []
+    if k is None:
+        read = [f for f in (read_max, probe.grasp_F) if f is not None]
+        return {"true_f_min": None, "true_f_max": None, "true_f_mean": None,
+                "peak_force": max(read) if read else None}  # fmt: skip
+    f = [k * n for n in probe.grip_n]
+    at_grasp = [k * probe.grasp_grip_n] if probe.grasp_grip_n is not None else []
     return {
         "true_f_min": min(f) if f else None, "true_f_max": max(f) if f else None,
         "true_f_mean": sum(f) / len(f) if f else None,

@@ -62,6 +62,8 @@ class DistanceMap(Finite):
         return float(np.interp(S, xs, ys))
 
     def L_from_S(self, S: float, s_range_mm: float, pad: PadProfile) -> float:
-        """Curved distance L (mm) of the contact from the pad's base I (eq 2.19)."""
+        """Curved distance L (mm) of the contact from the pad's base I (eq 2.19), on the pad:
+        a measured table extrapolated past its points is clamped to the pad's base and tip."""
         d = self.measured_distance(S, s_range_mm, pad)
-        return pad.sensor_active_length_mm - d + pad.pad_base_to_active_mm
+        L = pad.sensor_active_length_mm - d + pad.pad_base_to_active_mm
+        return min(max(L, 0.0), pad.max_L_mm)

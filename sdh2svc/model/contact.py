@@ -327,7 +327,7 @@ def estimate_contact(
     ref = calib.force_reference_area_mm2
     S = main.S_mm
     s_range = (layout.rows - 1) * pitch_mm
-    L = min(max(calib.distance.L_from_S(S, s_range, pad), 0.0), pad.max_L_mm)  # on the pad
+    L = calib.distance.L_from_S(S, s_range, pad)
     x3, y3 = pad_point_from_L(L, pad)
     depth = NO_DEPTH
     if compliance is not None:

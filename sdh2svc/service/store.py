@@ -602,6 +602,12 @@ class RunStore:
             if r["id"] not in busy and (before is None or _started(r["started_at"]) < before)
         )  # fmt: skip
 
+    def refuse_recording(self, ids: list[int]) -> None:
+        """:class:`RunBusy` if one of the runs ``ids`` is being recorded (a delete's check)."""
+        busy = sorted(set(ids) & set(self.recording()))
+        if busy:
+            raise RunBusy(f"run {busy[0]} is being recorded: stop it first")
+
     def delete_runs(self, ids: list[int]) -> list[int]:
         """Delete the runs ``ids`` with everything recorded with them; returns those that
         existed (the others are not there to delete). :class:`RunBusy`, before anything is
@@ -611,9 +617,7 @@ class RunStore:
         deletion; a deletion cut short leaves the run listed, to be deleted again. The pages
         freed hold the next runs (:meth:`vacuum` gives them back to the file system)."""
         self._check_writable_file()
-        busy = sorted(set(ids) & set(self.recording()))
-        if busy:
-            raise RunBusy(f"run {busy[0]} is being recorded: stop it first")
+        self.refuse_recording(ids)
         done = []
         for run_id in ids:
             for table in ("samples", "events", "frames", "truth"):
