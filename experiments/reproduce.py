@@ -307,8 +307,13 @@ def analyse(o: Outcome) -> None:
     rows.append(("half strokes that moved (≥ 5 commanded iterations)", "–",
                  f"{moving} of {len(halves)}", f"{2 * cycles}",
                  verdict(moving >= 2 * cycles) if exp.targets else "info"))  # fmt: skip
-    dropped = bool(truth.get("dropped")) or s["status"] == "dropped"
-    ours = (f"dropped: {'yes' if dropped else 'no'}, slips: {truth.get('slips', '–')}, "
+    # a drop is the simulation's (the object out of the fingers), as in campaigns: the
+    # controller's own "dropped" (both contacts lost) of an object still held is its fault
+    dropped = bool(truth.get("dropped"))
+    lost = (
+        " (the controller lost both contacts)" if s["status"] == "dropped" and not dropped else ""
+    )
+    ours = (f"dropped: {'yes' if dropped else 'no'}{lost}, slips: {truth.get('slips', '–')}, "
             f"object turned {_fmt(truth.get('rotation_range_deg'), 1)}°")  # fmt: skip
     rows.append(("drops", th.get("drops", "–"), ours, "none",
                  verdict(not dropped) if exp.targets or exp.rolls else "info"))  # fmt: skip

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from experiments import reproduce
+from sdh2svc.config import Settings
 
 
 @pytest.mark.timeout(120)
@@ -45,3 +46,25 @@ def test_unintended_reversal_detection() -> None:
     assert found[0]["back_deg"] == pytest.approx(0.5)
     smooth = [{"iteration": i + 1, "sigma": 0.1 * i, "reversal": None} for i in range(40)]
     assert reproduce.unintended_reversals(smooth) == []
+
+
+@pytest.mark.parametrize(
+    ("status", "truly_dropped", "says"),
+    [
+        ("dropped", False, "dropped: no (the controller lost both contacts)"),
+        ("dropped", True, "dropped: yes,"),
+        ("completed", False, "dropped: no,"),
+    ],
+)
+def test_a_drop_is_the_simulations_not_the_controllers_lost_contacts(
+    cfg: Settings, status: str, truly_dropped: bool, says: str
+) -> None:
+    """As in campaigns: the controller's "dropped" (both contacts lost) of an object the
+    simulation says is still held is no drop."""
+    exp = next(e for e in reproduce.EXPERIMENTS if e.targets)
+    truth = {"dropped": truly_dropped, "slips": 0, "rotation_range_deg": 3.0}
+    summary = {"status": status, "strokes": 1, "iterations": 40, "truth": truth}
+    o = reproduce.Outcome(exp, cfg, summary, samples=[], events=[], wall_s=1.0)
+    reproduce.analyse(o)
+    row = next(r for r in o.rows if r[0] == "drops")
+    assert says in row[2] and row[4] == ("FAIL" if truly_dropped else "PASS")
