@@ -782,7 +782,8 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
     try:
         if args.action != "vacuum":
             if args.dry_run:
-                store.refuse_recording(doomed)  # as the delete itself would say
+                store.check_writable()  # as the delete itself would say
+                store.refuse_recording(doomed)
                 said = f"{_n_runs(doomed)}: {_id_ranges(doomed)}" if doomed else "no run"
                 print(f"would delete {said}", file=sys.stderr)
                 return Exit.OK

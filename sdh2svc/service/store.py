@@ -616,7 +616,7 @@ class RunStore:
         (which waits only a moment for the lock), waits milliseconds, never a whole run's
         deletion; a deletion cut short leaves the run listed, to be deleted again. The pages
         freed hold the next runs (:meth:`vacuum` gives them back to the file system)."""
-        self._check_writable_file()
+        self.check_writable()
         self.refuse_recording(ids)
         done = []
         for run_id in ids:
@@ -634,13 +634,20 @@ class RunStore:
                     done.append(run_id)
         return done
 
-    def _check_writable_file(self) -> None:
-        """An older version's file opened for reading only (:func:`connect`) refuses a write as
-        a write-protected file of this version does (sqlite3.OperationalError), not through
-        the temporary objects it is read through."""
+    def check_writable(self) -> None:
+        """sqlite3.OperationalError, as a write would raise it, if this file cannot be written
+        from here: write-protected, in a write-protected folder (read as immutable), or an
+        older version's read as it is (:func:`connect`; refused as such, not through the
+        temporary objects it is read through). A delete's and a vacuum's first check, and a
+        dry run's."""
         if self.db.execute("PRAGMA query_only").fetchone()[0]:
             raise sqlite3.OperationalError("attempt to write a readonly database (a file of an "
                                            "older version, read as it is)")  # fmt: skip
+        with self._lock:
+            try:  # a statement that writes nothing, refused wherever a write would be
+                self.db.execute("DELETE FROM runs WHERE 0")
+            finally:
+                self.db.rollback()
 
     def size(self) -> tuple[int, int]:
         """(bytes on disk: the file and its write-ahead log; bytes of it free for new runs)."""
@@ -659,7 +666,7 @@ class RunStore:
         and a reader keeps the copy in the write-ahead log, beside the old file, until it lets
         go. (A service in another container cannot be seen from here: stop it first.)
         StoreError if a reader came meanwhile and the log could not be given back."""
-        self._check_writable_file()
+        self.check_writable()
         busy = self.recording()
         if busy:
             raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")

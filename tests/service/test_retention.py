@@ -481,8 +481,10 @@ def test_an_older_write_protected_database_is_read_as_it_is(four_runs: Path) -> 
         header, first = csv.stdout.splitlines()[:2]
         assert header.startswith("iteration,t [s],") and "object_class" in header  # a newer one
         assert first.startswith("0,0.0,")
-        refused = runs("delete", "2")
-        assert refused.returncode == Exit.UNAVAILABLE and "readonly database" in refused.stderr
+        for delete in (["delete", "2"], ["delete", "2", "--dry-run"]):  # the dry run says so too
+            refused = runs(*delete)
+            assert refused.returncode == Exit.UNAVAILABLE, refused.stderr
+            assert "readonly database" in refused.stderr
         assert hashlib.sha256(db.read_bytes()).hexdigest() == before  # nothing written
 
 
@@ -516,6 +518,9 @@ def test_a_database_in_a_write_protected_folder_is_read_as_immutable(
     assert listed.returncode == Exit.OK, listed.stderr
     assert [int(line.split()[0]) for line in listed.stdout.splitlines()] == [4, 3, 2, 1]
     assert sorted(p.name for p in shares[0].parent.iterdir()) == ["runs.sqlite"]
+    for delete in (["delete", "2"], ["prune", "--keep", "1", "--dry-run"]):  # nobody writes there
+        refused = runs(shares[0], *delete)
+        assert refused.returncode == Exit.UNAVAILABLE and "readonly database" in refused.stderr
     busy = runs(shares[1], "list")
     assert busy.returncode == Exit.UNAVAILABLE
     assert "runs.sqlite-wal beside it holds pages not yet in it" in busy.stderr
