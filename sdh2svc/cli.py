@@ -1143,7 +1143,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
     )
-    p.set_defaults(func=cmd_runs)
+    p.set_defaults(func=cmd_runs, parser=p)  # (parse_args: IDs after an option, its usage)
 
     p = sub.add_parser("estop", help="the e-stop latch in the run database: show, latch, release",
                        description=cmd_estop.__doc__)  # fmt: skip
@@ -1188,7 +1188,7 @@ def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> a
         try:
             args.id = [*args.id, *(_run_id(x) for x in extra)]
         except argparse.ArgumentTypeError as e:
-            parser.error(f"argument id: {e}")
+            args.parser.error(f"argument id: {e}")  # with runs's usage, as argparse's own
         extra = []
     if extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")

@@ -229,7 +229,8 @@ def test_run_ids_may_follow_an_option(four_runs: Path, capsys: pytest.CaptureFix
     assert status == Exit.OK and "deleted 2 runs: 1, 4;" in err
     _, out, _ = _cli(capsys, four_runs, "list")
     assert [int(line.split()[0]) for line in out.splitlines()] == [3, 2]
-    for bad, said in ((["2x"], "'2x': a run ID is written in the digits 0–9"),
+    for bad, said in ((["2x"], "sdh2svc runs: error: argument id: '2x': a run ID is written "
+                               "in the digits 0–9"),  # runs's usage, as before an option
                       (["2", "--bogus"], "unrecognized arguments: 2 --bogus")):  # fmt: skip
         with pytest.raises(SystemExit) as refused:
             _cli(capsys, four_runs, "delete", "--dry-run", *bad)
