@@ -36,6 +36,7 @@ from typing import Any
 from sdh2svc.campaign.case import CASE_KEYS, Case, Suite
 from sdh2svc.config import ConfigError, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
+from sdh2svc.provenance import code_version
 from sdh2svc.workers import stop_pool, worker_init
 
 CASES_FILE = "cases.jsonl"
@@ -444,37 +445,6 @@ class Appender:
 
     def close(self) -> None:
         self.fh.close()
-
-
-def source_digest(root: Path | None = None) -> str:
-    """SHA-256 of the package's own files (its code and the data it loads: the recognition
-    model, the configuration, the suites), path by path: two trees that would run a case
-    differently differ here, where ``git describe --dirty`` reads the same for any two edits.
-    ``root``: the package's folder (default: this one)."""
-    root = root or Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for path in sorted(root.rglob("*")):
-        if path.is_file() and path.suffix in (".py", ".json", ".toml"):
-            h.update(path.relative_to(root).as_posix().encode() + b"\0")
-            h.update(hashlib.sha256(path.read_bytes()).digest())
-    return h.hexdigest()
-
-
-def code_version() -> dict[str, Any]:
-    """sdh2svc's version, the digest of its source (:func:`source_digest`) and, from a git
-    checkout, ``git describe``."""
-    import subprocess
-
-    from sdh2svc import __version__
-
-    describe = None
-    with contextlib.suppress(OSError, subprocess.SubprocessError):
-        r = subprocess.run(["git", "describe", "--always", "--dirty", "--tags"],
-                           cwd=Path(__file__).resolve().parent, capture_output=True,
-                           text=True, timeout=10, check=False)  # fmt: skip
-        if r.returncode == 0:
-            describe = r.stdout.strip() or None
-    return {"version": __version__, "git_describe": describe, "source": source_digest()}
 
 
 def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | None,

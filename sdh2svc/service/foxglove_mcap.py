@@ -396,6 +396,7 @@ def log_message(e: Mapping[str, Any], ns: int) -> fm.Log:
 
 
 NOT_RECORDED = "none: a run of an older version, drawn with the exporting configuration"
+NOT_RECORDED_SOFTWARE = "none: a run of a version older than the record"
 
 
 def _strings(d: Any, key: str = "value") -> dict[str, str]:
@@ -476,7 +477,8 @@ def write_mcap(
 
 def _write_records(w: Writer, run: Mapping[str, Any], desc: HandDescription, t0_ns: int) -> None:
     meta = run.get("meta") or {}
-    rest = {k: v for k, v in meta.items() if k not in ("params", "object", "configuration")}
+    own = ("params", "object", "configuration", "software")
+    rest = {k: v for k, v in meta.items() if k not in own}
     info = {k: run.get(k) for k in ("id", "started_at", "ended_at", "status", "summary")}
     w.add_metadata("run", _strings(info))
     w.add_metadata("parameters", _strings(meta.get("params")))
@@ -487,6 +489,9 @@ def _write_records(w: Writer, run: Mapping[str, Any], desc: HandDescription, t0_
     recorded = meta.get("configuration")
     conf = recorded if isinstance(recorded, Mapping) else {"recorded": NOT_RECORDED}
     w.add_metadata("configuration", _strings({**rest, **conf}))
+    software = meta.get("software")  # which sdh2svc recorded the run (provenance.code_version)
+    w.add_metadata("software", _strings(software if isinstance(software, Mapping)
+                                        else {"recorded": NOT_RECORDED_SOFTWARE}))  # fmt: skip
     w.add_attachment(
         create_time=t0_ns,
         log_time=t0_ns,

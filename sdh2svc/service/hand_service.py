@@ -30,6 +30,7 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.safety import SafetyConfig, params_outside
 from sdh2svc.control.sample import Sample
+from sdh2svc.provenance import code_version
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import RunStore, locked, now_iso
@@ -138,6 +139,7 @@ class HandService:
         self._tasks: list[asyncio.Task[None]] = []
         self._last_tactile = -math.inf
         self._opening: asyncio.Task[None] | None = None
+        code_version()  # (a run records it: worked out here, not on a run's start)
         self._latch: dict[str, str] | None = None  # the e-stop latch as on disk (or unrecorded)
         self._closed = False
         self._late_stop: asyncio.Future[None] | None = None  # an e-stop outliving its answer

@@ -24,6 +24,7 @@ from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner
 from sdh2svc.control.sample import Sample
+from sdh2svc.provenance import code_version
 from sdh2svc.service.store import Recorder, RunStore, retry_locked
 from sdh2svc.service.telemetry import outline_points
 
@@ -68,6 +69,7 @@ class RecordedRun:
             "params": params.model_dump(),
             "object": bench.obj.model_dump() if bench else None,
             "configuration": cfg.recorded(),  # its export draws it as it was, not as is
+            "software": code_version(),  # which sdh2svc recorded it
             **(meta or {}),
         }
         outline = None

@@ -18,6 +18,7 @@ from sdh2svc.campaign.case import Case, Suite, load_suite
 from sdh2svc.campaign.results import read_results
 from sdh2svc.cli import main
 from sdh2svc.config import ConfigError
+from sdh2svc.provenance import code_version, source_digest
 from sdh2svc.sim.objects import get_object
 
 WIDTH = {"egg": 53.0, "rubber": 60.5}
@@ -272,7 +273,7 @@ def test_a_resume_under_other_code_or_another_judge_is_refused(
     out = tmp_path / "out"
     run(suite(1, 2), out)
     with monkeypatch.context() as m:
-        m.setattr(camp, "source_digest", lambda: "0" * 64)
+        m.setattr(camp, "code_version", lambda: {**code_version(), "source": "0" * 64})
         with pytest.raises(camp.CampaignError, match="another sdh2svc made") as other:
             run(suite(1, 2), out)
         assert "source 000000000000) now" in str(other.value)
@@ -294,14 +295,14 @@ def test_the_source_digest_changes_with_any_edit_of_the_package(tmp_path: Path) 
     pkg = tmp_path / "sdh2svc"
     shutil.copytree(Path(camp.__file__).parents[1], pkg,
                     ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
-    before = camp.source_digest(pkg)
-    assert before == camp.source_digest()  # the same files, the same digest
+    before = source_digest(pkg)
+    assert before == source_digest()  # the same files, the same digest
     (pkg / "__pycache__").mkdir()
     (pkg / "__pycache__" / "x.pyc").write_bytes(b"compiled")
-    assert camp.source_digest(pkg) == before  # what Python caches is no source
+    assert source_digest(pkg) == before  # what Python caches is no source
     model = pkg / "control" / "recognition_model.json"
     model.write_text(model.read_text() + " ")
-    assert camp.source_digest(pkg) != before
+    assert source_digest(pkg) != before
 
 
 @pytest.mark.parametrize("how", ["table", "config", "env"])

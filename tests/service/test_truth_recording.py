@@ -16,11 +16,13 @@ import pytest
 from mcap_check import read
 from test_store import _samples
 
+from sdh2svc import __version__
 from sdh2svc.config import Settings, load_config
 from sdh2svc.connect import Bench, Simulated
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.hand import matrix_shapes
+from sdh2svc.provenance import code_version
 from sdh2svc.service import headless
 from sdh2svc.service.api.deps import Services
 from sdh2svc.service.app import create_app
@@ -121,6 +123,16 @@ def test_a_replayed_iteration_shows_the_object_where_it_was(sim_run: SimRun) -> 
     assert sim.truth["pose"] == [row["y"], row["z"], row["psi"]] == list(sim_run.probe.poses[it])
     assert len(sim.truth["outline"]) == OUTLINE_POINTS and sim.truth["held"] is True
     assert sim.json()["type"] == "sim" and sim.truth["object"] == "rubber"
+
+
+def test_a_run_records_which_sdh2svc_recorded_it(sim_run: SimRun) -> None:
+    store = _store(sim_run)
+    try:
+        run = store.run(sim_run.summary["run_id"])
+    finally:
+        store.close()
+    assert run is not None and run["meta"]["software"] == code_version()
+    assert run["meta"]["software"]["version"] == __version__
 
 
 def test_the_export_draws_the_hand_as_the_run_recorded_it(sim_run: SimRun) -> None:
