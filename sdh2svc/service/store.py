@@ -254,9 +254,12 @@ def connect(
     """Open the run database; WAL so a reader never blocks the recorder.
 
     ``create=True`` (the recorder, the service, ``sdh2svc run``) creates the file, its directory
-    and the tables as needed. ``create=False`` (reading commands) never creates anything: a
+    and the tables as needed. ``create=False`` (reading commands) creates no file or folder: a
     missing file raises :class:`NoDatabase`, a file without the ``runs`` table
-    :class:`StoreError`. Anything unusable — a directory, an unwritable place, a file that is not
+    :class:`StoreError`. An older version's file is brought up to date (the tables and sample
+    columns it lacks added) where it is writable, as opening it with the service would; a
+    write-protected one is read as it is (:func:`_read_as_current`); the writer's own index
+    and owner columns only a writer adds. Anything unusable — a directory, an unwritable place, a file that is not
     SQLite — raises :class:`StoreError` naming the path and the reason.
     """
     p = Path(path)
