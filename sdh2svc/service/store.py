@@ -259,8 +259,8 @@ def connect(
     :class:`StoreError`. An older version's file is brought up to date (the tables and sample
     columns it lacks added) where it is writable, as opening it with the service would; a
     write-protected one is read as it is (:func:`_read_as_current`); the writer's own index
-    and owner columns only a writer adds. Anything unusable — a directory, an unwritable place, a file that is not
-    SQLite — raises :class:`StoreError` naming the path and the reason.
+    and owner columns only a writer adds. Anything unusable — a directory, an unwritable place,
+    a file that is not SQLite — raises :class:`StoreError` naming the path and the reason.
     """
     p = Path(path)
     if not create and not p.exists():
