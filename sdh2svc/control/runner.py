@@ -33,7 +33,7 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.plan import grip_force
 from sdh2svc.control.recognition import Recognition, Recognizer
 from sdh2svc.control.rolling import RollState, StepResult, step
-from sdh2svc.control.safety import Fault, clamp_targets, shorten_step
+from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.kinematics import HandPose, pad_gap
@@ -320,15 +320,9 @@ class Runner:
         limits = (lim.min_deg, lim.max_deg)
         await move_to_preshape(self.joints, self.config.run, limits, self.config.safety, check)
 
-    def _clamp(
-        self, want: Sequence[float], actual: Sequence[float], *, together: bool = False
-    ) -> tuple[float, ...]:
-        """The supervisor's bound on a command: within the joint limits, ≤ max_step_deg away;
-        ``together``: the whole step shortened along its line (a rolling plan's fingers move
-        together), not each axis cut on its own."""
+    def _clamp(self, want: Sequence[float], actual: Sequence[float]) -> tuple[float, ...]:
+        """The supervisor's bound on a command: within the joint limits, ≤ max_step_deg away."""
         lim, max_step = self.config.limits, self.config.safety.max_step_deg
-        if together:
-            want = shorten_step(want, actual, max_step)
         return clamp_targets(want, actual, lim.min_deg, lim.max_deg, max_step)
 
     async def _preshape(self, sub: Subscription) -> None:
@@ -481,8 +475,7 @@ class Runner:
                 _raise(v)
             commanded = None
             if r.targets is not None:
-                plan = self._axes.wire_targets(r.targets, actual)
-                want = self._clamp(plan, actual, together=True)
+                want = self._clamp(self._axes.wire_targets(r.targets, actual), actual)
                 commanded = self._axes.pose(want)  # recorded as sent, within the step limit
                 sent = await self.joints.send_targets(want)
                 latency_ms = (sent - frame.arrival) * 1000  # the targets are on the line

@@ -163,22 +163,6 @@ def clamp_targets(
     return tuple(out)
 
 
-def shorten_step(
-    targets: Sequence[float], current: Sequence[float], max_step: float
-) -> tuple[float, ...]:
-    """Targets on the line from ``current`` to ``targets``, the whole step scaled so that no axis
-    moves more than ``max_step`` (degrees). A coordinated plan (rolling: Finger 1 following
-    Finger 2's step) keeps its direction, where :func:`clamp_targets` alone would cut the axes
-    that ask most and turn the fingers off the plan's path. A target that is no finite number
-    holds its axis (and scales nothing); the joint limits are :func:`clamp_targets`'s."""
-    held = [t if math.isfinite(t) else c for t, c in zip(targets, current, strict=True)]
-    largest = max((abs(t - c) for t, c in zip(held, current, strict=True)), default=0.0)
-    if largest <= max_step:
-        return tuple(held)
-    scale = max_step / largest
-    return tuple(c + scale * (t - c) for t, c in zip(held, current, strict=True))
-
-
 # --- the supervisor's decisions: pure, one per fault, None while all is well --------------------
 
 

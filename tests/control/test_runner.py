@@ -85,18 +85,9 @@ def fast(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
     [("egg", ()), ("rubber", ()), ("cylinder", ("rolling.lambda_gain=3.0",))],  # λ = 3: thesis
 )
 def test_full_run_completes_its_strokes_without_a_drop(
-    tmp_path: Path, obj: str, extra: tuple[str, ...], monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, obj: str, extra: tuple[str, ...]
 ) -> None:
     cfg = cfg_with(tmp_path, f"sim.object={obj!r}", *extra)
-    planned: list[Any] = []  # each iteration's (pose, the step's targets)
-    real_step = runner_module.step
-
-    def planning(state: Any, pose: Any, *rest: Any) -> Any:
-        r = real_step(state, pose, *rest)
-        planned.append((pose, r.targets))
-        return r
-
-    monkeypatch.setattr(runner_module, "step", planning)
 
     async def main() -> tuple[Any, list, Any, list[Sample]]:
         async with rig(cfg, tmp_path) as (hand, runner):
@@ -125,17 +116,6 @@ def test_full_run_completes_its_strokes_without_a_drop(
     assert result.iterations == pytest.approx(result.rolling_s * cfg.run.tactile_rate_hz, rel=0.05)
     # the recognition ran on every iteration: its estimate in the samples and the summary
     assert len(samples) == result.iterations
-    # what went out is the step's plan, shortened along its line to the supervisor's step
-    assert len(planned) == len(samples)
-    for (pose, targets), smp in zip(planned, samples, strict=True):
-        sent = (smp.phi2_d, smp.phi3_d, smp.phi4_d, smp.phi5_d)
-        if targets is None:
-            assert sent == (None,) * 4
-            continue
-        ask = [t - p for t, p in zip(targets.degrees(), pose.degrees(), strict=True)]
-        scale = min(1.0, cfg.safety.max_step_deg / max(abs(a) for a in ask))
-        moved = [s - p for s, p in zip(sent, pose.degrees(), strict=True)]  # type: ignore[operator]
-        assert moved == pytest.approx([scale * a for a in ask], abs=1e-6)
     assert all(s.rotation_est is not None for s in samples)
     both = sum(s.contact1_kind is not None and s.contact2_kind is not None for s in samples)
     assert both >= 0.9 * len(samples)

@@ -6,8 +6,6 @@ import math
 from dataclasses import replace
 
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from sdh2svc.config import Settings
 from sdh2svc.control import safety
@@ -215,35 +213,6 @@ def test_a_target_that_is_no_number_holds_its_axis() -> None:
     lo, hi = [-90.0] * 3, [90.0] * 3
     got = safety.clamp_targets([math.nan, math.inf, -math.inf], [10.0, 20.0, 30.0], lo, hi, 1.0)
     assert got == (10.0, 20.0, 30.0)
-
-
-def test_shorten_step_keeps_the_steps_direction() -> None:
-    """Finger 1 asked 1.5° and 0.6° while Finger 2 moves 0.25°: the whole step is scaled by
-    1/1.5, where a per-axis clamp would give 1.0°, 0.6°, 0.25° (another direction)."""
-    got = safety.shorten_step([1.5, 0.6, 0.25, 7.0], [0.0, 0.0, 0.0, 7.0], 1.0)
-    assert got == pytest.approx((1.0, 0.4, 0.25 / 1.5, 7.0))
-    within = (0.9, -0.5, 0.0)
-    assert safety.shorten_step(within, (0.0, 0.0, 0.0), 1.0) == within
-    # a target that is no number holds its axis and scales nothing
-    assert safety.shorten_step([math.nan, 0.5], [3.0, 0.0], 1.0) == (3.0, 0.5)
-
-
-@given(
-    st.lists(st.tuples(st.floats(-90, 90), st.floats(-90, 90)), min_size=1, max_size=7),
-    st.floats(0.01, 2.0),
-)
-def test_shorten_step_moves_no_axis_more_than_the_step_along_the_same_line(
-    axes: list[tuple[float, float]], max_step: float
-) -> None:
-    targets, current = [t for t, _ in axes], [c for _, c in axes]
-    got = safety.shorten_step(targets, current, max_step)
-    steps = [t - c for t, c in zip(targets, current, strict=True)]
-    moved = [g - c for g, c in zip(got, current, strict=True)]
-    assert max(abs(m) for m in moved) <= max_step + 1e-9
-    largest = max(abs(s) for s in steps)
-    scale = 1.0 if largest <= max_step else max_step / largest
-    for s, m in zip(steps, moved, strict=True):  # one scale for every axis, none reversed
-        assert m == pytest.approx(scale * s, abs=1e-9)
 
 
 def test_clamp_targets_limits_the_step_and_the_range() -> None:
