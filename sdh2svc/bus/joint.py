@@ -545,6 +545,7 @@ class JointLink:
         self._gate = _Turnstile()
         self._closed = False
         self._estopped = False
+        self._latches = 0  # e-stops latched so far (a release names the last one it saw)
         self._releasing = False  # a release is out (estopped until the hand takes it)
         self._estop_pending = 0
         # a latched e-stop whose power-off the hand has not confirmed (a silent line, a line
@@ -1397,6 +1398,7 @@ class JointLink:
         while the line is down): motion commands are refused and the hand is powered off as soon
         as the line answers (the next connect, or the next reply on this one)."""
         self._estopped = self._power_off_owed = True
+        self._latches += 1
 
     async def emergency_stop(self) -> Vec:
         """SCHUNK's e-stop with precedence; returns the angles written as targets.
@@ -1411,6 +1413,7 @@ class JointLink:
         if self._closed:
             raise LinkLost("link closed")
         self._estopped = self._power_off_owed = True  # until the hand confirms it
+        self._latches += 1
         self._estop_pending += 1
         try:
             self._gate.fail_waiting(
@@ -1440,12 +1443,25 @@ class JointLink:
             raise first_error
         return held
 
-    async def release(self) -> tuple[bool, ...]:
+    @property
+    def latches(self) -> int:
+        """How many e-stops this link has latched: what a release decided on (see
+        :meth:`release`)."""
+        return self._latches
+
+    async def release(self, seen: int | None = None) -> tuple[bool, ...]:
         """Clear a latched emergency stop and power all axes on again, holding them where they
         are: the targets are first set to the actual angles (fingers that sagged, or were moved
         by hand, while unpowered would otherwise be driven back to the targets the e-stop
         wrote). :attr:`estopped` stays true until the hand has answered (the link lets these
-        commands through meanwhile)."""
+        commands through meanwhile).
+
+        ``seen``: :attr:`latches` when the caller decided to release. An e-stop latched since
+        (pressed while the caller was busy, e.g. deleting its record) is not released:
+        :class:`EmergencyStopped`, the latch as it is. An e-stop that comes during the release
+        itself refuses its power-on, or powers the hand off after it."""
+        if seen is not None and seen != self._latches:
+            raise EmergencyStopped("an emergency stop came during the release: it stays latched")
         self._releasing, self._estopped, self._power_off_owed = True, False, False
         try:
             await self.set_targets(self.clip_to_limits(await self.get_actual()))

@@ -19,7 +19,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from sdh2svc.bus.joint import JointLink, JointLinkError
+from sdh2svc.bus.joint import EmergencyStopped, JointLink, JointLinkError
 from sdh2svc.bus.tactile import Subscription, TactileBus, TactileFrame
 from sdh2svc.config import Settings, format_errors
 from sdh2svc.connect import Bench, Hand, Where, connect_hand
@@ -381,6 +381,7 @@ class HandService:
         """Release the latch: its record on disk first, then the hand (motors on). Either
         failing leaves the e-stop latched, on disk and in the hand (503)."""
         joints, _, store = self._links()
+        seen = joints.latches  # an e-stop pressed from here on is not released
         try:
             await asyncio.to_thread(store.release_estop)
         except (OSError, sqlite3.Error) as e:
@@ -388,7 +389,19 @@ class HandService:
                                "e-stop stays latched") from None  # fmt: skip
         latch = self._latch or {}
         try:
-            await joints.release()
+            await joints.release(seen)
+        except EmergencyStopped:
+            # an e-stop came while the record was being deleted: its own write may have gone
+            # first, and the delete taken it: on disk again, as the e-stop said
+            latch = self._latch or {}
+            with contextlib.suppress(OSError, sqlite3.Error):
+                self._latch = await asyncio.to_thread(
+                    store.latch_estop, latch.get("reason", "e-stop requested"),
+                    latch.get("since") or now_iso(),
+                )  # fmt: skip
+            self.publish_status()
+            raise ServiceError(409, "an e-stop came during the release: it stays latched "
+                               "(release it again)") from None  # fmt: skip
         except JointLinkError as e:
             # the hand stays latched: so does its record, as it was (best effort: the line is
             # the problem)

@@ -698,6 +698,24 @@ async def test_a_release_the_hand_has_not_taken_shows_latched() -> None:
         assert seen and all(seen) and link.estopped
 
 
+async def test_a_release_does_not_release_an_estop_latched_since_its_caller_decided() -> None:
+    """A release names the e-stops it saw (:attr:`JointLink.latches`): one latched since (an
+    e-stop pressed while the caller deleted its record) stays latched, the hand off."""
+    async with _rig("pty") as rig:
+        link = await rig.open()
+        await link.emergency_stop()
+        seen = link.latches
+        await link.emergency_stop()  # pressed again while the release was on its way
+        with pytest.raises(EmergencyStopped, match="came during the release"):
+            await link.release(seen)
+        assert link.estopped and not any(rig.dev.powered)
+        link.latch()  # one latched without a word to the hand counts too
+        with pytest.raises(EmergencyStopped):
+            await link.release(seen + 1)
+        await link.release(link.latches)
+        assert not link.estopped and all(rig.dev.powered)
+
+
 async def test_a_release_holds_the_fingers_where_they_sagged_while_unpowered() -> None:
     """Unpowered, fingers sag (or a hand moves them); powered on again, the firmware drives to
     its targets — those the e-stop wrote. The release writes the actual angles first."""

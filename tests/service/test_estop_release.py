@@ -1,0 +1,60 @@
+"""Releasing the e-stop while another e-stop comes: in this process (the app over ASGI; the
+simulated hand in real time: the release's disk write is held in its thread by an event, which
+the virtual clock's inline executor cannot do)."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+from test_sim_press import service
+
+from sdh2svc.config import load_config
+from sdh2svc.connect import Simulated
+
+JSON = {"Content-Type": "application/json"}  # a command's, its body empty
+
+
+def test_an_estop_pressed_while_a_release_deletes_its_record_stays_latched(
+    tmp_path: Path,
+) -> None:
+    """The release deletes the latch's record first (a thread: milliseconds, or as long as
+    another program holds the database), then powers the hand on. An e-stop pressed meanwhile
+    answered "estopped", and the release then powered the hand on and cleared the latch. It
+    now refuses (409), the hand stays off, and the latch is on disk again (the delete may have
+    taken the e-stop's own record); a release after that powers the hand on."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'"], use_env=False)
+
+    async def main() -> None:
+        async with service(cfg, Simulated()) as (c, services):
+            st = services.station
+            assert st.bench is not None and st.joints is not None and st.store is not None
+            sdh, store = st.bench.sim.sdh, st.store
+            assert (await c.post("/api/estop")).json()["estopped"] is True
+            assert not any(sdh.powered)
+            deleting, go = threading.Event(), threading.Event()
+            delete = store.release_estop
+
+            def slow_delete() -> None:  # the e-stop's write lands before the delete
+                deleting.set()
+                assert go.wait(30)
+                delete()
+
+            store.release_estop = slow_delete  # type: ignore[method-assign]
+            release = asyncio.create_task(c.post("/api/estop/release", headers=JSON))
+            assert await asyncio.to_thread(deleting.wait, 30)
+            again = await c.post("/api/estop")
+            assert again.status_code == 200 and again.json()["estopped"] is True
+            go.set()
+            refused = await release
+            assert refused.status_code == 409, refused.text
+            assert "an e-stop came during the release" in refused.json()["error"]
+            assert not any(sdh.powered) and st.joints.estopped
+            assert store.estop_latch() is not None  # on disk again: a restart keeps it
+            assert (await c.get("/api/status")).json()["estopped"] is True
+            store.release_estop = delete  # type: ignore[method-assign]
+            assert (await c.post("/api/estop/release", headers=JSON)).json() == {"estopped": False}
+            assert all(sdh.powered) and store.estop_latch() is None
+
+    asyncio.run(main())
