@@ -246,18 +246,19 @@ def finger_ik(
     geom: HandGeometry,
     limits: FingerLimits,
 ) -> IKResult:
-    """Angles that put the contact point at ``target``: the branch within the joint limits nearest
-    to ``current`` (proximal, distal), or the reason there is none."""
+    """Angles that put the contact point at ``target``: the branch nearest to ``current``
+    (proximal, distal), or the reason there is none — JOINT_LIMITS when that branch is outside
+    the limits, even if the other elbow is inside them (hand-model §7): the other elbow is
+    the finger folded the other way, tens of degrees from where it is, not a way on."""
     candidates = ik_branches(finger, target, r, theta, geom)
     if not candidates:
         return IKResult(None, IKFailure.OUT_OF_WORKSPACE)
-    valid = [s for s in candidates if limits.contains(s.proximal, s.distal)]
-    if not valid:
-        return IKResult(None, IKFailure.JOINT_LIMITS, candidates)
     best = min(
-        valid,
+        candidates,
         key=lambda s: (
             abs(wrap_angle(s.proximal - current[0])) + abs(wrap_angle(s.distal - current[1]))
         ),
     )
+    if not limits.contains(best.proximal, best.distal):
+        return IKResult(None, IKFailure.JOINT_LIMITS, candidates)
     return IKResult(best, None, candidates)

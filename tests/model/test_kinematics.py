@@ -224,6 +224,44 @@ def test_ik_rejects_joint_limit_violation(cfg: Settings, finger: Finger) -> None
     assert all(not limits.contains(c.proximal, c.distal) for c in res.candidates)
 
 
+@pytest.mark.parametrize("finger", FINGERS)
+def test_ik_never_folds_the_finger_the_other_way_past_a_limit(
+    cfg: Settings, finger: Finger
+) -> None:
+    """A joint 0.5° inside a limit and a target that needs it 0.5° past, where the other elbow
+    fits within the limits: the target is refused (hand-model §7), never reached by folding
+    the finger the other way; 0.5° inside the limit instead, it is reached as it is."""
+    geom, lim = cfg.hand, cfg.finger_limits(finger)
+    r, theta, _ = vj_for_S(cfg, 20.0)
+    tried = 0
+    edges = (
+        (0, lim.proximal_max, 1),
+        (0, lim.proximal_min, -1),
+        (1, lim.distal_max, 1),
+        (1, lim.distal_min, -1),
+    )  # (joint, limit, outwards)
+    for (joint, edge, out), other_deg in itertools.product(edges, range(-80, 81, 10)):
+
+        def pose(off_deg: float, joint: int = joint, edge: float = edge, out: int = out,
+                 other: float = rad(other_deg)) -> tuple[float, float]:  # fmt: skip
+            """The joint ``off_deg`` beyond its limit (inside if negative), the other at
+            ``other``."""
+            at = edge + out * rad(off_deg)
+            return (at, other) if joint == 0 else (other, at)
+
+        now, past, inside = pose(-0.5), pose(0.5), pose(-1.0)
+        target = contact_point(finger, *past, r, theta, geom)
+        res = finger_ik(finger, target, r, theta, now, geom, lim)
+        if not any(lim.contains(c.proximal, c.distal) for c in res.candidates):
+            continue  # both elbows past a limit: refused either way
+        tried += 1
+        assert not res.ok and res.failure is IKFailure.JOINT_LIMITS, now
+        to = contact_point(finger, *inside, r, theta, geom)
+        near = finger_ik(finger, to, r, theta, now, geom, lim).solution
+        assert near is not None and (near.proximal, near.distal) == pytest.approx(inside)
+    assert tried >= 5  # poses whose other elbow fits were found and checked
+
+
 def test_ik_solutions_respect_limits(cfg: Settings, geom: HandGeometry) -> None:
     limits = cfg.finger_limits(Finger.ONE)
     r, theta, _ = vj_for_S(cfg, 10.0)
