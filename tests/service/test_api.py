@@ -347,6 +347,9 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
             assert r.status_code == 200 and r.json()["estopped"] is True
             r = await raw.post("/api/estop/")  # a trailing slash: answered, not redirected
             assert r.status_code == 200 and r.json()["estopped"] is True
+            for query in ("?source=pendant", "/?_=1733500000000"):  # nor a query of its own
+                r = await raw.post(f"/api/estop{query}")
+                assert r.status_code == 200 and r.json()["estopped"] is True, r.text
             # the scheme's name in any case; a command with a query parameter it does not
             # take is refused (FastAPI would ignore it: a misspelt one would do the default)
             r = await raw.post("/api/runs/stop?now=1", json={},

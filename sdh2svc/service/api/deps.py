@@ -17,6 +17,7 @@ from pydantic_core import PydanticCustomError
 from starlette.requests import HTTPConnection, Request
 
 from sdh2svc.config import Settings, clip
+from sdh2svc.service.guard import ESTOP_PATH
 from sdh2svc.service.hand_service import HandService, ServiceError
 from sdh2svc.service.hub import TelemetryHub
 from sdh2svc.service.reads import ReadPool
@@ -101,6 +102,8 @@ async def known_query(conn: HTTPConnection) -> None:
     route, path = conn.scope.get("route"), conn.url.path
     http = conn.scope["type"] == "http" and path.startswith("/api/")
     if route is None or not (http or path.startswith("/ws/")):
+        return
+    if http and path.rstrip("/") == ESTOP_PATH:  # stopping always works (a pendant's ?source=)
         return
     known = _query_names(getattr(route, "dependant", None))
     unknown = sorted(set(conn.query_params) - known)
