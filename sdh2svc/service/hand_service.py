@@ -201,8 +201,8 @@ class HandService:
         if self._monitor is not None:
             self._monitor.close()
         await self._stack.aclose()
-        if self.store is not None:
-            self.store.close()
+        if self.store is not None:  # after a latch still being written (in a thread, as it)
+            await asyncio.to_thread(self.store.close)
         log.info("hand closed")
 
     @property

@@ -436,7 +436,11 @@ class RunStore:
         self._lock = threading.Lock()
 
     def close(self) -> None:
-        self.db.close()
+        """Close the connection once a write in another thread is done with it (an e-stop's
+        latch waiting for another program's lock: closed under it, SQLite crashed the process
+        and the latch could be lost)."""
+        with self._lock:
+            self.db.close()
 
     def create_run(
         self,

@@ -5,6 +5,8 @@ the virtual clock's inline executor cannot do)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import sqlite3
 import threading
 from pathlib import Path
 
@@ -58,3 +60,45 @@ def test_an_estop_pressed_while_a_release_deletes_its_record_stays_latched(
             assert all(sdh.powered) and store.estop_latch() is None
 
     asyncio.run(main())
+
+
+def test_closing_the_service_waits_for_an_estops_latch_still_being_written(
+    tmp_path: Path,
+) -> None:
+    """An e-stop whose latch waits for another program's lock on the run database, then the
+    service shuts down (SIGTERM's way): the database was closed under the waiting write, which
+    crashed the process now and then. Closing now waits for the write: once closed, the latch
+    is on disk for the next start."""
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'", "storage.busy_timeout_s=30"],
+                      use_env=False)  # fmt: skip
+    other = sqlite3.connect(db, timeout=0, check_same_thread=False)
+    let_go = threading.Event()
+
+    def hold_then_let_go() -> None:
+        assert let_go.wait(30)
+        other.rollback()
+
+    async def main() -> None:
+        async with service(cfg, Simulated()) as (c, services):
+            store = services.station.store
+            assert store is not None
+            close = store.close
+
+            def closing() -> None:  # the other program lets go once the close has begun
+                let_go.set()
+                close()
+
+            store.close = closing  # type: ignore[method-assign]
+            other.execute("BEGIN EXCLUSIVE")
+            pressed = (await c.post("/api/estop")).json()
+            assert pressed["estopped"] is True and pressed["recorded"] is False
+            assert (await c.get("/api/status")).json()["estop"]["recorded"] == "pending"
+            holder = threading.Thread(target=hold_then_let_go)
+            holder.start()
+        holder.join()
+
+    asyncio.run(main())
+    other.close()
+    with contextlib.closing(sqlite3.connect(db)) as fresh:
+        assert fresh.execute("SELECT reason FROM estop").fetchall() == [("e-stop requested",)]
