@@ -142,6 +142,7 @@ class HandService:
         code_version()  # (a run records it: worked out here, not on a run's start)
         self._latch: dict[str, str] | None = None  # the e-stop latch as on disk (or unrecorded)
         self._closed = False
+        self._shutting_down = False  # no new motion (stop_motion)
         self._late_stop: asyncio.Future[None] | None = None  # an e-stop outliving its answer
 
     # --- life -----------------------------------------------------------------------------------
@@ -179,11 +180,11 @@ class HandService:
         )
         log.info("%s: dsa=%s sdh=%s sim=%s", ready, self.dsa_url, self.sdh_url, not hand.real)
 
-    async def close(self) -> None:
-        """Stop motion first (the run stops and releases; e-stop past the timeout), then close."""
-        if self._closed:
-            return
-        self._closed = True
+    async def stop_motion(self) -> None:
+        """The first step of shutting down, taken while the API still answers (an e-stop sent
+        meanwhile reaches the hand): no new run or opening; the run stops and releases (e-stop
+        past ``service.stop_timeout_s``); an opening hand holds. Idempotent."""
+        self._shutting_down = True
         if self.running and self.run is not None:
             log.info("shutting down: stopping run %d first", self.run.run_id)
             self.run.runner.request_stop()
@@ -194,6 +195,14 @@ class HandService:
                 log.warning("run %d did not stop in time: e-stop", self.run.run_id)
                 with contextlib.suppress(Exception):
                     await self.run.runner.emergency_stop()
+        await self._cancel_opening()
+
+    async def close(self) -> None:
+        """Stop motion first (:meth:`stop_motion`), then close."""
+        if self._closed:
+            return
+        self._closed = True
+        await self.stop_motion()
         await cancel(self._run_task)
         await self._cancel_opening()
         for task in self._tasks:
@@ -232,6 +241,7 @@ class HandService:
         """Start a run (409 while one runs, while the hand opens, or the e-stop is latched; 503
         while a line is down: nothing is recorded, as a run could not even pre-shape)."""
         joints, tactile, store = self._links()
+        self._refuse_if_shutting_down()
         if joints.estopped:  # first: an e-stopped run's task may still be ending
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
@@ -425,6 +435,7 @@ class HandService:
         ``fault`` go to the hub; ``status()["hand"]["opening"]`` is true meanwhile.
         """
         joints, _, _ = self._links()
+        self._refuse_if_shutting_down()
         if joints.estopped:  # first: an e-stopped run's task may still be ending
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
@@ -604,6 +615,10 @@ class HandService:
         if tactile is not None and tactile.silent:
             raise ServiceError(503, f"the tactile line ({self.dsa_url}) sends no frames (its "
                                "port is open): try again when status shows it up")  # fmt: skip
+
+    def _refuse_if_shutting_down(self) -> None:
+        if self._shutting_down:
+            raise ServiceError(503, "the service is shutting down: no new motion")
 
     def _links(self) -> tuple[JointLink, TactileBus, RunStore]:
         if self.joints is None or self.tactile is None or self.store is None:

@@ -152,6 +152,16 @@ class _Server(uvicorn.Server):
         # it); ours is complete and clean, so exit 0 instead
         getattr(self, "_captured_signals", []).clear()
 
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        """Motion stopped first, while the API still answers: uvicorn's own shutdown closes
+        the listener and every connection before the app's lifespan ends, and an e-stop sent
+        while the run released found no one to take it."""
+        app: Any = self.config.app
+        services: Services | None = getattr(app.state, "services", None)
+        if services is not None:
+            await services.station.stop_motion()
+        await super().shutdown(sockets=sockets)
+
 
 async def serve(cfg: Settings, where: Where, *, announce_json: bool = False) -> int:
     """Run the service until a signal; returns the exit status.

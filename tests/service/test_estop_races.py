@@ -1,6 +1,6 @@
-"""Releasing the e-stop while another e-stop comes: in this process (the app over ASGI; the
-simulated hand in real time: the release's disk write is held in its thread by an event, which
-the virtual clock's inline executor cannot do)."""
+"""The e-stop against what else happens in the same moment — a release, a shutdown — in this
+process (the app over ASGI, or a real uvicorn server; the simulated hand in real time: a disk
+write is held in its thread by an event, which the virtual clock's inline executor cannot do)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,16 @@ import contextlib
 import sqlite3
 import threading
 from pathlib import Path
+from typing import Any
 
+import httpx
+import uvicorn
 from test_sim_press import service
 
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated
+from sdh2svc.service.app import close_services, create_app, open_services
+from sdh2svc.service.server import _Server, listen_socket
 
 JSON = {"Content-Type": "application/json"}  # a command's, its body empty
 
@@ -102,3 +107,42 @@ def test_closing_the_service_waits_for_an_estops_latch_still_being_written(
     other.close()
     with contextlib.closing(sqlite3.connect(db)) as fresh:
         assert fresh.execute("SELECT reason FROM estop").fetchall() == [("e-stop requested",)]
+
+
+def test_an_estop_reaches_the_hand_while_a_shutdown_stops_the_run(tmp_path: Path) -> None:
+    """SIGTERM or Ctrl-C: the run stops and releases before the service exits. uvicorn closed
+    its listener and connections first, so an e-stop sent while the fingers still moved found
+    no one to take it. Motion is now stopped first, the API still answering."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'", "service.port=0"],
+                      use_env=False)  # fmt: skip
+
+    async def main() -> list[dict[str, Any]]:
+        services = await open_services(cfg, Simulated(), viewer=False)
+        sock = listen_socket(cfg)
+        port = sock.getsockname()[1]
+        config = uvicorn.Config(create_app(services), log_config=None, lifespan="on")
+        server = _Server(config)
+        answered: list[dict[str, Any]] = []
+        stop_motion = services.station.stop_motion
+
+        async def pressed_meanwhile() -> None:  # an e-stop while the service stops the run
+            async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
+                answered.append((await c.post("/api/estop")).json())
+                await stop_motion()
+                late = await c.post("/api/runs", json={})  # and no new run meanwhile
+                answered.append({"start": late.status_code, **late.json()})
+
+        services.station.stop_motion = pressed_meanwhile  # type: ignore[method-assign]
+        try:
+            serving = asyncio.create_task(server.serve(sockets=[sock]))
+            while not server.started:
+                await asyncio.sleep(0.01)
+            server.should_exit = True  # as its signal handler does
+            await serving
+        finally:
+            await close_services(services)
+        return answered
+
+    answered = asyncio.run(main())
+    assert answered[0]["estopped"] is True, answered
+    assert answered[1]["start"] == 503 and "shutting down" in answered[1]["error"], answered
