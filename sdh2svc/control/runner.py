@@ -247,8 +247,8 @@ class Runner:
                     await self._release()
             status = "dropped" if e.fault is Fault.DROPPED else "faulted"
             self._finish(Phase.FAULTED, status, f"{e.fault.value}: {e}")
-        except (JointLinkError, TactileError) as e:
-            fault = Fault.JOINT_ERROR if isinstance(e, JointLinkError) else Fault.SENSOR_ERROR
+        except (JointLinkError, safety.OutsideLimits, TactileError) as e:
+            fault = Fault.SENSOR_ERROR if isinstance(e, TactileError) else Fault.JOINT_ERROR
             self._say_fault(fault, str(e))
             await self._halt()
             self._finish(Phase.FAULTED, "faulted", f"{fault.value}: {e}")

@@ -144,6 +144,11 @@ class Fault(StrEnum):
     INTERNAL = "internal_error"  # an unexpected error in the run's own code (a bug)
 
 
+class OutsideLimits(ValueError):
+    """An axis beyond its joint limits by more than one step: no target keeps it within them
+    and moves it at most one step."""
+
+
 def clamp_targets(
     targets: Sequence[float],
     current: Sequence[float],
@@ -153,9 +158,16 @@ def clamp_targets(
 ) -> tuple[float, ...]:
     """Targets moved at most ``max_step`` from ``current`` and kept within [lo, hi] (degrees).
     A target that is no finite number holds its axis where it is (a NaN would otherwise clamp
-    to a step towards the lower limit)."""
+    to a step towards the lower limit). :class:`OutsideLimits` if an axis stands beyond its
+    limits by more than ``max_step`` (it sagged or was moved there unpowered, or the limits
+    were narrowed since): clipped to the limit, its target would be a larger step."""
     out = []
-    for t, c, a, b in zip(targets, current, lo, hi, strict=True):
+    for axis, (t, c, a, b) in enumerate(zip(targets, current, lo, hi, strict=True)):
+        if c < a - max_step or c > b + max_step:
+            raise OutsideLimits(f"axis {axis} is at {c:.1f}°, outside its joint limits "
+                                f"[{a:g}, {b:g}]° by more than one step ({max_step:g}°): "
+                                "move it within them with the hand off, or widen the "
+                                "limits")  # fmt: skip
         if not math.isfinite(t):
             t = c
         t = min(c + max_step, max(c - max_step, t))

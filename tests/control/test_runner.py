@@ -171,6 +171,24 @@ def test_a_step_the_supervisor_refuses_is_the_faults_iteration(
     assert last.detail["half_strokes"] == 3 and result.strokes == last.detail["stroke"] == 1
 
 
+def test_a_finger_beyond_its_limits_by_more_than_a_step_is_a_joint_fault(tmp_path: Path) -> None:
+    """Axis 1 rests 1.5° beyond a limit narrowed since (its reading still plausible): the
+    pre-shape's first increment would be a 1.5° step; the run faults, naming the axis, and
+    nothing moves."""
+    cfg = cfg_with(tmp_path, "limits.max_deg=[90.0, 0.0, 90.0, 90.0, 90.0, 90.0, 90.0]",
+                   "sim.start_deg=[0.0, 1.5, 0.0, -90.0, 0.0, 0.0, 0.0]")  # fmt: skip
+
+    async def main() -> tuple[Any, Any]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            result = await runner.run()
+            return result, await runner.joints.get_actual()
+
+    result, angles = fast(main)
+    said = "joint_error: axis 1 is at 1.5°, outside its joint limits [-90, 0]°"
+    assert result.status == "faulted" and result.message.startswith(said), result.message
+    assert angles[1] == pytest.approx(1.5, abs=0.05)  # not driven to the limit in one step
+
+
 def test_no_object_is_a_grasp_fault(tmp_path: Path) -> None:
     # the fingers close as commanded, so the grasp's timeout does not end it: the pads do,
     # once they come within 5 mm of each other with nothing touched

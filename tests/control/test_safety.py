@@ -215,6 +215,18 @@ def test_a_target_that_is_no_number_holds_its_axis() -> None:
     assert got == (10.0, 20.0, 30.0)
 
 
+def test_clamp_targets_refuses_an_axis_beyond_its_limits_by_more_than_a_step() -> None:
+    """A finger 1.9° beyond a limit (narrowed since, or it sagged there unpowered): clipped to
+    the limit, its target would be a 1.9° step; within one step it is clipped as any target."""
+    lo, hi = [-90.0] * 2, [-25.0, 90.0]
+    with pytest.raises(safety.OutsideLimits, match=r"axis 0 is at -23\.1°, outside its joint "
+                       r"limits \[-90, -25\]° by more than one step \(1°\)"):  # fmt: skip
+        safety.clamp_targets([-30.0, 0.0], [-23.1, 0.0], lo, hi, 1.0)
+    with pytest.raises(safety.OutsideLimits):  # holding it there too
+        safety.clamp_targets([-23.1, 0.0], [-23.1, 0.0], lo, hi, 1.0)
+    assert safety.clamp_targets([-20.0, 0.0], [-24.2, 0.0], lo, hi, 1.0) == (-25.0, 0.0)
+
+
 def test_clamp_targets_limits_the_step_and_the_range() -> None:
     lo, hi = [-90.0] * 3, [90.0] * 3
     got = safety.clamp_targets([5.0, -5.0, 95.0], [0.0, 0.0, 89.5], lo, hi, 1.0)
