@@ -206,6 +206,35 @@ def test_estop_on_a_locked_database_is_unavailable(
     assert call(capsys, "estop", *db_set(one_run))[1] == f"released (in {one_run})\n"
 
 
+def test_estop_latched_here_while_a_service_has_the_database_open_says_it_stopped_nothing(
+    one_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A running service reads the latch on disk only when it starts: `estop --latch` beside
+    one said "latched" and exited 0 while the fingers went on (found by a safety audit). It
+    now says the hand was not stopped, and how to stop it, and exits 1."""
+    import subprocess
+    import sys
+
+    holder = subprocess.Popen(  # another program with the database open, as a service has it
+        [sys.executable, "-c", "import sqlite3, sys; c = sqlite3.connect(sys.argv[1]); "
+         "c.execute('SELECT COUNT(*) FROM runs').fetchone(); print('open', flush=True); "
+         "sys.stdin.read()", str(one_run)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "open\n"
+        status, out, err = call(capsys, "estop", "--latch", *db_set(one_run))
+        assert status == Exit.FAILED and out.startswith("latched since "), (out, err)
+        assert f"pid {holder.pid}" in err and "the hand was NOT stopped" in err
+        assert "POST /api/estop" in err
+        status, out, err = call(capsys, "estop", "--release", *db_set(one_run))
+        assert status == Exit.OK and "stays latched" in err
+    finally:
+        holder.communicate("", timeout=30)
+    status, out, err = call(capsys, "estop", "--latch", *db_set(one_run))
+    assert status == Exit.OK and not err  # nobody else has it open
+
+
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [
