@@ -347,11 +347,13 @@ class HandService:
         if runner is not None and runner.begin_emergency_stop():
             await runner.emergency_stop()
             return
-        # the hand's own e-stop: no run, or one that has ended and is still being recorded
-        await self._cancel_opening()
+        # the hand's own e-stop: no run, or one that has ended and is still being recorded.
+        # The power-off first: an opening hand's cancellation holds it, through its retries on
+        # a bad line (the latch already refuses its next increment)
         try:
             await joints.emergency_stop()
         finally:
+            await self._cancel_opening()
             self._hand_event(EventKind.ESTOP, {})
 
     async def _recorded(self, record: asyncio.Future[dict[str, str]], since: str) -> bool | None:
