@@ -645,8 +645,9 @@ class HandService:
             result = run.runner.result  # the status shows the run as it ended, not running
             if result.status == "running":
                 result.status, result.message = "faulted", summary["message"]
-            with contextlib.suppress(Exception):
-                run.store.finish_run(run.run_id, "faulted", summary)
+            with contextlib.suppress(Exception):  # in a thread: a locked database must not
+                # hold up the event loop, and with it an e-stop
+                await asyncio.to_thread(run.store.finish_run, run.run_id, "faulted", summary)
         self.last_run = {"id": run.run_id, "status": summary.get("status"),
                          "message": summary.get("message", "")}  # fmt: skip
         log.info("run %d ended: %s %s", run.run_id, summary.get("status"),

@@ -12,12 +12,14 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 import uvicorn
 from test_sim_press import service
 
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated
 from sdh2svc.service.app import close_services, create_app, open_services
+from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.server import _Server, listen_socket
 
 JSON = {"Content-Type": "application/json"}  # a command's, its body empty
@@ -146,3 +148,45 @@ def test_an_estop_reaches_the_hand_while_a_shutdown_stops_the_run(tmp_path: Path
     answered = asyncio.run(main())
     assert answered[0]["estopped"] is True, answered
     assert answered[1]["start"] == 503 and "shutting down" in answered[1]["error"], answered
+
+
+def test_an_estop_answers_while_a_crashed_runs_record_waits_for_a_lock(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run that crashes (a bug) is recorded as faulted; another program holding the run
+    database locked meanwhile held the event loop up to the busy timeout, an e-stop with it,
+    and the record was then given up (the run left 'running'). The record is written in a
+    thread: the e-stop answers at once, and the record is written once the lock is let go."""
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'", "storage.busy_timeout_s=20"],
+                      use_env=False)  # fmt: skip
+
+    other = sqlite3.connect(db, timeout=0, check_same_thread=False)
+
+    crashed = asyncio.Event()
+
+    async def crash(self: RecordedRun) -> dict[str, Any]:
+        other.execute("BEGIN EXCLUSIVE")  # another program, from the run's start on
+        asyncio.get_running_loop().call_soon(crashed.set)  # once its record is under way
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(RecordedRun, "execute", crash)
+
+    async def main() -> None:
+        async with service(cfg, Simulated()) as (c, services):
+            st = services.station
+            started = await c.post("/api/runs", json={})
+            assert started.status_code == 201, started.text
+            await crashed.wait()  # the crashed run's record now waits for the lock
+            pressed = await c.post("/api/estop", timeout=30)
+            assert pressed.status_code == 200 and pressed.json()["estopped"] is True
+            other.rollback()  # the record, waiting for it, is written now (on the event
+            # loop it had given up after the busy timeout: the run left 'running')
+            assert st._run_task is not None
+            await st._run_task
+            run = st.store.run(started.json()["run_id"])
+            assert run is not None and run["status"] == "faulted", run
+            assert run["summary"]["message"] == "internal error: a bug"
+
+    asyncio.run(main())
+    other.close()
