@@ -652,7 +652,7 @@ def cmd_estop(args: argparse.Namespace) -> int:
     service keeps its own copy: use its API (POST /api/estop, /api/estop/release) instead."""
     import sqlite3
 
-    from sdh2svc.service.store import NoDatabase, RunStore, StoreError, openers
+    from sdh2svc.service.store import NoDatabase, RunStore, StoreError, opened_elsewhere
 
     cfg = load_config(args.config, args.overrides)
     # where the latch is kept, in full: a relative storage.db_path is another database (and
@@ -681,14 +681,13 @@ def cmd_estop(args: argparse.Namespace) -> int:
         store.close()
     said = "released" if latch is None else f"latched since {latch['since']}: {latch['reason']}"
     print(f"{said} (in {where})")
-    others = openers(where) if args.latch or args.release else []
+    others = opened_elsewhere(where) if args.latch or args.release else None
     if others:  # a service reads the latch only when it starts: this changed nothing it does
-        who = ", ".join(str(pid) for pid in others if pid) or "?"
         what = ("the hand was NOT stopped: stop it through the service (POST /api/estop, the "
                 "dashboard's E-STOP)" if args.latch else "a latched service stays latched: "
                 "release it through its API (POST /api/estop/release)")  # fmt: skip
-        print(f"another program has this database open (pid {who}: a running service reads "
-              f"the latch only when it starts): {what}", file=sys.stderr)  # fmt: skip
+        print(f"{others}; a running service reads the latch only when it starts: {what}",
+              file=sys.stderr)  # fmt: skip
         return Exit.FAILED if args.latch else Exit.OK
     return Exit.OK
 

@@ -405,28 +405,26 @@ class HandService:
         except EmergencyStopped:
             # an e-stop came while the record was being deleted: its own write may have gone
             # first, and the delete taken it: on disk again, as the e-stop said
-            latch = self._latch or {}
-            with contextlib.suppress(OSError, sqlite3.Error):
-                self._latch = await asyncio.to_thread(
-                    store.latch_estop, latch.get("reason", "e-stop requested"),
-                    latch.get("since") or now_iso(),
-                )  # fmt: skip
+            await self._latch_again(store, self._latch or {})
             self.publish_status()
             raise ServiceError(409, "an e-stop came during the release: it stays latched "
                                "(release it again)") from None  # fmt: skip
-        except JointLinkError as e:
-            # the hand stays latched: so does its record, as it was (best effort: the line is
-            # the problem)
-            with contextlib.suppress(OSError, sqlite3.Error):
-                self._latch = await asyncio.to_thread(
-                    store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
-                )
+        except JointLinkError as e:  # the hand stays latched: so does its record, as it was
+            await self._latch_again(store, latch)
             raise ServiceError(503, f"the hand did not take the release: {e}; the e-stop "
                                "stays latched") from None  # fmt: skip
         self._latch = None
         log.info("e-stop released")
         self.publish_status()
         return {"estopped": joints.estopped}
+
+    async def _latch_again(self, store: RunStore, latch: dict[str, Any]) -> None:
+        """The latch written to disk again as ``latch`` had it, after a release that did not
+        go through (best effort: the line or the disk may be the problem)."""
+        with contextlib.suppress(OSError, sqlite3.Error):
+            self._latch = await asyncio.to_thread(
+                store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
+            )
 
     async def open_hand(self) -> dict[str, Any]:
         """Open the coupled fingers to the pre-shape pose (releasing whatever they hold), in
@@ -457,16 +455,19 @@ class HandService:
         try:
             await move_to_preshape(joints, self.cfg.run, (lim.min_deg, lim.max_deg),
                                    self.cfg.safety)  # fmt: skip
-        except asyncio.CancelledError:
+        except asyncio.CancelledError:  # said before the hold, which a cancel may cut short
+            self._hand_event(EventKind.OPENED, {"completed": False, "message": "stopped"})
             with contextlib.suppress(Exception):
                 await joints.hold()
-            self._hand_event(EventKind.OPENED, {"completed": False, "message": "stopped"})
             raise
         except Exception as e:  # the line failed, the fingers are blocked, an e-stop came
+            if joints.estopped:  # the e-stop's latch refused the next increment: stopped
+                self._hand_event(EventKind.OPENED, {"completed": False, "message": "stopped"})
+            else:
+                log.warning("opening the hand failed: %s", e)
+                self._hand_event(EventKind.FAULT, {"fault": "open_failed", "message": str(e)})
             with contextlib.suppress(Exception):
                 await joints.hold()
-            log.warning("opening the hand failed: %s", e)
-            self._hand_event(EventKind.FAULT, {"fault": "open_failed", "message": str(e)})
         else:
             self._hand_event(EventKind.OPENED, {"completed": True})
         finally:

@@ -192,6 +192,16 @@ def _owner_now(
     return owner
 
 
+def opened_elsewhere(path: Path) -> str | None:
+    """ "another program has the run database open (pid …: a running service, a reader)", or
+    None when no other process of this pid namespace has it open (see :func:`openers`)."""
+    others = openers(path)
+    if not others:
+        return None
+    who = ", ".join(str(pid) for pid in others if pid) or "in another container"
+    return f"another program has the run database open (pid {who}: a running service, a reader)"
+
+
 def openers(path: Path) -> list[int] | None:
     """The other processes of this pid namespace that have the run database at ``path`` open
     (their pids), from the kernel's list of file locks: in WAL mode every SQLite connection
@@ -531,24 +541,26 @@ class RunStore:
         so a restart — or the PC losing power — finds it still latched. ``since``: when it was
         pressed (default: now; a write that waited for a lock is later). Returns the latch (the
         first one's time and reason, if it was latched already)."""
-        self._durably("INSERT OR IGNORE INTO estop (id, since, reason) VALUES (1, ?, ?)",
-                      (since or now_iso(), reason))  # fmt: skip
-        latch = self.estop_latch()
+        with self._lock:  # the read back too: :meth:`close` waits for both
+            self._durably_locked("INSERT OR IGNORE INTO estop (id, since, reason) VALUES "
+                                 "(1, ?, ?)", (since or now_iso(), reason))  # fmt: skip
+            latch = self.estop_latch()
         assert latch is not None
         return latch
 
     def release_estop(self) -> None:
-        self._durably("DELETE FROM estop")
-
-    def _durably(self, sql: str, params: tuple[Any, ...] = ()) -> None:
-        """One write, fsync'd before it returns (synchronous=FULL for this transaction)."""
         with self._lock:
-            self.db.execute("PRAGMA synchronous=FULL")
-            try:
-                with self.db:
-                    self.db.execute(sql, params)
-            finally:
-                self.db.execute("PRAGMA synchronous=NORMAL")
+            self._durably_locked("DELETE FROM estop")
+
+    def _durably_locked(self, sql: str, params: tuple[Any, ...] = ()) -> None:
+        """One write, fsync'd before it returns (synchronous=FULL for this transaction); the
+        caller holds the store's lock."""
+        self.db.execute("PRAGMA synchronous=FULL")
+        try:
+            with self.db:
+                self.db.execute(sql, params)
+        finally:
+            self.db.execute("PRAGMA synchronous=NORMAL")
 
     def sample_count(self, run_id: int) -> int:
         row = self.db.execute("SELECT COUNT(*) FROM samples WHERE run_id = ?", (run_id,)).fetchone()
@@ -650,11 +662,8 @@ class RunStore:
         if self.db.execute("PRAGMA query_only").fetchone()[0]:
             raise sqlite3.OperationalError("attempt to write a readonly database (a file of an "
                                            "older version, read as it is)")  # fmt: skip
-        with self._lock:
-            try:  # a statement that writes nothing, refused wherever a write would be
-                self.db.execute("DELETE FROM runs WHERE 0")
-            finally:
-                self.db.rollback()
+        with self._lock:  # a write that changes nothing; another program's lock not waited for
+            _check_writable(self.db, self.busy_timeout_s)
 
     def size(self) -> tuple[int, int]:
         """(bytes on disk: the file and its write-ahead log; bytes of it free for new runs)."""
@@ -677,12 +686,10 @@ class RunStore:
         busy = self.recording()
         if busy:
             raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")
-        others = openers(self.path)
+        others = opened_elsewhere(self.path)
         if others:
-            who = ", ".join(str(pid) for pid in others if pid) or "in another container"
-            raise RunBusy(f"another program has the run database open (pid {who}: a running "
-                          "service, a reader): a vacuum rewrites the whole file and holds it "
-                          "meanwhile; vacuum while nothing else uses it")  # fmt: skip
+            raise RunBusy(f"{others}: a vacuum rewrites the whole file and holds it meanwhile; "
+                          "vacuum while nothing else uses it")  # fmt: skip
         with self._lock:
             self.db.execute("VACUUM")
             # the log's copy written back and the log emptied (a reader that came meanwhile

@@ -118,36 +118,45 @@ def test_an_estop_reaches_the_hand_while_a_shutdown_stops_the_run(tmp_path: Path
     cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'", "service.port=0"],
                       use_env=False)  # fmt: skip
 
-    async def main() -> list[dict[str, Any]]:
+    async def main() -> tuple[list[dict[str, Any]], Any, tuple[bool, ...]]:
         services = await open_services(cfg, Simulated(), viewer=False)
+        st = services.station
+        assert st.bench is not None
         sock = listen_socket(cfg)
-        port = sock.getsockname()[1]
-        config = uvicorn.Config(create_app(services), log_config=None, lifespan="on")
-        server = _Server(config)
+        base = f"http://127.0.0.1:{sock.getsockname()[1]}"
+        server = _Server(uvicorn.Config(create_app(services), log_config=None, lifespan="on"))
         answered: list[dict[str, Any]] = []
-        stop_motion = services.station.stop_motion
+        stop_motion = st.stop_motion
 
         async def pressed_meanwhile() -> None:  # an e-stop while the service stops the run
-            async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
+            if answered:  # (close() stops motion again: nothing left to stop)
+                return await stop_motion()
+            async with httpx.AsyncClient(base_url=base, timeout=30) as c:
                 answered.append((await c.post("/api/estop")).json())
                 await stop_motion()
                 late = await c.post("/api/runs", json={})  # and no new run meanwhile
                 answered.append({"start": late.status_code, **late.json()})
 
-        services.station.stop_motion = pressed_meanwhile  # type: ignore[method-assign]
+        st.stop_motion = pressed_meanwhile  # type: ignore[method-assign]
         try:
-            serving = asyncio.create_task(server.serve(sockets=[sock]))
-            while not server.started:
-                await asyncio.sleep(0.01)
-            server.should_exit = True  # as its signal handler does
-            await serving
+            async with asyncio.timeout(60):
+                serving = asyncio.create_task(server.serve(sockets=[sock]))
+                while not server.started:
+                    await asyncio.sleep(0.01)
+                async with httpx.AsyncClient(base_url=base, timeout=30) as c:
+                    assert (await c.post("/api/runs", json={})).status_code == 201
+                while not st.running:
+                    await asyncio.sleep(0.01)
+                server.should_exit = True  # as its signal handler does, the run pre-shaping
+                await serving
         finally:
             await close_services(services)
-        return answered
+        return answered, st.last_run, st.bench.sim.sdh.powered
 
-    answered = asyncio.run(main())
+    answered, last, powered = asyncio.run(main())
     assert answered[0]["estopped"] is True, answered
     assert answered[1]["start"] == 503 and "shutting down" in answered[1]["error"], answered
+    assert last is not None and last["status"] == "e-stopped" and not any(powered), last
 
 
 def test_an_estop_answers_while_a_crashed_runs_record_waits_for_a_lock(

@@ -438,6 +438,14 @@ def test_stop_and_estop_work_from_every_phase(tmp_path: Path, phase: str, action
             station = services.station
             assert station.bench is not None
             sim = station.bench.sim
+            said: list[tuple[str, dict[str, Any]]] = []  # the hand's own events
+            hand_event = station._hand_event
+
+            def note(kind: Any, detail: dict[str, Any]) -> None:
+                said.append((kind, detail))
+                hand_event(kind, detail)
+
+            station._hand_event = note  # type: ignore[method-assign]
             if phase == "opening":  # from the pose the hand starts in
                 assert (await c.post("/api/hand/open", json={})).status_code == 202
                 await asyncio.sleep(0.3)
@@ -461,6 +469,10 @@ def test_stop_and_estop_work_from_every_phase(tmp_path: Path, phase: str, action
             last = station.last_run
             if phase == "opening":
                 assert last is None and not opened  # held where the stop found it
+                # said as stopped, before the e-stop's own event, however the stop met it
+                stopped = ("opened", {"completed": False, "message": "stopped"})
+                assert said == [("open", {}), stopped, *([("estop", {})] if action == "estop"
+                                                         else [])], said  # fmt: skip
             elif action == "stop":
                 assert last is not None and opened
                 assert last["status"] == ("completed" if phase == "releasing" else "stopped")
