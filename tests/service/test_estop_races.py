@@ -170,7 +170,8 @@ def test_an_estop_answers_while_a_crashed_runs_record_waits_for_a_lock(
     cfg = load_config(overrides=[f"storage.db_path='{db}'", "storage.busy_timeout_s=20"],
                       use_env=False)  # fmt: skip
 
-    other = sqlite3.connect(db, timeout=0, check_same_thread=False)
+    # another program; its BEGIN waits out the recorder's own first write
+    other = sqlite3.connect(db, timeout=30, check_same_thread=False)
 
     crashed = asyncio.Event()
 
