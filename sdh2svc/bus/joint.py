@@ -1412,8 +1412,7 @@ class JointLink:
         """
         if self._closed:
             raise LinkLost("link closed")
-        self._estopped = self._power_off_owed = True  # until the hand confirms it
-        self._latches += 1
+        self.latch()  # until the hand confirms it
         self._estop_pending += 1
         try:
             self._gate.fail_waiting(

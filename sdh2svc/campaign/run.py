@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from sdh2svc.campaign.case import CASE_KEYS, Case, Suite
-from sdh2svc.config import ConfigError, clip, load_config
+from sdh2svc.config import ConfigError, Settings, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.provenance import code_version
 from sdh2svc.workers import stop_pool, worker_init
@@ -264,6 +264,12 @@ def measure(summary: Mapping[str, Any], probe: TruthProbe, cfg: Any, case: Case)
     }  # fmt: skip
 
 
+def true_grip_scale(cfg: Settings) -> float | None:
+    """Fd's units per newton of true grip (:meth:`TactileCalibration.force_per_newton`); None
+    with the library's force, when the band is judged on the controller's own F."""
+    return cfg.calibration.force_per_newton(cfg.tactile.texel_pitch_mm)
+
+
 def true_forces(probe: TruthProbe, cfg: Any, read_max: float | None) -> dict[str, float | None]:
     """The true grip in Fd's units (:meth:`TactileCalibration.force_per_newton`: what pads
     reading exactly as the calibration says would give): its least, largest and mean over the
@@ -271,7 +277,7 @@ def true_forces(probe: TruthProbe, cfg: Any, read_max: float | None) -> dict[str
     (``calibration.force_reference_area_mm2 = 0``), which no force alone determines, the three
     are None and the band and the peak the controller's own F's (``read_max``: the most it
     read while rolling)."""
-    k = cfg.calibration.force_per_newton(cfg.tactile.texel_pitch_mm)
+    k = true_grip_scale(cfg)
     if k is None:
         read = [f for f in (read_max, probe.grasp_F) if f is not None]
         return {"true_f_min": None, "true_f_max": None, "true_f_mean": None,
@@ -456,8 +462,8 @@ def campaign_info(suite: Suite, overrides: Sequence[str], config_path: str | Non
         "overrides": list(overrides), "config_file": config_path,
         "code": code_version(), "config": cfg.model_dump(mode="json"),
         "judge": {"min_half_stroke_deg": MIN_HALF_STROKE_DEG, "f_band_x_fd": list(F_BAND),
-                  "f_band_on": ("true grip" if cfg.calibration.force_per_newton(
-                      cfg.tactile.texel_pitch_mm) is not None else "the controller's F")},
+                  "f_band_on": ("true grip" if true_grip_scale(cfg) is not None
+                                else "the controller's F")},
     }  # fmt: skip
 
 

@@ -475,6 +475,12 @@ def write_mcap(
     return n
 
 
+def _as_recorded(meta: Mapping[str, Any], key: str, missing: str) -> Mapping[str, Any]:
+    """The run's own ``key`` record, or one that says it has none (``missing``)."""
+    value = meta.get(key)
+    return value if isinstance(value, Mapping) else {"recorded": missing}
+
+
 def _write_records(w: Writer, run: Mapping[str, Any], desc: HandDescription, t0_ns: int) -> None:
     meta = run.get("meta") or {}
     own = ("params", "object", "configuration", "software")
@@ -486,12 +492,10 @@ def _write_records(w: Writer, run: Mapping[str, Any], desc: HandDescription, t0_
     # the configuration the run recorded, as it stored it (the drawing takes its hand from it:
     # Settings.as_recorded); a run of a version that recorded none says so, never passing the
     # exporting process's configuration off as the run's
-    recorded = meta.get("configuration")
-    conf = recorded if isinstance(recorded, Mapping) else {"recorded": NOT_RECORDED}
+    conf = _as_recorded(meta, "configuration", NOT_RECORDED)
     w.add_metadata("configuration", _strings({**rest, **conf}))
-    software = meta.get("software")  # which sdh2svc recorded the run (provenance.code_version)
-    w.add_metadata("software", _strings(software if isinstance(software, Mapping)
-                                        else {"recorded": NOT_RECORDED_SOFTWARE}))  # fmt: skip
+    # which sdh2svc recorded the run (provenance.code_version)
+    w.add_metadata("software", _strings(_as_recorded(meta, "software", NOT_RECORDED_SOFTWARE)))
     w.add_attachment(
         create_time=t0_ns,
         log_time=t0_ns,

@@ -202,9 +202,8 @@ class HandService:
         if self._closed:
             return
         self._closed = True
-        await self.stop_motion()
+        await self.stop_motion()  # (an opening hand's task cancelled there)
         await cancel(self._run_task)
-        await self._cancel_opening()
         for task in self._tasks:
             await cancel(task)
         if self._monitor is not None:

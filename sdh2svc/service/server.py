@@ -141,9 +141,12 @@ def setup_logging(fmt: str = "text", level: str = "INFO") -> None:
 class _Server(uvicorn.Server):
     """uvicorn's server whose exit signal first asks the running run to stop."""
 
-    def handle_exit(self, sig: int, frame: Any) -> None:
+    def _services(self) -> Services | None:
         app: Any = self.config.app  # ours: a FastAPI app
-        services: Services | None = getattr(app.state, "services", None)
+        return getattr(app.state, "services", None)
+
+    def handle_exit(self, sig: int, frame: Any) -> None:
+        services = self._services()
         st = services.station if services else None
         if st is not None and st.running and st.run is not None:
             st.run.runner.request_stop()  # only sets an asyncio.Event: safe in a signal handler
@@ -156,8 +159,7 @@ class _Server(uvicorn.Server):
         """Motion stopped first, while the API still answers: uvicorn's own shutdown closes
         the listener and every connection before the app's lifespan ends, and an e-stop sent
         while the run released found no one to take it."""
-        app: Any = self.config.app
-        services: Services | None = getattr(app.state, "services", None)
+        services = self._services()
         if services is not None:
             await services.station.stop_motion()
         await super().shutdown(sockets=sockets)
