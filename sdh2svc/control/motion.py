@@ -16,10 +16,13 @@ from collections.abc import Callable, Sequence
 
 from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.control.safety import RunConfig, SafetyConfig, clamp_targets
+from sdh2svc.protocol.sdh import AxisState
 
 MOVE_PERIOD_S = 0.01  # pause between increments: the line stays free for others (≈ 40 Hz loop)
 PROGRESS_DEG = 0.05  # the largest gap to the goal shrank by this: progress
 STALL_S = 2.0  # no progress for this long: blocked (an obstacle, an axis that does not move)
+STATE_POLL_S = 0.02  # the last increment's state polls (SDHLibrary's WaitAxis)
+BUSY = (AxisState.POSITIONING, AxisState.SPEED_MODE)
 
 Check = Callable[[], None]  # raises to abort the move (e.g. a force above the ceiling)
 
@@ -41,9 +44,10 @@ async def move_in_increments(
     """Move to ``goal`` (7 wire-axis angles, deg, clamped to [lo, hi]) in increments of at most
     ``max_step_deg`` ahead of the actual angles; returns the final actual angles.
 
-    ``check`` runs before every increment and aborts the move by raising (the hand is then held
-    where it is by the caller). Raises :class:`MoveBlocked` when the fingers stop making
-    progress for :data:`STALL_S`.
+    ``check`` runs before every increment, and while the firmware finishes the last one, and
+    aborts the move by raising (the hand is then held where it is by the caller). Raises
+    :class:`MoveBlocked` when the fingers stop making progress for :data:`STALL_S`, or the
+    last increment outlasts its own duration by as much.
     """
     if not all(math.isfinite(g) for g in goal):
         raise ValueError(f"a goal angle is no finite number: {list(goal)}")
@@ -60,9 +64,9 @@ async def move_in_increments(
             check()
         targets = clamp_targets(goal, actual, lo, hi, max_step_deg)
         await joints.set_targets(targets)
-        await joints.move()
-        if targets == goal:  # the last increment: let the firmware finish it
-            await joints.wait_idle()
+        duration_s = await joints.move()
+        if targets == goal:  # the last increment: the firmware finishes it, watched as the rest
+            await _finish(joints, duration_s, check)
             return await joints.get_actual()
         gap = max(abs(g - a) for g, a in zip(goal, actual, strict=True))
         if gap < best - PROGRESS_DEG:
@@ -70,6 +74,20 @@ async def move_in_increments(
         elif loop.time() - last_progress > STALL_S:
             raise MoveBlocked(f"the fingers stopped {gap:.1f}° short of the pose")
         await asyncio.sleep(MOVE_PERIOD_S)
+
+
+async def _finish(joints: JointLink, duration_s: float, check: Check | None) -> None:
+    """Wait for the firmware to end the last increment (``duration_s``: ``m``'s answer), the
+    check going on meanwhile; an axis still busy :data:`STALL_S` after that is blocked."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + max(0.0, duration_s) + STALL_S
+    while any(s in BUSY for s in await joints.get_state()):
+        if check is not None:
+            check()
+        if loop.time() > deadline:
+            raise MoveBlocked(f"the fingers did not end the pose's last increment "
+                              f"{duration_s + STALL_S:.1f} s after it began")  # fmt: skip
+        await asyncio.sleep(STATE_POLL_S)
 
 
 async def move_to_preshape(
