@@ -13,6 +13,7 @@ import contextlib
 import logging
 import math
 import sqlite3
+from collections.abc import Mapping
 from contextlib import AsyncExitStack
 from dataclasses import asdict
 from typing import Any
@@ -50,6 +51,9 @@ log = logging.getLogger(__name__)
 # How long an e-stop's answer waits for its latch to reach the disk (the stop itself does not
 # wait): a run database another program holds locked would hold it busy_timeout_s.
 RECORD_WAIT_S = 1.0
+# How often a latch the run database did not take is written again, until it takes it (a
+# restart then keeps it) or the e-stop is released.
+LATCH_RETRY_S = 2.0
 # How long a run's creation, on the event loop, waits for a lock another program holds on the
 # run database: longer would hold up the e-stop's answer and the links with it.
 CREATE_WAIT_S = 0.25
@@ -144,6 +148,7 @@ class HandService:
         self._closed = False
         self._shutting_down = False  # no new motion (stop_motion)
         self._late_stop: asyncio.Future[None] | None = None  # an e-stop outliving its answer
+        self._latch_retry: asyncio.Task[None] | None = None  # an unrecorded latch written again
 
     # --- life -----------------------------------------------------------------------------------
 
@@ -204,6 +209,7 @@ class HandService:
         self._closed = True
         await self.stop_motion()  # (an opening hand's task cancelled there)
         await cancel(self._run_task)
+        await self._end_latch_retry()
         for task in self._tasks:
             await cancel(task)
         if self._monitor is not None:
@@ -331,7 +337,8 @@ class HandService:
                             "estop.recorded says when it is on disk")  # fmt: skip
         elif not recorded:
             problems.append(f"the latch could not be written to the run database "
-                            f"({store.path}): a restart would not keep it")  # fmt: skip
+                            f"({store.path}): a restart would not keep it (written again every "
+                            f"{LATCH_RETRY_S:.0f} s until it is on disk)")  # fmt: skip
         self.publish_status()
         out: dict[str, Any] = {"estopped": True, "hand_reached": reached,
                                "recorded": bool(recorded)}  # fmt: skip
@@ -378,11 +385,49 @@ class HandService:
                 self._latch = record.result()
             self.publish_status()
             return True
-        log.error("e-stop latched, but not on disk: %s", e)
+        log.error("e-stop latched, but not on disk: %s (written again every %.0f s until it "
+                  "is)", e, LATCH_RETRY_S)  # fmt: skip
         if self._latched_now():
-            self._latch = {"since": since, "reason": "e-stop requested", "recorded": "no"}
+            self._unrecorded({"since": since, "reason": "e-stop requested"})
         self.publish_status()
         return False
+
+    def _unrecorded(self, latch: Mapping[str, str]) -> None:
+        """The latch stands in memory only: said in the status, and written again every
+        LATCH_RETRY_S until the disk takes it (or the e-stop is released)."""
+        self._latch = {**latch, "recorded": "no"}
+        if not self._closed and (self._latch_retry is None or self._latch_retry.done()):
+            self._latch_retry = asyncio.get_running_loop().create_task(
+                self._write_latch_until_taken(), name="estop-latch-retry"
+            )
+
+    async def _write_latch_until_taken(self) -> None:
+        store = self.store
+        while store is not None:
+            await asyncio.sleep(LATCH_RETRY_S)
+            latch = self._latch or {}
+            if latch.get("recorded") != "no" or not self._latched_now():
+                return  # on disk by another press, or released
+            write = asyncio.ensure_future(asyncio.to_thread(
+                store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
+            ))  # fmt: skip
+            try:
+                self._latch = await asyncio.shield(write)
+            except asyncio.CancelledError:  # (a release, a close) only once the write is done:
+                with contextlib.suppress(Exception):  # its delete must come after it
+                    await write
+                raise
+            except (OSError, sqlite3.Error):
+                continue
+            log.info("the e-stop's latch is on disk now")
+            self.publish_status()
+            return
+
+    async def _end_latch_retry(self) -> None:
+        """No further write of the latch (before a release deletes it, or the store closes)."""
+        task, self._latch_retry = self._latch_retry, None
+        if task is not None:
+            await cancel(task)
 
     def _latched_now(self) -> bool:
         """Whether the joint link holds the e-stop latched (or has no link to ask)."""
@@ -393,9 +438,12 @@ class HandService:
         failing leaves the e-stop latched, on disk and in the hand (503)."""
         joints, _, store = self._links()
         seen = joints.latches  # an e-stop pressed from here on is not released
+        await self._end_latch_retry()
         try:
             await asyncio.to_thread(store.release_estop)
         except (OSError, sqlite3.Error) as e:
+            if self._latch is not None and self._latch.get("recorded") == "no":
+                self._unrecorded(self._latch)  # (its writes go on)
             raise ServiceError(503, f"the run database did not take the release ({e}); the "
                                "e-stop stays latched") from None  # fmt: skip
         latch = self._latch or {}
@@ -419,11 +467,16 @@ class HandService:
 
     async def _latch_again(self, store: RunStore, latch: dict[str, Any]) -> None:
         """The latch written to disk again as ``latch`` had it, after a release that did not
-        go through (best effort: the line or the disk may be the problem)."""
-        with contextlib.suppress(OSError, sqlite3.Error):
+        go through (the line or the disk may be the problem: not taken, it is written again
+        every LATCH_RETRY_S)."""
+        latch = {k: v for k, v in latch.items() if k != "recorded"}
+        try:
             self._latch = await asyncio.to_thread(
                 store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
             )
+        except (OSError, sqlite3.Error) as e:
+            log.error("the e-stop stays latched, but not on disk: %s", e)
+            self._unrecorded({"since": now_iso(), "reason": "e-stop requested", **latch})
 
     async def open_hand(self) -> dict[str, Any]:
         """Open the coupled fingers to the pre-shape pose (releasing whatever they hold), in

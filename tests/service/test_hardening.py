@@ -449,6 +449,36 @@ async def test_the_estop_stops_a_run_whatever_the_database_does(
         assert (await c.status())["estop"] is None
 
 
+async def test_a_latch_the_database_did_not_take_is_written_once_it_can_be(
+    svc: LiveService,
+) -> None:
+    """The run database refused the e-stop's latch (another program held it locked past the
+    busy timeout), and then a release too: once the lock is gone, the latch reaches the disk
+    by itself — a restart keeps it — with the time the e-stop came."""
+    async with plain(svc) as raw:
+        db = Path((await raw.get("/api/config")).json()["storage"]["db_path"])
+    async with svc.client() as c:
+        lock = sqlite3.connect(db, isolation_level=None)
+        try:
+            lock.execute("BEGIN IMMEDIATE")
+            assert (await c.estop())["recorded"] is False
+            st = await c.wait_status(lambda st: st["estop"]["recorded"] == "no", 30)
+            with pytest.raises(Unavailable, match="e-stop stays latched"):
+                await c.release_estop()
+            assert (await c.status())["estop"]["recorded"] == "no"
+            with contextlib.closing(sqlite3.connect(db, timeout=0)) as look:
+                assert look.execute("SELECT * FROM estop").fetchall() == []  # (read: no lock)
+        finally:
+            lock.execute("ROLLBACK")
+            lock.close()
+        on_disk = await c.wait_status(lambda st: "recorded" not in (st["estop"] or {}), 30)
+        assert on_disk["estopped"] is True and on_disk["estop"]["since"] == st["estop"]["since"]
+        with contextlib.closing(sqlite3.connect(db)) as look:
+            assert look.execute("SELECT since FROM estop").fetchall() == [(st["estop"]["since"],)]
+        assert (await c.release_estop()) == {"estopped": False}
+        assert (await c.status())["estop"] is None
+
+
 async def test_the_estop_answers_at_once_while_its_latch_waits_for_a_lock(tmp_path: Path) -> None:
     """The run database's writes wait 5 s for another program's lock: a run's start and the
     e-stop's answer do not (each waited the whole busy timeout before). The e-stop says the
