@@ -1412,7 +1412,9 @@ class JointLink:
         """
         if self._closed:
             raise LinkLost("link closed")
-        self.latch()  # until the hand confirms it
+        # counted again after a caller's own latch(): a release decided between the two must
+        # not power the hand on while this stop is still on its way to it
+        self.latch()
         self._estop_pending += 1
         try:
             self._gate.fail_waiting(

@@ -714,6 +714,14 @@ async def test_a_release_does_not_release_an_estop_latched_since_its_caller_deci
             await link.release(seen + 1)
         await link.release(link.latches)
         assert not link.estopped and all(rig.dev.powered)
+        # a caller's latch() and the stop it then sends count as two: a release decided
+        # between them would power the hand on under a stop still on its way
+        link.latch()
+        seen = link.latches
+        await link.emergency_stop()
+        with pytest.raises(EmergencyStopped):
+            await link.release(seen)
+        assert link.estopped and not any(rig.dev.powered)
 
 
 async def test_a_release_holds_the_fingers_where_they_sagged_while_unpowered() -> None:
