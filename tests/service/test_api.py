@@ -28,9 +28,8 @@ from sdh2svc.client import (
     NotFound,
     Unauthorized,
 )
-from sdh2svc.config import load_config
 from sdh2svc.service.store import RunStore
-from tests.live_service import LiveService, service_command, start_service
+from tests.live_service import LiveService, service_command, start_run, start_service
 from tests.service.conftest import PATIENT
 
 RUN_TIMEOUT_S = 120.0
@@ -169,7 +168,7 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
     async with svc.client() as c, telemetry(c) as tm, telemetry(c, decimate=3) as tm3:
         await tm.until(lambda: tm.of("hello"))
         slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
-        run_id = (await c.start_run(slow, "egg"))["run_id"]
+        run_id = (await start_run(c, slow, "egg"))["run_id"]
         with pytest.raises(Conflict, match="already running"):
             await c.start_run()
         with pytest.raises(Conflict):
@@ -279,7 +278,7 @@ async def test_run_observed_params_changed_mid_run_stopped_exported(svc: LiveSer
 async def test_estop_mid_run_and_release(svc: LiveService) -> None:
     async with svc.client() as c, telemetry(c, tactile=False) as tm:
         slow = {"cycles": 50, "delta_phi_deg": 0.05}  # Finger 1 within its step: Δφ in full
-        run_id = (await c.start_run(slow, "egg"))["run_id"]
+        run_id = (await start_run(c, slow, "egg"))["run_id"]
         await tm.until(lambda: tm.samples(run_id))
         # answered while the run goes on, not behind it: this run takes many minutes, and
         # the client gives up on an answer after 30 s
@@ -419,6 +418,12 @@ def _read_to_the_end(sock: socket.socket, limit_s: float = 60.0) -> bytes:
     return bytes(data[-4096:])
 
 
+async def _told_once_cut(c: AsyncClient, n: int, sock: socket.socket) -> tuple[int, bytes]:
+    """How many stalled clients were cut off, once it is ``n``, and what ``sock`` found then."""
+    cut = await _cut_off(c, n)
+    return cut, await asyncio.to_thread(_read_to_the_end, sock)
+
+
 async def _cut_off(c: AsyncClient, n: int, limit_s: float = RUN_TIMEOUT_S) -> int:
     """How many stalled telemetry clients the service has cut off, once it is ``n`` (the pads
     stream on between runs, so a stalled client's buffers keep filling until its send times out:
@@ -436,31 +441,33 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
     async with svc.client() as c:
         stalled = [_stalled_client(svc.ws_url) for _ in range(3)]
         try:
+            # what the first one is told is read once all are cut (during the run: a stalled
+            # client's close frame outlives the connection's keep-alive only so long)
+            told = asyncio.create_task(_told_once_cut(c, 3, stalled[0]))
             async with telemetry(c) as tm:
                 summary = await _one_stroke_run(c)
                 run_id = summary["run_id"]
             samples = tm.samples(run_id)
-            cut = await _cut_off(c, 3)
-            told = await asyncio.to_thread(_read_to_the_end, stalled[0])
+            cut, told_them = await told
         finally:
             for s in stalled:
                 s.close()
     assert summary["status"] == "completed", summary
     # the stalled clients were cut off after the send timeout, and told why (close 1008) …
     assert cut >= 3
-    assert b"\x03\xf0too slow: took no message for" in told
+    assert b"\x03\xf0too slow: took no message for" in told_them
     # … the reading client got every iteration, in order, none dropped
     assert [s["iteration"] for s in samples] == list(range(1, summary["iterations"] + 1))
     assert not tm.of("dropped")
-    # … and the loop kept its pace: the tactile frame rate, not the CPU, sets it (one iteration
-    # per fresh frame at run.tactile_rate_hz = 30; 0.7 leaves room for a shared machine —
-    # bench/service.py measures the latency with and without clients properly)
-    rate = load_config(use_env=False).run.tactile_rate_hz
-    assert summary["loop_hz"] >= 0.7 * rate, summary
+    # … and the loop kept its pace: one iteration per fresh frame, as good as none skipped (a
+    # send that held the loop up would leave the frames that came meanwhile unused; the frames
+    # themselves come from this process, so a machine that lends it less CPU slows both alike —
+    # bench/service.py measures the latency with and without clients)
+    assert summary["frames_skipped"] <= 0.05 * summary["iterations"], summary
 
 
 async def _one_stroke_run(c: AsyncClient) -> dict[str, Any]:
-    run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
+    run_id = (await start_run(c, {"cycles": 1}, "egg"))["run_id"]
     await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
     summary: dict[str, Any] = (await c.run(run_id))["summary"]
     return summary
@@ -473,7 +480,7 @@ async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
     svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, extra=extra)
     try:
         async with svc.client() as c, telemetry(c, tactile=False) as tm:
-            run_id = (await c.start_run({"cycles": 50}, "egg"))["run_id"]
+            run_id = (await start_run(c, {"cycles": 50}, "egg"))["run_id"]
             await tm.until(lambda: tm.samples(run_id))
     finally:
         code = await asyncio.to_thread(svc.stop)

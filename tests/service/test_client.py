@@ -37,7 +37,7 @@ from sdh2svc.client import (
 )
 from sdh2svc.service.foxglove_live import URDF_URI
 from sdh2svc.service.foxglove_mcap import PAD_NAMES, pad_topic
-from tests.live_service import LiveService, start_service
+from tests.live_service import LiveService, start_run, start_service
 from tests.service.conftest import LONG_RUNS, PATIENT
 
 TOKEN = "s3cret"
@@ -82,7 +82,7 @@ async def _watch_a_cycle(svc: LiveService, port: int) -> Cycle:
             await ws.send(json.dumps({"op": "fetchAsset", "uri": URDF_URI, "requestId": 7}))
 
             hello = await anext(tm)
-            run_id = (await c.start_run({"cycles": 1}, "egg"))["run_id"]
+            run_id = (await start_run(c, {"cycles": 1}, "egg"))["run_id"]
             async with asyncio.timeout(RUN_TIMEOUT_S):
                 first, (got, urdf) = await asyncio.gather(
                     _first_sample(tm, run_id), _every_channel(ws, Decoder(channels), subs)

@@ -19,7 +19,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
 from sdh2svc.client import ApiError, InvalidRequest, NotFound, Unavailable, run_state
-from tests.live_service import LiveService, start_service
+from tests.live_service import LiveService, start_run, start_service
 
 EVIL = "http://evil.example"
 ALLOWED_ORIGIN = "http://dash.example:9000"
@@ -421,7 +421,7 @@ async def test_the_estop_stops_a_run_whatever_the_database_does(
     async with plain(svc) as raw:
         db = Path((await raw.get("/api/config")).json()["storage"]["db_path"])
     async with svc.client() as c:
-        run_id = (await c.start_run({"cycles": 1}))["run_id"]
+        run_id = (await start_run(c, {"cycles": 1}))["run_id"]
         await c.wait_status(run_state("pre-shape", "grasping"))
         lock = sqlite3.connect(db, isolation_level=None)
         try:

@@ -24,7 +24,7 @@ from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.sim.cable import Cable
 from sdh2svc.sim.lab import SimulatedHand
-from tests.live_service import AT_PRESHAPE, LiveService, start_service
+from tests.live_service import AT_PRESHAPE, LiveService, start_run, start_service
 from tests.service.conftest import PATIENT
 
 STEP_DEG = 1.0  # safety.max_step_deg: the furthest a finger may go without a fresh command
@@ -75,7 +75,7 @@ def _faulted_and_down(st: dict[str, Any]) -> bool:
 
 async def _start_grasp(svc: LiveService, sim: SimulatedHand) -> None:
     async with svc.client() as client:
-        await client.start_run()
+        await start_run(client)
         await client.wait_status(run_state("grasping"))
     # let the fingers close for a while: they are moving when the fault comes
     start = _angles(sim)
@@ -195,7 +195,7 @@ async def test_a_run_waits_for_the_tactile_line(tmp_path: Path) -> None:
                 assert await client.runs() == []
                 await dsa.plug()
                 await client.wait_status(lambda st: st["hand"]["connected"]["tactile"], 30.0)
-                run = await client.start_run()
+                run = await start_run(client)
                 await client.stop_run()
                 assert (await client.wait_run(run["run_id"], timeout=60.0))["id"] == run["run_id"]
         finally:
@@ -267,7 +267,7 @@ async def test_after_a_fault_open_hand_releases_the_object(tmp_path: Path) -> No
     svc = await asyncio.to_thread(start_service, tmp_path, viewer=False)
     try:
         async with svc.client() as client:
-            await client.start_run()
+            await start_run(client)
             await client.wait_status(run_state("grasping"))
             with pytest.raises(Conflict, match="stop it first"):
                 await client.open_hand()
@@ -302,7 +302,7 @@ async def test_a_huge_body_during_a_run_does_not_disturb_it(
 
     try:
         async with svc.client() as client:
-            await client.start_run()
+            await start_run(client)
             before = (await client.wait_status(_rolling))["run"]["iteration"]
             refused = await asyncio.to_thread(_send_huge, svc.url, chunks())
             assert refused in (413, "reset")
