@@ -80,13 +80,14 @@ async def _finish(joints: JointLink, duration_s: float, check: Check | None) -> 
     """Wait for the firmware to end the last increment (``duration_s``: ``m``'s answer), the
     check going on meanwhile; an axis still busy :data:`STALL_S` after that is blocked."""
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + max(0.0, duration_s) + STALL_S
+    wait_s = (duration_s if 0.0 < duration_s < math.inf else 0.0) + STALL_S  # (NaN: 0)
+    deadline = loop.time() + wait_s
     while any(s in BUSY for s in await joints.get_state()):
         if check is not None:
             check()
         if loop.time() > deadline:
             raise MoveBlocked(f"the fingers did not end the pose's last increment "
-                              f"{duration_s + STALL_S:.1f} s after it began")  # fmt: skip
+                              f"{wait_s:.1f} s after it began")  # fmt: skip
         await asyncio.sleep(STATE_POLL_S)
 
 

@@ -149,6 +149,7 @@ class HandService:
         self._shutting_down = False  # no new motion (stop_motion)
         self._late_stop: asyncio.Future[None] | None = None  # an e-stop outliving its answer
         self._latch_retry: asyncio.Task[None] | None = None  # an unrecorded latch written again
+        self._releases = 0  # releases under way: no latch retry starts meanwhile
 
     # --- life -----------------------------------------------------------------------------------
 
@@ -337,8 +338,8 @@ class HandService:
                             "estop.recorded says when it is on disk")  # fmt: skip
         elif not recorded:
             problems.append(f"the latch could not be written to the run database "
-                            f"({store.path}): a restart would not keep it (written again every "
-                            f"{LATCH_RETRY_S:.0f} s until it is on disk)")  # fmt: skip
+                            f"({store.path}): a restart would not keep it, until a later "
+                            "write goes through: it is written again until then")  # fmt: skip
         self.publish_status()
         out: dict[str, Any] = {"estopped": True, "hand_reached": reached,
                                "recorded": bool(recorded)}  # fmt: skip
@@ -385,18 +386,20 @@ class HandService:
                 self._latch = record.result()
             self.publish_status()
             return True
-        log.error("e-stop latched, but not on disk: %s (written again every %.0f s until it "
-                  "is)", e, LATCH_RETRY_S)  # fmt: skip
+        log.error("e-stop latched, but not on disk: %s (written again until it is)", e)
         if self._latched_now():
             self._unrecorded({"since": since, "reason": "e-stop requested"})
         self.publish_status()
         return False
 
     def _unrecorded(self, latch: Mapping[str, str]) -> None:
-        """The latch stands in memory only: said in the status, and written again every
-        LATCH_RETRY_S until the disk takes it (or the e-stop is released)."""
+        """The latch stands in memory only: said in the status, and written again
+        LATCH_RETRY_S after each failed write until the disk takes it (or the e-stop is
+        released)."""
         self._latch = {**latch, "recorded": "no"}
-        if not self._closed and (self._latch_retry is None or self._latch_retry.done()):
+        if self._closed or self._releases:  # (a release that fails starts them)
+            return
+        if self._latch_retry is None or self._latch_retry.done():
             self._latch_retry = asyncio.get_running_loop().create_task(
                 self._write_latch_until_taken(), name="estop-latch-retry"
             )
@@ -435,15 +438,24 @@ class HandService:
 
     async def release_estop(self) -> dict[str, Any]:
         """Release the latch: its record on disk first, then the hand (motors on). Either
-        failing leaves the e-stop latched, on disk and in the hand (503)."""
+        failing leaves the e-stop latched, on disk and in the hand (503). No latch retry runs
+        meanwhile (one would write the latch back after the delete); a release that fails
+        leaves an unrecorded latch to them again."""
         joints, _, store = self._links()
         seen = joints.latches  # an e-stop pressed from here on is not released
-        await self._end_latch_retry()
+        self._releases += 1
+        try:
+            await self._end_latch_retry()
+            return await self._release(joints, store, seen)
+        finally:
+            self._releases -= 1
+            if self._latch is not None and self._latch.get("recorded") == "no":
+                self._unrecorded(self._latch)
+
+    async def _release(self, joints: JointLink, store: RunStore, seen: int) -> dict[str, Any]:
         try:
             await asyncio.to_thread(store.release_estop)
         except (OSError, sqlite3.Error) as e:
-            if self._latch is not None and self._latch.get("recorded") == "no":
-                self._unrecorded(self._latch)  # (its writes go on)
             raise ServiceError(503, f"the run database did not take the release ({e}); the "
                                "e-stop stays latched") from None  # fmt: skip
         latch = self._latch or {}
@@ -468,7 +480,7 @@ class HandService:
     async def _latch_again(self, store: RunStore, latch: dict[str, Any]) -> None:
         """The latch written to disk again as ``latch`` had it, after a release that did not
         go through (the line or the disk may be the problem: not taken, it is written again
-        every LATCH_RETRY_S)."""
+        until the disk takes it)."""
         latch = {k: v for k, v in latch.items() if k != "recorded"}
         try:
             self._latch = await asyncio.to_thread(

@@ -28,6 +28,7 @@ from sdh2svc.client import (
     NotFound,
     Unauthorized,
 )
+from sdh2svc.config import load_config
 from sdh2svc.service.store import RunStore
 from tests.live_service import LiveService, service_command, start_run, start_service
 from tests.service.conftest import PATIENT
@@ -450,6 +451,7 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
             samples = tm.samples(run_id)
             cut, told_them = await told
         finally:
+            told.cancel()  # (the test failed before it was read)
             for s in stalled:
                 s.close()
     assert summary["status"] == "completed", summary
@@ -459,11 +461,16 @@ async def test_stalled_client_does_not_slow_the_loop(svc: LiveService) -> None:
     # … the reading client got every iteration, in order, none dropped
     assert [s["iteration"] for s in samples] == list(range(1, summary["iterations"] + 1))
     assert not tm.of("dropped")
-    # … and the loop kept its pace: one iteration per fresh frame, as good as none skipped (a
-    # send that held the loop up would leave the frames that came meanwhile unused; the frames
-    # themselves come from this process, so a machine that lends it less CPU slows both alike —
-    # bench/service.py measures the latency with and without clients)
-    assert summary["frames_skipped"] <= 0.05 * summary["iterations"], summary
+    # … and the loop kept its pace: one iteration per fresh frame, few skipped (a hold-up in
+    # the run's own task leaves the frames that came meanwhile unused: 0–7 of ≈ 300 measured
+    # quiet and beside 4 busy loops), at a rate that only a blocked event loop or a machine
+    # lending the service a small part of a core brings under half the frame rate (the
+    # simulated pads run on the same loop: blocked, they send fewer frames, none skipped;
+    # ≈ 29 Hz measured beside 4 busy loops, 8 Hz with the loop blocked 0.1 s per sample) —
+    # bench/service.py measures the latency with and without clients
+    assert summary["frames_skipped"] <= 0.1 * summary["iterations"], summary
+    rate = load_config(use_env=False).run.tactile_rate_hz
+    assert summary["loop_hz"] >= 0.5 * rate, summary
 
 
 async def _one_stroke_run(c: AsyncClient) -> dict[str, Any]:

@@ -18,6 +18,7 @@ from test_sim_press import service
 
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated
+from sdh2svc.service import hand_service
 from sdh2svc.service.app import close_services, create_app, open_services
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.server import _Server, listen_socket
@@ -65,6 +66,52 @@ def test_an_estop_pressed_while_a_release_deletes_its_record_stays_latched(
             store.release_estop = delete  # type: ignore[method-assign]
             assert (await c.post("/api/estop/release", headers=JSON)).json() == {"estopped": False}
             assert all(sdh.powered) and store.estop_latch() is None
+
+    asyncio.run(main())
+
+
+def test_a_latch_that_failed_during_a_release_is_not_written_back_after_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An e-stop whose latch waits for another program's lock, then a release whose delete
+    waits behind it: the latch's write fails during the release. Its retries began then, and
+    one queued behind the delete wrote the latch back after it — the service released, the
+    disk latched (a restart came up e-stopped). Nothing is written during a release now."""
+    monkeypatch.setattr(hand_service, "LATCH_RETRY_S", 0.05)
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'"], use_env=False)
+
+    async def main() -> None:
+        async with service(cfg, Simulated()) as (c, services):
+            st = services.station
+            assert st.store is not None
+            store, write = st.store, st.store.latch_estop
+            write_go, deleting, delete_go = threading.Event(), threading.Event(), threading.Event()
+
+            def locked_out(reason: str, since: str | None = None) -> dict[str, str]:
+                store.latch_estop = write  # type: ignore[method-assign]  # (the retries' own)
+                assert write_go.wait(30)
+                raise sqlite3.OperationalError("database is locked")
+
+            def delete_behind_the_lock() -> None:  # as the real delete waits: in the lock
+                with store._lock:
+                    deleting.set()
+                    assert delete_go.wait(30)
+                    store._durably_locked("DELETE FROM estop")
+
+            store.latch_estop = locked_out  # type: ignore[method-assign]
+            store.release_estop = delete_behind_the_lock  # type: ignore[method-assign]
+            assert (await c.post("/api/estop")).json()["recorded"] is False
+            release = asyncio.create_task(c.post("/api/estop/release", headers=JSON))
+            assert await asyncio.to_thread(deleting.wait, 30)
+            write_go.set()  # the e-stop's write fails while the delete waits
+            while (await c.get("/api/status")).json()["estop"].get("recorded") != "no":
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.3)  # (a retry had time to queue behind the delete)
+            delete_go.set()
+            assert (await release).json() == {"estopped": False}
+            await asyncio.sleep(0.3)  # (and to write after it)
+            assert store.estop_latch() is None
+            assert (await c.get("/api/status")).json()["estop"] is None
 
     asyncio.run(main())
 
