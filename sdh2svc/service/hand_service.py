@@ -51,8 +51,9 @@ log = logging.getLogger(__name__)
 # How long an e-stop's answer waits for its latch to reach the disk (the stop itself does not
 # wait): a run database another program holds locked would hold it busy_timeout_s.
 RECORD_WAIT_S = 1.0
-# How often a latch the run database did not take is written again, until it takes it (a
-# restart then keeps it) or the e-stop is released.
+# A latch the run database did not take is written again this long after each failed write
+# (which waited busy_timeout_s for a lock), until it takes it (a restart then keeps it) or the
+# e-stop is released.
 LATCH_RETRY_S = 2.0
 # How long a run's creation, on the event loop, waits for a lock another program holds on the
 # run database: longer would hold up the e-stop's answer and the links with it.
@@ -338,8 +339,8 @@ class HandService:
                             "estop.recorded says when it is on disk")  # fmt: skip
         elif not recorded:
             problems.append(f"the latch could not be written to the run database "
-                            f"({store.path}): a restart would not keep it, until a later "
-                            "write goes through: it is written again until then")  # fmt: skip
+                            f"({store.path}): a restart would not keep it; it is written "
+                            "again until the disk takes it")  # fmt: skip
         self.publish_status()
         out: dict[str, Any] = {"estopped": True, "hand_reached": reached,
                                "recorded": bool(recorded)}  # fmt: skip
