@@ -55,6 +55,7 @@ RECORD_WAIT_S = 1.0
 # (which waited busy_timeout_s for a lock), until it takes it (a restart then keeps it) or the
 # e-stop is released.
 LATCH_RETRY_S = 2.0
+ESTOP_REASON = "e-stop requested"  # the latch's reason, as the API's e-stop writes it
 # How long a run's creation, on the event loop, waits for a lock another program holds on the
 # run database: longer would hold up the e-stop's answer and the links with it.
 CREATE_WAIT_S = 0.25
@@ -307,9 +308,7 @@ class HandService:
         if runner is not None:
             runner.begin_emergency_stop()
         since = now_iso()  # when it was pressed, whenever the disk takes it
-        record = asyncio.ensure_future(
-            asyncio.to_thread(store.latch_estop, "e-stop requested", since)
-        )
+        record = asyncio.ensure_future(_write_latch(store, {"since": since}))
         stop = asyncio.ensure_future(self._stop_hand(joints, runner))
         # a silent line would hold the answer through the link's retries: the answer waits for
         # one reply's timeout; the stop goes on meanwhile (and the latch holds the line anyway)
@@ -371,7 +370,7 @@ class HandService:
         does not wait for it, the status says ``"recorded": "pending"`` until it is done."""
         done, _ = await asyncio.wait({record}, timeout=RECORD_WAIT_S)
         if not done:
-            self._latch = self._latch or {"since": since, "reason": "e-stop requested",
+            self._latch = self._latch or {"since": since, "reason": ESTOP_REASON,
                                           "recorded": "pending"}  # fmt: skip
             record.add_done_callback(lambda fut: self._latch_written(fut, since))
             return None
@@ -389,7 +388,7 @@ class HandService:
             return True
         log.error("e-stop latched, but not on disk: %s (written again until it is)", e)
         if self._latched_now():
-            self._unrecorded({"since": since, "reason": "e-stop requested"})
+            self._unrecorded({"since": since, "reason": ESTOP_REASON})
         self.publish_status()
         return False
 
@@ -412,9 +411,7 @@ class HandService:
             latch = self._latch or {}
             if latch.get("recorded") != "no" or not self._latched_now():
                 return  # on disk by another press, or released
-            write = asyncio.ensure_future(asyncio.to_thread(
-                store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
-            ))  # fmt: skip
+            write = asyncio.ensure_future(_write_latch(store, latch))
             try:
                 self._latch = await asyncio.shield(write)
             except asyncio.CancelledError:  # (a release, a close) only once the write is done:
@@ -484,12 +481,10 @@ class HandService:
         until the disk takes it)."""
         latch = {k: v for k, v in latch.items() if k != "recorded"}
         try:
-            self._latch = await asyncio.to_thread(
-                store.latch_estop, latch.get("reason", "e-stop requested"), latch.get("since")
-            )
+            self._latch = await _write_latch(store, latch)
         except (OSError, sqlite3.Error) as e:
             log.error("the e-stop stays latched, but not on disk: %s", e)
-            self._unrecorded({"since": now_iso(), "reason": "e-stop requested", **latch})
+            self._unrecorded({"since": now_iso(), "reason": ESTOP_REASON, **latch})
 
     async def open_hand(self) -> dict[str, Any]:
         """Open the coupled fingers to the pre-shape pose (releasing whatever they hold), in
@@ -769,6 +764,13 @@ class _RunTelemetry(BaseObserver):
                                        event.detail))  # fmt: skip
         if event.kind is EventKind.PHASE:
             self.service.publish_status()
+
+
+async def _write_latch(store: RunStore, latch: Mapping[str, str]) -> dict[str, str]:
+    """``latch`` (its ``since`` and ``reason``) written to disk, in a thread: the latch on disk."""
+    return await asyncio.to_thread(
+        store.latch_estop, latch.get("reason", ESTOP_REASON), latch.get("since")
+    )
 
 
 def _why_down(link: JointLink | TactileBus | None, up: bool, silent: str) -> str | None:
