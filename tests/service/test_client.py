@@ -47,7 +47,8 @@ TOPICS = {"/samples", "/tf", "/scene", "/events", *(pad_topic(p) for p in PAD_NA
 
 @dataclass
 class Cycle:
-    """A one-cycle run on the egg, watched by the client's telemetry and in Foxglove."""
+    """A run on the egg (one cycle asked, stopped once it rolls), watched by the client's
+    telemetry and in Foxglove."""
 
     run_id: int
     hello: dict[str, Any]
@@ -59,7 +60,7 @@ class Cycle:
 
 @pytest.fixture(scope="module")
 def cycle(lab: tuple[LiveService, int]) -> Cycle:
-    """One run for the two watchers (a run takes ≈ 10 s in real time)."""
+    """One run for the two watchers, stopped once they have seen it roll."""
     return asyncio.run(_watch_a_cycle(*lab))
 
 
@@ -89,6 +90,9 @@ async def _watch_a_cycle(svc: LiveService, port: int) -> Cycle:
                 )
         with pytest.raises(Conflict):  # one run at a time
             await c.start_run()
+        # the watchers have what they need: the run stops (and releases) rather than roll its
+        # stroke; a run's completion is the fast-mode tests' and the stalled-client test's
+        await c.stop_run()
         end = await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
     return Cycle(run_id, hello, first, end, got, urdf)
 
@@ -268,12 +272,12 @@ def test_calls_and_refusals(svc: LiveService) -> None:
 async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_path: Path) -> None:
     assert cycle.hello["status"]["sim"] is True
     assert cycle.first_sample["iteration"] >= 0
-    assert cycle.end["status"] == "completed", cycle.end
+    assert cycle.end["status"] == "stopped", cycle.end
     run_id = cycle.run_id
     async with AsyncClient(svc.url, token=TOKEN) as c:
         assert (await c.runs())[0]["id"] == run_id
         run = await c.run(run_id)
-        assert run["status"] == "completed" and run["iterations"] > 0
+        assert run["status"] == "stopped" and run["iterations"] > 0
         # a run that has already ended: its end at once (not a wait for the next one's)
         assert (await c.wait_run(run_id, timeout=0.0)) == cycle.end
         with pytest.raises(NotFound, match="no run 999999"):
