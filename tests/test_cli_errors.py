@@ -235,6 +235,33 @@ def test_estop_latched_here_while_a_service_has_the_database_open_says_it_stoppe
     assert status == Exit.OK and not err  # nobody else has it open
 
 
+def test_estop_latched_from_another_pid_namespace_says_it_stopped_nothing(
+    one_run: Path,
+) -> None:
+    """The same from another container (here: a pid namespace of its own, which is what a
+    container gives its processes), whose /proc/locks does not list the service's pid: `estop
+    --latch` there said "latched" and exited 0 while the service went on."""
+    if subprocess.run(["unshare", "--pid", "--fork", "--mount-proc", "true"],
+                      capture_output=True, check=False).returncode != 0:  # fmt: skip
+        pytest.skip("this machine lets no test create a pid namespace (unshare needs root)")
+    holder = subprocess.Popen(  # another program with the database open, as a service has it
+        [sys.executable, "-c", "import sqlite3, sys; c = sqlite3.connect(sys.argv[1]); "
+         "c.execute('SELECT COUNT(*) FROM runs').fetchone(); print('open', flush=True); "
+         "sys.stdin.read()", str(one_run)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "open\n"
+        r = subprocess.run(["unshare", "--pid", "--fork", "--mount-proc", sys.executable, "-m",
+                            "sdh2svc", "estop", "--latch", *db_set(one_run)],
+                           capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+        assert r.returncode == Exit.FAILED and r.stdout.startswith("latched since "), r
+        assert "in another container or pid namespace" in r.stderr, r.stderr
+        assert "the hand was NOT stopped" in r.stderr
+    finally:
+        holder.communicate("", timeout=30)
+
+
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [

@@ -19,6 +19,8 @@ import math
 import os
 import socket
 import sqlite3
+import struct
+import sys
 import threading
 import time
 from collections import deque
@@ -194,12 +196,56 @@ def _owner_now(
 
 def opened_elsewhere(path: Path) -> str | None:
     """ "another program has the run database open (pid …: a running service, a reader)", or
-    None when no other process of this pid namespace has it open (see :func:`openers`)."""
+    None when no other process on this machine has it open — in this pid namespace or another
+    (a container's service: :func:`held_elsewhere`)."""
     others = openers(path)
-    if not others:
+    if others:
+        who = ", ".join(str(pid) for pid in others if pid) or "in another container"
+        return f"another program has the run database open (pid {who}: a running service, a reader)"
+    if held_elsewhere(path):
+        return ("another program has the run database open (in another container or pid "
+                "namespace, so its pid cannot be told: a running service, a reader)")  # fmt: skip
+    return None
+
+
+# The -shm files held_elsewhere asks about, by (device, inode), each open for as long as this
+# process runs: closing any descriptor of a file drops every POSIX lock this process holds on it,
+# among them its own SQLite connections' locks on that very file.
+_shm_fds: dict[tuple[int, int], int] = {}
+_FLOCK = "hhqqi4x"  # Linux's struct flock: l_type, l_whence, l_start, l_len, l_pid
+
+
+def held_elsewhere(path: Path) -> bool | None:
+    """Whether another process holds the run database at ``path`` open, wherever it runs on this
+    machine: asked of the kernel (F_GETLK) for a lock on byte 128 of the ``-shm`` file, where
+    every SQLite connection in WAL mode holds a read lock for as long as it is open. Unlike
+    /proc/locks (:func:`openers`) this sees processes of other pid namespaces too, but not who
+    they are. This process's own locks never count. None where that cannot be told (not Linux,
+    the file unreadable)."""
+    if sys.platform != "linux":
         return None
-    who = ", ".join(str(pid) for pid in others if pid) or "in another container"
-    return f"another program has the run database open (pid {who}: a running service, a reader)"
+    import fcntl  # (Linux only: so is the struct)
+
+    shm = f"{path}-shm"
+    try:
+        st = os.stat(shm)
+    except FileNotFoundError:
+        return False  # nobody has it open (the last connection to close removes it)
+    except OSError:
+        return None
+    key = (st.st_dev, st.st_ino)
+    fd = _shm_fds.get(key)
+    if fd is None:
+        try:
+            fd = _shm_fds.setdefault(key, os.open(shm, os.O_RDONLY | os.O_CLOEXEC))
+        except OSError:
+            return None
+    query = struct.pack(_FLOCK, fcntl.F_WRLCK, os.SEEK_SET, 128, 1, 0)
+    try:
+        answer = fcntl.fcntl(fd, fcntl.F_GETLK, query)
+    except OSError:
+        return None
+    return bool(struct.unpack(_FLOCK, answer)[0] != fcntl.F_UNLCK)
 
 
 def openers(path: Path) -> list[int] | None:
@@ -676,11 +722,11 @@ class RunStore:
     def vacuum(self) -> None:
         """Rewrite the file without its free pages (SQLite's VACUUM), so that it shrinks.
 
-        :class:`RunBusy` while a run is being recorded, or another program of this container
-        has the database open (a service, idle or not; a reader): VACUUM holds the whole file
-        for as long as it copies it — longer than a run's start or an e-stop's latch waits —
-        and a reader keeps the copy in the write-ahead log, beside the old file, until it lets
-        go. (A service in another container cannot be seen from here: stop it first.)
+        :class:`RunBusy` while a run is being recorded, or another program on this machine
+        has the database open (a service, idle or not, also in another container; a reader:
+        :func:`opened_elsewhere`): VACUUM holds the whole file for as long as it copies it —
+        longer than a run's start or an e-stop's latch waits — and a reader keeps the copy in
+        the write-ahead log, beside the old file, until it lets go.
         StoreError if a reader came meanwhile and the log could not be given back."""
         self.check_writable()
         busy = self.recording()

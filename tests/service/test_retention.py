@@ -25,6 +25,8 @@ from sdh2svc.service.store import (
     Recorder,
     RunBusy,
     RunStore,
+    held_elsewhere,
+    opened_elsewhere,
     openers,
 )
 
@@ -305,10 +307,32 @@ def _owned_elsewhere(store: RunStore, run_id: int, host: str | None = None,
 def test_openers_are_the_other_processes_with_the_file_open(
     four_runs: Path, store: RunStore
 ) -> None:
-    assert openers(four_runs) == []  # this process's own connection (store's) is no other's
+    # this process's own connection (store's) is no other's
+    assert openers(four_runs) == [] and held_elsewhere(four_runs) is False
     with another_process_open(four_runs) as pid:
-        assert openers(four_runs) == [pid]
-    assert openers(four_runs) == []
+        assert openers(four_runs) == [pid] and held_elsewhere(four_runs) is True
+    assert openers(four_runs) == [] and held_elsewhere(four_runs) is False
+    # asking kept this process's own locks: its connection still works, and a vacuum (which
+    # needs them) still runs
+    store.delete_runs([1])
+    store.vacuum()
+    assert [r["id"] for r in store.runs()] == [4, 3, 2]
+
+
+def test_a_process_of_another_pid_namespace_is_seen_though_not_listed(
+    four_runs: Path, store: RunStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """/proc/locks lists only this pid namespace's locks: a service in another container was
+    not seen, and a vacuum rewrote the file under it (and `estop --latch` said nothing of it).
+    The kernel's lock test sees every process on the machine."""
+    import sdh2svc.service.store as store_module
+
+    monkeypatch.setattr(store_module, "openers", lambda path: [])  # as from another namespace
+    store.delete_runs([1])
+    with another_process_open(four_runs), pytest.raises(RunBusy) as refused:
+        store.vacuum()
+    assert "in another container or pid namespace" in str(refused.value)
+    assert opened_elsewhere(four_runs) is None  # it let go
 
 
 @pytest.mark.parametrize("where", ["another host", "another pid namespace"])
