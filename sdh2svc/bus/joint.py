@@ -1024,13 +1024,28 @@ class JointLink:
             raise _Garbled(f"reply {event.keyword or event.text!r} to {req.label}")
         return self._checked(req, event)
 
-    @staticmethod
-    def _checked(req: _Request, reply: Reply) -> Reply:
+    def _checked(self, req: _Request, reply: Reply) -> Reply:
         if req.n_values is not None and len(reply.values) != req.n_values:
             raise _Garbled(f"{req.label}: {len(reply.values)} values, expected {req.n_values}")
         if req.check is not None and not req.check(reply.values):
-            raise _Garbled(f"{req.label}: implausible values {reply.values}")
+            beyond = self._beyond_limits(reply.values) if req.keyword in _ACTUAL_ANGLES else ""
+            raise _Garbled(f"{req.label}: implausible values {reply.values}{beyond}")
         return reply
+
+    def _beyond_limits(self, values: Vec) -> str:
+        """Which axes an actual-angle reading puts past their limits by more than the read
+        margin, and what to do if one really stands there ("" if none does): the reading is
+        refused as a spoilt reply either way (ASCII carries no checksum), and a line refused
+        at every try would otherwise leave a lab checking its cables."""
+        m = _READ_MARGIN_DEG
+        past = [f"axis {axis} reads {v:g}°, outside its limits {lo:g}…{hi:g}°"
+                for axis, (v, (lo, hi)) in enumerate(zip(values, self.limits, strict=False))
+                if math.isfinite(v) and not lo - m <= v <= hi + m]  # fmt: skip
+        if not past:
+            return ""
+        return (f" ({'; '.join(past)} by more than {m:g}°: if it stands there — "
+                "moved unpowered, or the limits narrowed since — move it within its limits "
+                "with the hand off, or widen `limits`)")  # fmt: skip
 
     async def _urgent(self, conn: _Conn, req: _Request) -> Reply:
         """A transaction that must not give way to an emergency stop (handshake, the stop)."""

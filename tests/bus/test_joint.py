@@ -300,6 +300,23 @@ async def test_custom_limits(rig: Rig) -> None:
     assert await link.set_targets((0.0, 30.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 
 
+async def test_an_axis_far_outside_narrowed_limits_is_named_when_the_line_is_refused(
+    tcp_rig: Rig,
+) -> None:
+    """A reading more than 2° past the limits is refused as a spoilt reply (ASCII has no
+    checksum); where an axis really stands there — the limits narrowed since, a finger moved
+    unpowered — the line's failure names it and says what to do, not only the raw reading."""
+    assert tcp_rig.dev.actual_deg[1] == pytest.approx(0.0)
+    limits = list(DEFAULT_LIMITS)
+    limits[1] = (10.0, 30.0)
+    with pytest.raises(JointLinkError) as refused:
+        await tcp_rig.open(limits=limits, reconnect=False, timeout_s=0.2, retries=1)
+    said = str(refused.value)
+    assert "axis 1 reads 0°, outside its limits 10…30° by more than 2°" in said, said
+    assert "move it within its limits with the hand off, or widen `limits`" in said
+    assert "axis 0" not in said and "axis 2" not in said  # only the axis that is outside
+
+
 # -- firmware errors ------------------------------------------------------------------------
 
 
