@@ -669,6 +669,13 @@ def cmd_estop(args: argparse.Namespace) -> int:
         return Exit.OK
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
+    if args.release and (others := opened_elsewhere(where)):
+        # a running service keeps its own latch: released on disk only, it would stay latched
+        # and say the latch is on disk, while a restart came up released
+        store.close()
+        _fail(Exit.FAILED, f"{others}: not released — release a running service through its "
+              "API (POST /api/estop/release), or release here once nothing else has the "
+              "database open")  # fmt: skip
     try:
         if args.latch:
             store.latch_estop("latched from the command line")
@@ -681,14 +688,13 @@ def cmd_estop(args: argparse.Namespace) -> int:
         store.close()
     said = "released" if latch is None else f"latched since {latch['since']}: {latch['reason']}"
     print(f"{said} (in {where})")
-    others = opened_elsewhere(where) if args.latch or args.release else None
-    if others:  # a service reads the latch only when it starts: this changed nothing it does
-        what = ("the hand was NOT stopped: stop it through the service (POST /api/estop, the "
-                "dashboard's E-STOP)" if args.latch else "a latched service stays latched: "
-                "release it through its API (POST /api/estop/release)")  # fmt: skip
-        print(f"{others}; a running service reads the latch only when it starts: {what}",
-              file=sys.stderr)  # fmt: skip
-        return Exit.FAILED if args.latch else Exit.OK
+    others = opened_elsewhere(where) if args.latch else None
+    if others:  # a service or a run reads the latch only when it starts: this stopped nothing
+        print(f"{others}; a running service or `sdh2svc run` reads the latch only when it "
+              "starts: the hand was NOT stopped: stop it where it is driven — a service through "
+              "its API (POST /api/estop) or the dashboard's E-STOP, a headless `sdh2svc run` "
+              "with Ctrl-C in its terminal", file=sys.stderr)  # fmt: skip
+        return Exit.FAILED
     return Exit.OK
 
 

@@ -227,12 +227,20 @@ def test_estop_latched_here_while_a_service_has_the_database_open_says_it_stoppe
         assert status == Exit.FAILED and out.startswith("latched since "), (out, err)
         assert f"pid {holder.pid}" in err and "the hand was NOT stopped" in err
         assert "POST /api/estop" in err
+        # released on disk only, a latched service would stay latched and say it is on disk,
+        # while a restart came up released (docs audit): refused, the latch kept
         status, out, err = call(capsys, "estop", "--release", *db_set(one_run))
-        assert status == Exit.OK and "stays latched" in err
+        assert status == Exit.FAILED and not out, (out, err)
+        err = one_line(err, "estop")
+        assert f"pid {holder.pid}" in err and "not released" in err, err
+        assert "POST /api/estop/release" in err
     finally:
         holder.communicate("", timeout=30)
+    assert call(capsys, "estop", *db_set(one_run))[1].startswith("latched since ")
     status, out, err = call(capsys, "estop", "--latch", *db_set(one_run))
     assert status == Exit.OK and not err  # nobody else has it open
+    status, out, err = call(capsys, "estop", "--release", *db_set(one_run))
+    assert status == Exit.OK and out.startswith("released") and not err
 
 
 def test_estop_latched_from_another_pid_namespace_says_it_stopped_nothing(
