@@ -133,11 +133,13 @@ class NotFound(ApiError):
 
 
 class Conflict(ApiError):
-    """409: a run is (not) running, the e-stop is latched, the hand is opening."""
+    """409: a run is (not) running, the e-stop is latched (or came during a release), the hand
+    is opening, a run to delete is being recorded."""
 
 
 class Unavailable(ApiError):
-    """503: the hand's links are not up."""
+    """503: the hand's links are not up, the run database did not take a run's start, a delete
+    or a release (another program holding it locked), or the service is shutting down."""
 
 
 class Unreachable(ConnectionError):

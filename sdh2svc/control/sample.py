@@ -108,8 +108,8 @@ class Sample:
         "mm",
     )
     size_b: float | None = _est(
-        "estimated size b: ellipse semi-axis b (half the narrowest width seen: too large until "
-        "the rolling turned the object across its short axis), stick diameter; null for a box "
+        "estimated size b: ellipse semi-axis b (from the narrowest width seen and the product "
+        "a·b the curved contacts' radii give), stick diameter; null for a box "
         "and a polygon (their other sides are not measured)",
         "mm",
     )

@@ -161,8 +161,8 @@ class RecognitionSummary(BaseModel):
         "pads; stick length; polygon circumradius, mm",
     )  # fmt: skip
     size_b_mm: float | None = Field(
-        None, description="ellipse semi-axis b (half the narrowest width seen: too large until "
-        "the object turned across its short axis); stick diameter; null for a box or a polygon "
+        None, description="ellipse semi-axis b (from the narrowest width seen and the product a·b "
+        "the curved contacts' radii give); stick diameter; null for a box or a polygon "
         "(not measured), mm",
     )  # fmt: skip
     rotation_deg: float | None = Field(
