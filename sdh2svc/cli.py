@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 from sdh2svc import __version__
 from sdh2svc.config import ConfigError, Settings, clip, load_config
+from sdh2svc.files import whole_file
 from sdh2svc.model.friction import inside_cone, omega
 from sdh2svc.model.geometry import pad_point_from_L, virtual_joint
 from sdh2svc.model.kinematics import Finger, HandPose, hand_points, segment
@@ -852,14 +853,14 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     path = args.output or (None if args.format == "csv" else f"run-{args.id}.mcap")
     if path is None and sys.stdout is None:  # started with its standard output closed
         _fail(Exit.UNAVAILABLE, "cannot write stdout: it is closed (give --output FILE)")
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill`: as Ctrl-C, the file kept whole
     try:
         if args.format == "csv":
-            out = open(path, "w", newline="") if path else sys.stdout  # noqa: SIM115
-            try:
-                store.export_csv(args.id, out)
-            finally:
-                if path:
-                    out.close()
+            if path is None:
+                store.export_csv(args.id, sys.stdout)
+            else:
+                with whole_file(path, binary=False) as out:
+                    store.export_csv(args.id, out)
         else:
             assert path is not None  # an MCAP export goes to a file, always
             from sdh2svc.service.store import recorded_settings
@@ -869,7 +870,7 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
             except ConfigError as e:
                 _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
                                   + "; ".join(e.problems))  # fmt: skip
-            with open(path, "wb") as fh:
+            with whole_file(path, binary=True) as fh:
                 n = store.export_mcap(args.id, fh, cfg)
             print(f"{path}: {n} messages", file=sys.stderr)
     except BrokenPipeError:  # the reader had enough (`… | head`): as every command, 141
@@ -877,6 +878,13 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
         return Exit.BROKEN_PIPE
     except OSError as e:
         _fail(Exit.UNAVAILABLE, f"cannot write {path or 'stdout'}: {e.strerror or e}")
+    except KeyboardInterrupt:
+        if path:
+            print(f"sdh2svc runs: interrupted; {path} not written (a file there before is as it "
+                  "was)", file=sys.stderr)  # fmt: skip
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return Exit.OK
 
 

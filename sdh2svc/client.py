@@ -40,6 +40,8 @@ from websockets.exceptions import (
 from websockets.sync.client import ClientConnection as SyncClientConnection
 from websockets.sync.client import connect as ws_connect_sync
 
+from sdh2svc.files import whole_file
+
 __all__ = [
     "ApiError",
     "AsyncClient",
@@ -537,7 +539,7 @@ class Client:
             if not r.is_success:
                 r.read()
                 _raise_for(r)
-            with path.open("wb") as f:
+            with whole_file(path, binary=True) as f:  # a dropped connection: no partial file
                 for chunk in r.iter_bytes():
                     f.write(chunk)
         return path
@@ -809,7 +811,7 @@ class AsyncClient:
                 if not r.is_success:
                     await r.aread()
                     _raise_for(r)
-                with path.open("wb") as f:
+                with whole_file(path, binary=True) as f:
                     async for chunk in r.aiter_bytes():
                         f.write(chunk)
         return path

@@ -327,6 +327,61 @@ def test_export_to_an_unwritable_file(
     assert f"cannot write {target}" in one_line(err, "runs")
 
 
+# An export that a signal interrupts once it has written part of the file (the signal sent by
+# the export to its own process: the interruption lands mid-file every time)
+INTERRUPTED_EXPORT = """
+import os, signal, sys
+from sdh2svc import cli
+from sdh2svc.service.store import RunStore
+
+def export(self, run_id, out, *rest):
+    out.write(b"\\x89MCAP0\\r\\n" + b"x" * 100_000)
+    out.flush()
+    os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    out.write(b"never")
+
+RunStore.export_mcap = export
+sys.exit(cli.main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_an_interrupted_export_leaves_an_earlier_file_as_it_was_and_no_partial_one(
+    one_run: Path, tmp_path: Path, sig: str
+) -> None:
+    """Ctrl-C (or a `kill`) during `runs export -o FILE` left a truncated file no reader
+    opens, in place of a good export there before (found by a CLI audit)."""
+    target = tmp_path / "run.mcap"
+    target.write_bytes(b"the earlier export")
+    r = subprocess.run([sys.executable, "-c", INTERRUPTED_EXPORT, sig, "runs", "export", "1",
+                        "--format", "mcap", "-o", str(target), *db_set(one_run)],
+                       capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert r.returncode == Exit.INTERRUPTED, r.stderr
+    assert f"interrupted; {target} not written" in r.stderr
+    assert target.read_bytes() == b"the earlier export"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap", "runs.sqlite"]
+
+
+def test_an_export_replaces_an_earlier_file_whole_or_writes_into_a_device(
+    one_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    target = tmp_path / "run.csv"
+    target.write_text("an earlier export, longer than the new one " * 100)
+    status, _, err = call(capsys, "runs", "export", "1", "-o", str(target), *db_set(one_run))
+    assert status == Exit.OK, err
+    assert target.read_text().startswith("iteration,") and "earlier" not in target.read_text()
+    assert oct(target.stat().st_mode & 0o777) == oct(0o666 & ~_umask())
+    status, _, err = call(capsys, "runs", "export", "1", "-o", os.devnull, *db_set(one_run))
+    assert status == Exit.OK and Path(os.devnull).is_char_device(), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.csv", "runs.sqlite"]
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def test_export_to_a_closed_stdout(one_run: Path) -> None:
     import shlex
 

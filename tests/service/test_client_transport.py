@@ -13,6 +13,7 @@ import re
 import socket
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import replace
+from pathlib import Path
 from typing import Any, cast
 
 import httpx
@@ -282,3 +283,39 @@ async def test_the_async_estop_has_its_own_limit_too(mute_port: int, estop_limit
         with pytest.raises(Unreachable) as raised:
             await c.estop()
         assert _limits(raised.value)["read"] == estop_limit
+
+
+async def _cut_mid_export(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    """An export's answer that promises 100 000 bytes and is cut after 1000 (the service
+    killed, the network gone)."""
+    await reader.readuntil(b"\r\n\r\n")
+    writer.write(b"HTTP/1.1 200 OK\r\nContent-Type: application/octet-stream\r\n"
+                 b"Content-Length: 100000\r\n\r\n" + b"\x89MCAP0\r\n" + b"x" * 992)  # fmt: skip
+    await writer.drain()
+    writer.transport.abort()
+
+
+async def test_an_export_cut_off_leaves_an_earlier_file_as_it_was_and_no_partial_one(
+    tmp_path: Path,
+) -> None:
+    """A connection lost mid-export left a truncated file no reader opens, in place of a good
+    export there before (the CLI's exports had the same; found by a CLI audit)."""
+    server = await asyncio.start_server(_cut_mid_export, "127.0.0.1", 0)
+    url = f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+    target = tmp_path / "run.mcap"
+    target.write_bytes(b"the earlier export")
+    try:
+        async with AsyncClient(url) as c:
+            with pytest.raises(Unreachable):
+                await c.export(7, target)
+
+        def blocking() -> None:
+            with Client(url) as sync, pytest.raises(Unreachable):
+                sync.export(7, target)
+
+        await asyncio.to_thread(blocking)
+    finally:
+        server.close()
+        await server.wait_closed()
+    assert target.read_bytes() == b"the earlier export"
+    assert [p.name for p in tmp_path.iterdir()] == ["run.mcap"]
