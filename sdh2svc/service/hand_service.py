@@ -34,7 +34,7 @@ from sdh2svc.control.sample import Sample
 from sdh2svc.provenance import code_version
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
-from sdh2svc.service.store import RunStore, locked, now_iso
+from sdh2svc.service.store import RunStore, locked, now_iso, opened_elsewhere
 from sdh2svc.service.telemetry import (
     OUTLINE_POINTS,
     Event,
@@ -160,6 +160,9 @@ class HandService:
         self._hand = hand = await self._stack.enter_async_context(connect_hand(cfg, self.where))
         self.joints, self.tactile = hand.joints, hand.tactile
         self.store = RunStore(cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s)
+        if others := opened_elsewhere(self.store.path):  # another service, a reader: say so
+            log.warning("%s: it shares this service's runs and its one e-stop latch on disk "
+                        "(each hand wants a run database of its own)", others)  # fmt: skip
         interrupted = self.store.mark_interrupted()
         if interrupted:
             log.warning("runs %s were still 'running' in %s, their process gone: marked "
@@ -440,6 +443,10 @@ class HandService:
         meanwhile (one would write the latch back after the delete); a release that fails
         leaves an unrecorded latch to them again."""
         joints, _, store = self._links()
+        if not joints.estopped and self._latch is None:
+            # nothing of this service's to release: the latch on disk, if any, is another's (a
+            # service on the same database), and deleting it would lose it at that one's restart
+            return {"estopped": False}
         seen = joints.latches  # an e-stop pressed from here on is not released
         self._releases += 1
         try:

@@ -14,6 +14,7 @@ from typing import Any
 import httpx
 import pytest
 import uvicorn
+from test_retention import another_process_open
 from test_sim_press import service
 
 from sdh2svc.config import load_config
@@ -22,6 +23,7 @@ from sdh2svc.service import hand_service
 from sdh2svc.service.app import close_services, create_app, open_services
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.server import _Server, listen_socket
+from sdh2svc.service.store import RunStore
 
 JSON = {"Content-Type": "application/json"}  # a command's, its body empty
 
@@ -68,6 +70,36 @@ def test_an_estop_pressed_while_a_release_deletes_its_record_stays_latched(
             assert all(sdh.powered) and store.estop_latch() is None
 
     asyncio.run(main())
+
+
+def test_a_release_of_a_service_not_estopped_leaves_another_services_latch_on_disk(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Two services on one run database (one e-stop latch on disk between them): a release
+    pressed on the one that was not stopped deleted the other's latch, which its restart then
+    lost (found by a CLI audit). It now touches nothing; the second service said at its start
+    that another program shares the database."""
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'"], use_env=False)
+    RunStore(db).close()
+
+    async def main() -> None:
+        async with service(cfg, Simulated()) as (c, services):
+            st = services.station
+            assert st.store is not None and st.joints is not None
+            st.store.latch_estop("the other service's e-stop")
+            answer = await c.post("/api/estop/release", headers=JSON)
+            assert answer.status_code == 200 and answer.json() == {"estopped": False}
+            latch = st.store.estop_latch()
+            assert latch is not None and latch["reason"] == "the other service's e-stop"
+            assert not st.joints.estopped
+
+    # the other service, which latched its own hand
+    with another_process_open(db), caplog.at_level("WARNING", "sdh2svc.service.hand_service"):
+        asyncio.run(main())
+    said = [r.getMessage() for r in caplog.records]
+    assert any("another program has the run database open" in m and "e-stop latch" in m
+               for m in said), said  # fmt: skip
 
 
 def test_a_latch_that_failed_during_a_release_is_not_written_back_after_it(
