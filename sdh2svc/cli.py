@@ -755,7 +755,7 @@ def cmd_runs(args: argparse.Namespace) -> int:
     ) if given and args.action not in takes]  # fmt: skip
     if extra:
         _fail(Exit.USAGE, f"{', '.join(extra)}: not with runs {args.action}")
-    args.format = args.format or "csv"
+    args.format = _export_format(args.format, args.output)
     args.id = ids[0] if ids else None
     try:
         store = RunStore(
@@ -832,6 +832,18 @@ def _id_ranges(ids: list[int]) -> str:
         else:
             parts.append((i, i))
     return ", ".join(str(a) if a == b else f"{a}–{b}" for a, b in parts)
+
+
+def _export_format(given: str | None, output: str | None) -> str:
+    """--format, or the one --output's name says (``.mcap``, ``.csv``; otherwise CSV) — as the
+    client's export takes it. A name that says the other format is a usage error: a CSV named
+    .mcap is a file no MCAP reader opens."""
+    said = Path(output).suffix.lower().lstrip(".") if output else ""
+    said = said if said in ("csv", "mcap") else ""
+    if given and said and said != given:
+        _fail(Exit.USAGE, f"--format {given} into {output}: its name says {said} (rename it, or "
+                          f"drop --format)")  # fmt: skip
+    return given or said or "csv"
 
 
 def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
@@ -1161,7 +1173,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="delete, prune: say what would go")
     p.add_argument("--vacuum", action="store_true",
                    help="delete, prune: then shrink the file (as `runs vacuum`)")  # fmt: skip
-    p.add_argument("--format", choices=["csv", "mcap"], help="export format (default csv)")
+    p.add_argument(
+        "--format",
+        choices=["csv", "mcap"],
+        help="export format (default: the one --output's name ends in, else csv)",
+    )
     p.add_argument(
         "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
     )

@@ -382,6 +382,25 @@ def _umask() -> int:
     return mask
 
 
+def test_an_export_takes_its_format_from_the_files_name_and_refuses_a_contradiction(
+    one_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`runs export 1 -o run.mcap` wrote CSV into it, which Foxglove cannot open (CLI audit);
+    the client took the format from the name already."""
+    mcap = tmp_path / "run.mcap"
+    status, _, err = call(capsys, "runs", "export", "1", "-o", str(mcap), *db_set(one_run))
+    assert status == Exit.OK and mcap.read_bytes()[:5] == b"\x89MCAP", err
+    csv_file = tmp_path / "run.CSV"
+    status, _, err = call(capsys, "runs", "export", "1", "-o", str(csv_file), *db_set(one_run))
+    assert status == Exit.OK and csv_file.read_text().startswith("iteration,"), err
+    for fmt, name in (("csv", "other.mcap"), ("mcap", "other.csv")):
+        status, _, err = call(capsys, "runs", "export", "1", "--format", fmt,
+                              "-o", str(tmp_path / name), *db_set(one_run))  # fmt: skip
+        assert status == Exit.USAGE
+        assert f"--format {fmt} into {tmp_path / name}: its name says" in one_line(err, "runs")
+        assert not (tmp_path / name).exists()
+
+
 def test_export_to_a_closed_stdout(one_run: Path) -> None:
     import shlex
 
