@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import json
 import logging
 import math
@@ -1237,7 +1238,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(build_parser(), argv)
     debug = _debug(args)
     try:
-        return int(args.func(args))
+        status = int(args.func(args))
+        if sys.stdout is not None:
+            sys.stdout.flush()  # a full disk fails here, not in the exit's own flush
+        return status
     except CliError as e:
         _report(args, e.message)
         return e.status
@@ -1251,11 +1255,20 @@ def main(argv: Sequence[str] | None = None) -> int:
             _quiet_stdout()
         return Exit.BROKEN_PIPE
     except Exception as e:
+        if isinstance(e, OSError) and e.errno in _NO_ROOM:  # the output's disk, not a bug
+            with contextlib.suppress(OSError):  # (the exit's own flush must not fail again)
+                _quiet_stdout()
+            _report(args, f"cannot write its output: {e.strerror or e}")
+            return Exit.UNAVAILABLE
         if debug:
             traceback.print_exc()
         _report(args, f"unexpected error (a bug): {type(e).__name__}: {_one_line(e)}"
                 + ("" if debug else " (--debug prints the traceback)"))  # fmt: skip
         return Exit.BUG
+
+
+# What a full or failing disk under the output says (`> /dev/full`, a full /tmp in a script)
+_NO_ROOM = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
 
 
 def _report(args: argparse.Namespace, message: str) -> None:

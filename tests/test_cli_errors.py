@@ -401,6 +401,17 @@ def test_an_export_takes_its_format_from_the_files_name_and_refuses_a_contradict
         assert not (tmp_path / name).exists()
 
 
+@pytest.mark.parametrize("args", [["config"], ["demo", "--json"], ["runs", "show", "1"]])
+def test_output_onto_a_full_disk_is_unavailable_not_a_bug(one_run: Path, args: list[str]) -> None:
+    """`… > /dev/full` (a full disk under a script's output) was "unexpected error (a bug)",
+    exit 70 (CLI audit); it is the output not writable, exit 4, as for an export."""
+    with open("/dev/full", "w") as full:
+        r = subprocess.run([sys.executable, "-m", "sdh2svc", *args, *db_set(one_run)],
+                           stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    assert "cannot write its output: No space left on device" in one_line(r.stderr, args[0])
+
+
 def test_export_to_a_closed_stdout(one_run: Path) -> None:
     import shlex
 
