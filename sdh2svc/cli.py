@@ -733,7 +733,7 @@ def cmd_runs(args: argparse.Namespace) -> int:
     database."""
     import sqlite3
 
-    from sdh2svc.service.store import NoDatabase, RunStore, StoreError
+    from sdh2svc.service.store import NoDatabase, RunStore, StoreError, stray_logs
 
     cfg = load_config(args.config, args.overrides)
     ids = args.id
@@ -771,7 +771,8 @@ def cmd_runs(args: argparse.Namespace) -> int:
             return _retention(args, store, ids)
         return _runs(args, store, cfg)
     except sqlite3.Error as e:
-        _fail(Exit.UNAVAILABLE, f"run database {store.path}: {_one_line(e)}")
+        _fail(Exit.UNAVAILABLE, f"run database {store.path}: {_one_line(e)}"
+                                f"{stray_logs(Path(store.path))}")  # fmt: skip
     finally:
         store.close()
 

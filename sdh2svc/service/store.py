@@ -332,8 +332,14 @@ def connect(
     try:
         if create:
             p.parent.mkdir(parents=True, exist_ok=True)
-        uri = f"{p.absolute().as_uri()}?mode={'rwc' if create else 'rw'}"
-        db = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=busy_timeout_s)
+        if not create and _write_protected_alone(p):
+            # read as it is: opened as usual, SQLite would leave a log and its index beside it,
+            # as write-protected as the file, and once the file was writable again every writer
+            # failed on them ("attempt to write a readonly database")
+            db = _immutable(p)
+        else:
+            uri = f"{p.absolute().as_uri()}?mode={'rwc' if create else 'rw'}"
+            db = sqlite3.connect(uri, uri=True, check_same_thread=False, timeout=busy_timeout_s)
         try:
             db.execute("PRAGMA journal_mode=WAL")
         except sqlite3.OperationalError as e:
@@ -376,7 +382,7 @@ def connect(
         if db is not None:
             db.close()
         why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
-        raise StoreError(f"cannot open the run database {p}: {why}") from None
+        raise StoreError(f"cannot open the run database {p}: {why}{stray_logs(p)}") from None
     except BaseException:
         if db is not None:
             db.close()
@@ -391,10 +397,32 @@ _READONLY_PLACES = (sqlite3.SQLITE_READONLY, sqlite3.SQLITE_READONLY_DIRECTORY,
                     sqlite3.SQLITE_READONLY_CANTINIT)  # fmt: skip
 
 
+def _write_protected_alone(p: Path) -> bool:
+    """A file this process may not write, with no log or log index beside it: nothing writes
+    it, and it is read whole from the file itself."""
+    return (p.is_file() and not os.access(p, os.W_OK)
+            and not any(Path(f"{p}{end}").exists() for end in ("-wal", "-shm")))  # fmt: skip
+
+
+def stray_logs(p: Path) -> str:
+    """Says which log files beside a writable database this process may not write ("" if
+    none): what an older version's reading of the file while it was write-protected left."""
+    if not p.is_file() or not os.access(p, os.W_OK):
+        return ""
+    stray = [f"{p.name}{end}" for end in ("-wal", "-shm")
+             if Path(f"{p}{end}").exists() and not os.access(f"{p}{end}", os.W_OK)]  # fmt: skip
+    if not stray:
+        return ""
+    it, are = ("it", "is") if len(stray) == 1 else ("them", "are")
+    return (f" ({' and '.join(stray)} beside it {are} write-protected, left by reading the file "
+            f"while it was: delete {it} while nothing has the database open, or make {it} "
+            "writable)")  # fmt: skip
+
+
 def _immutable(p: Path) -> sqlite3.Connection:
-    """A database in a folder nobody may write, opened as immutable (no lock, no log index):
-    nothing can be writing it. A log beside it that still holds pages would be skipped, so such
-    a file is refused rather than read without them."""
+    """A database nobody may write (its folder or the file itself write-protected), opened as
+    immutable (no lock, no log index): nothing can be writing it. A log beside it that still
+    holds pages would be skipped, so such a file is refused rather than read without them."""
     wal = Path(f"{p}-wal")
     if wal.exists() and wal.stat().st_size > 0:
         raise StoreError(f"cannot read the run database {p} where it is: its folder is "

@@ -511,6 +511,33 @@ def test_an_older_write_protected_database_is_read_as_it_is(four_runs: Path) -> 
             assert refused.returncode == Exit.UNAVAILABLE, refused.stderr
             assert "readonly database" in refused.stderr
         assert hashlib.sha256(db.read_bytes()).hexdigest() == before  # nothing written
+        # nor beside it: a log and its index left there, write-protected as the file, made
+        # every writer fail once the file was writable again (CLI audit)
+        assert sorted(p.name for p in db.parent.iterdir() if p.name.startswith(db.name)) == [
+            db.name]  # fmt: skip
+        db.chmod(0o644)
+        assert runs("delete", "2").returncode == Exit.OK
+
+
+def test_write_protected_logs_left_beside_a_writable_database_are_named(four_runs: Path) -> None:
+    """What an older version's reading left beside a file that was write-protected then: the
+    writers failed with "attempt to write a readonly database", naming the (writable) file."""
+    import os
+    import shutil
+
+    drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-all"] if os.geteuid() == 0 else []
+    assert not drop or shutil.which("setpriv"), "setpriv (util-linux) is needed as root"
+    with contextlib.closing(sqlite3.connect(four_runs)) as c:  # as that reading left them
+        c.execute("SELECT COUNT(*) FROM runs").fetchone()
+        shutil.copy(f"{four_runs}-shm", f"{four_runs}-shm.kept")
+    os.replace(f"{four_runs}-shm.kept", f"{four_runs}-shm")
+    Path(f"{four_runs}-shm").chmod(0o444)
+    where = f"storage.db_path={json.dumps(str(four_runs))}"
+    r = subprocess.run([*drop, sys.executable, "-m", "sdh2svc", "runs", "delete", "2", "--set",
+                        where], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    assert "runs.sqlite-shm beside it is write-protected" in r.stderr
+    assert "delete it while nothing has the database open" in r.stderr
 
 
 def test_a_database_in_a_write_protected_folder_is_read_as_immutable(
