@@ -492,6 +492,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         else:
             summary = asyncio.run(work)
     except asyncio.CancelledError:  # a signal before the run began, or a second one
+        print("sdh2svc run: interrupted " + (
+            "again: the run ended at once, recorded as interrupted; the hand was left where it "
+            "is and may still hold the object" if stopper.asked else "before the run began"),
+            file=sys.stderr)  # fmt: skip
         return Exit.INTERRUPTED
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, str(e))

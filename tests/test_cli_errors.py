@@ -510,6 +510,37 @@ def test_a_signal_stops_a_run_as_the_services_stop_does(sig: str, tmp_path: Path
     assert _phases(db)[-2:] == ["releasing", "stopped"]  # the object let go, the end recorded
 
 
+def test_a_second_signal_ends_the_run_at_once_and_says_where_it_left_the_hand(
+    tmp_path: Path,
+) -> None:
+    """Ctrl-C, then Ctrl-C again while the fingers let go: the run ends at once, the hand left
+    where it is. It printed nothing and was recorded as a plain `stopped`, the word of a run
+    that let its object go (found by a CLI audit)."""
+    import signal
+    import time
+
+    db = tmp_path / "r.sqlite"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sdh2svc", "run", "--sim", *db_set(db)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not _phases(db) and time.monotonic() < deadline:  # the run has begun
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        while "releasing" not in _phases(db) and time.monotonic() < deadline:  # it lets go
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == Exit.INTERRUPTED, err
+    assert "interrupted again: the run ended at once, recorded as interrupted" in err, err
+    assert _runs(db) == [(1, "interrupted")]
+    assert "stopped" not in _phases(db)  # its release was cut short
+
+
 def _phases(db: Path) -> list[str]:
     import sqlite3
 

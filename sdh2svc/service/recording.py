@@ -121,8 +121,10 @@ class RecordedRun:
                 await self._close()
         except asyncio.CancelledError:
             result = self.runner.result
-            if result.status == "running":
-                result.status, result.message = "stopped", "cancelled"
+            if result.status == "running":  # as a run whose process died: nothing ended it
+                result.status, result.message = "interrupted", (
+                    "cancelled before it ended: the fingers stopped where they were and may "
+                    "still hold the object")  # fmt: skip
             self.summary = await _whole(self._finish(result.summary()))
             raise
         self.summary = await _whole(self._finish(result.summary()))
