@@ -1,5 +1,3 @@
-import sys
+from sdh2svc.entry import main
 
-from sdh2svc.cli import main
-
-sys.exit(main())
+main()

@@ -510,6 +510,26 @@ def test_a_signal_stops_a_run_as_the_services_stop_does(sig: str, tmp_path: Path
     assert _phases(db)[-2:] == ["releasing", "stopped"]  # the object let go, the end recorded
 
 
+def test_ctrl_c_while_the_command_loads_is_exit_130_without_a_traceback() -> None:
+    """Loading the CLI takes about a second: Ctrl-C then printed a traceback of the imports
+    (CLI audit). The interrupt lands in the import here every time."""
+    script = (
+        "import builtins, sys\n"
+        "real = builtins.__import__\n"
+        "def interrupted(name, *args, **kwargs):\n"
+        "    if name == 'sdh2svc.config':\n"
+        "        raise KeyboardInterrupt\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = interrupted\n"
+        "sys.argv = ['sdh2svc', 'config']\n"
+        "from sdh2svc.entry import main\n"
+        "main()\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                       timeout=60)  # fmt: skip
+    assert r.returncode == Exit.INTERRUPTED and r.stderr == "", r.stderr
+
+
 def test_a_second_signal_ends_the_run_at_once_and_says_where_it_left_the_hand(
     tmp_path: Path,
 ) -> None:
