@@ -529,8 +529,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if summary["status"] == "completed":
         return Exit.OK
     # the summary is the output (stdout); the failure is also the one line on stderr
-    print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: "
-          f"{_one_line(summary['message']) or 'no message'}", file=sys.stderr)  # fmt: skip
+    why = _one_line(summary["message"]) or (
+        "by Ctrl-C or SIGTERM, as the service's stop: the fingers opened to the pre-shape"
+        if stopper.asked and summary["status"] == "stopped" else "no message")  # fmt: skip
+    print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: {why}",
+          file=sys.stderr)  # fmt: skip
     return Exit.INTERRUPTED if stopper.asked else Exit.FAILED
 
 
@@ -664,6 +667,7 @@ def cmd_estop(args: argparse.Namespace) -> int:
     # where the latch is kept, in full: a relative storage.db_path is another database (and
     # another latch) in another working directory
     where = Path(cfg.storage.db_path).absolute()
+    new = args.latch and not where.exists()
     try:
         store = RunStore(
             cfg.storage.db_path, create=args.latch, busy_timeout_s=cfg.storage.busy_timeout_s
@@ -694,6 +698,10 @@ def cmd_estop(args: argparse.Namespace) -> int:
         store.close()
     said = "released" if latch is None else f"latched since {latch['since']}: {latch['reason']}"
     print(f"{said} (in {where})")
+    if new:  # a mistyped path latches a database no service or run reads: loudly
+        print(f"there was no run database at {where}: a new one was made for the latch; a "
+              "service or `sdh2svc run` with another storage.db_path does not see it",
+              file=sys.stderr)  # fmt: skip
     others = opened_elsewhere(where) if args.latch else None
     if others:  # a service or a run reads the latch only when it starts: this stopped nothing
         print(f"{others}; a running service or `sdh2svc run` reads the latch only when it "
@@ -868,7 +876,10 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     if args.action == "show":
         print(json.dumps(run, indent=2, ensure_ascii=False))
         return Exit.OK
-    path = args.output or (None if args.format == "csv" else f"run-{args.id}.mcap")
+    if args.output == "-":  # standard output, as the convention has it (MCAP too: to a pipe)
+        path = None
+    else:
+        path = args.output or (None if args.format == "csv" else f"run-{args.id}.mcap")
     if path is None and sys.stdout is None:  # started with its standard output closed
         _fail(Exit.UNAVAILABLE, "cannot write stdout: it is closed (give --output FILE)")
     previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill`: as Ctrl-C, the file kept whole
@@ -880,7 +891,6 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
                 with whole_file(path, binary=False) as out:
                     store.export_csv(args.id, out)
         else:
-            assert path is not None  # an MCAP export goes to a file, always
             from sdh2svc.service.store import recorded_settings
 
             try:  # before the file is opened: a refused run leaves no empty file behind
@@ -888,9 +898,19 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
             except ConfigError as e:
                 _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
                                   + "; ".join(e.problems))  # fmt: skip
-            with whole_file(path, binary=True) as fh:
-                n = store.export_mcap(args.id, fh, cfg)
-            print(f"{path}: {n} messages", file=sys.stderr)
+            if path is None:  # MCAP is written with seeks back, which a pipe cannot take
+                import shutil
+                import tempfile
+
+                with tempfile.TemporaryFile() as fh:
+                    n = store.export_mcap(args.id, fh, cfg)
+                    fh.seek(0)
+                    shutil.copyfileobj(fh, sys.stdout.buffer)
+                sys.stdout.flush()
+            else:
+                with whole_file(path, binary=True) as fh:
+                    n = store.export_mcap(args.id, fh, cfg)
+            print(f"{path or 'stdout'}: {n} messages", file=sys.stderr)
     except BrokenPipeError:  # the reader had enough (`… | head`): as every command, 141
         _quiet_stdout()
         return Exit.BROKEN_PIPE
@@ -954,6 +974,7 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         except OSError as e:
             _fail(Exit.UNAVAILABLE, f"cannot write {out}: {e.strerror or e}")
         print(text, end="")
+        print(f"written to {out}", file=sys.stderr)
         return Exit.OK
     except CampaignError as e:
         _fail(Exit(e.status), _one_line(e))
@@ -1185,7 +1206,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="export format (default: the one --output's name ends in, else csv)",
     )
     p.add_argument(
-        "--output", "-o", metavar="FILE", help="export file (default: stdout / run-ID.mcap)"
+        "--output",
+        "-o",
+        metavar="FILE",
+        help="export file; - for stdout (default: stdout for CSV, run-ID.mcap for MCAP)",
     )
     p.set_defaults(func=cmd_runs, parser=p)  # (parse_args: IDs after an option, its usage)
 

@@ -243,6 +243,19 @@ def test_estop_latched_here_while_a_service_has_the_database_open_says_it_stoppe
     assert status == Exit.OK and out.startswith("released") and not err
 
 
+def test_estop_latched_where_there_was_no_database_says_it_made_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A mistyped storage.db_path: the latch went into a new database no service reads, and
+    the command said only "latched" (CLI audit)."""
+    typo = tmp_path / "dta" / "runs.sqlite"
+    status, out, err = call(capsys, "estop", "--latch", *db_set(typo))
+    assert status == Exit.OK and out.startswith("latched since ") and typo.exists()
+    assert f"there was no run database at {typo}: a new one was made for the latch" in err
+    status, out, err = call(capsys, "estop", "--latch", *db_set(typo))  # there now: no word
+    assert status == Exit.OK and not err
+
+
 def test_estop_latched_from_another_pid_namespace_says_it_stopped_nothing(
     one_run: Path,
 ) -> None:
@@ -410,6 +423,16 @@ def test_output_onto_a_full_disk_is_unavailable_not_a_bug(one_run: Path, args: l
                            stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)  # fmt: skip
     assert r.returncode == Exit.UNAVAILABLE, r.stderr
     assert "cannot write its output: No space left on device" in one_line(r.stderr, args[0])
+
+
+def test_an_export_to_dash_goes_to_stdout_mcap_too(one_run: Path, tmp_path: Path) -> None:
+    """`-o -` made a file named "-" (CLI audit): it is standard output, for a pipe."""
+    r = subprocess.run([sys.executable, "-m", "sdh2svc", "runs", "export", "1", "--format",
+                        "mcap", "-o", "-", *db_set(one_run)], capture_output=True,
+                       timeout=60, cwd=tmp_path)  # fmt: skip
+    assert r.returncode == Exit.OK, r.stderr
+    assert r.stdout[:5] == b"\x89MCAP" and r.stderr.decode().startswith("stdout: ")
+    assert not (tmp_path / "-").exists()
 
 
 def test_export_to_a_closed_stdout(one_run: Path) -> None:

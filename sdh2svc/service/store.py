@@ -757,13 +757,13 @@ class RunStore:
         the write-ahead log, beside the old file, until it lets go.
         StoreError if a reader came meanwhile and the log could not be given back."""
         self.check_writable()
-        busy = self.recording()
-        if busy:
-            raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")
-        others = opened_elsewhere(self.path)
+        others = opened_elsewhere(self.path)  # first: the end of a run would not be enough
         if others:
             raise RunBusy(f"{others}: a vacuum rewrites the whole file and holds it meanwhile; "
                           "vacuum while nothing else uses it")  # fmt: skip
+        busy = self.recording()
+        if busy:
+            raise RunBusy(f"run {busy[0]} is being recorded: vacuum once it has ended")
         with self._lock:
             self.db.execute("VACUUM")
             # the log's copy written back and the log emptied (a reader that came meanwhile

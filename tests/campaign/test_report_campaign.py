@@ -154,7 +154,8 @@ def test_compare_shows_what_got_better_and_worse(
                                                           dropped=True),
                            good(cs[3], f_max=9.0)])  # fmt: skip
     assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
-    text = capsys.readouterr().out
+    text, said = capsys.readouterr()
+    assert said == f"written to {tmp_path / 'b' / 'compare.md'}\n"  # where the file went
     assert "| **all** | 2/4 (50 %) | 2/4 (50 %) |" in text
     assert "## Better in B (failed in A, succeeded in B): 1" in text
     assert "| box-1 | box | F below band | success |" in text
