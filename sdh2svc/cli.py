@@ -481,6 +481,10 @@ def cmd_run(args: argparse.Namespace) -> int:
               file=sys.stderr)  # fmt: skip
 
     where = Simulated(obj, fast=args.fast) if args.sim else real_hand(cfg, args.dsa, args.sdh)
+    if args.sim and (latch := _latched(cfg)) is not None:  # rehearsing the e-stop: say it
+        print(f"sdh2svc run: the e-stop is latched in {cfg.storage.db_path} (since "
+              f"{latch['since']}); a simulated run does not obey it, a real hand's is refused",
+              file=sys.stderr)  # fmt: skip
 
     stopper = _Stopper()
     work = stopper.run(run_once(cfg, where, progress=progress, started=stopper.started))
@@ -535,6 +539,25 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: {why}",
           file=sys.stderr)  # fmt: skip
     return Exit.INTERRUPTED if stopper.asked else Exit.FAILED
+
+
+def _latched(cfg: Settings) -> dict[str, Any] | None:
+    """The e-stop latch in the run database, if there is one and it can be read."""
+    import sqlite3
+
+    from sdh2svc.service.store import RunStore, StoreError
+
+    try:
+        store = RunStore(cfg.storage.db_path, create=False,
+                         busy_timeout_s=cfg.storage.busy_timeout_s)  # fmt: skip
+    except StoreError:  # (NoDatabase among them): nothing latched that this run could read
+        return None
+    try:
+        return store.estop_latch()
+    except sqlite3.Error:
+        return None
+    finally:
+        store.close()
 
 
 # what each class's two sizes are (control.recognition.Recognition), as the dashboard names them

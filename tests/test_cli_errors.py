@@ -256,6 +256,20 @@ def test_estop_latched_where_there_was_no_database_says_it_made_one(
     assert status == Exit.OK and not err
 
 
+def test_a_simulated_run_says_it_does_not_obey_a_latched_estop(
+    one_run: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A lab rehearsing its e-stop on the simulator saw the latch do nothing, without a word
+    (CLI audit); a real hand's run is refused (test_hardening)."""
+    assert call(capsys, "estop", "--latch", *db_set(one_run))[0] == Exit.OK
+    status, _, err = call(capsys, "run", "--sim", "--fast", "--cycles", "1",
+                          "--set", "sim.object_height_mm=300.0",  # nothing to grasp: ends soon
+                          "--set", "run.grasp_timeout_s=2.0", *db_set(one_run))  # fmt: skip
+    assert status == Exit.FAILED  # it ran (and found nothing to grasp)
+    assert f"the e-stop is latched in {one_run}" in err, err
+    assert "a simulated run does not obey it" in err
+
+
 def test_estop_latched_from_another_pid_namespace_says_it_stopped_nothing(
     one_run: Path,
 ) -> None:
