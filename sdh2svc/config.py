@@ -9,6 +9,7 @@ whose message names each offending key, its value and the allowed range.
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import os
 import tomllib
@@ -437,6 +438,9 @@ def format_errors(
         msg = error_message(e).removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = REMOVED_KEYS.get(key) or unknown_key(model_keys(model, loc[:-1]))
+        elif e["type"] in ("tuple_type", "list_type") and isinstance(value, str):
+            # a list given as text (--set, an environment variable): "tuple" says nothing there
+            msg = f"a list is needed, written in JSON, e.g. {key}={json.dumps([value])}"
         lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
     return lines
 

@@ -255,3 +255,12 @@ def test_a_recording_older_than_a_key_or_a_limit_reads_back(cfg: Settings) -> No
     recorded["tactile"]["from_the_future"] = 1
     with pytest.raises(ConfigError, match=r"tactile\.from_the_future"):
         cfg.as_recorded(recorded)
+
+
+def test_a_list_given_as_plain_text_is_told_how_to_write_it() -> None:
+    """`--set service.allowed_hosts=labpc` said "Input should be a valid tuple" (CLI audit)."""
+    with pytest.raises(ConfigError) as bad:
+        load_config(overrides=["service.allowed_hosts=labpc"], use_env=False)
+    said = "; ".join(bad.value.problems)
+    assert 'a list is needed, written in JSON, e.g. service.allowed_hosts=["labpc"]' in said
+    assert "tuple" not in said
