@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import errno
 import json
 import logging
@@ -1282,8 +1283,23 @@ def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> a
             args.parser.error(f"argument id: {e}")  # with runs's usage, as argparse's own
         extra = []
     if extra:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        # with the command's own usage (the top level's lists none of its options), and the
+        # option it most resembles
+        sub = _subparser(parser, getattr(args, "command", None)) or parser
+        known = [o for a in sub._actions for o in a.option_strings]
+        typed = next((x.split("=")[0] for x in extra if x.startswith("--")), "")
+        near = difflib.get_close_matches(typed, known, n=1) if typed else []
+        sub.error(f"unrecognized arguments: {' '.join(extra)}"
+                  + (f" (did you mean {near[0]}?)" if near else ""))  # fmt: skip
     return args
+
+
+def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.ArgumentParser | None:
+    """The parser of command ``name``, if it has one."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and name in action.choices:
+            return action.choices[name]  # type: ignore[no-any-return]
+    return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -1314,8 +1330,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return Exit.UNAVAILABLE
         if debug:
             traceback.print_exc()
-        _report(args, f"unexpected error (a bug): {type(e).__name__}: {_one_line(e)}"
-                + ("" if debug else " (--debug prints the traceback)"))  # fmt: skip
+        hint = "" if debug else " (`sdh2svc --debug COMMAND …` prints the traceback)"
+        _report(args, f"unexpected error (a bug): {type(e).__name__}: {_one_line(e)}{hint}")
         return Exit.BUG
 
 

@@ -298,6 +298,28 @@ def test_estop_latched_from_another_pid_namespace_says_it_stopped_nothing(
 
 
 @pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["run", "--sim", "--obejct", "egg"], "sdh2svc run: error: unrecognized arguments: "
+         "--obejct egg (did you mean --object?)"),
+        (["serve", "--prot", "18120"], "sdh2svc serve: error: unrecognized arguments: --prot "
+         "18120 (did you mean --port?)"),
+        (["config", "--zzz"], "sdh2svc config: error: unrecognized arguments: --zzz"),
+    ],
+)  # fmt: skip
+def test_a_mistyped_option_is_named_with_its_commands_usage_and_the_nearest_option(
+    args: list[str], said: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The top-level parser answered, with a usage that lists none of the command's options
+    (CLI audit)."""
+    with pytest.raises(SystemExit) as refused:
+        main(args)
+    err = capsys.readouterr().err
+    assert refused.value.code == Exit.USAGE and err.rstrip().endswith(said), err
+    assert err.startswith(f"usage: sdh2svc {args[0]} ")
+
+
+@pytest.mark.parametrize(
     ("args", "fragment"),
     [
         (["sim", "--dsa-port", "99999"], "a port is 0 … 65535"),
