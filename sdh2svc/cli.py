@@ -15,7 +15,7 @@ import signal
 import sys
 import traceback
 from collections.abc import Callable, Coroutine, Sequence
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from enum import IntEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
@@ -830,6 +830,7 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
         doomed = list(dict.fromkeys(ids))
     elif args.action == "prune":
         doomed = store.prunable(args.keep, args.before)
+        print(f"prune: {_prune_rule(args.keep, args.before)}", file=sys.stderr)
     else:
         doomed = []
     try:
@@ -855,6 +856,17 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
     except StoreError as e:  # RunBusy: a run being recorded, the file open elsewhere
         _fail(Exit.FAILED, _one_line(e))
     return Exit.OK
+
+
+def _prune_rule(keep: int | None, before: datetime | None) -> str:
+    """Which runs a prune takes, the moment in UTC as `runs list` shows start times (WHEN is
+    read in local time unless it gives its offset)."""
+    parts = [f"runs beyond the newest {keep}"] if keep is not None else []
+    if before is not None:
+        utc = before.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S+0000")
+        local = before.astimezone().strftime("%Y-%m-%d %H:%M:%S %Z")
+        parts.append(f"runs started before {utc} ({local})")
+    return " and ".join(parts) + " (a run being recorded is left out)"
 
 
 def _n_runs(runs: list[Any]) -> str:

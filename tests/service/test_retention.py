@@ -179,6 +179,12 @@ def test_runs_delete_prune_and_vacuum_from_the_command_line(
 
     status, _, err = _cli(capsys, four_runs, "prune", "--keep", "1", "--dry-run")
     assert status == Exit.OK and "would delete 3 runs: 1–3" in err
+    assert "prune: runs beyond the newest 1 (a run being recorded is left out)" in err
+    # the moment WHEN names, in UTC as `runs list` shows the starts (CLI audit: read in local
+    # time, it was never said which moment that was)
+    status, _, err = _cli(capsys, four_runs, "prune", "--before", "2026-11-15T10:00+02:00",
+                          "--dry-run")  # fmt: skip
+    assert "runs started before 2026-11-15T08:00:00+0000 (" in err and "would delete 2" in err
     assert _rows(four_runs, 1)["runs"] == 1  # a dry run deletes nothing
 
     status, _, err = _cli(capsys, four_runs, "prune", "--keep", "1", "--before", "2026-11-15")
