@@ -1112,6 +1112,10 @@ def _campaign_run(args: argparse.Namespace) -> int:
           + (f", {outcome.crashed} crashed (the same command runs them again)"
              if outcome.crashed else "")
           + f"; {outcome.results}")  # fmt: skip
+    report, cases = out / "report.md", out / "cases.jsonl"  # (appended to as each case ends)
+    if report.exists() and cases.exists() and report.stat().st_mtime < cases.stat().st_mtime:
+        print(f"{report} is older than these results: `sdh2svc campaign report {out}` writes "
+              "it anew", file=sys.stderr)  # fmt: skip
     return Exit.FAILED if outcome.crashed else Exit.OK
 
 

@@ -6,6 +6,7 @@ override, a resume under another configuration; crashed cases run again. The cas
 from __future__ import annotations
 
 import json
+import os
 import socket
 from pathlib import Path
 from typing import Any
@@ -423,3 +424,23 @@ def test_a_suite_name_too_long_for_its_case_ids_is_a_usage_error(
     assert main(cmd) == 2
     assert "at most 52 characters for 2 cases" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_report_older_than_the_results_a_run_made_is_said(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A campaign resumed after its report was written: report.md and the plots stayed as
+    they were, out of date, without a word (CLI audit)."""
+    out, path = tmp_path / "o", tmp_path / "s.json"
+    s = suite(1)
+    s.dump(path)
+    run(s, out)
+    (out / "report.md").write_text("3 of 10 cases recorded")
+    os.utime(out / "report.md", (0, 0))
+    assert main(["campaign", "run", str(path), "--out", str(out), "--quiet"]) == 0  # nothing left
+    err = capsys.readouterr().err
+    assert f"{out / 'report.md'} is older than these results" in err, err
+    assert main(["campaign", "report", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["campaign", "run", str(path), "--out", str(out), "--quiet"]) == 0
+    assert "older than these results" not in capsys.readouterr().err
