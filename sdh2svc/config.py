@@ -438,6 +438,8 @@ def format_errors(
         msg = error_message(e).removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = REMOVED_KEYS.get(key) or unknown_key(model_keys(model, loc[:-1]))
+            if len(loc) == 1 and (near := _sections_with(model, str(loc[0]))):
+                msg += f"; did you mean {' or '.join(near)}?"  # a key given without its section
         elif e["type"] in ("tuple_type", "list_type") and isinstance(value, str):
             # a list given as text (--set, an environment variable): "tuple" says nothing there
             msg = f"a list is needed, written in JSON, e.g. {key}={json.dumps([value])}"
@@ -457,6 +459,12 @@ def unknown_key(keys: Iterable[str] | None) -> str:
     if keys is None:
         return "unknown key"
     return f"unknown key (the keys there are: {', '.join(keys) or 'none'})"
+
+
+def _sections_with(model: Any, name: str) -> list[str]:
+    """``section.name`` for every section of ``model`` that has a key ``name``."""
+    return [f"{top}.{name}" for top in model_keys(model) or ()
+            if name in (model_keys(model, (top,)) or ())]  # fmt: skip
 
 
 def model_keys(model: Any, loc: tuple[int | str, ...] = ()) -> list[str] | None:

@@ -264,3 +264,10 @@ def test_a_list_given_as_plain_text_is_told_how_to_write_it() -> None:
     said = "; ".join(bad.value.problems)
     assert 'a list is needed, written in JSON, e.g. service.allowed_hosts=["labpc"]' in said
     assert "tuple" not in said
+
+
+def test_a_key_given_without_its_section_is_told_where_it_lives() -> None:
+    """`--set db_path=…`: only "unknown key" and the sections (CLI audit)."""
+    with pytest.raises(ConfigError) as bad:
+        load_config(overrides=["db_path='/tmp/x.sqlite'"], use_env=False)
+    assert "did you mean storage.db_path?" in "; ".join(bad.value.problems)
