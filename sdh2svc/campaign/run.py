@@ -640,6 +640,8 @@ def run_campaign(
     validate_cases(suite, overrides, config_path)
     if ray_address is not None:
         _check_ray_address(ray_address)
+        if not out.exists():  # a new campaign: joined before its folder is made (a cluster
+            _ray_connect(ray_address)  # that is not there left a folder of no case behind)
     _check_same(out, info)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -850,9 +852,14 @@ def _take(it: Iterator[Case], n: int) -> list[Case]:
     return out
 
 
-def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | None,
-             base: Mapping[str, Any], address: str,
-             record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
+RAY_HINT = (
+    "`ray start --head` starts one on this machine, RAY_ADDRESS names another; or give "
+    "--ray local for a Ray of the campaign's own, --ray ray://HOST:PORT, or --workers N"
+)
+
+
+def _ray_connect(address: str) -> Any:
+    """Ray, joined to the cluster at ``address`` (once per process)."""
     try:
         import ray
     except ImportError:
@@ -860,9 +867,19 @@ def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | 
     if not ray.is_initialized():
         try:  # "local": a Ray of its own on this machine
             ray.init(address=None if address == "local" else address, log_to_driver=False)
-        except Exception as e:  # no cluster there (ConnectionError), a bad address …
+        except ConnectionError:  # (Ray's own advice names options sdh2svc does not have)
+            raise CampaignError(4, f"cannot reach the Ray cluster at {address}: no cluster "
+                                f"answered ({RAY_HINT})") from None  # fmt: skip
+        except Exception as e:  # a bad address …
             raise CampaignError(4, f"cannot reach the Ray cluster at {address}: "
                                 f"{type(e).__name__}: {e}") from None  # fmt: skip
+    return ray
+
+
+def _run_ray(todo: Sequence[Case], overrides: Sequence[str], config_path: str | None,
+             base: Mapping[str, Any], address: str,
+             record: Callable[[dict[str, Any]], None]) -> None:  # fmt: skip
+    ray = _ray_connect(address)
     remote = ray.remote(num_cpus=1, max_retries=0)(run_case)
     args = (list(overrides), config_path, None, dict(base))
     refs = {remote.remote(c.model_dump_json(), *args): c for c in todo}

@@ -405,7 +405,11 @@ def test_no_ray_cluster_at_the_address_is_one_line(
     # GCS process, e.g. one still shutting down after the local-Ray test)
     from ray._private import services
 
-    monkeypatch.setattr(services, "find_gcs_addresses", lambda: [])
+    def no_gcs() -> list[str]:
+        return []
+
+    no_gcs.cache_clear = lambda: None  # type: ignore[attr-defined]  # (Ray clears its cache)
+    monkeypatch.setattr(services, "find_gcs_addresses", no_gcs)
     monkeypatch.setattr(services, "find_bootstrap_address", lambda temp_dir: None)
     path = tmp_path / "s.json"
     tiny_suite(("rubber", 1)).dump(path)
@@ -418,6 +422,10 @@ def test_no_ray_cluster_at_the_address_is_one_line(
             os.environ["RAY_ADDRESS"] = env_before
     err = capsys.readouterr().err
     assert err.startswith("sdh2svc campaign: cannot reach the Ray cluster at auto: ")
+    # sdh2svc's options, not Ray's; and no folder of no case left to refuse another suite
+    # (CLI audit)
+    assert "--ray local" in err and "--address" not in err, err
+    assert not (tmp_path / "o").exists()
     assert err.count("\n") == 1
     assert camp.read_rows(tmp_path / "o") == []
 
