@@ -279,3 +279,30 @@ def test_an_estop_answers_while_a_crashed_runs_record_waits_for_a_lock(
 
     asyncio.run(main())
     other.close()
+
+
+def test_with_a_token_the_3d_view_may_only_estop(tmp_path: Path) -> None:
+    """The 3-D view cannot authenticate, and with a token set it listens where the service
+    does: its buttons may stop the hand, nothing else (a mutation audit removed the rule and
+    every other test passed)."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'",
+                                 "service.token='s3cret'"], use_env=False)  # fmt: skip
+
+    async def main() -> None:
+        async with service(cfg, Simulated()) as (_c, services):
+            st = services.station
+            assert st.joints is not None
+            for kind, args in (("start", {}), ("stop", {}), ("open", {}), ("release", {}),
+                               ("params", {"grasp_force": 3.0})):  # fmt: skip
+                with pytest.raises(hand_service.ServiceError) as refused:
+                    await st.command(kind, args)
+                assert refused.value.status == 403, kind
+                assert "needs its token" in str(refused.value), kind
+            assert not st.running and not st.opening and st.params.grasp_force == 2.0
+            await st.command("estop", {})
+            assert st.joints.estopped
+            with pytest.raises(hand_service.ServiceError):  # nor may it undo the e-stop
+                await st.command("release", {})
+            assert st.joints.estopped
+
+    asyncio.run(main())
