@@ -89,3 +89,28 @@ async def test_a_spoilt_reply_during_a_move_stops_the_move_before_the_retry(serv
         assert link.stats.motion_stops == 1
         assert not dev.moving
         assert actual[1] < 60.0
+
+
+async def test_a_target_echoed_wrong_is_set_again_not_moved_to(served) -> None:
+    """ASCII has no checksum: a digit flipped on the way to the hand sets another target, which
+    the next `m` would drive the finger to in one move. The set command's echo must be what was
+    sent, or the exchange is spoilt and sent again (a mutation audit made the check always pass
+    and every other test passed)."""
+    dev, url, _ = served
+    async with await JointLink.open(url, timeout_s=0.3) as link:
+        real = dev.next_packet
+        flipped: list[bytes] = []
+
+        def flip_the_echo(now: float) -> bytes | None:
+            packet = real(now)
+            if packet is not None and packet.startswith(b"P=") and not flipped:
+                flipped.append(packet)
+                return b"P=12.500" + packet[packet.index(b",") :]  # as if 2.5 became 12.5
+            return packet
+
+        dev.next_packet = flip_the_echo  # type: ignore[method-assign]
+        garbled = link.stats.garbled
+        echoed = await link.set_targets((0.0, 2.5, 0.0, 0.0, 0.0, 0.0, 0.0))
+        assert flipped and link.stats.garbled == garbled + 1  # taken as spoilt, and sent again
+        assert echoed == pytest.approx((0.0, 2.5, 0.0, 0.0, 0.0, 0.0, 0.0))
+        assert dev.target_deg == pytest.approx((0.0, 2.5, 0.0, 0.0, 0.0, 0.0, 0.0))
