@@ -57,3 +57,46 @@ def test_bit_errors_never_let_the_force_pass_the_ceiling(
     assert forces and max(forces) <= ceiling, (max(forces), result.message)
     if result.status == "faulted":  # why it stopped, in words: never the force
         assert result.message.split(":")[0] in {f.value for f in Fault} - {"force_ceiling"}
+
+
+def test_an_old_frame_in_the_rolling_faults_and_the_hand_holds_before_anything_else(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A frame that came, but long ago (an iteration held up by a joint command's retries, a
+    blocked loop): the run must not grip on its force. Its age is checked in every loop, and a
+    fault holds the hand (stop, targets = actual) before anything else is sent. A mutation
+    audit made the rolling ignore a frame's age, and dropped the hold after a fault: every
+    other test passed (they meet a silent stream only, and look after the servo settled)."""
+    cfg = cfg_with(tmp_path)
+    real_age = TactileFrame.age
+    old = [False]
+    monkeypatch.setattr(TactileFrame, "age",
+                        lambda self, now=None: 1.0 if old[0] else real_age(self, now))  # fmt: skip
+
+    async def main() -> tuple[Any, list[str]]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            log: list[str] = []
+            joints = runner.joints
+            for name in ("hold", "send_targets", "set_targets", "move"):
+                real = getattr(joints, name)
+
+                async def spy(*args: Any, _real: Any = real, _name: str = name) -> Any:
+                    log.append(_name)
+                    return await _real(*args)
+
+                setattr(joints, name, spy)
+
+            def on(e: Event) -> None:
+                if e.kind is EventKind.REVERSAL:
+                    old[0] = True  # rolling for a while: from now on every frame is 1 s old
+                if e.kind is EventKind.FAULT:
+                    log.append("fault")
+
+            seen(runner).hooks.append(on)
+            return await runner.run(), log
+
+    result, log = fast(main)
+    assert result.status == "faulted", result.message
+    assert result.message.startswith("stale_sensor: tactile frame 1000 ms old"), result.message
+    after = log[log.index("fault") + 1 :]
+    assert after[:1] == ["hold"], after  # held first; nothing sent before it
