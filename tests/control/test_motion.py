@@ -151,3 +151,49 @@ def test_a_last_increment_that_ends_returns_the_actual_angles() -> None:
 
     assert fast(main) == link.actual
     assert link.moves == 1 and link.polls == 4
+
+
+class _Stuck(_Busy):
+    """Fingers that do not move at all, 20° from the goal (an obstacle, a person's hand)."""
+
+    def __init__(self, goal: Sequence[float]) -> None:
+        super().__init__(goal)
+        self.actual = tuple(g - 20.0 for g in goal)
+
+
+def test_fingers_that_make_no_progress_end_the_move_after_stall_s() -> None:
+    """Each increment is one step ahead of the actual angles: fingers that do not follow are
+    pushed one step on for STALL_S, then the move ends as blocked — not ten times as long (a
+    mutation audit stretched STALL_S tenfold and every other test passed)."""
+
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        with pytest.raises(MoveBlocked, match=r"the fingers stopped 20\.0° short of the pose"):
+            await asyncio.wait_for(_move(_Stuck(GOAL)), 60.0)
+        return loop.time() - t0
+
+    took = fast(main)
+    assert STALL_S <= took < STALL_S + 0.5, took
+
+
+@pytest.mark.parametrize("duration", [float("nan"), float("inf"), -1.0])
+def test_a_nonsensical_move_duration_still_ends_a_blocked_last_increment(duration: float) -> None:
+    """`m` answered with a NaN, infinite or negative duration: taken as none, so an axis the
+    firmware keeps positioning still ends the move STALL_S later (with the duration as it came,
+    the deadline never passed: a mutation audit)."""
+
+    class Odd(_Busy):
+        async def move(self) -> float:
+            await super().move()
+            return duration
+
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        with pytest.raises(MoveBlocked, match="did not end the pose's last increment"):
+            await asyncio.wait_for(_move(Odd(GOAL)), 60.0)
+        return loop.time() - t0
+
+    took = fast(main)
+    assert STALL_S <= took < STALL_S + 0.2, took
