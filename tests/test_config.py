@@ -206,6 +206,8 @@ def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None
         (["calibration.force_reference_area_mm2=1"], "a saturated pad reads F = 0.229"),
         (["safety.force_ceiling_max=50"], "allowed: force_ceiling_max < 42.4"),
         (["safety.stale_frame_ms=2000"], "stale_frame_ms ≤ 1000"),
+        # a finger must stop within one increment: every bound on motion rests on this one
+        (["safety.max_step_deg=1.5"], "allowed: 0.0 < max_step_deg ≤ 1.0"),
         (["run.tactile_rate_hz=60"], "tactile_rate_hz ≤ 30"),  # the controller streams 30 at most
         (
             ["sim.links.dsa_tcp_port=47130", "sim.links.sdh_tcp_port=47130"],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 from hypothesis import example, given, settings
@@ -16,9 +17,11 @@ from sdh2svc.control.params import RollingParams
 from sdh2svc.control.plan import grip_force
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.route import (
+    CONE_MARGIN,
     LIMIT_MARGIN,
     REACH_FLOOR_MM,
     REACH_MARGIN_MM,
+    Margins,
     Move,
     Predictor,
     candidates,
@@ -329,3 +332,17 @@ def test_the_route_follows_finger1s_reach_edge_only_while_the_grip_is_firm(
         pr = pred.predict(move)
         assert pr is not None
         assert pred.margins(pr.phi, pr.A, pr.omega_A, pr.omega_B).reach >= now.reach
+
+
+def test_the_routes_margins_are_kept_to_the_last_field() -> None:
+    """A configuration is inside the route's margins only if every one holds: the joints
+    LIMIT_MARGIN, the cones and the wedge CONE_MARGIN, the hold, Finger 1's reach (a mutation
+    audit let the joints and the cones go negative and every other test passed)."""
+    ok = Margins(cone_A=CONE_MARGIN, cone_B=CONE_MARGIN, wedge=CONE_MARGIN, hold=0.0,
+                 joints1=LIMIT_MARGIN, joints2=LIMIT_MARGIN, reach=REACH_MARGIN_MM)  # fmt: skip
+    assert ok.inside()
+    short = 1e-6
+    for field in ("cone_A", "cone_B", "wedge", "hold", "joints1", "joints2", "reach"):
+        worse = replace(ok, **{field: getattr(ok, field) - short})
+        assert not worse.inside(), field
+    assert replace(ok, reach=REACH_FLOOR_MM).inside(REACH_FLOOR_MM)
