@@ -306,3 +306,40 @@ def test_with_a_token_the_3d_view_may_only_estop(tmp_path: Path) -> None:
             assert st.joints.estopped
 
     asyncio.run(main())
+
+
+def test_an_estop_the_runs_next_command_meets_ends_the_run_estopped_not_faulted(
+    tmp_path: Path,
+) -> None:
+    """The e-stop latches the link and tells the run in the same instant; the stop itself goes
+    out a moment later. A command the run sends in between is refused by the latch: the run
+    must end e-stopped, not "faulted: joint_error" (a mutation audit removed the telling and
+    every other test passed)."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'"], use_env=False)
+
+    async def main() -> tuple[dict[str, Any], list[str]]:
+        async with service(cfg, Simulated()) as (c, services):
+            st = services.station
+            assert st.joints is not None and st.store is not None
+            joints, pressed = st.joints, []
+            real = joints.set_targets
+
+            async def estop_first(angles: Any) -> Any:
+                if st.running and not pressed and len(calls) >= 3:  # mid-move
+                    pressed.append(asyncio.ensure_future(st.estop()))
+                    await asyncio.sleep(0)  # the e-stop's first half runs: latch, the run told
+                calls.append(1)
+                return await real(angles)
+
+            calls: list[int] = []
+            joints.set_targets = estop_first  # type: ignore[method-assign]
+            run_id = (await c.post("/api/runs", headers=JSON, json={})).json()["run_id"]
+            async with asyncio.timeout(60):
+                while not pressed or not pressed[0].done() or st.running:
+                    await asyncio.sleep(0.02)
+            kinds = [e["kind"] for e in st.store.events(run_id)]
+            return st.last_run or {}, kinds
+
+    last, kinds = asyncio.run(main())
+    assert last.get("status") == "e-stopped", last
+    assert "fault" not in kinds and "estop" in kinds, kinds
