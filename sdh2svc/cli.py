@@ -1342,7 +1342,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(e, OSError) and e.errno in _NO_ROOM:  # the output's disk, not a bug
             with contextlib.suppress(OSError):  # (the exit's own flush must not fail again)
                 _quiet_stdout()
-            _report(args, f"cannot write its output: {e.strerror or e}")
+            what = e.filename or "its output"  # (stdout's failure names no file)
+            _report(args, f"cannot write {what}: {e.strerror or e}")
             return Exit.UNAVAILABLE
         if debug:
             traceback.print_exc()
