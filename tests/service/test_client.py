@@ -13,7 +13,7 @@ import json
 import re
 import socket
 import struct
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,11 +90,28 @@ async def _watch_a_cycle(svc: LiveService, port: int) -> Cycle:
                 )
         with pytest.raises(Conflict):  # one run at a time
             await c.start_run()
-        # the watchers have what they need: the run stops (and releases) rather than roll its
-        # stroke; a run's completion is the fast-mode tests' and the stalled-client test's
+        # the watchers have what they need: once it has a few samples to page through, the run
+        # stops (and releases) rather than roll its stroke; a run's completion is the fast-mode
+        # tests' and the stalled-client test's
+        await c.wait_status(_rolled(ITERATIONS), timeout=RUN_TIMEOUT_S)
         await c.stop_run()
         end = await c.wait_run(run_id, timeout=RUN_TIMEOUT_S)
     return Cycle(run_id, hello, first, end, got, urdf)
+
+
+ITERATIONS = 10  # the watched run's before it stops: test_run_observed_and_read_back pages them
+
+
+def _rolled(n: int) -> Callable[[dict[str, Any]], bool]:
+    """The run has rolled ``n`` iterations; an AssertionError naming how it ended if it ended
+    first (not a wait for what will never come)."""
+
+    def ok(st: dict[str, Any]) -> bool:
+        run = st.get("run") or {}
+        assert run.get("status") in (None, "running"), f"the run ended first: {run}"
+        return bool(run.get("iteration", 0) >= n)
+
+    return ok
 
 
 async def _first_sample(tm: AsyncTelemetry, run_id: int) -> dict[str, Any]:
