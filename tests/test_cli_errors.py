@@ -22,6 +22,7 @@ import pytest
 from sdh2svc import cli
 from sdh2svc.cli import Exit, main, status_url
 from sdh2svc.service.store import RunStore
+from tests.service.test_retention import another_process_open
 
 FOUND_NOTHING = "no run database at data/runs.sqlite (set storage.db_path or run from the directory"
 
@@ -212,30 +213,18 @@ def test_estop_latched_here_while_a_service_has_the_database_open_says_it_stoppe
     """A running service reads the latch on disk only when it starts: `estop --latch` beside
     one said "latched" and exited 0 while the fingers went on (found by a safety audit). It
     now says the hand was not stopped, and how to stop it, and exits 1."""
-    import subprocess
-    import sys
-
-    holder = subprocess.Popen(  # another program with the database open, as a service has it
-        [sys.executable, "-c", "import sqlite3, sys; c = sqlite3.connect(sys.argv[1]); "
-         "c.execute('SELECT COUNT(*) FROM runs').fetchone(); print('open', flush=True); "
-         "sys.stdin.read()", str(one_run)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        assert holder.stdout is not None and holder.stdout.readline() == "open\n"
+    with another_process_open(one_run) as pid:  # as a service has it
         status, out, err = call(capsys, "estop", "--latch", *db_set(one_run))
         assert status == Exit.FAILED and out.startswith("latched since "), (out, err)
-        assert f"pid {holder.pid}" in err and "the hand was NOT stopped" in err
+        assert f"pid {pid}" in err and "the hand was NOT stopped" in err
         assert "POST /api/estop" in err
         # released on disk only, a latched service would stay latched and say it is on disk,
         # while a restart came up released (docs audit): refused, the latch kept
         status, out, err = call(capsys, "estop", "--release", *db_set(one_run))
         assert status == Exit.FAILED and not out, (out, err)
         err = one_line(err, "estop")
-        assert f"pid {holder.pid}" in err and "not released" in err, err
+        assert f"pid {pid}" in err and "not released" in err, err
         assert "POST /api/estop/release" in err
-    finally:
-        holder.communicate("", timeout=30)
     assert call(capsys, "estop", *db_set(one_run))[1].startswith("latched since ")
     status, out, err = call(capsys, "estop", "--latch", *db_set(one_run))
     assert status == Exit.OK and not err  # nobody else has it open
@@ -279,22 +268,13 @@ def test_estop_latched_from_another_pid_namespace_says_it_stopped_nothing(
     if subprocess.run(["unshare", "--pid", "--fork", "--mount-proc", "true"],
                       capture_output=True, check=False).returncode != 0:  # fmt: skip
         pytest.skip("this machine lets no test create a pid namespace (unshare needs root)")
-    holder = subprocess.Popen(  # another program with the database open, as a service has it
-        [sys.executable, "-c", "import sqlite3, sys; c = sqlite3.connect(sys.argv[1]); "
-         "c.execute('SELECT COUNT(*) FROM runs').fetchone(); print('open', flush=True); "
-         "sys.stdin.read()", str(one_run)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        assert holder.stdout is not None and holder.stdout.readline() == "open\n"
+    with another_process_open(one_run):  # as a service has it
         r = subprocess.run(["unshare", "--pid", "--fork", "--mount-proc", sys.executable, "-m",
                             "sdh2svc", "estop", "--latch", *db_set(one_run)],
                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
-        assert r.returncode == Exit.FAILED and r.stdout.startswith("latched since "), r
-        assert "in another container or pid namespace" in r.stderr, r.stderr
-        assert "the hand was NOT stopped" in r.stderr
-    finally:
-        holder.communicate("", timeout=30)
+    assert r.returncode == Exit.FAILED and r.stdout.startswith("latched since "), r
+    assert "in another container or pid namespace" in r.stderr, r.stderr
+    assert "the hand was NOT stopped" in r.stderr
 
 
 @pytest.mark.parametrize(

@@ -39,6 +39,18 @@ def _watch(runner: Any) -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
     return sent
 
 
+def _run_watched(cfg: Any, tmp_path: Path) -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
+    """A whole run on the simulated hand; every target it sent, beside the angles read."""
+
+    async def main() -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
+        async with rig(cfg, tmp_path) as (_hand, runner):
+            sent = _watch(runner)
+            await runner.run()
+            return sent
+
+    return fast(main)
+
+
 def _within_bounds(sent: list[tuple[tuple[float, ...], tuple[float, ...]]], cfg: Any) -> None:
     step, lo, hi = cfg.safety.max_step_deg, cfg.limits.min_deg, cfg.limits.max_deg
     for want, actual in sent:
@@ -56,13 +68,7 @@ def test_a_grasp_law_that_asks_a_jump_is_clamped_to_one_step(
     monkeypatch.setattr(runner_module, "grasp_step", lambda *a: GraspStep(
         (JUMP_DEG, -JUMP_DEG, JUMP_DEG, -JUMP_DEG), None))  # fmt: skip
 
-    async def main() -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
-        async with rig(cfg, tmp_path) as (_hand, runner):
-            sent = _watch(runner)
-            await runner.run()
-            return sent
-
-    sent = fast(main)
+    sent = _run_watched(cfg, tmp_path)
     grasp = [(w, a) for w, a in sent if any(abs(x - y) > 1e-9 for x, y in zip(w, a, strict=True))]
     assert len(grasp) > 10  # the law's jumps went out, each cut to one step
     _within_bounds(sent, cfg)
@@ -87,12 +93,6 @@ def test_a_rolling_step_that_asks_a_jump_is_clamped_to_one_step(
 
     monkeypatch.setattr(runner_module, "step", jumping)
 
-    async def main() -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
-        async with rig(cfg, tmp_path) as (_hand, runner):
-            sent = _watch(runner)
-            await runner.run()
-            return sent
-
-    sent = fast(main)
+    sent = _run_watched(cfg, tmp_path)
     assert len(rolled) >= 3  # the rolling ran and its jumps went out (the grip soon lost)
     _within_bounds(sent, cfg)
