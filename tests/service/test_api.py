@@ -486,9 +486,11 @@ async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
     extra = (*long_runs, *PATIENT)
     svc = await asyncio.to_thread(start_service, tmp_path, viewer=False, extra=extra)
     try:
-        async with svc.client() as c, telemetry(c, tactile=False) as tm:
+        async with svc.client() as c:
             run_id = (await start_run(c, {"cycles": 50}, "egg"))["run_id"]
-            await tm.until(lambda: tm.samples(run_id))
+            # mid-grasp: the fingers close on the object (a stop while rolling takes the same
+            # path, later)
+            await c.wait_status(lambda st: (st.get("run") or {}).get("state") == "grasping")
     finally:
         code = await asyncio.to_thread(svc.stop)
     log = "".join(svc.log)
