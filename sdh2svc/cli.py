@@ -14,7 +14,7 @@ import re
 import signal
 import sys
 import traceback
-from collections.abc import Callable, Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Sequence
 from datetime import UTC, datetime, timedelta
 from enum import IntEnum
 from pathlib import Path
@@ -918,35 +918,9 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
         path = args.output or (None if args.format == "csv" else f"run-{args.id}.mcap")
     if path is None and sys.stdout is None:  # started with its standard output closed
         _fail(Exit.UNAVAILABLE, "cannot write stdout: it is closed (give --output FILE)")
-    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill`: as Ctrl-C, the file kept whole
     try:
-        if args.format == "csv":
-            if path is None:
-                store.export_csv(args.id, sys.stdout)
-            else:
-                with whole_file(path, binary=False) as out:
-                    store.export_csv(args.id, out)
-        else:
-            from sdh2svc.service.store import recorded_settings
-
-            try:  # before the file is opened: a refused run leaves no empty file behind
-                recorded_settings(run, cfg)
-            except ConfigError as e:
-                _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
-                                  + "; ".join(e.problems))  # fmt: skip
-            if path is None:  # MCAP is written with seeks back, which a pipe cannot take
-                import shutil
-                import tempfile
-
-                with tempfile.TemporaryFile() as fh:
-                    n = store.export_mcap(args.id, fh, cfg)
-                    fh.seek(0)
-                    shutil.copyfileobj(fh, sys.stdout.buffer)
-                sys.stdout.flush()
-            else:
-                with whole_file(path, binary=True) as fh:
-                    n = store.export_mcap(args.id, fh, cfg)
-            print(f"{path or 'stdout'}: {n} messages", file=sys.stderr)
+        with _sigterm_as_ctrl_c():  # `kill`: as Ctrl-C, the file kept whole
+            _export(args, store, cfg, run, path)
     except BrokenPipeError:  # the reader had enough (`… | head`): as every command, 141
         _quiet_stdout()
         return Exit.BROKEN_PIPE
@@ -957,9 +931,39 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
             print(f"sdh2svc runs: interrupted; {path} not written (a file there before is as it "
                   "was)", file=sys.stderr)  # fmt: skip
         raise
-    finally:
-        signal.signal(signal.SIGTERM, previous)
     return Exit.OK
+
+
+def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, Any],
+            path: str | None) -> None:  # fmt: skip
+    """Export run ``args.id`` as CSV or MCAP, to ``path`` (written whole) or standard output."""
+    if args.format == "csv":
+        if path is None:
+            store.export_csv(args.id, sys.stdout)
+        else:
+            with whole_file(path, binary=False) as out:
+                store.export_csv(args.id, out)
+        return
+    from sdh2svc.service.store import recorded_settings
+
+    try:  # before the file is opened: a refused run leaves no empty file behind
+        recorded_settings(run, cfg)
+    except ConfigError as e:
+        _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
+                          + "; ".join(e.problems))  # fmt: skip
+    if path is None:  # MCAP is written with seeks back, which a pipe cannot take
+        import shutil
+        import tempfile
+
+        with tempfile.TemporaryFile() as fh:
+            n = store.export_mcap(args.id, fh, cfg)
+            fh.seek(0)
+            shutil.copyfileobj(fh, sys.stdout.buffer)
+        sys.stdout.flush()
+    else:
+        with whole_file(path, binary=True) as fh:
+            n = store.export_mcap(args.id, fh, cfg)
+    print(f"{path or 'stdout'}: {n} messages", file=sys.stderr)
 
 
 def _quiet_stdout() -> None:
@@ -1091,21 +1095,15 @@ def _campaign_run(args: argparse.Namespace) -> int:
         _fail(Exit.USAGE, f"--workers {args.workers}: at least 1")
     suite = load_suite(args.dir)
     out = Path(args.out or f"campaigns/{suite.name}")
-    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill`: stopped as by Ctrl-C
-    # SIGINT heard even where the shell had it ignored (a job started in the background):
-    # SIGTERM is sent on as SIGINT
-    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
-                               overrides=args.overrides, config_path=args.config,
-                               progress=not args.quiet)  # fmt: skip
+        with _sigterm_as_ctrl_c():  # `kill`: stopped as by Ctrl-C
+            outcome = run_campaign(suite, out, workers=args.workers, ray_address=args.ray,
+                                   overrides=args.overrides, config_path=args.config,
+                                   progress=not args.quiet)  # fmt: skip
     except KeyboardInterrupt:
         print(f"sdh2svc campaign: interrupted; every finished case is in {out}: the same "
               "command goes on with the rest", file=sys.stderr)  # fmt: skip
         raise
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        signal.signal(signal.SIGINT, previous_int)
     n = outcome.total
     print(f"{out}: {n} cases ({outcome.skipped} already there, {outcome.ran} run in "
           f"{outcome.wall_s:.1f} s), success {outcome.succeeded}/{n - outcome.crashed}"
@@ -1119,11 +1117,25 @@ def _campaign_run(args: argparse.Namespace) -> int:
     return Exit.FAILED if outcome.crashed else Exit.OK
 
 
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c() -> Iterator[None]:
+    """SIGTERM (`kill`) ends the block as Ctrl-C does (a campaign keeps its finished cases, an
+    export the file as it was), and Ctrl-C is heard even where the shell had it ignored (a job
+    started in the background): SIGTERM is sent on as SIGINT."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
+
+
 def _interrupt(signum: int, frame: object) -> None:
-    """SIGTERM as Ctrl-C: the campaign stops its workers and keeps what has finished. Sent on
-    as SIGINT, to SIGINT's own handler: while a case runs in this process that is asyncio's,
-    which cancels the case's task. A KeyboardInterrupt raised here could land inside the event
-    loop's own bookkeeping, and the loop then waited forever for a wake-up it had lost."""
+    """SIGTERM as Ctrl-C: sent on as SIGINT, to SIGINT's own handler: while a campaign's case
+    runs in this process that is asyncio's, which cancels the case's task. A KeyboardInterrupt
+    raised here could land inside the event loop's own bookkeeping, and the loop then waited
+    forever for a wake-up it had lost."""
     signal.raise_signal(signal.SIGINT)
 
 

@@ -14,7 +14,7 @@ import re
 import socket
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -526,22 +526,12 @@ def test_a_signal_stops_a_run_as_the_services_stop_does(tmp_path: Path) -> None:
     run releases the object and is recorded as stopped with its end, its summary printed and
     its one line on stderr; exit 130."""
     import signal
-    import time
 
     db = tmp_path / "r.sqlite"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "sdh2svc", "run", "--sim", "--json", *db_set(db)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 60
-        while not _phases(db) and time.monotonic() < deadline:  # the run has begun
-            time.sleep(0.05)
+    with _begun_run(db, "--json") as proc:
         assert _runs(db) == [(1, "running")]
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
     assert proc.returncode == Exit.INTERRUPTED == 130, err
     assert _runs(db) == [(1, "stopped")]
     assert json.loads(out)["status"] == "stopped"
@@ -576,28 +566,41 @@ def test_a_second_signal_ends_the_run_at_once_and_says_where_it_left_the_hand(
     let go: the run ends at once, the hand left where it is. It printed nothing and was
     recorded as a plain `stopped`, the word of a run that let its object go (CLI audit)."""
     import signal
-    import time
 
     db = tmp_path / "r.sqlite"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "sdh2svc", "run", "--sim", *db_set(db)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 60
-        while not _phases(db) and time.monotonic() < deadline:  # the run has begun
-            time.sleep(0.05)
+    with _begun_run(db) as proc:
         proc.send_signal(signal.SIGTERM)
-        while "releasing" not in _phases(db) and time.monotonic() < deadline:  # it lets go
-            time.sleep(0.05)
+        _until(lambda: "releasing" in _phases(db))  # it lets go
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
     assert proc.returncode == Exit.INTERRUPTED, err
     assert "interrupted again: the run ended at once, recorded as interrupted" in err, err
     assert _runs(db) == [(1, "interrupted")]
     assert "stopped" not in _phases(db)  # its release was cut short
+
+
+@contextlib.contextmanager
+def _begun_run(db: Path, *args: str) -> Iterator[subprocess.Popen[str]]:
+    """`sdh2svc run --sim` in real time, once its run has begun (its first phase recorded);
+    killed at the end of the block if it has not ended."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sdh2svc", "run", "--sim", *args, *db_set(db)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _until(lambda: bool(_phases(db)))
+        yield proc
+    finally:
+        proc.kill()
+
+
+def _until(ok: Callable[[], bool], timeout_s: float = 60.0) -> None:
+    """Wait (polling another process's record) until ``ok()``; at most ``timeout_s``."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not ok() and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 def _phases(db: Path) -> list[str]:

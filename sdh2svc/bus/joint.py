@@ -782,8 +782,7 @@ class JointLink:
         flipped digit would make a 12.5° finger read 92.5° — whose ±1° target is 80° away."""
         if len(values) != NUM_AXES or not all(math.isfinite(v) for v in values):
             return False
-        if any(not lo - _READ_MARGIN_DEG <= v <= hi + _READ_MARGIN_DEG
-               for v, (lo, hi) in zip(values, self.limits, strict=True)):  # fmt: skip
+        if self._past_limits(values):
             return False
         last = self.reading
         if last is None or not self.velocity_limits:
@@ -1032,18 +1031,23 @@ class JointLink:
             raise _Garbled(f"{req.label}: implausible values {reply.values}{beyond}")
         return reply
 
-    def _beyond_limits(self, values: Vec) -> str:
-        """Which axes an actual-angle reading puts past their limits by more than the read
-        margin, and what to do if one really stands there ("" if none does): the reading is
-        refused as a spoilt reply either way (ASCII carries no checksum), and a line refused
-        at every try would otherwise leave a lab checking its cables."""
+    def _past_limits(self, values: Vec) -> list[str]:
+        """The axes an actual-angle reading puts past their limits by more than the read
+        margin, each said with its reading and limits (a non-finite value is no reading)."""
         m = _READ_MARGIN_DEG
-        past = [f"axis {axis} reads {v:g}°, outside its limits {lo:g}…{hi:g}°"
+        return [f"axis {axis} reads {v:g}°, outside its limits {lo:g}…{hi:g}°"
                 for axis, (v, (lo, hi)) in enumerate(zip(values, self.limits, strict=False))
                 if math.isfinite(v) and not lo - m <= v <= hi + m]  # fmt: skip
+
+    def _beyond_limits(self, values: Vec) -> str:
+        """Which axes an actual-angle reading puts past their limits, and what to do if one
+        really stands there ("" if none does): the reading is refused as a spoilt reply either
+        way (ASCII carries no checksum), and a line refused at every try would otherwise leave
+        a lab checking its cables."""
+        past = self._past_limits(values)
         if not past:
             return ""
-        return (f" ({'; '.join(past)} by more than {m:g}°: if it stands there — "
+        return (f" ({'; '.join(past)} by more than {_READ_MARGIN_DEG:g}°: if it stands there — "
                 "moved unpowered, or the limits narrowed since — move it within its limits "
                 "with the hand off, or widen `limits`)")  # fmt: skip
 
