@@ -163,6 +163,8 @@ class _Server(uvicorn.Server):
         if services is not None:
             await services.station.stop_motion()
         await super().shutdown(sockets=sockets)
+        if self.force_exit:  # a second Ctrl-C skips the wait for clients, never our close
+            await self.lifespan.shutdown()
 
 
 async def serve(cfg: Settings, where: Where, *, announce_json: bool = False) -> int:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
+import signal
 import sqlite3
 import threading
 from pathlib import Path
@@ -343,3 +345,36 @@ def test_an_estop_the_runs_next_command_meets_ends_the_run_estopped_not_faulted(
     last, kinds = asyncio.run(main())
     assert last.get("status") == "e-stopped", last
     assert "fault" not in kinds and "estop" in kinds, kinds
+
+
+def test_a_second_ctrl_c_skips_the_wait_for_clients_not_the_close(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Ctrl-C twice (uvicorn's "force quit": it no longer waits for connections to close) left
+    the app's shutdown unsent: the event loop then cancelled it, and the journal showed "ERROR
+    uvicorn.error: Traceback … CancelledError" under a clean exit. The app still shuts down."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'", "service.port=0"],
+                      use_env=False)  # fmt: skip
+    closed: list[bool] = []
+
+    async def main() -> None:
+        services = await open_services(cfg, Simulated(), viewer=False)
+        sock = listen_socket(cfg)
+        server = _Server(uvicorn.Config(create_app(services), log_config=None, lifespan="on"))
+        try:
+            async with asyncio.timeout(60):
+                serving = asyncio.create_task(server.serve(sockets=[sock]))
+                while not server.started:
+                    await asyncio.sleep(0.01)
+                server.handle_exit(signal.SIGINT, None)  # as Ctrl-C's handler, twice
+                server.handle_exit(signal.SIGINT, None)
+                await serving
+                closed.append(services.station._closed)
+        finally:
+            await close_services(services)
+
+    with caplog.at_level(logging.INFO):
+        asyncio.run(main())
+    assert closed == [True]  # by the app's own shutdown, before serve() returned
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert not errors, [r.getMessage() for r in errors]
