@@ -884,6 +884,16 @@ def _id_ranges(ids: list[int]) -> str:
     return ", ".join(str(a) if a == b else f"{a}–{b}" for a, b in parts)
 
 
+def _run_line(r: dict[str, Any]) -> str:
+    """A run in `runs list`: ID, start, status, iterations, the simulated object, and why a
+    run that did not complete ended."""
+    obj = r["meta"].get("object")
+    name = (obj.get("name") or obj.get("kind") if isinstance(obj, dict) else obj) or "-"
+    why = _one_line((r["summary"] or {}).get("message") or "")
+    line = f"{r['id']:5d}  {r['started_at']}  {r['status']:11s}  {r['iterations']:6d} iterations"
+    return f"{line}  {name:<10s}  {why}".rstrip()
+
+
 def _export_format(given: str | None, output: str | None) -> str:
     """--format, or the one --output's name says (``.mcap``, ``.csv``; otherwise CSV) — as the
     client's export takes it. A name that says the other format is a usage error: a CSV named
@@ -900,8 +910,7 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     if args.action == "list":
         runs = store.runs()
         for r in runs:
-            print(f"{r['id']:5d}  {r['started_at']}  {r['status']:10s}  "
-                  f"{r['iterations']:6d} iterations")  # fmt: skip
+            print(_run_line(r))
         on_disk, free = store.size()
         print(f"{_n_runs(runs)} in {store.path}: {_megabytes(on_disk)}, {_megabytes(free)} of "
               "it free for new runs (`runs prune` deletes old runs)", file=sys.stderr)  # fmt: skip
@@ -910,7 +919,7 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     if run is None:
         _fail(Exit.NOT_FOUND, f"no run {args.id} in {store.path}")
     if args.action == "show":
-        print(json.dumps(run, indent=2, ensure_ascii=False))
+        print(json.dumps(store.record(args.id), indent=2, ensure_ascii=False))
         return Exit.OK
     if args.output == "-":  # standard output, as the convention has it (MCAP too: to a pipe)
         path = None

@@ -21,7 +21,7 @@ import pytest
 
 from sdh2svc import cli
 from sdh2svc.cli import Exit, main, status_url
-from sdh2svc.service.store import RunStore
+from sdh2svc.service.store import Recorder, RunStore
 from tests.service.test_retention import another_process_open
 
 FOUND_NOTHING = "no run database at data/runs.sqlite (set storage.db_path or run from the directory"
@@ -345,6 +345,36 @@ def test_run_id_beyond_sqlite_integers_is_not_found(
 def test_existing_run_still_shows(one_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
     status, out, _ = call(capsys, "runs", "show", "1", *db_set(one_run))
     assert status == Exit.OK and json.loads(out)["meta"] == {"test": True}
+
+
+def test_runs_list_names_the_object_and_why_a_run_ended_and_show_its_events(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`runs list` gave ID, start, status and iterations only, so a faulted run had to be
+    opened one by one to learn why; `runs show` left out the events `GET /api/runs/{id}`
+    gives (the phases, reversals, faults)."""
+    db = tmp_path / "runs.sqlite"
+    store = RunStore(db)
+    try:
+        lost = store.create_run({"object": {"name": "egg", "kind": "ellipse"}})
+        rec = Recorder(db, lost)
+        rec.event(1.5, 40, "fault", {"fault": "tactile_stale", "message": "no frame"})
+        rec.close()
+        store.finish_run(lost, "faulted", {"status": "faulted",
+                                           "message": "tactile line lost:\n no frame"})  # fmt: skip
+        real = store.create_run({"object": None})  # a real hand's run: no simulated object
+        store.finish_run(real, "completed", {"status": "completed", "message": ""})
+    finally:
+        store.close()
+    status, out, _ = call(capsys, "runs", "list", *db_set(db))
+    newest, oldest = out.splitlines()
+    assert status == Exit.OK and newest.split()[2:] == ["completed", "0", "iterations", "-"]
+    assert oldest.split()[2:6] == ["faulted", "0", "iterations", "egg"], oldest
+    assert oldest.endswith("  tactile line lost: no frame"), oldest  # on its one line
+    status, out, _ = call(capsys, "runs", "show", str(lost), *db_set(db))
+    assert status == Exit.OK and json.loads(out)["events"] == [
+        {"t": 1.5, "iteration": 40, "kind": "fault",
+         "detail": {"fault": "tactile_stale", "message": "no frame"}}]  # fmt: skip
 
 
 def test_export_to_an_unwritable_file(

@@ -654,6 +654,14 @@ class RunStore:
         r = self.db.execute(self._run_select() + " WHERE r.id = ?", (run_id,)).fetchone()
         return None if r is None else self._run_dict(r)
 
+    def record(self, run_id: int) -> dict[str, Any] | None:
+        """One run as ``GET /api/runs/{id}`` and ``sdh2svc runs show`` give it: :meth:`run`
+        and its ``events``."""
+        run = self.run(run_id)
+        if run is not None:
+            run["events"] = self.events(run_id)
+        return run
+
     @staticmethod
     def _run_dict(r: sqlite3.Row) -> dict[str, Any]:
         *fields, host, pid, started, pidns, seen = tuple(r)

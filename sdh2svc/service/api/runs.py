@@ -219,9 +219,7 @@ _RUN_RESPONSES = {200: {"model": RunDetail, "description": "the run"}, **respons
 
 def _run_body(cfg: Settings, run_id: int) -> Payload:
     with _store(cfg) as store:
-        run = _run_or_404(store, run_id)
-        run["events"] = store.events(run_id)
-        return json_body(run)
+        return json_body(_run_or_404(store, run_id, events=True))
 
 
 @router.get("/api/runs/{run_id}", response_model=dict[str, Any], responses=_RUN_RESPONSES)
@@ -494,8 +492,8 @@ def _store(cfg: Settings) -> Iterator[RunStore]:
         store.close()
 
 
-def _run_or_404(store: RunStore, run_id: int) -> dict[str, Any]:
-    run = store.run(run_id)
+def _run_or_404(store: RunStore, run_id: int, *, events: bool = False) -> dict[str, Any]:
+    run = store.record(run_id) if events else store.run(run_id)
     if run is None:
         raise ServiceError(404, f"no run {run_id} (GET /api/runs lists them)")
     return run
