@@ -401,13 +401,13 @@ class _Conn:
 
     async def send(self, data: bytes) -> None:
         if self.lost is not None:
-            raise LinkLost(f"port lost: {self.lost}")
+            raise LinkLost(f"joint line lost: {self.lost}")
         try:
             self.writer.write(data)
             await self.writer.drain()
         except (OSError, serial.SerialException, RuntimeError) as exc:
             self.die(exc)
-            raise LinkLost(f"write failed: {exc}") from exc
+            raise LinkLost(f"joint line lost: write failed: {exc}") from exc
 
     def discard(self) -> None:
         """Forget received events and any partial message (keeps a loss visible)."""
@@ -835,7 +835,7 @@ class JointLink:
     def _require_conn(self) -> _Conn:
         conn = self._conn
         if conn is None or conn.lost is not None:
-            raise LinkLost(f"no connection to {self.url}")
+            raise LinkLost(f"joint line lost: no connection to {self.url}")
         return conn
 
     async def _transact(
@@ -988,7 +988,7 @@ class JointLink:
         """The reply for ``req``, None to keep waiting; raises for anything else."""
         match event:
             case _Lost(exc):
-                raise LinkLost(f"{req.label}: port lost: {exc}")
+                raise LinkLost(f"joint line lost: {exc} (no reply to {req.label!r})")
             case DebugLine():
                 return None  # §2.3: hosts skip '@' lines
             case Garbage(reason=reason):

@@ -788,12 +788,15 @@ async def test_tcp_disconnect_reconnects(tcp_rig: Rig) -> None:
     await link.set_targets(POSE_A)
     unplugged = loop.time()
     tcp_rig.ep.disconnect(1.0)
-    with pytest.raises(LinkLost):
+    with pytest.raises(LinkLost) as lost:
         await link.get_actual()  # in flight when the line drops, or after
+    # said as a lab reads it (a run's fault message), not by the wire command: "pos: port lost"
+    assert str(lost.value).startswith("joint line lost: "), lost.value
     await _next_event(events, LinkEventKind.LOST)
     assert not link.connected
-    with pytest.raises(LinkLost):
+    with pytest.raises(LinkLost) as lost:
         await link.get_state()
+    assert str(lost.value).startswith("joint line lost: "), lost.value
     await _next_event(events, LinkEventKind.RECONNECTED)
     assert loop.time() - unplugged >= 1.0  # nobody gets in while the cable is out
     assert link.connected
