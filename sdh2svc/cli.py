@@ -836,13 +836,16 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
     try:
         if args.action != "vacuum":
             if args.dry_run:
-                store.check_writable()  # as the delete itself would say
-                store.refuse_recording(doomed)
                 said = f"{_n_runs(doomed)}: {_id_ranges(doomed)}" if doomed else "no run"
+                if doomed or args.vacuum:  # (with nothing to delete, nothing is written)
+                    with _write_protected(store, f"would delete {said}, but"):
+                        store.check_writable()  # as the delete itself would say
+                store.refuse_recording(doomed)
                 print(f"would delete {said}", file=sys.stderr)
                 return Exit.OK
             if doomed:
-                done = store.delete_runs(doomed)
+                with _write_protected(store, "nothing deleted:"):
+                    done = store.delete_runs(doomed)
                 _, free = store.size()
                 print(f"deleted {_n_runs(done)}: {_id_ranges(done)}; {_megabytes(free)} of "
                       f"{store.path} now free for new runs", file=sys.stderr)  # fmt: skip
@@ -850,12 +853,32 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
                 print("no run to delete", file=sys.stderr)
         if args.action == "vacuum" or args.vacuum:
             before, _ = store.size()
-            store.vacuum()
+            with _write_protected(store, "not vacuumed:"):
+                store.vacuum()
             after, _ = store.size()
             print(f"{store.path}: {_megabytes(before)} → {_megabytes(after)}", file=sys.stderr)
     except StoreError as e:  # RunBusy: a run being recorded, the file open elsewhere
         _fail(Exit.FAILED, _one_line(e))
     return Exit.OK
+
+
+@contextlib.contextmanager
+def _write_protected(store: Any, said: str) -> Iterator[None]:
+    """A write refused because the file or its folder is write-protected (SQLite's "attempt to
+    write a readonly database"), said as such after ``said``; exit 4."""
+    import sqlite3
+
+    try:
+        yield
+    except sqlite3.OperationalError as e:
+        code = getattr(e, "sqlite_errorcode", None)
+        if (code & 0xFF if code is not None else 0) != sqlite3.SQLITE_READONLY and (
+            "readonly database" not in str(e)
+        ):
+            raise
+        _fail(Exit.UNAVAILABLE, f"{said} {store.path} is write-protected (the file, or the "
+                                "folder it is in): make both writable to delete runs or "
+                                "vacuum it")  # fmt: skip
 
 
 def _prune_rule(keep: int | None, before: datetime | None) -> str:

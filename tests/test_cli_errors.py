@@ -892,6 +892,28 @@ def test_a_write_protected_database_is_unavailable_not_a_bug(one_run: Path) -> N
     assert f"cannot open the run database {one_run}" in line and "readonly" in line
 
 
+def test_deleting_from_a_write_protected_database_says_so(one_run: Path) -> None:
+    """`runs delete` or `prune` (a dry run too) on a write-protected database said SQLite's
+    "attempt to write a readonly database" — of a dry run, which writes nothing. Now: what
+    would go, and that the file (or its folder) is write-protected."""
+    import shutil
+
+    store = RunStore(one_run)
+    store.finish_run(1, "completed", {"status": "completed"})
+    store.close()
+    one_run.chmod(0o444)
+    drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-all"] if os.geteuid() == 0 else []
+    assert not drop or shutil.which("setpriv"), "setpriv (util-linux) is needed as root"
+    said = f"{one_run} is write-protected (the file, or the folder it is in)"
+    for action, first in ((["prune", "--keep", "0", "--dry-run"], "would delete 1 run: 1, but"),
+                          (["delete", "1"], "nothing deleted:")):  # fmt: skip
+        cmd = [*drop, sys.executable, "-m", "sdh2svc", "runs", *action, *db_set(one_run)]
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        assert r.returncode == Exit.UNAVAILABLE, r.stderr
+        assert f"sdh2svc runs: {first} {said}" in r.stderr, r.stderr
+    assert RunStore(one_run, create=False).runs()[0]["id"] == 1
+
+
 def test_export_into_a_pipe_its_reader_closed_is_quiet(one_run: Path) -> None:
     """`runs export 1 | head`: the reader had enough; no error, no traceback; 141, as every
     command whose reader went away."""
