@@ -864,9 +864,12 @@ def _retention(args: argparse.Namespace, store: Any, ids: list[int]) -> int:
 
 @contextlib.contextmanager
 def _write_protected(store: Any, said: str) -> Iterator[None]:
-    """A write refused because the file or its folder is write-protected (SQLite's "attempt to
-    write a readonly database"), said as such after ``said``; exit 4."""
+    """A write refused because this process may not write the file, its folder, or a log left
+    beside it (SQLite's "attempt to write a readonly database"), said as such after ``said``;
+    exit 4."""
     import sqlite3
+
+    from sdh2svc.service.store import stray_logs
 
     try:
         yield
@@ -876,9 +879,17 @@ def _write_protected(store: Any, said: str) -> Iterator[None]:
             "readonly database" not in str(e)
         ):
             raise
-        _fail(Exit.UNAVAILABLE, f"{said} {store.path} is write-protected (the file, or the "
-                                "folder it is in): make both writable to delete runs or "
-                                "vacuum it")  # fmt: skip
+        path = Path(store.path)
+        if stray := stray_logs(path):
+            why = f"{path} cannot be written{stray}"
+        elif not os.access(path, os.W_OK):
+            why = f"{path} is write-protected: make it writable to delete runs or vacuum it"
+        elif not os.access(path.parent, os.W_OK):
+            why = (f"{path} is in a write-protected folder: make the folder writable to "
+                   "delete runs or vacuum it")  # fmt: skip
+        else:
+            why = f"{path} cannot be written from here: {_one_line(e)}"
+        _fail(Exit.UNAVAILABLE, f"{said} {why}")
 
 
 def _prune_rule(keep: int | None, before: datetime | None) -> str:

@@ -904,7 +904,7 @@ def test_deleting_from_a_write_protected_database_says_so(one_run: Path) -> None
     one_run.chmod(0o444)
     drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-all"] if os.geteuid() == 0 else []
     assert not drop or shutil.which("setpriv"), "setpriv (util-linux) is needed as root"
-    said = f"{one_run} is write-protected (the file, or the folder it is in)"
+    said = f"{one_run} is write-protected: make it writable to delete runs or vacuum it"
     for action, first in ((["prune", "--keep", "0", "--dry-run"], "would delete 1 run: 1, but"),
                           (["delete", "1"], "nothing deleted:")):  # fmt: skip
         cmd = [*drop, sys.executable, "-m", "sdh2svc", "runs", *action, *db_set(one_run)]

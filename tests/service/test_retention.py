@@ -515,7 +515,7 @@ def test_an_older_write_protected_database_is_read_as_it_is(four_runs: Path) -> 
         for delete in (["delete", "2"], ["delete", "2", "--dry-run"]):  # the dry run says so too
             refused = runs(*delete)
             assert refused.returncode == Exit.UNAVAILABLE, refused.stderr
-            assert "readonly database" in refused.stderr
+            assert f"{db} is write-protected: make it writable" in refused.stderr
         assert hashlib.sha256(db.read_bytes()).hexdigest() == before  # nothing written
         # nor beside it: a log and its index left there, write-protected as the file, made
         # every writer fail once the file was writable again (CLI audit)
@@ -578,7 +578,8 @@ def test_a_database_in_a_write_protected_folder_is_read_as_immutable(
     assert sorted(p.name for p in shares[0].parent.iterdir()) == ["runs.sqlite"]
     for delete in (["delete", "2"], ["prune", "--keep", "1", "--dry-run"]):  # nobody writes there
         refused = runs(shares[0], *delete)
-        assert refused.returncode == Exit.UNAVAILABLE and "readonly database" in refused.stderr
+        assert refused.returncode == Exit.UNAVAILABLE, refused.stderr
+        assert f"{shares[0]} is in a write-protected folder" in refused.stderr
     busy = runs(shares[1], "list")
     assert busy.returncode == Exit.UNAVAILABLE
     assert "runs.sqlite-wal beside it holds pages not yet in it" in busy.stderr
