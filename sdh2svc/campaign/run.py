@@ -107,6 +107,9 @@ class TruthProbe(BaseObserver):
         # controller's F is the mean of F1 and F2 — at the grasp and at every rolling iteration
         self.grasp_grip_n: float | None = None
         self.grip_n: list[float] = []
+        # the largest true grip from the first touch to the run's end (N): the grasp's closing
+        # too, which can press beyond its grip at the grasped event (and between iterations)
+        self.grip_peak_n: float | None = None
         self.grasp_F: float | None = None
         # the distance between the true contact points on the object at the first iteration:
         # the object's width where the pads really touch it
@@ -136,6 +139,8 @@ class TruthProbe(BaseObserver):
             self.fault = str(detail.get("fault", ""))
         elif kind is EventKind.END:
             self.end_t = e.t
+            if self.bench is not None:
+                self.grip_peak_n = self.bench.object_now().grip_peak_n
 
     def _grip_n(self) -> float:
         """The true grip as the physics last stepped (N; steps nothing, as :meth:`_psi`)."""
@@ -273,7 +278,8 @@ def true_grip_scale(cfg: Settings) -> float | None:
 def true_forces(probe: TruthProbe, cfg: Any, read_max: float | None) -> dict[str, float | None]:
     """The true grip in Fd's units (:meth:`TactileCalibration.force_per_newton`: what pads
     reading exactly as the calibration says would give): its least, largest and mean over the
-    rolling iterations, and its peak there and at the grasp. With the library's force
+    rolling iterations, and its peak over the whole grip (every physics step from the first
+    touch to the run's end: the grasp's closing too). With the library's force
     (``calibration.force_reference_area_mm2 = 0``), which no force alone determines, the three
     are None and the band and the peak the controller's own F's (``read_max``: the most it
     read while rolling)."""
@@ -283,11 +289,11 @@ def true_forces(probe: TruthProbe, cfg: Any, read_max: float | None) -> dict[str
         return {"true_f_min": None, "true_f_max": None, "true_f_mean": None,
                 "peak_force": max(read) if read else None}  # fmt: skip
     f = [k * n for n in probe.grip_n]
-    at_grasp = [k * probe.grasp_grip_n] if probe.grasp_grip_n is not None else []
+    held = [k * n for n in (probe.grasp_grip_n, probe.grip_peak_n) if n is not None]
     return {
         "true_f_min": min(f) if f else None, "true_f_max": max(f) if f else None,
         "true_f_mean": sum(f) / len(f) if f else None,
-        "peak_force": max(f + at_grasp) if f or at_grasp else None,
+        "peak_force": max(f + held) if f or held else None,
     }  # fmt: skip
 
 

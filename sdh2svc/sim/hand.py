@@ -75,6 +75,7 @@ class ObjectNow:
     dropped: bool
     in_fixture: bool
     slips: int  # slip onsets so far
+    grip_peak_n: float  # the largest true grip so far (N; physics.PhysicsState.grip_peak_n)
 
 
 @dataclass(frozen=True, slots=True)
@@ -323,7 +324,7 @@ class PhysicsWorld:
         st = self._physics.state
         pose = (float(st.pose[0]), float(st.pose[1]), float(st.pose[2]))
         held = not st.dropped and not st.held_by_fixture
-        return ObjectNow(pose, held, st.dropped, st.held_by_fixture, st.slips)
+        return ObjectNow(pose, held, st.dropped, st.held_by_fixture, st.slips, st.grip_peak_n)
 
     def contacts_now(self) -> tuple[ContactTruth, ...]:
         """The contacts as the physics last stepped; like :meth:`object_pose`, steps nothing."""

@@ -364,6 +364,9 @@ class PhysicsState:
     slip_distance_mm: float = 0.0
     psi_min: float = math.inf
     psi_max: float = -math.inf
+    # the largest true grip so far, N: the mean of the distal pads' normal forces (as the
+    # controller's F is the mean of F1 and F2), over every balance the fingers held it in
+    grip_peak_n: float = 0.0
     slipping: set[int] = field(default_factory=set)
 
 
@@ -770,7 +773,7 @@ class ContactPhysics:
         if squeeze > st.squeeze * FIXTURE_GROWTH:
             st.squeeze, st.squeeze_t = squeeze, self.clock
         waited = self.clock - st.squeeze_t >= FIXTURE_PATIENCE_S
-        kept = (st.pose, st.psi_min, st.psi_max, st.slips, st.slip_distance_mm)
+        kept = (st.pose, st.psi_min, st.psi_max, st.slips, st.slip_distance_mm, st.grip_peak_n)
         st.held_by_fixture = False
         self._anchor(ev, st.pose, carry=False)
         if self._solve(world, None) and (waited or not st.slipping):
@@ -778,7 +781,9 @@ class ContactPhysics:
         if waited:
             self._drop()
             return
-        st.pose, st.psi_min, st.psi_max, st.slips, st.slip_distance_mm = kept  # still held
+        st.pose, st.psi_min, st.psi_max, st.slips, st.slip_distance_mm, st.grip_peak_n = (
+            kept  # still held
+        )
         st.held_by_fixture, st.anchors, st.slipping = True, {}, set()
         self._last = ev
 
@@ -853,6 +858,7 @@ class ContactPhysics:
         st.pose = x
         st.psi_min = min(st.psi_min, float(x[2]))
         st.psi_max = max(st.psi_max, float(x[2]))
+        st.grip_peak_n = max(st.grip_peak_n, (n1 + n2) / 2.0)
         self._last = ev
         return True
 

@@ -14,7 +14,14 @@ from typing import Any
 import pytest
 
 from sdh2svc.campaign.case import load_suite
-from sdh2svc.campaign.run import F_BAND, MIN_HALF_STROKE_DEG, run_case
+from sdh2svc.campaign.run import (
+    F_BAND,
+    MIN_HALF_STROKE_DEG,
+    case_settings,
+    run_case,
+    true_grip_scale,
+)
+from sdh2svc.sim import physics
 
 CASES = {c.id: c for c in load_suite("bench-v1").cases}
 UNSEEN = Path(__file__).parents[2] / "experiments" / "campaigns" / "unseen"
@@ -168,3 +175,28 @@ def test_pads_that_read_one_grip_differently_still_reach_fd() -> None:
     # closed and F crept to 1.97 < Fd in 20 s. No finger opens now while F is below Fd.
     row = unseen("unseen38", "unseen38-stick-022", "rolling.cycles=1")
     assert row["iterations"] > 0 and row["fault"] != "no_contact", row["message"]
+
+
+def test_the_peak_force_counts_the_grasps_closing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The judged peak took the true grip at the grasped event and at each rolling iteration
+    # only: this polygon's grasp pressed it with 3.0 (in Fd's units; Fd = 2) on its way to the
+    # grasp, where the grip was 2.25, and the row said 2.25. It is now the largest over every
+    # balance the physics held the object in (every step, the grasp's closing included).
+    grips: list[float] = []
+    solve = physics.ContactPhysics._solve
+
+    def watched(self: physics.ContactPhysics, *args: Any, **kwargs: Any) -> bool:
+        held = solve(self, *args, **kwargs)
+        if held:
+            c = self._last.contacts
+            grips.append((c[physics.DISTAL1][2] + c[physics.DISTAL2][2]) / 2.0)
+        return held
+
+    monkeypatch.setattr(physics.ContactPhysics, "_solve", watched)
+    case = {c.id: c for c in load_suite("smoke").cases}["polygon-007"]
+    row = run_case(case.model_dump_json(), ("rolling.cycles=1",))
+    assert row["status"] != "crashed", row["traceback"]
+    k = true_grip_scale(case_settings(case, ("rolling.cycles=1",), None, tmp_path / "c.sqlite"))
+    assert k is not None and row["peak_force"] == pytest.approx(k * max(grips), rel=1e-9)
