@@ -532,6 +532,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                   f"{truth['rotation_range_deg']:.1f}°, {truth['slips']} slips"
                   f"{', dropped' if truth['dropped'] else ''}")  # fmt: skip
     if summary["status"] == "completed":
+        if summary.get("not_recorded"):  # the run went well; its record did not
+            said = _one_line(summary["message"])
+            print(f"sdh2svc run: run {summary['run_id']} completed; {said}", file=sys.stderr)
         return Exit.OK
     # the summary is the output (stdout); the failure is also the one line on stderr
     why = _one_line(summary["message"]) or (
@@ -919,11 +922,11 @@ def _id_ranges(ids: list[int]) -> str:
 
 
 def _run_line(r: dict[str, Any]) -> str:
-    """A run in `runs list`: ID, start, status, iterations, the simulated object, and why a
-    run that did not complete ended."""
+    """A run in `runs list`: ID, start, status, iterations, the simulated object, and its
+    message: why a run that did not complete ended, what of its record is missing."""
     obj = r["meta"].get("object")
     name = (obj.get("name") or obj.get("kind") if isinstance(obj, dict) else obj) or "-"
-    why = _one_line((r["summary"] or {}).get("message") or "")
+    why = _one_line((r["summary"] or {}).get("message") or "")  # (a completed run's: its record)
     line = f"{r['id']:5d}  {r['started_at']}  {r['status']:11s}  {r['iterations']:6d} iterations"
     return f"{line}  {name:<10s}  {why}".rstrip()
 

@@ -157,10 +157,19 @@ class RecordedRun:
             summary["truth"] = self._truth or self.bench.truth().summary()
             if summary["truth"]["dropped"] and summary["status"] == "completed":
                 summary["status"] = "dropped"
+        if self._rec.lost:  # said where the run is looked at, not in a log line alone
+            why = self._rec.error or self._rec.refused or "the database refused them too long"
+            summary["not_recorded"] = {"items": self._rec.lost, "error": str(why)}
+            _note(summary, f"{self._rec.lost} recorded items (samples, frames, events) are not "
+                           f"in {self.store.path}: {why}")  # fmt: skip
         try:  # in a thread: a database another program holds locked must not hold the loop
             await asyncio.to_thread(self._write_end, summary)
         except sqlite3.Error as e:  # the run ended as it ended; only its record is missing
             log.error("run %d: its end could not be recorded: %s", self.run_id, e)
-            note = f"its end is not recorded in {self.store.path}: {e}"
-            summary["message"] = f"{summary['message']}; {note}" if summary.get("message") else note
+            _note(summary, f"its end is not recorded in {self.store.path}: {e}")
         return summary
+
+
+def _note(summary: dict[str, Any], note: str) -> None:
+    """``note`` added to the summary's message."""
+    summary["message"] = f"{summary['message']}; {note}" if summary.get("message") else note

@@ -972,8 +972,13 @@ def _epoch_ns(iso: str) -> int:
         return 0
 
 
-# Tries a closing recorder makes for rows a locked database refused (each waits busy_timeout_s)
+# Tries a closing recorder makes for rows the database refused (each waits busy_timeout_s for
+# a lock, RETRY_S for anything else)
 CLOSE_TRIES = 6
+RETRY_S = 1.0  # a recorder's rows a full or failing disk refused: tried again after this long
+# items a recorder keeps in memory while the database refuses them (≈ 18 min of a run at 30
+# Hz: a sample, its frame and truth each iteration; ≈ 100 MB); later ones are not kept
+MAX_WAITING = 100_000
 
 
 def locked(e: sqlite3.OperationalError) -> bool:
@@ -1015,8 +1020,10 @@ class Recorder:
         self._buf: deque[tuple[str, tuple[Any, ...]]] = deque()
         self._closing = threading.Event()
         self.committed = 0  # items on disk
-        self.refusals = 0  # batches a locked database refused (they were tried again)
-        self.error: BaseException | None = None
+        self.refusals = 0  # batches the database refused (they were tried again)
+        self.lost = 0  # items not written (known once closed)
+        self.error: BaseException | None = None  # why the thread gave up, if it did
+        self.refused: BaseException | None = None  # the database's last refusal
         self._thread = threading.Thread(target=self._run, name=f"recorder-{run_id}", daemon=True)
         self._thread.start()
 
@@ -1041,6 +1048,8 @@ class Recorder:
     def close(self) -> None:
         self._closing.set()
         self._thread.join()
+        self.lost += len(self._buf)  # what came after the thread gave up (none if it did not)
+        self._buf.clear()
 
     def _run(self) -> None:
         db = connect(self.path, busy_timeout_s=self.busy_timeout_s)
@@ -1071,23 +1080,29 @@ class Recorder:
 
         buf = self._buf
         pending: list[tuple[str, tuple[Any, ...]]] = []  # taken from the buffer, not on disk
-        in_a_row = tries_closing = 0  # refusals of a locked database
+        in_a_row = tries_closing = 0  # refusals
+        retry_at = 0.0  # (a full or failing disk: not tried again before then)
         beat = "UPDATE owners SET seen = ? WHERE run_id = ?"  # the heartbeat (STALE_S)
         last_beat = time.time()
         try:
             while True:
                 done = self._closing.wait(self.flush_s)
                 while buf:
-                    pending.append(buf.popleft())
+                    item = buf.popleft()
+                    if len(pending) < MAX_WAITING:
+                        pending.append(item)
+                    else:  # memory is not to run out while a disk stays full
+                        self.lost += 1
                 now = time.time()
+                if pending and now < retry_at and not done:
+                    continue
                 if not pending and now - last_beat >= HEARTBEAT_S:
-                    try:  # nothing to write: the heartbeat alone (a lock: the next time)
+                    try:  # nothing to write: the heartbeat alone (refused: the next time)
                         with db:
                             db.execute(beat, (now, self.run_id))
                         last_beat = now
-                    except sqlite3.OperationalError as e:
-                        if not locked(e):
-                            raise
+                    except sqlite3.OperationalError:
+                        pass
                 if pending:
                     # one transaction; each table's rows (in their order) in few statements:
                     # the tables' rows come interleaved (a sample, its truth, its frame, …)
@@ -1101,27 +1116,36 @@ class Recorder:
                             db.execute(beat, (now, self.run_id))
                         last_beat = now
                     except sqlite3.OperationalError as e:
-                        # another program holds the file locked beyond busy_timeout_s: the
-                        # rows wait for the next try (they were lost with the thread before);
-                        # closing, it gives up after CLOSE_TRIES more
-                        if not locked(e) or (done and tries_closing >= CLOSE_TRIES):
+                        # another program holds the file locked beyond busy_timeout_s, or the
+                        # disk is full or failing: the rows wait for the next try (they were
+                        # lost with the thread before); closing, it gives up after
+                        # CLOSE_TRIES more
+                        if done and tries_closing >= CLOSE_TRIES:
                             raise
                         tries_closing += done
-                        self.refusals += 1
+                        self.refusals, self.refused = self.refusals + 1, e
                         in_a_row += 1
+                        if not locked(e):
+                            retry_at = time.time() + RETRY_S
+                            if done:  # (the wait above no longer waits)
+                                time.sleep(RETRY_S)
                         if in_a_row == 1:
-                            log.warning("run %d: the run database is locked by another "
-                                        "program (%s); its rows wait in memory", self.run_id,
-                                        e)  # fmt: skip
+                            why = ("is locked by another program" if locked(e) else
+                                   "does not take them")  # fmt: skip
+                            log.warning("run %d: the run database %s (%s); its rows wait in "
+                                        "memory", self.run_id, why, e)  # fmt: skip
                         continue
+                    if in_a_row:
+                        log.info("run %d: the run database took its rows again", self.run_id)
                     self.committed += len(pending)
                     pending, in_a_row = [], 0
                 if done and not buf:
                     break
         except BaseException as e:
             self.error = e
-            lost = len(pending) + len(buf)
-            log.error("run %d: %d recorded items not written to %s: %s", self.run_id, lost,
-                      self.path, e)  # fmt: skip
+            self.lost += len(pending) + len(buf)
+            buf.clear()
+            log.error("run %d: its recording gave up: %d recorded items not written to %s: "
+                      "%s", self.run_id, self.lost, self.path, e)  # fmt: skip
         finally:
             db.close()

@@ -1,0 +1,159 @@
+"""The run database failing under a run — its disk full or failing, the file deleted or
+renamed — while the hand works: the rows wait and are written once the disk takes them again;
+what is not written is said in the run's record and summary, never a run that looks whole.
+A real SQLite file; the disk's refusal is SQLite's own error, raised by the recorder's
+connection while a test holds the disk "full"."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_store import _samples
+
+from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Bench, Simulated
+from sdh2svc.control.observer import BaseObserver
+from sdh2svc.control.sample import Sample
+from sdh2svc.service import headless, store
+from sdh2svc.service.store import Recorder, RunStore
+from sdh2svc.sim.clock import run_fast
+
+
+class _FullDisk:
+    """A recorder's connection that refuses its writes as SQLite does on a full disk while
+    ``full`` is set (reads, and every other connection, as they are)."""
+
+    def __init__(self, db: sqlite3.Connection, full: threading.Event) -> None:
+        self._db, self._full = db, full
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._db, name)
+
+    def __enter__(self) -> sqlite3.Connection:
+        return self._db.__enter__()
+
+    def __exit__(self, *exc: Any) -> Any:
+        return self._db.__exit__(*exc)
+
+    def execute(self, sql: str, *args: Any) -> sqlite3.Cursor:
+        if self._full.is_set() and sql.lstrip().startswith(("INSERT", "UPDATE")):
+            raise sqlite3.OperationalError("database or disk is full")
+        return self._db.execute(sql, *args)
+
+
+@pytest.fixture
+def full(monkeypatch: pytest.MonkeyPatch) -> Iterator[threading.Event]:
+    """Set: the recorders' disk is full (their retries 10 ms apart, not a second)."""
+    disk_full = threading.Event()
+    real = store.connect
+
+    def connect(*args: Any, **kwargs: Any) -> Any:
+        db = real(*args, **kwargs)
+        if threading.current_thread().name.startswith("recorder-"):
+            return _FullDisk(db, disk_full)
+        return db
+
+    monkeypatch.setattr(store, "connect", connect)
+    monkeypatch.setattr(store, "RETRY_S", 0.01, raising=False)
+    yield disk_full
+
+
+def test_rows_wait_out_a_full_disk(cfg: Settings, tmp_path: Path, full: threading.Event) -> None:
+    """A full disk ended the recorder's thread: every later row of the run was lost, and the
+    record said nothing. The rows wait in memory and are written once there is room."""
+    db = tmp_path / "runs.sqlite"
+    runs = RunStore(db)
+    run_id = runs.create_run({})
+    full.set()
+    rec = Recorder(db, run_id, flush_s=0.01)
+    samples = _samples(cfg, 30)
+    for s in samples[:10]:
+        rec.sample(s)
+    assert _until(lambda: rec.refusals > 0)
+    for s in samples[10:]:
+        rec.sample(s)
+    full.clear()  # room again, before the run ends
+    rec.close()
+    assert rec.error is None and rec.lost == 0 and rec.committed == 30
+    assert [r["iteration"] for r in runs.samples(run_id, 0, 100)] == [s.iteration for s in samples]
+
+
+def test_rows_a_disk_never_took_are_counted(
+    cfg: Settings, tmp_path: Path, full: threading.Event
+) -> None:
+    db = tmp_path / "runs.sqlite"
+    run_id = RunStore(db).create_run({})
+    full.set()
+    rec = Recorder(db, run_id, flush_s=0.01)
+    for s in _samples(cfg, 12):
+        rec.sample(s)
+    rec.close()  # gives up after its tries
+    assert rec.committed == 0 and rec.lost == 12 and "disk is full" in str(rec.error)
+
+
+class _FillsAt(BaseObserver):
+    """Fills the disk at iteration ``at`` (None: never) and, at ``free``, frees it."""
+
+    def __init__(self, full: threading.Event, at: int, free: int | None) -> None:
+        self.full, self.at, self.free = full, at, free
+
+    def sample(self, s: Sample) -> None:
+        if s.iteration == self.at:
+            self.full.set()
+        if s.iteration == self.free:
+            self.full.clear()
+
+
+def _run(tmp_path: Path, observer: _FillsAt) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """A short fast run; its summary, its record and how many samples the record holds."""
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'", "rolling.cycles=1",
+                                 "sim.object='rubber'"], use_env=False)  # fmt: skip
+
+    def watch(_bench: Bench | None) -> _FillsAt:
+        return observer
+
+    summary = run_fast(headless.run_once(cfg, Simulated(fast=True), observer=watch))
+    runs = RunStore(db, create=False)
+    record = runs.run(summary["run_id"])
+    assert record is not None
+    return summary, record, runs.sample_count(summary["run_id"])
+
+
+def test_a_run_whose_disk_fills_says_what_its_record_lacks(
+    tmp_path: Path, full: threading.Event
+) -> None:
+    """The disk full from iteration 20 to the run's end: the run completed (the fingers did
+    their work), and its summary — returned, and recorded once the disk took the end — says
+    how many recorded items are not in the database, and why (it said nothing: a completed
+    run with 31 of its 273 samples)."""
+    summary, record, kept = _run(tmp_path, _FillsAt(full, at=20, free=None))
+    assert summary["status"] == "completed" and kept < summary["iterations"]
+    lost = summary["not_recorded"]
+    assert lost["items"] >= summary["iterations"] - kept and "disk is full" in lost["error"]
+    said = f"{lost['items']} recorded items (samples, frames, events) are not in"
+    assert said in summary["message"], summary["message"]
+    assert record["status"] == "completed" and record["summary"] == summary
+
+
+def test_a_run_whose_disk_fills_for_a_while_loses_nothing(
+    tmp_path: Path, full: threading.Event
+) -> None:
+    summary, _, kept = _run(tmp_path, _FillsAt(full, at=20, free=60))
+    assert summary["status"] == "completed" and kept == summary["iterations"]
+    assert "not_recorded" not in summary and summary["message"] == ""
+
+
+def _until(ok: Any, timeout_s: float = 30.0) -> bool:
+    """Waits for ``ok()`` (a guard: it comes within a flush or two)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not ok() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return bool(ok())
