@@ -28,7 +28,7 @@ from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import BaseObserver, EventKind
 from sdh2svc.control.observer import Event as RunEvent
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.runner import Runner
+from sdh2svc.control.runner import Phase, Runner
 from sdh2svc.control.safety import SafetyConfig, params_outside
 from sdh2svc.control.sample import Sample
 from sdh2svc.provenance import code_version
@@ -257,8 +257,7 @@ class HandService:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
         if self.running and self.run is not None:
-            raise ServiceError(409, f"run {self.run.run_id} is already running "
-                               f"({self.run.runner.phase.value}); stop it first")  # fmt: skip
+            raise ServiceError(409, self._run_busy("is already running"))
         if self.opening:
             raise ServiceError(409, "the hand is opening; start the run when it is open")
         self._require_lines(joints, tactile)
@@ -274,16 +273,29 @@ class HandService:
                               bench=self.bench, observer=_RunTelemetry(self),
                               create_wait_s=CREATE_WAIT_S)  # fmt: skip
         except sqlite3.OperationalError as e:
-            if not locked(e):
-                raise
-            why = (f"the run database {store.path} is locked by another program ({e}): no run "
-                   "was started; try again once it lets go (a vacuum, a database browser with "
-                   "unsaved changes)")  # fmt: skip
+            if locked(e):
+                why = (f"the run database {store.path} is locked by another program ({e}): no "
+                       "run was started; try again once it lets go (a vacuum, a database "
+                       "browser with unsaved changes)")  # fmt: skip
+            else:  # a full disk, a read-only or failing one: no run without its record
+                why = (f"the run database {store.path} did not take the run's start ({e}): no "
+                       "run was started")  # fmt: skip
             raise ServiceError(503, why) from None
         self._run_params, self.run = run_params, run
         self._run_task = asyncio.create_task(self._execute(self.run), name="run")
         log.info("run %d started (cycles=%d)", self.run.run_id, run_params.cycles)
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
+
+    def _run_busy(self, running: str, after_stop: str = "") -> str:
+        """Why a command waits for the run: it runs, or it has ended and its end is still being
+        written (another program holding the database, a full disk: up to a minute or more)."""
+        assert self.run is not None
+        phase = self.run.runner.phase
+        if phase in (Phase.DONE, Phase.STOPPED, Phase.FAULTED, Phase.ESTOPPED):
+            return (f"run {self.run.run_id} has ended ({phase.value}) and its record is still "
+                    f"being written to {self.cfg.storage.db_path}: try again once it is (status "
+                    "shows no run running)")  # fmt: skip
+        return f"run {self.run.run_id} {running} ({phase.value}); stop it first{after_stop}"
 
     def stop_run(self) -> dict[str, Any]:
         """Stop the run (it releases the object), or an opening hand where it is."""
@@ -507,8 +519,8 @@ class HandService:
             raise ServiceError(409, "the e-stop is latched: release it first "
                                "(POST /api/estop/release)")  # fmt: skip
         if self.running and self.run is not None:
-            raise ServiceError(409, f"run {self.run.run_id} is running; stop it first (a stopped "
-                               "run opens the hand itself)")  # fmt: skip
+            raise ServiceError(409, self._run_busy("is running", " (a stopped run opens the hand "
+                                                                "itself)"))  # fmt: skip
         if self.opening:
             raise ServiceError(409, "the hand is already opening")
         self._require_lines(joints)

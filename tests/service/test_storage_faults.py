@@ -6,6 +6,7 @@ connection while a test holds the disk "full"."""
 
 from __future__ import annotations
 
+import asyncio
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -13,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from test_sim_press import service
 from test_store import _samples
 
 from sdh2svc.config import Settings, load_config
@@ -20,8 +22,11 @@ from sdh2svc.connect import Bench, Simulated
 from sdh2svc.control.observer import BaseObserver
 from sdh2svc.control.sample import Sample
 from sdh2svc.service import headless, store
+from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import Recorder, RunStore
 from sdh2svc.sim.clock import run_fast
+
+JSON = {"Content-Type": "application/json"}  # a command's, its body empty
 
 
 class _FullDisk:
@@ -157,3 +162,46 @@ def _until(ok: Any, timeout_s: float = 30.0) -> bool:
     while not ok() and time.monotonic() < deadline:
         time.sleep(0.005)
     return bool(ok())
+
+
+def test_a_run_the_database_cannot_start_is_a_503_that_says_why(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A full (read-only, failing) disk under POST /api/runs: a plain-text "Internal Server
+    Error" (500) and a traceback in the log; now a JSON 503 naming the database and why — and
+    after the disk has room, a run starts; and while a run's end is still being written (the
+    disk full, another program's lock), a new run is refused as that, not as "already running
+    (stopped); stop it first" of a run that had stopped."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'", "rolling.cycles=1"],
+                      use_env=False)  # fmt: skip
+    create, write_end = RunStore.create_run, RecordedRun._write_end
+    writing, go = threading.Event(), threading.Event()
+
+    def full_disk(*_: Any, **__: Any) -> int:
+        raise sqlite3.OperationalError("database or disk is full")
+
+    def held_end(self: RecordedRun, summary: dict[str, Any]) -> None:
+        writing.set()
+        assert go.wait(30)
+        write_end(self, summary)
+
+    async def main() -> None:
+        async with service(cfg, Simulated(fast=True)) as (c, _):
+            monkeypatch.setattr(RunStore, "create_run", full_disk)
+            r = await c.post("/api/runs", json={})
+            assert r.status_code == 503, r.text
+            assert r.json()["error"] == (f"the run database {tmp_path}/runs.sqlite did not take "
+                                         "the run's start (database or disk is full): no run was "
+                                         "started")  # fmt: skip
+            monkeypatch.setattr(RunStore, "create_run", create)
+            monkeypatch.setattr(RecordedRun, "_write_end", held_end)
+            assert (await c.post("/api/runs", json={})).status_code == 201
+            assert (await c.post("/api/runs/stop", headers=JSON)).status_code == 202
+            assert await asyncio.to_thread(writing.wait, 60)
+            said = f"has ended (stopped) and its record is still being written to {tmp_path}"
+            for path in ("/api/runs", "/api/hand/open"):
+                r = await c.post(path, json={})
+                assert r.status_code == 409 and said in r.json()["error"], r.text
+            go.set()
+
+    asyncio.run(main())
