@@ -157,6 +157,11 @@ class RecordedRun:
             summary["truth"] = self._truth or self.bench.truth().summary()
             if summary["truth"]["dropped"] and summary["status"] == "completed":
                 summary["status"] = "dropped"
+        if self.store.replaced():  # its rows went to a file nobody finds at the path
+            gone = (f"the run database {self.store.path} was deleted, renamed or replaced "
+                    "during the run: its record is not in the file there")  # fmt: skip
+            log.error("run %d: %s", self.run_id, gone)
+            _note(summary, gone)
         if self._rec.lost:  # said where the run is looked at, not in a log line alone
             why = self._rec.error or self._rec.refused or "the database refused them too long"
             summary["not_recorded"] = {"items": self._rec.lost, "error": str(why)}

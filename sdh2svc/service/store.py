@@ -404,6 +404,15 @@ def _write_protected_alone(p: Path) -> bool:
             and not any(Path(f"{p}{end}").exists() for end in ("-wal", "-shm")))  # fmt: skip
 
 
+def _file_identity(p: Path) -> tuple[int, int] | None:
+    """The file at ``p`` (device, inode); None if there is none."""
+    try:
+        st = p.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def stray_logs(p: Path) -> str:
     """Says which log files beside a writable database this process may not write ("" if
     none): what an older version's reading of the file while it was write-protected left."""
@@ -518,6 +527,27 @@ class RunStore:
         self.path, self.busy_timeout_s = Path(path), busy_timeout_s
         self.db = connect(path, create=create, busy_timeout_s=busy_timeout_s)
         self._lock = threading.Lock()
+        self._identity = _file_identity(self.path)  # the file opened (see :meth:`replaced`)
+
+    def replaced(self) -> bool:
+        """Whether ``path`` no longer names the file this store has open: deleted, renamed or
+        replaced while it was open. Its writes then go to a file nobody finds there."""
+        return _file_identity(self.path) != self._identity
+
+    def _follow_path(self) -> None:
+        """The file at ``path`` opened again if it is no longer the one open (a new one made if
+        there is none there): what goes where a restart looks — an e-stop's latch, which a
+        restart did not see after the file had been renamed under the service, and a new
+        run's row, whose samples the recorder (which opens the path) wrote into another file
+        without it. The caller holds the store's lock."""
+        if not self.replaced():
+            return
+        log.error("the run database %s was deleted, renamed or replaced while it was open: "
+                  "runs and the e-stop latch now go to the file at that path (a new one if "
+                  "there is none)", self.path)  # fmt: skip
+        self.db.close()
+        self.db = connect(self.path, create=True, busy_timeout_s=self.busy_timeout_s)
+        self._identity = _file_identity(self.path)
 
     def close(self) -> None:
         """Close the connection once a write in another thread is done with it (an e-stop's
@@ -537,6 +567,8 @@ class RunStore:
         transaction. ``wait_s``: how long to wait for another program's lock (default
         ``busy_timeout_s``): sqlite3.OperationalError ("database is locked") after it, and
         nothing written."""
+        with self._lock:
+            self._follow_path()
         with self._lock, self._waiting(wait_s), self.db:
             cur = self.db.execute(
                 "INSERT INTO runs (started_at, status, meta) VALUES (?, 'running', ?)",
@@ -616,6 +648,7 @@ class RunStore:
         pressed (default: now; a write that waited for a lock is later). Returns the latch (the
         first one's time and reason, if it was latched already)."""
         with self._lock:  # the read back too: :meth:`close` waits for both
+            self._follow_path()
             self._durably_locked("INSERT OR IGNORE INTO estop (id, since, reason) VALUES "
                                  "(1, ?, ?)", (since or now_iso(), reason))  # fmt: skip
             latch = self.estop_latch()
@@ -624,6 +657,7 @@ class RunStore:
 
     def release_estop(self) -> None:
         with self._lock:
+            self._follow_path()
             self._durably_locked("DELETE FROM estop")
 
     def _durably_locked(self, sql: str, params: tuple[Any, ...] = ()) -> None:

@@ -205,3 +205,72 @@ def test_a_run_the_database_cannot_start_is_a_503_that_says_why(
             go.set()
 
     asyncio.run(main())
+
+
+def _move(db: Path, to: Path | None) -> None:
+    """The database and its log and index renamed to ``to`` (None: deleted), as a person
+    archiving or clearing it while the service runs does."""
+    for end in ("", "-wal", "-shm"):
+        here = Path(f"{db}{end}")
+        if here.exists():
+            here.rename(f"{to}{end}") if to is not None else here.unlink()
+
+
+@pytest.mark.parametrize("moved", [True, False], ids=["renamed", "deleted"])
+def test_a_latch_and_a_new_run_go_where_a_restart_looks(
+    cfg: Settings, tmp_path: Path, moved: bool
+) -> None:
+    """The database renamed or deleted under a service: the e-stop answered "recorded", but
+    its latch went into the file the service had open — renamed away, or gone — and a restart
+    came up unlatched; the next run's row went there too, while its recorder (which opens the
+    path) wrote its samples into a new file without it, where a later run of the same id took
+    them as its own. Both now go to the file at the path."""
+    db = tmp_path / "runs.sqlite"
+    runs = RunStore(db)
+    first = runs.create_run({"first": True})
+    _move(db, tmp_path / "archive.sqlite" if moved else None)
+    assert runs.replaced()
+    runs.latch_estop("e-stop requested")
+    run_id = runs.create_run({"second": True})
+    rec = Recorder(db, run_id, flush_s=0.01)
+    for s in _samples(cfg, 5):
+        rec.sample(s)
+    rec.close()
+    runs.close()
+    restarted = RunStore(db, create=False)  # what a restart opens
+    latch = restarted.estop_latch()
+    assert latch is not None and latch["reason"] == "e-stop requested"
+    record = restarted.run(run_id)
+    assert record is not None and record["meta"] == {"second": True}
+    assert restarted.sample_count(run_id) == 5 and not restarted.replaced()
+    if moved:  # the first run stays in the archive, whole
+        archived = RunStore(tmp_path / "archive.sqlite", create=False)
+        assert archived.run(first) is not None and archived.estop_latch() is None
+
+
+class _MovesAt(BaseObserver):
+    def __init__(self, db: Path, at: int) -> None:
+        self.db, self.at = db, at
+
+    def sample(self, s: Sample) -> None:
+        if s.iteration == self.at:
+            _move(self.db, self.db.with_name("archive.sqlite"))
+
+
+def test_a_run_whose_database_is_renamed_says_its_record_is_not_there(tmp_path: Path) -> None:
+    """The file renamed mid-run: the run ended 'stopped' with no message and no log line,
+    and was not in the file at the path. Its summary says so now."""
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'", "rolling.cycles=1",
+                                 "sim.object='rubber'"], use_env=False)  # fmt: skip
+    moves = _MovesAt(db, 20)
+
+    def watch(_bench: Bench | None) -> _MovesAt:
+        return moves
+
+    summary = run_fast(headless.run_once(cfg, Simulated(fast=True), observer=watch))
+    assert summary["status"] == "completed"
+    assert (f"the run database {db} was deleted, renamed or replaced during the run: its "
+            "record is not in the file there") in summary["message"]  # fmt: skip
+    archived = RunStore(db.with_name("archive.sqlite"), create=False).run(summary["run_id"])
+    assert archived is not None and archived["status"] == "completed"  # whole, over there
