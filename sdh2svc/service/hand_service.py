@@ -216,6 +216,9 @@ class HandService:
         await self.stop_motion()  # (an opening hand's task cancelled there)
         await cancel(self._run_task)
         await self._end_latch_retry()
+        if (self._latch or {}).get("recorded") in ("no", "pending"):  # said at the e-stop too
+            log.warning("the e-stop's latch is not in %s: a restart comes up released (the "
+                        "hand stays off until then)", self.cfg.storage.db_path)  # fmt: skip
         for task in self._tasks:
             await cancel(task)
         if self._monitor is not None:

@@ -13,6 +13,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import sqlite3
+import threading
+import time
 from collections.abc import Awaitable
 from typing import Any, TypeVar
 
@@ -30,6 +32,7 @@ from sdh2svc.service.telemetry import outline_points
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+END_RETRY_S = 5.0  # a run's end the database refused: tried again after this long
 
 
 async def _whole(aw: Awaitable[T]) -> T:
@@ -170,9 +173,27 @@ class RecordedRun:
         try:  # in a thread: a database another program holds locked must not hold the loop
             await asyncio.to_thread(self._write_end, summary)
         except sqlite3.Error as e:  # the run ended as it ended; only its record is missing
-            log.error("run %d: its end could not be recorded: %s", self.run_id, e)
+            log.error("run %d: its end could not be recorded: %s; tried again every %g s",
+                      self.run_id, e, END_RETRY_S)  # fmt: skip
+            threading.Thread(target=self._write_end_later, args=(dict(summary),),
+                             name=f"run-end-{self.run_id}", daemon=True).start()  # fmt: skip
             _note(summary, f"its end is not recorded in {self.store.path}: {e}")
         return summary
+
+    def _write_end_later(self, summary: dict[str, Any]) -> None:
+        """The run's end written once the disk takes it (a full disk freed): it stayed
+        'running' for the service's life, could not be deleted as one being recorded, and a
+        restart called it killed or crashed. Given up when the store closes."""
+        while True:
+            time.sleep(END_RETRY_S)
+            try:
+                self._write_end(summary)
+            except sqlite3.ProgrammingError:  # the store is closed: a restart marks it
+                return
+            except sqlite3.Error:
+                continue
+            log.info("run %d: its end is recorded now", self.run_id)
+            return
 
 
 def _note(summary: dict[str, Any], note: str) -> None:

@@ -7,6 +7,7 @@ connection while a test holds the disk "full"."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -274,3 +275,70 @@ def test_a_run_whose_database_is_renamed_says_its_record_is_not_there(tmp_path: 
             "record is not in the file there") in summary["message"]  # fmt: skip
     archived = RunStore(db.with_name("archive.sqlite"), create=False).run(summary["run_id"])
     assert archived is not None and archived["status"] == "completed"  # whole, over there
+
+
+def test_a_run_end_the_disk_refused_is_written_once_it_takes_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run's end refused (a full disk at the run's end): the run stayed 'running' for the
+    service's life — not to be deleted, "being recorded" — and a restart called it killed or
+    crashed. The service writes its end once the disk takes it."""
+    from sdh2svc.service import recording
+
+    finish, refusals = RunStore.finish_run, [2]
+
+    def full_then_free(self: RunStore, *args: Any) -> None:
+        if refusals[0]:
+            refusals[0] -= 1
+            raise sqlite3.OperationalError("database or disk is full")
+        finish(self, *args)
+
+    monkeypatch.setattr(RunStore, "finish_run", full_then_free)
+    monkeypatch.setattr(recording, "END_RETRY_S", 0.01, raising=False)
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'"], use_env=False)
+
+    async def main() -> tuple[dict[str, Any], dict[str, Any]]:
+        async with service(cfg, Simulated(fast=True)) as (c, services):
+            st = services.station
+            assert (await c.post("/api/runs", json={})).status_code == 201
+            assert (await c.post("/api/runs/stop", headers=JSON)).status_code == 202
+            while st.running:
+                await asyncio.sleep(0.01)
+            assert st.last_run is not None and st.store is not None
+            runs = st.store
+            run_id = st.last_run["id"]
+            recorded = await asyncio.to_thread(
+                _until, lambda: runs.run(run_id)["status"] != "running"
+            )
+            assert recorded
+            return st.last_run, runs.run(run_id)
+
+    summary, record = asyncio.run(main())
+    assert f"its end is not recorded in {db}: database or disk is full" in summary["message"]
+    assert record["status"] == "stopped" and refusals == [0]
+    assert "not recorded" not in record["summary"]["message"]  # it is, now
+
+
+def test_a_shutdown_with_an_unrecorded_latch_says_a_restart_comes_up_released(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def full_disk(*_: Any, **__: Any) -> dict[str, str]:
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(RunStore, "latch_estop", full_disk)
+    db = tmp_path / "runs.sqlite"
+    cfg = load_config(overrides=[f"storage.db_path='{db}'"], use_env=False)
+
+    async def main() -> dict[str, Any]:
+        async with service(cfg, Simulated(fast=True)) as (c, _):
+            return dict((await c.post("/api/estop")).json())
+
+    with caplog.at_level(logging.WARNING):
+        answer = asyncio.run(main())
+    assert answer["estopped"] is True and answer["recorded"] is False
+    said = [
+        r.getMessage() for r in caplog.records if "a restart comes up released" in r.getMessage()
+    ]
+    assert said == [f"the e-stop's latch is not in {db}: a restart comes up released (the hand "
+                    "stays off until then)"]  # fmt: skip
