@@ -382,7 +382,8 @@ def connect(
         if db is not None:
             db.close()
         why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
-        raise StoreError(f"cannot open the run database {p}: {why}{stray_logs(p)}") from None
+        raise StoreError(f"cannot open the run database {p}: {why}{stray_logs(p)}"
+                         f"{_no_room(p)}") from None  # fmt: skip
     except BaseException:
         if db is not None:
             db.close()
@@ -402,6 +403,24 @@ def _write_protected_alone(p: Path) -> bool:
     it, and it is read whole from the file itself."""
     return (p.is_file() and not os.access(p, os.W_OK)
             and not any(Path(f"{p}{end}").exists() for end in ("-wal", "-shm")))  # fmt: skip
+
+
+NO_ROOM_B = 1 << 20  # a disk with less free than this cannot take a log's index and pages
+
+
+def _no_room(p: Path) -> str:
+    """Says that the disk holding ``p`` is full ("" if it has room, or cannot be asked):
+    SQLite says "disk I/O error" when it cannot size the log's index there, even to read."""
+    try:
+        st = os.statvfs(p.parent if not p.is_dir() else p)
+    except OSError:
+        return ""
+    free = st.f_bavail * st.f_frsize
+    if free >= NO_ROOM_B:
+        return ""
+    return (
+        f" (the disk holding it is full: {free // 1024} KiB free; make room there, then try again)"
+    )
 
 
 def _file_identity(p: Path) -> tuple[int, int] | None:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import sqlite3
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -342,3 +344,28 @@ def test_a_shutdown_with_an_unrecorded_latch_says_a_restart_comes_up_released(
     ]
     assert said == [f"the e-stop's latch is not in {db}: a restart comes up released (the hand "
                     "stays off until then)"]  # fmt: skip
+
+
+def test_a_database_on_a_full_disk_says_the_disk_is_full(tmp_path: Path) -> None:
+    """On a full disk even `runs list` fails: SQLite cannot size the log's index to read, and
+    says "disk I/O error". The message now says the disk is full. (A 1 MiB tmpfs in a mount
+    namespace of the test's own.)"""
+    db = tmp_path / "runs.sqlite"
+    runs = RunStore(db)
+    runs.create_run({})
+    runs.close()
+    for end in ("-wal", "-shm"):  # as a closed database leaves it
+        Path(f"{db}{end}").unlink(missing_ok=True)
+    if subprocess.run(["unshare", "--mount", "true"], capture_output=True).returncode != 0:
+        pytest.skip("this machine lets no test make a mount namespace (unshare needs root)")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    script = (f"mount -t tmpfs -o size=1m tmpfs {disk} && cp {db} {disk}/runs.sqlite && "
+              f"(dd if=/dev/zero of={disk}/fill bs=64k 2>/dev/null; true) && "
+              f"{sys.executable} -m sdh2svc runs list --set "
+              f"'storage.db_path=\"{disk}/runs.sqlite\"'")  # fmt: skip
+    r = subprocess.run(["unshare", "--mount", "sh", "-c", script], capture_output=True,
+                       text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 4, r.stderr
+    assert f"cannot open the run database {disk}/runs.sqlite: " in r.stderr
+    assert "(the disk holding it is full: " in r.stderr and "make room there" in r.stderr
