@@ -69,7 +69,14 @@ import serial
 
 from sdh2svc.bus.link import PushReader, close_streams, is_socket_url, open_streams
 from sdh2svc.bus.polling import PollPlan
-from sdh2svc.bus.reconnect import Backoff, LinkEvent, LinkEventKind, failure_after, reconnect
+from sdh2svc.bus.reconnect import (
+    Backoff,
+    LinkEvent,
+    LinkEventKind,
+    RepeatedFailures,
+    failure_after,
+    reconnect,
+)
 from sdh2svc.protocol.dsa import PREAMBLE as DSACON_PREAMBLE
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
@@ -534,6 +541,7 @@ class JointLink:
         self.version = ""
         self.velocity_limits: Vec = ()
         self.failure: str | None = None  # why the line went down, until it is back up
+        self._repeats = RepeatedFailures()  # its failed reopenings, logged quietly when alike
         self.acceleration_limits: Vec = ()
         self.controller: ControllerMode | None = None
         self._reconnect = reconnect
@@ -703,8 +711,9 @@ class JointLink:
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
         event = LinkEvent(kind, self.url, asyncio.get_running_loop().time(), detail)
         self.failure = failure_after(kind, detail, self.failure)
-        level = logging.WARNING if kind in _WARNINGS else logging.INFO
-        logger.log(level, "%s %s %s", self.url, kind, detail)
+        quiet, more = self._repeats.note(kind, detail, event.time)
+        level = logging.DEBUG if quiet else logging.WARNING if kind in _WARNINGS else logging.INFO
+        logger.log(level, "%s %s %s%s", self.url, kind, detail, more)
         for queue in self._subscribers:
             queue.put_nowait(event)
         if self._on_event is not None:

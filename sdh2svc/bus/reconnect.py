@@ -9,12 +9,13 @@ its lines).
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import TypeVar
 
-__all__ = ["Backoff", "LinkEvent", "LinkEventKind", "reconnect"]
+__all__ = ["Backoff", "LinkEvent", "LinkEventKind", "RepeatedFailures", "reconnect"]
 
 T = TypeVar("T")
 
@@ -64,6 +65,36 @@ class Backoff:
         while True:
             yield delay
             delay = min(2.0 * delay, self.max_s)
+
+
+REPEAT_SAID_S = 600.0  # a line failing to reopen the same way is said again at most this often
+
+
+class RepeatedFailures:
+    """Which of a line's failed reopenings are worth a warning: the first of a spell, one whose
+    reason changed, and one every :data:`REPEAT_SAID_S` (saying how many came between); the
+    rest are logged at DEBUG. With the hand switched off, the two lines failing every 4–5 s wrote
+    ≈ 27 warnings a minute, the same two, while the status said the lines were down."""
+
+    def __init__(self) -> None:
+        self._reason: str | None = None
+        self._said_at = -math.inf
+        self._unsaid = 0
+
+    def note(self, kind: LinkEventKind, detail: str, now: float) -> tuple[bool, str]:
+        """For an event of ``kind`` at loop time ``now``: whether to log it quietly, and what
+        to add to its line."""
+        if kind in LINE_UP:
+            self._reason, self._said_at, self._unsaid = None, -math.inf, 0
+        if kind is not LinkEventKind.RECONNECT_FAILED:
+            return False, ""
+        if detail == self._reason and now - self._said_at < REPEAT_SAID_S:
+            self._unsaid += 1
+            return True, ""
+        alike = detail == self._reason and self._unsaid
+        more = f" (and {self._unsaid} times alike since)" if alike else ""
+        self._reason, self._said_at, self._unsaid = detail, now, 0
+        return False, more
 
 
 def failure_after(kind: LinkEventKind, detail: str, failure: str | None) -> str | None:

@@ -56,6 +56,7 @@ from sdh2svc.bus.reconnect import (
     Backoff,
     LinkEvent,
     LinkEventKind,
+    RepeatedFailures,
     failure_after,
     reconnect,
 )
@@ -290,6 +291,7 @@ class TactileBus:
         self._frame_listeners: list[Callable[[TactileFrame], None]] = []
         self.history: deque[LinkEvent] = deque(maxlen=self.options.events_maxlen)
         self.failure: str | None = None  # why the line went down, until it is back up
+        self._repeats = RepeatedFailures()  # its failed reopenings, logged quietly when alike
         # connection state
         self._writer: asyncio.StreamWriter | None = None
         self._reader_task: asyncio.Task[None] | None = None
@@ -924,8 +926,11 @@ class TactileBus:
         self.history.append(event)
         self.failure = failure_after(kind, detail, self.failure)
         if kind in LINE_DOWN or kind in LINE_UP:  # the line's life, logged as the joint line's
-            level = logging.WARNING if kind in LINE_DOWN else logging.INFO
-            logger.log(level, "tactile line %s %s %s", self.url, kind, detail)
+            quiet, more = self._repeats.note(kind, detail, event.time)
+            level = (
+                logging.DEBUG if quiet else logging.WARNING if kind in LINE_DOWN else logging.INFO
+            )
+            logger.log(level, "tactile line %s %s %s%s", self.url, kind, detail, more)
         for sub in self._subs:
             sub._event(event)
         for callback in self._listeners:
