@@ -66,6 +66,9 @@ def check_exposure(cfg: Settings) -> None:
         )
 
 
+STALLED_PEER_S = 30  # a connection owed data it takes none of for this long is cut
+
+
 def listen_socket(cfg: Settings) -> socket.socket:
     """The HTTP socket, with a bounded kernel send buffer (inherited by every connection).
 
@@ -81,6 +84,11 @@ def listen_socket(cfg: Settings) -> socket.socket:
     sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, cfg.service.send_buffer_kb * 1024)
+    # a peer that stays connected but takes no byte for this long (a script wedged, its window
+    # shut) is cut by the kernel: the telemetry hub had dropped it, but closing the WebSocket
+    # waited on a send buffer that never drained, holding the connection, its task and ≈ 0.5
+    # MB for as long as the peer lived (no effect on idle connections: nothing is owed)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, STALLED_PEER_S * 1000)
     try:
         sock.bind((host, port))
     except OSError as e:
