@@ -1147,7 +1147,7 @@ class Recorder:
                     else:  # memory is not to run out while a disk stays full
                         self.lost += 1
                 now = time.time()
-                if pending and now < retry_at and not done:
+                if pending and time.monotonic() < retry_at and not done:
                     continue
                 if not pending and now - last_beat >= HEARTBEAT_S:
                     try:  # nothing to write: the heartbeat alone (refused: the next time)
@@ -1179,7 +1179,7 @@ class Recorder:
                         self.refusals, self.refused = self.refusals + 1, e
                         in_a_row += 1
                         if not locked(e):
-                            retry_at = time.time() + RETRY_S
+                            retry_at = time.monotonic() + RETRY_S  # (a clock set back)
                             if done:  # (the wait above no longer waits)
                                 time.sleep(RETRY_S)
                         if in_a_row == 1:
