@@ -34,7 +34,7 @@ from sdh2svc.control.sample import Sample
 from sdh2svc.provenance import code_version
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.recording import RecordedRun
-from sdh2svc.service.store import RunStore, locked, now_iso, opened_elsewhere
+from sdh2svc.service.store import RunStore, StoreError, locked, now_iso, opened_elsewhere
 from sdh2svc.service.telemetry import (
     OUTLINE_POINTS,
     Event,
@@ -275,8 +275,8 @@ class HandService:
             run = RecordedRun(self.cfg, joints, tactile, store, params=run_params, meta=meta,
                               bench=self.bench, observer=_RunTelemetry(self),
                               create_wait_s=CREATE_WAIT_S)  # fmt: skip
-        except sqlite3.OperationalError as e:
-            if locked(e):
+        except (sqlite3.OperationalError, StoreError) as e:
+            if isinstance(e, sqlite3.OperationalError) and locked(e):
                 why = (f"the run database {store.path} is locked by another program ({e}): no "
                        "run was started; try again once it lets go (a vacuum, a database "
                        "browser with unsaved changes)")  # fmt: skip

@@ -1105,7 +1105,12 @@ class Recorder:
         self._buf.clear()
 
     def _run(self) -> None:
-        db = connect(self.path, busy_timeout_s=self.busy_timeout_s)
+        try:
+            db = connect(self.path, busy_timeout_s=self.busy_timeout_s)
+        except (StoreError, sqlite3.Error) as e:  # (a full disk: its rows are counted lost)
+            self.error = e
+            log.error("run %d: its recording could not begin: %s", self.run_id, e)
+            return
         tables = {
             "s": ("samples", f'"run_id", {_QUOTED}', len(SAMPLE_COLUMNS) + 1),
             "e": ("events", "run_id, t, iteration, kind, detail", 5),

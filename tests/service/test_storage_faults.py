@@ -369,3 +369,26 @@ def test_a_database_on_a_full_disk_says_the_disk_is_full(tmp_path: Path) -> None
     assert r.returncode == 4, r.stderr
     assert f"cannot open the run database {disk}/runs.sqlite: " in r.stderr
     assert "(the disk holding it is full: " in r.stderr and "make room there" in r.stderr
+
+
+def test_a_recording_that_cannot_begin_counts_its_rows_lost(
+    cfg: Settings, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The recorder's own connection refused (a full disk, the file gone unwritable between the
+    run's start and its recorder): its thread died with a traceback on stderr, and the rows
+    were neither written nor said to be lost."""
+    db = tmp_path / "runs.sqlite"
+    run_id = RunStore(db).create_run({})
+    real = store.connect
+
+    def refused(*args: Any, **kwargs: Any) -> Any:
+        if threading.current_thread().name.startswith("recorder-"):
+            raise store.StoreError(f"cannot open the run database {db}: disk I/O error")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(store, "connect", refused)
+    rec = Recorder(db, run_id, flush_s=0.01)
+    for s in _samples(cfg, 7):
+        rec.sample(s)
+    rec.close()
+    assert rec.committed == 0 and rec.lost == 7 and "disk I/O error" in str(rec.error)
