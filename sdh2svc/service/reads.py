@@ -34,11 +34,13 @@ READ_NICE = 10  # CPU priority steps below the service's
 
 @dataclass(frozen=True, slots=True)
 class Payload:
-    """A read's answer: the bytes of a response, their media type and headers."""
+    """A read's answer: the bytes of a response (or the file the worker wrote them to, for a
+    large one: ``path``), their media type and headers."""
 
     content: bytes
     media_type: str = "application/json"
     headers: dict[str, str] = field(default_factory=dict)
+    path: str | None = None  # the answer is this file's (the service streams it, then it goes)
 
 
 class ReadPool:

@@ -15,12 +15,14 @@ import base64
 import contextlib
 import io
 import json
+import os
 import sqlite3
-from collections.abc import Iterator
+import tempfile
+from collections.abc import AsyncIterator, Iterator
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, Query
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from sdh2svc.config import ConfigError, Settings
@@ -94,8 +96,29 @@ def json_body(value: Any) -> Payload:
     return Payload(_dumps(value))
 
 
+EXPORT_CHUNK_B = 1 << 20  # an export streamed from its file this many bytes at a time
+
+
 def _answer(body: Payload) -> Response:
-    return Response(body.content, media_type=body.media_type, headers=body.headers)
+    if body.path is None:
+        return Response(body.content, media_type=body.media_type, headers=body.headers)
+    # a file a worker wrote: streamed from it, never whole in this process (a long run's MCAP
+    # is gigabytes: passed back as bytes, it tripled in the service's memory and stalled the
+    # event loop — the control loop's — long enough to lose the tactile line). Unlinked at
+    # once: the open file is read to its end, and nothing is left if the client goes away
+    fh = open(body.path, "rb")  # noqa: SIM115 (closed by the stream)
+    os.unlink(body.path)
+    size = os.fstat(fh.fileno()).st_size
+
+    async def chunks() -> AsyncIterator[bytes]:
+        try:
+            while chunk := await asyncio.to_thread(fh.read, EXPORT_CHUNK_B):
+                yield chunk
+        finally:
+            fh.close()
+
+    headers = {**body.headers, "Content-Length": str(size)}
+    return StreamingResponse(chunks(), media_type=body.media_type, headers=headers)
 
 
 BEFORE = "only runs of lower ids (the next page: the last id of this one)"
@@ -463,19 +486,28 @@ async def export(svc: Svc, run_id: RunId, format: Literal["csv", "mcap"] = "csv"
 
 
 def _export_body(cfg: Settings, run_id: int, format: str) -> Payload:
+    """The export written to a file of its own, which the service streams (:func:`_answer`)."""
     with _store(cfg) as store:
         _run_or_404(store, run_id)
         headers = {"Content-Disposition": f'attachment; filename="run-{run_id}.{format}"'}
-        if format == "csv":
-            text = io.StringIO()
-            store.export_csv(run_id, text)
-            return Payload(text.getvalue().encode(), "text/csv; charset=utf-8", headers)
-        data = io.BytesIO()
+        fd, path = tempfile.mkstemp(prefix="sdh2svc-export-", suffix=f".{format}")
         try:
-            store.export_mcap(run_id, data, cfg)
+            with open(fd, "wb") as out:
+                if format == "csv":
+                    text = io.TextIOWrapper(out, encoding="utf-8", newline="")
+                    store.export_csv(run_id, text)
+                    text.flush()
+                    text.detach()  # (``out`` closes the file)
+                else:
+                    store.export_mcap(run_id, out, cfg)
         except ConfigError as e:  # recorded by a version whose configuration this one refuses
+            os.unlink(path)
             raise ServiceError(409, f"run {run_id} cannot be drawn by this version: {e}") from None
-        return Payload(data.getvalue(), "application/octet-stream", headers)
+        except BaseException:
+            os.unlink(path)
+            raise
+    media = "text/csv; charset=utf-8" if format == "csv" else "application/octet-stream"
+    return Payload(b"", media, headers, path=path)
 
 
 @contextlib.contextmanager
