@@ -170,9 +170,13 @@ class RateMeter:
     def add(self, t: float, amount: int) -> None:
         self._items.append((t, amount))
         self._sum += amount
+        self._prune(t)  # (read only at a run's end, it held every read of the run)
 
-    def rate(self, now: float) -> float:
+    def _prune(self, now: float) -> None:
         while self._items and self._items[0][0] < now - self.window:
             self._sum -= self._items.popleft()[1]
+
+    def rate(self, now: float) -> float:
+        self._prune(now)
         span = min(self.window, now - self._start)
         return self._sum / span if span > 0.0 else 0.0

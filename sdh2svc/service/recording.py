@@ -24,7 +24,7 @@ from sdh2svc.config import Settings
 from sdh2svc.connect import Bench
 from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
-from sdh2svc.control.runner import Runner
+from sdh2svc.control.runner import Runner, RunResult
 from sdh2svc.control.sample import Sample
 from sdh2svc.provenance import code_version
 from sdh2svc.service.store import Recorder, RunStore, retry_locked
@@ -128,9 +128,9 @@ class RecordedRun:
                 result.status, result.message = "interrupted", (
                     "cancelled before it ended: the fingers stopped where they were and may "
                     "still hold the object")  # fmt: skip
-            self.summary = await _whole(self._finish(result.summary()))
+            self.summary = await _whole(self._finish(result))
             raise
-        self.summary = await _whole(self._finish(result.summary()))
+        self.summary = await _whole(self._finish(result))
         return self.summary
 
     async def _close(self) -> None:
@@ -149,9 +149,12 @@ class RecordedRun:
         except Exception:
             log.exception("run %d: its recording did not close cleanly", self.run_id)
 
-    async def _finish(self, summary: dict[str, Any]) -> dict[str, Any]:
+    async def _finish(self, result: RunResult) -> dict[str, Any]:
         """The summary completed and written as the run's end (a failure to write it is logged
         and noted in the summary: the run ended as it ended)."""
+        # in a thread: a long run's statistics take ≈ 1 s a million iterations, and on the event
+        # loop nothing else (an answer, the telemetry, an e-stop's request) goes meanwhile
+        summary = await asyncio.to_thread(result.summary)
         st = self.tactile.stats
         summary["frames"] = {"received": st.frames, "crc_errors": st.crc_errors,
                              "resyncs": st.resyncs, "frames_per_s": st.frames_per_s}  # fmt: skip
