@@ -14,17 +14,23 @@ import signal
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 WATCH_S = 1.0  # how often a worker looks for its parent
 
 
-def worker_init(parent_pid: int, nice: int = 0) -> None:
+def worker_init(parent_pid: int, nice: int = 0, oom_first: bool = False) -> None:
     """A pool's initializer: Ctrl-C is left to the parent (which stops the pool), the worker
     runs ``nice`` steps below the parent's CPU priority, and it ends itself once
-    ``parent_pid`` is gone."""
+    ``parent_pid`` is gone. ``oom_first``: a machine out of memory ends this worker before
+    anything else (an export of a run of thousands of strokes takes gigabytes: the kernel
+    would otherwise pick the largest process, which may be the service driving the hand)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if nice:
         os.nice(nice)
+    if oom_first:
+        with contextlib.suppress(OSError):  # (not Linux: the OS's own choice)
+            Path("/proc/self/oom_score_adj").write_text("1000")
 
     def watch() -> None:
         while True:

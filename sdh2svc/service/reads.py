@@ -60,7 +60,7 @@ class ReadPool:
                 ctx.set_forkserver_preload(list(self.preload))
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
                                              initializer=worker_init,
-                                             initargs=(os.getpid(), READ_NICE))  # fmt: skip
+                                             initargs=(os.getpid(), READ_NICE, True))  # fmt: skip
         return self._pool
 
     async def __call__(self, fn: Callable[..., Payload], *args: Any) -> Payload:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import os
 import tempfile
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from test_store import _samples
 
 from sdh2svc.config import Settings, load_config
 from sdh2svc.service.api.runs import _answer, _export_body
+from sdh2svc.service.reads import READ_NICE, Payload, ReadPool
 from sdh2svc.service.store import Recorder, RunStore
 
 
@@ -57,3 +59,25 @@ def test_an_export_is_streamed_from_a_file_that_goes_once_opened(
         assert got == expected.getvalue()
     else:  # a whole MCAP file, every message valid
         assert len(read(got).messages["/samples"]) == 40
+
+
+def _worker_standing() -> Payload:
+    """In a read worker: how the kernel ranks it for an out-of-memory kill, and its priority."""
+    oom = Path("/proc/self/oom_score_adj").read_text().strip()
+    return Payload(f"{oom} {os.nice(0)}".encode())
+
+
+def test_a_read_worker_is_the_first_an_out_of_memory_machine_ends() -> None:
+    """An MCAP export of a run of thousands of strokes takes gigabytes in its read worker; out
+    of memory, the kernel ended the largest process, which could be the service driving the
+    hand. The read workers now go first, and run below the service's CPU priority."""
+    pool = ReadPool(workers=1)
+
+    async def ask() -> bytes:
+        return (await pool(_worker_standing)).content
+
+    try:
+        oom, nice = asyncio.run(ask()).decode().split()
+    finally:
+        pool.close()
+    assert int(oom) == 1000 and int(nice) >= os.nice(0) + READ_NICE
