@@ -10,12 +10,11 @@ from pathlib import Path
 from typing import Any
 
 from test_sim_press import service
+from test_storage_faults import JSON
 
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated
 from sdh2svc.control.runner import RunResult
-
-JSON = {"Content-Type": "application/json"}  # a command's, its body empty
 
 
 def test_a_run_keeps_three_doubles_an_iteration_for_its_summary() -> None:

@@ -12,6 +12,7 @@ import sqlite3
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -117,16 +118,22 @@ class _FillsAt(BaseObserver):
             self.full.clear()
 
 
-def _run(tmp_path: Path, observer: _FillsAt) -> tuple[dict[str, Any], dict[str, Any], int]:
-    """A short fast run; its summary, its record and how many samples the record holds."""
-    db = tmp_path / "runs.sqlite"
+def _fast_run(db: Path, observer: BaseObserver) -> dict[str, Any]:
+    """A short fast run (one stroke on the rubber ball) into ``db``, watched by ``observer``."""
     cfg = load_config(overrides=[f"storage.db_path='{db}'", "rolling.cycles=1",
                                  "sim.object='rubber'"], use_env=False)  # fmt: skip
 
-    def watch(_bench: Bench | None) -> _FillsAt:
+    def watch(_bench: Bench | None) -> BaseObserver:
         return observer
 
-    summary = run_fast(headless.run_once(cfg, Simulated(fast=True), observer=watch))
+    summary: dict[str, Any] = run_fast(headless.run_once(cfg, Simulated(fast=True), observer=watch))
+    return summary
+
+
+def _run(tmp_path: Path, observer: _FillsAt) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """A short fast run; its summary, its record and how many samples the record holds."""
+    db = tmp_path / "runs.sqlite"
+    summary = _fast_run(db, observer)
     runs = RunStore(db, create=False)
     record = runs.run(summary["run_id"])
     assert record is not None
@@ -159,8 +166,6 @@ def test_a_run_whose_disk_fills_for_a_while_loses_nothing(
 
 def _until(ok: Any, timeout_s: float = 30.0) -> bool:
     """Waits for ``ok()`` (a guard: it comes within a flush or two)."""
-    import time
-
     deadline = time.monotonic() + timeout_s
     while not ok() and time.monotonic() < deadline:
         time.sleep(0.005)
@@ -264,14 +269,7 @@ def test_a_run_whose_database_is_renamed_says_its_record_is_not_there(tmp_path: 
     """The file renamed mid-run: the run ended 'stopped' with no message and no log line,
     and was not in the file at the path. Its summary says so now."""
     db = tmp_path / "runs.sqlite"
-    cfg = load_config(overrides=[f"storage.db_path='{db}'", "rolling.cycles=1",
-                                 "sim.object='rubber'"], use_env=False)  # fmt: skip
-    moves = _MovesAt(db, 20)
-
-    def watch(_bench: Bench | None) -> _MovesAt:
-        return moves
-
-    summary = run_fast(headless.run_once(cfg, Simulated(fast=True), observer=watch))
+    summary = _fast_run(db, _MovesAt(db, 20))
     assert summary["status"] == "completed"
     assert (f"the run database {db} was deleted, renamed or replaced during the run: its "
             "record is not in the file there") in summary["message"]  # fmt: skip
