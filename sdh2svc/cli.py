@@ -872,15 +872,12 @@ def _write_protected(store: Any, said: str) -> Iterator[None]:
     exit 4."""
     import sqlite3
 
-    from sdh2svc.service.store import stray_logs
+    from sdh2svc.service.store import read_only, stray_logs
 
     try:
         yield
     except sqlite3.OperationalError as e:
-        code = getattr(e, "sqlite_errorcode", None)
-        if (code & 0xFF if code is not None else 0) != sqlite3.SQLITE_READONLY and (
-            "readonly database" not in str(e)
-        ):
+        if not read_only(e):
             raise
         path = Path(store.path)
         if stray := stray_logs(path):

@@ -469,7 +469,7 @@ def _check_writable(db: sqlite3.Connection, busy_timeout_s: float) -> None:
         version = int(db.execute("PRAGMA user_version").fetchone()[0])
         db.execute(f"PRAGMA user_version = {version}")
     except sqlite3.OperationalError as e:
-        if e.sqlite_errorcode & 0xFF == sqlite3.SQLITE_READONLY:
+        if read_only(e):
             raise
     finally:
         db.execute(f"PRAGMA busy_timeout = {round(busy_timeout_s * 1000)}")
@@ -588,18 +588,18 @@ class RunStore:
         nothing written."""
         with self._lock:
             self._follow_path()
-        with self._lock, self._waiting(wait_s), self.db:
-            cur = self.db.execute(
-                "INSERT INTO runs (started_at, status, meta) VALUES (?, 'running', ?)",
-                (now_iso(), json.dumps(meta)),
-            )
-            run_id = cur.lastrowid
-            assert run_id is not None
-            self.db.execute("INSERT INTO owners (run_id, host, pid, started, pidns, seen) "
-                            "VALUES (?, ?, ?, ?, ?, ?)",
-                            (run_id, *_this_process(), time.time()))  # fmt: skip
-            if outline is not None:
-                self._insert_outline(run_id, *outline)
+            with self._waiting(wait_s), self.db:
+                cur = self.db.execute(
+                    "INSERT INTO runs (started_at, status, meta) VALUES (?, 'running', ?)",
+                    (now_iso(), json.dumps(meta)),
+                )
+                run_id = cur.lastrowid
+                assert run_id is not None
+                self.db.execute("INSERT INTO owners (run_id, host, pid, started, pidns, seen) "
+                                "VALUES (?, ?, ?, ?, ?, ?)",
+                                (run_id, *_this_process(), time.time()))  # fmt: skip
+                if outline is not None:
+                    self._insert_outline(run_id, *outline)
         return run_id
 
     @contextlib.contextmanager
@@ -1038,6 +1038,16 @@ def locked(e: sqlite3.OperationalError) -> bool:
     """SQLite's "database is locked" / "busy": another connection's doing, not this data's."""
     text = str(e).lower()
     return "locked" in text or "busy" in text
+
+
+def read_only(e: sqlite3.OperationalError) -> bool:
+    """SQLite's "attempt to write a readonly database" (of any kind): this process may not write
+    the file, its folder, or a log beside it — or the file is an older version's read as it is
+    (:meth:`RunStore.check_writable`'s own refusal, which has no code)."""
+    code = getattr(e, "sqlite_errorcode", None)
+    if code is not None:
+        return bool(code & 0xFF == sqlite3.SQLITE_READONLY)
+    return "readonly database" in str(e)
 
 
 def retry_locked(write: Callable[[], None]) -> None:
