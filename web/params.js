@@ -19,6 +19,7 @@ const LABELS = {
   delta_lambda_inc_mm: "ΔΛ_inc (mm)",
   delta_lambda_dec_mm: "ΔΛ_dec (mm)",
   force_reverse: "force reverse (× Fd)",
+  recentre_strokes: "re-centre within (strokes)",
   route: "Finger 2's route",
   cycles: "cycles (strokes)",
 };

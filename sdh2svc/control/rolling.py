@@ -118,6 +118,14 @@ class RollState:
     # any other): its way back retreats on only while the contact leans less (_retreats)
     lean: float = 0.0
     prev: Observation | None = None  # the last iteration's observation (for rolling_turn)
+    # Re-centring (``recentre_strokes``): the reference stroke's mean wedge (_stroke_wedge),
+    # the wedge's sum and count over the current half stroke and the last, and the last full
+    # stroke's mean wedge minus the reference's with that stroke's iterations (_recentre)
+    wedge_ref: float | None = None
+    wedge_now: tuple[float, int] = (0.0, 0)
+    wedge_last: tuple[float, int] | None = None
+    wedge_error: float = 0.0
+    stroke_iterations: int = 0
 
     @property
     def strokes(self) -> int:
@@ -199,6 +207,7 @@ class _Route:
     params: RollingParams
     ctx: ModelContext
     move: Move  # Finger 2's full step (control/route.py)
+    bias: float = 0.0  # added to σd at the full step (re-centring, _recentre)
 
     def configure(self, scale: float) -> _Config | None:
         """The configuration ``scale`` × (Δφ, or dσ in one-finger mode) ahead; None when
@@ -212,13 +221,63 @@ class _Route:
             if not self.ctx.limits2.contains(phi4d, phi5d):
                 return None
             B_d = contact_point(Finger.TWO, phi4d, phi5d, c2.r_mm, c2.theta_rad, geom)
-            sigma_d = sigma_desired(obs, B_d, p.lambda_gain)
+            sigma_d = sigma_desired(obs, B_d, p.lambda_gain) + scale * self.bias
         else:
             phi4d, phi5d, B_d = pose.phi4, pose.phi5, obs.points.B
             sigma_d = obs.sigma + scale * self.state.direction * p.d_sigma
         A_d, ik = finger1_to(obs, B_d, sigma_d, self.lam_ad, self.ctx)
         step = scale * (abs(p.delta_phi) if p.mode == "two-finger" else abs(p.d_sigma))
         return _Config(phi4d, phi5d, Plan(self.lam_ad, sigma_d, A_d, B_d), ik, step)
+
+
+# The half stroke whose end, with the one before, makes the re-centring's reference stroke: the
+# second full stroke between two reversals (half strokes 4 and 5). The first half stroke starts
+# at the grasp, halfway along the route, and the first strokes still settle in from it
+# (bench-v1's polygon-151 turns 2.4°, 8.1°, 11.3°, 15.5°, 16.8° in its first five half strokes;
+# the egg's first strokes last 250, 438, 444 iterations): held to one of those, a run is leaned
+# towards where it started, not back from where it drifted. A run of 3 strokes is never leaned.
+REFERENCE_HALF_STROKE = 5
+# The largest lean of σd the re-centring adds per iteration (rad), about what the rolling itself
+# turns σ by per iteration: a bound for a slope the model gets wrong, not the rule's gain.
+RECENTRE_MAX = math.radians(0.025)
+# σd's change the wedge's slope is taken over, either way (rad)
+RECENTRE_PROBE = math.radians(0.5)
+# A slope below this (wedge per σd) leaves the wedge to the rolling: σ would lean on and on
+# while the wedge barely moves (the contacts on flat faces, where the wedge is the faces')
+RECENTRE_MIN_SLOPE = 0.1
+
+
+def _recentre(route: _Route) -> float:
+    """σd's lean this iteration (rad) that brings the pads' wedge, averaged over the last full
+    stroke, back to the reference stroke's within ``recentre_strokes`` strokes.
+
+    Nothing in the thesis's plan holds the wedge: Finger 2 follows its route, Finger 1 puts A
+    at σd from B, and Λ follows the force; the grasp's one remaining freedom, how the pads lean
+    on the object, is left to the rolling, and what each stroke leaves of it (the contacts roll
+    a little further one way than back) adds up. On the egg the stroke's mean wedge grew from
+    5° to 12.5° in 180 strokes, Finger 1 straightened towards its reach, the strokes shrank from
+    412 to 70 iterations, and the run ended stuck. The lean spreads the last stroke's error over
+    ``recentre_strokes`` strokes' iterations, through the model's slope of the wedge in σd
+    (Finger 1's IK at σd ± RECENTRE_PROBE for the route's full step)."""
+    p, st = route.params, route.state
+    if p.recentre_strokes <= 0.0 or st.stroke_iterations == 0 or p.mode != "two-finger":
+        return 0.0  # off, no full stroke since the reference yet, or σ is the route (one finger)
+    cfg = route.configure(1.0)
+    if cfg is None or cfg.plan.sigma_d is None or cfg.plan.B_d is None:
+        return 0.0
+    w = []
+    for d in (-RECENTRE_PROBE, RECENTRE_PROBE):
+        A_d, ik = finger1_to(route.obs, cfg.plan.B_d, cfg.plan.sigma_d + d, route.lam_ad,
+                             route.ctx)  # fmt: skip
+        if ik.solution is None:
+            return 0.0
+        phi = (ik.solution.proximal, ik.solution.distal, cfg.phi4d, cfg.phi5d)
+        w.append(wedge(*omegas(route.obs, phi, A_d, cfg.plan.B_d, route.ctx)))
+    slope = (w[1] - w[0]) / (2 * RECENTRE_PROBE)
+    if abs(slope) < RECENTRE_MIN_SLOPE:
+        return 0.0
+    lean = -st.wedge_error / slope / (p.recentre_strokes * st.stroke_iterations)
+    return max(-RECENTRE_MAX, min(RECENTRE_MAX, lean))
 
 
 # A slower plan may still need a little more than Finger 1's step (the step's scaling is linear,
@@ -244,7 +303,7 @@ def _reverse(
 ) -> RollState:
     ended = (state.travel >= p.min_half_stroke
              and state.turned >= TURN_MARGIN * p.min_half_stroke)  # fmt: skip
-    return replace(
+    nxt = replace(
         state,
         direction=-state.direction,
         F_prev=F,
@@ -258,6 +317,22 @@ def _reverse(
         turned=0.0 if ended else state.turned,
         lean=_cone_lean(reason, obs),
     )
+    return _stroke_wedge(nxt) if ended else nxt
+
+
+def _stroke_wedge(state: RollState) -> RollState:
+    """``state`` at a half stroke's end (``half_strokes`` counts it): the mean wedge over it
+    and the half stroke before (a full stroke) and their iterations. The full stroke ending
+    with half stroke REFERENCE_HALF_STROKE is the reference the later ones are held to
+    (``wedge_ref``)."""
+    last, now = state.wedge_last, state.wedge_now
+    state = replace(state, wedge_now=(0.0, 0), wedge_last=now)
+    if state.half_strokes < REFERENCE_HALF_STROKE or last is None or last[1] + now[1] == 0:
+        return state
+    mean = (last[0] + now[0]) / (last[1] + now[1])
+    if state.wedge_ref is None:
+        return replace(state, wedge_ref=mean)
+    return replace(state, wedge_error=mean - state.wedge_ref, stroke_iterations=last[1] + now[1])
 
 
 def _cone_lean(cone: Reversal, obs: Observation) -> float:
@@ -364,9 +439,12 @@ def step(
     F = grip_force(c1, c2)
     dF = 0.0 if state.F_prev is None else F - state.F_prev
 
-    if state.iteration == 0 and obs.omega_A is not None and obs.omega_B is not None:
-        held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
-        state = replace(state, alpha_held=held)
+    if obs.omega_A is not None and obs.omega_B is not None:
+        w = wedge(obs.omega_A, obs.omega_B)
+        state = replace(state, wedge_now=(state.wedge_now[0] + w, state.wedge_now[1] + 1))
+        if state.iteration == 0:
+            held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
+            state = replace(state, alpha_held=held)
     alpha = state.cone(params)
     waived = _waived(state, params)
 
@@ -387,6 +465,7 @@ def step(
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
     move = finger2_move(state.direction, Predictor(pose, obs, lam_ad, alpha, params, ctx))
     route = _Route(state, pose, obs, lam_ad, params, ctx, move)
+    route = replace(route, bias=_recentre(route))
     reason, plan, cfg = _attempt(route, waived, alpha)
     if reason is not None and state.consecutive_reversals >= ESCAPE_AFTER:
         reason, plan, cfg = _escape(route, waived, alpha, (reason, plan, cfg))

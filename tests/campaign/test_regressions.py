@@ -200,3 +200,16 @@ def test_the_peak_force_counts_the_grasps_closing(
     assert row["status"] != "crashed", row["traceback"]
     k = true_grip_scale(case_settings(case, ("rolling.cycles=1",), None, tmp_path / "c.sqlite"))
     assert k is not None and row["peak_force"] == pytest.approx(k * max(grips), rel=1e-9)
+
+
+def test_a_long_run_holds_the_pads_wedge_where_its_second_stroke_had_it() -> None:
+    # A 27 mm circle rolled for 30 strokes (experiments/campaigns/recentre): without
+    # re-centring, what each stroke left of the pads' wedge added up, Finger 1 reached its
+    # stretch ever sooner, and the rotation reversed at its reach until stuck in the 15th
+    # stroke. The stroke's mean wedge is now held to the second stroke's.
+    suite = Path(__file__).parents[2] / "experiments" / "campaigns" / "recentre" / "long46t.json"
+    case = {c.id: c for c in load_suite(suite).cases}["long46-circle-033"]
+    row = run_case(case.model_dump_json(), ("rolling.cycles=30",))
+    assert row["status"] != "crashed", row["traceback"]
+    rolls_every_stroke(row)
+    assert row["success"], (row["failure"], row["message"])
