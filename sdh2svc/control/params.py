@@ -87,8 +87,8 @@ class RollingParams(Finite):
     )
     recentre_strokes: Annotated[float, Field(ge=0.0, le=100.0)] = Field(
         default=0.0,
-        description="from the sixth half stroke on, the pads' wedge averaged over the last full "
-        "stroke is brought back to the second full stroke's within this many strokes, by "
+        description="from the seventh half stroke on, the pads' wedge averaged over the last "
+        "full stroke is brought back to the second full stroke's within this many strokes, by "
         "leaning Finger 1's σd (not in the thesis; 0: off)",
     )
     cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
