@@ -711,8 +711,7 @@ class JointLink:
     def _emit(self, kind: LinkEventKind, detail: str = "") -> None:
         event = LinkEvent(kind, self.url, asyncio.get_running_loop().time(), detail)
         self.failure = failure_after(kind, detail, self.failure)
-        quiet, more = self._repeats.note(kind, detail, event.time)
-        level = logging.DEBUG if quiet else logging.WARNING if kind in _WARNINGS else logging.INFO
+        level, more = self._repeats.level(kind, detail, event.time, kind in _WARNINGS)
         logger.log(level, "%s %s %s%s", self.url, kind, detail, more)
         for queue in self._subscribers:
             queue.put_nowait(event)

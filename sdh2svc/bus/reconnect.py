@@ -9,6 +9,7 @@ its lines).
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
@@ -95,6 +96,12 @@ class RepeatedFailures:
         more = f" (and {self._unsaid} times alike since)" if alike else ""
         self._reason, self._said_at, self._unsaid = detail, now, 0
         return False, more
+
+    def level(self, kind: LinkEventKind, detail: str, now: float, warn: bool) -> tuple[int, str]:
+        """The logging level of an event (WARNING if ``warn``, else INFO; DEBUG when
+        :meth:`note` quiets it) and what to add to its line."""
+        quiet, more = self.note(kind, detail, now)
+        return (logging.DEBUG if quiet else logging.WARNING if warn else logging.INFO), more
 
 
 def failure_after(kind: LinkEventKind, detail: str, failure: str | None) -> str | None:

@@ -926,10 +926,7 @@ class TactileBus:
         self.history.append(event)
         self.failure = failure_after(kind, detail, self.failure)
         if kind in LINE_DOWN or kind in LINE_UP:  # the line's life, logged as the joint line's
-            quiet, more = self._repeats.note(kind, detail, event.time)
-            level = (
-                logging.DEBUG if quiet else logging.WARNING if kind in LINE_DOWN else logging.INFO
-            )
+            level, more = self._repeats.level(kind, detail, event.time, kind in LINE_DOWN)
             logger.log(level, "tactile line %s %s %s%s", self.url, kind, detail, more)
         for sub in self._subs:
             sub._event(event)

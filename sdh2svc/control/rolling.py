@@ -258,21 +258,18 @@ def _recentre(route: _Route) -> float:
     5° to 12.5° in 180 strokes, Finger 1 straightened towards its reach, the strokes shrank from
     412 to 70 iterations, and the run ended stuck. The lean spreads the last stroke's error over
     ``recentre_strokes`` strokes' iterations, through the model's slope of the wedge in σd
-    (Finger 1's IK at σd ± RECENTRE_PROBE for the route's full step)."""
+    (the route's full step planned at σd ± RECENTRE_PROBE)."""
     p, st = route.params, route.state
     if p.recentre_strokes <= 0.0 or st.stroke_iterations == 0 or p.mode != "two-finger":
         return 0.0  # off, no full stroke since the reference yet, or σ is the route (one finger)
-    cfg = route.configure(1.0)
-    if cfg is None or cfg.plan.sigma_d is None or cfg.plan.B_d is None:
-        return 0.0
     w = []
     for d in (-RECENTRE_PROBE, RECENTRE_PROBE):
-        A_d, ik = finger1_to(route.obs, cfg.plan.B_d, cfg.plan.sigma_d + d, route.lam_ad,
-                             route.ctx)  # fmt: skip
-        if ik.solution is None:
+        cfg = replace(route, bias=d).configure(1.0)
+        if cfg is None or cfg.ik.solution is None:
             return 0.0
-        phi = (ik.solution.proximal, ik.solution.distal, cfg.phi4d, cfg.phi5d)
-        w.append(wedge(*omegas(route.obs, phi, A_d, cfg.plan.B_d, route.ctx)))
+        assert cfg.plan.A_d is not None and cfg.plan.B_d is not None
+        phi = (cfg.ik.solution.proximal, cfg.ik.solution.distal, cfg.phi4d, cfg.phi5d)
+        w.append(wedge(*omegas(route.obs, phi, cfg.plan.A_d, cfg.plan.B_d, route.ctx)))
     slope = (w[1] - w[0]) / (2 * RECENTRE_PROBE)
     if abs(slope) < RECENTRE_MIN_SLOPE:
         return 0.0

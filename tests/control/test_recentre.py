@@ -20,14 +20,10 @@ from sdh2svc.control.rolling import (
 )
 from sdh2svc.model.friction import wedge
 from sdh2svc.model.kinematics import HandPose, segment
-from tests.control.test_rolling import TILTED, frame
+from tests.control.test_rolling import TILTED, frame, params
 
 rad = math.radians
 EMPTY = np.zeros((13, 6), np.uint16)
-
-
-def params(cfg: Settings, **kw: object) -> RollingParams:
-    return cfg.rolling.model_copy(update={"finger1_max_step_deg": 10.0, **kw})
 
 
 def _half_stroke(s: RollState, pose: HandPose, n: int, p: RollingParams,
