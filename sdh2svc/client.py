@@ -96,7 +96,9 @@ class SamplePage(TypedDict):
     run_id: int
     offset: int
     limit: int
+    every: int
     total: int
+    next: int | None
     samples: list[JSON]
 
 
@@ -277,24 +279,36 @@ def _start(params: Mapping[str, Any] | None, obj: str | Mapping[str, Any] | None
     return _Call("POST", "/api/runs", body)
 
 
-def _samples(run_id: int, offset: int, limit: int | None, outline: bool = False) -> _Call:
+def _samples(
+    run_id: int, offset: int, limit: int | None, outline: bool = False, first: int = 0,
+    every: int = 1,
+) -> _Call:  # fmt: skip
     query: dict[str, Any] = {"offset": offset}
     if limit is not None:
         query["limit"] = limit
     if outline:
         query["outline"] = "true"
+    if first:
+        query["from"] = first
+    if every != 1:
+        query["every"] = every
     return _Call("GET", f"/api/runs/{run_id}/samples", query=query)
 
 
-def _frames(run_id: int, first: int, limit: int, to: int | None = None) -> _Call:
+def _frames(run_id: int, first: int, limit: int, to: int | None = None, every: int = 1) -> _Call:
     query: dict[str, Any] = {"from": first, "limit": limit}
     if to is not None:
         query["to"] = to
+    if every != 1:
+        query["every"] = every
     return _Call("GET", f"/api/runs/{run_id}/frames", query=query)
 
 
-def _truth(run_id: int, first: int, limit: int) -> _Call:
-    return _Call("GET", f"/api/runs/{run_id}/truth", query={"from": first, "limit": limit})
+def _truth(run_id: int, first: int, limit: int, every: int = 1) -> _Call:
+    query: dict[str, Any] = {"from": first, "limit": limit}
+    if every != 1:
+        query["every"] = every
+    return _Call("GET", f"/api/runs/{run_id}/truth", query=query)
 
 
 def _press(pad: int, x_mm: float, y_mm: float, force_n: float, radius_mm: float | None,
@@ -499,31 +513,37 @@ class Client:
         return cast(list[JSON], self.run(run_id)["events"])
 
     def samples(
-        self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False
-    ) -> SamplePage:
-        """A page of a run's samples, ``limit`` of them (default 1000, or 100 with ``outline``:
-        each with its ``estimate_outline``; ``limit`` then at most 100)."""
-        return cast(SamplePage, self._call(_samples(run_id, offset, limit, outline)))
+        self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False,
+        *, first: int = 0, every: int = 1,
+    ) -> SamplePage:  # fmt: skip
+        """A page of a run's samples in iteration order from iteration ``first`` on, ``offset``
+        of them skipped, ``limit`` of them (default 1000, or 100 with ``outline``: each with its
+        ``estimate_outline``; ``limit`` then at most 100); ``every``: one iteration in that
+        many. The page's ``next`` is the ``first`` of the next page (None: none)."""
+        call = _samples(run_id, offset, limit, outline, first, every)
+        return cast(SamplePage, self._call(call))
 
-    def iter_samples(self, run_id: int, page: int = 1000) -> Iterator[JSON]:
-        """Every sample of a run, fetched a page at a time."""
-        offset = 0
-        while True:
-            got = self.samples(run_id, offset, page)["samples"]
-            yield from got
-            if len(got) < page:
-                return
-            offset += len(got)
+    def iter_samples(self, run_id: int, page: int = 1000, every: int = 1) -> Iterator[JSON]:
+        """Every sample of a run (``every``: one iteration in that many), a page at a time."""
+        first: int | None = 0
+        while first is not None:
+            got = self.samples(run_id, 0, page, first=first, every=every)
+            yield from got["samples"]
+            first = got["next"]
 
-    def frames(self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None) -> JSON:
+    def frames(
+        self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None,
+        every: int = 1,
+    ) -> JSON:  # fmt: skip
         """A page of a run's tactile frames of iterations ``first`` … ``to`` (docs/api.md;
-        follow ``next``); ``texels`` is base64 of little-endian uint16 counts."""
-        return cast(JSON, self._call(_frames(run_id, first, limit, to)))
+        follow ``next``); ``texels`` is base64 of little-endian uint16 counts; ``every``: one
+        iteration in that many, as :meth:`samples`."""
+        return cast(JSON, self._call(_frames(run_id, first, limit, to, every)))
 
-    def truth(self, run_id: int, first: int = 0, limit: int = 2000) -> JSON:
+    def truth(self, run_id: int, first: int = 0, limit: int = 2000, every: int = 1) -> JSON:
         """In simulation, the object's truth recorded with each iteration from ``first`` on
-        (its ``outline`` and ``truth`` rows; follow ``next``)."""
-        return cast(JSON, self._call(_truth(run_id, first, limit)))
+        (its ``outline`` and ``truth`` rows; follow ``next``); ``every`` as :meth:`samples`."""
+        return cast(JSON, self._call(_truth(run_id, first, limit, every)))
 
     def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
         return self._send(_export(run_id, format)).content
@@ -776,27 +796,30 @@ class AsyncClient:
         return cast(list[JSON], (await self.run(run_id))["events"])
 
     async def samples(
-        self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False
-    ) -> SamplePage:
-        return cast(SamplePage, await self._call(_samples(run_id, offset, limit, outline)))
+        self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False,
+        *, first: int = 0, every: int = 1,
+    ) -> SamplePage:  # fmt: skip
+        call = _samples(run_id, offset, limit, outline, first, every)
+        return cast(SamplePage, await self._call(call))
 
-    async def iter_samples(self, run_id: int, page: int = 1000) -> AsyncIterator[JSON]:
-        offset = 0
-        while True:
-            got = (await self.samples(run_id, offset, page))["samples"]
-            for s in got:
+    async def iter_samples(
+        self, run_id: int, page: int = 1000, every: int = 1
+    ) -> AsyncIterator[JSON]:
+        first: int | None = 0
+        while first is not None:
+            got = await self.samples(run_id, 0, page, first=first, every=every)
+            for s in got["samples"]:
                 yield s
-            if len(got) < page:
-                return
-            offset += len(got)
+            first = got["next"]
 
     async def frames(
-        self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None
-    ) -> JSON:
-        return cast(JSON, await self._call(_frames(run_id, first, limit, to)))
+        self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None,
+        every: int = 1,
+    ) -> JSON:  # fmt: skip
+        return cast(JSON, await self._call(_frames(run_id, first, limit, to, every)))
 
-    async def truth(self, run_id: int, first: int = 0, limit: int = 2000) -> JSON:
-        return cast(JSON, await self._call(_truth(run_id, first, limit)))
+    async def truth(self, run_id: int, first: int = 0, limit: int = 2000, every: int = 1) -> JSON:
+        return cast(JSON, await self._call(_truth(run_id, first, limit, every)))
 
     async def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
         return (await self._send(_export(run_id, format))).content

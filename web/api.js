@@ -101,8 +101,14 @@ export const api = {
   run: (id) => request("GET", `/api/runs/${id}`),
   samples: (id, offset, limit, outline = false) => request("GET",
     `/api/runs/${id}/samples?offset=${offset}&limit=${limit}${outline ? "&outline=true" : ""}`),
-  frames: (id, from, limit) => request("GET", `/api/runs/${id}/frames?from=${from}&limit=${limit}`),
-  truth: (id, from, limit) => request("GET", `/api/runs/${id}/truth?from=${from}&limit=${limit}`),
+  /** Samples by iteration: from `from` on, one iteration in `every`; the page's `next` goes on. */
+  samplesFrom: (id, from, limit, { every = 1, outline = false } = {}) => request("GET",
+    `/api/runs/${id}/samples?from=${from}&limit=${limit}&every=${every}` +
+    (outline ? "&outline=true" : "")),
+  frames: (id, from, limit, every = 1) =>
+    request("GET", `/api/runs/${id}/frames?from=${from}&limit=${limit}&every=${every}`),
+  truth: (id, from, limit, every = 1) =>
+    request("GET", `/api/runs/${id}/truth?from=${from}&limit=${limit}&every=${every}`),
   exportUrl: (id, format) => `/api/runs/${id}/export?format=${format}`,
   showReplay: (runId, iteration) =>
     request("PUT", "/api/viewer/replay", { run_id: runId, iteration }, { timeoutMs: 10000 }),
@@ -116,16 +122,15 @@ export const api = {
   config: () => request("GET", "/api/config"),
 };
 
-/** All samples of a recorded run, fetched page by page. */
-export async function allSamples(id, onProgress, pageSize = 5000) {
+/** The samples of a recorded run (one iteration in `every`), fetched page by page. */
+export async function allSamples(id, onProgress, pageSize = 5000, every = 1) {
   const out = [];
-  let offset = 0;
-  for (;;) {
-    const page = await api.samples(id, offset, pageSize);
-    out.push(...page.samples);
-    offset += page.samples.length;
-    if (onProgress) onProgress(offset, page.total);
-    if (page.samples.length === 0 || offset >= page.total) break;
+  let from = 0;
+  while (from !== null && from !== undefined) {
+    const page = await api.samplesFrom(id, from, pageSize, { every });
+    for (const s of page.samples) out.push(s);
+    if (onProgress) onProgress(out.length, Math.ceil(page.total / every));
+    from = page.next;
   }
   return out;
 }
@@ -148,27 +153,28 @@ export function decodeFrame(b64, shapes) {
   return matrices;
 }
 
-/** All tactile frames of a recorded run, page by page: Map iteration → matrices. */
-export async function allFrames(id, onProgress, pageSize = 2000) {
+/** The tactile frames of a recorded run (one iteration in `every`), page by page: Map
+ * iteration → matrices. */
+export async function allFrames(id, onProgress, pageSize = 2000, every = 1) {
   const out = new Map();
   let from = 0;
   while (from !== null && from !== undefined) {
-    const page = await api.frames(id, from, pageSize);
+    const page = await api.frames(id, from, pageSize, every);
     for (const f of page.frames) out.set(f.iteration, decodeFrame(f.texels, page.shapes));
-    if (onProgress) onProgress(out.size, page.total);
+    if (onProgress) onProgress(out.size, Math.ceil(page.total / every));
     from = page.next;
   }
   return out;
 }
 
-/** A recorded run's truth (simulation), page by page: `{outline, rows: Map iteration → row}`;
- * a real hand's run: outline null, no rows. */
-export async function allTruth(id, pageSize = 10000) {
+/** A recorded run's truth (simulation; one iteration in `every`), page by page: `{outline,
+ * rows: Map iteration → row}`; a real hand's run: outline null, no rows. */
+export async function allTruth(id, pageSize = 10000, every = 1) {
   const rows = new Map();
   let outline = null;
   let from = 0;
   while (from !== null && from !== undefined) {
-    const page = await api.truth(id, from, pageSize);
+    const page = await api.truth(id, from, pageSize, every);
     outline = page.outline;
     for (const r of page.truth) rows.set(r.iteration, r);
     from = page.next;

@@ -1344,7 +1344,7 @@ async function feedOutline(idx) {
         s.estimate_outline = []; // no class: nothing reconstructed
         continue;
       }
-      const got = (await api.samples(runId, i, 1, true)).samples[0];
+      const got = (await api.samplesFrom(runId, s.iteration, 1, { outline: true })).samples[0];
       if (replayData.runId !== runId) continue; // back to live (or another run) meanwhile
       s.estimate_outline = got && got.iteration === s.iteration ? got.estimate_outline : [];
       if (replay.index === i) sketch.setOverride(s, replayTruth(s));
@@ -1401,21 +1401,35 @@ function endViewerReplay() {
   api.endReplay().catch((e) => showError(e, "3-D view replay"));
 }
 
+// At most about this many iterations of a run are loaded for its replay (≈ 3 kB of JSON and
+// 1 kB of texels each: a run of hours would not fit in the page); a longer run is shown at one
+// iteration in `every`, the same ones of its samples, frames and truth.
+const REPLAY_MAX_SAMPLES = 10000;
+
+/** 2 → "2nd", 3 → "3rd", 11 → "11th", 21 → "21st". */
+function ordinal(n) {
+  const teen = n % 100 >= 11 && n % 100 <= 13;
+  return `${n}${teen ? "th" : ["th", "st", "nd", "rd"][n % 10] ?? "th"}`;
+}
+
 async function replayRun(r) {
   const banner = $("#replay-banner");
   banner.hidden = false;
   $("#replay-text").textContent = `Loading run ${r.id}…`;
   try {
+    const total = Number.isFinite(r.iterations) ? r.iterations
+      : (await api.samplesFrom(r.id, 0, 1)).total;
+    const every = Math.max(1, Math.ceil(total / REPLAY_MAX_SAMPLES));
     const [samples, run] = await Promise.all([
-      allSamples(r.id, (n, total) => {
-        $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} samples…`;
-      }),
+      allSamples(r.id, (n, of) => {
+        $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${of} samples…`;
+      }, 5000, every),
       api.run(r.id),
     ]);
-    const frames = await allFrames(r.id, (n, total) => {
-      $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${total} tactile frames…`;
-    });
-    const truth = await allTruth(r.id);
+    const frames = await allFrames(r.id, (n, of) => {
+      $("#replay-text").textContent = `Loading run ${r.id}: ${n} of ${of} tactile frames…`;
+    }, 2000, every);
+    const truth = await allTruth(r.id, 10000, every);
     const params = (r.meta && r.meta.params) || state.params;
     const events = (run && run.events) || [];
     const markers = events
@@ -1432,8 +1446,11 @@ async function replayRun(r) {
     replayData.psi0 = first ? first.pose[2] : null;
     replayData.viewer = !$("#viewer").hidden && Boolean($("#viewer").dataset.url);
     const reversals = markers.filter((m) => m.kind === "reversal").length;
-    $("#replay-text").textContent = `Run ${r.id} (${r.status}): ${samples.length} iterations, ` +
+    const shown = every > 1 ? ` (every ${ordinal(every)} shown)` : "";
+    $("#replay-text").textContent = `Run ${r.id} (${r.status}): ` +
+      `${every > 1 ? total : samples.length} iterations${shown}, ` +
       `${reversals} reversal${reversals === 1 ? "" : "s"}`;
+    banner.dataset.every = String(every);
     for (const tr of document.querySelectorAll("#runs tbody tr")) {
       tr.classList.toggle("replaying", tr.dataset.runId === String(r.id));
     }

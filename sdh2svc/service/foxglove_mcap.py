@@ -422,10 +422,11 @@ def write_mcap(
 ) -> int:
     """Write one run (its row, samples, events, frames) to ``out``; returns the message count.
 
-    ``outline`` and ``truth``: the simulated object's (``RunStore.outline``, ``RunStore.truth``),
-    drawn in each iteration's scene where recorded. The reconstructed outline is drawn at most
-    every :data:`~sdh2svc.service.telemetry.ESTIMATE_PERIOD_S` of the run (it costs
-    milliseconds)."""
+    ``samples`` and ``truth`` in iteration order, iterated once, so a run need not be held whole
+    (``RunStore.each_sample``, ``RunStore.each_truth``). ``outline`` and ``truth``: the simulated
+    object's (``RunStore.outline``), drawn in each iteration's scene where recorded. The
+    reconstructed outline is drawn at most every
+    :data:`~sdh2svc.service.telemetry.ESTIMATE_PERIOD_S` of the run (it costs milliseconds)."""
     hand = HandFrames.of(cfg, OutlineEvery(ESTIMATE_PERIOD_S))
     meta = run.get("meta") or {}
     alpha = math.radians((meta.get("params") or {}).get("alpha_deg", cfg.rolling.alpha_deg))
@@ -453,12 +454,12 @@ def write_mcap(
         w.add_message(ch, log_time=ns, publish_time=ns, data=data, sequence=n)
         n += 1
 
-    by_iteration = {row["iteration"]: row for row in truth} if outline is not None else {}
+    rows = _Aligned(truth if outline is not None else ())
     for s in samples:
         ns = t0_ns + round(s["t"] * 1e9)
         put(ch_samples, ns, sample_json(s))
         put(ch_tf, ns, hand.transforms(s, ns).encode())
-        row = by_iteration.get(s["iteration"])
+        row = rows.at(s["iteration"])
         obj = recorded_truth(outline, row) if outline is not None and row is not None else None
         put(ch_scene, ns, hand.scene(s, ns, alpha, obj).encode())
     for e in events:
@@ -473,6 +474,22 @@ def write_mcap(
     _write_records(w, run, hand.desc, t0_ns)
     w.finish()  # type: ignore[no-untyped-call]
     return n
+
+
+class _Aligned:
+    """Truth rows in iteration order, met one sample at a time (samples in iteration order too):
+    a run of hours is read once, never held whole."""
+
+    def __init__(self, rows: Iterable[Mapping[str, Any]]) -> None:
+        self._rows = iter(rows)
+        self._next = next(self._rows, None)
+
+    def at(self, iteration: int) -> Mapping[str, Any] | None:
+        """The row of ``iteration``, or None (none recorded); rows before it are passed."""
+        while self._next is not None and self._next["iteration"] < iteration:
+            self._next = next(self._rows, None)
+        row = self._next
+        return row if row is not None and row["iteration"] == iteration else None
 
 
 def _as_recorded(meta: Mapping[str, Any], key: str, missing: str) -> Mapping[str, Any]:

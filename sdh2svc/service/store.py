@@ -835,12 +835,40 @@ class RunStore:
                              " its write-ahead log keeps the new copy until that program lets "
                              "go (run `sdh2svc runs vacuum` again then)")  # fmt: skip
 
-    def samples(self, run_id: int, offset: int = 0, limit: int = 1000) -> list[dict[str, Any]]:
+    def samples(
+        self, run_id: int, offset: int = 0, limit: int = 1000, first: int = 0, every: int = 1
+    ) -> list[dict[str, Any]]:
+        """Up to ``limit`` samples in iteration order, from iteration ``first`` on, skipping
+        ``offset`` of them; ``every``: only one iteration in that many (:meth:`_every`).
+
+        By the index (run_id, iteration): a page costs the same wherever it lies in the run (an
+        order by rowid sorted all the run's rows for every page: 0.2 s a page at 49 000)."""
+        base, keep = self._every(run_id, every)
         rows = self.db.execute(
-            "SELECT * FROM samples WHERE run_id = ? ORDER BY rowid LIMIT ? OFFSET ?",
-            (run_id, limit, offset),
+            f"SELECT * FROM samples WHERE run_id = ? AND iteration >= ?{keep} "
+            "ORDER BY iteration LIMIT ? OFFSET ?",
+            (run_id, first, *base, limit, offset),
         ).fetchall()
         return [{k: r[k] for k in SAMPLE_COLUMNS} for r in rows]
+
+    def each_sample(self, run_id: int) -> Iterator[dict[str, Any]]:
+        """Every sample of a run in iteration order, read as it is iterated (an export of a
+        run of hours holds one at a time, not the run)."""
+        for r in self.db.execute(
+            "SELECT * FROM samples WHERE run_id = ? ORDER BY iteration", (run_id,)
+        ):
+            yield {k: r[k] for k in SAMPLE_COLUMNS}
+
+    def _every(self, run_id: int, every: int) -> tuple[tuple[int, ...], str]:
+        """The SQL condition (and its parameters) that keeps one iteration in ``every``, counted
+        from the run's first sample's: the same iterations of samples, frames and truth."""
+        if every <= 1:
+            return (), ""
+        row = self.db.execute(
+            "SELECT MIN(iteration) FROM samples WHERE run_id = ?", (run_id,)
+        ).fetchone()
+        i0 = int(row[0]) if row is not None and row[0] is not None else 0
+        return (i0, every), " AND (iteration - ?) % ? = 0"
 
     def events(self, run_id: int) -> list[dict[str, Any]]:
         rows = self.db.execute(
@@ -850,8 +878,11 @@ class RunStore:
         return [{**dict(r), "detail": json.loads(r["detail"])} for r in rows]
 
     def frames(self, run_id: int) -> Iterator[tuple[float, int | None, int, np.ndarray]]:
+        """Every frame of a run in time order (recorded order where two share a time), read as
+        it is iterated: by the index (run_id, t), with no sort of the run's texels."""
         for r in self.db.execute(
-            "SELECT t, iteration, timestamp_ms, texels FROM frames WHERE run_id = ? ORDER BY rowid",
+            "SELECT t, iteration, timestamp_ms, texels FROM frames WHERE run_id = ? "
+            "ORDER BY t, rowid",
             (run_id,),
         ):
             yield r["t"], r["iteration"], r["timestamp_ms"], np.frombuffer(r["texels"], "<u2")
@@ -873,10 +904,11 @@ class RunStore:
         return int(row[0])
 
     def frames_from(
-        self, run_id: int, first: int, last: int, limit: int
+        self, run_id: int, first: int, last: int, limit: int, every: int = 1
     ) -> list[tuple[int, float, int, bytes]]:
         """Up to ``limit`` frames of iterations ``first``…``last`` in iteration order, as
-        (iteration, t, timestamp_ms, texels as little-endian uint16 bytes).
+        (iteration, t, timestamp_ms, texels as little-endian uint16 bytes); ``every``: only one
+        iteration in that many, as :meth:`samples` keeps them.
 
         A frame is recorded with its iteration's sample and the same ``t``, which grows with the
         iteration: the sample index finds where ``first`` starts, the frame index (run, t)
@@ -886,10 +918,11 @@ class RunStore:
             (run_id, first),
         ).fetchone()
         t0 = start["t"] if start is not None and start["t"] is not None else -math.inf
+        base, keep = self._every(run_id, every)
         rows = self.db.execute(
             "SELECT iteration, t, timestamp_ms, texels FROM frames WHERE run_id = ? AND t >= ? "
-            "AND iteration BETWEEN ? AND ? ORDER BY t LIMIT ?",
-            (run_id, t0, first, last, limit),
+            f"AND iteration BETWEEN ? AND ?{keep} ORDER BY t LIMIT ?",
+            (run_id, t0, first, last, *base, limit),
         ).fetchall()
         return [(r[0], r[1], r[2], bytes(r[3])) for r in rows]
 
@@ -935,15 +968,27 @@ class RunStore:
         row = self.db.execute("SELECT COUNT(*) FROM truth WHERE run_id = ?", (run_id,)).fetchone()
         return int(row[0])
 
-    def truth(self, run_id: int, first: int = 0, limit: int = 10**9) -> list[dict[str, Any]]:
+    def truth(
+        self, run_id: int, first: int = 0, limit: int = 10**9, every: int = 1
+    ) -> list[dict[str, Any]]:
         """Up to ``limit`` iterations' truth from iteration ``first`` on, in iteration order
-        (:data:`TRUTH_COLUMNS`)."""
+        (:data:`TRUTH_COLUMNS`); ``every``: only one iteration in that many, as :meth:`samples`
+        keeps them."""
+        base, keep = self._every(run_id, every)
         rows = self.db.execute(
-            f"SELECT {', '.join(TRUTH_COLUMNS)} FROM truth WHERE run_id = ? AND iteration >= ? "
-            "ORDER BY iteration LIMIT ?",
-            (run_id, first, limit),
+            f"SELECT {', '.join(TRUTH_COLUMNS)} FROM truth WHERE run_id = ? AND iteration >= ?"
+            f"{keep} ORDER BY iteration LIMIT ?",
+            (run_id, first, *base, limit),
         ).fetchall()
         return [_truth_dict(r) for r in rows]
+
+    def each_truth(self, run_id: int) -> Iterator[dict[str, Any]]:
+        """Every iteration's truth in iteration order, read as it is iterated."""
+        for r in self.db.execute(
+            f"SELECT {', '.join(TRUTH_COLUMNS)} FROM truth WHERE run_id = ? ORDER BY iteration",
+            (run_id,),
+        ):
+            yield _truth_dict(r)
 
     def truth_at(self, run_id: int, iteration: int) -> dict[str, Any] | None:
         """One iteration's truth, or None (not recorded: a real hand, or an older run)."""
@@ -963,7 +1008,7 @@ class RunStore:
         w.writerow(Sample.csv_header())
         n = 0
         for r in self.db.execute(
-            f"SELECT {_QUOTED} FROM samples WHERE run_id = ? ORDER BY rowid",
+            f"SELECT {_QUOTED} FROM samples WHERE run_id = ? ORDER BY iteration",
             (run_id,),
         ):
             w.writerow(["" if v is None else v for v in r])
@@ -986,8 +1031,8 @@ class RunStore:
         cfg = recorded_settings(run, cfg or default_config())
         return write_mcap(
             out, cfg, run, t0,
-            self.samples(run_id, 0, 10**9), self.events(run_id), self.frames(run_id),
-            self.outline(run_id), self.truth(run_id),
+            self.each_sample(run_id), self.events(run_id), self.frames(run_id),
+            self.outline(run_id), self.each_truth(run_id),
         )  # fmt: skip
 
 

@@ -32,8 +32,12 @@ import pytest
 from playwright.async_api import expect
 
 from sdh2svc.client import Conflict
-from sdh2svc.service.store import RunStore
+from sdh2svc.config import load_config
+from sdh2svc.model.hand import matrix_shapes
+from sdh2svc.service.store import Recorder, RunStore
 from tests.live_service import LiveService, start_service
+from tests.service.test_replay_api import sample as replay_sample
+from tests.service.test_replay_api import texels as replay_texels
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -654,6 +658,56 @@ async def test_a_run_is_deleted_once_the_person_confirms_and_older_runs_are_list
         await page.locator("#runs-older").dispatch_event("click")
     await expect(page.locator("#runs-older")).to_be_hidden()  # the service has fewer
     await page.unroute(re.compile(r"/api/runs\?limit=51$"))
+
+
+async def test_a_long_run_replays_at_one_iteration_in_every_k(
+    service: LiveService, page: Any
+) -> None:
+    """A run too long to load whole (here 20 500 iterations against the page's 10 000) is
+    replayed at one iteration in 3, the same ones of its samples, frames and truth: the banner
+    says so, the scrubber spans the run and each shown iteration has its pads and object."""
+    cfg = load_config(use_env=False)
+    n = sum(r * c for r, c in matrix_shapes(cfg.tactile, cfg.axes))
+    total = 20_500
+    store = RunStore(service.db_path)
+    try:
+        run_id = store.create_run({"object": {"name": "disc"}})
+        store.set_outline(run_id, "disc", 20.0, [(10.0, 0.0), (0.0, 10.0), (-10.0, 0.0)])
+        rec = Recorder(store.path, run_id)
+        for i in range(1, total + 1):
+            s = replay_sample(i)
+            rec.sample(s)
+            rec.frame(s.t, i, i, replay_texels(i, n))
+            rec.truth(i, s.t, (30.0, 110.0, 1e-4 * i), True, False, False, 0)
+        rec.close()
+        store.finish_run(run_id, "completed", {"status": "completed"})
+    finally:
+        store.close()
+    asked: list[str] = []
+    page.on("request", lambda r: asked.append(r.url) if f"/api/runs/{run_id}/" in r.url else None)
+    await page.locator("#runs-refresh").dispatch_event("click")
+    row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
+    await row.locator("button.replay").dispatch_event("click")
+    await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=60_000)
+    assert await page.get_attribute("#replay-banner", "data-every") == "3"
+    text = await page.inner_text("#replay-text")
+    assert f"{total} iterations (every 3rd shown)" in text, text
+    shown = (total - 1) // 3 + 1  # iterations 1, 4, …, 20 497
+    assert await page.get_attribute("#replay-scrubber", "max") == str(shown - 1)
+    reads = [u for u in asked if re.search(r"/(samples|frames|truth)\?", u)]
+    assert reads and all("every=3" in u for u in reads), reads  # nothing read whole
+    last = 1 + 3 * (shown - 1)
+    await page.evaluate(
+        f"(() => {{ const s = document.querySelector('#replay-scrubber'); s.value = '{shown - 1}';"
+        " s.dispatchEvent(new Event('input')); })()"
+    )
+    got = await page.evaluate(SHOWN)
+    assert got["pads"] == got["sketch"] == got["readout"] == str(last), got
+    assert got["plots"] == [str(last)] * len(PLOTS) and got["at"].startswith(f"iteration {last} ")
+    assert "no data" not in got["padInfo"], got  # the iteration's own frame
+    y, z, psi = (float(v) for v in got["objectPose"].split(","))
+    assert (y, z) == (30.0, 110.0) and psi == pytest.approx(1e-4 * last)  # and its truth
+    await page.click("#back-to-live")
 
 
 async def test_bad_parameter_shows_the_422_next_to_the_field(

@@ -68,6 +68,8 @@ def setup(tmp_path: Path) -> tuple[Settings, int, int]:
         s = sample(i)
         rec.sample(s)
         rec.frame(s.t, i, 1000 + i, texels(i, n))
+        if i != 7:  # an iteration without truth
+            rec.truth(i, s.t, (30.0, 120.0, 0.01 * i), True, False, False, 0)
     rec.frame(0.5, None, 5000, texels(99, n))  # a frame without an iteration: not listed
     rec.close()
     store.finish_run(run_id, "completed", {})
@@ -116,6 +118,64 @@ async def test_frames_paged_in_iteration_order(
     r = await c.get(f"/api/runs/{run_id}/frames", params={"from": 4, "to": 6})
     assert [f["iteration"] for f in r.json()["frames"]] == [4, 5, 6]
     assert r.json()["next"] is None and r.json()["from"] == 4
+
+
+async def test_a_long_run_read_at_one_iteration_in_every_k(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    """Samples, frames and truth keep the same iterations, counted from the run's first
+    sample's; samples page by `next` as frames and truth do."""
+    _, run_id, _ = setup
+    c, _ = client
+    base = f"/api/runs/{run_id}"
+    r = await c.get(f"{base}/samples", params={"every": 3})
+    page = r.json()
+    assert [s["iteration"] for s in page["samples"]] == [0, 3, 6, 9]
+    assert page["every"] == 3 and page["total"] == ITERATIONS and page["next"] is None
+    r = await c.get(f"{base}/frames", params={"every": 3})
+    assert [f["iteration"] for f in r.json()["frames"]] == [0, 3, 6, 9]
+    r = await c.get(f"{base}/truth", params={"every": 2})
+    assert [t["iteration"] for t in r.json()["truth"]] == [0, 2, 4, 6, 8, 10]
+    # from a later iteration the phase stays the run's: 4, then the multiples of 3 after it
+    r = await c.get(f"{base}/samples", params={"every": 3, "from": 4, "limit": 1})
+    assert [s["iteration"] for s in r.json()["samples"]] == [6] and r.json()["next"] == 9
+    r = await c.get(f"{base}/truth", params={"every": 7})
+    assert [t["iteration"] for t in r.json()["truth"]] == [0]  # 7 has none recorded
+    # paged by `next`, every sample once, in order
+    got: list[int] = []
+    first: int | None = 0
+    while first is not None:
+        page = (await c.get(f"{base}/samples", params={"from": first, "limit": 5})).json()
+        got += [s["iteration"] for s in page["samples"]]
+        first = page["next"]
+    assert got == list(range(ITERATIONS))
+    r = await c.get(f"{base}/samples", params={"from": 5, "offset": 2, "limit": 2})
+    assert [s["iteration"] for s in r.json()["samples"]] == [7, 8] and r.json()["next"] == 9
+    for bad in ({"every": 0}, {"every": 10_001}, {"every": "x"}, {"from": -1}):
+        for route in ("samples", "frames", "truth"):
+            if route != "samples" and "from" in bad:
+                continue
+            r = await c.get(f"{base}/{route}", params=bad)
+            assert r.status_code == 422 and r.json()["details"], (route, bad, r.text)
+
+
+async def test_the_client_pages_samples_by_iteration(
+    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+) -> None:
+    c, _ = client
+    ac = AsyncClient("http://127.0.0.1", token=TOKEN)
+    await ac._http.aclose()
+    ac._http = c  # the app in process, no socket
+    every = [s["iteration"] async for s in ac.iter_samples(setup[1], page=5)]
+    assert every == list(range(ITERATIONS))
+    fifth = [s["iteration"] async for s in ac.iter_samples(setup[1], page=2, every=5)]
+    assert fifth == [0, 5, 10]
+    page = await ac.samples(setup[1], first=10, limit=5)
+    assert [s["iteration"] for s in page["samples"]] == [10, 11] and page["next"] is None
+    truth = await ac.truth(setup[1], every=4)
+    assert [t["iteration"] for t in truth["truth"]] == [0, 4, 8]
+    frames = await ac.frames(setup[1], 1, every=4)
+    assert [f["iteration"] for f in frames["frames"]] == [4, 8]
 
 
 async def test_the_client_reads_frames(

@@ -212,6 +212,33 @@ def test_a_dropped_object_is_red_and_runs_without_truth_have_none(
     assert colours[1] == [None, None]  # a real hand's run: no object
 
 
+def test_the_scene_draws_the_object_only_where_its_truth_was_recorded(
+    cfg: Settings, tmp_path: Path
+) -> None:
+    """The export meets truth and samples in step (neither held whole): a sample without a
+    truth row gets no object, and the rows after a gap still find their samples."""
+    store = RunStore(tmp_path / "runs.sqlite")
+    run_id = store.create_run({})
+    store.set_outline(run_id, "disc", 20.0, [(10.0, 0.0), (0.0, 10.0), (-10.0, 0.0)])
+    rec = Recorder(store.path, run_id)
+    samples = _samples(cfg, 6)
+    with_truth = {samples[i].iteration for i in (0, 2, 3)}
+    for s in samples:
+        rec.sample(s)
+        if s.iteration in with_truth:
+            rec.truth(s.iteration, s.t, (33.0, 120.0 + s.iteration, 0.0), True, False, False, 0)
+    rec.close()
+    raw = io.BytesIO()
+    store.export_mcap(run_id, raw, cfg)
+    store.close()
+    scenes = read(raw.getvalue()).messages["/scene"][: len(samples)]
+    drawn = [[e for e in sc["_raw"].entities if e.id == "object"] for sc in scenes]
+    assert [bool(o) for o in drawn] == [s.iteration in with_truth for s in samples]
+    zs = [o[0].lines[0].points[0].z for o in drawn if o]
+    assert zs == pytest.approx([(120.0 + s.iteration) * 1e-3 for s in samples
+                                if s.iteration in with_truth], abs=1e-9)  # fmt: skip
+
+
 def test_a_run_without_a_bench_records_no_truth(cfg: Settings, tmp_path: Path) -> None:
     """A real hand (no bench): the run's samples, and no truth, no outline."""
     store = RunStore(tmp_path / "runs.sqlite")

@@ -19,7 +19,7 @@ import os
 import sqlite3
 import tempfile
 from collections.abc import AsyncIterator, Iterator
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NamedTuple
 
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import Response, StreamingResponse
@@ -252,6 +252,12 @@ async def get_run(svc: Svc, run_id: RunId) -> Response:
 
 
 MAX_OUTLINES = 100  # samples per page with their outlines (each costs milliseconds to make)
+MAX_EVERY = 10_000
+EVERY_DOC = (
+    "only one iteration in this many, counted from the run's first sample's (the same "
+    "iterations of samples, frames and truth): a long run at a resolution a page can hold"
+)
+Every = Annotated[int, Query(ge=1, le=MAX_EVERY, description=EVERY_DOC), Digits]
 OUTLINE_DOC = (
     "with each sample its `estimate_outline`: the object as the recognition reconstructed it, "
     "[[y, z], …] mm in frame 0 (empty while no class is known), as in the live `sample` "
@@ -264,29 +270,45 @@ OUTLINE_DOC = (
 async def samples(
     svc: Svc,
     run_id: RunId,
+    first: Annotated[
+        int, Query(alias="from", ge=0, le=SQL_INT_MAX, description="the first iteration"), Digits
+    ] = 0,
     offset: Annotated[int, Query(ge=0, le=SQL_INT_MAX), Digits] = 0,
     limit: Annotated[
         int | None, Query(ge=1, le=10_000, description=f"1000; {MAX_OUTLINES} with outline"), Digits
     ] = None,
+    every: Every = 1,
     outline: Annotated[bool, Query(description=OUTLINE_DOC)] = False,
 ) -> Response:
+    """The run's samples in iteration order from iteration `from` on, `offset` of them skipped,
+    `limit` at most; follow `next` (a `from`) for the rest."""
     if limit is None:
         limit = MAX_OUTLINES if outline else 1000
     if outline and limit > MAX_OUTLINES:
         raise ServiceError(422, "invalid request", [f"limit: at most {MAX_OUTLINES} with outline"])
-    return _answer(await svc.reads(_samples_body, svc.cfg, run_id, offset, limit, outline))
+    page = SampleQuery(first, offset, limit, every)
+    return _answer(await svc.reads(_samples_body, svc.cfg, run_id, page, outline))
 
 
-def _samples_body(cfg: Settings, run_id: int, offset: int, limit: int, outline: bool) -> Payload:
+class SampleQuery(NamedTuple):
+    first: int
+    offset: int
+    limit: int
+    every: int
+
+
+def _samples_body(cfg: Settings, run_id: int, ask: SampleQuery, outline: bool) -> Payload:
     with _store(cfg) as store:
         _run_or_404(store, run_id)
-        rows = store.samples(run_id, offset, limit)
+        rows = store.samples(run_id, ask.offset, ask.limit + 1, ask.first, ask.every)
+        more = rows[ask.limit]["iteration"] if len(rows) > ask.limit else None
+        rows = rows[: ask.limit]
         if outline:  # as the live `sample` message carries it
             for row in rows:
                 row["estimate_outline"] = estimate_outline(row).tolist()
         page = {
-            "run_id": run_id, "offset": offset, "limit": limit,
-            "total": store.sample_count(run_id), "samples": rows,
+            "run_id": run_id, "from": ask.first, "offset": ask.offset, "limit": ask.limit,
+            "every": ask.every, "total": store.sample_count(run_id), "next": more, "samples": rows,
         }  # fmt: skip
         return json_body(page)
 
@@ -315,6 +337,7 @@ class FramePage(BaseModel):
     from_: int = Field(alias="from", description="the first iteration asked for")
     to: int | None = Field(description="the last iteration asked for (null: to the end)")
     limit: int = Field(description="frames per page at most")
+    every: int = Field(description="one iteration in this many")
     total: int = Field(description="the run's frames linked to an iteration")
     next: int | None = Field(
         description="`from` of the next page; null: this page reaches `to` or the end"
@@ -334,26 +357,30 @@ async def frames(
     first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX), Digits] = 0,
     to: Annotated[int | None, Query(ge=0, le=SQL_INT_MAX), Digits] = None,
     limit: Annotated[int, Query(ge=1, le=2000), Digits] = 500,
+    every: Every = 1,
 ) -> Response:
     """The run's tactile frames of iterations `from`…`to`, `limit` at most; follow `next` for
     the rest. Frames recorded without an iteration are not listed."""
     if to is not None and to < first:
         raise ServiceError(422, "invalid request", [f"to: must be at least from ({first})"])
-    return _answer(await svc.reads(_frames_body, svc.cfg, run_id, first, to, limit))
+    return _answer(await svc.reads(_frames_body, svc.cfg, run_id, first, to, limit, every))
 
 
-def _frames_body(cfg: Settings, run_id: int, first: int, to: int | None, limit: int) -> Payload:
+def _frames_body(
+    cfg: Settings, run_id: int, first: int, to: int | None, limit: int, every: int
+) -> Payload:
     last = SQL_INT_MAX if to is None else to
     with _store(cfg) as store:
         cfg = _as_recorded(_run_or_404(store, run_id), cfg)  # its matrices, however split now
-        rows = store.frames_from(run_id, first, last, limit + 1)
+        rows = store.frames_from(run_id, first, last, limit + 1, every)
         page = [
             RecordedFrame(iteration=it, t=t, timestamp_ms=ts,
                           texels=base64.b64encode(texels).decode("ascii"))
             for it, t, ts, texels in rows[:limit]
         ]  # fmt: skip
         return json_body(FramePage(
-            run_id=run_id, from_=first, to=to, limit=limit, total=store.framed_count(run_id),
+            run_id=run_id, from_=first, to=to, limit=limit, every=every,
+            total=store.framed_count(run_id),
             next=rows[limit][0] if len(rows) > limit else None, encoding=FRAME_ENCODING,
             shapes=list(matrix_shapes(cfg.tactile, cfg.axes)), frames=page,
         ))  # fmt: skip
@@ -391,6 +418,7 @@ class TruthPage(BaseModel):
     run_id: int
     from_: int = Field(alias="from", description="the first iteration asked for")
     limit: int = Field(description="iterations per page at most")
+    every: int = Field(description="one iteration in this many")
     total: int = Field(description="the run's iterations with truth")
     next: int | None = Field(description="`from` of the next page; null: this page is the last")
     outline: RecordedOutline | None = Field(description="the object; null: no truth recorded")
@@ -404,19 +432,21 @@ async def truth(
     run_id: RunId,
     first: Annotated[int, Query(alias="from", ge=0, le=SQL_INT_MAX), Digits] = 0,
     limit: Annotated[int, Query(ge=1, le=10000), Digits] = 2000,
+    every: Every = 1,
 ) -> Response:
     """In simulation, the object's true pose and state at each iteration from `from` on,
     `limit` at most, and its outline; follow `next` for the rest."""
-    return _answer(await svc.reads(_truth_body, svc.cfg, run_id, first, limit))
+    return _answer(await svc.reads(_truth_body, svc.cfg, run_id, first, limit, every))
 
 
-def _truth_body(cfg: Settings, run_id: int, first: int, limit: int) -> Payload:
+def _truth_body(cfg: Settings, run_id: int, first: int, limit: int, every: int) -> Payload:
     with _store(cfg) as store:
         _run_or_404(store, run_id)
-        rows = store.truth(run_id, first, limit + 1)
+        rows = store.truth(run_id, first, limit + 1, every)
         outline = store.outline(run_id)
         return json_body(TruthPage(
-            run_id=run_id, from_=first, limit=limit, total=store.truth_count(run_id),
+            run_id=run_id, from_=first, limit=limit, every=every,
+            total=store.truth_count(run_id),
             next=rows[limit]["iteration"] if len(rows) > limit else None,
             outline=None if outline is None else RecordedOutline(**outline),
             truth=[RecordedTruth(**r) for r in rows[:limit]],
