@@ -48,6 +48,28 @@ def _frame(S: float, amplitude: int = 1500) -> np.ndarray:
     return m
 
 
+def _recentre_us(
+    cfg: Settings, pose: HandPose, f1: np.ndarray, f2: np.ndarray, rounds: int = 5
+) -> dict[str, float]:
+    """The step as a long run's strokes from the seventh half stroke on take it: leaning σd
+    against a wedge error (rolling.recentre_strokes; two more plans of the route's step an
+    iteration), against the same step with no error to correct; interleaved rounds, medians."""
+    ctx, p = cfg.model_context(), cfg.rolling
+    lean = RollState(iteration=5, wedge_ref=0.0, wedge_error=math.radians(2.0),
+                     stroke_iterations=400)  # fmt: skip
+    plain = RollState(iteration=5)
+    a, b = step(plain, pose, f1, f2, p, ctx).targets, step(lean, pose, f1, f2, p, ctx).targets
+    assert a is not None and b is not None and a != b, "the bench's step does not lean"
+    on: list[float] = []
+    off: list[float] = []
+    for _ in range(rounds):
+        off += time_calls(lambda: step(plain, pose, f1, f2, p, ctx), 1000)
+        on += time_calls(lambda: step(lean, pose, f1, f2, p, ctx), 1000)
+    ratio = float(np.median(on) / np.median(off))
+    print(f"  … re-centring (leaning σd) {summary_us(on)}: ×{ratio:.2f} the same step not leaning")
+    return {"step_recentre_median_us": float(np.median(on)), "step_recentre_ratio": ratio}
+
+
 def run() -> dict[str, float]:
     cfg = load_config(use_env=False)
     ctx = cfg.model_context()
@@ -70,6 +92,7 @@ def run() -> dict[str, float]:
     print(f"  … route=workspace    {summary_us(samples)}")
     out |= {"step_workspace_median_us": float(np.median(samples)),
             "step_workspace_p99_us": percentile(samples, 99)}  # fmt: skip
+    out |= _recentre_us(cfg, pose, f1, f2)
     with tempfile.TemporaryDirectory() as tmp:
         db = f"storage.db_path='{Path(tmp) / 'bench.sqlite'}'"
         rt = load_config(overrides=[db, "rolling.cycles=1", "sim.object='egg'"], use_env=False)
