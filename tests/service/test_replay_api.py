@@ -3,7 +3,12 @@ view's feed of a recorded iteration, and live again."""
 
 from __future__ import annotations
 
+import atexit
 import base64
+import functools
+import json
+import shutil
+import tempfile
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
@@ -12,12 +17,15 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sdh2svc.client import AsyncClient
 from sdh2svc.config import Settings, load_config
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.service.api.deps import Services
+from sdh2svc.service.api.runs import SampleQuery, _frames_body, _samples_body, _truth_body
 from sdh2svc.service.app import create_app
 from sdh2svc.service.hub import TelemetryHub
 from sdh2svc.service.replay_feed import Recorded, ReplayFeed
@@ -157,6 +165,63 @@ async def test_a_long_run_read_at_one_iteration_in_every_k(
                 continue
             r = await c.get(f"{base}/{route}", params=bad)
             assert r.status_code == 422 and r.json()["details"], (route, bad, r.text)
+
+
+GAPPY = [i for i in range(3, 64) if i not in (7, 8, 30)]  # a run that lost some rows
+WITH_TRUTH = {i for i in GAPPY if i % 5 != 2}
+
+
+@functools.cache
+def gappy_run() -> tuple[Settings, int]:
+    """A run of iterations 3 … 63 with three of them lost, frames for each, truth for most."""
+    folder = tempfile.mkdtemp(prefix="sdh2svc-gappy-")
+    atexit.register(shutil.rmtree, folder, True)
+    db = Path(folder) / "runs.db"
+    cfg = load_config(overrides=[f"storage.db_path={db}"], use_env=False)
+    store = RunStore(db)
+    n = sum(r * c for r, c in matrix_shapes(cfg.tactile, cfg.axes))
+    run_id = store.create_run({"params": {}})
+    rec = Recorder(db, run_id)
+    for i in GAPPY:
+        s = sample(i)
+        rec.sample(s)
+        rec.frame(s.t, i, i, texels(i, n))
+        if i in WITH_TRUTH:
+            rec.truth(i, s.t, (30.0, 120.0, 0.0), True, False, False, 0)
+    rec.close()
+    store.close()
+    return cfg, run_id
+
+
+def _pages(body: Any, *args: Any) -> list[int]:
+    """The iterations of every page, following `next` from the first."""
+    got: list[int] = []
+    first: int | None = args[0]
+    while first is not None:
+        page = json.loads(body(first, *args[1:]).content)
+        rows = page.get("samples", page.get("frames", page.get("truth")))
+        assert len(rows) <= args[1]
+        got += [r["iteration"] for r in rows]
+        first = page["next"]
+    return got
+
+
+@settings(max_examples=60, deadline=None, derandomize=True, database=None)
+@given(first=st.integers(0, 70), limit=st.integers(1, 9), every=st.integers(1, 12))
+def test_pages_followed_by_next_read_each_kept_iteration_once(
+    first: int, limit: int, every: int
+) -> None:
+    """Whatever the page size, start and `every`, following `next` reads each iteration from
+    `from` on that `every` keeps (counted from the run's first sample's) exactly once, in
+    order — samples, frames and truth alike, across the iterations the run lost."""
+    cfg, run_id = gappy_run()
+    kept = [i for i in GAPPY if i >= first and (i - GAPPY[0]) % every == 0]
+    samples = _pages(lambda f, n: _samples_body(cfg, run_id, SampleQuery(f, 0, n, every), False),
+                     first, limit)  # fmt: skip
+    frames = _pages(lambda f, n: _frames_body(cfg, run_id, f, None, n, every), first, limit)
+    truth = _pages(lambda f, n: _truth_body(cfg, run_id, f, n, every), first, limit)
+    assert samples == frames == kept
+    assert truth == [i for i in kept if i in WITH_TRUTH]
 
 
 async def test_the_client_pages_samples_by_iteration(
