@@ -224,13 +224,19 @@ def test_pages_followed_by_next_read_each_kept_iteration_once(
     assert truth == [i for i in kept if i in WITH_TRUTH]
 
 
-async def test_the_client_pages_samples_by_iteration(
-    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
-) -> None:
-    c, _ = client
+@pytest.fixture
+async def api_client(client: tuple[httpx.AsyncClient, Any]) -> AsyncClient:
+    """sdh2svc's own client on the app in process (no socket)."""
     ac = AsyncClient("http://127.0.0.1", token=TOKEN)
     await ac._http.aclose()
-    ac._http = c  # the app in process, no socket
+    ac._http = client[0]
+    return ac
+
+
+async def test_the_client_pages_samples_by_iteration(
+    setup: tuple[Settings, int, int], api_client: AsyncClient
+) -> None:
+    ac = api_client
     every = [s["iteration"] async for s in ac.iter_samples(setup[1], page=5)]
     assert every == list(range(ITERATIONS))
     fifth = [s["iteration"] async for s in ac.iter_samples(setup[1], page=2, every=5)]
@@ -244,13 +250,9 @@ async def test_the_client_pages_samples_by_iteration(
 
 
 async def test_the_client_reads_frames(
-    setup: tuple[Settings, int, int], client: tuple[httpx.AsyncClient, Any]
+    setup: tuple[Settings, int, int], api_client: AsyncClient
 ) -> None:
-    c, _ = client
-    ac = AsyncClient("http://127.0.0.1", token=TOKEN)
-    await ac._http.aclose()
-    ac._http = c  # the app in process, no socket
-    page = await ac.frames(setup[1], 10, limit=5)
+    page = await api_client.frames(setup[1], 10, limit=5)
     assert [f["iteration"] for f in page["frames"]] == [10, 11] and page["next"] is None
 
 
