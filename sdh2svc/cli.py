@@ -994,18 +994,26 @@ def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, 
     except ConfigError as e:
         _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
                           + "; ".join(e.problems))  # fmt: skip
+
+    def progress(done: int, total: int) -> None:  # a run of hours takes minutes
+        if sys.stderr.isatty():
+            print(f"\rrun {args.id}: {done}/{total} iterations written", end="",
+                  file=sys.stderr, flush=True)  # fmt: skip
+
     if path is None:  # MCAP is written with seeks back, which a pipe cannot take
         import shutil
         import tempfile
 
         with tempfile.TemporaryFile() as fh:
-            n = store.export_mcap(args.id, fh, cfg)
+            n = store.export_mcap(args.id, fh, cfg, progress)
             fh.seek(0)
             shutil.copyfileobj(fh, sys.stdout.buffer)
         sys.stdout.flush()
     else:
-        with whole_file(path, binary=True) as fh:
-            n = store.export_mcap(args.id, fh, cfg)
+        with whole_file(path, binary=True) as out:
+            n = store.export_mcap(args.id, out, cfg, progress)
+    if sys.stderr.isatty():  # end the progress line
+        print(file=sys.stderr)
     print(f"{path or 'stdout'}: {n} messages", file=sys.stderr)
 
 

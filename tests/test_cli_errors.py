@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import pty
 import re
 import socket
 import subprocess
@@ -22,6 +23,7 @@ import pytest
 from sdh2svc import cli
 from sdh2svc.cli import Exit, main, status_url
 from sdh2svc.service.store import Recorder, RunStore
+from tests.service.test_replay_api import sample as replay_sample
 from tests.service.test_retention import another_process_open
 
 FOUND_NOTHING = "no run database at data/runs.sqlite (set storage.db_path or run from the directory"
@@ -419,6 +421,40 @@ def test_an_interrupted_export_leaves_an_earlier_file_as_it_was_and_no_partial_o
     assert f"interrupted; {target} not written" in r.stderr
     assert target.read_bytes() == b"the earlier export"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap", "runs.sqlite"]
+
+
+def test_a_long_mcap_export_shows_its_progress_on_a_terminal(tmp_path: Path) -> None:
+    """An MCAP export of a run of hours takes minutes: on a terminal its stderr counts the
+    iterations written (every 1000, and the last) and ends the line before the message count;
+    to a file or pipe it says only the count."""
+    db = tmp_path / "runs.sqlite"
+    store = RunStore(db)
+    run_id = store.create_run({})
+    rec = Recorder(db, run_id)
+    for i in range(2500):
+        rec.sample(replay_sample(i))
+    rec.close()
+    store.close()
+    target = tmp_path / "run.mcap"
+    cmd = [sys.executable, "-m", "sdh2svc", "runs", "export", str(run_id), "--format", "mcap",
+           "-o", str(target), *db_set(db)]  # fmt: skip
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=slave)  # fmt: skip
+    os.close(slave)
+    said = b""
+    with contextlib.suppress(OSError):  # EIO once the command has closed the terminal
+        while chunk := os.read(master, 4096):
+            said += chunk
+    os.close(master)
+    assert proc.wait(timeout=120) == Exit.OK, said
+    text = said.decode().replace("\r\n", "\n")
+    counts = re.findall(r"\rrun 1: (\d+)/2500 iterations written", text)
+    assert counts == ["1000", "2000", "2500"], text
+    assert re.search(r"2500/2500 iterations written\n.*run\.mcap: \d+ messages", text), text
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == Exit.OK and "iterations written" not in r.stderr, r.stderr
+    assert r.stderr.strip().endswith("messages"), r.stderr
 
 
 def test_an_export_replaces_an_earlier_file_whole_or_writes_into_a_device(

@@ -1015,25 +1015,48 @@ class RunStore:
             n += 1
         return n
 
-    def export_mcap(self, run_id: int, out: IO[bytes], cfg: Settings | None = None) -> int:
+    def export_mcap(
+        self, run_id: int, out: IO[bytes], cfg: Settings | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> int:  # fmt: skip
         """The run as Foxglove-native MCAP (:mod:`sdh2svc.service.foxglove_mcap`): samples,
         the hand's transforms, contacts and friction cones, the pads as grids, events as logs,
         the run's metadata and the URDF; in simulation the object's true outline. The hand is
         drawn as the run recorded its configuration (``Settings.recorded``), in ``cfg`` (default:
         the packaged one), which a run recorded without one is drawn with. Returns the message
         count; :class:`~sdh2svc.config.ConfigError` if the recorded sections are not valid in
-        this version."""
+        this version. ``progress(done, total)``: samples written so far, every
+        :data:`PROGRESS_EVERY` and at the last (an export of a run of hours takes minutes)."""
         from sdh2svc.config import default_config
         from sdh2svc.service.foxglove_mcap import write_mcap
 
         run = self.run(run_id) or {}
         t0 = _epoch_ns(run["started_at"]) if run else 0
         cfg = recorded_settings(run, cfg or default_config())
+        samples = self.each_sample(run_id)
+        if progress is not None:
+            samples = _counted(samples, self.sample_count(run_id), progress)
         return write_mcap(
-            out, cfg, run, t0,
-            self.each_sample(run_id), self.events(run_id), self.frames(run_id),
+            out, cfg, run, t0, samples, self.events(run_id), self.frames(run_id),
             self.outline(run_id), self.each_truth(run_id),
         )  # fmt: skip
+
+
+PROGRESS_EVERY = 1000  # samples between an export's progress calls
+
+
+def _counted(
+    items: Iterator[dict[str, Any]], total: int, progress: Callable[[int, int], None]
+) -> Iterator[dict[str, Any]]:
+    """``items`` passed on, ``progress(done, total)`` told every :data:`PROGRESS_EVERY` and at
+    the end."""
+    done = 0
+    for done, item in enumerate(items, 1):
+        yield item
+        if done % PROGRESS_EVERY == 0:
+            progress(done, total)
+    if done % PROGRESS_EVERY:
+        progress(done, total)
 
 
 def recorded_settings(run: dict[str, Any], cfg: Settings) -> Settings:
