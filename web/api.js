@@ -99,8 +99,6 @@ export const api = {
   runs: (limit) => request("GET", `/api/runs?limit=${limit}`),
   deleteRun: (id) => request("DELETE", `/api/runs/${id}`, {}),
   run: (id) => request("GET", `/api/runs/${id}`),
-  samples: (id, offset, limit, outline = false) => request("GET",
-    `/api/runs/${id}/samples?offset=${offset}&limit=${limit}${outline ? "&outline=true" : ""}`),
   /** Samples by iteration: from `from` on, one iteration in `every`; the page's `next` goes on. */
   samplesFrom: (id, from, limit, { every = 1, outline = false } = {}) => request("GET",
     `/api/runs/${id}/samples?from=${from}&limit=${limit}&every=${every}` +

@@ -1030,12 +1030,12 @@ async function backfill(runId, first, t0) {
   backfilled.busy = true;
   try {
     const older = [];
-    let offset = Math.max(0, first - plots.live.limit); // one sample per iteration
+    let from = Math.max(0, first - plots.live.limit); // the plots' window of iterations
     for (let waits = 0; waits < BACKFILL_WAITS; ) {
-      const page = await api.samples(runId, offset, BACKFILL_PAGE);
+      const page = await api.samplesFrom(runId, from, BACKFILL_PAGE);
       const got = page.samples.filter((x) => x.iteration < first);
       older.push(...got);
-      offset += got.length;
+      if (got.length) from = got[got.length - 1].iteration + 1;
       // the record reaches the first live sample: it holds every one before it (in order)
       if (got.length < page.samples.length) break;
       if (page.samples.length < BACKFILL_PAGE) { // the newest are not written yet
