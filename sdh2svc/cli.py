@@ -518,7 +518,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"run {summary['run_id']}: {summary['status']} {summary['message']}".rstrip())
         print(
             f"  strokes {summary['strokes']}, iterations {summary['iterations']}, "
-            f"reversals {len(summary['reversals'])}, Λ at grasp {_mm(summary['lambda_initial_mm'])}"
+            f"reversals {sum(summary['reversals'].values())}, "
+            f"Λ at grasp {_mm(summary['lambda_initial_mm'])}"
         )
         if f["mean"] is not None:
             print(

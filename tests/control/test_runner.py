@@ -9,6 +9,7 @@ import json
 import re
 import subprocess
 import sys
+from collections import Counter
 from collections.abc import AsyncIterator, Callable, Coroutine
 from pathlib import Path
 from typing import Any, TypeVar
@@ -105,8 +106,9 @@ def test_full_run_completes_its_strokes_without_a_drop(
     phases = [d["phase"] for k, d in events if k == "phase"]
     assert phases == ["connecting", "pre-shape", "grasping", "rolling", "releasing", "done"]
     assert result.status == "completed" and result.strokes == cfg.rolling.cycles
-    assert len(result.reversals) >= 2 * cfg.rolling.cycles
-    at = [r["iteration"] for r in result.reversals]
+    at = [s.iteration for s in samples if s.reversal is not None]
+    assert sum(result.reversals.values()) == len(at) >= 2 * cfg.rolling.cycles
+    assert result.summary()["reversals"] == dict(sorted(result.reversals.items()))
     assert min(b - a for a, b in zip([0, *at], at, strict=False)) >= 5  # every half stroke moved
     assert truth.held and not truth.dropped and truth.slips == 0
     assert truth.rotation_range_deg > 5.0  # it really rolled
@@ -478,6 +480,10 @@ def test_cli_run_json_and_the_recorded_run(tmp_path: Path) -> None:
                            text=True, timeout=60)  # fmt: skip
     run = json.loads(shown.stdout)
     assert run["status"] == out["status"] and run["iterations"] == out["iterations"]
+    # the summary counts the reversals by reason; each one is an event with its iteration
+    reasons = Counter(e["detail"]["reason"] for e in run["events"] if e["kind"] == "reversal")
+    assert out["reversals"] == run["summary"]["reversals"] == dict(sorted(reasons.items()))
+    assert sum(reasons.values()) >= 2
     csv_out = subprocess.run([*base, "export", str(out["run_id"]), "--format", "csv", *dbset],
                              capture_output=True, text=True, timeout=60)  # fmt: skip
     assert len(csv_out.stdout.strip().splitlines()) == out["iterations"] + 1
