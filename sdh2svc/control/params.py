@@ -89,7 +89,7 @@ class RollingParams(Finite):
         default=0.0,
         description="from the seventh half stroke on, the pads' wedge averaged over the last "
         "full stroke is brought back to the second full stroke's within this many strokes, by "
-        "leaning Finger 1's σd (not in the thesis; 0: off)",
+        "leaning Finger 1's σd, the difference's integral included (not in the thesis; 0: off)",
     )
     cycles: Annotated[int, Field(ge=1, le=10000)] = Field(
         description="back-and-forth strokes before the run ends"

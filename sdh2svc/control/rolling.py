@@ -118,13 +118,16 @@ class RollState:
     # any other): its way back retreats on only while the contact leans less (_retreats)
     lean: float = 0.0
     prev: Observation | None = None  # the last iteration's observation (for rolling_turn)
-    # Re-centring (``recentre_strokes``): the reference stroke's mean wedge (_stroke_wedge),
-    # the wedge's sum and count over the current half stroke and the last, and the last full
-    # stroke's mean wedge minus the reference's with that stroke's iterations (_recentre)
+    # Re-centring (``recentre_strokes``): the reference stroke's mean wedge (_stroke_wedge);
+    # over the current half stroke and the last, the wedge's sum, its count, and the iterations
+    # the lean could not act (at its bound, or no slope: _recentre); the last full stroke's mean
+    # wedge minus the reference's with that stroke's iterations, and the sum of those errors
+    # over the strokes the lean could act on (its integral)
     wedge_ref: float | None = None
-    wedge_now: tuple[float, int] = (0.0, 0)
-    wedge_last: tuple[float, int] | None = None
+    wedge_now: tuple[float, int, int] = (0.0, 0, 0)
+    wedge_last: tuple[float, int, int] | None = None
     wedge_error: float = 0.0
+    wedge_integral: float = 0.0
     stroke_iterations: int = 0
 
     @property
@@ -247,9 +250,10 @@ RECENTRE_PROBE = math.radians(0.5)
 RECENTRE_MIN_SLOPE = 0.1
 
 
-def _recentre(route: _Route) -> float:
+def _recentre(route: _Route) -> tuple[float, bool]:
     """σd's lean this iteration (rad) that brings the pads' wedge, averaged over the last full
-    stroke, back to the reference stroke's within ``recentre_strokes`` strokes.
+    stroke, back to the reference stroke's within ``recentre_strokes`` strokes, and whether the
+    lean could not act on the error (held at its bound, or no slope to act through).
 
     Nothing in the thesis's plan holds the wedge: Finger 2 follows its route, Finger 1 puts A
     at σd from B, and Λ follows the force; the grasp's one remaining freedom, how the pads lean
@@ -258,23 +262,33 @@ def _recentre(route: _Route) -> float:
     5° to 12.5° in 180 strokes, Finger 1 straightened towards its reach, the strokes shrank from
     412 to 70 iterations, and the run ended stuck. The lean spreads the last stroke's error over
     ``recentre_strokes`` strokes' iterations, through the model's slope of the wedge in σd
-    (the route's full step planned at σd ± RECENTRE_PROBE)."""
+    (the route's full step planned at σd ± RECENTRE_PROBE).
+
+    The error acted on is the last stroke's plus the errors' sum since the reference over 2 ×
+    ``recentre_strokes`` (their integral, the lean's own horizon its time: a PI rule): with the
+    error alone, a drift that goes on stroke after stroke is held only where the lean balances
+    it, an error of ``recentre_strokes`` strokes' drift (a triangle's settled ≈ 6° above its
+    reference); the integral takes that offset back too."""
     p, st = route.params, route.state
     if p.recentre_strokes <= 0.0 or st.stroke_iterations == 0 or p.mode != "two-finger":
-        return 0.0  # off, no full stroke since the reference yet, or σ is the route (one finger)
+        return 0.0, False  # off, no full stroke since the reference yet, or σ is the route
     w = []
     for d in (-RECENTRE_PROBE, RECENTRE_PROBE):
         cfg = replace(route, bias=d).configure(1.0)
         if cfg is None or cfg.ik.solution is None:
-            return 0.0
+            return 0.0, True
         assert cfg.plan.A_d is not None and cfg.plan.B_d is not None
         phi = (cfg.ik.solution.proximal, cfg.ik.solution.distal, cfg.phi4d, cfg.phi5d)
         w.append(wedge(*omegas(route.obs, phi, cfg.plan.A_d, cfg.plan.B_d, route.ctx)))
     slope = (w[1] - w[0]) / (2 * RECENTRE_PROBE)
     if abs(slope) < RECENTRE_MIN_SLOPE:
-        return 0.0
-    lean = -st.wedge_error / slope / (p.recentre_strokes * st.stroke_iterations)
-    return max(-RECENTRE_MAX, min(RECENTRE_MAX, lean))
+        return 0.0, True
+    error = st.wedge_error + st.wedge_integral / (2.0 * p.recentre_strokes)
+    lean = -error / slope / (p.recentre_strokes * st.stroke_iterations)
+    bound = max(-RECENTRE_MAX, min(RECENTRE_MAX, lean))
+    # held at its bound, the integral would only grow while the stroke's error pushes the same
+    # way (wind-up); while it pushes back, the integral unwinds
+    return bound, bound != lean and st.wedge_error * error > 0.0
 
 
 # A slower plan may still need a little more than Finger 1's step (the step's scaling is linear,
@@ -321,15 +335,20 @@ def _stroke_wedge(state: RollState) -> RollState:
     """``state`` at a half stroke's end (``half_strokes`` counts it): the mean wedge over it
     and the half stroke before (a full stroke) and their iterations. The full stroke ending
     with half stroke REFERENCE_HALF_STROKE is the reference the later ones are held to
-    (``wedge_ref``)."""
+    (``wedge_ref``); each later one's error adds to their integral (``wedge_integral``) by the
+    share of its iterations whose lean was free to act."""
     last, now = state.wedge_last, state.wedge_now
-    state = replace(state, wedge_now=(0.0, 0), wedge_last=now)
-    if state.half_strokes < REFERENCE_HALF_STROKE or last is None or last[1] + now[1] == 0:
+    state = replace(state, wedge_now=(0.0, 0, 0), wedge_last=now)
+    n = 0 if last is None else last[1] + now[1]
+    if state.half_strokes < REFERENCE_HALF_STROKE or last is None or n == 0:
         return state
-    mean = (last[0] + now[0]) / (last[1] + now[1])
+    mean = (last[0] + now[0]) / n
     if state.wedge_ref is None:
         return replace(state, wedge_ref=mean)
-    return replace(state, wedge_error=mean - state.wedge_ref, stroke_iterations=last[1] + now[1])
+    error = mean - state.wedge_ref
+    acted = max(0.0, 1.0 - (last[2] + now[2]) / n)  # the share of the stroke the lean could act
+    return replace(state, wedge_error=error, stroke_iterations=n,
+                   wedge_integral=state.wedge_integral + acted * error)  # fmt: skip
 
 
 def _cone_lean(cone: Reversal, obs: Observation) -> float:
@@ -438,7 +457,8 @@ def step(
 
     if obs.omega_A is not None and obs.omega_B is not None:
         w = wedge(obs.omega_A, obs.omega_B)
-        state = replace(state, wedge_now=(state.wedge_now[0] + w, state.wedge_now[1] + 1))
+        total, count, stuck = state.wedge_now
+        state = replace(state, wedge_now=(total + w, count + 1, stuck))
         if state.iteration == 0:
             held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
             state = replace(state, alpha_held=held)
@@ -462,7 +482,11 @@ def step(
     lam_ad = _adjusted_lambda(obs.Lambda, F, dF, params)
     move = finger2_move(state.direction, Predictor(pose, obs, lam_ad, alpha, params, ctx))
     route = _Route(state, pose, obs, lam_ad, params, ctx, move)
-    route = replace(route, bias=_recentre(route))
+    lean, lean_held = _recentre(route)
+    route = replace(route, bias=lean)
+    if lean_held:
+        total, count, stuck = state.wedge_now
+        state = replace(state, wedge_now=(total, count, stuck + 1))
     reason, plan, cfg = _attempt(route, waived, alpha)
     if reason is not None and state.consecutive_reversals >= ESCAPE_AFTER:
         reason, plan, cfg = _escape(route, waived, alpha, (reason, plan, cfg))
