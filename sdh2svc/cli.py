@@ -978,6 +978,13 @@ def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
     return Exit.OK
 
 
+def _progress_line(text: str, *, last: bool = False) -> None:
+    """``text`` over the terminal's progress line (only when stderr is a terminal); ``last``
+    ends the line."""
+    if sys.stderr.isatty():
+        print(f"\r{text}", end="\n" if last else "", file=sys.stderr, flush=True)
+
+
 def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, Any],
             path: str | None) -> None:  # fmt: skip
     """Export run ``args.id`` as CSV or MCAP, to ``path`` (written whole) or standard output."""
@@ -997,9 +1004,7 @@ def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, 
                           + "; ".join(e.problems))  # fmt: skip
 
     def progress(done: int, total: int) -> None:  # a run of hours takes minutes
-        if sys.stderr.isatty():
-            print(f"\rrun {args.id}: {done}/{total} iterations written", end="",
-                  file=sys.stderr, flush=True)  # fmt: skip
+        _progress_line(f"run {args.id}: {done}/{total} iterations written")
 
     if path is None:  # MCAP is written with seeks back, which a pipe cannot take
         import shutil
@@ -1013,7 +1018,7 @@ def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, 
     else:
         with whole_file(path, binary=True) as out:
             n = store.export_mcap(args.id, out, cfg, progress)
-    if sys.stderr.isatty():  # end the progress line
+    if sys.stderr.isatty():  # end the progress line (the run may have grown since it was counted)
         print(file=sys.stderr)
     print(f"{path or 'stdout'}: {n} messages", file=sys.stderr)
 
@@ -1121,9 +1126,8 @@ def _campaign_generate(args: argparse.Namespace) -> int:
         _fail(Exit.USAGE, f"{out} exists: a suite is never rewritten (give another -o FILE)")
 
     def progress(done: int, n: int) -> None:
-        if sys.stderr.isatty() and (done == n or done % 10 == 0):
-            print(f"\rgenerating {done}/{n} cases", end="\n" if done == n else "",
-                  file=sys.stderr, flush=True)  # fmt: skip
+        if done == n or done % 10 == 0:
+            _progress_line(f"generating {done}/{n} cases", last=done == n)
 
     description = f"{args.cases} generated cases, seed {args.seed}"
     suite = generated_suite(name, args.seed, args.cases, description=description,
