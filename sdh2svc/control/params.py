@@ -58,12 +58,12 @@ class RollingParams(Finite):
         "iteration (Δφ, or dσ) down so that Finger 1 can follow (not in the thesis)"
     )
     force_band_low: Annotated[float, Field(ge=0.0, le=20.0)] = Field(
-        description="× Fd: below this F, Λ closes by ΔΛ_dec unless F is rising (not in the "
-        "thesis; 0: off)"
+        description="× Fd: below this F, Λ closes by ΔΛ_dec, or holds while F is rising (not "
+        "in the thesis; 0: off)"
     )
     force_band_high: Annotated[float, Field(ge=0.0, le=20.0)] = Field(
-        description="× Fd: above this F, Λ opens by ΔΛ_inc unless F is falling (not in the "
-        "thesis; 20: off)"
+        description="× Fd: above this F, Λ opens by ΔΛ_inc, or holds while F is falling (not "
+        "in the thesis; 20: off)"
     )
     delta_lambda_inc_mm: Annotated[float, Field(ge=0.0, le=10.0)] = Field(
         description="ΔΛ_inc, widening of the held distance when the force rises"

@@ -174,13 +174,15 @@ class StepResult:
 def _adjusted_lambda(lam: float, F: float, dF: float, p: RollingParams) -> float:
     """Λad: open by ΔΛ_inc when the force rises, close by ΔΛ_dec when it falls (hand-model §8);
     a change within the deadband is no change. Outside the force band the level decides (the
-    derivative rule alone lets slow drifts through): below it close, above it open — unless
-    the force is already on its way back, when the derivative rule decides as inside."""
+    derivative rule alone lets slow drifts through): below it close, above it open — or hold
+    while the force is already on its way back. Never the derivative rule outside: a rise
+    below the band is mostly the last closing's own, and opening on it undid that closing,
+    a cycle that grows on a stiff object until the grip is lost."""
     rising, falling = dF > p.force_deadband, dF < -p.force_deadband
-    if F < p.force_band_low * p.grasp_force and not rising:
-        return lam - p.delta_lambda_dec_mm
-    if F > p.force_band_high * p.grasp_force and not falling:
-        return lam + p.delta_lambda_inc_mm
+    if F < p.force_band_low * p.grasp_force:
+        return lam if rising else lam - p.delta_lambda_dec_mm
+    if F > p.force_band_high * p.grasp_force:
+        return lam if falling else lam + p.delta_lambda_inc_mm
     if rising:
         return lam + p.delta_lambda_inc_mm
     if falling:

@@ -21,6 +21,7 @@ from sdh2svc.control.rolling import (
     Reversal,
     RollState,
     StepResult,
+    _adjusted_lambda,
     step,
 )
 from sdh2svc.control.sample import Sample
@@ -119,10 +120,10 @@ def test_delta_lambda_sign_logic(cfg: Settings, prev_F_delta: float, expected: f
     [
         (0.5, 0.0, -0.3),  # below the band, steady: close
         (0.5, 0.3, -0.3),  # below, still falling: close
-        (0.5, -0.3, 0.7),  # below, but rising again: the ΔF rule (opens)
+        (0.5, -0.3, 0.0),  # below, but rising again: hold (never open below the band)
         (1.5, 0.0, 0.7),  # above, steady: open
         (1.5, -0.3, 0.7),  # above, still rising: open
-        (1.5, 0.3, -0.3),  # above, but falling again: the ΔF rule (closes)
+        (1.5, 0.3, 0.0),  # above, but falling again: hold (never close above the band)
         (0.9, 0.0, 0.0),  # inside the band: the ΔF rule alone
         (0.9, 0.3, -0.3),
     ],
@@ -130,7 +131,8 @@ def test_delta_lambda_sign_logic(cfg: Settings, prev_F_delta: float, expected: f
 def test_force_band_decides_outside(
     cfg: Settings, level: float, prev_F_delta: float, expected: float
 ) -> None:
-    """F at ``level`` × Fd with the band [0.75, 1.0] × Fd: outside it the level decides."""
+    """F at ``level`` × Fd with the band [0.75, 1.0] × Fd: outside it the level decides, and
+    a force already heading back into the band holds Λ."""
     ctx = cfg.model_context()
     base = params(cfg, delta_lambda_inc_mm=0.7, delta_lambda_dec_mm=0.3, force_band_low=0.75,
                   force_band_high=1.0)  # fmt: skip
@@ -139,6 +141,33 @@ def test_force_band_decides_outside(
     r = step(RollState(F_prev=F + prev_F_delta), MIRROR, frame(20.0), frame(20.0), p, ctx)
     assert r.F / p.grasp_force == pytest.approx(level)
     assert r.plan.Lambda_ad == pytest.approx(r.obs.Lambda + expected)
+
+
+@pytest.mark.parametrize("lag", [0, 1])
+@pytest.mark.parametrize("stiffness", [2.0, 5.0])
+def test_force_band_reaches_the_band_on_a_stiff_object(
+    cfg: Settings, stiffness: float, lag: int
+) -> None:
+    """A stiff object (``stiffness`` force units per mm: one 0.1 mm step moves F by 0.1–0.25 ×
+    Fd) whose grip follows the held distance ``lag`` iterations late, starting at 0.3 × Fd:
+    F enters the band and then stays within one step of it. (Opening on the rise its own
+    closing causes, below the band, kept F below it for ever.)"""
+    p = cfg.rolling
+    fd, width = p.grasp_force, 30.0
+    held = [width - 0.3 * fd / stiffness] * (lag + 1)
+    F_prev: float | None = None
+    levels = []
+    for _ in range(60):
+        F = stiffness * (width - held[-1 - lag])
+        levels.append(F / fd)
+        held.append(_adjusted_lambda(held[-1], F, 0.0 if F_prev is None else F - F_prev, p))
+        F_prev = F
+    entered = next(i for i, f in enumerate(levels) if p.force_band_low <= f <= p.force_band_high)
+    one_step = stiffness * p.delta_lambda_dec_mm / fd
+    assert entered < 20
+    after = levels[entered:]
+    assert min(after) >= p.force_band_low - one_step - 1e-9
+    assert max(after) <= p.force_band_high + one_step + 1e-9
 
 
 def test_force_band_must_be_ordered(cfg: Settings) -> None:
