@@ -459,8 +459,8 @@ def step(
 
     if obs.omega_A is not None and obs.omega_B is not None:
         w = wedge(obs.omega_A, obs.omega_B)
-        total, count, stuck = state.wedge_now
-        state = replace(state, wedge_now=(total + w, count + 1, stuck))
+        total, count, blocked = state.wedge_now
+        state = replace(state, wedge_now=(total + w, count + 1, blocked))
         if state.iteration == 0:
             held = max(abs(obs.omega_A - math.pi / 2), abs(obs.omega_B - math.pi / 2))
             state = replace(state, alpha_held=held)
@@ -487,8 +487,8 @@ def step(
     lean, lean_held = _recentre(route)
     route = replace(route, bias=lean)
     if lean_held:
-        total, count, stuck = state.wedge_now
-        state = replace(state, wedge_now=(total, count, stuck + 1))
+        total, count, blocked = state.wedge_now
+        state = replace(state, wedge_now=(total, count, blocked + 1))
     reason, plan, cfg = _attempt(route, waived, alpha)
     if reason is not None and state.consecutive_reversals >= ESCAPE_AFTER:
         reason, plan, cfg = _escape(route, waived, alpha, (reason, plan, cfg))
