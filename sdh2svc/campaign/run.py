@@ -649,12 +649,12 @@ def run_campaign(
         if not out.exists():  # a new campaign: joined before its folder is made (a cluster
             _ray_connect(ray_address)  # that is not there left a folder of no case behind)
     _check_same(out, info)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        lock = _lock(out)
-    except OSError as e:
-        raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
-    with lock:
+    with contextlib.ExitStack() as lock:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            lock.enter_context(_lock(out))
+        except OSError as e:
+            raise CampaignError(4, f"cannot write to {out}: {e.strerror or e}") from None
         _check_same(out, info)  # again, now that no other run can be writing it
         try:
             for stale in out.glob(".work-*"):  # a killed run's, never removed
@@ -673,22 +673,40 @@ def run_campaign(
 LOCK_FILE = ".lock"
 
 
-def _lock(out: Path) -> contextlib.AbstractContextManager[Any]:
+@contextlib.contextmanager
+def _lock(out: Path) -> Iterator[None]:
     """An exclusive lock on ``OUT`` for as long as the campaign runs there (held by an open
-    file, so a killed run leaves none behind): a second run on the same folder would run
-    every case again beside the first, and each would be recorded twice."""
-    fh = (out / LOCK_FILE).open("a+")
+    file, so a killed run holds none): a second run on the same folder would run every case
+    again beside the first, and each would be recorded twice. The file is removed while still
+    locked when the campaign ends; a run that finds it replaced or gone once it holds the lock
+    (the one before removed it meanwhile) takes the lock again on the file that is there now."""
+    path = out / LOCK_FILE
     try:
         import fcntl
     except ImportError:  # (Windows: no lock)
-        return fh
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+        yield
+        return
+    while True:
+        fh = path.open("a+")
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.close()
+            raise CampaignError(2, f"another campaign is running in {out}: wait for it to "
+                                "end, or use another --out") from None  # fmt: skip
+        try:
+            same = os.stat(path).st_ino == os.fstat(fh.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
         fh.close()
-        raise CampaignError(2, f"another campaign is running in {out}: wait for it to end, "
-                            "or use another --out") from None  # fmt: skip
-    return fh
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        fh.close()
 
 
 def _run_todo(suite: Suite, out: Path, info: Mapping[str, Any], t0: float, appender: Appender,

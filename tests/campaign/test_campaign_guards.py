@@ -348,6 +348,41 @@ def test_one_folder_one_running_campaign_and_a_killed_runs_scratch_is_removed(
     (out / ".work-killed" / "case-rubber-2.sqlite").write_text("")
     assert run(suite(1, 2), out).ran == 1
     assert not [p for p in out.iterdir() if p.name.startswith(".work")]
+    assert not (out / camp.LOCK_FILE).exists()  # removed, still locked, as the campaign ended
+
+
+def locked_elsewhere(case_json: str, *args: Any) -> dict[str, Any]:
+    """:func:`stopped`, after checking that the folder's lock file is held (by the campaign)."""
+    import fcntl
+
+    out = Path(os.environ["GUARDS_OUT"])
+    with (out / camp.LOCK_FILE).open("a+") as fh, pytest.raises(BlockingIOError):
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return stopped(case_json, *args)
+
+
+def test_a_lock_file_removed_before_it_was_taken_is_taken_anew(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A campaign that opens the lock file just as the one before it ends and removes it must
+    not run on a lock nobody else can see: it takes the lock again on the file at the path."""
+    import fcntl
+
+    out = tmp_path / "o"
+    out.mkdir()
+    monkeypatch.setenv("GUARDS_OUT", str(out))
+    real, calls = fcntl.flock, []
+
+    def flock(fh: Any, op: int) -> None:
+        calls.append(op)
+        if len(calls) == 1:  # the run before ends between this run's open and its flock
+            (out / camp.LOCK_FILE).unlink()
+        real(fh, op)
+
+    monkeypatch.setattr(fcntl, "flock", flock)
+    assert run(suite(1), out, locked_elsewhere).ran == 1
+    assert len(calls) == 3  # the lock taken twice, then the case's check that it is held
+    assert not (out / camp.LOCK_FILE).exists()
 
 
 def test_progress_to_a_log_is_plain_lines(
