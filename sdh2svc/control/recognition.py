@@ -426,8 +426,8 @@ class _Extremes:
 
 class _Line:
     """The last ``n`` (L, ν − ψ) and their least-squares line, in constant time per iteration:
-    running sums (made anew from the window every ``n`` additions, so rounding never builds
-    up), the window's extremes from monotonic queues (:class:`_Extremes`)."""
+    running sums (made anew every ``n`` additions, so rounding never builds up), the window's
+    extremes from monotonic queues (:class:`_Extremes`)."""
 
     def __init__(self, n: int) -> None:
         self.x: deque[float] = deque(maxlen=n)
@@ -441,10 +441,15 @@ class _Line:
         self._x_range.clear()
         self._y_range.clear()
         self._sums = [0.0] * 5  # Σx, Σy, Σxx, Σxy, Σyy
+        # the same sums over the values added since the sums were last made anew: when they
+        # are made anew, those values are the window, in order (the first time a window of
+        # one, then every n additions), so these are the window's sums as summed afresh —
+        # added up one value at a time, not all at once every n (a long window's spike)
+        self._fresh = [0.0] * 5
         self._since = 0
 
     def add(self, x: float, y: float) -> None:
-        sums, xs, ys = self._sums, self.x, self.y
+        sums, fresh, xs, ys = self._sums, self._fresh, self.x, self.y
         if len(xs) == xs.maxlen:
             ox, oy = xs[0], ys[0]
             sums[0] -= ox
@@ -456,17 +461,23 @@ class _Line:
         ys.append(y)
         self._x_range.add(x)
         self._y_range.add(y)
+        xx, xy, yy = x * x, x * y, y * y
+        fresh[0] += x
+        fresh[1] += y
+        fresh[2] += xx
+        fresh[3] += xy
+        fresh[4] += yy
         self._since += 1
         if self._since >= len(xs):
             self._since = 0
-            xy = sum(a * b for a, b in zip(xs, ys, strict=True))
-            sums[:] = [sum(xs), sum(ys), sum(v * v for v in xs), xy, sum(v * v for v in ys)]
+            sums[:] = fresh
+            fresh[:] = _ZEROS5
         else:
             sums[0] += x
             sums[1] += y
-            sums[2] += x * x
-            sums[3] += x * y
-            sums[4] += y * y
+            sums[2] += xx
+            sums[3] += xy
+            sums[4] += yy
 
     def split(self) -> tuple[float, float, float, float, float]:
         """The window broken where two lines fit it best (each of at least MIN_PIECE points):
@@ -526,6 +537,9 @@ class _Line:
             return 0.0, travel, turn, 0.0
         resid = math.degrees(math.sqrt(max(syy - sxy * sxy / sxx, 0.0) / n))
         return sxy / sxx, travel, turn, resid
+
+
+_ZEROS5 = (0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def _line_residual(m: int, sx: float, sy: float, sxx: float, sxy: float, syy: float) -> float:
@@ -708,6 +722,10 @@ class _Evidence:
     faces: np.ndarray = field(default_factory=lambda: np.zeros(len(_BETAS)))
     faces_n: int = 0
     sweeps: list[tuple[float, float]] = field(default_factory=list)
+    # the sweeps' farthest crossing of β + k·90° for every β (:func:`_crossing`), kept until
+    # the next sweep ends: the edge runs end a few times a stroke, the class is asked for
+    # every iteration
+    _crossed: np.ndarray | None = field(default=None, repr=False)
 
     def add_width(self, lam: float, psi: float, wedge: float = 0.0) -> float:
         """One iteration's Λ (mm) at the object's rotation ψ, between pads whose surfaces
@@ -738,6 +756,13 @@ class _Evidence:
         self.sweeps.append(span)
         if len(self.sweeps) > MAX_SWEEPS:
             self.sweeps.remove(min(self.sweeps, key=lambda s: s[1] - s[0]))
+        self._crossed = None
+
+    def crossed(self) -> np.ndarray:
+        """:func:`_crossing` of the finished sweeps (some)."""
+        if self._crossed is None:
+            self._crossed = _crossing(self.sweeps)
+        return self._crossed
 
 
 class _Sweep:
@@ -766,14 +791,26 @@ def box_misfit(ev: _Evidence, open_sweeps: list[tuple[float, float]]) -> tuple[f
     other angles, or a corner opposite a face turning the pad both ways of parallel (a regular
     odd polygon), reads above a box's few tenths of a degree."""
     face = ev.faces / ev.faces_n if ev.faces_n else np.zeros(len(_BETAS))
-    sweeps = ev.sweeps + open_sweeps
-    if not sweeps:
+    if not ev.sweeps and not open_sweeps:
         least = float(face.min())
         return least, least
+    if not open_sweeps:
+        crossed = ev.crossed()
+    elif not ev.sweeps:
+        crossed = _crossing(open_sweeps)
+    else:  # the farthest of all sweeps, the finished ones' kept
+        crossed = np.maximum(ev.crossed(), _crossing(open_sweeps))
+    return float(face.min()), float((face + crossed).min())
+
+
+def _crossing(sweeps: list[tuple[float, float]]) -> np.ndarray:
+    """For every β, the farthest any of ``sweeps`` (some) crossed a direction β + k·90°, by
+    the lesser of its two sides (deg; 0 where none crossed one)."""
     lo, hi = np.array(sweeps).T
     g = _BETAS[None, :] + 90.0 * np.ceil((lo[:, None] - _BETAS[None, :]) / 90.0)
     cross = np.where(g < hi[:, None], np.minimum(g - lo[:, None], hi[:, None] - g), 0.0)
-    return float(face.min()), float((face + cross.max(axis=0)).min())
+    crossed: np.ndarray = cross.max(axis=0)
+    return crossed
 
 
 def caliper_slope(ev: _Evidence) -> float:

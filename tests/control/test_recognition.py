@@ -285,6 +285,51 @@ def test_the_windows_line_from_running_sums_matches_a_direct_fit() -> None:
     assert line.fit() == (0.0, 0.0, pytest.approx(math.degrees(0.1)), 0.0)
 
 
+def test_the_windows_sums_made_anew_are_the_windows_own() -> None:
+    """Every n additions the running sums are made anew, so that rounding never builds up:
+    to the last bit the window's values (and their products) added up in order from the
+    oldest — the first time for a window of one, after a clear as well."""
+    import functools
+    import operator
+
+    def in_order(values: list[float]) -> float:
+        return functools.reduce(operator.add, values, 0.0)
+
+    rng = np.random.default_rng(5)
+    n, made = 20, 0
+    line = _Line(n)
+    for k in range(500):
+        if k == 250:
+            line.clear()
+        line.add(float(rng.normal(25.0, 4.0)), float(rng.normal(0.0, 0.2)))
+        if line._since:  # not made anew this time
+            continue
+        made += 1
+        xs, ys = list(line.x), list(line.y)
+        assert line._sums == [
+            in_order(xs), in_order(ys), in_order([a * a for a in xs]),
+            in_order([a * b for a, b in zip(xs, ys, strict=True)]), in_order([b * b for b in ys]),
+        ]  # fmt: skip
+    assert made == 2 * (1 + (250 - 1) // n)  # at the first value, then every n, per start
+
+
+def test_the_outline_misfit_keeps_the_finished_sweeps() -> None:
+    """box_misfit keeps the finished sweeps' crossings until another sweep ends: asked between
+    sweeps, with and without open ones, it says what evidence built afresh says."""
+    spans = [(-20.0, 20.0), (30.0, 41.0), (50.0, 140.0), (100.0, 104.0)]
+    ev = outline_evidence([3.0] * 10 + [95.0] * 5, [])
+    for k, span in enumerate(spans):
+        ev.add_sweep(span)
+        fresh = outline_evidence([3.0] * 10 + [95.0] * 5, spans[: k + 1])
+        for open_sweeps in ([], [(80.0, 92.0)], [(170.0, 185.0), (5.0, 8.0)]):
+            assert box_misfit(ev, open_sweeps) == box_misfit(fresh, open_sweeps)
+            assert box_misfit(ev, open_sweeps) == box_misfit(fresh, open_sweeps)  # kept
+    faces = [3.0] * 10 + [95.0] * 5  # a sweep still open counts as a finished one would
+    assert box_misfit(outline_evidence(faces, []), spans) == box_misfit(
+        outline_evidence(faces, spans), []
+    )
+
+
 def test_the_window_breaks_where_a_face_gives_way_to_a_corner() -> None:
     """_Line.split: a window of a face (the contact travels, ν − ψ still) then a rounding of
     5 mm (ν − ψ turns 1/5 rad per mm) breaks at the change, and the later line is the
