@@ -11,7 +11,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import Field, field_validator, model_validator
 
@@ -114,7 +114,7 @@ def params_outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
     Finger 2's k·Δφ beyond the step limit is clipped, not refused: the thesis's sticks roll at
     k = 5 (1.25° a step, Finger 2 following its route at 1°)."""
     out = []
-    top = safety.force_ceiling_max / safety.force_ceiling_factor
+    top = params_maxima(safety)["grasp_force"]
     if p.grasp_force > top:
         out.append(
             f"rolling.grasp_force = {p.grasp_force:g}: its ceiling, safety.force_ceiling_factor "
@@ -129,6 +129,27 @@ def params_outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
             f"safety.max_step_deg = {step:g}, the supervisor's step limit (allowed: ≤ {step:g})"
         )
     return out
+
+
+def params_maxima(safety: SafetyConfig) -> dict[str, float]:
+    """The largest value :func:`params_outside` lets through, per parameter it limits: Fd whose
+    ceiling the maximum does not cut, and Finger 1's step within the supervisor's."""
+    return {
+        "grasp_force": safety.force_ceiling_max / safety.force_ceiling_factor,
+        "finger1_max_step_deg": safety.max_step_deg,
+    }
+
+
+def params_schema(safety: SafetyConfig) -> dict[str, Any]:
+    """The rolling parameters' JSON schema with the ranges this configuration allows: a form
+    built from it offers no value the supervisor's limits would refuse (:func:`params_maxima`
+    lowers the fields' own maxima where they are tighter)."""
+    schema = RollingParams.model_json_schema()
+    for key, top in params_maxima(safety).items():
+        field = schema["properties"][key]
+        if top < field.get("maximum", math.inf):
+            field["maximum"] = top
+    return schema
 
 
 class Fault(StrEnum):

@@ -9,6 +9,7 @@ import pytest
 
 from sdh2svc.config import Settings
 from sdh2svc.control import safety
+from sdh2svc.control.params import RollingParams
 from sdh2svc.control.rolling import Reversal, RollState, StepResult, step
 from sdh2svc.control.safety import Fault, Violation
 from tests.control.test_rolling import MIRROR, frame, params
@@ -74,6 +75,29 @@ def test_parameters_within_the_supervisors_limits_pass(cfg: Settings) -> None:
     assert safety.params_outside(k5, cfg.safety) == []
     fast = cfg.rolling.model_copy(update={"finger1_max_step_deg": 1.01, "grasp_force": 4.01})
     assert len(safety.params_outside(fast, cfg.safety)) == 2
+
+
+@pytest.mark.parametrize("ceiling_max", [12.0, 30.0, 600.0])
+def test_the_parameters_schema_offers_only_what_the_limits_allow(
+    cfg: Settings, ceiling_max: float
+) -> None:
+    """A form built from the schema offers no value params_outside refuses: each limited
+    field's maximum passes and a hair above it does not; where the field's own maximum is
+    the tighter (a ceiling of 600 allows Fd up to 200, the field 50), it stays."""
+    s = cfg.safety.model_copy(update={"force_ceiling_max": ceiling_max})
+    schema = safety.params_schema(s)
+    for key in ("grasp_force", "finger1_max_step_deg"):
+        top = schema["properties"][key]["maximum"]
+        assert top <= RollingParams.model_json_schema()["properties"][key]["maximum"]
+        at = cfg.rolling.model_copy(update={key: top})
+        assert safety.params_outside(at, s) == []
+        above = cfg.rolling.model_copy(update={key: top * 1.001})
+        if top == RollingParams.model_json_schema()["properties"][key]["maximum"]:
+            with pytest.raises(ValueError):  # the field's own range refuses it
+                RollingParams.model_validate(above.model_dump())
+        else:
+            assert len(safety.params_outside(above, s)) == 1
+    assert schema["properties"]["grasp_force"]["maximum"] == min(ceiling_max / 3.0, 50.0)
 
 
 @pytest.mark.parametrize(

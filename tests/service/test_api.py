@@ -153,6 +153,16 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         assert (await c.sim_object())["object"]["name"] == "rubber"
         schema = await c.params_schema()
         assert schema["properties"]["k"]["exclusiveMinimum"] == 1.0
+        # the ranges this service's safety limits allow, not the fields' own (50 and 10)
+        limits = (await c.config())["safety"]
+        top = limits["force_ceiling_max"] / limits["force_ceiling_factor"]
+        assert schema["properties"]["grasp_force"]["maximum"] == top < 50.0
+        assert schema["properties"]["finger1_max_step_deg"]["maximum"] == limits["max_step_deg"]
+        fd = (await c.params())["grasp_force"]
+        assert (await c.patch_params({"grasp_force": top}))["grasp_force"] == top
+        with pytest.raises(InvalidRequest):
+            await c.patch_params({"grasp_force": top * 1.001})
+        await c.patch_params({"grasp_force": fd})  # the module's service, as it was
         assert (await c.viewer()) == {"url": None}
     async with httpx.AsyncClient(base_url=svc.url) as browser:  # a page, not the API
         assert (await browser.get("/docs")).status_code == 200

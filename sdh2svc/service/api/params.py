@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body
 
-from sdh2svc.control.params import RollingParams
+from sdh2svc.control.safety import params_schema as safety_params_schema
 from sdh2svc.service.api.deps import Auth, Cfg, St
 from sdh2svc.service.api.errors import READ, WRITE, responses
 
@@ -19,8 +19,9 @@ async def get_params(st: St) -> dict[str, Any]:
 
 
 @router.get("/api/params/schema", responses=responses(*READ))
-def params_schema() -> dict[str, Any]:
-    return RollingParams.model_json_schema()
+def params_schema(cfg: Cfg) -> dict[str, Any]:
+    """The parameters' JSON schema, its ranges those this configuration's safety limits allow."""
+    return safety_params_schema(cfg.safety)
 
 
 @router.patch("/api/params", dependencies=[Auth], responses=responses(*WRITE, 422))
