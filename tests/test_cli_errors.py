@@ -635,6 +635,9 @@ def test_a_second_signal_ends_the_run_at_once_and_says_where_it_left_the_hand(
 
     db = tmp_path / "r.sqlite"
     with _begun_run(db) as proc:
+        # once the fingers hold the object: their release back to the pre-shape takes a second
+        # or two (15–20°/s); from the pre-shape's own move it could end before the Ctrl-C came
+        _until(lambda: "rolling" in _phases(db))
         proc.send_signal(signal.SIGTERM)
         _until(lambda: "releasing" in _phases(db))  # it lets go
         proc.send_signal(signal.SIGINT)
