@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
     from sdh2svc.connect import Bench
     from sdh2svc.control.runner import Runner
+    from sdh2svc.service.store import RunStore
     from sdh2svc.sim.objects import Shape
     from sdh2svc.sim.press import Press
 
@@ -650,6 +651,14 @@ def status_url(url: str) -> str:
     return urlunsplit((parts.scheme, parts.netloc, path, "", ""))
 
 
+def _local_url(cfg: Settings) -> str:
+    """The base URL of the service this configuration describes, from this machine (a service
+    listening on every address is reached on the loopback)."""
+    host = cfg.service.host if cfg.service.host not in ("0.0.0.0", "::") else "127.0.0.1"
+    host = f"[{host}]" if ":" in host else host
+    return f"http://{host}:{cfg.service.port}"
+
+
 def cmd_health(args: argparse.Namespace) -> int:
     """Exit 0 if the service answers GET /api/status with both links connected (HEALTHCHECK);
     1 if it does not answer, answers something else, or reports a link down."""
@@ -657,12 +666,7 @@ def cmd_health(args: argparse.Namespace) -> int:
     import urllib.request
 
     cfg = _load(args)
-    if args.url:
-        url = status_url(args.url)
-    else:
-        host = cfg.service.host if cfg.service.host not in ("0.0.0.0", "::") else "127.0.0.1"
-        host = f"[{host}]" if ":" in host else host
-        url = f"http://{host}:{cfg.service.port}/api/status"
+    url = status_url(args.url) if args.url else f"{_local_url(cfg)}/api/status"
     try:
         with urllib.request.urlopen(url, timeout=args.timeout) as r:
             status = json.load(r)
@@ -686,7 +690,9 @@ def cmd_health(args: argparse.Namespace) -> int:
 def cmd_estop(args: argparse.Namespace) -> int:
     """The e-stop latch kept in the run database (what a restarted service re-applies, and what
     `run` on a real hand refuses to start under): show it, latch it, or release it. A running
-    service keeps its own copy: use its API (POST /api/estop, /api/estop/release) instead."""
+    service keeps its own copy: ``--latch`` beside the one this configuration names, keeping
+    its runs in this database, e-stops it through its API (POST /api/estop); release it there
+    (POST /api/estop/release)."""
     import sqlite3
 
     from sdh2svc.service.store import NoDatabase, RunStore, StoreError, opened_elsewhere
@@ -707,6 +713,8 @@ def cmd_estop(args: argparse.Namespace) -> int:
         return Exit.OK
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
+    # beside a running service, its own e-stop stops the hand: asked first, the disk after
+    via = _estop_service(cfg, store) if args.latch and opened_elsewhere(where) else None
     if args.release and (others := opened_elsewhere(where)):
         # a running service keeps its own latch: released on disk only, it would stay latched
         # and say the latch is on disk, while a restart came up released
@@ -730,6 +738,19 @@ def cmd_estop(args: argparse.Namespace) -> int:
         print(f"there was no run database at {where}: a new one was made for the latch; a "
               "service or `sdh2svc run` with another storage.db_path does not see it",
               file=sys.stderr)  # fmt: skip
+    if via is not None:
+        url, answer = via
+        if answer.get("hand_reached") is False:
+            print(f"the service at {url}, which keeps its runs in this database, latched its "
+                  "e-stop, but the hand has not confirmed it: "
+                  f"{answer.get('detail') or 'the joint line is down or silent'}; it sends the "
+                  "power-off when the line answers — stop the hand another way now",
+                  file=sys.stderr)  # fmt: skip
+            return Exit.FAILED
+        print(f"the service at {url}, which keeps its runs in this database, e-stopped the "
+              "hand: release it through its API (POST /api/estop/release) or the "
+              "dashboard")  # fmt: skip
+        return Exit.OK
     others = opened_elsewhere(where) if args.latch else None
     if others:  # a service or a run reads the latch only when it starts: this stopped nothing
         print(f"{others}; a running service or `sdh2svc run` reads the latch only when it "
@@ -738,6 +759,27 @@ def cmd_estop(args: argparse.Namespace) -> int:
               "with Ctrl-C in its terminal", file=sys.stderr)  # fmt: skip
         return Exit.FAILED
     return Exit.OK
+
+
+def _estop_service(cfg: Settings, store: RunStore) -> tuple[str, dict[str, Any]] | None:
+    """E-stop the running service this configuration names (POST /api/estop at its host and
+    port) when it keeps its runs in ``store``'s database: its newest run is the database's
+    newest, or neither has any (a service on another database drives another hand). Its URL
+    and answer, or None when no such service answered."""
+    import sqlite3
+
+    from sdh2svc.client import ESTOP_TIMEOUT_S, ApiError, Client, Unreachable
+
+    url = _local_url(cfg)
+    try:
+        mine = [(r["id"], r["started_at"]) for r in store.run_page(1)[0]]
+        with Client(url, token=cfg.service.token or None, timeout=ESTOP_TIMEOUT_S) as c:
+            theirs = [(r["id"], r["started_at"]) for r in c.runs(limit=1)]
+            if theirs != mine:
+                return None
+            return url, c.estop()
+    except (sqlite3.Error, ApiError, Unreachable, KeyError, TypeError, ValueError):
+        return None
 
 
 RUN_IDS = range(-(2**63), 2**63)  # SQLite's integers: any other ID names no run
