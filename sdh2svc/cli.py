@@ -713,9 +713,10 @@ def cmd_estop(args: argparse.Namespace) -> int:
         return Exit.OK
     except StoreError as e:
         _fail(Exit.UNAVAILABLE, _one_line(e))
+    others = opened_elsewhere(where) if args.latch or args.release else None
     # beside a running service, its own e-stop stops the hand: asked first, the disk after
-    via = _estop_service(cfg, store) if args.latch and opened_elsewhere(where) else None
-    if args.release and (others := opened_elsewhere(where)):
+    via = _estop_service(cfg, store) if args.latch and others else None
+    if args.release and others:
         # a running service keeps its own latch: released on disk only, it would stay latched
         # and say the latch is on disk, while a restart came up released
         store.close()
@@ -751,8 +752,7 @@ def cmd_estop(args: argparse.Namespace) -> int:
               "hand: release it through its API (POST /api/estop/release) or the "
               "dashboard")  # fmt: skip
         return Exit.OK
-    others = opened_elsewhere(where) if args.latch else None
-    if others:  # a service or a run reads the latch only when it starts: this stopped nothing
+    if args.latch and others:  # a service or a run reads the latch only when it starts
         print(f"{others}; a running service or `sdh2svc run` reads the latch only when it "
               "starts: the hand was NOT stopped: stop it where it is driven — a service through "
               "its API (POST /api/estop) or the dashboard's E-STOP, a headless `sdh2svc run` "
