@@ -689,10 +689,11 @@ def cmd_health(args: argparse.Namespace) -> int:
 
 def cmd_estop(args: argparse.Namespace) -> int:
     """The e-stop latch kept in the run database (what a restarted service re-applies, and what
-    `run` on a real hand refuses to start under): show it, latch it, or release it. A running
-    service keeps its own copy: ``--latch`` beside the one this configuration names, keeping
-    its runs in this database, e-stops it through its API (POST /api/estop); release it there
-    (POST /api/estop/release)."""
+    `run` on a real hand refuses to start under): show it, latch it, or release it. ``--latch``
+    e-stops the service this configuration names through its API (POST /api/estop) when it
+    keeps its runs in this database; any running service or real-hand `run` keeping its runs
+    here stops its hand within a second of the latch on disk and says so, which this command
+    waits for. Release a running service through its API (POST /api/estop/release)."""
     import sqlite3
 
     from sdh2svc.service.store import NoDatabase, RunStore, StoreError, opened_elsewhere
@@ -752,13 +753,51 @@ def cmd_estop(args: argparse.Namespace) -> int:
               "hand: release it through its API (POST /api/estop/release) or the "
               "dashboard")  # fmt: skip
         return Exit.OK
-    if args.latch and others:  # a service or a run reads the latch only when it starts
-        print(f"{others}; a running service or `sdh2svc run` reads the latch only when it "
-              "starts: the hand was NOT stopped: stop it where it is driven — a service through "
-              "its API (POST /api/estop) or the dashboard's E-STOP, a headless `sdh2svc run` "
-              "with Ctrl-C in its terminal", file=sys.stderr)  # fmt: skip
-        return Exit.FAILED
+    if args.latch and others:  # a service or a real-hand run reading it stops its hand
+        return _estop_taken(cfg, where, latch, others)
     return Exit.OK
+
+
+def _estop_taken(cfg: Settings, where: Path, latch: dict[str, str] | None, others: str) -> int:
+    """Wait for the programs reading the database to say they stopped their hand for the
+    latch just written (a service or a real-hand `sdh2svc run` does within a second): exit 0
+    once one has and its hand confirmed, 1 otherwise."""
+    import sqlite3
+    import time
+
+    from sdh2svc.service.latch import TAKE_WAIT_S
+    from sdh2svc.service.store import RunStore, StoreError
+
+    takers: list[dict[str, Any]] = []
+    end = time.monotonic() + TAKE_WAIT_S
+    try:
+        store = RunStore(where, create=False, busy_timeout_s=cfg.storage.busy_timeout_s)
+    except StoreError:
+        store = None
+    try:
+        while store is not None and latch is not None and not takers and time.monotonic() < end:
+            time.sleep(0.1)
+            with contextlib.suppress(sqlite3.Error):
+                takers = store.estop_takers(latch["since"])
+    finally:
+        if store is not None:
+            store.close()
+    for t in takers:
+        said = "stopped its hand" if t["hand_reached"] else (
+            "latched its e-stop, but its hand has not confirmed it (the joint line is down or "
+            "silent): it sends the power-off when the line answers — stop the hand another way "
+            "now")  # fmt: skip
+        print(f"{t['program']}, which reads this database, {said} (at {t['at']})",
+              file=sys.stdout if t["hand_reached"] else sys.stderr)  # fmt: skip
+    if takers:
+        return Exit.OK if all(t["hand_reached"] for t in takers) else Exit.FAILED
+    print(f"{others}, and no program reading it stopped a hand for the latch within "
+          f"{TAKE_WAIT_S:g} s (a running service or a real hand's `sdh2svc run` does within a "
+          "second; a reader, a simulated run or an older version does not): the hand was NOT "
+          "stopped: stop it where it is driven — a service through its API (POST /api/estop) or "
+          "the dashboard's E-STOP, a headless `sdh2svc run` with Ctrl-C in its terminal",
+          file=sys.stderr)  # fmt: skip
+    return Exit.FAILED
 
 
 def _estop_service(cfg: Settings, store: RunStore) -> tuple[str, dict[str, Any]] | None:

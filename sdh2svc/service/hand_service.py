@@ -33,6 +33,7 @@ from sdh2svc.control.safety import SafetyConfig, params_outside
 from sdh2svc.control.sample import Sample
 from sdh2svc.provenance import code_version
 from sdh2svc.service.hub import TelemetryHub, cancel
+from sdh2svc.service.latch import latched_elsewhere, tell_taken, this_program
 from sdh2svc.service.recording import RecordedRun
 from sdh2svc.service.store import RunStore, StoreError, locked, now_iso, opened_elsewhere
 from sdh2svc.service.telemetry import (
@@ -183,7 +184,8 @@ class HandService:
         if cfg.service.monitor_rate_hz > 0:
             self._monitor = self.tactile.subscribe(range(6), cfg.service.monitor_rate_hz)
         self._tasks = [asyncio.create_task(self._status_loop(), name="status"),
-                       asyncio.create_task(self._pose_loop(), name="pose")]  # fmt: skip
+                       asyncio.create_task(self._pose_loop(), name="pose"),
+                       asyncio.create_task(self._disk_latch_loop(), name="disk-latch")]  # fmt: skip
         ready = (
             "hand ready"
             if self.joints.connected and self.tactile.connected
@@ -751,6 +753,21 @@ class HandService:
         while True:
             self.publish_status()
             await asyncio.sleep(period)
+
+    async def _disk_latch_loop(self) -> None:
+        """The e-stop another program latched in this service's database (`sdh2svc estop
+        --latch` where it could not reach the API): taken as the API's e-stop, then said back to
+        the database. Neither this service's own latch nor a release under way counts."""
+        store, joints = self.store, self.joints
+        assert store is not None and joints is not None
+        while True:
+            latch = await latched_elsewhere(
+                store, joints, held=lambda: self._latch is not None or self._releases > 0
+            )
+            log.warning("the e-stop was latched in %s by another program (since %s: %s): "
+                        "e-stop", store.path, latch["since"], latch["reason"])  # fmt: skip
+            answer = await self.estop()
+            await tell_taken(store, latch, this_program("the service"), answer["hand_reached"])
 
     async def _pose_loop(self) -> None:
         """Joint angles (polled between runs; during one, the runner's own reads) and sim truth."""

@@ -100,6 +100,13 @@ CREATE TABLE IF NOT EXISTS estop (
     since TEXT NOT NULL,
     reason TEXT NOT NULL
 );
+-- the programs that stopped their hand for a latch another program wrote (sdh2svc estop --latch)
+CREATE TABLE IF NOT EXISTS estop_taken (
+    since TEXT NOT NULL,
+    program TEXT NOT NULL,
+    at TEXT NOT NULL,
+    hand_reached INTEGER NOT NULL
+);
 CREATE TABLE IF NOT EXISTS owners (
     run_id INTEGER PRIMARY KEY REFERENCES runs(id),
     host TEXT NOT NULL,
@@ -677,15 +684,36 @@ class RunStore:
     def release_estop(self) -> None:
         with self._lock:
             self._follow_path()
-            self._durably_locked("DELETE FROM estop")
+            self._durably_locked("DELETE FROM estop", more=("DELETE FROM estop_taken",))
 
-    def _durably_locked(self, sql: str, params: tuple[Any, ...] = ()) -> None:
-        """One write, fsync'd before it returns (synchronous=FULL for this transaction); the
-        caller holds the store's lock."""
+    def took_estop(self, since: str, program: str, hand_reached: bool) -> None:
+        """``program`` (e.g. "the service, pid 12 on lab-pc") stopped its hand for the latch
+        pressed at ``since``, which another program wrote: what ``sdh2svc estop --latch`` waits
+        for. Nothing is written once that latch is gone (released meanwhile)."""
+        with self._lock, self.db:
+            self.db.execute("INSERT INTO estop_taken (since, program, at, hand_reached) SELECT "
+                            "?, ?, ?, ? WHERE EXISTS (SELECT 1 FROM estop WHERE since = ?)",
+                            (since, program, now_iso(), int(hand_reached), since))  # fmt: skip
+
+    def estop_takers(self, since: str) -> list[dict[str, Any]]:
+        """The programs that stopped their hand for the latch pressed at ``since`` (oldest
+        first): ``program``, ``at``, ``hand_reached``."""
+        rows = self.db.execute("SELECT program, at, hand_reached FROM estop_taken WHERE since = ? "
+                               "ORDER BY rowid", (since,))  # fmt: skip
+        return [{"program": r["program"], "at": r["at"], "hand_reached": bool(r["hand_reached"])}
+                for r in rows]  # fmt: skip
+
+    def _durably_locked(
+        self, sql: str, params: tuple[Any, ...] = (), more: tuple[str, ...] = ()
+    ) -> None:
+        """One write (and ``more`` statements in its transaction), fsync'd before it returns
+        (synchronous=FULL for this transaction); the caller holds the store's lock."""
         self.db.execute("PRAGMA synchronous=FULL")
         try:
             with self.db:
                 self.db.execute(sql, params)
+                for statement in more:
+                    self.db.execute(statement)
         finally:
             self.db.execute("PRAGMA synchronous=NORMAL")
 

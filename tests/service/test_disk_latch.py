@@ -1,0 +1,226 @@
+"""The e-stop latch another program writes to the run database while a service or a real-hand
+run drives the hand (`sdh2svc estop --latch` where it cannot reach the service's API): the hand
+stops within a poll, and the database says so to the program that latched (a safety audit
+found the latch on disk only, the service going on unaware until its next restart)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sdh2svc.cli import Exit
+from sdh2svc.client import Conflict
+from sdh2svc.config import load_config
+from sdh2svc.connect import Simulated, simulated_hand
+from sdh2svc.service import latch as latch_mod
+from sdh2svc.service.latch import latched_elsewhere
+from sdh2svc.service.store import RunStore, StoreError
+from tests.live_service import AT_PRESHAPE, start_service
+
+
+class _Link:
+    """What the watcher asks of a joint link: whether it is latched, and how many times."""
+
+    def __init__(self) -> None:
+        self.estopped, self.latches = False, 0
+
+    def latch(self) -> None:
+        self.estopped, self.latches = True, self.latches + 1
+
+
+def test_a_taker_is_written_only_for_the_latch_on_disk_and_a_release_clears_it(
+    tmp_path: Path,
+) -> None:
+    store = RunStore(tmp_path / "runs.sqlite")
+    try:
+        store.took_estop("2026-01-01T00:00:00.000+0000", "the service (pid 1)", True)
+        assert store.estop_takers("2026-01-01T00:00:00.000+0000") == []  # no such latch
+        latch = store.latch_estop("latched from the command line")
+        store.took_estop(latch["since"], "the service (pid 1 on lab)", False)
+        store.took_estop(latch["since"], "sdh2svc run (pid 2 on lab)", True)
+        takers = store.estop_takers(latch["since"])
+        assert [(t["program"], t["hand_reached"]) for t in takers] == [
+            ("the service (pid 1 on lab)", False),
+            ("sdh2svc run (pid 2 on lab)", True),
+        ]
+        store.release_estop()
+        assert store.estop_takers(latch["since"]) == []
+        again = store.latch_estop("latched from the command line", since=latch["since"])
+        assert store.estop_takers(again["since"]) == []  # the old takers went with the release
+    finally:
+        store.close()
+
+
+async def test_the_watcher_takes_another_programs_latch_and_not_its_own(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(latch_mod, "LATCH_POLL_S", 0.0)
+    store = RunStore(tmp_path / "runs.sqlite")
+    link = _Link()
+    try:
+        # this program's own e-stop: the link latched before its latch reaches the disk
+        link.latch()
+        store.latch_estop("e-stop requested")
+        watch = asyncio.create_task(latched_elsewhere(store, link))  # type: ignore[arg-type]
+        for _ in range(20):
+            await asyncio.sleep(0)
+        assert not watch.done()  # latched here: the latch on disk is this program's own
+        watch.cancel()
+
+        # released, then another program latches: taken
+        store.release_estop()
+        link.estopped = False
+        held = [True]
+        watch = asyncio.create_task(
+            latched_elsewhere(store, link, held=lambda: held[0])  # type: ignore[arg-type]
+        )
+        store.latch_estop("latched from the command line")
+        for _ in range(20):
+            await asyncio.sleep(0)
+        assert not watch.done()  # held (a release under way): not yet
+        held[0] = False
+        found = await asyncio.wait_for(watch, 10.0)
+        assert found["reason"] == "latched from the command line"
+    finally:
+        store.close()
+
+
+async def test_a_read_during_which_the_link_latched_is_not_taken(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """This program's own e-stop and its release may both come while a read is out: the row the
+    read saw was that e-stop's, gone since, so the read is dropped, not taken as another's."""
+    monkeypatch.setattr(latch_mod, "LATCH_POLL_S", 0.0)
+    store = RunStore(tmp_path / "runs.sqlite")
+    link = _Link()
+    reads: list[int] = []
+    real_read = store.estop_latch
+
+    def read() -> dict[str, str] | None:
+        got = real_read()
+        if not reads:  # the first read: this program latches and releases meanwhile
+            link.latch()
+            link.estopped = False
+        reads.append(1)
+        return got if len(reads) == 1 else None
+
+    store.latch_estop("e-stop requested")
+    monkeypatch.setattr(store, "estop_latch", read)
+    try:
+        watch = asyncio.create_task(latched_elsewhere(store, link))  # type: ignore[arg-type]
+        async with asyncio.timeout(10):
+            while len(reads) < 3:
+                await asyncio.sleep(0.01)
+        assert not watch.done()  # the first read's latch was dropped, and none came since
+        watch.cancel()
+    finally:
+        store.close()
+
+
+def estop_latch(db: Path, port: int) -> subprocess.CompletedProcess[str]:
+    """`sdh2svc estop --latch` on this database, naming a service port (none answers there)."""
+    return subprocess.run(
+        [sys.executable, "-m", "sdh2svc", "estop", "--latch",
+         "--set", f"storage.db_path={json.dumps(str(db))}", "--set", f"service.port={port}"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def takers(db: Path) -> list[dict[str, Any]]:
+    store = RunStore(db, create=False)
+    try:
+        latch = store.estop_latch()
+        return [] if latch is None else store.estop_takers(latch["since"])
+    finally:
+        store.close()
+
+
+def test_a_service_the_command_cannot_reach_stops_for_the_latch_on_disk(tmp_path: Path) -> None:
+    svc = start_service(tmp_path, viewer=False)
+    try:
+        # a port no service listens on: the service started on its own (--port), unknown to
+        # the configuration the command reads
+        r = estop_latch(svc.db_path, free_port())
+        assert r.returncode == Exit.OK, r
+        assert "the service (pid " in r.stdout and "stopped its hand" in r.stdout, r
+        with svc.sync_client() as c:
+            status = c.status()
+            assert status["estopped"] is True, status
+            assert status["estop"]["reason"] == "latched from the command line", status
+            assert status["estop"]["hand_reached"] is True, status
+            with pytest.raises(Conflict, match="e-stop"):
+                c.start_run()
+            [taker] = takers(svc.db_path)
+            assert taker["hand_reached"] is True and taker["program"].startswith("the service")
+            assert c.release_estop()["estopped"] is False
+            assert c.status()["estop"] is None
+        assert takers(svc.db_path) == []  # released with the latch
+    finally:
+        assert svc.stop() == 0, "".join(svc.log)
+
+
+async def test_a_real_hand_run_ends_e_stopped_for_the_latch_on_disk(tmp_path: Path) -> None:
+    db = tmp_path / "runs.sqlite"
+    async with simulated_hand(load_config(overrides=[AT_PRESHAPE[1]]), Simulated()) as bench:
+        sim = bench.sim
+        run = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "sdh2svc", "run", "--dsa", sim.urls("dsa")[0],
+            "--sdh", sim.urls("sdh")[0], "--cycles", "20",
+            "--set", f"storage.db_path={json.dumps(str(db))}",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        try:
+            async with asyncio.timeout(120):  # the fingers on the object: a run to stop
+                while not _rolling(db):
+                    assert run.returncode is None, await run.stderr.read()  # type: ignore[union-attr]
+                    await asyncio.sleep(0.1)
+            assert any(sim.sdh.powered)
+            r = await asyncio.to_thread(estop_latch, db, free_port())
+            out, err = await asyncio.wait_for(run.communicate(), 60)
+        finally:
+            if run.returncode is None:
+                run.kill()
+                await run.wait()
+        assert r.returncode == Exit.OK, r
+        assert "sdh2svc run (pid " in r.stdout and "stopped its hand" in r.stdout, r
+        assert run.returncode == Exit.FAILED, err
+        assert "e-stopped" in err.decode() and b": e-stopped" in out, (out, err)
+        sim.sdh.next_wakeup(asyncio.get_running_loop().time())
+        assert not any(sim.sdh.powered)  # motors off
+    [taker] = takers(db)
+    assert taker["hand_reached"] is True and taker["program"].startswith("sdh2svc run")
+
+
+def _rolling(db: Path) -> bool:
+    """The newest run in ``db`` is rolling (its rolling phase recorded)."""
+    if not db.exists():
+        return False
+    try:
+        store = RunStore(db, create=False)
+    except StoreError:
+        return False
+    try:
+        runs = store.run_page(1)[0]
+        return bool(runs) and any(
+            e["kind"] == "phase" and e["detail"].get("phase") == "rolling"
+            for e in store.events(runs[0]["id"])
+        )
+    except sqlite3.Error:
+        return False
+    finally:
+        store.close()
