@@ -411,6 +411,112 @@ async def test_a_bad_telemetry_query_refuses_the_handshake_with_422(svc: LiveSer
         "tactile)" in body["details"][0], body  # fmt: skip
 
 
+async def _runs(raw: httpx.AsyncClient) -> tuple[str, Any]:
+    """How many runs the database holds, and the status's run: both unchanged, none started."""
+    listed = await raw.get("/api/runs", params={"limit": 1})
+    return listed.headers["x-total-count"], (await raw.get("/api/status")).json()["run"]
+
+
+async def test_null_for_a_body_or_an_optional_key_is_refused_naming_it(svc: LiveService) -> None:
+    """FastAPI reads a body of null as no body, pydantic a key's null as the key left out: a
+    client's null sent by mistake started a run with the defaults."""
+    refused = [
+        ("POST", "/api/runs", "null", "body: must be a JSON object, not null"),
+        ("POST", "/api/runs", '{"params": null}', "body.params: must be an object, not null"),
+        ("POST", "/api/runs", '{"object": null}',
+         "body.object: must be a preset name or an object spec, not null"),
+        ("PATCH", "/api/params", "null", "body: must be a JSON object, not null"),
+        ("PUT", "/api/sim/object", "null", "body: must be a JSON object, not null"),
+        ("PUT", "/api/sim/object", '{"name": "egg", "spec": null}',
+         "body.spec: must be an object spec, not null"),
+        ("POST", "/api/sim/press", "null", "body: must be a JSON object, not null"),
+        ("PUT", "/api/viewer/replay", "null", "body: must be a JSON object, not null"),
+    ]  # fmt: skip
+    async with plain(svc) as raw:
+        before = await _runs(raw)
+        for method, path, body, line in refused:
+            r = await raw.request(method, path, content=body, headers=JSON)
+            assert r.status_code == 422, (method, path, body, r.text)
+            assert r.json()["error"] == "invalid request", r.text
+            assert r.json()["details"][0].startswith(line), (body, r.text)
+        assert await _runs(raw) == before  # no run started
+        r = await raw.put("/api/sim/object", json={"name": "egg"}, headers=JSON)
+        assert r.status_code == 200 and r.json()["object"]["name"] == "egg", r.text
+
+
+async def test_a_key_given_twice_is_refused_naming_it(svc: LiveService) -> None:
+    """JSON decoders keep the last of a repeated key silently: a grasp force of 1 could become
+    40. Refused at any depth, on every route that takes a body, naming where."""
+    bodies = [
+        ("PATCH", "/api/params", '{"grasp_force": 1, "grasp_force": 40}', "body.grasp_force"),
+        ("POST", "/api/runs", '{"params": {"cycles": 1, "grasp_force": 1, "grasp_force": 40}}',
+         "body.params.grasp_force"),
+        ("POST", "/api/runs", '{"params": {"cycles": 1}, "params": null}', "body.params"),
+        ("PUT", "/api/sim/object",
+         '{"spec": {"kind": "polygon", "depth_mm": 5, "vertices_mm": [[0, 0]], '
+         '"kind": "circle", "diameter_mm": 30}}', "body.spec.kind"),
+        ("POST", "/api/sim/press", '{"pad": 0, "x_mm": 1, "y_mm": 1, "force_n": 1, "pad": 5}',
+         "body.pad"),
+        ("PUT", "/api/viewer/replay", '{"run_id": 1, "iteration": 0, "run_id": 2}',
+         "body.run_id"),
+    ]  # fmt: skip
+    async with plain(svc) as raw:
+        params, before = (await raw.get("/api/params")).json(), await _runs(raw)
+        for method, path, body, key in bodies:
+            r = await raw.request(method, path, content=body, headers=JSON)
+            assert r.status_code == 422, (method, path, body, r.text)
+            assert r.json()["details"] == [f"{key}: the key is given more than once (JSON "
+                                           "would silently keep the last)"], r.text  # fmt: skip
+        assert (await raw.get("/api/params")).json() == params and await _runs(raw) == before
+        r = await raw.patch("/api/params", content='[{"a": {"b": 1, "b": 2}}]', headers=JSON)
+        assert r.json()["details"] == ["body.0.a.b: the key is given more than once (JSON would "
+                                       "silently keep the last)"], r.text  # fmt: skip
+        large = '{"k": "' + "x" * 100_000 + '", "k": 3}'  # (decoded on a worker thread)
+        r = await raw.patch("/api/params", content=large, headers=JSON)
+        assert r.status_code == 422 and r.json()["details"][0].startswith("body.k: "), r.text
+        # the stops take any body, repeated keys too: stopping is never refused
+        r = await raw.post("/api/runs/stop", content='{"a": 1, "a": 2}', headers=JSON)
+        assert r.status_code == 409 and r.json()["error"] == "no run is running", r.text
+        r = await raw.patch("/api/params", json={"k": params["k"]}, headers=JSON)  # once: taken
+        assert r.status_code == 200 and r.json() == params, r.text
+
+
+async def test_a_query_parameter_given_twice_is_refused(svc: LiveService) -> None:
+    """FastAPI keeps the last of a repeated query parameter: ``?limit=5&limit=500`` read 500."""
+    async with plain(svc) as raw:
+        for path in ("/api/runs?limit=5&limit=500", "/api/runs/1/samples?every=2&offset=0&every=3",
+                     "/api/runs/1/export?format=csv&format=mcap"):  # fmt: skip
+            r = await raw.get(path)
+            assert r.status_code == 422 and r.json()["error"] == "invalid request", (path, r.text)
+            name = path.split("&")[-1].split("=")[0]
+            assert r.json()["details"] == [f"{name}: given 2 times; it takes one value"], r.text
+        r = await raw.get("/api/runs?limit=5&before=9")  # each once: taken
+        assert r.status_code == 200 and "x-total-count" in r.headers, r.text
+    with pytest.raises(InvalidStatus) as refused:
+        async with connect(f"{svc.ws_url}?decimate=1&decimate=1000"):
+            pass
+    body = json.loads(refused.value.response.body)
+    assert refused.value.response.status_code == 422, body
+    assert body["details"] == ["query.decimate: given 2 times; it takes one value"], body
+
+
+async def test_a_run_starts_without_a_body_or_with_an_empty_one(svc: LiveService) -> None:
+    """``POST /api/runs``' body is optional: nothing, or ``{}``, takes the parameters in force."""
+    async with plain(svc) as raw, svc.client() as c:
+        for body in ("", "{}"):
+            for attempt in range(3):  # (as start_run: a starved service's stream may lag once)
+                r = await raw.post("/api/runs", content=body, headers=JSON)
+                if r.status_code != 503 or "sends no frames" not in r.text or attempt == 2:
+                    break
+                await c.wait_status(lambda st: st["hand"]["connected"]["tactile"], 30.0)
+            assert r.status_code == 201, (body, r.text)
+            run_id = r.json()["run_id"]
+            await c.stop_run()
+            await c.wait_run(run_id, timeout=60)
+            meta = (await c.run(run_id))["meta"]
+            assert meta["params"] == await c.params(), meta  # those in force
+
+
 async def test_the_estop_stops_a_run_whatever_the_database_does(
     svc: LiveService, tmp_path: Path
 ) -> None:

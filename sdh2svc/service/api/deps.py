@@ -7,7 +7,8 @@ import json
 import re
 import secrets
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from types import UnionType
+from typing import Annotated, Any, Union, get_args, get_origin
 
 from fastapi import Depends
 from fastapi import Path as PathParam
@@ -95,36 +96,60 @@ async def no_body(request: Request) -> None:
 
 
 async def known_query(conn: HTTPConnection) -> None:
-    """An API request or a telemetry socket names only query parameters its route takes:
-    FastAPI ignores the others, so a misspelt one (``?ofset=100``, ``POST /api/runs?cycles=1``,
-    ``/ws/telemetry?tactil=0``) would do the default silently. (The app's dependency, for every
-    route; a socket's handshake is refused with a 422 as for a bad value.)"""
+    """An API request or a telemetry socket names only query parameters its route takes, each
+    once unless the route takes a list: FastAPI ignores the others, so a misspelt one
+    (``?ofset=100``, ``POST /api/runs?cycles=1``, ``/ws/telemetry?tactil=0``) would do the
+    default silently, and keeps the last of a repeated one (``?limit=5&limit=500``: 500). (The
+    app's dependency, for every route; a socket's handshake is refused with a 422 as for a bad
+    value.)"""
     route, path = conn.scope.get("route"), conn.url.path
     http = conn.scope["type"] == "http" and path.startswith("/api/")
     if route is None or not (http or path.startswith("/ws/")):
         return
     if http and path.rstrip("/") == ESTOP_PATH:  # stopping always works (a pendant's ?source=)
         return
-    known = _query_names(getattr(route, "dependant", None))
-    unknown = sorted(set(conn.query_params) - known)
-    if not unknown:
+    fields = _query_fields(getattr(route, "dependant", None))
+    errors = _unknown(conn, fields) + _repeated(conn, fields)
+    if not errors:
         return
-    why = f"no such query parameter here (this one takes: {', '.join(sorted(known)) or 'none'})"
     if http:
-        raise ServiceError(422, "invalid request", [f"{clip(k)}: {why}" for k in unknown])
-    raise WebSocketRequestValidationError([
-        {"type": "extra_forbidden", "loc": ("query", k), "msg": why, "input": conn.query_params[k]}
-        for k in unknown
-    ])  # fmt: skip
+        raise ServiceError(422, "invalid request", [f"{clip(e['loc'][1])}: {e['msg']}"
+                                                    for e in errors])  # fmt: skip
+    raise WebSocketRequestValidationError(errors)
 
 
-def _query_names(dependant: Any) -> set[str]:
+def _unknown(conn: HTTPConnection, fields: dict[str, Any]) -> list[dict[str, Any]]:
+    why = f"no such query parameter here (this one takes: {', '.join(sorted(fields)) or 'none'})"
+    unknown = sorted(set(conn.query_params) - set(fields))
+    return [{"type": "extra_forbidden", "loc": ("query", k), "msg": why,
+             "input": conn.query_params[k]} for k in unknown]  # fmt: skip
+
+
+def _repeated(conn: HTTPConnection, fields: dict[str, Any]) -> list[dict[str, Any]]:
+    errors = []
+    for name in sorted(set(conn.query_params) & set(fields)):
+        given = conn.query_params.getlist(name)
+        if len(given) > 1 and not _takes_list(fields[name]):
+            why = f"given {len(given)} times; it takes one value"
+            errors.append({"type": "repeated", "loc": ("query", name), "msg": why, "input": given})
+    return errors
+
+
+def _takes_list(field: Any) -> bool:
+    """A query parameter declared as a list, whose every value FastAPI reads (none is yet)."""
+    tp = field.field_info.annotation
+    members = get_args(tp) if get_origin(tp) in (Union, UnionType) else (tp,)
+    return any((get_origin(m) or m) in (list, set, frozenset, tuple) for m in members)
+
+
+def _query_fields(dependant: Any) -> dict[str, Any]:
+    """The query parameters of a route and its dependencies, by name."""
     if dependant is None:
-        return set()
-    names = {p.alias for p in dependant.query_params}
+        return {}
+    fields = {p.alias: p for p in dependant.query_params}
     for sub in dependant.dependencies:
-        names |= _query_names(sub)
-    return names
+        fields |= _query_fields(sub)
+    return fields
 
 
 Svc = Annotated[Services, Depends(services)]

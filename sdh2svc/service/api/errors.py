@@ -12,6 +12,7 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sdh2svc.config import clip, error_key, error_message, model_keys, unknown_key
+from sdh2svc.service.api.body import BodyRefused
 from sdh2svc.service.hand_service import ServiceError
 
 
@@ -32,7 +33,8 @@ _WHY = {
     "e-stop is latched)",
     413: "request body larger than service.max_body_kb",
     415: "a request that changes something must say Content-Type: application/json",
-    422: "invalid values: one line per bad field, naming the field and its allowed range",
+    422: "invalid values: one line per bad field, naming the field and its allowed range (also "
+    "null for an object, a body's key or a query parameter given twice)",
     503: "the hand's links are not up (the e-stop's release: the hand or the run database did "
     "not take it)",
 }
@@ -85,6 +87,10 @@ def install_errors(app: FastAPI) -> None:
     @app.exception_handler(ServiceError)
     async def _service_error(_: Request, e: ServiceError) -> JSONResponse:
         return error(e.status, e.message, e.details)
+
+    @app.exception_handler(BodyRefused)
+    async def _body_refused(_: Request, e: BodyRefused) -> JSONResponse:
+        return error(e.status_code, str(e.detail), e.details)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, e: RequestValidationError) -> JSONResponse:

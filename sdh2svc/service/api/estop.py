@@ -7,10 +7,11 @@ from typing import Any
 
 from fastapi import APIRouter
 
+from sdh2svc.service.api.body import JsonRoute
 from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, WRITE, responses
 
-router = APIRouter()
+router = APIRouter(route_class=JsonRoute)
 
 
 @router.post("/api/estop", responses=responses(400, 413, 503), openapi_extra=EMPTY_BODY)

@@ -8,10 +8,11 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from sdh2svc.model.base import clean_json
+from sdh2svc.service.api.body import JsonRoute
 from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 
-router = APIRouter()
+router = APIRouter(route_class=JsonRoute)
 
 
 @router.get("/api/status", responses=responses(*READ))

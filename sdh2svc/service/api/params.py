@@ -7,10 +7,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body
 
 from sdh2svc.control.safety import params_schema as safety_params_schema
+from sdh2svc.service.api.body import JsonRoute
 from sdh2svc.service.api.deps import Auth, Cfg, St
 from sdh2svc.service.api.errors import READ, WRITE, responses
 
-router = APIRouter()
+router = APIRouter(route_class=JsonRoute)
 
 
 @router.get("/api/params", responses=responses(*READ))

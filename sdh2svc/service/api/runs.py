@@ -24,10 +24,12 @@ from typing import Annotated, Any, Literal, NamedTuple
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
+from pydantic.json_schema import SkipJsonSchema
 
 from sdh2svc.config import ConfigError, Settings
 from sdh2svc.model.base import clean_json
 from sdh2svc.model.hand import matrix_shapes
+from sdh2svc.service.api.body import JsonRoute, not_null
 from sdh2svc.service.api.deps import SQL_INT_MAX, Auth, Digits, NoBody, RunId, St, Svc
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import ServiceError, parse_object_request
@@ -36,16 +38,21 @@ from sdh2svc.service.replay_feed import Recorded, recorded_iteration
 from sdh2svc.service.store import RunBusy, RunStore, StoreError, recorded_settings
 from sdh2svc.service.telemetry import estimate_outline
 
-router = APIRouter()
+router = APIRouter(route_class=JsonRoute)
 
 
 class RunRequest(BaseModel):
+    """What the run is to use: each key may be left out (not sent as null)."""
+
     model_config = ConfigDict(extra="forbid")
 
-    params: dict[str, Any] | None = Field(None, description="rolling parameters for this run")
-    object: Annotated[str, Field(max_length=64)] | dict[str, Any] | None = Field(
-        None, description="in simulation: a preset name or an object spec"
+    params: Annotated[dict[str, Any] | SkipJsonSchema[None], not_null("an object")] = Field(
+        None, description="rolling parameters for this run (left out: those in force)"
     )
+    object: Annotated[
+        Annotated[str, Field(max_length=64)] | dict[str, Any] | SkipJsonSchema[None],
+        not_null("a preset name or an object spec"),
+    ] = Field(None, description="in simulation: a preset name or an object spec")
 
 
 _EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -62,8 +69,10 @@ _EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 @router.post("/api/runs", status_code=201, dependencies=[Auth],
              responses=responses(*WRITE, 409, 422, 503))  # fmt: skip
-async def start_run(st: St, req: Annotated[RunRequest | None, Body()] = None) -> dict[str, Any]:
-    req = req or RunRequest(params=None, object=None)
+async def start_run(
+    st: St, req: Annotated[RunRequest, Body(default_factory=RunRequest)]
+) -> dict[str, Any]:
+    """Start a run; no body, or ``{}``, for the parameters in force and the current object."""
     obj = None
     if req.object is not None:
         if st.bench is None:

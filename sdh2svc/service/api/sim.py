@@ -3,26 +3,33 @@ the object is whatever it holds, its pads are pressed by hand)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
+from pydantic.json_schema import SkipJsonSchema
 
+from sdh2svc.service.api.body import JsonRoute, not_null
 from sdh2svc.service.api.deps import Auth, NoBody, St
 from sdh2svc.service.api.errors import EMPTY_BODY, READ, WRITE, responses
 from sdh2svc.service.hand_service import parse_object_request
 from sdh2svc.sim.press import Press
 
-router = APIRouter()
+router = APIRouter(route_class=JsonRoute)
 
 
 class ObjectRequest(BaseModel):
+    """A preset by its name, or an object spec: one of the keys, the other left out (not sent
+    as null)."""
+
     model_config = ConfigDict(extra="forbid")
 
-    name: str | None = Field(
+    name: Annotated[str | SkipJsonSchema[None], not_null("a preset name")] = Field(
         None, max_length=64, description="a preset: rubber, egg, cylinder, stick62 …"
     )
-    spec: dict[str, Any] | None = Field(None, description="an object definition (kind, sizes …)")
+    spec: Annotated[dict[str, Any] | SkipJsonSchema[None], not_null("an object spec")] = Field(
+        None, description="an object definition (kind, sizes …)"
+    )
 
 
 @router.get("/api/sim/object", responses=responses(*READ, 404))

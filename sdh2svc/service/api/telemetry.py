@@ -8,12 +8,13 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 
+from sdh2svc.service.api.body import JsonRoute
 from sdh2svc.service.api.deps import Digits, Svc
 from sdh2svc.service.api.errors import READ, responses
 from sdh2svc.service.hub import Client
 from sdh2svc.service.telemetry import Hello, encode
 
-router = APIRouter()
+router = APIRouter(route_class=JsonRoute)
 
 
 @router.get("/api/viewer", responses=responses(*READ))
