@@ -41,7 +41,7 @@ async def latched_elsewhere(
             continue
         seen = joints.latches
         try:
-            latch = await asyncio.to_thread(store.estop_latch)
+            latch = await asyncio.to_thread(store.estop_latch_held)
         except (OSError, sqlite3.Error):  # locked, or a bad disk: the next poll tries again
             continue
         if latch is not None and joints.latches == seen and not joints.estopped and not held():

@@ -668,6 +668,12 @@ class RunStore:
         row = self.db.execute("SELECT since, reason FROM estop WHERE id = 1").fetchone()
         return None if row is None else {"since": row["since"], "reason": row["reason"]}
 
+    def estop_latch_held(self) -> dict[str, str] | None:
+        """:meth:`estop_latch` from another thread: under the store's lock, so never on a
+        connection :meth:`close` is closing (SQLite crashed the process)."""
+        with self._lock:
+            return self.estop_latch()
+
     def latch_estop(self, reason: str, since: str | None = None) -> dict[str, str]:
         """Latch the e-stop on disk before anything else happens: fsync'd (synchronous=FULL),
         so a restart — or the PC losing power — finds it still latched. ``since``: when it was

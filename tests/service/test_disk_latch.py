@@ -10,6 +10,7 @@ import json
 import sqlite3
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -124,6 +125,36 @@ async def test_a_read_during_which_the_link_latched_is_not_taken(
         store.close()
 
 
+async def test_the_store_closes_only_once_a_read_of_the_latch_is_done(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A program closing its store while the watcher reads (in a thread) must wait for the read:
+    SQLite closed under a running statement crashed the process (seen here, 2 runs in 8)."""
+    monkeypatch.setattr(latch_mod, "LATCH_POLL_S", 0.0)
+    store = RunStore(tmp_path / "runs.sqlite")
+    reading, proceed = threading.Event(), threading.Event()
+    real_read = store.estop_latch
+
+    def read() -> dict[str, str] | None:
+        reading.set()
+        proceed.wait(30)
+        return real_read()
+
+    monkeypatch.setattr(store, "estop_latch", read)
+    watch = asyncio.create_task(latched_elsewhere(store, _Link()))  # type: ignore[arg-type]
+    assert await asyncio.to_thread(reading.wait, 30)
+    closer = threading.Thread(target=store.close)
+    closer.start()
+    closer.join(0.2)
+    try:
+        assert closer.is_alive()  # held until the read is done
+    finally:
+        proceed.set()
+        closer.join(30)
+        watch.cancel()
+    assert not closer.is_alive()
+
+
 def estop_latch(db: Path, port: int) -> subprocess.CompletedProcess[str]:
     """`sdh2svc estop --latch` on this database, naming a service port (none answers there)."""
     return subprocess.run(
@@ -185,8 +216,8 @@ async def test_a_real_hand_run_ends_e_stopped_for_the_latch_on_disk(tmp_path: Pa
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
         try:
-            async with asyncio.timeout(120):  # the fingers on the object: a run to stop
-                while not _rolling(db):
+            async with asyncio.timeout(120):  # the fingers closing: a run to stop
+                while not _in_phase(db, "grasping"):
                     assert run.returncode is None, await run.stderr.read()  # type: ignore[union-attr]
                     await asyncio.sleep(0.1)
             assert any(sim.sdh.powered)
@@ -206,8 +237,8 @@ async def test_a_real_hand_run_ends_e_stopped_for_the_latch_on_disk(tmp_path: Pa
     assert taker["hand_reached"] is True and taker["program"].startswith("sdh2svc run")
 
 
-def _rolling(db: Path) -> bool:
-    """The newest run in ``db`` is rolling (its rolling phase recorded)."""
+def _in_phase(db: Path, phase: str) -> bool:
+    """The newest run in ``db`` has reached ``phase`` (recorded)."""
     if not db.exists():
         return False
     try:
@@ -217,7 +248,7 @@ def _rolling(db: Path) -> bool:
     try:
         runs = store.run_page(1)[0]
         return bool(runs) and any(
-            e["kind"] == "phase" and e["detail"].get("phase") == "rolling"
+            e["kind"] == "phase" and e["detail"].get("phase") == phase
             for e in store.events(runs[0]["id"])
         )
     except sqlite3.Error:
