@@ -618,3 +618,18 @@ async def test_the_estop_answers_at_once_while_its_latch_waits_for_a_lock(tmp_pa
             assert (await c.release_estop()) == {"estopped": False}
     finally:
         assert s.stop() == 0, "".join(s.log)
+
+
+def test_every_route_that_takes_a_body_reads_it_strictly() -> None:
+    """A router made without ``route_class=JsonRoute`` would read a repeated key's last value and
+    a null body as none, silently: every route that declares a body must read it through it."""
+    from fastapi.routing import APIRoute
+
+    from sdh2svc.service.api.body import JsonRoute
+    from sdh2svc.service.app import ROUTERS
+
+    with_body = [r for router in ROUTERS for r in router.routes
+                 if isinstance(r, APIRoute) and r.body_field is not None]  # fmt: skip
+    assert len(with_body) >= 5  # runs, params, the object, a press, the replay at least
+    loose = [f"{sorted(r.methods)} {r.path}" for r in with_body if not isinstance(r, JsonRoute)]
+    assert not loose, loose
