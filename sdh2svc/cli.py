@@ -716,7 +716,7 @@ def cmd_estop(args: argparse.Namespace) -> int:
         _fail(Exit.UNAVAILABLE, _one_line(e))
     others = opened_elsewhere(where) if args.latch or args.release else None
     # beside a running service, its own e-stop stops the hand: asked first, the disk after
-    via = _estop_service(cfg, store) if args.latch and others else None
+    via = _estop_service(cfg, store, shared=others is not None) if args.latch else None
     if args.release and others:
         # a running service keeps its own latch: released on disk only, it would stay latched
         # and say the latch is on disk, while a restart came up released
@@ -737,17 +737,25 @@ def cmd_estop(args: argparse.Namespace) -> int:
     said = "released" if latch is None else f"latched since {latch['since']}: {latch['reason']}"
     print(f"{said} (in {where})")
     if new:  # a mistyped path latches a database no service or run reads: loudly
-        print(f"there was no run database at {where}: a new one was made for the latch; a "
-              "service or `sdh2svc run` with another storage.db_path does not see it",
-              file=sys.stderr)  # fmt: skip
+        print(f"sdh2svc estop: there was no run database at {where}: a new one was made for "
+              "the latch; a service or `sdh2svc run` with another storage.db_path does not see "
+              "it", file=sys.stderr)  # fmt: skip
+    if via is not None and via[1] is None:  # the service the configuration names: not here
+        print(f"sdh2svc estop: the service at {via[0]} keeps its runs in another database, so "
+              "this latch does not stop it: it was NOT stopped — stop it through its API (POST "
+              "/api/estop) or the dashboard, or latch the database it uses (--set "
+              "storage.db_path=…)", file=sys.stderr)  # fmt: skip
+        if args.latch and others:
+            _estop_taken(cfg, where, latch, others)
+        return Exit.FAILED
     if via is not None:
         url, answer = via
+        assert answer is not None
         if answer.get("hand_reached") is False:
-            print(f"the service at {url}, which keeps its runs in this database, latched its "
-                  "e-stop, but the hand has not confirmed it: "
-                  f"{answer.get('detail') or 'the joint line is down or silent'}; it sends the "
-                  "power-off when the line answers — stop the hand another way now",
-                  file=sys.stderr)  # fmt: skip
+            print(f"sdh2svc estop: the service at {url}, which keeps its runs in this database, "
+                  "latched its e-stop, but the hand has not confirmed it: "
+                  f"{answer.get('detail') or 'the joint line is down or silent'} — stop the hand "
+                  "another way now", file=sys.stderr)  # fmt: skip
             return Exit.FAILED
         print(f"the service at {url}, which keeps its runs in this database, e-stopped the "
               "hand: release it through its API (POST /api/estop/release) or the "
@@ -787,24 +795,30 @@ def _estop_taken(cfg: Settings, where: Path, latch: dict[str, str] | None, other
             "latched its e-stop, but its hand has not confirmed it (the joint line is down or "
             "silent): it sends the power-off when the line answers — stop the hand another way "
             "now")  # fmt: skip
-        print(f"{t['program']}, which reads this database, {said} (at {t['at']})",
-              file=sys.stdout if t["hand_reached"] else sys.stderr)  # fmt: skip
+        if t["hand_reached"]:
+            print(f"{t['program']}, which reads this database, {said} (at {t['at']})")
+        else:
+            print(f"sdh2svc estop: {t['program']}, which reads this database, {said} (at "
+                  f"{t['at']})", file=sys.stderr)  # fmt: skip
     if takers:
         return Exit.OK if all(t["hand_reached"] for t in takers) else Exit.FAILED
-    print(f"{others}, and no program reading it stopped a hand for the latch within "
-          f"{TAKE_WAIT_S:g} s (a running service or a real hand's `sdh2svc run` does within a "
-          "second; a reader, a simulated run or an older version does not): the hand was NOT "
-          "stopped: stop it where it is driven — a service through its API (POST /api/estop) or "
-          "the dashboard's E-STOP, a headless `sdh2svc run` with Ctrl-C in its terminal",
-          file=sys.stderr)  # fmt: skip
+    print(f"sdh2svc estop: {others}, and no program reading it stopped a hand for the latch "
+          f"within {TAKE_WAIT_S:g} s (a running service or a real hand's `sdh2svc run` does "
+          "within a second; a reader, a simulated run or an older version does not): the hand "
+          "was NOT stopped: stop it where it is driven — a service through its API (POST "
+          "/api/estop) or the dashboard's E-STOP, a headless `sdh2svc run` with Ctrl-C in its "
+          "terminal", file=sys.stderr)  # fmt: skip
     return Exit.FAILED
 
 
-def _estop_service(cfg: Settings, store: RunStore) -> tuple[str, dict[str, Any]] | None:
+def _estop_service(
+    cfg: Settings, store: RunStore, *, shared: bool
+) -> tuple[str, dict[str, Any] | None] | None:
     """E-stop the running service this configuration names (POST /api/estop at its host and
-    port) when it keeps its runs in ``store``'s database: its newest run is the database's
-    newest, or neither has any (a service on another database drives another hand). Its URL
-    and answer, or None when no such service answered."""
+    port) when it keeps its runs in ``store``'s database: another program has the database
+    open (``shared``) and the service's newest run is the database's newest, or neither has
+    any (a service on another database drives another hand). Its URL and answer; its URL and
+    None when it answered but keeps its runs elsewhere; None when no service answered there."""
     import sqlite3
 
     from sdh2svc.client import ESTOP_TIMEOUT_S, ApiError, Client, Unreachable
@@ -814,8 +828,8 @@ def _estop_service(cfg: Settings, store: RunStore) -> tuple[str, dict[str, Any]]
         mine = [(r["id"], r["started_at"]) for r in store.run_page(1)[0]]
         with Client(url, token=cfg.service.token or None, timeout=ESTOP_TIMEOUT_S) as c:
             theirs = [(r["id"], r["started_at"]) for r in c.runs(limit=1)]
-            if theirs != mine:
-                return None
+            if not shared or theirs != mine:
+                return url, None
             return url, c.estop()
     except (sqlite3.Error, ApiError, Unreachable, KeyError, TypeError, ValueError):
         return None

@@ -42,6 +42,20 @@ def test_estop_latch_stops_the_service_that_keeps_its_runs_there(tmp_path: Path)
         with another_process_open(other):
             r = estop_latch(other, port)
         assert r.returncode == Exit.FAILED and "the hand was NOT stopped" in r.stderr, r
+        assert "keeps its runs in another database" in r.stderr, r
+        with svc.sync_client() as c:
+            assert c.status()["estopped"] is False  # left alone
+
+        # a database nobody has open, the service on another: said NOT stopped, exit 1
+        alone = tmp_path / "alone" / "runs.sqlite"
+        alone.parent.mkdir()
+        r = estop_latch(alone, port)
+        assert r.returncode == Exit.FAILED, r
+        lines = r.stderr.splitlines()
+        assert all(line.startswith("sdh2svc estop: ") for line in lines), r
+        assert (f"sdh2svc estop: the service at http://127.0.0.1:{port} keeps its runs in another "
+                "database") in r.stderr, r  # fmt: skip
+        assert "it was NOT stopped" in r.stderr, r
         with svc.sync_client() as c:
             assert c.status()["estopped"] is False  # left alone
 
