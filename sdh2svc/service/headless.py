@@ -72,8 +72,8 @@ async def run_once(
 
 async def _own_task(run: RecordedRun) -> dict[str, Any]:
     """The run in a task of its own, which an e-stop cancels (as the service's): recorded
-    e-stopped, its summary is the answer; this task's own cancellation (a second Ctrl-C) goes
-    on as before."""
+    e-stopped, its summary is the answer; this task's own cancellation (a second Ctrl-C)
+    cancels the run's task and comes once that has ended (its record written)."""
     task = asyncio.create_task(run.execute(), name="run")
     try:
         return await task

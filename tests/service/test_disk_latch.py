@@ -21,6 +21,7 @@ from sdh2svc.client import Conflict
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.service import latch as latch_mod
+from sdh2svc.service.headless import _own_task
 from sdh2svc.service.latch import latched_elsewhere
 from sdh2svc.service.store import RunStore, StoreError
 from tests.live_service import AT_PRESHAPE, start_service
@@ -255,3 +256,41 @@ def _in_phase(db: Path, phase: str) -> bool:
         return False
     finally:
         store.close()
+
+
+class _Run:
+    """What a headless run's own task asks of a recorded run: execute() (its record written as
+    it ends, however it ends) and the summary."""
+
+    def __init__(self) -> None:
+        self.summary: dict[str, Any] | None = None
+        self.task: asyncio.Task[Any] | None = None
+        self.recorded = False
+
+    async def execute(self) -> dict[str, Any]:
+        self.task = asyncio.current_task()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            await asyncio.sleep(0.01)  # the end written (in a thread, in a real run)
+            self.recorded, self.summary = True, {"status": "e-stopped"}
+            raise
+        raise AssertionError("unreachable")
+
+
+async def test_an_e_stopped_run_answers_its_summary_and_a_cancelled_one_is_recorded_first() -> None:
+    run = _Run()
+    answer = asyncio.create_task(_own_task(run))  # type: ignore[arg-type]
+    while run.task is None:
+        await asyncio.sleep(0)
+    run.task.cancel()  # the e-stop cancels the run's own task
+    assert await answer == {"status": "e-stopped"} and run.recorded
+
+    run = _Run()
+    outer = asyncio.create_task(_own_task(run))  # type: ignore[arg-type]
+    while run.task is None:
+        await asyncio.sleep(0)
+    outer.cancel()  # a second Ctrl-C: the run ends too, recorded before this goes on
+    with pytest.raises(asyncio.CancelledError):
+        await outer
+    assert run.recorded
