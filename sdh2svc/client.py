@@ -20,7 +20,7 @@ import logging
 import re
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Generator, Iterator, Mapping
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -55,6 +55,7 @@ __all__ = [
     "RunRef",
     "SamplePage",
     "StatusCheck",
+    "Telemetry",
     "TelemetryMessage",
     "TooSlow",
     "Unauthorized",
@@ -618,28 +619,82 @@ class Client:
 
     def telemetry(
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
-    ) -> Generator[TelemetryMessage, None, None]:
-        """The live messages (``hello`` first), until the service closes the socket (or this
-        client is closed). A service that dies, hangs (no keepalive answer within the client's
-        ``timeout``) or goes off the network raises :class:`Unreachable`. Close the generator
-        (or drop it) to disconnect."""
+    ) -> Telemetry:
+        """``with client.telemetry() as live: for msg in live: …`` (see :class:`Telemetry`)."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
-        ws = _ws_open_sync(url, _headers(self.token), self.timeout)
-        with ws:
-            with self._sockets_lock:
-                self._sockets.add(ws)
+        return Telemetry(url, _headers(self.token), self.timeout, self._opened, self._ended)
+
+    def _opened(self, ws: SyncClientConnection) -> None:
+        with self._sockets_lock:
+            self._sockets.add(ws)
+
+    def _ended(self, ws: SyncClientConnection) -> None:
+        with self._sockets_lock:
+            self._sockets.discard(ws)
+
+
+class Telemetry:
+    """The live messages of ``/ws/telemetry`` (``hello`` first), blocking, until the service
+    closes the socket (or the client is closed). A service that dies, hangs (no keepalive
+    answer within the client's ``timeout``) or goes off the network raises
+    :class:`Unreachable`. Connects on entering ``with`` or at the first message; leaving the
+    ``with`` block, :meth:`close`, or dropping it disconnects. One reader at a time."""
+
+    def __init__(
+        self, url: str, headers: dict[str, str], timeout: float,
+        opened: Callable[[SyncClientConnection], None],
+        ended: Callable[[SyncClientConnection], None],
+    ) -> None:  # fmt: skip
+        """``opened``/``ended``: the client's note of the open socket (its close closes it)."""
+        self._url, self._headers, self._timeout = url, headers, timeout
+        self._opened, self._ended = opened, ended
+        self._ws: SyncClientConnection | None = None
+        self._closed = False
+
+    def __enter__(self) -> Telemetry:
+        self._connect()
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[TelemetryMessage]:
+        return self
+
+    def __next__(self) -> TelemetryMessage:
+        if self._closed:
+            raise StopIteration
+        ws = self._connect()
+        try:
+            text = ws.recv()
+        except ConnectionClosed as e:
+            self.close()
+            if (lost := _lost(e, self._url)) is not None:
+                raise lost from e
+            raise StopIteration from None
+        return cast(TelemetryMessage, json.loads(text))
+
+    def close(self) -> None:
+        """Disconnect (the iteration ends); idempotent."""
+        self._closed = True
+        ws, self._ws = self._ws, None
+        if ws is not None:
             try:
-                while True:
-                    try:
-                        text = ws.recv()
-                    except ConnectionClosed as e:
-                        if (lost := _lost(e, url)) is not None:
-                            raise lost from e
-                        return
-                    yield cast(TelemetryMessage, json.loads(text))
+                ws.close()
             finally:
-                with self._sockets_lock:
-                    self._sockets.discard(ws)
+                self._ended(ws)
+
+    def __del__(self) -> None:  # dropped unclosed: disconnected, as a generator's end did
+        with contextlib.suppress(Exception):
+            self.close()
+
+    def _connect(self) -> SyncClientConnection:
+        if self._ws is None:
+            self._ws = _ws_open_sync(self._url, self._headers, self._timeout)
+            self._opened(self._ws)
+        return self._ws
 
 
 # --- async -------------------------------------------------------------------------------------

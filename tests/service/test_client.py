@@ -324,10 +324,19 @@ async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_pa
         csv_path = sync.export(run_id, tmp_path / "run.csv")
         assert csv_path.read_bytes().decode() == text
         assert list(sync.iter_samples(run_id, page=50)) == every
-        messages = sync.telemetry(tactile=False)
+        messages = sync.telemetry(tactile=False)  # a plain iterator, closed by hand
         hello = next(messages)
         messages.close()
         assert hello["type"] == "hello" and "links" in hello["status"]
+        assert list(messages) == []  # closed: the iteration is over
+        # as AsyncClient's: a `with` block, which disconnects as it is left
+        with sync.telemetry(tactile=False) as live:
+            ws = live._ws
+            assert ws is not None and ws.state.name == "OPEN"  # connected on entering
+            for msg in live:
+                assert msg["type"] == "hello"
+                break
+        assert ws.state.name == "CLOSED" and not sync._sockets
 
 
 async def _until_event(tm: AsyncTelemetry, kind: str) -> AsyncIterator[dict[str, Any]]:
