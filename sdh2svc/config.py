@@ -8,6 +8,7 @@ whose message names each offending key, its value and the allowed range.
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import json
 import math
@@ -22,7 +23,14 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import annotated_types as at
-from pydantic import BaseModel, Field, ValidationError, ValidationInfo, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
 from sdh2svc.control.config import ControlConfig
@@ -51,6 +59,64 @@ class StorageConfig(Finite):
     busy_timeout_s: Annotated[float, Field(gt=0.0, le=600.0)] = 10.0
 
 
+def _is_host(text: str) -> bool:
+    """``text`` is what a Host header can say: ``name`` or ``name:port``, an IPv6 address in
+    brackets (with a port or not) or bare; nothing else (a scheme, a path, a user)."""
+    if not text or any(c in text for c in "/?#@ \t"):
+        return False
+    if text.startswith("["):
+        v6, _, rest = text[1:].partition("]")
+        return _is_ipv6(v6) and (not rest or (rest[0] == ":" and _is_port(rest[1:])))
+    if text.count(":") > 1:
+        return _is_ipv6(text)
+    name, sep, port = text.partition(":")
+    return bool(name) and (not sep or _is_port(port))
+
+
+def _is_ipv6(text: str) -> bool:
+    try:
+        ipaddress.IPv6Address(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _is_port(text: str) -> bool:
+    return text.isdigit() and 0 < int(text) <= 65535
+
+
+def _host_part(text: str) -> str:
+    """What stands for the host in a URL-like entry: ``http://labpc:8000/x`` → ``labpc:8000``."""
+    return text.split("://", 1)[-1].split("/", 1)[0]
+
+
+def _host_entry(entry: str) -> str:
+    """A ``service.allowed_hosts`` entry that can match a Host header (the guard compares the
+    header's name and port, never a scheme or a path: such an entry matched nothing)."""
+    text = entry.strip()
+    if _is_host(text):
+        return entry
+    bare = _host_part(text)
+    like = repr(bare) if _is_host(bare) else "'labpc' or 'labpc:8000'"
+    raise ValueError(f"a host is name or name:port, without a scheme or a path: write {like}")
+
+
+def _origin_entry(entry: str) -> str:
+    """A ``service.allowed_origins`` entry that can match a browser's Origin header,
+    ``scheme://host[:port]`` (without its scheme it matched nothing)."""
+    text = entry.strip()
+    scheme, sep, rest = text.partition("://")
+    if sep and scheme.isascii() and scheme[:1].isalpha() and _is_host(rest.rstrip("/")):
+        return entry
+    host = _host_part(text)
+    like = f"'{scheme if sep else 'http'}://{host}'" if _is_host(host) else "'http://labpc:8000'"
+    raise ValueError(f"an origin is scheme://host[:port], without a path: write {like}")
+
+
+HostEntry = Annotated[str, AfterValidator(_host_entry)]
+OriginEntry = Annotated[str, AfterValidator(_origin_entry)]
+
+
 class ServiceConfig(Finite):
     """``sdh2svc serve``: where it listens, who may command it, how telemetry flows."""
 
@@ -69,8 +135,8 @@ class ServiceConfig(Finite):
     pose_hz: Annotated[float, Field(gt=0.0, le=30.0)]
     status_hz: Annotated[float, Field(gt=0.0, le=30.0)]
     stop_timeout_s: Annotated[float, Field(gt=0.0, le=120.0)]
-    allowed_hosts: tuple[str, ...] = ()
-    allowed_origins: tuple[str, ...] = ()
+    allowed_hosts: tuple[HostEntry, ...] = ()
+    allowed_origins: tuple[OriginEntry, ...] = ()
     max_body_kb: Annotated[int, Field(ge=1, le=1_048_576)] = 1024
     foxglove_port: Annotated[int, Field(ge=0, le=65535)] = 0  # the live Foxglove view; 0: off
 

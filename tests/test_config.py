@@ -273,3 +273,39 @@ def test_a_key_given_without_its_section_is_told_where_it_lives() -> None:
     with pytest.raises(ConfigError) as bad:
         load_config(overrides=["db_path='/tmp/x.sqlite'"], use_env=False)
     assert "did you mean storage.db_path?" in "; ".join(bad.value.problems)
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ('service.allowed_hosts=["http://labpc:8000"]',
+         "service.allowed_hosts.0 = 'http://labpc:8000' (--set service.allowed_hosts="
+         '["http://labpc:8000"]): a host is name or name:port, without a scheme or a path: '
+         "write 'labpc:8000'"),
+        ('service.allowed_hosts=["labpc/dashboard"]', "write 'labpc'"),
+        ('service.allowed_hosts=["labpc:http"]', "write 'labpc' or 'labpc:8000'"),
+        ('service.allowed_origins=["labpc:8000"]',
+         "service.allowed_origins.0 = 'labpc:8000' (--set service.allowed_origins="
+         '["labpc:8000"]): an origin is scheme://host[:port], without a path: '
+         "write 'http://labpc:8000'"),
+        ('service.allowed_origins=["https://ops.example/app"]', "write 'https://ops.example'"),
+    ],
+)  # fmt: skip
+def test_allowed_hosts_and_origins_that_could_never_match_are_refused(
+    override: str, expected: str
+) -> None:
+    """A host with a scheme or a path, an origin without its scheme: accepted, they matched no
+    request's Host or Origin, and the page they were for was refused (user audit)."""
+    with pytest.raises(ConfigError) as bad:
+        load_config(overrides=[override], use_env=False)
+    assert expected in str(bad.value)
+
+
+def test_allowed_hosts_and_origins_in_every_form_the_guard_matches() -> None:
+    cfg = load_config(overrides=[
+        'service.allowed_hosts=["Lab-PC.local", "proxy:8443", "[::1]:8000", "::1", "[fe80::1]"]',
+        'service.allowed_origins=["https://ops.example:9443", "http://dash.example/", '
+        '"http://[::1]:8000"]',
+    ], use_env=False)  # fmt: skip
+    assert cfg.service.allowed_hosts[1] == "proxy:8443"
+    assert cfg.service.allowed_origins[1] == "http://dash.example/"
