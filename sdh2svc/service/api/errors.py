@@ -30,13 +30,14 @@ _WHY = {
     403: "cross-origin request from a web page (without a token: service.allowed_origins)",
     404: "no such run, or not in simulation",
     409: "conflicts with the hand's state (a run is running, none is, the hand is opening, the "
-    "e-stop is latched)",
+    "e-stop is latched or came during its release, the 3-D view is off), or a run this version "
+    "cannot read or that is being recorded",
     413: "request body larger than service.max_body_kb",
     415: "a request that changes something must say Content-Type: application/json",
     422: "invalid values: one line per bad field, naming the field and its allowed range (also "
     "null for an object, a body's key or a query parameter given twice)",
-    503: "the hand's links are not up (the e-stop's release: the hand or the run database did "
-    "not take it)",
+    503: "the hand's links are not up, the run database cannot be read or did not take a write "
+    "(another program holding it locked), or the service is shutting down",
 }
 
 

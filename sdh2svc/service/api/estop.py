@@ -21,7 +21,7 @@ async def estop(st: St) -> dict[str, Any]:
 
 
 @router.post("/api/estop/release", dependencies=[Auth, NoBody],
-             responses=responses(*WRITE, 422, 503),
+             responses=responses(*WRITE, 409, 422, 503),
              openapi_extra=EMPTY_BODY)  # fmt: skip
 async def release(st: St) -> dict[str, Any]:
     return await st.release_estop()

@@ -63,7 +63,7 @@ _EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
             "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
         },
     },
-    **responses(*READ, 404, 409, 422),
+    **responses(*READ, 404, 409, 422, 503),
 }
 
 
@@ -145,7 +145,7 @@ def _list_body(cfg: Settings, limit: int, before: int | None) -> Payload:
     return body
 
 
-@router.get("/api/runs", response_model=list[dict[str, Any]], responses=responses(*READ, 422))
+@router.get("/api/runs", response_model=list[dict[str, Any]], responses=responses(*READ, 422, 503))
 async def list_runs(
     svc: Svc,
     limit: Annotated[int, Query(ge=1, le=1000, description="runs on the page"), Digits] = RUNS_PAGE,
@@ -246,7 +246,10 @@ class RunDetail(BaseModel):
     events: list[dict[str, Any]] = Field(description="{t, iteration, kind, detail}, in order")
 
 
-_RUN_RESPONSES = {200: {"model": RunDetail, "description": "the run"}, **responses(*READ, 404, 422)}
+_RUN_RESPONSES = {
+    200: {"model": RunDetail, "description": "the run"},
+    **responses(*READ, 404, 422, 503),
+}
 
 
 def _run_body(cfg: Settings, run_id: int) -> Payload:
@@ -275,7 +278,7 @@ OUTLINE_DOC = (
 
 
 @router.get("/api/runs/{run_id}/samples", response_model=dict[str, Any],
-            responses=responses(*READ, 404, 422))  # fmt: skip
+            responses=responses(*READ, 404, 422, 503))  # fmt: skip
 async def samples(
     svc: Svc,
     run_id: RunId,
@@ -359,7 +362,7 @@ class FramePage(BaseModel):
 
 
 @router.get("/api/runs/{run_id}/frames", response_model=FramePage,
-            responses=responses(*READ, 404, 409, 422))  # fmt: skip
+            responses=responses(*READ, 404, 409, 422, 503))  # fmt: skip
 async def frames(
     svc: Svc,
     run_id: RunId,
@@ -435,7 +438,7 @@ class TruthPage(BaseModel):
 
 
 @router.get("/api/runs/{run_id}/truth", response_model=TruthPage,
-            responses=responses(*READ, 404, 422))  # fmt: skip
+            responses=responses(*READ, 404, 422, 503))  # fmt: skip
 async def truth(
     svc: Svc,
     run_id: RunId,
@@ -483,7 +486,7 @@ class ReplayShown(BaseModel):
 
 
 @router.put("/api/viewer/replay", response_model=ReplayShown, dependencies=[Auth],
-            responses=responses(*WRITE, 404, 409, 422))  # fmt: skip
+            responses=responses(*WRITE, 404, 409, 422, 503))  # fmt: skip
 async def show_replay(svc: Svc, at: ReplayAt) -> ReplayShown:
     """Show a recorded iteration in the 3-D view (its pose, contacts, cones and pads) instead of
     the live hand: the dashboard's replay scrubber sends where it is. The view stays on it until
