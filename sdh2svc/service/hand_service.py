@@ -458,7 +458,9 @@ class HandService:
         """Release the latch: its record on disk first, then the hand (motors on). Either
         failing leaves the e-stop latched, on disk and in the hand (503). No latch retry runs
         meanwhile (one would write the latch back after the delete); a release that fails
-        leaves an unrecorded latch to them again."""
+        leaves an unrecorded latch to them again. Another program's lock can hold it up twice
+        ``storage.busy_timeout_s``: a latch write under way is let finish (the delete must
+        follow it), then the delete waits its own (docs/api.md)."""
         joints, _, store = self._links()
         if not joints.estopped and self._latch is None:
             # nothing of this service's to release: the latch on disk, if any, is another's (a
