@@ -255,12 +255,16 @@ def test_a_campaign_file_that_cannot_be_read_is_refused_naming_the_campaign(
     assert "cannot read the campaign in" in err and str(out) in err and "Traceback" not in err
 
 
-def test_a_percentage_is_never_rounded_up_across_a_target() -> None:
+def test_a_percentage_is_rounded_but_never_up_across_a_target() -> None:
     from sdh2svc.campaign.report import percent
 
     assert percent(341, 360) == "94.7 %"  # not "95 %"
     assert percent(359, 360) == "99.7 %" and percent(360, 360) == "100 %"
     assert percent(1, 2) == "50 %" and percent(0, 7) == "0 %"
+    # rounded, not cut (71.6 % and 46.6 %: user audit), but never up onto a whole number
+    assert percent(43, 60) == "71.7 %" and percent(28, 60) == "46.7 %"
+    assert percent(1899, 2000) == "94.9 %" and percent(1901, 2000) == "95.1 %"
+    assert percent(2001, 2100) == "95.3 %" and percent(1, 3) == "33.3 %"
 
 
 def wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
