@@ -138,6 +138,7 @@ class Runner:
         self.result = RunResult(status="running")
         self.observer = observer
         self._stop = asyncio.Event()
+        self._stop_reason = ""  # the first stop's: the stopped run's message
         self._t0 = 0.0
         self._task: asyncio.Task[RunResult] | None = None
         self._axes = config.axes  # wire ↔ model (AxisMap.pose, .wire_targets, .wire_steps)
@@ -169,7 +170,11 @@ class Runner:
         self._event(EventKind.PARAMS, {"params": self.params.model_dump()})
         return True
 
-    def request_stop(self) -> None:
+    def request_stop(self, reason: str = "") -> None:
+        """Stop the run: it releases the object and ends ``stopped`` with ``reason`` (who
+        stopped it, in the caller's words) as its message; a later stop keeps the first's."""
+        if not self._stop.is_set():
+            self._stop_reason = reason
         self._stop.set()
 
     def begin_emergency_stop(self) -> bool:
@@ -243,7 +248,9 @@ class Runner:
                 await self._roll(sub)
             status = "stopped" if self._stop.is_set() else "completed"
             await self._release()
-            self._finish(Phase.STOPPED if status == "stopped" else Phase.DONE, status)
+            stopped = status == "stopped"
+            self._finish(Phase.STOPPED if stopped else Phase.DONE, status,
+                         self._stop_reason if stopped else "")  # fmt: skip
         except RunFault as e:
             self._say_fault(e.fault, str(e))
             await self._halt()

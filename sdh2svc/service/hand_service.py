@@ -61,6 +61,11 @@ ESTOP_REASON = "e-stop requested"  # the latch's reason, as the API's e-stop wri
 # run database: longer would hold up the e-stop's answer and the links with it.
 CREATE_WAIT_S = 0.25
 
+# Why a run was stopped, as its record says (the run's message)
+STOPPED_BY_API = "stopped through the API (POST /api/runs/stop)"
+STOPPED_BY_VIEW = "stopped from the 3-D view"
+STOPPED_BY_SHUTDOWN = "stopped: the service shut down"
+
 
 class ServiceError(Exception):
     """A refused request: ``status`` is the HTTP status, ``details`` one line per problem."""
@@ -200,7 +205,7 @@ class HandService:
         self._shutting_down = True
         if self.running and self.run is not None:
             log.info("shutting down: stopping run %d first", self.run.run_id)
-            self.run.runner.request_stop()
+            self.run.runner.request_stop(STOPPED_BY_SHUTDOWN)
             try:
                 await asyncio.wait_for(asyncio.shield(self._run_task),  # type: ignore[arg-type]
                                        self.cfg.service.stop_timeout_s)  # fmt: skip
@@ -302,15 +307,16 @@ class HandService:
                     "shows no run running)")  # fmt: skip
         return f"run {self.run.run_id} {running} ({phase.value}); stop it first{after_stop}"
 
-    def stop_run(self) -> dict[str, Any]:
-        """Stop the run (it releases the object), or an opening hand where it is."""
+    def stop_run(self, reason: str = STOPPED_BY_API) -> dict[str, Any]:
+        """Stop the run (it releases the object; ``reason`` is its recorded message), or an
+        opening hand where it is."""
         if self.opening and self._opening is not None:
             self._opening.cancel()  # its task holds the hand where it is
             return {"run_id": None, "state": "stopping"}
         if not self.running or self.run is None:
             raise ServiceError(409, "no run is running")
-        self.run.runner.request_stop()
-        log.info("run %d: stop requested", self.run.run_id)
+        self.run.runner.request_stop(reason)
+        log.info("run %d: stop requested (%s)", self.run.run_id, reason)
         return {"run_id": self.run.run_id, "state": self.run.runner.phase.value}
 
     async def estop(self) -> dict[str, Any]:
@@ -624,7 +630,7 @@ class HandService:
             if kind == "start":
                 self.start_run()
             elif kind == "stop":
-                self.stop_run()
+                self.stop_run(STOPPED_BY_VIEW)
             elif kind == "estop":
                 await self.estop()
             elif kind == "release":

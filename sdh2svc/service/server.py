@@ -25,6 +25,7 @@ from sdh2svc.config import Settings
 from sdh2svc.connect import Where
 from sdh2svc.service.app import Services, close_services, create_app, open_services, viewer_host
 from sdh2svc.service.foxglove_live import FoxgloveStartError
+from sdh2svc.service.hand_service import STOPPED_BY_SHUTDOWN
 from sdh2svc.service.store import RunStore, StoreError
 from sdh2svc.service.viewer_proc import bind_error
 
@@ -157,7 +158,8 @@ class _Server(uvicorn.Server):
         services = self._services()
         st = services.station if services else None
         if st is not None and st.running and st.run is not None:
-            st.run.runner.request_stop()  # only sets an asyncio.Event: safe in a signal handler
+            # only sets an asyncio.Event: safe in a signal handler
+            st.run.runner.request_stop(STOPPED_BY_SHUTDOWN)
         super().handle_exit(sig, frame)
         # uvicorn re-raises the signal after its graceful shutdown (the process then dies of
         # it); ours is complete and clean, so exit 0 instead

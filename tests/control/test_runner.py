@@ -534,6 +534,38 @@ def test_fast_mode_reproduces_a_run_bit_for_bit(tmp_path: Path) -> None:
     assert a["reversals"] == b["reversals"] and a["force"] == b["force"]
 
 
+def test_a_headless_run_stopped_through_its_runner_records_why(tmp_path: Path) -> None:
+    """`sdh2svc run`'s Ctrl-C (its runner's stop): the run was recorded `stopped` with no
+    message. The caller's reason is the message now; a second stop keeps the first's."""
+    from sdh2svc.service.headless import run_once
+    from sdh2svc.service.store import RunStore
+
+    cfg = cfg_with(tmp_path, "rolling.cycles=3")
+    runners: list[Runner] = []
+
+    async def stop_once_rolling() -> None:
+        while not runners or runners[0].phase is not Phase.ROLLING:
+            await asyncio.sleep(0.01)
+        runners[0].request_stop("stopped by Ctrl-C or SIGTERM")
+        runners[0].request_stop("stopped: the service shut down")
+
+    async def main() -> dict[str, Any]:
+        stopper = asyncio.create_task(stop_once_rolling())
+        summary = await run_once(cfg, Simulated(fast=True), started=runners.append)
+        await stopper
+        return summary
+
+    summary = run_fast(main())
+    assert summary["status"] == "stopped", summary
+    assert summary["message"] == "stopped by Ctrl-C or SIGTERM"
+    store = RunStore(cfg.storage.db_path)
+    try:
+        record = store.run(summary["run_id"])
+    finally:
+        store.close()
+    assert record is not None and record["summary"]["message"] == summary["message"]
+
+
 def test_emergency_stop_mid_grasp(tmp_path: Path) -> None:
     cfg = cfg_with(tmp_path)
 

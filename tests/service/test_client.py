@@ -289,12 +289,15 @@ def test_calls_and_refusals(svc: LiveService) -> None:
 async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_path: Path) -> None:
     assert cycle.hello["status"]["sim"] is True
     assert cycle.first_sample["iteration"] >= 0
+    # why it stopped, as its record keeps it (the message was empty)
+    assert cycle.end["message"] == "stopped through the API (POST /api/runs/stop)", cycle.end
     assert cycle.end["status"] == "stopped", cycle.end
     run_id = cycle.run_id
     async with AsyncClient(svc.url, token=TOKEN) as c:
         assert (await c.runs())[0]["id"] == run_id
         run = await c.run(run_id)
         assert run["status"] == "stopped" and run["iterations"] > 0
+        assert run["summary"]["message"] == cycle.end["message"]
         # a run that has already ended: its end at once (not a wait for the next one's)
         assert (await c.wait_run(run_id, timeout=0.0)) == cycle.end
         with pytest.raises(NotFound, match="no run 999999"):
