@@ -403,6 +403,34 @@ async def test_integers_are_written_in_digits_and_values_as_typed(svc: LiveServi
         assert (await raw.get("/api/params")).json()["cycles"] != "2"
 
 
+async def test_a_body_that_cannot_be_read_says_why_and_where(svc: LiveService) -> None:
+    """Not JSON: where it breaks (the details said "Expecting value", nowhere). JSON the decoder
+    gives up on: which of its reasons (the error listed all three, whichever it was)."""
+    unreadable = "the body is no JSON this service can read"
+    async with plain(svc) as raw:
+        r = await raw.patch("/api/params", content='{\n  "k": }', headers=JSON)
+        assert r.status_code == 400, r.text
+        assert r.json() == {
+            "error": "the body is not JSON",
+            "details": ["Expecting value at character 9 (line 2, column 8)"],
+        }
+        r = await raw.patch("/api/params", content='{"k": 3', headers=JSON)
+        assert r.json()["details"] == [
+            "Expecting ',' delimiter at character 7 (line 1, column 8)"
+        ], r.text
+        cases = [
+            (b'{"k": "\xff"}', "not UTF-8", "byte 7 (0xff) is not UTF-8"),
+            (b'{"cycles": ' + b"9" * 5000 + b"}", "a number of over 4300 digits",
+             "a number of 5000 digits"),
+            (b"[" * 100_000 + b"]" * 100_000, "nested too deep",
+             "arrays and objects nested deeper than the decoder goes"),
+        ]  # fmt: skip
+        for body, why, detail in cases:
+            r = await raw.patch("/api/params", content=body, headers=JSON)
+            assert r.status_code == 400, r.text
+            assert r.json() == {"error": f"{unreadable}: {why}", "details": [detail]}
+
+
 async def test_a_bad_telemetry_query_refuses_the_handshake_with_422(svc: LiveService) -> None:
     # the last one a misspelt name: refused, as by a REST route, not ignored
     bad = ("decimate=0", "decimate=abc", "tactile=2", "max_queue=0", "decimate=1_0", "tactil=0")

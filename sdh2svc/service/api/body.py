@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 from collections.abc import Callable, Coroutine
 from typing import Any
 
@@ -24,7 +25,7 @@ from pydantic import BeforeValidator
 from pydantic_core import PydanticCustomError
 from starlette.exceptions import HTTPException
 
-from sdh2svc.config import error_key
+from sdh2svc.config import clip, error_key
 
 # A larger body is decoded on a worker thread: the object hook runs Python per object, and the
 # event loop is the control loop's (1 MB of small objects held it ≈ 100 ms inline, ≈ 15 ms at
@@ -34,11 +35,18 @@ THREAD_ABOVE_B = 64 * 1024
 
 class BodyRefused(HTTPException):
     """A body refused while FastAPI reads it, where it passes on an HTTPException only (any
-    other error there is its 400 "There was an error parsing the body")."""
+    other error there is its 400 "There was an error parsing the body", which cannot say
+    why)."""
 
-    def __init__(self, details: list[str]) -> None:
-        super().__init__(422, "invalid request")
+    def __init__(
+        self, details: list[str], status: int = 422, message: str = "invalid request"
+    ) -> None:
+        super().__init__(status, message)
         self.details = details
+
+
+UNREADABLE = "the body is no JSON this service can read"
+_DIGITS = re.compile(r"value has (\d+) digits")
 
 
 class _Repeated(dict[str, Any]):
@@ -65,12 +73,30 @@ def decode(raw: bytes) -> Any:
         repeated = True
         return _Repeated(items)
 
-    value = json.loads(raw, object_pairs_hook=pairs)
+    try:
+        value = json.loads(raw, object_pairs_hook=pairs)
+    except json.JSONDecodeError:
+        raise  # FastAPI's "not JSON", with where it breaks (errors.py)
+    except (ValueError, RecursionError) as e:
+        why, detail = _unreadable(e)
+        raise BodyRefused([detail], 400, f"{UNREADABLE}: {why}" if why else UNREADABLE) from None
     if value is None:
         raise BodyRefused(["body: must be a JSON object, not null"])
     if repeated:
         raise BodyRefused(_repeated_lines(value))
     return value
+
+
+def _unreadable(e: ValueError | RecursionError) -> tuple[str, str]:
+    """Why ``json.loads`` gave up on a body for a reason other than its syntax, and the detail."""
+    if isinstance(e, UnicodeDecodeError):
+        byte = e.object[e.start : e.start + 1].hex()
+        return "not UTF-8", f"byte {e.start} (0x{byte}) is not {e.encoding.upper()}"
+    if isinstance(e, RecursionError):
+        return "nested too deep", "arrays and objects nested deeper than the decoder goes"
+    if digits := _DIGITS.search(str(e)):  # Python's limit on an integer's digits
+        return "a number of over 4300 digits", f"a number of {digits[1]} digits"
+    return "", clip(str(e))
 
 
 def _repeated_lines(value: Any) -> list[str]:

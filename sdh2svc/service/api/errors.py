@@ -12,7 +12,7 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sdh2svc.config import clip, error_key, error_message, model_keys, unknown_key
-from sdh2svc.service.api.body import BodyRefused
+from sdh2svc.service.api.body import UNREADABLE, BodyRefused
 from sdh2svc.service.hand_service import ServiceError
 
 
@@ -48,6 +48,20 @@ def _line(err: Any, msg: str) -> str:
     quoted = err["type"] != "missing" and isinstance(value, (str, int, float, bool))
     shown = f" = {clip(repr(value))}" if quoted else ""
     return f"{error_key(err['loc'])}{shown}: {msg}"
+
+
+def _where_it_breaks(err: Any, text: Any) -> str:
+    """``Expecting value at character 12 (line 2, column 3)``: the JSON error and where (its
+    message alone does not say; FastAPI keeps the character in the error's location)."""
+    why = str((err.get("ctx") or {}).get("error") or "JSON decode error")
+    pos = err["loc"][-1] if len(err["loc"]) > 1 else None
+    if not isinstance(pos, int):
+        return clip(why)
+    where = f"{why} at character {pos}"
+    if isinstance(text, str) and 0 <= pos <= len(text):
+        line, column = text.count("\n", 0, pos) + 1, pos - text.rfind("\n", 0, pos)
+        where += f" (line {line}, column {column})"
+    return clip(where)
 
 
 _UNPARSED = "There was an error parsing the body"  # FastAPI's detail, not a JSONDecodeError
@@ -97,8 +111,7 @@ def install_errors(app: FastAPI) -> None:
     async def _validation(request: Request, e: RequestValidationError) -> JSONResponse:
         errors = e.errors()
         if bad_json := [err for err in errors if err["type"] == "json_invalid"]:
-            why = (bad_json[0].get("ctx") or {}).get("error", "")
-            return error(400, "the body is not JSON", [clip(f"{why}" or "JSON decode error")])
+            return error(400, "the body is not JSON", [_where_it_breaks(bad_json[0], e.body)])
         lines = []
         for err in errors:
             msg = error_message(err)
@@ -120,8 +133,7 @@ def install_errors(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, e: StarletteHTTPException) -> JSONResponse:
-        if e.status_code == 400 and e.detail == _UNPARSED:  # JSON that json.loads gave up on
-            return error(400, "the body is no JSON this service can read: text that is not "
-                         "UTF-8, a number of over 4300 digits, or arrays and objects nested "
-                         "too deep")  # fmt: skip
+        if e.status_code == 400 and e.detail == _UNPARSED:  # (body.decode names the cause)
+            return error(400, f"{UNREADABLE}: text that is not UTF-8, a number of over 4300 "
+                         "digits, or arrays and objects nested too deep")  # fmt: skip
         return error(e.status_code, str(e.detail))
