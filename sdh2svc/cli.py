@@ -412,7 +412,7 @@ class _Stopper:
     def _signalled(self) -> None:
         if self._runner is not None and not self.asked:
             self.asked = True
-            self._runner.request_stop("stopped by Ctrl-C or SIGTERM")
+            self._runner.request_stop("by Ctrl-C or SIGTERM: the fingers opened to the pre-shape")
         elif self._task is not None:
             self._task.cancel()
 

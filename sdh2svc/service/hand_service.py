@@ -62,9 +62,9 @@ ESTOP_REASON = "e-stop requested"  # the latch's reason, as the API's e-stop wri
 CREATE_WAIT_S = 0.25
 
 # Why a run was stopped, as its record says (the run's message)
-STOPPED_BY_API = "stopped through the API (POST /api/runs/stop)"
-STOPPED_BY_VIEW = "stopped from the 3-D view"
-STOPPED_BY_SHUTDOWN = "stopped: the service shut down"
+STOPPED_BY_API = "through the API (POST /api/runs/stop)"
+STOPPED_BY_VIEW = "from the 3-D view"
+STOPPED_BY_SHUTDOWN = "as the service shut down"
 
 
 class ServiceError(Exception):

@@ -546,8 +546,8 @@ def test_a_headless_run_stopped_through_its_runner_records_why(tmp_path: Path) -
     async def stop_once_rolling() -> None:
         while not runners or runners[0].phase is not Phase.ROLLING:
             await asyncio.sleep(0.01)
-        runners[0].request_stop("stopped by Ctrl-C or SIGTERM")
-        runners[0].request_stop("stopped: the service shut down")
+        runners[0].request_stop("by Ctrl-C or SIGTERM: the fingers opened to the pre-shape")
+        runners[0].request_stop("as the service shut down")
 
     async def main() -> dict[str, Any]:
         stopper = asyncio.create_task(stop_once_rolling())
@@ -557,7 +557,7 @@ def test_a_headless_run_stopped_through_its_runner_records_why(tmp_path: Path) -
 
     summary = run_fast(main())
     assert summary["status"] == "stopped", summary
-    assert summary["message"] == "stopped by Ctrl-C or SIGTERM"
+    assert summary["message"] == "by Ctrl-C or SIGTERM: the fingers opened to the pre-shape"
     store = RunStore(cfg.storage.db_path)
     try:
         record = store.run(summary["run_id"])

@@ -509,7 +509,7 @@ async def test_sigterm_mid_run_stops_motion_then_exits_cleanly(
     try:
         run = store.run(run_id)
         assert run is not None and run["status"] == "stopped"
-        assert run["summary"]["message"] == "stopped: the service shut down"  # (it said nothing)
+        assert run["summary"]["message"] == "as the service shut down"  # (it said nothing)
         phases = [e["detail"].get("phase") for e in store.events(run_id) if e["kind"] == "phase"]
         assert phases[-2:] == ["releasing", "stopped"]
     finally:

@@ -290,7 +290,7 @@ async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_pa
     assert cycle.hello["status"]["sim"] is True
     assert cycle.first_sample["iteration"] >= 0
     # why it stopped, as its record keeps it (the message was empty)
-    assert cycle.end["message"] == "stopped through the API (POST /api/runs/stop)", cycle.end
+    assert cycle.end["message"] == "through the API (POST /api/runs/stop)", cycle.end
     assert cycle.end["status"] == "stopped", cycle.end
     run_id = cycle.run_id
     async with AsyncClient(svc.url, token=TOKEN) as c:
