@@ -1025,15 +1025,28 @@ def _run_line(r: dict[str, Any]) -> str:
 
 
 def _export_format(given: str | None, output: str | None) -> str:
-    """--format, or the one --output's name says (``.mcap``, ``.csv``; otherwise CSV) — as the
-    client's export takes it. A name that says the other format is a usage error: a CSV named
-    .mcap is a file no MCAP reader opens."""
-    said = Path(output).suffix.lower().lstrip(".") if output else ""
-    said = said if said in ("csv", "mcap") else ""
+    """--format, or the one --output's name says (``.mcap``, ``.csv``) — as the client's export
+    takes it. A name that says the other format is a usage error: a CSV named .mcap is a file
+    no MCAP reader opens; so is a file named neither (``r1.txt``): its format would be a guess.
+    Standard output (no -o, ``-``), a device and a folder take CSV unless --format says
+    otherwise (a folder is then refused as no file, exit 4)."""
+    suffix = Path(output).suffix if output else ""
+    said = suffix.lower().lstrip(".") if suffix.lower() in (".csv", ".mcap") else ""
     if given and said and said != given:
         _fail(Exit.USAGE, f"--format {given} into {output}: its name says {said} (rename it, or "
                           f"drop --format)")  # fmt: skip
+    if not (given or said) and output and output != "-" and _a_file_to_write(output):
+        what = f"its suffix {suffix}" if suffix else "no suffix"
+        _fail(Exit.USAGE, f"-o {output}: {what} says no export format; .csv or .mcap does (name "
+                          "it so, or give --format csv or --format mcap)")  # fmt: skip
     return given or said or "csv"
+
+
+def _a_file_to_write(output: str) -> bool:
+    """-o names a regular file, or none yet: one the export makes (a device, a pipe or a
+    folder is written, or refused, as it is)."""
+    path = Path(output)
+    return not path.exists() or path.is_file()
 
 
 def _runs(args: argparse.Namespace, store: Any, cfg: Settings) -> int:
@@ -1098,7 +1111,11 @@ def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, 
         _fail(Exit.USAGE, f"run {args.id} cannot be drawn by this version: "
                           + "; ".join(e.problems))  # fmt: skip
 
+    iterations = 0  # written so far: the last progress call has them all
+
     def progress(done: int, total: int) -> None:  # a run of hours takes minutes
+        nonlocal iterations
+        iterations = done
         _progress_line(f"run {args.id}: {done}/{total} iterations written")
 
     if path is None:  # MCAP is written with seeks back, which a pipe cannot take
@@ -1115,7 +1132,7 @@ def _export(args: argparse.Namespace, store: Any, cfg: Settings, run: dict[str, 
             n = store.export_mcap(args.id, out, cfg, progress)
     if sys.stderr.isatty():  # end the progress line (the run may have grown since it was counted)
         print(file=sys.stderr)
-    print(f"{path or 'stdout'}: {n} messages", file=sys.stderr)
+    print(f"{path or 'stdout'}: {iterations} iterations in {n} messages", file=sys.stderr)
 
 
 def _quiet_stdout() -> None:

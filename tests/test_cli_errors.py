@@ -451,10 +451,12 @@ def test_a_long_mcap_export_shows_its_progress_on_a_terminal(tmp_path: Path) -> 
     text = said.decode().replace("\r\n", "\n")
     counts = re.findall(r"\rrun 1: (\d+)/2500 iterations written", text)
     assert counts == ["1000", "2000", "2500"], text
-    assert re.search(r"2500/2500 iterations written\n.*run\.mcap: \d+ messages", text), text
+    assert re.search(r"2500/2500 iterations written\n.*run\.mcap: 2500 iterations in \d+ "
+                     "messages", text), text  # fmt: skip
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == Exit.OK and "iterations written" not in r.stderr, r.stderr
-    assert r.stderr.strip().endswith("messages"), r.stderr
+    # what it says at the end is what README says: the iterations it wrote (not only messages)
+    assert re.fullmatch(r"\S+run\.mcap: 2500 iterations in \d+ messages", r.stderr.strip()), r
 
 
 def test_an_export_replaces_an_earlier_file_whole_or_writes_into_a_device(
@@ -494,6 +496,40 @@ def test_an_export_takes_its_format_from_the_files_name_and_refuses_a_contradict
         assert status == Exit.USAGE
         assert f"--format {fmt} into {tmp_path / name}: its name says" in one_line(err, "runs")
         assert not (tmp_path / name).exists()
+
+
+@pytest.mark.parametrize("name", ["r1.txt", "r1", "r1.MCAP.bak"])
+def test_an_export_into_a_file_named_neither_csv_nor_mcap_asks_for_the_format(
+    name: str, one_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`runs export 1 -o r1.txt` wrote CSV into it without a word, where the client's export
+    asks for the format (CLI audit): refused, naming the suffix and how to choose; --format
+    says it. A device, a folder and stdout are as before (the tests above and below)."""
+    target = tmp_path / name
+    status, _, err = call(capsys, "runs", "export", "1", "-o", str(target), *db_set(one_run))
+    assert status == Exit.USAGE and not target.exists()
+    suffix = f"its suffix {target.suffix}" if target.suffix else "no suffix"
+    assert one_line(err, "runs") == (
+        f"sdh2svc runs: -o {target}: {suffix} says no export format; .csv or .mcap does (name "
+        "it so, or give --format csv or --format mcap)")  # fmt: skip
+    target.write_text("an earlier file")  # there already: the same
+    assert call(capsys, "runs", "export", "1", "-o", str(target), *db_set(one_run))[0] == 2
+    assert target.read_text() == "an earlier file"
+    for fmt, head in (("csv", b"iteration,"), ("mcap", b"\x89MCAP")):
+        status, _, err = call(capsys, "runs", "export", "1", "--format", fmt, "-o", str(target),
+                              *db_set(one_run))  # fmt: skip
+        assert status == Exit.OK and target.read_bytes().startswith(head), err
+
+
+def test_an_export_into_a_folder_or_a_full_device_is_refused_as_unwritable(
+    one_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A folder or /dev/full has no suffix either; what is wrong is that it cannot be written
+    (exit 4), not its name."""
+    for target, why in ((str(tmp_path), "Is a directory"), ("/dev/full", "No space left")):
+        status, _, err = call(capsys, "runs", "export", "1", "-o", target, *db_set(one_run))
+        assert status == Exit.UNAVAILABLE
+        assert f"cannot write {target}: {why}" in one_line(err, "runs")
 
 
 @pytest.mark.parametrize("args", [["config"], ["demo", "--json"], ["runs", "show", "1"]])
