@@ -107,8 +107,34 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
-def _load(args: argparse.Namespace) -> Settings:
-    return load_config(args.config, args.overrides)
+def _load(args: argparse.Namespace, flags: Sequence[tuple[str, str, object]] = ()) -> Settings:
+    """The configuration, with ``flags`` — (an option, the key it stands for, its value or None
+    when not given) — set after --set's. A bad value is named by the option typed (``--baud
+    0``), not by a --set the user never typed."""
+    given = [(_typed(flag, value), f"{key}={_toml(value)}")
+             for flag, key, value in flags if value is not None]  # fmt: skip
+    try:
+        return load_config(args.config, [*args.overrides, *(text for _, text in given)])
+    except ConfigError as e:
+        problems = e.problems
+        for typed, text in given:  # (load_config names an override's origin "--set KEY=VALUE")
+            problems = [p.replace(f"(--set {text})", f"({typed})") for p in problems]
+        raise ConfigError(problems) from None
+
+
+def _toml(value: object) -> str:
+    """``value`` as an override's TOML (a string quoted: a host is no TOML word)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return json.dumps(value) if isinstance(value, str) else repr(value)
+
+
+def _typed(flag: str, value: object) -> str:
+    """An option as the user typed it, near enough: ``--no-viewer``, ``--baud 0``, ``--ber 2``."""
+    if isinstance(value, bool):
+        return flag
+    shown = repr(value).removesuffix(".0") if isinstance(value, float) else str(value)
+    return f"{flag} {shown}"
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -180,16 +206,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     from sdh2svc.connect import Simulated, simulated_hand
 
-    overrides = list(args.overrides)
-    for flag, key in (("host", "host"), ("boot_s", "dsa_boot_s"), ("ber", "bit_error_rate"),
-                      ("baud", "baud")):  # fmt: skip
-        if getattr(args, flag) is not None:
-            overrides.append(f"sim.links.{key}={getattr(args, flag)!r}")
-    if args.seed is not None:
-        overrides.append(f"sim.seed={args.seed}")
-    if args.replace_after is not None:
-        overrides.append(f"sim.replace_after_s={args.replace_after!r}")
-    cfg = load_config(args.config, overrides)
+    cfg = _load(args, [
+        ("--host", "sim.links.host", args.host), ("--boot-s", "sim.links.dsa_boot_s", args.boot_s),
+        ("--ber", "sim.links.bit_error_rate", args.ber), ("--baud", "sim.links.baud", args.baud),
+        ("--seed", "sim.seed", args.seed),
+        ("--replace-after", "sim.replace_after_s", args.replace_after),
+    ])  # fmt: skip
     obj = _object(args, cfg.sim.object)
 
     if (args.no_pty or not cfg.sim.links.pty) and args.no_tcp:
@@ -462,10 +484,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sdh2svc.service.store import EstopLatched, StoreError
 
     _quiet_log(args)
-    overrides = list(args.overrides)
-    if args.cycles is not None:
-        overrides.append(f"rolling.cycles={args.cycles}")
-    cfg = load_config(args.config, overrides)
+    cfg = _load(args, [("--cycles", "rolling.cycles", args.cycles)])
     obj = None
     if args.sim:
         _no_lines_with_sim(args)
@@ -606,14 +625,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from sdh2svc.connect import Simulated, real_hand
     from sdh2svc.service.server import ExposureError, StartError, serve, setup_logging
 
-    overrides = list(args.overrides)
-    for key, value in (("host", args.host), ("port", args.port), ("viser_port", args.viser_port)):
-        if value is not None:
-            overrides.append(f"service.{key}={json.dumps(value)}")
-    if args.no_viewer:
-        overrides.append("service.viewer=false")
     setup_logging(args.log_format, args.log_level)  # first: a bad configuration is logged too
-    cfg = load_config(args.config, overrides)
+    cfg = _load(args, [
+        ("--host", "service.host", args.host), ("--port", "service.port", args.port),
+        ("--viser-port", "service.viser_port", args.viser_port),
+        ("--no-viewer", "service.viewer", False if args.no_viewer else None),
+    ])  # fmt: skip
     obj = None
     if args.sim:
         _no_lines_with_sim(args)

@@ -126,6 +126,28 @@ def test_directory_as_config_is_invalid_configuration(
     assert f"{tmp_path} is a directory" in one_line(err, "config")
 
 
+@pytest.mark.parametrize(
+    ("args", "key"),
+    [
+        (["--baud", "0"], "sim.links.baud = 0"),
+        (["--ber", "2"], "sim.links.bit_error_rate = 2.0"),
+        (["--boot-s", "-1"], "sim.links.dsa_boot_s = -1.0"),
+        (["--seed", "-1"], "sim.seed = -1"),
+        (["--replace-after", "-1"], "sim.replace_after_s = -1.0"),
+        (["--baud", "0", "--set", "sim.links.baud=9600"], "sim.links.baud = 0"),  # the option's
+    ],
+)
+def test_an_option_that_sets_a_key_is_named_as_typed_when_its_value_is_bad(
+    args: list[str], key: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`sim --baud 0` said "(--set sim.links.baud=0)", an option the user never typed (CLI
+    audit): every option that stands for a configuration key is named itself."""
+    status, _, err = call(capsys, "sim", *args)
+    assert status == Exit.USAGE
+    line = one_line(err, "sim")
+    assert f"{key} ({args[0]} {args[1]}): " in line and "--set" not in line, line
+
+
 def test_bad_environment_value_is_invalid_configuration(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
