@@ -122,6 +122,13 @@ def _load(args: argparse.Namespace, flags: Sequence[tuple[str, str, object]] = (
         raise ConfigError(problems) from None
 
 
+def _absolute_db(cfg: Settings) -> Settings:
+    """``cfg`` with its run database in full, for every message that names it: a relative
+    storage.db_path is another database in another working directory."""
+    where = str(Path(cfg.storage.db_path).absolute())
+    return cfg.model_copy(update={"storage": cfg.storage.model_copy(update={"db_path": where})})
+
+
 def _toml(value: object) -> str:
     """``value`` as an override's TOML (a string quoted: a host is no TOML word)."""
     if isinstance(value, bool):
@@ -484,7 +491,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sdh2svc.service.store import EstopLatched, StoreError
 
     _quiet_log(args)
-    cfg = _load(args, [("--cycles", "rolling.cycles", args.cycles)])
+    cfg = _absolute_db(_load(args, [("--cycles", "rolling.cycles", args.cycles)]))
     obj = None
     if args.sim:
         _no_lines_with_sim(args)
@@ -887,7 +894,7 @@ def cmd_runs(args: argparse.Namespace) -> int:
 
     from sdh2svc.service.store import NoDatabase, RunStore, StoreError, stray_logs
 
-    cfg = load_config(args.config, args.overrides)
+    cfg = _absolute_db(_load(args))
     ids = args.id
     if args.action in ("show", "export", "delete") and not ids:
         _fail(Exit.USAGE, f"{args.action}: which run? (give its ID)")

@@ -26,7 +26,7 @@ from sdh2svc.service.store import Recorder, RunStore
 from tests.service.test_replay_api import sample as replay_sample
 from tests.service.test_retention import another_process_open
 
-FOUND_NOTHING = "no run database at data/runs.sqlite (set storage.db_path or run from the directory"
+FOUND_NOTHING = "no run database at {} (set storage.db_path or run from the directory"
 
 
 def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
@@ -161,12 +161,29 @@ def test_bad_environment_value_is_invalid_configuration(
 
 
 def test_reading_commands_never_create_a_database(tmp_path: Path) -> None:
-    """From a directory without data/: "no run database", and still no data/ afterwards."""
+    """From a directory without data/: "no run database", named in full (a relative
+    storage.db_path is another database in another directory), and still no data/ afterwards."""
+    where = tmp_path.resolve() / "data" / "runs.sqlite"
     for args in (["list"], ["show", "1"], ["export", "1", "--format", "csv"]):
         r = run("runs", *args, cwd=tmp_path)
         assert r.returncode == Exit.NOT_FOUND == 3, r.stderr
-        assert FOUND_NOTHING in one_line(r.stderr, "runs")
+        assert FOUND_NOTHING.format(where) in one_line(r.stderr, "runs")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_run_database_is_named_in_full(
+    one_run: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`runs list` said "1 run in runs.sqlite" for a relative storage.db_path, where `estop`
+    says the whole path (CLI audit): every message of `runs` names it in full."""
+    monkeypatch.chdir(one_run.parent)
+    relative, where = db_set(one_run.name), one_run.resolve()
+    status, _, err = call(capsys, "runs", "list", *relative)
+    assert status == Exit.OK and f"1 run in {where}: " in err, err
+    status, _, err = call(capsys, "runs", "show", "9", *relative)
+    assert status == Exit.NOT_FOUND and f"no run 9 in {where}" in one_line(err, "runs")
+    status, _, err = call(capsys, "runs", "delete", "9", *relative)
+    assert status == Exit.NOT_FOUND and f"no run 9 in {where} (" in one_line(err, "runs")
 
 
 def test_database_path_that_is_a_directory(
@@ -270,16 +287,18 @@ def test_estop_latched_where_there_was_no_database_says_it_made_one(
 
 
 def test_a_simulated_run_says_it_does_not_obey_a_latched_estop(
-    one_run: Path, capsys: pytest.CaptureFixture[str]
+    one_run: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A lab rehearsing its e-stop on the simulator saw the latch do nothing, without a word
-    (CLI audit); a real hand's run is refused (test_hardening)."""
-    assert call(capsys, "estop", "--latch", *db_set(one_run))[0] == Exit.OK
+    (CLI audit); a real hand's run is refused (test_hardening). The database is named in full,
+    given relative (CLI audit)."""
+    monkeypatch.chdir(one_run.parent)
+    assert call(capsys, "estop", "--latch", *db_set(one_run.name))[0] == Exit.OK
     status, _, err = call(capsys, "run", "--sim", "--fast", "--cycles", "1",
                           "--set", "sim.object_height_mm=300.0",  # nothing to grasp: ends soon
-                          "--set", "run.grasp_timeout_s=2.0", *db_set(one_run))  # fmt: skip
+                          "--set", "run.grasp_timeout_s=2.0", *db_set(one_run.name))  # fmt: skip
     assert status == Exit.FAILED  # it ran (and found nothing to grasp)
-    assert f"the e-stop is latched in {one_run}" in err, err
+    assert f"the e-stop is latched in {one_run.resolve()}" in err, err
     assert "a simulated run does not obey it" in err
 
 
