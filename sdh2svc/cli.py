@@ -1352,9 +1352,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the hand model at one pose", description=cmd_demo.__doc__)
     _add_config_args(p)
     for name, default in (("phi2", -20.0), ("phi3", 30.0), ("phi4", -20.0), ("phi5", 30.0)):
-        p.add_argument(f"--{name}", type=float, default=default, help=f"deg (default {default})")
-    p.add_argument("--s1", type=float, default=20.0, help="contact height S1 on Finger 1, mm")
-    p.add_argument("--s2", type=float, default=20.0, help="contact height S2 on Finger 2, mm")
+        p.add_argument(f"--{name}", type=float, default=default, help="deg (default %(default)s)")
+    p.add_argument("--s1", type=float, default=20.0,
+                   help="contact height S1 on Finger 1, mm (default %(default)s)")  # fmt: skip
+    p.add_argument("--s2", type=float, default=20.0,
+                   help="contact height S2 on Finger 2, mm (default %(default)s)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=cmd_demo)
 
@@ -1418,8 +1420,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-viewer", action="store_true", help="no viser 3-D view")
     _add_link_args(p)
     p.add_argument("--log-format", choices=["text", "json"], default="text",
-                   help="log lines on stderr: text (journald) or json")  # fmt: skip
-    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+                   help="log lines on stderr: text (journald) or json "
+                        "(default %(default)s)")  # fmt: skip
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                   help="the lowest level logged (default %(default)s)")  # fmt: skip
     p.add_argument("--json", action="store_true", help="announce the URLs as one JSON line")
     p.set_defaults(func=cmd_serve)
 
@@ -1428,7 +1432,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
     p.add_argument("--url", help="the service's base URL http://HOST:PORT, or its /api/status "
                    "URL (default: from service.host/port)")  # fmt: skip
-    p.add_argument("--timeout", type=_seconds_arg, default=4.0, help="seconds (> 0)")
+    p.add_argument("--timeout", type=_seconds_arg, default=4.0, metavar="S",
+                   help="seconds to wait for the answer (> 0; default %(default)s)")  # fmt: skip
     p.set_defaults(func=cmd_health)
 
     p = sub.add_parser("runs", help="recorded runs: list, show, export, delete, prune, vacuum",

@@ -97,6 +97,23 @@ def test_help_lists_the_exit_statuses(capsys: pytest.CaptureFixture[str]) -> Non
         assert f"\n  {int(status):<4d} " in out, status
 
 
+def test_every_option_with_a_default_says_it_in_its_help() -> None:
+    """`health --timeout` waited 4 s and `demo --s1/--s2` took 20 mm without a word in --help,
+    where the φ defaults were shown (CLI audit)."""
+    import argparse
+
+    silent = []
+    for name in ("config", "demo", "sim", "run", "serve", "health", "runs", "estop", "campaign"):
+        sub = cli._subparser(cli.build_parser(), name)
+        assert sub is not None
+        for action in sub._actions:
+            if action.option_strings and action.default not in (None, False, [], argparse.SUPPRESS):
+                said = (action.help or "") % vars(action)  # as argparse expands it
+                if f"default {action.default}" not in said:
+                    silent.append(f"{name} {action.option_strings[-1]}")
+    assert silent == []
+
+
 def test_readme_table_matches_the_codes() -> None:
     readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
     section = readme.split("### Exit status", 1)[1].split("\n#", 1)[0]
