@@ -508,6 +508,8 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"iteration {r.state.iteration:5d}  F {F:5.2f}  σ {sig:6.2f}°", end="",
               file=sys.stderr)  # fmt: skip
 
+    if not args.sim:
+        _say_line_from_configuration(args, cfg)
     where = Simulated(obj, fast=args.fast) if args.sim else real_hand(cfg, args.dsa, args.sdh)
     if args.sim and (latch := _latched(cfg)) is not None:  # rehearsing the e-stop: say it
         print(f"sdh2svc run: the e-stop is latched in {cfg.storage.db_path} (since "
@@ -534,8 +536,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except EstopLatched as e:
         _fail(Exit.FAILED, str(e))
     except (JointLinkError, TactileError, OSError) as e:
-        _fail(Exit.UNAVAILABLE, f"cannot reach the hand: {_one_line(e)} "
-                                "(check --sdh/--dsa or links.sdh_url/dsa_url)")  # fmt: skip
+        _fail(Exit.UNAVAILABLE, f"cannot reach the hand: {_one_line(e)} {_lines_hint(args, e)}")
     if args.json:
         print(json.dumps(summary))
     else:
@@ -571,6 +572,30 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"sdh2svc run: run {summary['run_id']} {summary['status']}: {why}",
           file=sys.stderr)  # fmt: skip
     return Exit.INTERRUPTED if stopper.asked else Exit.FAILED
+
+
+def _say_line_from_configuration(args: argparse.Namespace, cfg: Settings) -> None:
+    """A real hand's run given one of --dsa/--sdh takes the other from the configuration
+    (/dev/ttyS0 or ttyS1 by default), which the lab that typed one line may not mean: said."""
+    for flag, other, key, line in (("dsa", "sdh", "dsa_url", "tactile"),
+                                   ("sdh", "dsa", "sdh_url", "joint")):  # fmt: skip
+        if getattr(args, flag) is None and getattr(args, other) is not None:
+            print(f"sdh2svc run: --{flag} not given: the {line} line is links.{key} = "
+                  f"{getattr(cfg.links, key)} from the configuration", file=sys.stderr)  # fmt: skip
+
+
+def _lines_hint(args: argparse.Namespace, e: BaseException) -> str:
+    """What to check when the hand cannot be reached. The joint line is opened first: when it
+    greets not as an SDH2 ("SDH not connected", the joint link's word: a DSACON32m is silent
+    to `ver` unless it streams) on lines the user gave both of, they may be swapped — asked, as
+    a hint. (A tactile handshake failing comes after an SDH2 answered on --sdh: not a swap.)"""
+    from sdh2svc.bus.joint import JointLinkError
+
+    said = str(e)
+    if (args.dsa is not None and args.sdh is not None and isinstance(e, JointLinkError)
+            and "SDH not connected" in said and "swapped" not in said):  # fmt: skip
+        return "(are --dsa and --sdh swapped?)"
+    return "(check --sdh/--dsa or links.sdh_url/dsa_url)"
 
 
 def _latched(cfg: Settings) -> dict[str, Any] | None:

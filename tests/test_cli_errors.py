@@ -7,6 +7,7 @@ the ports, the start-up of the service; the rest through :func:`sdh2svc.cli.main
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import os
@@ -22,6 +23,8 @@ import pytest
 
 from sdh2svc import cli
 from sdh2svc.cli import Exit, main, status_url
+from sdh2svc.config import load_config
+from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.service.store import Recorder, RunStore
 from tests.service.test_replay_api import sample as replay_sample
 from tests.service.test_retention import another_process_open
@@ -798,6 +801,7 @@ def test_run_against_a_nonexistent_device(tmp_path: Path) -> None:
     assert r.returncode == Exit.UNAVAILABLE == 4, r.stderr
     line = one_line(r.stderr, "run")
     assert "cannot reach the hand" in line and str(missing) in line
+    assert "swapped" not in line  # a missing device: no swap explains it
 
 
 def test_run_against_a_refused_socket(tmp_path: Path, closed_port: int) -> None:
@@ -820,6 +824,54 @@ def test_run_against_a_joint_controller_that_never_answers_says_it_in_one_line(
     assert r.returncode == Exit.UNAVAILABLE, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "no reply" in one_line(r.stderr, "run")
+
+
+async def _run_cli(*args: str) -> tuple[int, str]:
+    """``sdh2svc ARGS`` in a subprocess while this test's event loop serves a simulated hand:
+    its exit status and stderr."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "sdh2svc", *args,
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    _, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode is not None
+    return proc.returncode, err.decode()
+
+
+async def test_a_run_on_swapped_lines_asks_whether_they_are_swapped(tmp_path: Path) -> None:
+    """--dsa and --sdh swapped: the joint line, on the DSACON32m, hears nothing (it is silent to
+    `ver`), and the run said only "no reply within 1.0 s (check --sdh/--dsa or links…)" (CLI
+    audit); asked when the user gave both lines — given one, the other is the configuration's,
+    and said so."""
+    async with simulated_hand(load_config(), Simulated()) as bench:
+        dsa, sdh = bench.sim.urls("dsa")[0], bench.sim.urls("sdh")[0]
+        db = db_set(tmp_path / "r.sqlite")
+        status, err = await _run_cli("run", "--dsa", sdh, "--sdh", dsa, *db)
+        assert status == Exit.UNAVAILABLE and len(err.strip().splitlines()) == 1, err
+        line = one_line(err, "run")
+        assert f"joint line {dsa}: SDH not connected: ver: no reply within" in line, line
+        assert line.endswith(" (are --dsa and --sdh swapped?)"), line
+        # the joint line from the configuration: a warning names it; no question of a swap
+        status, err = await _run_cli("run", "--dsa", sdh,
+                                     "--set", f"links.sdh_url={json.dumps(dsa)}", *db)  # fmt: skip
+    assert status == Exit.UNAVAILABLE, err
+    warning, line = err.strip().splitlines()
+    assert warning == (f"sdh2svc run: --sdh not given: the joint line is links.sdh_url = {dsa} "
+                       "from the configuration")  # fmt: skip
+    assert "no reply within" in line and "swapped" not in line, line
+
+
+def test_a_run_given_one_line_says_which_the_other_is(tmp_path: Path) -> None:
+    """The line not given is the configuration's (links.dsa_url, by default /dev/ttyS1):
+    said on stderr before the run's own failure, which still names both places to check."""
+    missing = str(tmp_path / "ttyUSB9")
+    r = run("run", "--sdh", str(tmp_path / "ttyUSB8"), "--set",
+            f"links.dsa_url={json.dumps(missing)}", *db_set(tmp_path / "r.sqlite"))  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    warning, _ = r.stderr.strip().splitlines()
+    assert warning == (f"sdh2svc run: --dsa not given: the tactile line is links.dsa_url = "
+                       f"{missing} from the configuration")  # fmt: skip
+    assert one_line(r.stderr, "run").endswith("(check --sdh/--dsa or links.sdh_url/dsa_url)")
 
 
 def test_run_with_one_port_for_both_lines_is_a_usage_error(tmp_path: Path) -> None:
