@@ -182,7 +182,10 @@ async def test_open_sequence_then_pull_at_a_low_rate(kind: str) -> None:
             stats = bus.stats
         stamps = [f.timestamp_ms for f in r.frames]
         assert len(stamps) >= 4  # ~8 expected
-        assert min(np.diff(stamps)) >= 150  # requested every 200 ms, never faster
+        # requested every 200 ms on an anchored schedule (a late pull starts at once, the next
+        # keeps its time), never ahead of it: by more than a latency's jitter, never sooner
+        # than k periods after the first (a loaded machine delays pulls, never hastens them)
+        assert all(s - stamps[0] >= k * 200 - 100 for k, s in enumerate(stamps)), stamps
         assert stats.mode is Mode.PULL and stats.required_hz == 5.0
         assert 0.0 < stats.line_utilisation_pct < 10.0  # ~5 × 100 bytes of 11 520 per second
         assert first.seq == 1 and first.age() >= 0.0
