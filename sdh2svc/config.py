@@ -475,13 +475,15 @@ def format_errors(
     err: ValidationError,
     model: Any,
     origin: Callable[[tuple[int | str, ...]], str | None] | None = None,
+    maxima: Mapping[str, float] | None = None,
 ) -> list[str]:
     """One line per error, e.g. ``rolling.k = 0.5: Input should be greater than 1 (allowed: …)``.
 
     ``model`` is a model class, or an annotated union of them with a ``kind`` discriminator (the
     error's location then starts with the kind). Long values are clipped (:func:`clip`).
     ``origin`` names where a location's value came from (a file, a variable, an option), if known:
-    ``rolling.k = 0.5 (lab.toml): …``.
+    ``rolling.k = 0.5 (lab.toml): …``. ``maxima``: tighter upper bounds than the model's, by
+    top-level key (the safety limits' on the rolling parameters), quoted instead of the model's.
     """
     lines: list[str] = []
     errors = err.errors()
@@ -500,8 +502,11 @@ def format_errors(
         source = origin(loc) if origin is not None else None
         if source:
             shown += f" ({clip(source, 4 * CLIP_CHARS)})"
-        allowed = _allowed_range(model, loc)
+        top = (maxima or {}).get(str(loc[0])) if len(loc) == 1 else None
+        allowed = _allowed_range(model, loc, top)
         msg = error_message(e).removeprefix("Value error, ")
+        if top is not None and e["type"] in ("less_than", "less_than_equal"):
+            msg = f"Input should be less than or equal to {top:g}"
         if e["type"] == "extra_forbidden":
             msg = REMOVED_KEYS.get(key) or unknown_key(model_keys(model, loc[:-1]))
             if len(loc) == 1 and (near := _sections_with(model, str(loc[0]))):
@@ -544,7 +549,7 @@ def model_keys(model: Any, loc: tuple[int | str, ...] = ()) -> list[str] | None:
     return list(tp.model_fields) if isinstance(tp, type) and issubclass(tp, BaseModel) else None
 
 
-def _allowed_range(model: Any, loc: tuple[int | str, ...]) -> str:
+def _allowed_range(model: Any, loc: tuple[int | str, ...], top: float | None = None) -> str:
     tp: Any = model
     metadata: list[Any] = []
     for part in loc:
@@ -562,6 +567,8 @@ def _allowed_range(model: Any, loc: tuple[int | str, ...]) -> str:
             hi = f" < {m.lt}"
         elif isinstance(m, at.Le):
             hi = f" ≤ {m.le}"
+    if top is not None:  # a tighter limit than the field's own
+        hi = f" ≤ {top:g}"
     return f"{lo}{name}{hi}" if lo or hi else ""
 
 

@@ -29,7 +29,7 @@ from sdh2svc.control.observer import BaseObserver, EventKind
 from sdh2svc.control.observer import Event as RunEvent
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Phase, Runner
-from sdh2svc.control.safety import SafetyConfig, params_outside
+from sdh2svc.control.safety import SafetyConfig, params_maxima, params_outside
 from sdh2svc.control.sample import Sample
 from sdh2svc.provenance import code_version
 from sdh2svc.service.hub import TelemetryHub, cancel
@@ -85,14 +85,25 @@ def validate_params(
     limits (422 naming each bad field: no parameter loosens a limit, :func:`params_outside`).
     Strictly: a value is taken as it is typed ("2" is no number; configuration files and
     --set, which are text, go through the lax path of sdh2svc.config)."""
+    merged = {**current.model_dump(), **patch}
     try:
-        new = RollingParams.model_validate({**current.model_dump(), **patch}, strict=True)
+        new = RollingParams.model_validate(merged, strict=True)
     except ValidationError as e:
-        lines = format_errors(e, RollingParams)
+        lines = format_errors(e, RollingParams, maxima=params_maxima(safety))
+        # and what the limits say of the fields that passed: every bad field in one answer
+        bad = {str(err["loc"][0]) for err in e.errors() if err["loc"]}
+        ok = {k: v for k, v in merged.items() if k not in bad}  # (each valid on its own)
+        lines += _outside(current.model_copy(update=ok), safety)
         raise ServiceError(422, "invalid rolling parameters", lines) from None
-    if problems := params_outside(new, safety):
+    if problems := _outside(new, safety):
         raise ServiceError(422, "invalid rolling parameters", problems)
     return new
+
+
+def _outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
+    """:func:`params_outside`'s lines naming a field as the API does (``grasp_force``, as
+    pydantic's lines do, not the configuration's ``rolling.grasp_force``)."""
+    return [line.removeprefix("rolling.") for line in params_outside(p, safety)]
 
 
 def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Shape:

@@ -9,6 +9,7 @@ import functools
 import io
 import itertools
 import json
+import re
 import socket
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -117,9 +118,21 @@ async def test_status_and_clear_errors(svc: LiveService) -> None:
         # the ceiling was 150, above any pad's reading), steps the step limit would clip
         with pytest.raises(InvalidRequest) as bad:
             await c.patch_params({"grasp_force": 50.0, "finger1_max_step_deg": 10.0})
-        assert bad.value.details[0].startswith("rolling.grasp_force = 50: its ceiling")
+        assert bad.value.details[0].startswith("grasp_force = 50: its ceiling")
         assert "safety.force_ceiling_max = 12" in bad.value.details[0]
-        assert bad.value.details[1].startswith("rolling.finger1_max_step_deg = 10: above")
+        top = re.search(r"allowed: grasp_force ≤ ([0-9.]+)", bad.value.details[0])
+        assert top is not None
+        assert bad.value.details[1].startswith("finger1_max_step_deg = 10: above")
+        # the range quoted is the one the limits allow, and every bad field is in one answer
+        with pytest.raises(InvalidRequest) as bad:
+            await c.patch_params({"grasp_force": 60.0})
+        assert bad.value.details == [
+            f"grasp_force = 60.0: Input should be less than or equal "
+            f"to {top[1]} (allowed: 0.0 < grasp_force ≤ {top[1]})"
+        ]
+        with pytest.raises(InvalidRequest) as bad:
+            await c.patch_params({"k": 0.5, "grasp_force": 5.0})
+        assert [d.split(":")[0] for d in bad.value.details] == ["k = 0.5", "grasp_force = 5"]
         with pytest.raises(InvalidRequest, match="force_ceiling_max"):
             await c.start_run({"grasp_force": 4.5})
         assert (await c.params())["k"] == 2.0  # nothing half-applied
