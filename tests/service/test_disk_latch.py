@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import json
 import sqlite3
-import subprocess
 import sys
 import threading
 from pathlib import Path
@@ -25,6 +24,7 @@ from sdh2svc.service.headless import _own_task
 from sdh2svc.service.latch import latched_elsewhere
 from sdh2svc.service.store import RunStore, StoreError
 from tests.live_service import AT_PRESHAPE, start_service
+from tests.service.test_cli_estop import estop_latch
 
 
 class _Link:
@@ -154,15 +154,6 @@ async def test_the_store_closes_only_once_a_read_of_the_latch_is_done(
         closer.join(30)
         watch.cancel()
     assert not closer.is_alive()
-
-
-def estop_latch(db: Path, port: int) -> subprocess.CompletedProcess[str]:
-    """`sdh2svc estop --latch` on this database, naming a service port (none answers there)."""
-    return subprocess.run(
-        [sys.executable, "-m", "sdh2svc", "estop", "--latch",
-         "--set", f"storage.db_path={json.dumps(str(db))}", "--set", f"service.port={port}"],
-        capture_output=True, text=True, timeout=60, check=False,
-    )  # fmt: skip
 
 
 def free_port() -> int:
