@@ -426,6 +426,27 @@ function renderEstop(latched = Boolean(state.status && state.status.estopped)) {
   }
   if (live.dead) title = `The service is not answering: a click tries all the same; ${USE_SWITCH}.`;
   b.title = title;
+  renderLatchLine(latched, e);
+}
+
+/** Next to the E-STOP while it is latched, always in sight (a tooltip is not, on a touch
+ * screen): since when, why, whether the hand confirmed the power-off and the disk took it. */
+function renderLatchLine(latched, e) {
+  const line = $("#estop-latch");
+  let text = "";
+  if (latched) {
+    const since = e.since ? new Date(String(e.since).replace(/\+0000$/, "Z")) : null;
+    const at = since && !Number.isNaN(since.getTime()) ? ` ${hhmmss(since.getTime())}` : "";
+    const parts = [`latched${at}${e.reason ? ` — ${e.reason}` : ""}`];
+    if (e.hand_reached === true) parts.push("hand confirmed");
+    else if (e.hand_reached === false) parts.push("hand NOT confirmed yet");
+    if (e.recorded === "no") parts.push("not on disk");
+    else if (e.recorded === "pending") parts.push("not on disk yet");
+    text = parts.join(" · ");
+  }
+  line.textContent = text;
+  line.hidden = !text;
+  line.classList.toggle("unconfirmed", latched && e.hand_reached === false);
 }
 
 // --- token ------------------------------------------------------------------------------------

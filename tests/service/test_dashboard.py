@@ -781,6 +781,7 @@ async def test_token_field_when_the_service_needs_one(tmp_path: Path) -> None:
             await expect(page.locator("#estop-banner")).to_be_hidden()
             await expect(estop).to_have_text("E-STOP")
             await expect(estop).to_have_attribute("aria-pressed", "false")
+            await expect(page.locator("#estop-latch")).to_be_hidden()
             # the status says a token is needed: the field shows; without it a change is refused
             assert await page.is_visible("#token-field")
             before = httpx.get(svc.url + "/api/params").json()
@@ -836,7 +837,7 @@ FEED_STATUS = """([path, value]) => {
     return e.hidden ? null : e.textContent;
   };
   return {banner: !document.querySelector('#estop-banner').hidden, hand: text('#estop-hand'),
-          disk: text('#estop-disk')};
+          disk: text('#estop-disk'), latch: text('#estop-latch')};
 }"""
 
 
@@ -869,15 +870,28 @@ async def estop_shown_and_unconfirmed(svc: LiveService, page: Any, lie: StatusLi
     await expect(page.locator("#estop-hand")).to_be_visible()
     # the service's word, not the click's answer: a status saying the hand confirmed it clears
     # the note, one saying it has not shows it (as on a page that never sent the e-stop)
+    # … and the line next to the E-STOP (always in sight, not only in a tooltip) says since
+    # when, why, and whether the hand confirmed the power-off
+    since = httpx.get(svc.url + "/api/status").json()["estop"]["since"]
+    at = await page.evaluate(
+        "(s) => new Date(s.replace(/\\+0000$/, 'Z')).toTimeString().slice(0, 8)", since
+    )
     shown = await page.evaluate(FEED_STATUS, [["estop", "hand_reached"], True])
     assert shown["hand"] is None, shown
+    assert shown["latch"] == f"latched {at} — {reason} · hand confirmed", shown
     shown = await page.evaluate(FEED_STATUS, [["estop", "hand_reached"], False])
     assert shown["banner"] and "has not confirmed" in (shown["hand"] or ""), shown
+    assert shown["latch"] == f"latched {at} — {reason} · hand NOT confirmed yet", shown
+    # a latch another program wrote (`sdh2svc estop --latch`) shows the same way
+    shown = await page.evaluate(FEED_STATUS, [["estop", "reason"], "latched from the command line"])
+    assert shown["latch"].startswith(f"latched {at} — latched from the command line · "), shown
     # a status saying the latch is not (yet) on disk shows a note saying so, and what it means
-    for recorded, says in (("pending", "not on disk yet"), ("no", "did not take it")):
+    for recorded, says, short in (("pending", "not on disk yet", "not on disk yet"),
+                                  ("no", "did not take it", "not on disk")):  # fmt: skip
         shown = await page.evaluate(FEED_STATUS, [["estop", "recorded"], recorded])
         assert shown["banner"] and says in (shown["disk"] or ""), shown
         assert "a restart of the service would not keep it" in shown["disk"], shown
+        assert shown["latch"].endswith(f" · hand NOT confirmed yet · {short}"), shown
     # the service says the hand confirmed it (the owed power-off went out): the banner goes
     lie.on = False
     await expect(page.locator("#estop-hand")).to_be_hidden()
