@@ -47,7 +47,11 @@ const state = {
   presets: null, // the simulated object's preset names (GET /api/sim/object), a Set
   objectPuts: 0, // object choices sent and not yet answered: the selector keeps the user's pick
   notice: null, // {id, status, message, opened, openStopped (why an opening stopped), error}
+  // (id null: the hand's own, not a run's — an opening that was e-stopped)
   dismissedRun: null,
+  // the hand's opening seen (its `open` event), until it ended; `stoppedAt`: when it ended
+  // stopped part-way (an e-stop's own event follows that), else null
+  opening: null,
   releasedRuns: new Set(), // runs seen in their releasing phase (the fingers opened)
 };
 
@@ -299,7 +303,7 @@ $("#estop").addEventListener("click", estop);
 $("#open-hand").addEventListener("click", openHand);
 $("#notice-open-hand").addEventListener("click", openHand);
 $("#notice-dismiss").addEventListener("click", () => {
-  if (state.notice) state.dismissedRun = state.notice.id;
+  if (state.notice && state.notice.id != null) state.dismissedRun = state.notice.id;
   hideNotice();
 });
 
@@ -313,7 +317,8 @@ async function openHand() {
     await api.openHand();
     clearToasts("open hand");
     state.openAnsweredAt = Date.now();
-    toast("Opening the hand…", { kind: "info", timeoutMs: 3000 });
+    // until the opening ends, however it ends (opened, stopped, e-stopped, a fault)
+    toast("Opening the hand…", { kind: "info", timeoutMs: 30000, key: "opening" });
   } catch (e) {
     state.openPending = false;
     showError(e, "open hand");
@@ -707,6 +712,7 @@ function noticeFromStatus(st) {
     if (state.notice && st.run && st.run.id !== state.notice.id) hideNotice();
     return;
   }
+  if (state.notice && state.notice.id == null) return; // the hand's own says what came after
   const last = st.last_run;
   if (!last || !NOTICE_STATUSES.has(last.status) || last.id === state.dismissedRun) return;
   if (state.notice && state.notice.id === last.id && state.notice.status === last.status) return;
@@ -759,6 +765,11 @@ function renderNotice() {
       body = "the motors were switched off at once.";
       next = "The fingers are not driven; the object may still be held.";
       break;
+    case "open-e-stopped": // the hand's own: Open hand, e-stopped part-way
+      title = "Opening the hand was e-stopped:";
+      body = "the motors were switched off at once, part-way open.";
+      next = "The fingers are not driven; the object may still be held.";
+      break;
     case "interrupted": // the service was killed or crashed: nothing ended the run
       title = `Run ${n.id} was interrupted:`;
       body = "the service stopped during it (it was killed or crashed).";
@@ -772,7 +783,8 @@ function renderNotice() {
   // an Open hand stopped part-way (Stop, an e-stop) left the fingers where they were
   const toOpen = !n.opened && (n.status !== "stopped" || Boolean(n.openStopped));
   if (n.openStopped) {
-    next = `Opening the hand was stopped part-way (${n.openStopped}): the fingers hold where ` +
+    const why = n.openStopped === "stopped" ? "" : ` (${n.openStopped})`;
+    next = `Opening the hand was stopped part-way${why}: the fingers hold where ` +
       "they are; the object may still be held.";
   }
   if (n.opened) {
@@ -1004,21 +1016,52 @@ function eventNotice(m) {
     }
   } else if (m.kind === "estop" && m.run_id != null && m.run_id !== state.dismissedRun) {
     showNotice({ id: m.run_id, status: "e-stopped", message: "emergency stop" });
-  } else if (m.kind === "open" && state.notice) {
-    state.notice.openStopped = ""; // opening (again)
-    renderNotice();
-  } else if (m.kind === "opened" && state.notice) {
+  } else if (m.kind === "estop" && m.run_id == null && openingEstopped()) {
+    openEstopNotice();
+  } else if (m.kind === "open") {
+    state.opening = { stoppedAt: null };
+    if (state.notice) {
+      state.notice.openStopped = ""; // opening (again)
+      renderNotice();
+    }
+  } else if (m.kind === "opened") {
     // `completed: false`: stopped part-way (Stop, an e-stop): the hand is not open
     const done = d.completed !== false;
-    state.notice.opened = done;
-    state.notice.openStopped = done ? "" : plainMessage(d.message) || "stopped";
-    state.notice.error = "";
-    renderNotice();
+    state.opening = done ? null : { stoppedAt: Date.now() };
+    if (!done && state.status && state.status.estopped) {
+      openEstopNotice(); // (else the e-stop's own event, which follows, says it)
+    } else if (state.notice) {
+      state.notice.opened = done;
+      state.notice.openStopped = done ? "" : plainMessage(d.message) || "stopped";
+      state.notice.error = "";
+      renderNotice();
+    }
   }
-  if (m.kind === "opened" || m.kind === "fault") {
+  if (m.kind === "opened" || m.kind === "fault" || (m.kind === "estop" && m.run_id == null)) {
+    if (m.kind === "fault") state.opening = null;
     state.openPending = false;
+    clearToasts("opening"); // however the opening ended
     updateControls();
   }
+}
+
+// an opening that ended stopped part-way this long before the hand's e-stop event was stopped by it
+const OPENING_ESTOP_MS = 5000;
+
+/** The hand's e-stop came while it opened (its `opened` said stopped part-way just before, or
+ * it has not ended yet). */
+function openingEstopped() {
+  const o = state.opening;
+  return Boolean(o) && (o.stoppedAt === null || Date.now() - o.stoppedAt < OPENING_ESTOP_MS);
+}
+
+/** An opening e-stopped part-way: a notice of its own (not a line of the last run's, which it
+ * replaces: what came after). */
+function openEstopNotice() {
+  state.opening = null;
+  if (state.notice && state.notice.id != null) state.dismissedRun = state.notice.id;
+  state.notice = null;
+  showNotice({ id: null, status: "open-e-stopped", message: "" });
 }
 
 // --- joining a run mid-way ----------------------------------------------------------------------

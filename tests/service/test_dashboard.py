@@ -905,6 +905,19 @@ LAB_BLOCK = {
 }  # fmt: skip
 
 
+# The hand's own events of an Open hand that an e-stop halts part-way (as the service sends
+# them), fed in one turn; then the opening's toasts and the notice.
+OPENING_ESTOPPED = """() => {
+  const ev = (kind, detail) => window.sdh2debug.onMessage(
+    {type: 'event', run_id: null, t: null, iteration: null, kind, detail});
+  ev('open', {});
+  ev('opened', {completed: false, message: 'stopped'});
+  ev('estop', {});
+  return {toasts: document.querySelectorAll('#errors .toast[data-key="opening"]').length,
+          notice: window.sdh2.notice};
+}"""
+
+
 async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: Path) -> None:
     # a grasp that gives up at once: the run faults with no_contact and the fingers hold still;
     # the object is a custom one, from a file
@@ -1002,6 +1015,21 @@ async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: P
             await expect(notice).to_contain_text("The hand is open now.")
             await expect(notice).to_have_class(re.compile("resolved"))
             await expect(open_in_notice).to_be_hidden()
+            # an opening e-stopped part-way (its `opened` says stopped, the hand's `estop`
+            # follows) is a notice of its own, not a line of the last run's; the opening's
+            # toast goes with the opening's end
+            await expect(page.locator("#open-hand")).to_be_enabled()
+            await page.click("#open-hand")
+            toast = page.locator("#errors .toast", has_text="Opening the hand…")
+            await expect(toast).to_be_visible()
+            said = await page.evaluate(OPENING_ESTOPPED)
+            assert said["toasts"] == 0, said
+            assert said["notice"].startswith("Opening the hand was e-stopped:"), said
+            assert "Run " not in said["notice"] and "(stopped)" not in said["notice"], said
+            await expect(notice).not_to_have_class(re.compile("resolved"))
+            await expect(open_in_notice).to_be_visible()
+            await page.evaluate(opened, {"completed": True})  # opened again: the hand is open
+            await expect(notice).to_contain_text("The hand is open now.")
             await page.unroute(route)
 
             # with the e-stop latched Open hand waits for the release, and says so
