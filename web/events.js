@@ -34,7 +34,15 @@ const END_WORDS = {
 function recognised(r) {
   if (!r || !r.object_class) return "";
   const conf = Number.isFinite(r.confidence) ? ` (${Math.round(100 * r.confidence)} %)` : "";
-  const turn = Number.isFinite(r.rotation_deg) ? `, turned ${r.rotation_deg.toFixed(1)}°` : "";
+  // the range it turned through (ψ max − min), and where it ended: a stroke there and back ends
+  // near its start after turning through many degrees
+  const through = Number.isFinite(r.rotation_range_deg)
+    ? `, turned through ${r.rotation_range_deg.toFixed(1)}°` : "";
+  const end = Number.isFinite(r.rotation_deg) ? Math.abs(r.rotation_deg).toFixed(1) : null;
+  let turn = through;
+  if (end !== null) {
+    turn = through ? `${through} (ends ${end}° from its start)` : `, ends ${end}° from its start`;
+  }
   const a = /^[aeiou]/.test(r.object_class) ? "an" : "a";
   return `; recognised ${a} ${r.object_class}${conf}${turn}`;
 }

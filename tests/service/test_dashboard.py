@@ -310,6 +310,20 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
     assert said == ["both contacts were lost; the object is no longer held, or both distal pads "
                     "stopped reading it",
                     "the grip force went too high (F = 6.73 above 3 × Fd)"], said  # fmt: skip
+    # a run's end says the range the object turned through, and where it ended (not the net
+    # rotation at the end alone: a stroke there and back ends near where it began)
+    said = await page.evaluate("""async () => {
+        const m = await import('/web/events.js');
+        const end = (recognition) => m.eventSentence(
+            {kind: 'end', run_id: 3, detail: {status: 'completed', recognition}});
+        return [end({object_class: 'ellipse', confidence: 0.9, rotation_deg: -0.31,
+                     rotation_range_deg: 16.12}),
+                end({object_class: 'ellipse', confidence: 0.9, rotation_deg: 0.3})];
+    }""")
+    assert said == ["Run 3 completed; recognised an ellipse (90 %), turned through 16.1° "
+                    "(ends 0.3° from its start)",
+                    "Run 3 completed; recognised an ellipse (90 %), ends 0.3° from its start",
+                    ], said  # fmt: skip
     # the browser's benign ResizeObserver note is no error
     await page.evaluate(
         "window.dispatchEvent(new ErrorEvent('error', {message: "
