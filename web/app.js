@@ -1303,9 +1303,11 @@ function renderRuns(runs) {
     const est = rec && typeof rec.rotation_range_deg === "number" ? rec.rotation_range_deg : null;
     const truly = sum.truth && typeof sum.truth.rotation_range_deg === "number"
       ? sum.truth.rotation_range_deg : null;
-    if (est !== null && truly !== null) bits.push(`rot ${fmt(est)}° (true ${fmt(truly)}°)`);
-    else if (est !== null) bits.push(`rot ${fmt(est)}°`);
-    else if (truly !== null) bits.push(`rot ${fmt(truly)}° (true)`);
+    // a run that never rolled (no iteration) turned nothing: no rotation said
+    const rolled = Number(r.iterations ?? sum.iterations) > 0;
+    const trueRot = truly !== null ? ` (true ${fmt(truly)}°)` : "";
+    if (rolled && est !== null) bits.push(`rot ${fmt(est)}°${trueRot}`);
+    else if (rolled && truly !== null) bits.push(`true rot ${fmt(truly)}°`);
     cell(tr, bits.join(" · "));
     const td = cell(tr, "", "actions");
     const replay = document.createElement("button");

@@ -665,9 +665,16 @@ async def test_a_run_is_deleted_once_the_person_confirms_and_older_runs_are_list
     many = [{"id": i, "started_at": "2026-12-01T09:00:00.000+0000", "ended_at": None,
              "status": "completed", "iterations": 0, "meta": {}, "summary": None}
             for i in range(1000, 949, -1)]  # fmt: skip
+    # a run that never rolled says no rotation; one that rolled, how far the object turned
+    many[0].update(status="faulted", summary={"message": "no_contact",
+                                              "truth": {"rotation_range_deg": 0.0}})  # fmt: skip
+    many[1].update(iterations=120, summary={"truth": {"rotation_range_deg": 16.14}})
     await page.route(re.compile(r"/api/runs\?limit=51$"), lambda r: r.fulfill(json=many))
     await page.locator("#runs-refresh").dispatch_event("click")
     await expect(page.locator("#runs tbody tr")).to_have_count(50)
+    summary = "#runs tbody tr[data-run-id='{}'] td:nth-child(8)"
+    await expect(page.locator(summary.format(1000))).to_have_text("no_contact")
+    await expect(page.locator(summary.format(999))).to_have_text("true rot 16.1°")
     async with page.expect_request(re.compile(r"/api/runs\?limit=101$")):
         await page.locator("#runs-older").dispatch_event("click")
     await expect(page.locator("#runs-older")).to_be_hidden()  # the service has fewer
