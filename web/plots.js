@@ -183,6 +183,8 @@ export class Plots {
           show: s.show ?? true,
           spanGaps: false,
           points: { show: false },
+          // no value at that iteration (e.g. no targets once the rolling ended): a dash, not blank
+          value: (u, v) => (v == null ? "–" : uPlot.fmtNum(v)),
         })),
       ],
       hooks: {
@@ -350,7 +352,9 @@ export class Plots {
       this.dirty = false;
       const buf = this.current();
       this.charts.forEach((c, i) => c.setData(buf.cols[i]));
-      this.restLegends();
+      // after uPlot has taken the new data (it commits in a microtask, queued before this one):
+      // a replay's cursor pinned before, at its open, sits on the new scale (index 0 too)
+      queueMicrotask(() => this.restLegends());
       // values that wrap the legend onto another line take room from the chart
       if (this.charts.some((c) => c._container.querySelector(".u-legend")?.offsetHeight !== c._legendH)) {
         this.resize();

@@ -710,6 +710,8 @@ async def test_a_long_run_replays_at_one_iteration_in_every_k(
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
     await row.locator("button.replay").dispatch_event("click")
     await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=60_000)
+    # the legends show the scrubber's iteration from the start (the first: φ2 = 10 + 1)
+    await legends_at(page, [1, 11])
     assert await page.get_attribute("#replay-banner", "data-every") == "3"
     text = await page.inner_text("#replay-text")
     assert f"{total} iterations (every 3rd shown)" in text, text
@@ -724,11 +726,32 @@ async def test_a_long_run_replays_at_one_iteration_in_every_k(
     )
     got = await page.evaluate(SHOWN)
     assert got["pads"] == got["sketch"] == got["readout"] == str(last), got
+    await legends_at(page, [last, 10 + last])  # the last too
     assert got["plots"] == [str(last)] * len(PLOTS) and got["at"].startswith(f"iteration {last} ")
     assert "no data" not in got["padInfo"], got  # the iteration's own frame
     y, z, psi = (float(v) for v in got["objectPose"].split(","))
     assert (y, z) == (30.0, 110.0) and psi == pytest.approx(1e-4 * last)  # and its truth
     await page.click("#back-to-live")
+
+
+# The joints plot's legend: each series' label and value.
+JOINTS_LEGEND = """() => Object.fromEntries([...document.querySelectorAll(
+  '#plot-joints .u-legend .u-series')].map((s) => [s.querySelector('.u-label').textContent,
+                                                  s.querySelector('.u-value').textContent]))"""
+
+
+async def legends_at(page: Any, values: list[int]) -> None:
+    """The joints plot's legend comes to show iteration and φ2 ``values`` (as uPlot writes a
+    number); a value the sample has not (its φ2d…φ5d: the test's samples have no targets) says
+    so with a dash, not blank."""
+    want = await page.evaluate("(vs) => vs.map((v) => uPlot.fmtNum(v))", values)
+    shows = f"(w) => {{ const g = ({JOINTS_LEGEND})(); return g.it === w[0] && g['φ2'] === w[1]; }}"
+    try:
+        await page.wait_for_function(shows, arg=want)
+    except playwright_api.TimeoutError:
+        raise AssertionError(f"legend {await page.evaluate(JOINTS_LEGEND)}, not {want}") from None
+    got = await page.evaluate(JOINTS_LEGEND)
+    assert [got[f"φ{i}d"] for i in range(2, 6)] == ["–"] * 4, got
 
 
 async def test_bad_parameter_shows_the_422_next_to_the_field(
