@@ -914,6 +914,28 @@ function setPose(angles) {
 
 // --- telemetry --------------------------------------------------------------------------------
 
+// The sim's object falls when the fingers open (a run's releasing, Open hand) as when it slips
+// out mid-run: its truth says `dropped` both times. Whether the fingers were letting go when
+// it first fell tells a release from a drop (kept until the object is placed again).
+const fate = { dropped: false, released: false };
+
+function lettingGo() {
+  const st = state.status || {};
+  const run = st.run || {};
+  return Boolean(st.hand && st.hand.opening) || state.opening !== null || state.openPending ||
+    ["releasing", "done", "stopped"].includes(run.state) ||
+    (run.id != null && state.releasedRuns.has(run.id));
+}
+
+/** The sim's truth, `released` added when the fingers let go of the object on purpose. */
+function withFate(truth) {
+  if (!truth) return truth;
+  if (!truth.dropped) fate.released = false;
+  else if (!fate.dropped) fate.released = lettingGo(); // it fell just now
+  fate.dropped = Boolean(truth.dropped);
+  return { ...truth, released: fate.released };
+}
+
 // What an event's sentence may quote: the samples of recent iterations (the reversal's own
 // comes right after it), α in force, the iteration of the run's previous reversal.
 const recent = { samples: new Map(), lastReversal: new Map(), pending: [] };
@@ -1175,7 +1197,7 @@ function onMessage(m) {
       setPose(m.angles_deg || []);
       break;
     case "sim":
-      sketch.setTruth(m.truth);
+      sketch.setTruth(withFate(m.truth));
       liveTurn.psi = m.truth && m.truth.pose ? m.truth.pose[2] : null;
       break;
     case "event":

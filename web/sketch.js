@@ -107,6 +107,15 @@ export function placedTruth(outline, row) {
   };
 }
 
+/** What became of the true object: "released" when it fell as the fingers let go of it on
+ * purpose (`released`: said by the page, the sim's truth has only `dropped`), "dropped" when it
+ * fell before, else held or not. */
+export function objectFate(truth) {
+  if (!truth) return "";
+  if (truth.released) return "released";
+  return truth.dropped ? "dropped" : truth.held ? "held" : "not held";
+}
+
 export class Sketch {
   constructor(canvas) {
     this.canvas = canvas;
@@ -212,7 +221,8 @@ export class Sketch {
         else ctx.lineTo(x, y);
       });
       ctx.closePath();
-      ctx.fillStyle = truth.dropped ? "rgba(214,39,40,0.15)" : "rgba(255,193,7,0.28)";
+      ctx.fillStyle = truth.released ? "rgba(120,120,120,0.15)"
+        : truth.dropped ? "rgba(214,39,40,0.15)" : "rgba(255,193,7,0.28)";
       ctx.fill();
       ctx.strokeStyle = "#b8860b";
       ctx.lineWidth = 1.5 * dpr;
@@ -410,10 +420,10 @@ export class Sketch {
       const alpha = Math.round(10 * coneAlpha(contact, this.alpha)) / 10;
       lines.push(`ωA = ${wa}°, ωB = ${wb}° (cone 90 ± ${alpha}°)`);
     }
-    if (truth) {
-      const t = truth;
-      lines.push(`object ${t.object ?? "?"}: ${t.dropped ? "dropped" : t.held ? "held" : "not held"}`);
-    }
+    const fate = objectFate(truth);
+    if (fate) lines.push(`object ${truth.object ?? "?"}: ${fate}`);
+    if (fate && !shown) this.canvas.dataset.object = fate;
+    else delete this.canvas.dataset.object;
     ctx.fillStyle = "#333";
     lines.forEach((l, i) => ctx.fillText(l, 8 * dpr, (16 + 15 * i) * dpr));
   }

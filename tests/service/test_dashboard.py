@@ -230,6 +230,28 @@ async def test_layout_and_static_assets(service: LiveService, page: Any) -> None
     await lab_screen_toasts_and_the_parameter_drawer(page)
 
 
+# What the sketch says of the object after each (run state, the sim's `dropped`): held; falls
+# mid-roll: dropped (and stays so as the run releases); placed again; falls as it releases:
+# released (and stays so once the run is done).
+OBJECT_FATES = """() => {
+  const d = window.sdh2debug;
+  const base = structuredClone(d.status());
+  const out = [];
+  for (const [runState, dropped] of [['rolling', false], ['rolling', true], ['releasing', true],
+                                     ['grasping', false], ['releasing', true], ['done', true]]) {
+    const st = structuredClone(base);
+    st.run = {...(st.run || {}), id: 99999, state: runState};
+    d.onMessage({type: 'status', status: st});
+    d.onMessage({type: 'sim', truth: {object: 'egg', held: !dropped, dropped, in_fixture: false,
+                                      pose: [20, 120, 0], outline: [], contacts: []}});
+    d.sketch.draw();
+    out.push(document.querySelector('#sketch').dataset.object);
+  }
+  d.onMessage({type: 'status', status: base});
+  return out;
+}"""
+
+
 # The boxes of the control bar, the pads and the six plots (viewport pixels).
 BOXES = """() => {
   const box = (e) => {
@@ -324,6 +346,11 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
                     "(ends 0.3° from its start)",
                     "Run 3 completed; recognised an ellipse (90 %), ends 0.3° from its start",
                     ], said  # fmt: skip
+    # the sketch's object: "released" when it fell as the run let go of it (its releasing
+    # phase), "dropped" when it fell mid-run; fed with the sim's truth and a status each, in one
+    # turn (no real message between), drawn at once
+    fates = await page.evaluate(OBJECT_FATES)
+    assert fates == ["held", "dropped", "dropped", "held", "released", "released"], fates
     # the browser's benign ResizeObserver note is no error
     await page.evaluate(
         "window.dispatchEvent(new ErrorEvent('error', {message: "
