@@ -194,6 +194,7 @@ function openDrawer(open) {
   const want = open ?? !was;
   drawer.classList.toggle("open", want);
   drawer.setAttribute("aria-hidden", String(!want));
+  document.body.classList.toggle("drawer-open", want); // the toasts move clear of its buttons
   $("#params-toggle").setAttribute("aria-expanded", String(want));
   if (want && !was) {
     // the drawer is last in the page: without this, Tab walks the whole page to reach it

@@ -98,14 +98,17 @@ export class ParamsForm {
       const desc = document.createElement("div");
       desc.className = "desc";
       desc.textContent = `${p.description ?? ""}${p.enum ? "" : ` — ${rangeText(name, p)}`}`;
+      desc.id = `param-${name}-desc`;
       const err = document.createElement("div");
       err.className = "field-error";
+      err.id = `param-${name}-error`;
       err.dataset.errorFor = name;
+      input.setAttribute("aria-describedby", desc.id);
       input.addEventListener("input", () => this.onInput(name));
       input.addEventListener("change", () => this.onInput(name));
       row.append(label, input, desc, err);
       this.fieldsEl.appendChild(row);
-      this.inputs[name] = { input, row, err, p };
+      this.inputs[name] = { input, row, err, desc, p };
     }
   }
 
@@ -173,6 +176,10 @@ export class ParamsForm {
     if (!f) return;
     f.err.textContent = msg;
     f.row.classList.toggle("invalid", Boolean(msg));
+    // a screen reader says the field is wrong, and why, with the field
+    if (msg) f.input.setAttribute("aria-invalid", "true");
+    else f.input.removeAttribute("aria-invalid");
+    f.input.setAttribute("aria-describedby", msg ? `${f.err.id} ${f.desc.id}` : f.desc.id);
   }
 
   clearErrors() {

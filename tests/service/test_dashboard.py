@@ -781,6 +781,20 @@ async def legends_at(page: Any, values: list[int]) -> None:
     assert [got[f"φ{i}d"] for i in range(2, 6)] == ["–"] * 4, got
 
 
+# The toasts shown, and whether one overlaps the open parameter drawer (its Apply and Reset
+# buttons, scrolled into its sight, are at the bottom of its box on a small screen).
+COVERED = """() => {
+  document.querySelector('#params-apply').scrollIntoView({block: 'nearest'});
+  const box = (e) => e.getBoundingClientRect();
+  const meet = (a, b) =>
+    a.left < b.right && b.left < a.right && a.top < b.bottom && b.top < a.bottom;
+  const toasts = [...document.querySelectorAll('#errors .toast')].map(box);
+  const drawer = ['#params-drawer', '#params-apply', '#params-reset'].map(
+    (s) => box(document.querySelector(s)));
+  return {toasts: toasts.length, covered: toasts.some((t) => drawer.some((b) => meet(t, b)))};
+}"""
+
+
 async def test_bad_parameter_shows_the_422_next_to_the_field(
     service: LiveService, page: Any
 ) -> None:
@@ -808,6 +822,18 @@ async def test_bad_parameter_shows_the_422_next_to_the_field(
     assert await err.is_visible()
     assert body["error"] in await page.inner_text("#errors")
     assert body["error"] in (await counters(page))["lastError"]
+    # the field says it is wrong, and why, to a screen reader too
+    k = page.locator("#params-form input[name=k]")
+    await expect(k).to_have_attribute("aria-invalid", "true")
+    described = (await k.get_attribute("aria-describedby") or "").split()
+    assert "param-k-error" in described, described
+    await expect(page.locator("#param-k-error")).to_have_text(expected)
+    # the error's toast does not cover the open drawer's buttons (on a laptop's screen, where
+    # the drawer's buttons reach down to the toasts' corner)
+    await page.set_viewport_size({"width": 1024, "height": 768})
+    boxes = await page.evaluate(COVERED)
+    await page.set_viewport_size({"width": 1500, "height": 1200})
+    assert boxes["toasts"] and not boxes["covered"], boxes
     assert httpx.get(service.url + "/api/params").json() == before
 
     # a valid value is applied and clears the message
@@ -816,6 +842,7 @@ async def test_bad_parameter_shows_the_422_next_to_the_field(
     await page.wait_for_function(
         "document.querySelector('[data-error-for=k]').textContent === ''", timeout=10_000
     )
+    await expect(k).not_to_have_attribute("aria-invalid", "true")
     assert httpx.get(service.url + "/api/params").json()["k"] == before["k"] + 1
     r = httpx.patch(service.url + "/api/params", json={"k": before["k"]}, headers=service.headers())
     assert r.status_code == 200
