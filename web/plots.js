@@ -183,8 +183,9 @@ export class Plots {
           show: s.show ?? true,
           spanGaps: false,
           points: { show: false },
-          // no value at that iteration (e.g. no targets once the rolling ended): a dash, not blank
-          value: (u, v) => (v == null ? "–" : uPlot.fmtNum(v)),
+          // no value at that iteration (e.g. no targets once the rolling ended): uPlot's "--"
+          // as with no iteration at all, not blank
+          value: (u, v) => (v == null ? "--" : uPlot.fmtNum(v)),
         })),
       ],
       hooks: {

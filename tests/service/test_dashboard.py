@@ -770,7 +770,7 @@ JOINTS_LEGEND = """() => Object.fromEntries([...document.querySelectorAll(
 async def legends_at(page: Any, values: list[int]) -> None:
     """The joints plot's legend comes to show iteration and φ2 ``values`` (as uPlot writes a
     number); a value the sample has not (its φ2d…φ5d: the test's samples have no targets) says
-    so with a dash, not blank."""
+    so with uPlot's "--", not blank."""
     want = await page.evaluate("(vs) => vs.map((v) => uPlot.fmtNum(v))", values)
     shows = f"(w) => {{ const g = ({JOINTS_LEGEND})(); return g.it === w[0] && g['φ2'] === w[1]; }}"
     try:
@@ -778,7 +778,7 @@ async def legends_at(page: Any, values: list[int]) -> None:
     except playwright_api.TimeoutError:
         raise AssertionError(f"legend {await page.evaluate(JOINTS_LEGEND)}, not {want}") from None
     got = await page.evaluate(JOINTS_LEGEND)
-    assert [got[f"φ{i}d"] for i in range(2, 6)] == ["–"] * 4, got
+    assert [got[f"φ{i}d"] for i in range(2, 6)] == ["--"] * 4, got
 
 
 # The toasts shown, and whether one overlaps the open parameter drawer (its Apply and Reset
