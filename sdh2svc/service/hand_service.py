@@ -785,7 +785,11 @@ class HandService:
             )
             log.warning("the e-stop was latched in %s by another program (since %s: %s): "
                         "e-stop", store.path, latch["since"], latch["reason"])  # fmt: skip
-            answer = await self.estop()
+            try:
+                answer = await self.estop()
+            except Exception:  # a bug must not end the watch: the next poll tries again
+                log.exception("the e-stop for the latch on disk failed")
+                continue
             await tell_taken(store, latch, this_program("the service"), answer["hand_reached"])
 
     async def _pose_loop(self) -> None:
