@@ -794,7 +794,7 @@ def cmd_estop(args: argparse.Namespace) -> int:
               "this latch does not stop it: it was NOT stopped — stop it through its API (POST "
               "/api/estop) or the dashboard, or latch the database it uses (--set "
               "storage.db_path=…)", file=sys.stderr)  # fmt: skip
-        if args.latch and others:
+        if others:  # a program on this database may still stop a hand of its own
             _estop_taken(cfg, where, latch, others)
         return Exit.FAILED
     if via is not None:

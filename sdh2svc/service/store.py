@@ -693,7 +693,7 @@ class RunStore:
             self._durably_locked("DELETE FROM estop", more=("DELETE FROM estop_taken",))
 
     def took_estop(self, since: str, program: str, hand_reached: bool) -> None:
-        """``program`` (e.g. "the service, pid 12 on lab-pc") stopped its hand for the latch
+        """``program`` (e.g. "the service (pid 12 on lab-pc)") stopped its hand for the latch
         pressed at ``since``, which another program wrote: what ``sdh2svc estop --latch`` waits
         for. Nothing is written once that latch is gone (released meanwhile)."""
         with self._lock, self.db:
