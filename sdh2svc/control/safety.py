@@ -340,7 +340,8 @@ def grasp_timeout(
             return None
         msg += (f"; untouched, the fingers closed at {speed:.2f}°/s of the "
                 f"{commanded:g}°/s commanded: the joint angles and the frames come too "
-                "slowly over the lines for the run (their baud rate?)")  # fmt: skip
+                "slowly over the lines for the run (their baud rate?), or the loop is held up "
+                "(a computer too busy: a simulated hand shares its CPU)")  # fmt: skip
     return Violation(Fault.NO_CONTACT, msg)
 
 
