@@ -106,18 +106,19 @@ class SafetyConfig(Finite):
         return min(self.force_ceiling_factor * grasp_force, self.force_ceiling_max)
 
 
-def params_outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
+def params_outside(p: RollingParams, safety: SafetyConfig, section: str = "rolling.") -> list[str]:
     """One line per rolling parameter the supervisor's limits would void (none: all within):
     an Fd whose ceiling the maximum would cut (no headroom left between the grip and the stop),
     and a Finger 1 step the step limit would clip (Finger 1 would lag its plan, which squeezes
     or drops the object, instead of the iteration slowing down as the step means it to).
     Finger 2's k·Δφ beyond the step limit is clipped, not refused: the thesis's sticks roll at
-    k = 5 (1.25° a step, Finger 2 following its route at 1°)."""
+    k = 5 (1.25° a step, Finger 2 following its route at 1°). Each line names its field after
+    ``section`` (the configuration's ``rolling.``; the API's fields have none)."""
     out = []
     top = params_maxima(safety)["grasp_force"]
     if p.grasp_force > top:
         out.append(
-            f"rolling.grasp_force = {p.grasp_force:g}: its ceiling, safety.force_ceiling_factor "
+            f"{section}grasp_force = {p.grasp_force:g}: its ceiling, safety.force_ceiling_factor "
             f"× Fd = {safety.force_ceiling_factor * p.grasp_force:g}, is above "
             f"safety.force_ceiling_max = {safety.force_ceiling_max:g} (allowed: grasp_force ≤ "
             f"{top:g}: a firmer grip needs a higher safety.force_ceiling_max in the configuration)"
@@ -125,7 +126,7 @@ def params_outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
     step = safety.max_step_deg
     if p.finger1_max_step_deg > step:
         out.append(
-            f"rolling.finger1_max_step_deg = {p.finger1_max_step_deg:g}: above "
+            f"{section}finger1_max_step_deg = {p.finger1_max_step_deg:g}: above "
             f"safety.max_step_deg = {step:g}, the supervisor's step limit (allowed: ≤ {step:g})"
         )
     return out

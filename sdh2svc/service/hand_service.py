@@ -93,17 +93,11 @@ def validate_params(
         # and what the limits say of the fields that passed: every bad field in one answer
         bad = {str(err["loc"][0]) for err in e.errors() if err["loc"]}
         ok = {k: v for k, v in merged.items() if k not in bad}  # (each valid on its own)
-        lines += _outside(current.model_copy(update=ok), safety)
+        lines += params_outside(current.model_copy(update=ok), safety, section="")
         raise ServiceError(422, "invalid rolling parameters", lines) from None
-    if problems := _outside(new, safety):
+    if problems := params_outside(new, safety, section=""):
         raise ServiceError(422, "invalid rolling parameters", problems)
     return new
-
-
-def _outside(p: RollingParams, safety: SafetyConfig) -> list[str]:
-    """:func:`params_outside`'s lines naming a field as the API does (``grasp_force``, as
-    pydantic's lines do, not the configuration's ``rolling.grasp_force``)."""
-    return [line.removeprefix("rolling.") for line in params_outside(p, safety)]
 
 
 def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Shape:
