@@ -4,6 +4,9 @@ step 1), from the two distal contacts and the actual joint angles. No I/O, no cl
 The thesis (and SCHUNK's demo) close both fingers in a mirror pose at a speed proportional to
 Fd − F. Two additions:
 
+* **An approach speed of its own.** A finger whose pad reads nothing closes at
+  ``approach_velocity_deg_s``, not at the force law's limit: it sets how far the first pad to
+  touch presses on before its frame shows the touch (config/default.toml says what it cost).
 * **A floor on the closing speed** while F < Fd: the proportional law approaches Fd
   asymptotically, and on a soft object or a small contact (little force per degree) it does not
   reach Fd before the grasp's timeout.
@@ -50,6 +53,7 @@ class GraspLaw:
     gain_deg_s: float  # closing speed per force unit below Fd
     max_velocity_deg_s: float
     min_velocity_deg_s: float  # while F < Fd
+    approach_velocity_deg_s: float  # a finger whose pad reads nothing
     align_gain: float  # fraction of the pads' wedge taken out per frame; 0: the mirror grasp
     period_s: float  # one frame
     max_step_deg: float  # per joint per frame
@@ -72,10 +76,16 @@ def closing_speed(f: float, law: GraspLaw) -> float:
     return max(-law.max_velocity_deg_s, min(law.max_velocity_deg_s, speed))
 
 
-def _closing_step(f: float, law: GraspLaw) -> float:
-    """Degrees one finger closes this frame for its own contact force ``f``."""
-    speed = closing_speed(f, law)
-    return max(-law.max_step_deg, min(speed * law.period_s, law.max_step_deg))
+def _closing_step(c: ContactEstimate, law: GraspLaw, since_s: float) -> float:
+    """Degrees one finger closes this frame for its own contact ``c``: by the force law, one
+    frame period's worth (a frame held up is a force read late: no further on it); while its
+    pad reads nothing, at the approach speed over ``since_s``, the time since the last frame
+    (nothing to wait for: a loop held up closes as fast)."""
+    if c.present:
+        step = closing_speed(c.force, law) * law.period_s
+    else:
+        step = law.approach_velocity_deg_s * since_s
+    return max(-law.max_step_deg, min(step, law.max_step_deg))
 
 
 def _omega(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: Point,
@@ -127,17 +137,24 @@ def _pivot(finger: Finger, pose: HandPose, mine: ContactEstimate, other_point: P
 
 
 def grasp_step(
-    pose: HandPose, c1: ContactEstimate, c2: ContactEstimate, law: GraspLaw, ctx: ModelContext
+    pose: HandPose,
+    c1: ContactEstimate,
+    c2: ContactEstimate,
+    law: GraspLaw,
+    ctx: ModelContext,
+    since_s: float | None = None,
 ) -> GraspStep:
     """The increments of one grasp frame: each finger closes (proximal in, distal out by the
     same angle, so the pad keeps its orientation) and, once both contacts are present, turns
-    its distal joint against the pads' wedge. Every increment is within ±``max_step_deg``."""
+    its distal joint against the pads' wedge. Every increment is within ±``max_step_deg``.
+    ``since_s``: the time since the previous frame (default: one period)."""
     lim = law.max_step_deg
 
     def clip(x: float) -> float:
         return max(-lim, min(lim, x))
 
-    s1, s2 = _closing_step(c1.force, law), _closing_step(c2.force, law)
+    since = law.period_s if since_s is None else max(0.0, since_s)
+    s1, s2 = _closing_step(c1, law, since), _closing_step(c2, law, since)
     if c1.present and c2.present and grip_force(c1, c2) < law.grasp_force:
         # the grip (their mean) short of Fd: no finger opens. Both pads press one free object
         # equally hard, so a difference between them is the pads' (their gains, a contact

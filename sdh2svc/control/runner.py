@@ -27,7 +27,7 @@ from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
 from sdh2svc.control import safety
 from sdh2svc.control.config import ControlConfig
-from sdh2svc.control.grasp import GraspLaw, closing_speed, grasp_step
+from sdh2svc.control.grasp import GraspLaw, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
@@ -37,7 +37,7 @@ from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
-from sdh2svc.model.kinematics import HandPose, pad_gap
+from sdh2svc.model.kinematics import Finger, HandPose, pad_gap
 from sdh2svc.model.observe import ModelContext, Observation
 from sdh2svc.protocol.sdh import NUM_AXES
 
@@ -345,9 +345,16 @@ class Runner:
         """Close both coupled fingers in a mirror pose, force-proportionally, until F ≥ Fd.
 
         The thesis (and SCHUNK's demo) close with a velocity command; the firmware would keep
-        that velocity if this loop died. So every frame commands a pose increment instead — the
-        closing speed × one frame period, at most ``safety.max_step_deg`` — and a lost loop
-        leaves the fingers at most one increment further.
+        that velocity if this loop died. So every frame commands a pose increment instead, and
+        a lost loop leaves the fingers at most ``safety.max_step_deg`` from their angles.
+
+        A finger whose pad reads nothing steps from its previous target, by the approach speed
+        × the time since the last frame: its newest angles are a reading old, and the servo
+        (replanning each frame) followed only part of a step taken from them, so the fingers
+        closed at ≈ 0.63 × the speed commanded, and slower lines or a loop held up (a busy
+        computer) slowed them below half, until the grasp timed out untouched. Once its pad
+        reads a contact a finger steps from its newest angles again, one frame period of the
+        force law: the force then sets how far the target leads, not the servo's lag.
         """
         self._set_phase(Phase.GRASPING)
         run, fd = self.config.run, self.params.grasp_force
@@ -362,6 +369,7 @@ class Runner:
             gain_deg_s=run.grasp_gain_deg_s,
             max_velocity_deg_s=run.grasp_max_velocity_deg_s,
             min_velocity_deg_s=run.grasp_min_velocity_deg_s,
+            approach_velocity_deg_s=run.grasp_approach_velocity_deg_s,
             align_gain=run.grasp_align_gain,
             period_s=period,
             max_step_deg=self.config.safety.max_step_deg,
@@ -371,15 +379,15 @@ class Runner:
         # from the pre-shape, and the closing takes most of the timeout before it touches
         touched: float | None = None
         opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
+        aim: tuple[float, ...] | None = None  # the targets commanded last
+        last: float | None = None  # when the previous frame was taken
         read = [False, False]  # whether each distal pad has read a contact in the grasp
         progress: deque[tuple[float, float]] = deque()  # (t, closed °) of the untouched frames
-        free = closing_speed(0.0, law)  # the speed it commands until something touches
+        free = law.approach_velocity_deg_s  # the speed it commands until something touches
         while not self._stop.is_set():
             if self._adopt_pending():  # a new Fd: the grasp closes towards it from this frame
                 fd = self.params.grasp_force
                 law = replace(law, grasp_force=fd)
-                free = closing_speed(0.0, law)
-                progress.clear()  # the stall's window: frames at the new speed only
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
             F = grip_force(c1, c2)
@@ -389,20 +397,21 @@ class Runner:
             if opened is None:
                 opened = actual
             pose = self._axes.pose(actual)
-            g = grasp_step(pose, c1, c2, law, self.ctx)
+            now = loop.time()
+            g = grasp_step(pose, c1, c2, law, self.ctx, None if last is None else now - last)
+            last = now
             if F >= fd:  # held; the pads may still turn against their wedge for a while
-                settle_until = settle_until or loop.time() + run.grasp_settle_s
+                settle_until = settle_until or now + run.grasp_settle_s
             if settle_until is not None:
                 # (once held, F may dip below Fd while the pads turn: the settling ends the
                 # grasp, not the timeout; the rolling's force band takes F back to Fd)
                 wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
                 settled = F >= fd and (wedge_ok or law.align_gain == 0)
-                if settled or loop.time() >= settle_until:
+                if settled or now >= settle_until:
                     _raise(safety.grasp_lost(c1.present, c2.present, *read))
                     self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
                     return
             else:
-                now = loop.time()
                 touching = max(c1.force, c2.force) > self.params.contact_force_min
                 if touched is None and touching:
                     touched = now
@@ -418,9 +427,22 @@ class Runner:
                     _raise(safety.grasp_stalled(*stall, closed, now - started, free, lost=lost))
                     _raise(safety.pads_met(pad_gap(pose, self.ctx.geom), lost=lost))
             _raise(safety.closed_empty(actual, self._axes, run))
-            want = self._axes.wire_steps(g.d_phi, actual)
-            await self.joints.set_targets(self._clamp(want, actual))
+            base = self._step_base(actual, aim, (c1.present, c2.present))
+            aim = self._clamp(self._axes.wire_steps(g.d_phi, base), actual)
+            await self.joints.set_targets(aim)
             await self.joints.move()
+
+    def _step_base(self, actual: tuple[float, ...], aim: tuple[float, ...] | None,
+                   present: tuple[bool, bool]) -> list[float]:  # fmt: skip
+        """Where a grasp frame's increments start: a finger's previous targets while its pad
+        reads nothing (the ``_clamp`` bounds their lead over the angles), else its angles."""
+        base = list(actual)
+        if aim is not None:
+            for finger, touching in zip((Finger.ONE, Finger.TWO), present, strict=True):
+                if not touching:
+                    for axis in self._axes.finger_axes(finger):
+                        base[axis] = aim[axis]
+        return base
 
     @staticmethod
     def _approach(progress: deque[tuple[float, float]], now: float,

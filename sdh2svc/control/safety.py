@@ -22,13 +22,13 @@ from sdh2svc.model.hand import AngleDeg, AxisMap, JointLimits
 
 Deg7 = tuple[AngleDeg, ...]
 SLOW_CLOSING = 0.5  # an untouched grasp closing below this share of its speed times out (a healthy
-# one closes at ≈ 0.63: each frame's increment starts from the newest angles, a step behind)
+# one closes at ≈ 0.96–1.0 of it, on lines as slow as 9600 baud: tests/control/test_runner.py)
 # An untouched grasp's pads this close: nothing between them. The margin covers the newest
-# angles' age (≤ safety.stale_joint_ms: ≈ 1 mm of each pad at 1.9 °/s) and the pads' model
+# angles' age (≤ safety.stale_joint_ms: ≈ 1 mm of each pad at 2 °/s) and the pads' model
 MIN_PAD_GAP_MM = 5.0
 STALL_S = 2.0  # an untouched grasp is judged on how far it closed over this long: …
 SLOWDOWN = 0.5  # …under this share of its own mean speed so far, something stopped it (the
-# encoders go on slowly as the fingers' structure yields: 0.6 °/s against 1.9 °/s in the air)
+# encoders go on slowly as the fingers' structure yields: 0.6 °/s against 2 °/s in the air)
 
 
 class RunConfig(Finite):
@@ -38,6 +38,7 @@ class RunConfig(Finite):
     preshape_velocity_deg_s: Annotated[float, Field(gt=0.0, le=200.0)]
     grasp_gain_deg_s: Annotated[float, Field(gt=0.0, le=100.0)]
     grasp_max_velocity_deg_s: Annotated[float, Field(gt=0.0, le=100.0)]
+    grasp_approach_velocity_deg_s: Annotated[float, Field(gt=0.0, le=100.0)]
     grasp_min_velocity_deg_s: Annotated[float, Field(ge=0.0, le=100.0)]
     grasp_align_gain: Annotated[float, Field(ge=0.0, le=1.0)]
     grasp_settle_s: Annotated[float, Field(ge=0.0, le=60.0)]
@@ -56,11 +57,11 @@ class RunConfig(Finite):
 
     @model_validator(mode="after")
     def _grasp_speeds(self) -> RunConfig:
-        if self.grasp_min_velocity_deg_s > self.grasp_max_velocity_deg_s:
-            raise ValueError(
-                f"grasp_min_velocity_deg_s ({self.grasp_min_velocity_deg_s:g}) must not exceed "
-                f"grasp_max_velocity_deg_s ({self.grasp_max_velocity_deg_s:g})"
-            )
+        top = self.grasp_max_velocity_deg_s  # the joints' velocity limit during the grasp
+        for key in ("grasp_min_velocity_deg_s", "grasp_approach_velocity_deg_s"):
+            if getattr(self, key) > top:
+                raise ValueError(f"{key} ({getattr(self, key):g}) must not exceed "
+                                 f"grasp_max_velocity_deg_s ({top:g})")  # fmt: skip
         return self
 
     def speeds_outside(self, vlim: Sequence[float]) -> list[str]:
@@ -327,9 +328,10 @@ def grasp_timeout(
     how fast the grasp commands them to (°/s). An untouched grasp whose fingers still close at
     ``SLOW_CLOSING`` of that speed or more goes on: the smallest objects are touched after
     ≈ 20 s of closing, :func:`pads_met` ends an approach that meets nothing and
-    :func:`grasp_stalled` one that something stops. Each frame commands one increment from the
-    newest joint angles, so lines too slow for the run (a wrong baud rate) close the fingers much
-    slower than commanded: that grasp times out, and its message says so rather than only "no
+    :func:`grasp_stalled` one that something stops. An untouched finger's increments follow on
+    from its previous target and cover the time since the last frame, so neither slow lines nor
+    a loop held up slow it; fingers that do not follow their targets do (an axis moving slower
+    than commanded): that grasp times out, and its message says so rather than only "no
     grasp"."""
     if F >= grasp_force or now <= started + run.grasp_timeout_s:
         return None
@@ -340,9 +342,8 @@ def grasp_timeout(
         if speed >= SLOW_CLOSING * commanded:
             return None
         msg += (f"; untouched, the fingers closed at {speed:.2f}°/s of the "
-                f"{commanded:g}°/s commanded: the joint angles and the frames come too "
-                "slowly over the lines for the run (their baud rate?), or the loop is held up "
-                "(a computer too busy: a simulated hand shares its CPU)")  # fmt: skip
+                f"{commanded:g}°/s commanded: they lag behind their targets (an axis that "
+                "moves slower than commanded)")  # fmt: skip
     return Violation(Fault.NO_CONTACT, msg)
 
 
@@ -364,8 +365,8 @@ def grasp_stalled(window_deg: float, window_s: float, closed_deg: float, since_s
     """A grasp with nothing touched whose proximal joints closed ``window_deg`` over the last
     ``window_s`` (≥ ``STALL_S``), slower than ``SLOWDOWN`` of their own mean speed since the
     grasp began (``closed_deg`` in ``since_s``): something stopped the fingers where no distal
-    pad senses it (a link, the thumb, an object between pads that do not sense). Lines too slow
-    close slowly from the start, and time out instead (:func:`grasp_timeout`). ``lost``: a pad
+    pad senses it (a link, the thumb, an object between pads that do not sense). Fingers slow
+    from the start time out instead (:func:`grasp_timeout`). ``lost``: a pad
     had touched before (the pads may have gone dead on the object)."""
     if window_s < STALL_S or since_s <= 0.0:
         return None

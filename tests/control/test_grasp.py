@@ -21,8 +21,8 @@ WEDGED = HandPose(rad(-20), rad(40), rad(-20), rad(40))
 
 def law(**kw: float) -> GraspLaw:
     base = {"grasp_force": 2.0, "gain_deg_s": 2.5, "max_velocity_deg_s": 3.0,
-            "min_velocity_deg_s": 0.5, "align_gain": 0.5, "period_s": 1 / 30,
-            "max_step_deg": 1.0}  # fmt: skip
+            "min_velocity_deg_s": 0.5, "approach_velocity_deg_s": 2.0, "align_gain": 0.5,
+            "period_s": 1 / 30, "max_step_deg": 1.0}  # fmt: skip
     return GraspLaw(**{**base, **kw})
 
 
@@ -31,11 +31,13 @@ def contacts(cfg: Settings, amplitude: float) -> tuple:
     return ctx.contact(frame(20.0, amplitude)), ctx.contact(frame(20.0, amplitude))
 
 
-def test_no_contact_closes_at_full_speed_keeping_the_pads_orientation(cfg: Settings) -> None:
+def test_no_contact_closes_at_the_approach_speed_keeping_the_pads_orientation(
+    cfg: Settings,
+) -> None:
     ctx = cfg.model_context()
     empty = ctx.contact(np.zeros((13, 6), np.uint16))
     g = grasp_step(PARALLEL, empty, empty, law(), ctx)
-    step = 3.0 / 30  # max velocity × one frame
+    step = 2.0 / 30  # the approach speed × one frame, not the force law's 3 °/s at F = 0
     assert g.d_phi == pytest.approx((step, -step, step, -step))
     assert g.wedge_deg is None
 
@@ -50,7 +52,7 @@ def test_the_first_pad_to_touch_waits_for_the_other(cfg: Settings, first: int) -
     g = grasp_step(PARALLEL, *pair, law(align_gain=0.0), ctx)
     waiting, closing = (g.d_phi[0], g.d_phi[2]) if first == 0 else (g.d_phi[2], g.d_phi[0])
     assert waiting == pytest.approx(0.5 / 30)  # the speed floor, not Fd − F's 3 °/s
-    assert closing == pytest.approx(3.0 / 30)  # the other finger comes on at full speed
+    assert closing == pytest.approx(2.0 / 30)  # the other comes on at the approach speed
     both = grasp_step(PARALLEL, touch, touch, law(align_gain=0.0), ctx)
     assert both.d_phi[0] == both.d_phi[2] > 0.5 / 30  # both touching: each by its own force
 
