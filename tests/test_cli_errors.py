@@ -26,6 +26,7 @@ from sdh2svc.cli import Exit, main, status_url
 from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.service.store import Recorder, RunStore
+from tests.live_service import AT_PRESHAPE, FAST_GRASP
 from tests.service.test_replay_api import sample as replay_sample
 from tests.service.test_retention import another_process_open
 
@@ -731,7 +732,7 @@ def test_a_second_signal_ends_the_run_at_once_and_says_where_it_left_the_hand(
     import signal
 
     db = tmp_path / "r.sqlite"
-    with _begun_run(db) as proc:
+    with _begun_run(db, *AT_PRESHAPE, *FAST_GRASP) as proc:
         # once the fingers hold the object: their release back to the pre-shape takes a second
         # or two (15–20°/s); from the pre-shape's own move it could end before the Ctrl-C came
         _until(lambda: "rolling" in _phases(db))

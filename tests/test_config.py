@@ -184,6 +184,10 @@ def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None
             "grasp_min_velocity_deg_s (10) must not exceed grasp_max_velocity_deg_s (3)",
         ),
         (
+            ["run.grasp_approach_velocity_deg_s=4"],
+            "grasp_approach_velocity_deg_s (4) must not exceed grasp_max_velocity_deg_s (3)",
+        ),
+        (
             ["service.port=8080", "service.viser_port=8080"],
             "service.port and service.viser_port are both 8080",
         ),

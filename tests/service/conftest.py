@@ -6,18 +6,12 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.live_service import LiveService, start_service
+from tests.live_service import FAST_GRASP, LiveService, start_service
 
 # These tests are about the service, not the force loop (tests/control and the reproduction
 # report are): in real time the egg's force peaks near the first reversal reach 4.6–5.3 against
 # the default ceiling of 3 × Fd = 6, and some runs fault there. A ceiling of 4 × Fd keeps the
-# runs these tests watch going. Nor are they about the grasp (tests/control and
-# test_motion_safety.py are): the fingers approach at 6 °/s instead of 2 and close on the egg at
-# most at 9 °/s instead of 3 (0.2–0.3° per frame period, under a third of safety.max_step_deg),
-# so a run reaches its rolling in ≈ 9 s of real time instead of ≈ 17 (in fast mode the egg's
-# grip peaks at 1.7 × Fd).
-FAST_GRASP = ("--set", "run.grasp_max_velocity_deg_s=9.0", "--set", "run.grasp_gain_deg_s=5.0",
-              "--set", "run.grasp_approach_velocity_deg_s=6.0")  # fmt: skip
+# runs these tests watch going. Nor are they about the grasp: FAST_GRASP.
 LONG_RUNS = ("--set", "safety.force_ceiling_factor=4.0", *FAST_GRASP)
 # The dashboard's, the API's and the client's tests run a real-time service while chromium or
 # the other test worker (building a virtual environment) share its two cores: the service can
