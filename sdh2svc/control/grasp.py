@@ -2,7 +2,7 @@
 step 1), from the two distal contacts and the actual joint angles. No I/O, no clock.
 
 The thesis (and SCHUNK's demo) close both fingers in a mirror pose at a speed proportional to
-Fd − F. Two additions:
+Fd − F. Our additions:
 
 * **An approach speed of its own.** A finger whose pad reads nothing closes at
   ``approach_velocity_deg_s``, not at the force law's limit: it sets how far the first pad to

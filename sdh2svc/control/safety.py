@@ -370,7 +370,7 @@ def grasp_stalled(window_deg: float, window_s: float, closed_deg: float, since_s
     had touched before (the pads may have gone dead on the object)."""
     if window_s < STALL_S or since_s <= 0.0:
         return None
-    # (the mean no faster than commanded now: an Fd lowered mid-grasp slows the closing)
+    # (the mean no faster than commanded: a finger that fell behind and catches up is no stall)
     rate, mean = window_deg / window_s, min(closed_deg / since_s, commanded)
     if rate < SLOWDOWN * mean:
         what = "no pad reads the contact any more, and " if lost else ""
