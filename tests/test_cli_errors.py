@@ -1043,7 +1043,8 @@ def test_cycles_must_be_a_count_of_strokes(cycles: str, capsys: pytest.CaptureFi
 def test_a_failed_run_says_so_in_one_line_on_stderr(tmp_path: Path) -> None:
     """The summary is the output (stdout, or the JSON); the failure is stderr's one line."""
     for extra in ([], ["--json"]):
-        args = ["run", "--sim", "--fast", "--cycles", "1", "--set", "run.grasp_timeout_s=0.5"]
+        # the fingers give up 10° into the grasp, before they reach the egg
+        args = ["run", "--sim", "--fast", "--cycles", "1", "--set", "run.grasp_max_close_deg=-20"]
         r = run(*args, *extra, *db_set(tmp_path / "runs.sqlite"))
         assert r.returncode == Exit.FAILED
         line = one_line(r.stderr, "run")

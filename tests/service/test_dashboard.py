@@ -1017,11 +1017,11 @@ OPENING_ESTOPPED = """() => {
 
 
 async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: Path) -> None:
-    # a grasp that gives up at once: the run faults with no_contact and the fingers hold still;
-    # the object is a custom one, from a file
+    # a grasp that gives up 2° in, before the fingers reach the object: the run faults with
+    # no_contact and the fingers hold still; the object is a custom one, from a file
     block = tmp_path / "block.json"
     block.write_text(json.dumps(LAB_BLOCK))
-    extra = ("--set", "run.grasp_timeout_s=0.3", "--object-file", str(block))
+    extra = ("--set", "run.grasp_max_close_deg=-28", "--object-file", str(block))
     svc = start_service(tmp_path, viewer=False, extra=extra)
     try:
         async with dashboard(svc) as page:
