@@ -366,8 +366,8 @@ def grasp_stalled(window_deg: float, window_s: float, closed_deg: float, since_s
     ``window_s`` (≥ ``STALL_S``), slower than ``SLOWDOWN`` of their own mean speed since the
     grasp began (``closed_deg`` in ``since_s``): something stopped the fingers where no distal
     pad senses it (a link, the thumb, an object between pads that do not sense). Fingers slow
-    from the start time out instead (:func:`grasp_timeout`). ``lost``: a pad
-    had touched before (the pads may have gone dead on the object)."""
+    from the start time out instead (:func:`grasp_timeout`). ``lost``: a pad had touched
+    before (the pads may have gone dead on the object)."""
     if window_s < STALL_S or since_s <= 0.0:
         return None
     # (the mean no faster than commanded: a finger that fell behind and catches up is no stall)
