@@ -67,7 +67,7 @@ class GraspStep:
     wedge_deg: float | None  # (ωA + ωB)/2 − 90°; None without both contacts
 
 
-def closing_speed(f: float, law: GraspLaw) -> float:
+def _closing_speed(f: float, law: GraspLaw) -> float:
     """Degrees per second one finger closes for its own contact force ``f`` (negative: it
     opens — above Fd, while the pads turn against their wedge)."""
     speed = (law.grasp_force - f) * law.gain_deg_s
@@ -82,7 +82,7 @@ def _closing_step(c: ContactEstimate, law: GraspLaw, since_s: float) -> float:
     pad reads nothing, at the approach speed over ``since_s``, the time since the last frame
     (nothing to wait for: a loop held up closes as fast)."""
     if c.present:
-        step = closing_speed(c.force, law) * law.period_s
+        step = _closing_speed(c.force, law) * law.period_s
     else:
         step = law.approach_velocity_deg_s * since_s
     return max(-law.max_step_deg, min(step, law.max_step_deg))

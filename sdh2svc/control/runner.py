@@ -383,7 +383,6 @@ class Runner:
         last: float | None = None  # when the previous frame was taken
         read = [False, False]  # whether each distal pad has read a contact in the grasp
         progress: deque[tuple[float, float]] = deque()  # (t, closed °) of the untouched frames
-        free = law.approach_velocity_deg_s  # the speed it commands until something touches
         while not self._stop.is_set():
             if self._adopt_pending():  # a new Fd: the grasp closes towards it from this frame
                 fd = self.params.grasp_force
@@ -417,6 +416,7 @@ class Runner:
                     touched = now
                 since = started if touched is None else touched
                 closed = self._closed(opened, actual)
+                free = law.approach_velocity_deg_s  # what it commands until something touches
                 untouched = None if touched is not None else (closed, free)
                 _raise(safety.grasp_timeout(F, fd, now, since, run, untouched))
                 if touching:
