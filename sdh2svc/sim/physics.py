@@ -61,7 +61,6 @@ from typing import Annotated
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy import optimize
 
 from sdh2svc.model.base import Finite
 from sdh2svc.model.geometry import PadProfile, pad_point_from_L, pad_slope
@@ -916,6 +915,8 @@ class ContactPhysics:
         self, x: np.ndarray, world: _World, pulls: dict[int, _Pull], slip: dict[int, float]
     ) -> tuple[np.ndarray, _Eval, bool]:
         """Powell's hybrid method (scipy) as the fallback of :meth:`_newton`."""
+        from scipy import optimize  # (not at the top: see sdh2svc.sim.sensor.PadRaster)
+
         sol = optimize.root(
             lambda v: np.array(self._evaluate(v.tolist(), world, pulls, slip).residual), x,
             method="hybr", options={"xtol": 1e-12, "maxfev": 400},

@@ -22,7 +22,6 @@ from typing import Annotated
 
 import numpy as np
 from pydantic import Field, Strict, ValidationError
-from scipy.special import ndtr
 
 from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import MatrixLayout
@@ -68,6 +67,8 @@ def press_cells(
     shared out to rows and columns as :class:`~sdh2svc.sim.sensor.PadRaster` does along a pad.
     Load spread beyond the pad's edges is lost, as on the real pad; absent cells of the mask
     are left to the sensor (it reads them 0)."""
+    from scipy.special import ndtr  # (here, not at the top: see sdh2svc.sim.sensor.PadRaster)
+
     r = press.radius_mm
     step = min(0.2, r / 8)
     n = max(1, math.ceil(2 * r / step))
