@@ -136,6 +136,8 @@ class PhysicsWorld:
         # the last step's joints at their torque limit, (axis, torque), once asked
         self._tau: list[tuple[int, float]] | None = None
         self._blocked: set[int] = set()
+        self._slow = sim.slow_axes
+        self._moved_at: float | None = None  # the clock of the last move_joints
         self._seed = sim.seed
         # called before the physical state is read from outside the servo's own stepping: a
         # lazy servo clock catches up first (sim.lab.ServoClock)
@@ -167,13 +169,15 @@ class PhysicsWorld:
             if on != self._powered:
                 self._flush()  # the physics catches up before the servos' pull changes
                 self._powered = on
-        target = self._target(reference_deg, on)
+        since = 0.0 if self._moved_at is None else max(0.0, now - self._moved_at)
+        self._moved_at = now
+        target = self._target(reference_deg, on, since)
         lead = self._lead(target)
         if lead >= self._max_lead_deg:
             # Catch up to the pose last reported first, so that the torque limit is checked
             # against contacts less than one substep behind the joints, never more.
             self._flush()
-            target = self._target(reference_deg, on)
+            target = self._target(reference_deg, on, since)
             lead = self._lead(target)
         self._angles = target
         if lead >= self._max_lead_deg:
@@ -263,9 +267,11 @@ class PhysicsWorld:
         a, q = self.axes, self._angles
         return HandPose(*(math.radians(q[i]) for i in (a.phi2, a.phi3, a.phi4, a.phi5)))
 
-    def _target(self, reference_deg: Sequence[float], powered: Sequence[bool]) -> list[float]:
-        """Where the joints go: each powered one to its reference unless it stalls, limp ones
-        nowhere."""
+    def _target(
+        self, reference_deg: Sequence[float], powered: Sequence[bool], since: float
+    ) -> list[float]:
+        """Where the joints go ``since`` s after the last move: each powered one to its
+        reference unless it stalls or drags (``sim.slow_axes``), limp ones nowhere."""
         n = len(self._angles)
         if len(reference_deg) != n or len(powered) != n:
             raise ValueError(f"joint references and power for {n} axes expected")
@@ -275,6 +281,9 @@ class PhysicsWorld:
             ahead = zip(reference_deg, powered, self._angles, strict=True)
             target = [float(r) if on else a for r, on, a in ahead]
         self._stall(target)
+        for axis, speed in self._slow:  # a dragging axis gets at most so far towards it
+            now, reach = self._angles[axis], speed * since
+            target[axis] = min(max(target[axis], now - reach), now + reach)
         return target
 
     def _lead(self, angles: Sequence[float]) -> float:

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import Field, field_validator
+from pydantic import Field, Strict, field_validator
 
 from sdh2svc.model.base import Finite
 from sdh2svc.model.hand import HAND_MAX_DEG, HAND_MIN_DEG
+from sdh2svc.protocol.sdh import NUM_AXES
 from sdh2svc.sim.objects import get_object
 from sdh2svc.sim.physics import PhysicsConfig
 from sdh2svc.sim.sensor import SensorModelConfig
@@ -27,6 +28,13 @@ class LinksConfig(Finite):
     sdh_binary_latency_ms: Annotated[float, Field(ge=0.0, le=100.0)]
 
 
+# (wire axis, the fastest it moves, deg/s): an axis that moves slower than commanded
+SlowAxis = tuple[
+    Annotated[int, Strict(), Field(ge=0, le=NUM_AXES - 1)],
+    Annotated[float, Field(ge=0.0, le=1000.0)],
+]
+
+
 class SimConfig(Finite):
     """The object, its placement, the contact physics and the sensor's imperfections."""
 
@@ -39,6 +47,9 @@ class SimConfig(Finite):
     # hand can reach (a configuration's tighter joint limits bound commands, not where a hand
     # was left)
     start_deg: Annotated[tuple[float, ...], Field(min_length=7, max_length=7)]
+    # axes that move slower than commanded, whatever their servo is told (a worn gearbox, a
+    # finger rubbing on something; 0 deg/s: jammed): (wire axis, deg/s) each
+    slow_axes: tuple[SlowAxis, ...] = ()
     physics: PhysicsConfig
     sensor: SensorModelConfig
     links: LinksConfig
@@ -51,6 +62,14 @@ class SimConfig(Finite):
                    if not lo <= a <= hi]  # fmt: skip
         if outside:
             raise ValueError("; ".join(outside))
+        return v
+
+    @field_validator("slow_axes")
+    @classmethod
+    def _each_axis_once(cls, v: tuple[tuple[int, float], ...]) -> tuple[tuple[int, float], ...]:
+        axes = [axis for axis, _ in v]
+        if twice := sorted({a for a in axes if axes.count(a) > 1}):
+            raise ValueError(f"axis {twice[0]} is given more than one speed")
         return v
 
     @field_validator("object")

@@ -9,16 +9,20 @@ under the ceiling in every frame. (The velocity grasp this replaced reached 9.4 
 
 from __future__ import annotations
 
+import asyncio
+import re
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from sdh2svc.bus.tactile import TactileFrame
+from sdh2svc.config import Settings
 from sdh2svc.control.observer import Event, EventKind
 from sdh2svc.control.safety import Fault
 from sdh2svc.sim.faults import FaultConfig
 from tests.control.test_runner import cfg_with, fast, rig, seen
+from tests.live_service import AT_PRESHAPE
 
 # the velocity grasp this replaced reached 9.4 × Fd at 1e-3 with seeds 4 and 5
 CASES = [(3e-4, seed) for seed in (1, 2, 3)] + [(1e-3, seed) for seed in range(1, 7)]
@@ -100,3 +104,61 @@ def test_an_old_frame_in_the_rolling_faults_and_the_hand_holds_before_anything_e
     assert result.message.startswith("stale_sensor: tactile frame 1000 ms old"), result.message
     after = log[log.index("fault") + 1 :]
     assert after[:1] == ["hold"], after  # held first; nothing sent before it
+
+
+def _run_watching_the_lead(cfg: Settings, tmp_path: Path) -> tuple[Any, float]:
+    """A run, and how far (deg) any commanded target of the coupled fingers was ahead of its
+    axis in any frame (from the first command on: before it, the firmware's target is 0)."""
+    axes = cfg.control().axes
+    moving = (axes.phi2, axes.phi3, axes.phi4, axes.phi5)
+
+    async def main() -> tuple[Any, float]:
+        async with rig(cfg, tmp_path) as (hand, runner):
+            lead, commanded = [0.0], [False]
+            loop = asyncio.get_running_loop()
+            set_targets = runner.joints.set_targets
+
+            async def spy(*args: Any) -> Any:
+                got = await set_targets(*args)
+                commanded[0] = True
+                return got
+
+            runner.joints.set_targets = spy  # type: ignore[method-assign]
+
+            def watch(_frame: TactileFrame) -> None:
+                if not commanded[0]:
+                    return
+                hand.sdh.next_wakeup(loop.time())  # the emulator brought up to the present
+                target, actual = hand.sdh.target_deg, hand.sdh.actual_deg
+                lead[0] = max(lead[0], *(abs(target[i] - actual[i]) for i in moving))
+
+            runner.tactile.add_frame_listener(watch)
+            return await runner.run(), lead[0]
+
+    return fast(main)
+
+
+def test_an_axis_slower_than_commanded_times_the_untouched_grasp_out(tmp_path: Path) -> None:
+    """The coupled fingers' proximal joints drag at 0.6°/s (sim.slow_axes) while the untouched
+    grasp closes them at 2°/s: the grasp ends after its timeout saying why, and no target was
+    ever ordered further ahead of its axis than one increment."""
+    cfg = cfg_with(tmp_path, AT_PRESHAPE[1], "sim.slow_axes=[[1, 0.6], [5, 0.6]]")
+    result, lead = _run_watching_the_lead(cfg, tmp_path)
+    assert result.status == "faulted", result.message
+    assert "they lag behind their targets" in result.message, result.message
+    closed = re.search(r"the fingers closed at ([0-9.]+)°/s of the 2°/s commanded", result.message)
+    assert closed is not None, result.message
+    assert float(closed.group(1)) == pytest.approx(0.6, rel=0.05)
+    assert lead <= cfg.safety.max_step_deg + 1e-9
+
+
+def test_a_jammed_axis_ends_the_move_to_the_preshape_blocked(tmp_path: Path) -> None:
+    """Finger 1's distal joint does not move at all: the move to the pre-shape, which the other
+    axes finish, ends blocked once it has made no progress for 2 s, 30° short (its distal joint
+    goes from 0° to 30°); the run never reaches the grasp."""
+    cfg = cfg_with(tmp_path, "sim.slow_axes=[[2, 0.0]]")
+    result, lead = _run_watching_the_lead(cfg, tmp_path)
+    assert result.status == "faulted", result.message
+    assert result.message == "joint_error: the fingers stopped 30.0° short of the pose"
+    assert result.iterations == 0
+    assert lead <= cfg.safety.max_step_deg + 1e-9
