@@ -3,7 +3,8 @@ the service killed during the grasp — what the README's fault figures come fro
 
 * Bit errors (fast mode, virtual clock): from the grasp on, the joint line's replies carry bit
   errors at a rate; per rate, how many 1-stroke egg runs complete, how they end otherwise, and
-  the highest F any frame showed, against the ceiling.
+  the highest F any frame showed, against the ceiling. The same for other faults of the joint
+  line: replies cut short, and bit errors both ways (the commands too).
 * E-stop: ``POST /api/estop`` on a real service (``sdh2svc serve --sim``) during the rolling —
   the answer comes once the hand has taken the power-off and the hold.
 * Cables cut and ``kill -9`` (real time): the simulated hand in this process, the service as
@@ -14,6 +15,7 @@ the service killed during the grasp — what the README's fault figures come fro
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import signal
 import statistics
 import tempfile
@@ -35,11 +37,20 @@ from tests.live_service import LiveService, start_service
 
 RATES = (0.0, 1e-4, 3e-4, 1e-3, 3e-3)
 SEEDS = range(1, 9)
+# other faults of the joint line, from the grasp on: (what, the fault), on OTHER_SEEDS each
+OTHER = (
+    ("replies cut short at 1 % of packets", FaultConfig(truncate_packet_rate=0.01)),
+    ("bit errors both ways (the commands too) at 3e-5",
+     FaultConfig(bit_error_rate=3e-5, host_to_device=True)),
+    ("bit errors both ways (the commands too) at 1e-4",
+     FaultConfig(bit_error_rate=1e-4, host_to_device=True)),
+)  # fmt: skip
+OTHER_SEEDS = range(1, 5)
 WATCH_S = 2.0
 FINGERS = (1, 2, 3, 4, 5, 6)
 
 
-async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
+async def _noisy_run(tmp: Path, faults: FaultConfig, seed: int) -> tuple[str, float]:
     cfg = load_config(overrides=[f"storage.db_path='{tmp / 'b.sqlite'}'", f"sim.seed={seed}",
                                  "rolling.cycles=1"], use_env=False)  # fmt: skip
     ctx, axes = cfg.model_context(), cfg.axes
@@ -58,7 +69,7 @@ async def _noisy_run(tmp: Path, ber: float, seed: int) -> tuple[str, float]:
         class OnGrasping(BaseObserver):
             def event(self, e: Event) -> None:
                 if e.kind is EventKind.PHASE and e.detail["phase"] == "grasping":
-                    sim.endpoints["sdh"][0].set_faults(FaultConfig(bit_error_rate=ber, seed=seed))
+                    sim.endpoints["sdh"][0].set_faults(dataclasses.replace(faults, seed=seed))
 
         hand.tactile.add_frame_listener(watch)
         result = await Runner(cfg.control(), hand.joints, hand.tactile, observer=OnGrasping()).run()
@@ -70,17 +81,24 @@ def _bit_errors() -> None:
     print("  bit errors in the joint line's replies from the grasp on (egg, 1 stroke, "
           f"{len(SEEDS)} seeds each, fast mode):")  # fmt: skip
     for ber in RATES:
-        ends: Counter[str] = Counter()
-        peaks = []
-        for seed in SEEDS:
-            with tempfile.TemporaryDirectory() as tmp:
-                how, peak = run_fast(_noisy_run(Path(tmp), ber, seed))
-            ends[how] += 1
-            peaks.append(peak)
-        done = ends.pop("completed", 0)
-        other = ", ".join(f"{n} {k}" for k, n in ends.most_common()) or "none"
-        print(f"    BER {ber:7.0e}: {done}/{len(SEEDS)} completed (others: {other}); "
-              f"highest F / ceiling {max(peaks):.2f} (must stay ≤ 1)")  # fmt: skip
+        _noisy_runs(f"BER {ber:7.0e}", FaultConfig(bit_error_rate=ber), SEEDS)
+    print(f"  other faults of the joint line from the grasp on ({len(OTHER_SEEDS)} seeds each):")
+    for what, faults in OTHER:
+        _noisy_runs(what, faults, OTHER_SEEDS)
+
+
+def _noisy_runs(what: str, faults: FaultConfig, seeds: range) -> None:
+    ends: Counter[str] = Counter()
+    peaks = []
+    for seed in seeds:
+        with tempfile.TemporaryDirectory() as tmp:
+            how, peak = run_fast(_noisy_run(Path(tmp), faults, seed))
+        ends[how] += 1
+        peaks.append(peak)
+    done = ends.pop("completed", 0)
+    other = ", ".join(f"{n} {k}" for k, n in ends.most_common()) or "none"
+    print(f"    {what}: {done}/{len(seeds)} completed (others: {other}); "
+          f"highest F / ceiling {max(peaks):.2f} (must stay ≤ 1)")  # fmt: skip
 
 
 async def _estop_latency(tmp: Path, trials: int = 5) -> None:
