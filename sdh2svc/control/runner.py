@@ -378,6 +378,7 @@ class Runner:
         # the timeout counts from the first touch once there is one: a small object is far
         # from the pre-shape, and the closing takes most of the timeout before it touches
         touched: float | None = None
+        at_touch: tuple[float, ...] | None = None  # the angles then
         opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
         aim: tuple[float, ...] | None = None  # the targets commanded last
         last: float | None = None  # when the previous frame was taken
@@ -413,12 +414,13 @@ class Runner:
             else:
                 touching = max(c1.force, c2.force) > self.params.contact_force_min
                 if touched is None and touching:
-                    touched = now
+                    touched, at_touch = now, actual
                 since = started if touched is None else touched
                 closed = self._closed(opened, actual)
-                free = law.approach_velocity_deg_s  # what it commands until something touches
+                free = law.approach_velocity_deg_s  # what it commands until its pad touches
                 untouched = None if touched is not None else (closed, free)
-                _raise(safety.grasp_timeout(F, fd, now, since, run, untouched))
+                waiting = self._waiting(read, at_touch, actual, free)
+                _raise(safety.grasp_timeout(F, fd, now, since, run, untouched, waiting))
                 if touching:
                     progress.clear()  # the stall's window counts untouched frames only
                 else:  # nothing touched yet, or a touch lost (the object taken away; dead pads)
@@ -454,6 +456,17 @@ class Runner:
             progress.popleft()
         t0, closed0 = progress[0]
         return closed - closed0, now - t0
+
+    def _waiting(
+        self, read: Sequence[bool], at_touch: Sequence[float] | None, actual: Sequence[float],
+        commanded: float,
+    ) -> tuple[int, float, float] | None:  # fmt: skip
+        """The finger whose pad has read nothing since the other's touched (at ``at_touch``):
+        (1 or 2, how far (°) its proximal joint closed since, ``commanded`` °/s)."""
+        if at_touch is None or read[0] == read[1]:
+            return None
+        finger, axis = (2, self._axes.phi4) if read[0] else (1, self._axes.phi2)
+        return finger, abs(actual[axis] - at_touch[axis]), commanded
 
     def _closed(self, opened: Sequence[float], actual: Sequence[float]) -> float:
         """How far (°) the proximal joints closed, on average, from ``opened`` to ``actual``."""

@@ -321,6 +321,7 @@ def grasp_timeout(
     started: float,
     run: RunConfig,
     untouched: tuple[float, float] | None = None,
+    waiting: tuple[int, float, float] | None = None,
 ) -> Violation | None:
     """Still under Fd ``run.grasp_timeout_s`` after ``started`` (clock seconds): the grasp's
     start, or the first touch once a pad has touched. ``untouched``, while nothing has touched
@@ -332,7 +333,10 @@ def grasp_timeout(
     from its previous target and cover the time since the last frame, so neither slow lines nor
     a loop held up slow it; fingers that do not follow their targets do (an axis moving slower
     than commanded): that grasp times out, and its message says so rather than only "no
-    grasp"."""
+    grasp". ``waiting``, once one pad has touched and the other has read nothing yet (the first
+    waits for it): (that finger's number, how far its proximal joint closed since the touch
+    (°), the speed commanded (°/s)); the timeout counts from the touch all the same, and a
+    finger slower than ``SLOW_CLOSING`` of that speed is named in its message."""
     if F >= grasp_force or now <= started + run.grasp_timeout_s:
         return None
     msg = f"no grasp (F = {F:.2f} < Fd = {grasp_force}) within {run.grasp_timeout_s:g} s"
@@ -344,6 +348,13 @@ def grasp_timeout(
         msg += (f"; untouched, the fingers closed at {speed:.2f}°/s of the "
                 f"{commanded:g}°/s commanded: they lag behind their targets (an axis that "
                 "moves slower than commanded)")  # fmt: skip
+    elif waiting is not None:
+        finger, closed_deg, commanded = waiting
+        speed = closed_deg / (now - started)
+        if speed < SLOW_CLOSING * commanded:
+            msg += (f"; Finger {finger}'s pad has read nothing, and it closed at {speed:.2f}°/s "
+                    f"of the {commanded:g}°/s commanded since the other touched: it lags "
+                    "behind its targets (an axis that moves slower than commanded)")  # fmt: skip
     return Violation(Fault.NO_CONTACT, msg)
 
 

@@ -152,6 +152,21 @@ def test_an_axis_slower_than_commanded_times_the_untouched_grasp_out(tmp_path: P
     assert lead <= cfg.safety.max_step_deg + 1e-9
 
 
+def test_a_finger_slower_than_commanded_is_named_when_the_grasp_times_out(tmp_path: Path) -> None:
+    """Finger 2's proximal joint drags at 0.5°/s: Finger 1 touches first and waits for it, and
+    the grasp, timed from that touch, ends naming the finger that lags and how fast it closed
+    (it said only "no grasp")."""
+    cfg = cfg_with(tmp_path, AT_PRESHAPE[1], "sim.slow_axes=[[5, 0.5]]")
+    result, lead = _run_watching_the_lead(cfg, tmp_path)
+    assert result.status == "faulted", result.message
+    waited = re.search(r"; Finger 2's pad has read nothing, and it closed at ([0-9.]+)°/s of the "
+                       r"2°/s commanded since the other touched: it lags behind its targets",
+                       result.message)  # fmt: skip
+    assert waited is not None, result.message
+    assert float(waited.group(1)) == pytest.approx(0.5, rel=0.05)
+    assert lead <= cfg.safety.max_step_deg + 1e-9
+
+
 def test_a_jammed_axis_ends_the_move_to_the_preshape_blocked(tmp_path: Path) -> None:
     """Finger 1's distal joint does not move at all: the move to the pre-shape, which the other
     axes finish, ends blocked once it has made no progress for 2 s, 30° short (its distal joint

@@ -153,6 +153,22 @@ def test_a_grasp_timeout_names_fingers_too_slow_to_follow(cfg: Settings) -> None
     assert "0.87°/s of the 3°/s commanded: they lag behind their targets" in slow.message
 
 
+def test_a_grasp_timeout_after_a_touch_names_the_other_finger_if_it_drags(cfg: Settings) -> None:
+    run = cfg.run
+    plain = "no grasp (F = 1.00 < Fd = 2.0) within 20 s"
+    # (finger, its proximal joint's closing since the touch 21 s ago (°), commanded °/s): at
+    # half its speed or more it is named nowhere; the timeout counts from the touch either way
+    assert safety.grasp_timeout(1.0, 2.0, 120.0, 100.0, run, None, (2, 0.1, 2.0)) is None
+    ok = safety.grasp_timeout(1.0, 2.0, 121.0, 100.0, run, None, (2, 1.0 * 21, 2.0))
+    assert ok == Violation(Fault.NO_CONTACT, plain)
+    slow = safety.grasp_timeout(1.0, 2.0, 121.0, 100.0, run, None, (1, 0.99 * 21, 2.0))
+    assert slow is not None and slow.message == (
+        plain + "; Finger 1's pad has read nothing, and it closed at 0.99°/s of the 2°/s "
+        "commanded since the other touched: it lags behind its targets (an axis that moves "
+        "slower than commanded)"
+    )
+
+
 def test_an_untouched_grasp_ends_when_its_pads_come_close() -> None:
     assert safety.pads_met(5.0) is None and safety.pads_met(50.0) is None
     assert safety.pads_met(4.94) == Violation(
