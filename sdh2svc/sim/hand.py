@@ -282,8 +282,8 @@ class PhysicsWorld:
             target = [float(r) if on else a for r, on, a in ahead]
         self._stall(target)
         for axis, speed in self._slow:  # a dragging axis gets at most so far towards it
-            now, reach = self._angles[axis], speed * since
-            target[axis] = min(max(target[axis], now - reach), now + reach)
+            at, reach = self._angles[axis], speed * since
+            target[axis] = min(max(target[axis], at - reach), at + reach)
         return target
 
     def _lead(self, angles: Sequence[float]) -> float:
