@@ -15,6 +15,7 @@ SECTIONS = {
     "reads": "bench.reads",
     "faults": "bench.faults",
     "campaign": "bench.campaign",
+    "regressions": "bench.regressions",
 }
 
 

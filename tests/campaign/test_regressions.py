@@ -33,39 +33,43 @@ def run(case_id: str) -> dict[str, Any]:
     return row
 
 
-@pytest.mark.parametrize(
-    ("case_id", "baseline"),
-    [
-        # a 116 mm box held on the pads' arcs: both cones refused both directions at once
-        # (the pads' wedge at the grasp as wide as the cone) — stuck at iteration 7
-        ("box-246", "faulted: stuck"),
-        # a rounded stick's end loads a few cells: the library's force (∝ area²) never reached
-        # Fd, the grasp timed out
-        ("stick-358", "faulted: no_contact"),
-        # reversals after a single moved iteration counted as half strokes: "completed" with
-        # half strokes that turned the object 0.4°
-        ("polygon-241", "half stroke < 1°"),
-        # a small foam box squeezed while the grasp crept towards Fd, and dropped
-        ("box-234", "dropped"),
-        # friction below the cone α assumes (μ 0.34): the pads' wedge grew over a stroke until
-        # both contacts slid the same way and the object was pushed out between the pads
-        ("circle-075", "dropped"),
-        # an 18 mm circle far from the pre-shape: the fingers touched it after 17 s of closing,
-        # and the grasp's 20 s ran out before F reached Fd (the timeout now counts from the touch)
-        ("circle-087", "faulted: no_contact"),
-        # a triangle tipping over a corner: the rotation reversed between two refused
-        # directions (workspace one way, a cone the other) until stuck; another move of the
-        # same length turns it on
-        ("polygon-061", "faulted: stuck"),
-        # a 35 mm box whose third half stroke ended at Finger 1's reach after Finger 2's 1° of
-        # travel but 0.9° of the object's turn: a half stroke now counts once the object turned
-        ("box-006", "half stroke < 1°"),
-        # an ellipse whose way back from cone B ended with ωB still a little outside the cone:
-        # refused there as a new lean, the rotation reversed at cone B either way until stuck;
-        # the way back now goes on while each plan leans the contact less
-        ("ellipse-212", "faulted: stuck"),
-    ],
-)
+# (case, how it failed): one representative case per failure class (python -m bench regressions
+# judges each over a family of grasp gains around the default: a class, not a coin flip)
+FAILURE_CLASSES = [
+    # a 116 mm box held on the pads' arcs: both cones refused both directions at once
+    # (the pads' wedge at the grasp as wide as the cone) — stuck at iteration 7
+    ("box-246", "faulted: stuck"),
+    # a rounded stick's end loads a few cells: the library's force (∝ area²) never reached
+    # Fd, the grasp timed out
+    ("stick-358", "faulted: no_contact"),
+    # reversals after a single moved iteration counted as half strokes: "completed" with
+    # half strokes that turned the object 0.4°
+    ("polygon-241", "half stroke < 1°"),
+    # a small foam box squeezed while the grasp crept towards Fd, and dropped
+    ("box-234", "dropped"),
+    # friction below the cone α assumes (μ 0.34): the pads' wedge grew over a stroke until
+    # both contacts slid the same way and the object was pushed out between the pads
+    ("circle-075", "dropped"),
+    # an 18 mm circle far from the pre-shape: the fingers touched it after 17 s of closing,
+    # and the grasp's 20 s ran out before F reached Fd (the timeout now counts from the touch)
+    ("circle-087", "faulted: no_contact"),
+    # a triangle tipping over a corner: the rotation reversed between two refused
+    # directions (workspace one way, a cone the other) until stuck; another move of the
+    # same length turns it on
+    ("polygon-061", "faulted: stuck"),
+    # a 35 mm box whose third half stroke ended at Finger 1's reach after Finger 2's 1° of
+    # travel but 0.9° of the object's turn: a half stroke now counts once the object turned
+    ("box-006", "half stroke < 1°"),
+    # an ellipse whose way back from cone B ended with ωB still a little outside the cone:
+    # refused there as a new lean, the rotation reversed at cone B either way until stuck;
+    # the way back now goes on while each plan leans the contact less (over the grasp gains
+    # of python -m bench regressions it passes in 6 of 11, the others stuck or with the grip
+    # below its band: near a limit, where a change upstream may flip it)
+    ("ellipse-212", "faulted: stuck"),
+]
+
+
+@pytest.mark.parametrize(("case_id", "baseline"), FAILURE_CLASSES)
 def test_a_failure_class_bench_v1_found_is_fixed(case_id: str, baseline: str) -> None:
     """The run completes every stroke, each half stroke turning the object, nothing drops, and
     the true grip stays in its band."""
