@@ -27,9 +27,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 # Runs in each version's own process (its sdh2svc first on the path), so it may use only what
-# both versions have: the campaign's own pieces of a case's run.
+# both versions have: the campaign's own pieces of a case's run. scipy is imported before any
+# run is timed: versions since 68bae5c import it only once the simulation needs it, which would
+# put its ≈ 0.3–0.5 s into the first case's CPU time.
 WORKER = r"""
 import hashlib, json, sqlite3, sys, tempfile, time
+import scipy.optimize, scipy.special
 from pathlib import Path
 from sdh2svc.campaign.case import load_suite
 from sdh2svc.campaign.run import TruthProbe, case_columns, case_settings, measure
