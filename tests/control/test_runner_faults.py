@@ -1,4 +1,4 @@
-"""A grasp on a noisy joint line (fast mode, virtual clock).
+"""A grasp on a noisy joint line, and on a hand whose axes drag (fast mode, virtual clock).
 
 From the grasp on, the joint line flips bits in its replies (as ``sdh2svc sim --ber`` does): at
 3e-4 about one reply in six is spoilt and runs go on through hundreds of retries; at 1e-3 about
