@@ -225,6 +225,9 @@ async def start_simulated_hand(
     """
     links = sim.links
     world = PhysicsWorld(model, sim, obj)
+    if sim.slow_axes:  # a fault set on purpose, or left in a configuration by mistake
+        drags = "; ".join(f"axis {a} moves at most {v:g}°/s" for a, v in sim.slow_axes)
+        log.warning("the simulated hand drags (sim.slow_axes): %s", drags)
     masks = [layout.valid() for _, layout in matrix_pads(model.axes, model.tactile)]
     dsa = DsaconEmulator(world, options=DsaconOptions(boot_s=links.dsa_boot_s), static_masks=masks)
     latency = Sdh2Options(ascii_latency_s=links.sdh_ascii_latency_ms / 1000,

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 
 from sdh2svc.config import ConfigError, load_config
-from sdh2svc.connect import hand_model
+from sdh2svc.connect import Simulated, hand_model, simulated_hand
 from sdh2svc.sim.hand import PhysicsWorld
 from sdh2svc.sim.objects import get_object
 
@@ -50,3 +52,22 @@ def test_a_bad_slow_axis_is_refused_naming_it(value: str, says: str) -> None:
     with pytest.raises(ConfigError, match="slow_axes") as e:
         load_config(overrides=[f"sim.slow_axes={value}"], use_env=False)
     assert says in str(e.value)
+
+
+async def test_a_hand_that_drags_says_so_when_it_starts(caplog: pytest.LogCaptureFixture) -> None:
+    cfg = load_config(overrides=["sim.slow_axes=[[1, 0.6], [5, 0]]"], use_env=False)
+    with caplog.at_level(logging.WARNING, logger="sdh2svc.sim.lab"):
+        async with simulated_hand(cfg, Simulated(fast=True)):
+            pass
+    said = [r.getMessage() for r in caplog.records if r.name == "sdh2svc.sim.lab"]
+    assert said == ["the simulated hand drags (sim.slow_axes): axis 1 moves at most 0.6°/s; "
+                    "axis 5 moves at most 0°/s"]  # fmt: skip
+
+
+async def test_a_hand_that_does_not_drag_says_nothing_of_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="sdh2svc.sim.lab"):
+        async with simulated_hand(load_config(use_env=False), Simulated(fast=True)):
+            pass
+    assert not [r for r in caplog.records if "drags" in r.getMessage()]
