@@ -7,7 +7,9 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
 * Connect handshake (§2.3, §2.8): ``" \\r\\n"``, discard 100 ms of input, ``ver`` with a 1 s
   timeout, then ``vlim``, ``alim`` and ``con`` — and then, our addition, :meth:`JointLink.hold`'s
   sequence: the firmware keeps its last velocity or move forever (§2.4), so on every connect and
-  reconnect the link first stops whatever the previous host (or a dead process) left running.
+  reconnect the link first stops whatever the previous host (or a dead process) left running;
+  a ``selgrip``/``grip`` move, which ``stop`` does not end, is ended by ``con=0``, or by
+  powering its axes off (:meth:`JointLink._end_grips`).
 * One command in flight at a time, each with a timeout. Replies are correlated by keyword (ASCII)
   or command code (binary). An ``E<n>`` line or a non-zero binary status raises
   :class:`FirmwareError`, after up to ``retries`` retries for axis commands (as SDHLibrary does).
@@ -24,11 +26,12 @@ I/O policy of SCHUNK's SDHLibrary, plus what a service needs around it:
 * Targets outside the joint limits are refused with ``ValueError`` before any byte is written.
 * :meth:`JointLink.emergency_stop` is SCHUNK's e-stop (power off, read actual, write it back as
   targets, §2.4) with precedence: commands queued behind it fail with :class:`EmergencyStopped`,
-  the one in flight finishes first. Our addition: the stop *latches* — until :meth:`release`,
-  commands that could move the hand (any set form except power-off, and ``m``) are refused with
-  :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes (PART 4 item 5); and a
-  power-off the hand did not confirm (a silent line) is sent again, before anything else, as
-  soon as the line answers.
+  the attempt in flight finishes first, and the command it belongs to (a hold's too) gives way
+  before its next attempt, resync or retry's stop. Our addition: the stop *latches* — until
+  :meth:`release`, commands that could move the hand (any set form except power-off, and
+  ``m``) are refused with :class:`EmergencyStopped`, because ``m`` re-enables unpowered axes
+  (PART 4 item 5); and a power-off the hand did not confirm (a silent line) is sent again,
+  before anything else, as soon as the line answers.
 * A line that fell silent and answers again may have a hand behind it that was switched off and
   on (or another hand, behind an adapter that stayed plugged in): once the command sequence
   that got the answer has run (an e-stop's whole sequence, say), the link drops that connection
@@ -847,9 +850,21 @@ class JointLink:
         return conn
 
     async def _transact(
-        self, conn: _Conn, req: _Request, *, timeout_s: float, retries: int, urgent: bool = False
+        self,
+        conn: _Conn,
+        req: _Request,
+        *,
+        timeout_s: float,
+        retries: int,
+        urgent: bool = False,
+        stops_only: bool = False,
     ) -> Reply:
         """One command with SDHLibrary's retry policy; the caller holds the turnstile.
+
+        Unless ``urgent`` (the handshake, the e-stop itself), it gives way to an e-stop waiting
+        for the line before each attempt, and to a latch come since it began unless it
+        ``stops_only`` (a hold): a line that needed a resync, or a retry's stop, first, must
+        not send a move after the e-stop, nor hold the e-stop's power-off back.
 
         Retries help a line that answers wrongly (a flipped bit, a lost byte); a line that stays
         silent — not one byte back — through two attempts in a row does not answer any more
@@ -862,14 +877,15 @@ class JointLink:
         silent_before = self._silent  # the line was silent already: one silent attempt ends it
         for attempt in range(retries + 1):
             if attempt:
-                if self._estop_pending and not urgent:
-                    raise EmergencyStopped(f"{req.label} abandoned for an emergency stop")
+                self._give_way(req, urgent, stops_only)
                 self.stats.retries += 1
             resynced = conn.dirty
             if resynced:
                 await self._resync(conn)
             if attempt and self._may_be_moving:
+                self._give_way(req, urgent, stops_only)
                 await self._stop_motion(conn, timeout_s)
+            self._give_way(req, urgent, stops_only)
             rx = conn.rx_bytes
             # only a first attempt on a line in step must begin its reply early (and tells the
             # line's round trip): a resync's blank lines may hold the next reply back (the
@@ -917,6 +933,15 @@ class JointLink:
         self.stats.failures += 1
         self._emit(LinkEventKind.ERROR, str(failure))
         raise failure
+
+    def _give_way(self, req: _Request, urgent: bool, stops_only: bool) -> None:
+        """Before an attempt goes on the line (see :meth:`_transact`)."""
+        if urgent:
+            return
+        if self._estop_pending:
+            raise EmergencyStopped(f"{req.label} abandoned for an emergency stop")
+        if self._estopped and req.moves and not stops_only:
+            raise EmergencyStopped(f"{req.label} refused: emergency stop latched")
 
     async def _pay_power_off(self, conn: _Conn, timeout_s: float) -> None:
         """The latched e-stop's power-off, owed since the line stopped answering: the line
@@ -1090,19 +1115,50 @@ class JointLink:
             return stop
         return [self._request("v", (0.0,) * NUM_AXES), *stop]
 
-    async def _hold_on(self, conn: _Conn) -> Vec:
+    async def _hold_on(self, conn: _Conn, *, urgent: bool) -> Vec:
         """Stop every axis where it is (:meth:`_stop_requests`), pose controller, actual angles
-        as targets (so a later `m` does not jump)."""
+        as targets (so a later `m` does not jump). Not ``urgent`` (a hold of ours), it gives way
+        to an e-stop, whose power-off stops the hand and whose own sequence holds it."""
+
+        async def call(req: _Request) -> Reply:
+            return await self._transact(conn, req, timeout_s=self.timeout_s,
+                                        retries=self.retries, urgent=urgent,
+                                        stops_only=True)  # fmt: skip
+
         for req in self._stop_requests():
-            await self._urgent(conn, req)
+            await call(req)
         if self.controller is not ControllerMode.POSE:
-            await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
+            await call(self._request("con", int(ControllerMode.POSE)))
             self.controller = ControllerMode.POSE
-        actual = self._took_actual((await self._urgent(conn, self._request("pos"))).values)
+        actual = self._took_actual((await call(self._request("pos"))).values)
         held = self.clip_to_limits(actual)
-        await self._urgent(conn, self._request("p", held))
+        await call(self._request("p", held))
         self._may_be_moving = False
         return held
+
+    async def _end_grips(self, conn: _Conn) -> None:
+        """A ``selgrip``/``grip`` move a previous program left running: ``stop`` does not end
+        one (§2.4). ``con=0`` ends any move in the simulator (on the firmware: not in our
+        sources); an axis still positioning after it is powered off, which ends a move on any
+        firmware."""
+        if not await self._positioning(conn):
+            return
+        logger.warning("%s: axes still moving after `stop` (a selgrip/grip left running by "
+                       "another program?): switching to the pose controller", self.url)  # fmt: skip
+        await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
+        self.controller = ControllerMode.POSE
+        await self._hold_on(conn, urgent=True)  # `con=` may reset the targets
+        if moving := await self._positioning(conn):
+            await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
+            self._emit(LinkEventKind.ERROR, f"axes {moving} moved on after `stop` and `con=0` "
+                       "(a grip left running by another program?): powered off (a run "
+                       "powers them on again)")  # fmt: skip
+
+    async def _positioning(self, conn: _Conn) -> list[int]:
+        """The axes the controller says are moving (``state``: positioning or speed mode)."""
+        states = (await self._urgent(conn, self._request("state"))).values
+        busy = (AxisState.POSITIONING, AxisState.SPEED_MODE)
+        return [axis for axis, v in enumerate(states) if int(v) in busy]
 
     # -- connecting -----------------------------------------------------------------------------
 
@@ -1150,7 +1206,8 @@ class JointLink:
         # Whatever the last host left running (a velocity, a move), it stops now: the firmware
         # keeps its last command forever, and no loop of ours commands it yet. (A hand this
         # host then refuses is held all the same.)
-        await self._hold_on(conn)
+        await self._hold_on(conn, urgent=True)
+        await self._end_grips(conn)
         if self._accept is not None and (problems := self._accept(vlim)):
             raise HandRefused(problems)
 
@@ -1348,12 +1405,13 @@ class JointLink:
 
     async def hold(self) -> Vec:
         """Stop every axis where it is and switch to the pose controller; returns the held
-        angles. Allowed while an emergency stop is latched (it only stops)."""
+        angles. Allowed while an emergency stop is latched (it only stops); gives way to an
+        e-stop waiting for the line (:class:`EmergencyStopped`: its power-off stops the hand)."""
         await self._gate.acquire()
         try:
             if self._closed:
                 raise LinkLost("link closed")
-            return await self._hold_on(self._require_conn())
+            return await self._hold_on(self._require_conn(), urgent=False)
         finally:
             self._let_go()
 
@@ -1431,11 +1489,11 @@ class JointLink:
         """SCHUNK's e-stop with precedence; returns the angles written as targets.
 
         Queued commands fail with :class:`EmergencyStopped`; the attempt in flight finishes (or
-        times out) first, and its retries, if it needed any, are abandoned with
-        :class:`EmergencyStopped`. A failed power-off still reads and holds the position, then
-        raises. The stop stays latched until :meth:`release`, also if it raised (e.g.
-        :class:`LinkLost` while reconnecting: the latch then keeps motion commands off the
-        new connection; nothing is sent to it by itself).
+        times out) first, and the rest of its command (a resync, a retry and the stop before it; a
+        hold's later commands) is abandoned with :class:`EmergencyStopped`. A failed power-off still
+        reads and holds the position, then raises. The stop stays latched until :meth:`release`,
+        also if it raised (e.g. :class:`LinkLost` while reconnecting: the latch then keeps motion
+        commands off the new connection; nothing is sent to it by itself).
         """
         if self._closed:
             raise LinkLost("link closed")

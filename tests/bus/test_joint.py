@@ -109,9 +109,10 @@ async def test_open_handshake(rig: Rig) -> None:
     assert link.controller is ControllerMode.POSE
     assert link.connected
     assert rig.dev.stats.blank_lines >= 1
-    # ver, vlim ×2, alim ×2 (read twice alike), con, then the hold: stop, pos, p (pose mode)
-    assert link.stats.commands == 9
-    assert link.stats.rtt_count == 9 and link.stats.rtt_min_s > 0.0
+    # ver, vlim ×2, alim ×2 (read twice alike), con, then the hold: stop, pos, p (pose mode),
+    # and state (nothing moves on after the stop)
+    assert link.stats.commands == 10
+    assert link.stats.rtt_count == 10 and link.stats.rtt_min_s > 0.0
     assert [e.kind for e in seen] == [LinkEventKind.CONNECTED]
     assert link.binary_crc is (rig.ep.url.startswith("socket://") is False)
     await link.close()
