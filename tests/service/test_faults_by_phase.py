@@ -261,8 +261,8 @@ async def _outage(
     """The line out for ``outage_s`` from ``at`` (phase, s into it), watched, then back."""
     loop, cfg = asyncio.get_running_loop(), station.cfg
     step = cfg.safety.max_step_deg
-    if at[0] == "pre-shape":  # paced by joint round trips, not frames: on until a frame is stale
-        step += cfg.run.preshape_velocity_deg_s * cfg.safety.stale_frame_ms / 1000
+    if at[0] == "pre-shape" and line == "dsa":  # paced by joint round trips, not frames: on
+        step += cfg.run.preshape_velocity_deg_s * cfg.safety.stale_frame_ms / 1000  # till stale
     await _start(c, station, *at)
     began, t0 = sim.sdh.actual_deg, loop.time()
     if how == "cut":
