@@ -35,7 +35,14 @@ from sdh2svc.provenance import code_version
 from sdh2svc.service.hub import TelemetryHub, cancel
 from sdh2svc.service.latch import latched_elsewhere, tell_taken, this_program
 from sdh2svc.service.recording import RecordedRun
-from sdh2svc.service.store import RunStore, StoreError, locked, now_iso, opened_elsewhere
+from sdh2svc.service.store import (
+    INTERRUPTED,
+    RunStore,
+    StoreError,
+    locked,
+    now_iso,
+    opened_elsewhere,
+)
 from sdh2svc.service.telemetry import (
     OUTLINE_POINTS,
     Event,
@@ -181,9 +188,7 @@ class HandService:
             # the status says so until the next run: the fingers stopped where they were (a
             # real hand may still hold the object), a person should look
             self.last_run = {"id": max(interrupted), "status": "interrupted",
-                             "message": "the process recording this run stopped during it "
-                             "(killed or crashed): the fingers stopped where they were and may "
-                             "still hold the object"}  # fmt: skip
+                             "message": INTERRUPTED}  # fmt: skip
         self._latch = latch = self.store.estop_latch()
         if latch is not None:
             log.warning("the e-stop is latched (since %s: %s): motors off until released",

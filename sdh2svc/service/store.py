@@ -121,6 +121,9 @@ CREATE TABLE IF NOT EXISTS owners (
 # container or machine) is taken as recorded until the time is this old. A heartbeat works
 # across containers, where a pid means nothing and /proc/locks lists no other namespace's locks.
 HEARTBEAT_S = 1.0
+# the summary of a run whose process died during it (nothing ended it to write its own)
+INTERRUPTED = ("the process recording this run stopped during it (killed or crashed): the fingers "
+               "stopped where they were and may still hold the object")  # fmt: skip
 STALE_S = 30.0
 DELETE_CHUNK = 1000  # rows deleted per transaction: a recorder or a run's start waits ~10 ms
 # Indexes a later version added: made by a writer (the service, a run), never by a reading
@@ -639,8 +642,10 @@ class RunStore:
         fresh."""
         with self._lock, self.db:
             ids = [i for i, owner in self._owners_of_running() if owner is Owner.DEAD]
-            self.db.executemany("UPDATE runs SET status = 'interrupted' WHERE id = ?",
-                                [(i,) for i in ids])  # fmt: skip
+            summary = json.dumps(_interrupted_summary())
+            self.db.executemany("UPDATE runs SET status = 'interrupted', "
+                                "summary = COALESCE(summary, ?) WHERE id = ?",
+                                [(summary, i) for i in ids])  # fmt: skip
         return ids
 
     def _owners_of_running(self) -> list[tuple[int, Owner]]:
@@ -758,6 +763,8 @@ class RunStore:
             d["status"] = "interrupted"  # its process died; the next service or run marks it
         d["meta"] = json.loads(d["meta"])
         d["summary"] = json.loads(d["summary"]) if d["summary"] else None
+        if d["status"] == "interrupted" and d["summary"] is None:  # as mark_interrupted writes
+            d["summary"] = _interrupted_summary()
         return d
 
     def run_page(self, limit: int, before: int | None = None) -> tuple[list[dict[str, Any]], int]:
@@ -1319,3 +1326,8 @@ class Recorder:
                       "%s", self.run_id, self.lost, self.path, e)  # fmt: skip
         finally:
             db.close()
+
+
+def _interrupted_summary() -> dict[str, Any]:
+    """What a run whose process died has for a summary: why it ended, as any run's says."""
+    return {"status": "interrupted", "message": INTERRUPTED}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import json
 import math
 import os
 import signal
@@ -22,7 +23,14 @@ from sdh2svc.config import Settings
 from sdh2svc.control.rolling import RollState, step
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.kinematics import HandPose
-from sdh2svc.service.store import SAMPLE_COLUMNS, SCHEMA, Recorder, RunStore, connect
+from sdh2svc.service.store import (
+    INTERRUPTED,
+    SAMPLE_COLUMNS,
+    SCHEMA,
+    Recorder,
+    RunStore,
+    connect,
+)
 
 
 def _frame(S: float) -> np.ndarray:
@@ -170,11 +178,16 @@ def test_a_run_another_live_process_records_stays_running_until_it_dies(tmp_path
         reader = RunStore(db, create=False)
         assert reader.run(run_id)["status"] == "interrupted"  # type: ignore[index]
         assert [r["status"] for r in reader.runs()] == ["interrupted"]
+        why = {"status": "interrupted", "message": INTERRUPTED}  # what `runs list` shows, …
+        assert reader.run(run_id)["summary"] == why  # type: ignore[index]
         reader.close()
         assert _raw_status(db, run_id) == "running"
-        # … and marked so by the next service or run
+        # … and marked so by the next service or run, with its summary
         assert store.mark_interrupted() == [run_id]
         assert _raw_status(db, run_id) == "interrupted"
+        with sqlite3.connect(db) as raw:
+            summary = raw.execute("SELECT summary FROM runs WHERE id = ?", (run_id,)).fetchone()
+        assert json.loads(summary[0]) == why
         assert store.mark_interrupted() == []
     finally:
         store.close()
