@@ -142,11 +142,15 @@ def params_maxima(safety: SafetyConfig) -> dict[str, float]:
     }
 
 
-def params_schema(safety: SafetyConfig) -> dict[str, Any]:
+def params_schema(safety: SafetyConfig, configured: RollingParams) -> dict[str, Any]:
     """The rolling parameters' JSON schema with the ranges this configuration allows: a form
     built from it offers no value the supervisor's limits would refuse (:func:`params_maxima`
-    lowers the fields' own maxima where they are tighter)."""
+    lowers the fields' own maxima where they are tighter). Each field's ``default`` is the
+    configuration's value, what a field left out of a run's parameters falls back to before
+    any patch (the model's own defaults are for parameters recorded before a field existed)."""
     schema = RollingParams.model_json_schema()
+    for key, value in configured.model_dump(mode="json").items():
+        schema["properties"][key]["default"] = value
     for key, top in params_maxima(safety).items():
         field = schema["properties"][key]
         if top < field.get("maximum", math.inf):

@@ -85,7 +85,7 @@ def test_the_parameters_schema_offers_only_what_the_limits_allow(
     field's maximum passes and a hair above it does not; where the field's own maximum is
     the tighter (a ceiling of 600 allows Fd up to 200, the field 50), it stays."""
     s = cfg.safety.model_copy(update={"force_ceiling_max": ceiling_max})
-    schema = safety.params_schema(s)
+    schema = safety.params_schema(s, cfg.rolling)
     for key in ("grasp_force", "finger1_max_step_deg"):
         top = schema["properties"][key]["maximum"]
         assert top <= RollingParams.model_json_schema()["properties"][key]["maximum"]
@@ -98,6 +98,10 @@ def test_the_parameters_schema_offers_only_what_the_limits_allow(
         else:
             assert len(safety.params_outside(above, s)) == 1
     assert schema["properties"]["grasp_force"]["maximum"] == min(ceiling_max / 3.0, 50.0)
+    # a form's defaults are the configuration's values (re-centring on, not the model's off)
+    defaults = {k: f["default"] for k, f in schema["properties"].items()}
+    assert defaults == cfg.rolling.model_dump(mode="json")
+    assert defaults["recentre_strokes"] != RollingParams.model_fields["recentre_strokes"].default
 
 
 @pytest.mark.parametrize(

@@ -278,6 +278,26 @@ async def test_head_answers_as_get_without_the_body(svc: LiveService) -> None:
         assert (await c.head("/api/estop")).status_code == 405  # GET's route only: no command
 
 
+async def test_a_wrong_method_says_which_the_route_takes_and_an_unknown_route_says_so(
+    svc: LiveService,
+) -> None:
+    """A 405 names the methods the route takes, in its ``Allow`` header too (RFC 9110); a 404
+    of the router names the request and where the routes are listed."""
+    async with plain(svc) as c:
+        for method, path, allow in (("GET", "/api/estop", "POST"), ("PUT", "/api/params", None),
+                                    ("DELETE", "/api/status", None)):  # fmt: skip
+            r = await c.request(method, path, headers={"Content-Type": "application/json"})
+            assert r.status_code == 405, (method, path, r.text)
+            assert r.headers["allow"] and (allow is None or r.headers["allow"] == allow), r.headers
+            said = r.json()["error"]
+            assert said.startswith(f"{method} {path}: this route takes "), said
+            assert said.endswith(r.headers["allow"]), said
+        r = await c.get("/api/nope")
+        assert r.status_code == 404
+        assert r.json()["error"] == "GET /api/nope: no such route (the API's routes: /docs)"
+        assert (await c.get("/api/runs/999999")).json()["error"] != r.json()["error"]
+
+
 async def test_no_other_site_may_frame_the_dashboard(svc: LiveService) -> None:
     """A page that framed the dashboard would make its requests with the service's own Origin:
     a click it lured onto a button would drive the hand (clickjacking)."""

@@ -132,8 +132,17 @@ def install_errors(app: FastAPI) -> None:
             await ws.close(code=1008, reason=reason.decode(errors="ignore"))
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, e: StarletteHTTPException) -> JSONResponse:
+    async def _http(request: Request, e: StarletteHTTPException) -> JSONResponse:
         if e.status_code == 400 and e.detail == _UNPARSED:  # (body.decode names the cause)
             return error(400, f"{UNREADABLE}: text that is not UTF-8, a number of over 4300 "
                          "digits, or arrays and objects nested too deep")  # fmt: skip
+        said = f"{request.method} {clip(request.url.path, 80)}"
+        if e.status_code == 405:  # the router's: the path is a route, not for this method
+            allow = (e.headers or {}).get("Allow", "")
+            answer = error(405, f"{said}: this route takes {allow or 'other methods'}")
+            if allow:
+                answer.headers["Allow"] = allow  # (RFC 9110: a 405 says which it takes)
+            return answer
+        if e.status_code == 404 and e.detail == "Not Found":  # the router's: no such route
+            return error(404, f"{said}: no such route (the API's routes: /docs)")
         return error(e.status_code, str(e.detail))

@@ -22,7 +22,7 @@ async def get_params(st: St) -> dict[str, Any]:
 @router.get("/api/params/schema", responses=responses(*READ))
 def params_schema(cfg: Cfg) -> dict[str, Any]:
     """The parameters' JSON schema, with the ranges this configuration's safety limits allow."""
-    return safety_params_schema(cfg.safety)
+    return safety_params_schema(cfg.safety, cfg.rolling)
 
 
 @router.patch("/api/params", dependencies=[Auth], responses=responses(*WRITE, 422))
