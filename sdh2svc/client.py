@@ -93,14 +93,11 @@ class RunRef(TypedDict):
     state: str
 
 
-class SamplePage(TypedDict):
-    run_id: int
-    offset: int
-    limit: int
-    every: int
-    total: int
-    next: int | None
-    samples: list[JSON]
+SamplePage = TypedDict(  # (`from` is a keyword: the functional form)
+    "SamplePage",
+    {"run_id": int, "from": int, "offset": int, "limit": int, "every": int, "total": int,
+     "next": int | None, "samples": list[JSON]},
+)  # fmt: skip
 
 
 # --- errors ----------------------------------------------------------------------------------

@@ -24,7 +24,10 @@ def whole_file(path: str | Path, binary: bool) -> Iterator[IO[Any]]:
         return
     tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part")
     # created as open() would create the file itself: 0o666 less the umask
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+    except OSError as e:  # named as the file asked for, not the hidden one beside it
+        raise type(e)(e.errno, e.strerror, str(target)) from None
     try:
         with open(fd, mode, newline=newline) as fh:
             yield fh

@@ -31,6 +31,7 @@ from sdh2svc.client import (
     Conflict,
     InvalidRequest,
     NotFound,
+    SamplePage,
     Unauthorized,
     Unreachable,
     _raise_for,
@@ -307,6 +308,7 @@ async def test_run_observed_and_read_back(svc: LiveService, cycle: Cycle, tmp_pa
 
         page = await c.samples(run_id, offset=1, limit=2)
         assert page["total"] == run["iterations"] and len(page["samples"]) == 2
+        assert set(page) == set(SamplePage.__annotations__)  # the type says what comes
         every = [s async for s in c.iter_samples(run_id, page=100)]
         assert len(every) == page["total"] and every[1:3] == page["samples"]
 
