@@ -1465,7 +1465,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description=cmd_runs.__doc__)  # fmt: skip
     _add_config_args(p)
     p.add_argument("action", choices=["list", "show", "export", "delete", "prune", "vacuum"])
-    p.add_argument("id", nargs="*", type=_run_id, help="run ID (show, export; delete: one or more)")
+    p.add_argument(
+        "id", nargs="*", default=[], type=_run_id, help="run ID (show, export; delete: one or more)"
+    )
     p.add_argument("--keep", type=_count_arg, metavar="N",
                    help="prune: keep the newest N runs")  # fmt: skip
     p.add_argument("--before", type=_when_arg, metavar="WHEN",

@@ -631,6 +631,17 @@ def test_which_run_is_a_usage_error(one_run: Path, capsys: pytest.CaptureFixture
     assert "which run?" in one_line(err, "runs")
 
 
+def test_runs_without_an_action_asks_for_the_action_alone(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`list`, `prune` and `vacuum` take no run ID: a missing action is all that is missing."""
+    with pytest.raises(SystemExit) as bad:
+        main(["runs"])
+    assert bad.value.code == Exit.USAGE
+    err = capsys.readouterr().err
+    assert one_line(err, "runs").endswith("error: the following arguments are required: action")
+
+
 @pytest.mark.parametrize("run_id", ["1_0", "+1", " 1", "١"])
 def test_a_run_id_is_written_in_the_digits_0_to_9(
     run_id: str, one_run: Path, capsys: pytest.CaptureFixture[str]
