@@ -13,6 +13,7 @@ import itertools
 import json
 import math
 import os
+import re
 import tomllib
 import types
 import typing
@@ -497,7 +498,7 @@ def format_errors(
         shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"
         if not loc:  # a check across fields (a model validator): its message says it all
             parts = error_message(e, None).removeprefix("Value error, ").split("; ")
-            lines.extend(clip(part, 4 * CLIP_CHARS) for part in parts)  # each clipped alone
+            lines.extend(clip(_sourced(part, origin), 4 * CLIP_CHARS) for part in parts)
             continue
         source = origin(loc) if origin is not None else None
         if source:
@@ -516,6 +517,18 @@ def format_errors(
             msg = f"a list is needed, written in JSON, e.g. {key}={json.dumps([value])}"
         lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
     return lines
+
+
+_LEADING_KEY = re.compile(r"([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+) = ([^:()]*):")
+
+
+def _sourced(line: str, origin: Callable[[tuple[int | str, ...]], str | None] | None) -> str:
+    """A check across fields' line that begins ``section.key = value:``, with where that
+    value came from after it, as a field's own error has it."""
+    m = _LEADING_KEY.match(line)
+    if m is None or origin is None or not (source := origin(tuple(m[1].split(".")))):
+        return line
+    return f"{m[1]} = {m[2]} ({clip(source, 4 * CLIP_CHARS)}):{line[m.end() :]}"
 
 
 # Keys an earlier version had: a file that still sets one is told why, not only that it is unknown

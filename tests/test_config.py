@@ -156,6 +156,12 @@ def test_a_bad_value_names_the_layer_it_came_from(
     assert any(ln.startswith("rolling.alpha_deg = 90 (--set rolling.alpha_deg=90)")
                for ln in lines), lines  # fmt: skip
     assert not any("rolling.k" in ln for ln in lines)  # 5.0 is fine
+    # a check across fields names where its leading value came from too
+    with pytest.raises(ConfigError) as ei:
+        load_config(overrides=["rolling.grasp_force=5"], use_env=False)
+    assert ei.value.problems[0].startswith(
+        "rolling.grasp_force = 5 (--set rolling.grasp_force=5): its ceiling, "
+    ), ei.value.problems
 
 
 def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -201,7 +207,7 @@ def test_environment_mistakes_are_named(monkeypatch: pytest.MonkeyPatch) -> None
         # no run parameter loosens a safety limit (the API changes run parameters)
         (
             ["rolling.grasp_force=4.5"],
-            "rolling.grasp_force = 4.5: its ceiling, "
+            "rolling.grasp_force = 4.5 (--set rolling.grasp_force=4.5): its ceiling, "
             "safety.force_ceiling_factor × Fd = 13.5, is above safety.force_ceiling_max = 12",
         ),
         (["safety.force_ceiling_factor=4", "rolling.grasp_force=3.5"], "grasp_force ≤ 3:"),
