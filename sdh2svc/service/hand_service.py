@@ -271,6 +271,10 @@ class HandService:
     def start_run(self, params: dict[str, Any] | None = None, obj: Any = None) -> dict[str, Any]:
         """Start a run (409 while one runs, while the hand opens, or the e-stop is latched; 503
         while a line is down: nothing is recorded, as a run could not even pre-shape)."""
+        # the request first (422), then whether the hand can take it (409, 503)
+        run_params = (
+            validate_params(self.params, params, self.cfg.safety) if params else self.params
+        )
         joints, tactile, store = self._links()
         self._refuse_if_shutting_down()
         if joints.estopped:  # first: an e-stopped run's task may still be ending
@@ -281,9 +285,6 @@ class HandService:
         if self.opening:
             raise ServiceError(409, "the hand is opening; start the run when it is open")
         self._require_lines(joints, tactile)
-        run_params = (
-            validate_params(self.params, params, self.cfg.safety) if params else self.params
-        )
         if self.bench is not None:  # as in a lab: the object is put back in the fixture first
             self.set_object(obj or self.bench.obj)
         assert self._hand is not None  # open: _links() says so

@@ -316,6 +316,8 @@ async def test_estop_mid_run_and_release(svc: LiveService) -> None:
         n = len(tm.samples(run_id))
         with pytest.raises(Conflict, match="e-stop is latched"):
             await c.start_run()
+        with pytest.raises(InvalidRequest, match="k = 0"):  # the request's own fault first
+            await c.start_run({"k": 0})
         # e-stop while idle works too, and the hand stays where it stopped
         assert (await c.estop())["estopped"] is True
         await asyncio.sleep(0.6)  # the angles shown between runs are polled at 5 Hz
