@@ -65,8 +65,8 @@ def _where_it_breaks(err: Any, text: Any) -> str:
 
 
 _UNPARSED = "There was an error parsing the body"  # FastAPI's detail, not a JSONDecodeError
-READ = (400,)  # every route: the Host rule
-WRITE = (400, 401, 403, 413, 415)  # every mutating route but POST /api/estop
+READ = (400, 422)  # every route: the Host rule; an unknown or repeated query parameter
+WRITE = (*READ, 401, 403, 413, 415)  # every mutating route but POST /api/estop
 # A mutating route without a body: an empty JSON object, or nothing, with the JSON content type
 # (so that Swagger UI's "Try it out" sends the content type the guard asks for)
 EMPTY_BODY: dict[str, Any] = {
