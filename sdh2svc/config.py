@@ -456,6 +456,12 @@ def clip(text: str, n: int = CLIP_CHARS) -> str:
     return text if len(text) <= n else text[:n] + "…"
 
 
+def shown(value: Any) -> str:
+    """A value as an error quotes it, clipped: true, false and null as JSON and TOML write them
+    (what the user wrote), anything else as Python's repr ('text', 1.5)."""
+    return clip(json.dumps(value) if value is None or isinstance(value, bool) else repr(value))
+
+
 def error_message(e: Any, limit: int | None = 4 * CLIP_CHARS) -> str:
     """A pydantic error's message, with any long value it quotes (its input, its context) clipped
     (e.g. a discriminator's tag: "Input tag '…' found using 'kind' does not match …"), and the
@@ -495,14 +501,14 @@ def format_errors(
             continue  # a list short only because its bad items were dropped: they say why
         key = error_key(loc)
         value = e.get("input")
-        shown = "" if isinstance(value, Mapping) else f" = {clip(repr(value))}"
+        quoted = "" if isinstance(value, Mapping) else f" = {shown(value)}"
         if not loc:  # a check across fields (a model validator): its message says it all
             parts = error_message(e, None).removeprefix("Value error, ").split("; ")
             lines.extend(clip(_sourced(part, origin), 4 * CLIP_CHARS) for part in parts)
             continue
         source = origin(loc) if origin is not None else None
         if source:
-            shown += f" ({clip(source, 4 * CLIP_CHARS)})"
+            quoted += f" ({clip(source, 4 * CLIP_CHARS)})"
         top = (maxima or {}).get(str(loc[0])) if len(loc) == 1 else None
         allowed = _allowed_range(model, loc, top)
         msg = error_message(e).removeprefix("Value error, ")
@@ -515,7 +521,7 @@ def format_errors(
         elif e["type"] in ("tuple_type", "list_type") and isinstance(value, str):
             # a list given as text (--set, an environment variable): "tuple" says nothing there
             msg = f"a list is needed, written in JSON, e.g. {key}={json.dumps([value])}"
-        lines.append(f"{key}{shown}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
+        lines.append(f"{key}{quoted}: {msg}" + (f" (allowed: {allowed})" if allowed else ""))
     return lines
 
 

@@ -156,6 +156,10 @@ def test_a_bad_value_names_the_layer_it_came_from(
     assert any(ln.startswith("rolling.alpha_deg = 90 (--set rolling.alpha_deg=90)")
                for ln in lines), lines  # fmt: skip
     assert not any("rolling.k" in ln for ln in lines)  # 5.0 is fine
+    # true, false and null quoted as the user wrote them (JSON, TOML), not as Python's repr
+    with pytest.raises(ConfigError) as ei:
+        load_config(overrides=["rolling.k=true"], use_env=False)
+    assert ei.value.problems[0].startswith("rolling.k = true (--set rolling.k=true): ")
     # a check across fields names where its leading value came from too
     with pytest.raises(ConfigError) as ei:
         load_config(overrides=["rolling.grasp_force=5"], use_env=False)

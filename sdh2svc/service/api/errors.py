@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from sdh2svc.config import clip, error_key, error_message, model_keys, unknown_key
+from sdh2svc.config import clip, error_key, error_message, model_keys, shown, unknown_key
 from sdh2svc.service.api.body import UNREADABLE, BodyRefused
 from sdh2svc.service.hand_service import ServiceError
 
@@ -46,8 +46,7 @@ def _line(err: Any, msg: str) -> str:
     given (a scalar, clipped; a missing one or a whole object is not quoted), the message."""
     value = err.get("input")
     quoted = err["type"] != "missing" and isinstance(value, (str, int, float, bool))
-    shown = f" = {clip(repr(value))}" if quoted else ""
-    return f"{error_key(err['loc'])}{shown}: {msg}"
+    return f"{error_key(err['loc'])}{f' = {shown(value)}' if quoted else ''}: {msg}"
 
 
 def _where_it_breaks(err: Any, text: Any) -> str:
