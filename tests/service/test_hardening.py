@@ -489,6 +489,14 @@ async def test_null_for_a_body_or_an_optional_key_is_refused_naming_it(svc: Live
          "body.spec: must be an object spec, not null"),
         ("POST", "/api/sim/press", "null", "body: must be a JSON object, not null"),
         ("PUT", "/api/viewer/replay", "null", "body: must be a JSON object, not null"),
+        # a value of another type: one line, in JSON's words, not one per branch of a union
+        ("POST", "/api/runs", '{"object": 5}',
+         "body.object = 5: must be a preset name or an object spec, not a number"),
+        ("POST", "/api/runs", '{"params": []}', "body.params: must be an object, not an array"),
+        ("PUT", "/api/sim/object", '{"name": true}', "body.name = true: must be a preset name, "
+         "not true"),
+        ("PUT", "/api/sim/object", '{"spec": "egg"}', "body.spec = 'egg': must be an object spec, "
+         "not a string"),
     ]  # fmt: skip
     async with plain(svc) as raw:
         before = await _runs(raw)
@@ -497,6 +505,7 @@ async def test_null_for_a_body_or_an_optional_key_is_refused_naming_it(svc: Live
             assert r.status_code == 422, (method, path, body, r.text)
             assert r.json()["error"] == "invalid request", r.text
             assert r.json()["details"][0].startswith(line), (body, r.text)
+            assert len(r.json()["details"]) == 1, r.text
         assert await _runs(raw) == before  # no run started
         r = await raw.put("/api/sim/object", json={"name": "egg"}, headers=JSON)
         assert r.status_code == 200 and r.json()["object"]["name"] == "egg", r.text

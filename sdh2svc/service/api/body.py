@@ -134,15 +134,32 @@ class JsonRoute(APIRoute):
         return strict
 
 
-def not_null(what: str) -> BeforeValidator:
+def not_null(what: str, *takes: type) -> BeforeValidator:
     """An optional key's validator: a null is refused as not ``what`` the key takes (pydantic
-    would read it as the key left out). Its default, the key left out, is not validated."""
+    would read it as the key left out), and so is a value of none of the JSON types ``takes``
+    (one line, not one per branch of a union in pydantic's own names). Its default, the key
+    left out, is not validated."""
 
     def refuse(value: object) -> object:
         if value is None:
             raise PydanticCustomError(
                 "not_null", f"must be {what}, not null (leave the key out for its default)"
             )
+        if takes and (isinstance(value, bool) or not isinstance(value, takes)):
+            raise PydanticCustomError("wrong_type", f"must be {what}, not {_kind(value)}")
         return value
 
     return BeforeValidator(refuse)
+
+
+def _kind(value: object) -> str:
+    """What a JSON value is, in JSON's words."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "an array"
+    return "an object" if isinstance(value, dict) else type(value).__name__

@@ -46,12 +46,12 @@ class RunRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    params: Annotated[dict[str, Any] | SkipJsonSchema[None], not_null("an object")] = Field(
+    params: Annotated[dict[str, Any] | SkipJsonSchema[None], not_null("an object", dict)] = Field(
         None, description="rolling parameters for this run (left out: those in force)"
     )
     object: Annotated[
         Annotated[str, Field(max_length=64)] | dict[str, Any] | SkipJsonSchema[None],
-        not_null("a preset name or an object spec"),
+        not_null("a preset name or an object spec", str, dict),
     ] = Field(None, description="in simulation: a preset name or an object spec")
 
 

@@ -24,11 +24,11 @@ class ObjectRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: Annotated[str | SkipJsonSchema[None], not_null("a preset name")] = Field(
+    name: Annotated[str | SkipJsonSchema[None], not_null("a preset name", str)] = Field(
         None, max_length=64, description="a preset: rubber, egg, cylinder, stick62 …"
     )
-    spec: Annotated[dict[str, Any] | SkipJsonSchema[None], not_null("an object spec")] = Field(
-        None, description="an object definition (kind, sizes …)"
+    spec: Annotated[dict[str, Any] | SkipJsonSchema[None], not_null("an object spec", dict)] = (
+        Field(None, description="an object definition (kind, sizes …)")
     )
 
 
