@@ -249,7 +249,7 @@ class Guard:
             return
         if "websocket.http.response" in scope.get("extensions", {}):
             status, text, details = refusal
-            body = json.dumps({"error": text, "details": details}).encode()
+            body = _error_body(text, details)
             await send({"type": "websocket.http.response.start", "status": status,
                         "headers": [(b"content-type", b"application/json"),
                                     (b"content-length", str(len(body)).encode())]})  # fmt: skip
@@ -305,9 +305,15 @@ async def _send_error(
     send: Send, status: int, message: str, details: list[str], *, close: bool = True
 ) -> None:
     """The JSON error; ``close``: the connection ends after it (a body too large to read)."""
-    body = json.dumps({"error": message, "details": details}).encode()
+    body = _error_body(message, details)
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     if close:
         headers.append((b"connection", b"close"))
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
+
+
+def _error_body(message: str, details: list[str]) -> bytes:
+    """The error body, encoded as the app's own (Starlette's JSONResponse: compact, UTF-8)."""
+    return json.dumps({"error": message, "details": details}, ensure_ascii=False,
+                      separators=(",", ":")).encode()  # fmt: skip
