@@ -12,12 +12,12 @@ from typing import Annotated, Any, Union, get_args, get_origin
 
 from fastapi import Depends
 from fastapi import Path as PathParam
-from fastapi.exceptions import WebSocketRequestValidationError
+from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from pydantic import BeforeValidator
 from pydantic_core import PydanticCustomError
 from starlette.requests import HTTPConnection, Request
 
-from sdh2svc.config import Settings, clip
+from sdh2svc.config import Settings
 from sdh2svc.service.guard import ESTOP_PATH
 from sdh2svc.service.hand_service import HandService, ServiceError
 from sdh2svc.service.hub import TelemetryHub
@@ -112,10 +112,8 @@ async def known_query(conn: HTTPConnection) -> None:
     errors = _unknown(conn, fields) + _repeated(conn, fields)
     if not errors:
         return
-    if http:
-        raise ServiceError(422, "invalid request", [f"{clip(e['loc'][1])}: {e['msg']}"
-                                                    for e in errors])  # fmt: skip
-    raise WebSocketRequestValidationError(errors)
+    # worded as any bad query value is, on a route and on a socket's handshake alike
+    raise (RequestValidationError if http else WebSocketRequestValidationError)(errors)
 
 
 def _unknown(conn: HTTPConnection, fields: dict[str, Any]) -> list[dict[str, Any]]:

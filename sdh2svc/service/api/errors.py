@@ -113,9 +113,9 @@ def install_errors(app: FastAPI) -> None:
             return error(400, "the body is not JSON", [_where_it_breaks(bad_json[0], e.body)])
         lines = []
         for err in errors:
-            msg = error_message(err)
-            if err["type"] == "extra_forbidden" and len(err["loc"]) == 2:  # body.KEY
-                msg = unknown_key(_body_keys(request))
+            msg, loc = error_message(err), tuple(err["loc"])
+            if err["type"] == "extra_forbidden" and len(loc) == 2 and loc[0] == "body":
+                msg = unknown_key(_body_keys(request))  # (a query's says what it takes)
             lines.append(_line(err, msg))
         return error(422, "invalid request", lines)
 
