@@ -155,6 +155,21 @@ async def _fast_line(tmp_path: Path, dev: Sdh2Emulator) -> AsyncIterator[tuple[U
         yield ep, ep.url
 
 
+@contextlib.asynccontextmanager
+async def _heard_link(tmp_path: Path) -> AsyncIterator[tuple[_Heard, UnixEndpoint, JointLink]]:
+    """A hand that logs what it hears on a fast-mode line, and a link open on it that retries
+    (1 s per attempt, 3 retries)."""
+    dev = _Heard(ScriptedWorld(SHAPES))
+    async with (
+        _fast_line(tmp_path, dev) as (ep, url),
+        await JointLink.open(url, timeout_s=1.0, retries=3) as link,
+    ):
+        yield dev, ep, link
+
+
+POWER_OFF = b"power=0,0,0,0,0,0,0"
+
+
 async def _abandon_a_grip(url: str, velocity_deg_s: float = 5.0) -> None:
     """A host (SCHUNK's demo, a script) pre-shapes for a grasp, starts a slow grip and dies."""
     host = await JointLink.open(url, reconnect=False)
@@ -223,11 +238,7 @@ def test_an_estop_goes_before_the_retries_of_a_hold_on_a_bad_line(
     the hold's every retry (1.7 s before: the hold's commands did not give way)."""
 
     async def main() -> None:
-        dev = _Heard(ScriptedWorld(SHAPES))
-        async with (
-            _fast_line(tmp_path, dev) as (ep, url),
-            await JointLink.open(url, timeout_s=1.0, retries=3) as link,
-        ):
+        async with _heard_link(tmp_path) as (dev, ep, link):
             loop = asyncio.get_running_loop()
             await link.set_targets((0.0, 30.0, 0.0, 0.0, 0.0, 0.0, 0.0))
             await link.move()  # the hand may be moving: each retry sends `stop` first
@@ -241,7 +252,7 @@ def test_an_estop_goes_before_the_retries_of_a_hold_on_a_bad_line(
             ep.set_faults(FaultConfig())
             with contextlib.suppress(JointLinkError):
                 await estop
-            sent = dev.first(b"power=0,0,0,0,0,0,0", t0)
+            sent = dev.first(POWER_OFF, t0)
             assert sent is not None and sent - t0 < 0.3, sent and sent - t0
             assert not any(dev.powered)
 
@@ -255,11 +266,7 @@ def test_no_move_goes_on_the_line_after_the_estop(tmp_path: Path, line: str) -> 
     the axes on), and the power-off does not wait for it."""
 
     async def main() -> None:
-        dev = _Heard(ScriptedWorld(SHAPES))
-        async with (
-            _fast_line(tmp_path, dev) as (ep, url),
-            await JointLink.open(url, timeout_s=1.0, retries=3) as link,
-        ):
+        async with _heard_link(tmp_path) as (dev, ep, link):
             loop = asyncio.get_running_loop()
             await link.set_targets((0.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0))
             if line == "needs a resync":  # an exchange its caller gave up mid-reply
@@ -282,7 +289,7 @@ def test_no_move_goes_on_the_line_after_the_estop(tmp_path: Path, line: str) -> 
             with pytest.raises(EmergencyStopped):
                 await move
             assert b"m\r\n" not in dev.since(t0), dev.since(t0)
-            sent = dev.first(b"power=0,0,0,0,0,0,0", t0)
+            sent = dev.first(POWER_OFF, t0)
             assert sent is not None and sent - t0 < 0.1, sent - t0 if sent else None
             assert dev.target_deg == pytest.approx(held)
 

@@ -379,7 +379,8 @@ async def test_token_required_when_exposed(tmp_path: Path) -> None:
             # take is refused (FastAPI would ignore it: a misspelt one would do the default)
             r = await raw.post("/api/runs/stop?now=1", json={},
                                headers={"Authorization": "bearer s3cret"})  # fmt: skip
-            assert r.status_code == 422 and "query.now = '1': no such query parameter" in r.text, r.text
+            said = "query.now = '1': no such query parameter"
+            assert r.status_code == 422 and said in r.text, r.text
             # with the token too, a command must be JSON; and a huge body is refused before the
             # token is even looked at
             text = {"Authorization": "Bearer s3cret", "Content-Type": "text/plain"}
