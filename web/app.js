@@ -707,6 +707,12 @@ function sentence(text) {
   return !t || /[.!?…]$/.test(t) ? t : `${t}.`;
 }
 
+/** Who stopped a run, from its message ("as the service shut down", …); Stop is "on request". */
+function stoppedBy(message) {
+  const why = plainMessage(message || "").split(";")[0].trim();
+  return !why || why.startsWith("through the API") ? "on request" : why;
+}
+
 function noticeFromStatus(st) {
   if (runActive(st)) {
     // a new run: what happened before is history
@@ -715,7 +721,12 @@ function noticeFromStatus(st) {
   }
   if (state.notice && state.notice.id == null) return; // the hand's own says what came after
   const last = st.last_run;
-  if (!last || !NOTICE_STATUSES.has(last.status) || last.id === state.dismissedRun) return;
+  // the newest run the service knows: a run that has just ended is `run` before its end is
+  // written and `last_run` names it; an older run's notice is history by then
+  const newest = Math.max(st.run ? st.run.id : -1, last ? last.id : -1);
+  if (state.notice && state.notice.id < newest) hideNotice();
+  if (!last || last.id < newest) return;
+  if (!NOTICE_STATUSES.has(last.status) || last.id === state.dismissedRun) return;
   if (state.notice && state.notice.id === last.id && state.notice.status === last.status) return;
   showNotice({ id: last.id, status: last.status, message: last.message || "" });
 }
@@ -776,9 +787,9 @@ function renderNotice() {
       body = "the service stopped during it (it was killed or crashed).";
       next = "The fingers stopped where they were; the object may still be held.";
       break;
-    default: // stopped
+    default: // stopped: by Stop (the API), from the 3-D view, as the service shut down
       title = `Run ${n.id} was stopped`;
-      body = "on request; the fingers released the object.";
+      body = `${stoppedBy(n.message)}; the fingers released the object.`;
       next = "";
   }
   // an Open hand stopped part-way (Stop, an e-stop) left the fingers where they were
@@ -1337,6 +1348,7 @@ function renderRuns(runs) {
     replay.className = "btn small secondary replay";
     replay.type = "button";
     replay.textContent = "Replay";
+    replay.setAttribute("aria-label", `Replay run ${r.id}`); // a screen reader tells the rows apart
     replay.addEventListener("click", () => replayRun(r));
     td.appendChild(replay);
     for (const f of ["csv", "mcap"]) {
@@ -1344,6 +1356,7 @@ function renderRuns(runs) {
       a.href = api.exportUrl(r.id, f);
       a.textContent = f.toUpperCase();
       a.setAttribute("download", `run-${r.id}.${f}`);
+      a.setAttribute("aria-label", `run ${r.id} as ${f.toUpperCase()}`);
       a.className = `export-${f}`;
       td.appendChild(a);
     }
@@ -1352,6 +1365,7 @@ function renderRuns(runs) {
       del.className = "btn small secondary delete";
       del.type = "button";
       del.textContent = "Delete";
+      del.setAttribute("aria-label", `Delete run ${r.id}`);
       del.title = `DELETE /api/runs/${r.id}`;
       del.addEventListener("click", () => deleteRun(r));
       td.appendChild(del);
@@ -1545,7 +1559,7 @@ async function replayRun(r) {
     }
     replay.load(samples);
     clearToasts(`replay run ${r.id}`);
-    window.scrollTo({ top: 0 }); // the stage: plots, pads and sketch follow the scrubber
+    window.scrollTo({ top: 0, left: 0 }); // the stage: plots, pads and sketch follow the scrubber
   } catch (e) {
     if (!replay.active) banner.hidden = true;
     showError(e, `replay run ${r.id}`);

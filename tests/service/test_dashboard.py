@@ -286,6 +286,27 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
         for box in b["plots"] + b["canvases"]:
             assert top <= box[0] and box[1] <= height and box[3] <= width, (width, b)
         assert all(box[1] - box[0] >= 80 for box in b["canvases"]), b  # charts, not slivers
+    # a phone: the run history's wide rows scroll inside their card, never the page (which
+    # took the E-STOP bar out of view), and each plot is a row of its own, none clipped
+    row = {"id": 7, "started_at": "2026-12-07T10:00:00+00:00", "ended_at": None,
+           "status": "completed", "iterations": 1234, "meta": {"object": {"name": "egg"}},
+           "summary": {"message": "a long summary " * 6, "strokes": 3}}  # fmt: skip
+    await page.route(RUN_LIST, lambda r: r.fulfill(json=[row], headers={"X-Total-Count": "1"}))
+    await page.click("#runs-refresh")
+    await expect(page.locator("#runs tbody")).to_contain_text("a long summary")
+    await page.set_viewport_size({"width": 390, "height": 844})
+    await page.wait_for_function(FITTED)
+    wide = await page.evaluate("""() => ({
+        page: document.documentElement.scrollWidth, view: window.innerWidth,
+        table: document.querySelector('#runs').getBoundingClientRect().width,
+        estop: document.querySelector('#estop').getBoundingClientRect().right,
+        plots: [...document.querySelectorAll('.plot')].map((p) => p.getBoundingClientRect().right),
+    })""")
+    assert wide["table"] > wide["view"] >= wide["page"], wide  # the table is wider: it scrolls
+    assert wide["estop"] <= wide["view"] and max(wide["plots"]) <= wide["view"], wide
+    await page.unroute(RUN_LIST)
+    await page.click("#runs-refresh")
+    await page.set_viewport_size({"width": 1500, "height": 1200})
     # the parameters are in a drawer, closed until asked for
     k = page.locator("#params-form input[name=k]")
     assert await k.is_hidden()
@@ -1155,6 +1176,26 @@ async def test_a_faulted_run_says_what_happened_and_offers_open_hand(tmp_path: P
             await expect(notice).to_contain_text("the object may still be held")
             await expect(open_in_notice).to_be_visible()
             await expect(open_in_notice).to_be_enabled()
+            # a newer run that ended well: the older run's notice is history, also while the
+            # status's last_run still names the older run (the newer one's end not yet written)
+            inject = """(change) => {
+                const st = structuredClone(window.sdh2debug.status());
+                Object.assign(st, change);
+                window.sdh2debug.onMessage({type: 'status', status: st});
+            }"""
+            done = {"id": 100, "state": "done", "stroke": 1, "strokes_total": 1,
+                    "iteration": 40, "status": "completed", "message": ""}  # fmt: skip
+            await page.evaluate(inject, {"run": done})
+            await expect(notice).to_be_hidden()
+            ended = {"id": 100, "status": "completed", "message": ""}
+            await page.evaluate(inject, {"run": None, "last_run": ended})
+            await expect(notice).to_be_hidden()
+            # a run the service's shutdown stopped says so (not "on request")
+            stopped = {"id": 101, "status": "stopped", "message": "as the service shut down"}
+            await page.evaluate(inject, {"run": None, "last_run": stopped})
+            await expect(notice).to_contain_text(
+                "Run 101 was stopped as the service shut down; the fingers released the object."
+            )
             assert (await counters(page))["lastError"] is None
     finally:
         assert svc.stop() == 0, "".join(svc.log)
