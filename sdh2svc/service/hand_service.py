@@ -118,9 +118,15 @@ def parse_object_request(name: str | None, spec: dict[str, Any] | None) -> Shape
         except KeyError as e:
             raise ServiceError(422, str(e.args[0])) from None
     try:
-        return parse_object(spec or {})
+        shape = parse_object(spec or {})
     except ValidationError as e:
         raise ServiceError(422, "invalid object spec", format_errors(e, ObjectSpec)) from None
+    if shape.name in PRESETS and shape != PRESETS[shape.name]:  # a record and a page would
+        # show the preset's name for another object
+        raise ServiceError(422, "invalid object spec", [
+            f"name = {shape.name!r}: a preset's name, and this spec is not that preset: give "
+            "the object a name of its own (or choose the preset by name)"])  # fmt: skip
+    return shape
 
 
 def _failure(stop: asyncio.Future[None]) -> str | None:

@@ -68,3 +68,20 @@ def test_derived_geometry_is_computed_once() -> None:
     o = Outline(poly)
     assert o.perimeter_points is o.perimeter_points
     assert np.ptp(o.perimeter_points[:, 0]) == pytest.approx(60.0, abs=0.1)
+
+
+def test_a_spec_named_as_a_preset_must_be_that_preset() -> None:
+    """A box called "egg" would show as the egg on the dashboard and in the run history."""
+    from sdh2svc.service.hand_service import ServiceError, parse_object_request
+
+    for name, preset in PRESETS.items():  # the preset's own spec, under its name: taken
+        assert parse_object_request(None, preset.model_dump()) == preset, name
+    box = {"kind": "box", "width_mm": 40, "height_mm": 30, "depth_mm": 30}
+    assert parse_object_request(None, {**box, "name": "my block"}).name == "my block"
+    with pytest.raises(ServiceError) as refused:
+        parse_object_request(None, {**box, "name": "egg"})
+    assert refused.value.status == 422
+    assert refused.value.details == [
+        "name = 'egg': a preset's name, and this spec is not that preset: give the object a "
+        "name of its own (or choose the preset by name)"
+    ]
