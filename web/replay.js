@@ -28,11 +28,16 @@ export class Replay {
     this.speedSel.addEventListener("change", () => this.setSpeed(Number(this.speedSel.value)));
     // keys while a replay is shown (not while typing): space plays/pauses, ← → step (⇧: 10)
     document.addEventListener("keydown", (ev) => {
-      // (a focused control has its own keys: the slider steps, a button clicks on space)
-      if (!this.active || ev.target.closest("input, select, textarea, button")) return;
+      if (!this.active) return;
+      const arrow = ev.key === "ArrowRight" || ev.key === "ArrowLeft";
+      // a focused field keeps its own keys (typing, a list's arrows), and a button its space;
+      // the arrows step the replay from a button and from the scrubber too (⇧: ten)
+      const own = ev.target.closest("input, select, textarea, button");
+      const ours = own === this.slider || (own && own.tagName === "BUTTON" && arrow);
+      if (own && !ours) return;
       const step = ev.shiftKey ? 10 : 1;
       if (ev.key === " ") this.toggle();
-      else if (ev.key === "ArrowRight" || ev.key === "ArrowLeft") {
+      else if (arrow) {
         this.pause();
         this.seek(this.index + (ev.key === "ArrowRight" ? step : -step));
       } else return;

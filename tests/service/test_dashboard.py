@@ -578,6 +578,14 @@ async def _run_plots_pads_viewer_estop_replay(service: LiveService, page: Any) -
     await page.keyboard.press("ArrowRight")
     await page.keyboard.press("Shift+ArrowLeft")
     assert (await page.evaluate(SHOWN))["index"] == i - 9
+    # … and so do they from the play button (focused once clicked) and the scrubber
+    await page.focus("#replay-play")
+    await page.keyboard.press("Shift+ArrowRight")
+    assert (await page.evaluate(SHOWN))["index"] == i + 1
+    await page.focus("#replay-scrubber")
+    await page.keyboard.press("Shift+ArrowLeft")
+    await page.keyboard.press("ArrowLeft")
+    assert (await page.evaluate(SHOWN))["index"] == i - 10
     await screenshot(page, "replay")
     for fmt in ("csv", "mcap"):
         href = await row.locator(f"a.export-{fmt}").get_attribute("href")
