@@ -238,6 +238,13 @@ async function applyParams(patch) {
     if (e instanceof ApiError && e.status === 422) {
       form.showServerErrors(e.details, e.error);
       openDrawer(true);
+      // the drawer may have been open, scrolled to its buttons: the first field in error,
+      // into view with the keyboard on it
+      const bad = $("#params-drawer").querySelector(".field.invalid input, .field.invalid select");
+      if (bad) {
+        bad.focus({ preventScroll: true });
+        bad.scrollIntoView({ block: "center" });
+      }
     }
     showError(e, "parameters");
   }

@@ -857,6 +857,7 @@ async def test_bad_parameter_shows_the_422_next_to_the_field(
     described = (await k.get_attribute("aria-describedby") or "").split()
     assert "param-k-error" in described, described
     await expect(page.locator("#param-k-error")).to_have_text(expected)
+    await expect(k).to_be_focused()  # the keyboard on it (the drawer was open already)
     # the error's toast does not cover the open drawer's buttons (on a laptop's screen, where
     # the drawer's buttons reach down to the toasts' corner)
     await page.set_viewport_size({"width": 1024, "height": 768})
