@@ -600,6 +600,9 @@ function renderStatus(st) {
   $("#run-id").textContent = run ? String(run.id) : "–";
   $("#stroke").textContent = run ? `${run.stroke} of ${run.strokes_total}` : "–";
   $("#iteration").textContent = run ? String(run.iteration) : "–";
+  // the run history's row of the running run counts along (the table loads at starts and ends)
+  const row = run && run.status === "running" ? $(`#runs tr[data-run-id="${run.id}"]`) : null;
+  if (row && row.cells[5]) row.cells[5].textContent = String(run.iteration);
   const msg = run && run.message ? run.message : "";
   $("#run-message").textContent = msg;
   $("#run-message").title = msg;

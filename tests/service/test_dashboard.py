@@ -471,6 +471,13 @@ async def _run_plots_pads_viewer_estop_replay(service: LiveService, page: Any) -
     await page.wait_for_function(
         "Number(document.querySelector('#plot-sigma').dataset.reversals) >= 1"
     )
+    # the run history's row of the running run counts its iterations along
+    running = httpx.get(service.url + "/api/status").json()["run"]["id"]
+    await page.wait_for_function(
+        "(id) => Number(document.querySelector(`#runs tr[data-run-id='${id}'] td:nth-child(6)`)"
+        "?.textContent) > 0",
+        arg=running,
+    )
 
     # a second page opened mid-run shows the run from its start: the earlier iterations and
     # events from the record, then the live ones
