@@ -1253,9 +1253,16 @@ function onWsState(s, info) {
   } else if (s === "connecting") {
     el.textContent = live.dead ? "no service — trying…" : "connecting…";
   } else {
-    el.textContent = live.dead
-      ? `no service — retry in ${info.retryInS.toFixed(1)} s`
-      : `disconnected — retry in ${info.retryInS.toFixed(1)} s`;
+    // counted down each second until the retry (the state changes then)
+    const retryAt = Date.now() + info.retryInS * 1000;
+    const countdown = () => {
+      if (sdh2.ws !== s || el.dataset.retryAt !== String(retryAt)) return;
+      const left = Math.ceil(Math.max(0, retryAt - Date.now()) / 1000);
+      el.textContent = `${live.dead ? "no service" : "disconnected"} — retry in ${left} s`;
+      if (left > 0) setTimeout(countdown, 250);
+    };
+    el.dataset.retryAt = String(retryAt);
+    countdown();
     el.title = `telemetry WebSocket closed (${info.reason})`;
     // is the service still there? ask at once when the socket has just closed, then keep the
     // status fresh over REST while the socket is down

@@ -1238,6 +1238,12 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
             ))  # fmt: skip
             await expect(page.locator("#links-state")).not_to_contain_text("up")
             await expect(page.locator("#ws-state")).not_to_have_text("live")
+            # the socket's retry counts down (it said the same figure until the retry)
+            ws_state = page.locator("#ws-state")
+            counting = re.compile(r"no service — retry in ([2-9]|\d\d+) s")
+            await expect(ws_state).to_have_text(counting, timeout=30_000)
+            n = int(re.findall(r"\d+", await ws_state.inner_text())[0])
+            await expect(ws_state).to_have_text(f"no service — retry in {n - 1} s")
             await expect(page.locator("#run-state")).to_have_text("unknown")
             await expect(page.locator("body")).to_have_class(re.compile("service-dead"))
             for sel in ("#start", "#stop", "#estop-release", "#open-hand", "#object-select",
