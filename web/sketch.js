@@ -313,7 +313,9 @@ export class Sketch {
     ctx.lineTo(bx + 20 * s, by);
     ctx.stroke();
     ctx.fillStyle = "#555";
-    ctx.fillText("20 mm", bx, by + 14 * dpr);
+    ctx.textAlign = "right"; // ends where the bar ends: inside the view however narrow it is
+    ctx.fillText("20 mm", bx + 20 * s, by + 14 * dpr);
+    ctx.textAlign = "left";
     ctx.fillStyle = "#444";
     for (const [P, name] of [[[0, 0], "O"], [[BASE, 0], "O'"]]) {
       const [x, y] = px(P);
