@@ -188,7 +188,7 @@ export function eventSentence(m, ctx = {}) {
       return "Opening the hand";
     case "opened":
       return d.completed === false
-        ? `Opening the hand stopped${d.message ? `: ${plainMessage(d.message)}` : ""}`
+        ? `Opening the hand stopped${d.message && d.message !== "stopped" ? `: ${plainMessage(d.message)}` : ""}`
         : "The hand is open";
     default:
       return fallback(String(m.kind ?? "event"), d);

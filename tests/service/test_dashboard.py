@@ -367,6 +367,15 @@ async def lab_screen_toasts_and_the_parameter_drawer(page: Any) -> None:
                     "(ends 0.3° from its start)",
                     "Run 3 completed; recognised an ellipse (90 %), ends 0.3° from its start",
                     ], said  # fmt: skip
+    # an opening stopped says so once ("… stopped: stopped" before), and why when it knows
+    said = await page.evaluate("""async () => {
+        const m = await import('/web/events.js');
+        const opened = (message) => m.eventSentence(
+            {kind: 'opened', detail: {completed: false, message}});
+        return [opened('stopped'), opened('joint_error: the fingers stopped 30.0° short')];
+    }""")
+    assert said[0] == "Opening the hand stopped", said
+    assert said[1].startswith("Opening the hand stopped: ") and "30.0°" in said[1], said
     # the sketch's object: "released" when it fell as the run let go of it (its releasing
     # phase), "dropped" when it fell mid-run; fed with the sim's truth and a status each, in one
     # turn (no real message between), drawn at once
