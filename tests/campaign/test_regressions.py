@@ -116,6 +116,16 @@ def test_a_firmly_held_thin_stick_is_not_dropped_by_the_sampled_surfaces() -> No
     assert row["success"], (row["failure"], row["message"])
 
 
+def test_a_needle_sunk_deeper_than_its_radius_is_not_dropped_by_the_sampled_surfaces() -> None:
+    # A 1.6 mm foam needle, 111 mm long, held end to end: its ends sink 7–8 mm past the pads, so
+    # the pads meet its flanks and each 0.25 mm sample carries ≈ 5 % of the grip. The residual
+    # jumped across zero by 5.5 % as one sample entered, no balance within 1 % of the grip
+    # existed, and the world dropped it at iteration 205, both contacts sticking. A balance
+    # within one sample's force holds it.
+    row = unseen("fresh5401", "fresh5401-stick-028")
+    assert not row["dropped"] and row["status"] == "completed", row["message"]
+
+
 def test_a_contact_sliding_along_the_object_reverses_before_the_force_ceiling() -> None:
     # A long rounded box with friction below the cone α assumes (μ 0.30): contact A slid along
     # the object for 60 iterations while Λ opened, and F climbed to the ceiling (3 × Fd). F above
