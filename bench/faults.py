@@ -1,5 +1,5 @@
 """Faults next to the hand: bit errors on the joint line, the e-stop's latency, cables cut and
-the service killed during the grasp — what the README's fault figures come from.
+the service killed during the grasp — what the fault figures of docs/benchmarks.md come from.
 
 * Bit errors (fast mode, virtual clock): from the grasp on, the joint line's replies carry bit
   errors at a rate; per rate, how many 1-stroke egg runs complete, how they end otherwise, and
