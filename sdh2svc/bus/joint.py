@@ -146,6 +146,14 @@ HEARD_KEPT: Final = 256  # a connection's first bytes kept, to tell another devi
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
 _VERSION: Final = re.compile(r"\d+(\.\d+){1,4}")  # the firmware's, as ver answers it
 BINARY_SINCE: Final = (0, 0, 2, 15)  # the first firmware with the binary frames (protocols §2.6)
+# The firmware releases that brought `vlim`, `con` and `alim`, and what SDHLibrary-CPP takes
+# before them (sdh/sdh.cpp: GetAxisLimitVelocity, SetController/GetController,
+# GetAxisLimitAcceleration; `con` "would yield an error from the firmware (unknown command)")
+VLIM_SINCE: Final = (0, 0, 2, 1)
+CON_SINCE: Final = (0, 0, 2, 6)
+ALIM_SINCE: Final = (0, 0, 2, 7)
+OLD_VELOCITY_LIMITS: Final = (85.7, 200.0, 157.8, 200.0, 157.8, 200.0, 157.8)
+OLD_ACCELERATION_LIMITS: Final = (5000.0, 400.0, 1500.0, 400.0, 1500.0, 400.0, 1500.0)
 _WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
 # The firmware could not read a command this link encoded from its table: the line spoilt it on
@@ -155,6 +163,11 @@ _SPOILT_ON_THE_LINE: Final = frozenset({
     SdhError.CMD_UNKNOWN, SdhError.CMD_FORMAT_ERROR, SdhError.MAX_COMMANDLINE_EXCEEDED,
     SdhError.CRC_ERROR,
 })  # fmt: skip
+
+
+def _release(version: str) -> tuple[int, ...]:
+    """A ``VER=`` release (checked against :data:`_VERSION`) as a tuple of ints."""
+    return tuple(int(x) for x in version.split("."))
 
 
 # -- errors, events, statistics -----------------------------------------------------------------
@@ -1145,7 +1158,8 @@ class JointLink:
             return
         logger.warning("%s: axes still moving after `stop` (a selgrip/grip left running by "
                        "another program?): switching to the pose controller", self.url)  # fmt: skip
-        await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
+        if self._has_con:
+            await self._urgent(conn, self._request("con", int(ControllerMode.POSE)))
         self.controller = ControllerMode.POSE
         await self._hold_on(conn, urgent=True)  # `con=` may reset the targets
         if moving := await self._positioning(conn):
@@ -1191,14 +1205,20 @@ class JointLink:
                                      "swapped?)") from exc  # fmt: skip
             raise JointLinkError(f"SDH not connected: {exc}") from exc
         version = self._identified(ver)
-        vlim = await self._agreed(conn, "vlim")
-        alim = await self._agreed(conn, "alim")
-        con = await self._urgent(conn, self._request("con"))
+        release = _release(version)
+        # Older firmware lacks these commands; SDHLibrary-CPP (sdh.cpp) sends none of them
+        # then and takes fixed limits and the pose controller instead
+        vlim = (await self._agreed(conn, "vlim") if release >= VLIM_SINCE
+                else OLD_VELOCITY_LIMITS)  # fmt: skip
+        alim = (await self._agreed(conn, "alim") if release >= ALIM_SINCE
+                else OLD_ACCELERATION_LIMITS)  # fmt: skip
+        con = (int((await self._urgent(conn, self._request("con"))).values[0])
+               if release >= CON_SINCE else int(ControllerMode.POSE))  # fmt: skip
         if self.version and version != self.version:  # another hand behind the same port?
             logger.warning("%s: firmware %s, was %s", self.url, version, self.version)
         self.version = version
         self.velocity_limits, self.acceleration_limits = vlim, alim
-        self.controller = ControllerMode(int(con.values[0]))
+        self.controller = ControllerMode(con)
         if self._estopped:  # a latched e-stop holds on a new connection too (the controller
             # may have been reset, or powered on by hand, while the line was down)
             await self._urgent(conn, self._request("power", (0,) * NUM_AXES))
@@ -1211,6 +1231,11 @@ class JointLink:
         if self._accept is not None and (problems := self._accept(vlim)):
             raise HandRefused(problems)
 
+    @property
+    def _has_con(self) -> bool:
+        """Whether the firmware knows ``con`` (an unknown version: assumed to)."""
+        return not self.version or _release(self.version) >= CON_SINCE
+
     def _identified(self, ver: Reply) -> str:
         """The firmware's version from its answer to ``ver``: an SDH2 says ``VER=x.x.x.x``; any
         other line (a device that echoes, another controller) is not one, and is sent nothing
@@ -1221,7 +1246,7 @@ class JointLink:
             raise JointLinkError(f"SDH not connected: {said!r} is no SDH2's answer to ver "
                                  "(VER=x.x.x.x): another device on this port, or one that "
                                  "echoes?")  # fmt: skip
-        if self.binary and tuple(int(x) for x in text.split(".")) < BINARY_SINCE:
+        if self.binary and _release(text) < BINARY_SINCE:
             logger.warning("%s firmware %s does not speak the binary frames (from 0.0.2.15 "
                            "on): this line speaks ASCII", self.url, text)  # fmt: skip
             self.binary = False
@@ -1371,6 +1396,11 @@ class JointLink:
 
     async def set_controller(self, mode: ControllerMode | int) -> ControllerMode:
         mode = ControllerMode(mode)
+        if not self._has_con:  # firmware before 0.0.2.6: the pose controller, fixed (CON_SINCE)
+            if mode is not ControllerMode.POSE:
+                raise JointLinkError(f"firmware {self.version} has only the pose controller")
+            self.controller = ControllerMode.POSE
+            return self.controller
         reply = await self._call(self._request("con", int(mode)))
         self.controller = ControllerMode(int(reply.values[0]))
         return self.controller

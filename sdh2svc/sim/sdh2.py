@@ -197,6 +197,27 @@ DEFAULT_GRASPS: Final = (
 )
 
 
+#: Commands older firmware does not know, and the release that brought each (SDHLibrary-CPP
+#: ``sdh/sdh.cpp``: ``GetAxisLimitVelocity`` uses fixed values before 0.0.2.1,
+#: ``GetAxisLimitAcceleration`` before 0.0.2.7, ``SetController``/``GetController`` send no
+#: ``con`` before 0.0.2.6, where it "would yield an error from the firmware (unknown command)";
+#: ``rvel`` came with the velocity controllers, protocols.md §2.4). Such a firmware answers E13.
+_SINCE: Final[dict[str, tuple[int, ...]]] = {
+    "vlim": (0, 0, 2, 1),
+    "con": (0, 0, 2, 6),
+    "rvel": (0, 0, 2, 6),
+    "alim": (0, 0, 2, 7),
+}
+
+
+def _release(version: str) -> tuple[int, ...]:
+    """``0.0.2.5`` as (0, 0, 2, 5); a version string that is no release counts as the newest."""
+    try:
+        return tuple(int(x) for x in version.split("."))
+    except ValueError:
+        return (1 << 30,)
+
+
 def _seven(value: float) -> Vec:
     return (value,) * NUM_AXES
 
@@ -539,6 +560,7 @@ class Sdh2Emulator:
 
     def __init__(self, world: HandWorld, *, options: Sdh2Options | None = None) -> None:
         self.options = o = options or Sdh2Options()
+        self._release = _release(o.version)
         self.stats = Sdh2Stats()
         self._world = world
         self._parser = HostStreamParser()
@@ -737,6 +759,8 @@ class Sdh2Emulator:
 
     def _ascii(self, cmd: AsciiCommand) -> bytes:
         try:
+            if (since := _SINCE.get(cmd.keyword)) is not None and self._release < since:
+                raise _Reject(SdhError.CMD_UNKNOWN)  # older firmware lacks it (_SINCE)
             if cmd.keyword in self._vectors:
                 return self._ascii_vector(cmd)
             return self._ascii_other(cmd)
