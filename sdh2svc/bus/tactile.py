@@ -431,12 +431,27 @@ class TactileBus:
         self, matrix: int, value: int, *, persistent: bool = False, all_matrices: bool = False
     ) -> None:
         """0x13; persistent writes get no reply, as for sensitivity."""
+        self._require_threshold()
         cmd = dsa.set_threshold(matrix, value, persistent=persistent, all_matrices=all_matrices)
         await self._write_command(cmd, "set_threshold", reply=not persistent)
 
     async def get_threshold(self, matrix: int) -> int:
+        self._require_threshold()
         info = await self._query(dsa.get_threshold(matrix), dsa.ThresholdInfo.decode)
         return info.threshold
+
+    @property
+    def _streams_on_pull(self) -> bool:
+        """The controller streams on a pull request (:func:`dsa.single_frame_bug`)."""
+        ci = self.controller_info
+        return ci is not None and dsa.single_frame_bug(ci.sw_version)
+
+    def _require_threshold(self) -> None:
+        """SDHLibrary refuses 0x13/0x14 below firmware R268 (:data:`dsa.THRESHOLD_SINCE`)."""
+        ci = self.controller_info
+        if ci is not None and ci.sw_version < dsa.THRESHOLD_SINCE:
+            raise TactileError(f"DSACON32m firmware R{ci.sw_version} has no matrix threshold "
+                               f"(R{dsa.THRESHOLD_SINCE} or later)")  # fmt: skip
 
     @property
     def stats(self) -> TactileStats:
@@ -865,6 +880,8 @@ class TactileBus:
                 )
             finally:
                 self._waiter = None
+        if self._streams_on_pull:  # old firmware streams instead: stop it, as SDHLibrary does
+            await self._configure(acquire=False, framerate=0)
         code = _ack_code(ack)
         now = self._loop.time()
         if code == dsa.DsaError.E_CHECKSUM_ERROR:

@@ -37,6 +37,7 @@ __all__ = [
     "SDH2_MATRIX_SHAPES",
     "SDH2_NB_CELLS",
     "TEXEL_MAX",
+    "THRESHOLD_SINCE",
     "AcqFlag",
     "AdjustFlag",
     "BadCrc",
@@ -96,6 +97,7 @@ __all__ = [
     "rle_encode",
     "set_sensitivity",
     "set_threshold",
+    "single_frame_bug",
     "split_matrices",
     "texel_offsets",
 ]
@@ -240,6 +242,18 @@ SDH2_NB_CELLS = sum(s.nb_cells for s in SDH2_MATRIX_SHAPES)  # 486
 TEXEL_MAX = 0x0FFF
 #: Largest payload the host accepts: an uncompressed SDH2 frame (protocols.md PART 4 item 16).
 DEFAULT_MAX_PAYLOAD = 5 + 2 * SDH2_NB_CELLS
+
+#: Oldest firmware with the threshold commands 0x13/0x14 (SDHLibrary-CPP refuses them below).
+THRESHOLD_SINCE = 268
+
+
+def single_frame_bug(sw_version: int) -> bool:
+    """Whether a controller reporting ``sw_version`` answers a pull request ("rate 0, acq on")
+    with a stream at its maximum rate instead of one frame: releases up to and including 288
+    except 269 (SDHLibrary-CPP ``sdh/dsa.cpp``, ``cDSA::ReadFrame``; fixed in 2.9.0.0, whose
+    nibble-coded version 0x2900 is far above). SDHLibrary stops acquisition after each frame."""
+    return sw_version <= 288 and sw_version != 269
+
 
 # ---------------------------------------------------------------------------------------------
 # Packet framing (protocols.md §1.2)

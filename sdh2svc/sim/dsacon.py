@@ -19,6 +19,9 @@ Firmware behaviour the sources do not settle ([U] in protocols.md), our choice, 
   Frames of a stream are at least 1/fps apart (next one due one period after the last was sampled)
   and line-limited by the endpoint. No internal ADC rate is modelled (230 Hz is [U]): each frame
   is sampled from the world when the line frees for it.
+* Old firmware (``sw_version`` R288 or older, except R269): a pull request starts a stream at
+  ``max_fps`` instead of sending one frame, as SDHLibrary-CPP's ``cDSA::ReadFrame`` says those
+  releases do (§1.6); 0x2900 (2.9.0.0, the default) and later send one frame.
 * Any 0x03 replaces the running mode; a pull frame queued before a stop still goes out (it
   precedes the stop's ACK, so no frame ever follows that ACK). Flag bits 1…6 (single shot,
   triggers) are ignored.
@@ -106,6 +109,7 @@ from sdh2svc.protocol.dsa import (
     encode_frame_payload,
     encode_packet,
     encode_response,
+    single_frame_bug,
     texel_offsets,
 )
 from sdh2svc.sim.world import HandWorld
@@ -159,9 +163,14 @@ class DsaconOptions:
             raise ValueError(f"rle_breaks must be none, matrix or row, got {self.rle_breaks!r}")
         if not 0 <= self.clock_offset_ms < _U32_RANGE:
             raise ValueError(f"clock_offset_ms must fit a u32, got {self.clock_offset_ms}")
-        if not self.sw_version >= 0x1000:
-            # below 0x1000 SDHLibrary takes its single-frame workaround path (§1.6)
-            raise ValueError(f"sw_version must be >= 0x1000, got {self.sw_version:#x}")
+        if not 0 <= self.sw_version <= 0xFFFF:
+            raise ValueError(f"sw_version must fit a u16, got {self.sw_version:#x}")
+
+    @property
+    def streams_on_pull(self) -> bool:
+        """Firmware R288 or older except R269 cannot send a single frame: a pull request
+        starts a stream at the maximum rate (SDHLibrary-CPP ``cDSA::ReadFrame``, §1.6)."""
+        return single_frame_bug(self.sw_version)
 
 
 @dataclass(slots=True)
@@ -371,8 +380,11 @@ class DsaconEmulator:
         """0x03: ACK first, always; then one frame (pull) or a stream (push) (§1.6)."""
         self._reply(PacketId.CONFIGURE_DATA_ACQUISITION, ErrorReply())
         self._stream = None
-        if cmd.pull:
+        if cmd.pull and not self.options.streams_on_pull:
             self._outbox.append(_PullFrame(cmd.rle))
+        elif cmd.pull:  # old firmware: a stream instead (DsaconOptions.streams_on_pull)
+            self._stream = _Stream(1.0 / self.options.max_fps, cmd.rle)
+            self._next_frame_at = now
         elif cmd.push:
             fps = self.options.max_fps
             if self.options.honour_framerate:

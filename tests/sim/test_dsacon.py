@@ -155,7 +155,12 @@ def error_of(packet: Packet, pid: int) -> int:
 def test_is_a_device_and_validates_options() -> None:
     assert isinstance(emulator(), Device)
     bad: dict[str, Any]
-    for bad in ({"max_fps": 0}, {"boot_s": -1}, {"factory_threshold": 5000}, {"sw_version": 288}):
+    for bad in (
+        {"max_fps": 0},
+        {"boot_s": -1},
+        {"factory_threshold": 5000},
+        {"sw_version": 0x10000},
+    ):
         with pytest.raises(ValueError):
             DsaconOptions(**bad)
     with pytest.raises(ValueError, match="static masks"):

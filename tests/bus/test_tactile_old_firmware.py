@@ -1,0 +1,58 @@
+"""TactileBus against DSACON32m firmware that cannot send single frames.
+
+SDHLibrary-CPP ``sdh/dsa.cpp`` (``cDSA::ReadFrame``): "DSACON32m firmware release up to and
+including 288 except 269 are not able to handle single frame acquisition. Instead they start
+sending as fast as possible right away. So stop acquiring immediately after frame was received"
+— it sends the stop after every pull frame on such firmware. It also refuses the threshold
+commands below R268 (``SetMatrixThreshold``/``GetMatrixThreshold``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from sdh2svc.bus.tactile import Mode, TactileBus, TactileError
+from sdh2svc.protocol import dsa
+from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
+from sdh2svc.sim.endpoint import TcpEndpoint
+from sdh2svc.sim.world import ScriptedWorld
+
+SHAPES = [(14, 6), (13, 6)] * 3
+
+
+def test_emulator_streams_after_a_pull_on_old_firmware() -> None:
+    emu = DsaconEmulator(ScriptedWorld(SHAPES), options=DsaconOptions(sw_version=288))
+    emu.connected(0.0)
+    emu.receive(dsa.configure_acquisition(acquire=True, framerate=0), 0.0)
+    parser, frames = dsa.PacketParser(), 0
+    for step in range(31):  # one second
+        while (packet := emu.next_packet(step / 30)) is not None:
+            frames += sum(
+                1
+                for ev in parser.feed(packet)
+                if isinstance(ev, dsa.Packet) and ev.id == dsa.PacketId.FULL_FRAME
+            )
+    assert frames > 20  # a stream at the maximum rate, not one frame
+
+
+@pytest.mark.parametrize("sw_version", [288, 0x2900])
+async def test_pull_mode_stays_one_frame_per_request(sw_version: int) -> None:
+    emu = DsaconEmulator(ScriptedWorld(SHAPES), options=DsaconOptions(sw_version=sw_version))
+    async with TcpEndpoint(emu) as ep:
+        bus = await TactileBus.open(ep.url)
+        try:
+            with bus.subscribe(range(6), 2.0):
+                async with asyncio.timeout(5.0):
+                    while bus.mode is not Mode.PULL:
+                        await asyncio.sleep(0.01)
+                start = bus.stats.frames
+                await asyncio.sleep(2.0)
+                got = bus.stats.frames - start
+            assert got <= 8, f"{got} frames in 2 s at 2 Hz: the controller kept streaming"
+            if sw_version < 268:
+                with pytest.raises(TactileError):
+                    await bus.get_threshold(0)
+        finally:
+            await bus.close()
