@@ -40,7 +40,6 @@ import contextlib
 import io
 import logging
 import math
-import sys
 import threading
 import time
 from collections.abc import Awaitable, Callable, Sequence
@@ -1070,7 +1069,15 @@ class Viewer:
 
 
 def _quietly(fn: Callable[..., _T], *args: Any, **kwargs: Any) -> _T:
-    """Call ``fn`` with stdout sent to stderr: viser prints a banner and "Server stopped" even
-    with ``verbose=False``, and the service's stdout carries only its announcement."""
-    with contextlib.redirect_stdout(sys.stderr):
-        return fn(*args, **kwargs)
+    """Call ``fn`` with what it prints logged (DEBUG), not printed: viser prints a banner and
+    "Server stopped" even with ``verbose=False``; the service's stdout carries only its
+    announcement, and its stderr only log records (with ``--log-format json``, one JSON object
+    a line: a box drawn there is a line a log collector cannot read). The service logs the
+    view's URL itself."""
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out):
+            return fn(*args, **kwargs)
+    finally:
+        if text := out.getvalue().strip():
+            log.debug("viser printed: %s", text)
