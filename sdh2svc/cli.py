@@ -99,8 +99,24 @@ def _add_link_args(p: argparse.ArgumentParser) -> None:
                    help="SDH2 port or pyserial URL (real hand)")  # fmt: skip
 
 
+class _Once(argparse.Action):
+    """An option that may be given once: argparse keeps the last of two silently, and a second
+    ``--config`` would drop every key of the first (its ``storage.db_path`` too: another run
+    database, with another e-stop latch). One file layers over the defaults; put both files'
+    keys in one, or the second's as ``--set``."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:  # fmt: skip
+        first = getattr(namespace, self.dest, None)
+        if first is not None:
+            parser.error(f"{option_string} given twice ({first!r}, {values!r}): one file "
+                         "(the other's keys as --set KEY=VALUE)")  # fmt: skip
+        setattr(namespace, self.dest, values)
+
+
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", metavar="FILE", help="a TOML file overriding config/default.toml")
+    p.add_argument("--config", metavar="FILE", action=_Once,
+                   help="a TOML file overriding config/default.toml")  # fmt: skip
     p.add_argument(
         "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
         help="override one key, e.g. --set rolling.k=3 (repeatable; beats file and environment)",
@@ -708,16 +724,36 @@ def _local_url(cfg: Settings) -> str:
     return f"http://{host}:{cfg.service.port}"
 
 
+def _is_loopback(host: str | None) -> bool:
+    """Whether ``host`` (a URL's host name) is this machine's loopback."""
+    import ipaddress
+
+    if host is None:
+        return False
+    if host.lower() == "localhost" or host.lower().endswith(".localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def cmd_health(args: argparse.Namespace) -> int:
     """Exit 0 if the service answers GET /api/status with both links connected (HEALTHCHECK);
     1 if it does not answer, answers something else, or reports a link down."""
     import urllib.error
+    import urllib.parse
     import urllib.request
 
     cfg = _load(args)
     url = status_url(args.url) if args.url else f"{_local_url(cfg)}/api/status"
+    # a service on this machine is asked directly: urllib would send even a loopback request
+    # to the proxy of http_proxy (a lab PC's, a container's), which answers for another host
+    # or not at all, and the check would fail naming the service
+    direct = _is_loopback(urllib.parse.urlsplit(url).hostname)
+    opener = urllib.request.build_opener(*([urllib.request.ProxyHandler({})] if direct else []))
     try:
-        with urllib.request.urlopen(url, timeout=args.timeout) as r:
+        with opener.open(url, timeout=args.timeout) as r:
             status = json.load(r)
     except urllib.error.HTTPError as e:
         _fail(Exit.FAILED, f"{url} answered HTTP {e.code} {e.reason}")

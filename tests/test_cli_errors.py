@@ -1167,3 +1167,58 @@ def test_output_whose_reader_went_away_ends_quietly() -> None:
     with proc.stderr:
         err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == Exit.BROKEN_PIPE and err == "", err
+
+
+def test_config_given_twice_is_refused_not_the_first_dropped(tmp_path: Path) -> None:
+    """argparse keeps the last of two --config silently: the first file's keys (its run
+    database, and so its e-stop latch) would be dropped without a word."""
+    first, second = tmp_path / "lab.toml", tmp_path / "hand.toml"
+    first.write_text('[storage]\ndb_path = "/srv/sdh2svc/runs.sqlite"\n')
+    second.write_text("[rolling]\nk = 3.0\n")
+    r = run("config", "--config", str(first), "--config", str(second))
+    assert r.returncode == 2, r
+    assert "--config given twice" in r.stderr and "usage:" in r.stderr
+    assert r.stdout == ""
+    once = run("config", "--config", str(first), "--set", "rolling.k=3")
+    assert once.returncode == 0, once.stderr
+    cfg = json.loads(once.stdout)
+    assert cfg["storage"]["db_path"] == "/srv/sdh2svc/runs.sqlite"
+    assert cfg["rolling"]["k"] == 3.0
+
+
+def test_health_asks_a_loopback_service_directly_whatever_http_proxy_says(
+    closed_port: int, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A lab PC's (or a container's) http_proxy must not carry the check of a service on this
+    machine: urllib sends loopback requests to the proxy too, which answers for another host or
+    not at all."""
+    import http.server
+    import threading
+
+    class Status(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = json.dumps({"hand": {"connected": {"joints": True, "tactile": True}}}).encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Status)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        for name in ("http_proxy", "HTTP_PROXY"):  # a proxy that is not there
+            monkeypatch.setenv(name, f"http://127.0.0.1:{closed_port}")
+        monkeypatch.delenv("no_proxy", raising=False)
+        monkeypatch.delenv("NO_PROXY", raising=False)
+        port = server.server_address[1]
+        for host in ("127.0.0.1", "localhost"):
+            status, out, err = call(capsys, "health", "--url", f"http://{host}:{port}")
+            assert status == Exit.OK, err
+            assert out.strip() == f"ok: http://{host}:{port}/api/status"
+    finally:
+        server.shutdown()
+        server.server_close()
