@@ -724,20 +724,6 @@ def _local_url(cfg: Settings) -> str:
     return f"http://{host}:{cfg.service.port}"
 
 
-def _is_loopback(host: str | None) -> bool:
-    """Whether ``host`` (a URL's host name) is this machine's loopback."""
-    import ipaddress
-
-    if host is None:
-        return False
-    if host.lower() == "localhost" or host.lower().endswith(".localhost"):
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def cmd_health(args: argparse.Namespace) -> int:
     """Exit 0 if the service answers GET /api/status with both links connected (HEALTHCHECK);
     1 if it does not answer, answers something else, or reports a link down."""
@@ -750,7 +736,9 @@ def cmd_health(args: argparse.Namespace) -> int:
     # a service on this machine is asked directly: urllib would send even a loopback request
     # to the proxy of http_proxy (a lab PC's, a container's), which answers for another host
     # or not at all, and the check would fail naming the service
-    direct = _is_loopback(urllib.parse.urlsplit(url).hostname)
+    from sdh2svc.client import is_loopback
+
+    direct = is_loopback(urllib.parse.urlsplit(url).hostname)
     opener = urllib.request.build_opener(*([urllib.request.ProxyHandler({})] if direct else []))
     try:
         with opener.open(url, timeout=args.timeout) as r:

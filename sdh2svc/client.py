@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
 import logging
 import re
@@ -222,14 +223,44 @@ def _ws_options(timeout: float) -> dict[str, Any]:
             "close_timeout": min(2.0, timeout)}  # fmt: skip
 
 
+def is_loopback(host: str | None) -> bool:
+    """Whether ``host`` (a URL's host name) is this machine's loopback: ``localhost`` (RFC 6761,
+    with its subdomains) or a loopback address."""
+    if host is None:
+        return False
+    if host.lower() == "localhost" or host.lower().endswith(".localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _direct(url: str) -> bool:
+    """Whether ``url``'s service is on this machine, and so asked directly, never through the
+    proxy of ``http_proxy``/``all_proxy`` (a lab PC's, a container's): that proxy would answer
+    for another host or not at all, and the error would name the service."""
+    return is_loopback(urlsplit(url).hostname)
+
+
 def _ws_open_sync(url: str, headers: dict[str, str], timeout: float) -> SyncClientConnection:
     with _handshake(url):
-        return ws_connect_sync(url, additional_headers=headers, **_ws_options(timeout))
+        return ws_connect_sync(
+            url,
+            additional_headers=headers,
+            proxy=None if _direct(url) else True,
+            **_ws_options(timeout),
+        )
 
 
 async def _ws_open(url: str, headers: dict[str, str], timeout: float) -> ClientConnection:
     with _handshake(url):
-        return await ws_connect(url, additional_headers=headers, **_ws_options(timeout))
+        return await ws_connect(
+            url,
+            additional_headers=headers,
+            proxy=None if _direct(url) else True,
+            **_ws_options(timeout),
+        )
 
 
 def _lost(e: ConnectionClosed, url: str) -> Unreachable | None:
@@ -420,7 +451,8 @@ class Client:
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
         self.url, self.token, self.timeout = service_url(url), token, timeout
-        self._http = httpx.Client(base_url=self.url, headers=_headers(token), timeout=timeout)
+        self._http = httpx.Client(base_url=self.url, headers=_headers(token), timeout=timeout,
+                                  trust_env=not _direct(self.url))  # fmt: skip
         self._sockets: set[SyncClientConnection] = set()  # open telemetry, closed with it
         self._sockets_lock = threading.Lock()
 
@@ -771,7 +803,12 @@ class AsyncClient:
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
         self.url, self.token, self.timeout = service_url(url), token, timeout
-        self._http = httpx.AsyncClient(base_url=self.url, headers=_headers(token), timeout=timeout)
+        self._http = httpx.AsyncClient(
+            base_url=self.url,
+            headers=_headers(token),
+            timeout=timeout,
+            trust_env=not _direct(self.url),
+        )
         # every stream not yet ended, held here: one the program dropped still has its
         # connection (its keepalive and reader tasks hold it), which aclose must close
         self._telemetry: set[AsyncTelemetry] = set()

@@ -319,3 +319,79 @@ async def test_an_export_cut_off_leaves_an_earlier_file_as_it_was_and_no_partial
         await server.wait_closed()
     assert target.read_bytes() == b"the earlier export"
     assert [p.name for p in tmp_path.iterdir()] == ["run.mcap"]
+
+
+def _status_server(answer: dict[str, str]) -> Iterator[int]:
+    """An HTTP server on loopback that answers every GET (a proxied one too) with ``answer``."""
+    import http.server
+    import threading
+
+    class Status(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = json.dumps(answer).encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Status)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield server.server_address[1]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@pytest.fixture
+def lab_proxy(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """A lab PC's proxy settings, naming a proxy that answers every request it is given for
+    itself (as a proxy answers for another host): {"via": "proxy"}."""
+    for port in _status_server({"via": "proxy"}):
+        for name in ("http_proxy", "HTTP_PROXY", "all_proxy", "ALL_PROXY"):
+            monkeypatch.setenv(name, f"http://127.0.0.1:{port}")
+        for name in ("no_proxy", "NO_PROXY"):
+            monkeypatch.delenv(name, raising=False)
+        yield
+
+
+@pytest.fixture
+def status_port() -> Iterator[int]:
+    yield from _status_server({"state": "idle"})
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "localhost"])
+async def test_a_service_on_this_machine_is_asked_directly_whatever_http_proxy_says(
+    lab_proxy: None, status_port: int, host: str
+) -> None:
+    """httpx (and websockets) send even a loopback request through the proxy the environment
+    names; a lab PC's or a container's proxy answers for another host or not at all."""
+    url = f"http://{host}:{status_port}"
+
+    def status() -> Any:
+        with Client(url, timeout=5.0) as c:
+            return c.status()
+
+    assert await asyncio.to_thread(status) == {"state": "idle"}
+    async with AsyncClient(url, timeout=5.0) as c:
+        assert await c.status() == {"state": "idle"}
+
+
+@pytest.mark.parametrize("stand", [restarting], indirect=True)
+async def test_the_telemetry_of_a_service_on_this_machine_bypasses_the_proxy_too(
+    lab_proxy: None, stand: Stand
+) -> None:
+    async with AsyncClient(stand.url, timeout=5.0) as c:
+        assert await _drain(c.telemetry()) == ["hello"]
+    assert await asyncio.to_thread(_sync_drain, stand.url) == ["hello"]
+
+
+def test_a_service_elsewhere_still_goes_through_the_proxy(lab_proxy: None) -> None:
+    """Only this machine's services are asked directly: a remote one keeps the lab's proxy
+    (192.0.2.1 is an address for documentation: only the proxy answers for it)."""
+    with Client("http://192.0.2.1:8000", timeout=5.0) as c:
+        assert c.status() == {"via": "proxy"}
