@@ -592,11 +592,15 @@ function renderStatus(st) {
   state.status = st;
   statusSeq += 1;
   const run = st.run;
-  const runState = run ? run.state : "no run";
+  // a run the e-stop ended stays "e-stopped" in the status after the release: from the
+  // status that says the e-stop is released, the header says so (not the latched red state)
+  const released = Boolean(run && run.state === "e-stopped" && !st.estopped);
+  const runState = run ? (released ? "e-stop released" : run.state) : "no run";
   sdh2.runState = run ? run.state : null;
   const rs = $("#run-state");
   rs.textContent = runState;
-  rs.dataset.state = run ? run.state : "";
+  rs.dataset.state = run ? (released ? "estop-released" : run.state) : "";
+  rs.title = released ? `run ${run.id} was e-stopped; the e-stop has been released since` : "";
   $("#run-id").textContent = run ? String(run.id) : "–";
   $("#stroke").textContent = run ? `${run.stroke} of ${run.strokes_total}` : "–";
   $("#iteration").textContent = run ? String(run.iteration) : "–";

@@ -1317,3 +1317,34 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
         svc.stop()
         if second is not None:
             assert second.stop() == 0, "".join(second.log)
+
+
+# The last status the page got, with a run the e-stop ended: fed latched, then released as
+# the service says it (the run stays "e-stopped", `estopped` false), in one turn (no real status
+# comes between); the header's run state after each.
+RUN_ESTOPPED_THEN_RELEASED = """() => {
+  const st = structuredClone(window.sdh2debug.status());
+  st.run = {id: 9999, state: 'e-stopped', stroke: 0, strokes_total: 3, iteration: 37,
+            status: 'e-stopped', message: 'emergency stop'};
+  st.estopped = true;
+  st.estop = {since: '2026-12-07T10:00:00.000+0000', reason: 'e-stop requested',
+              hand_reached: true};
+  const header = () => {
+    const e = document.querySelector('#run-state');
+    return {text: e.textContent, state: e.dataset.state, colour: getComputedStyle(e).color};
+  };
+  window.sdh2debug.onMessage({type: 'status', status: st});
+  const latched = header();
+  window.sdh2debug.onMessage({type: 'status', status: {...st, estopped: false, estop: null}});
+  return {latched, released: header()};
+}"""
+LATCHED_RED = "rgb(255, 138, 128)"  # web/style.css: #run-state[data-state="e-stopped"]
+
+
+async def test_the_header_shows_the_release_as_soon_as_the_status_says_so(page: Any) -> None:
+    shown = await page.evaluate(RUN_ESTOPPED_THEN_RELEASED)
+    assert shown["latched"] == {"text": "e-stopped", "state": "e-stopped",
+                                "colour": LATCHED_RED}, shown  # fmt: skip
+    assert shown["released"]["text"] == "e-stop released", shown
+    assert shown["released"]["state"] == "estop-released", shown
+    assert shown["released"]["colour"] != LATCHED_RED, shown
