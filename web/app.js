@@ -1211,7 +1211,7 @@ function onMessage(m) {
         liveTurn.runId = m.run_id;
         liveTurn.psi0 = s.iteration <= 1 ? liveTurn.psi : null;
       }
-      if (!replay.active) showObject(readout, s, turnedDeg(liveTurn.psi, liveTurn.psi0));
+      if (!replay.active) showObject(readout, s, liveTrueTurn());
       break;
     }
     case "tactile":
@@ -1424,6 +1424,12 @@ function turnedDeg(psi, psi0) {
   return typeof psi === "number" && typeof psi0 === "number" ? ((psi - psi0) * 180) / Math.PI : null;
 }
 
+/** The live run's true turn for the readout: in simulation a number or null (not known now);
+ * undefined on a real hand, which has no truth. */
+function liveTrueTurn() {
+  return state.sim ? turnedDeg(liveTurn.psi, liveTurn.psi0) : undefined;
+}
+
 /** The sim truth recorded with sample `s` of the replayed run, as the live `sim` message's
  * (null: none recorded, e.g. a real hand's run). */
 function replayTruth(s) {
@@ -1443,7 +1449,9 @@ function showReplayIndex(idx, s) {
   else pads.update([], it);
   const truth = replayTruth(s);
   sketch.setOverride(s, truth);
-  showObject(readout, s, truth ? turnedDeg(truth.pose[2], replayData.psi0) : null);
+  // a real hand's run has no truth at all (no outline): the readout leaves it out
+  const truly = truth ? turnedDeg(truth.pose[2], replayData.psi0) : null;
+  showObject(readout, s, replayData.truth && replayData.truth.outline ? truly : undefined);
   feedOutline(idx);
   feedViewer(replayData.runId, it);
 }
@@ -1595,7 +1603,7 @@ function backToLive() {
   endViewerReplay();
   plots.showLive();
   sketch.setOverride(null);
-  showObject(readout, state.lastSample ?? null, turnedDeg(liveTurn.psi, liveTurn.psi0));
+  showObject(readout, state.lastSample ?? null, liveTrueTurn());
   pads.update(state.lastTactile ?? [], null);
   if (state.params.alpha_deg !== undefined) sketch.setAlpha(state.params.alpha_deg);
   state.replayId = null;

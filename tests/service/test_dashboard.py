@@ -1348,3 +1348,44 @@ async def test_the_header_shows_the_release_as_soon_as_the_status_says_so(page: 
     assert shown["released"]["text"] == "e-stop released", shown
     assert shown["released"]["state"] == "estop-released", shown
     assert shown["released"]["colour"] != LATCHED_RED, shown
+
+
+# The object readout (web/readout.js) rendered into a copy of #object-readout for each case
+# [sample, true turn (null: not known now; "none": no truth, as on a real hand)]: its fields.
+READOUT_OF = """async (cases) => {
+  const { showObject } = await import('/web/readout.js');
+  const el = document.querySelector('#object-readout').cloneNode(true);
+  return cases.map(([s, truly]) => {
+    showObject(el, s, truly === 'none' ? undefined : truly);
+    return ['.obj-class', '.obj-size', '.obj-rot', '.obj-contacts']
+      .map((sel) => el.querySelector(sel).textContent);
+  });
+}"""
+
+
+async def test_the_object_readout_shows_every_unknown_value_as_a_dash(page: Any) -> None:
+    nothing = {"iteration": 3, "object_class": None, "class_confidence": None, "size_a": None,
+               "size_b": None, "rotation_est": None, "contact1_kind": None,
+               "contact2_kind": None, "radius1": None, "radius2": None}  # fmt: skip
+    box = {**nothing, "object_class": "box", "class_confidence": 0.73, "size_a": 52.7,
+           "rotation_est": -3.04, "contact1_kind": "curved", "contact2_kind": "flat"}  # fmt: skip
+    circle = {**box, "object_class": "circle", "size_a": None, "class_confidence": None,
+              "contact1_kind": "curved", "radius1": 13.75}  # fmt: skip
+    shown = await page.evaluate(READOUT_OF, [
+        [None, "none"], [None, None], [nothing, None], [box, None], [box, -3.14], [circle, "none"],
+    ])  # fmt: skip
+    assert shown == [
+        ["object –", "size –", "turned –", "A – · B –"],
+        ["object –", "size –", "turned – (true –)", "A – · B –"],
+        ["object –", "size –", "turned – (true –)", "A – · B –"],
+        ["box 73 %", "52.7 × – mm", "turned -3.0° (true –)", "A curved, r – mm · B flat"],
+        ["box 73 %", "52.7 × – mm", "turned -3.0° (true -3.1°)", "A curved, r – mm · B flat"],
+        ["circle – %", "r – mm", "turned -3.0°", "A curved, r 13.8 mm · B flat"],
+    ], shown
+    # the page as it is served says the same before any sample
+    served = await page.evaluate("""async () => {
+      const doc = new DOMParser().parseFromString(await (await fetch('/')).text(), 'text/html');
+      return ['.obj-class', '.obj-size', '.obj-rot', '.obj-contacts']
+        .map((sel) => doc.querySelector(sel).textContent);
+    }""")
+    assert served == shown[0], served
