@@ -589,8 +589,10 @@ function renderBus(st) {
 }
 
 function renderStatus(st) {
+  const wasLatched = Boolean(state.status && state.status.estopped);
   state.status = st;
   statusSeq += 1;
+  if (wasLatched && !st.estopped) forgetTrueTurn(); // the e-stop is released
   const run = st.run;
   // a run the e-stop ended stays "e-stopped" in the status after the release: from the
   // status that says the e-stop is released, the header says so (not the latched red state)
@@ -1422,6 +1424,16 @@ async function recordedPsi0(runId) {
 /** How far the object truly turned from ψ0 to ψ (rad), in degrees; null: either unknown. */
 function turnedDeg(psi, psi0) {
   return typeof psi === "number" && typeof psi0 === "number" ? ((psi - psi0) * 180) / Math.PI : null;
+}
+
+/** The e-stop was released: the fingers are driven again and the object may have fallen or
+ * been put back meanwhile, so the truth no longer belongs to the run whose last sample the
+ * readout shows; its true turn is not known any more ("–", not the value at the e-stop). A
+ * new run's first samples give it again. */
+function forgetTrueTurn() {
+  liveTurn.runId = null;
+  liveTurn.psi0 = null;
+  if (!replay.active) showObject(readout, state.lastSample ?? null, liveTrueTurn());
 }
 
 /** The live run's true turn for the readout: in simulation a number or null (not known now);

@@ -35,7 +35,7 @@ from sdh2svc.client import Conflict
 from sdh2svc.config import load_config
 from sdh2svc.model.hand import matrix_shapes
 from sdh2svc.service.store import Recorder, RunStore
-from tests.live_service import LiveService, start_service
+from tests.live_service import LiveService, start_run, start_service
 from tests.service.test_replay_api import sample as replay_sample
 from tests.service.test_replay_api import texels as replay_texels
 
@@ -1389,3 +1389,29 @@ async def test_the_object_readout_shows_every_unknown_value_as_a_dash(page: Any)
         .map((sel) => doc.querySelector(sel).textContent);
     }""")
     assert served == shown[0], served
+
+
+async def test_the_true_turn_is_not_kept_past_an_estop_release(
+    service: LiveService, page: Any
+) -> None:
+    """In simulation the readout's true turn is the live run's; once the e-stop that ended the
+    run is released it is no longer known ("–"), not the value it had at the e-stop."""
+    rot = page.locator("#object-readout .obj-rot")
+    with _runs_of(service, ESTOP_RUN_CYCLES):
+        async with service.client() as c:
+            await start_run(c, obj="egg")
+        # rolling: the estimate and the truth beside it
+        await expect(rot).to_have_text(re.compile(r"\(true -?\d+\.\d°\)$"), timeout=RUN_TIMEOUT_MS)
+        await page.click("#estop")
+        await page.wait_for_function(
+            "document.querySelector('#estop').classList.contains('latched')"
+            " && window.sdh2debug.status().run.state === 'e-stopped'"
+        )
+        # latched: the run's last sample is still shown with the truth at that sample
+        await expect(rot).to_have_text(re.compile(r"\(true -?\d+\.\d°\)$"))
+        estimate = await page.inner_text("#object-readout .obj-class")
+        await page.click("#estop-release")
+        await page.wait_for_function("window.sdh2debug.status().estopped === false")
+        await expect(rot).to_have_text(re.compile(r"^turned -?\d+\.\d° \(true –\)$"))
+        # the recognition's estimate of the last sample stays
+        assert await page.inner_text("#object-readout .obj-class") == estimate
