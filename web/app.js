@@ -433,7 +433,8 @@ function renderEstop(latched = Boolean(state.status && state.status.estopped)) {
   b.setAttribute("aria-pressed", String(latched));
   let title = "POST /api/estop: motors off at once";
   if (latched) {
-    title = `The e-stop is latched${e.since ? ` since ${shortTime(e.since)}` : ""}` +
+    const since = wallTime(e.since);
+    title = `The e-stop is latched${since ? ` since ${since}` : ""}` +
       `${e.reason ? ` (${e.reason})` : ""}: the motors are off until it is released. ` +
       "A click sends it again.";
   }
@@ -448,8 +449,8 @@ function renderLatchLine(latched, e) {
   const line = $("#estop-latch");
   let text = "";
   if (latched) {
-    const since = e.since ? new Date(String(e.since).replace(/\+0000$/, "Z")) : null;
-    const at = since && !Number.isNaN(since.getTime()) ? ` ${hhmmss(since.getTime())}` : "";
+    const since = wallTime(e.since);
+    const at = since ? ` ${since}` : "";
     const parts = [`latched${at}${e.reason ? ` — ${e.reason}` : ""}`];
     if (e.hand_reached === true) parts.push("hand confirmed");
     else if (e.hand_reached === false) parts.push("hand NOT confirmed yet");
@@ -839,9 +840,18 @@ function renderNotice() {
 
 // --- is the service there? --------------------------------------------------------------------
 
-function hhmmss(ms) {
-  const d = new Date(ms);
-  return [d.getHours(), d.getMinutes(), d.getSeconds()].map((x) => String(x).padStart(2, "0")).join(":");
+/**
+ * A wall-clock time as the page shows every one (the run history, the e-stop's latch, the
+ * service's silence): local time, "YYYY-MM-DD HH:MM:SS". `t`: milliseconds since the epoch, or
+ * the API's ISO time ("…+0000" too); null when there is none or it is not a time.
+ */
+function wallTime(t) {
+  if (t === null || t === undefined || t === "") return null;
+  const d = new Date(typeof t === "number" ? t : String(t).replace(/\+0000$/, "Z"));
+  if (Number.isNaN(d.getTime())) return null;
+  const two = (x) => String(x).padStart(2, "0");
+  return `${d.getFullYear()}-${two(d.getMonth() + 1)}-${two(d.getDate())} ` +
+    `${two(d.getHours())}:${two(d.getMinutes())}:${two(d.getSeconds())}`;
 }
 
 /** A sign of life from the service (a message, an answer). */
@@ -855,10 +865,10 @@ function goDead() {
   live.dead = true;
   live.since = live.lastHeard;
   sdh2.serviceAlive = false;
-  sdh2.deadSince = hhmmss(live.since);
+  sdh2.deadSince = wallTime(live.since);
   document.body.classList.add("service-dead");
   $("#dead-text").textContent =
-    `The service is not answering (since ${hhmmss(live.since)}) — the hand's state is unknown.`;
+    `The service is not answering (since ${sdh2.deadSince}) — the hand's state is unknown.`;
   $("#dead-banner").hidden = false;
   if (sdh2.ws !== "open") $("#ws-state").textContent = "no service";
   const ls = $("#links-state");
@@ -884,7 +894,7 @@ function revive() {
   $("#dead-banner").hidden = true;
   $("#run-state").title = "";
   clearToasts("service");
-  toast(`The service answers again (it was gone since ${hhmmss(live.since)}).`,
+  toast(`The service answers again (it was gone since ${wallTime(live.since)}).`,
     { kind: "info", timeoutMs: 5000 });
   updateControls();
   loadRuns();
@@ -1286,12 +1296,6 @@ function cell(tr, text, cls) {
   return td;
 }
 
-function shortTime(s) {
-  if (!s) return "–";
-  const d = new Date(String(s).replace(/\+0000$/, "Z"));
-  return Number.isNaN(d.getTime()) ? String(s) : d.toLocaleString();
-}
-
 // One load at a time; a load asked for while one is in flight runs again after it, so a click
 // on Refresh always gets an answer the server gave after the click (not one an earlier load,
 // started by a run's start or end, brings back).
@@ -1341,8 +1345,8 @@ function renderRuns(runs) {
     const sum = r.summary || {};
     const meta = r.meta || {};
     cell(tr, String(r.id));
-    cell(tr, shortTime(r.started ?? r.started_at));
-    cell(tr, shortTime(r.finished ?? r.ended_at));
+    cell(tr, wallTime(r.started ?? r.started_at));
+    cell(tr, wallTime(r.finished ?? r.ended_at));
     cell(tr, r.status, `status-${r.status}`);
     cell(tr, meta.object ? meta.object.name ?? meta.object.kind : "–");
     cell(tr, fmt(r.iterations ?? sum.iterations));

@@ -960,6 +960,22 @@ UNCONFIRMED = (
 )
 
 
+# How the page shows every wall-clock time: local, ISO-like.
+WALL_TIME = r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d"
+
+
+async def local_time(page: Any, iso: str) -> str:
+    """The API's time ``iso`` in the browser's local time, ``YYYY-MM-DD HH:MM:SS``."""
+    parts = await page.evaluate(
+        "(s) => { const d = new Date(s.replace(/\\+0000$/, 'Z'));"
+        " return [d.getFullYear(), d.getMonth() + 1, d.getDate(), d.getHours(), d.getMinutes(),"
+        " d.getSeconds()]; }",
+        iso,
+    )
+    y, mo, d, h, mi, sec = parts
+    return f"{y:04d}-{mo:02d}-{d:02d} {h:02d}:{mi:02d}:{sec:02d}"
+
+
 async def unconfirmed_estop(route: Any) -> None:
     """POST /api/estop goes to the service; its answer says the hand has not confirmed it and
     the disk has not taken it yet."""
@@ -1017,9 +1033,7 @@ async def estop_shown_and_unconfirmed(svc: LiveService, page: Any, lie: StatusLi
     # … and the line next to the E-STOP (always in sight, not only in a tooltip) says since
     # when, why, and whether the hand confirmed the power-off
     since = httpx.get(svc.url + "/api/status").json()["estop"]["since"]
-    at = await page.evaluate(
-        "(s) => new Date(s.replace(/\\+0000$/, 'Z')).toTimeString().slice(0, 8)", since
-    )
+    at = await local_time(page, since)
     shown = await page.evaluate(FEED_STATUS, [["estop", "hand_reached"], True])
     assert shown["hand"] is None, shown
     assert shown["latch"] == f"latched {at} — {reason} · hand confirmed", shown
@@ -1242,7 +1256,7 @@ async def test_a_dead_service_greys_out_the_dashboard_until_it_is_back(tmp_path:
             banner = page.locator("#dead-banner")
             await expect(banner).to_be_visible(timeout=30_000)
             await expect(banner).to_contain_text(re.compile(
-                r"The service is not answering \(since \d\d:\d\d:\d\d\) — "
+                rf"The service is not answering \(since {WALL_TIME}\) — "
                 "the hand's state is unknown"
             ))  # fmt: skip
             await expect(page.locator("#links-state")).not_to_contain_text("up")
@@ -1415,3 +1429,35 @@ async def test_the_true_turn_is_not_kept_past_an_estop_release(
         await expect(rot).to_have_text(re.compile(r"^turned -?\d+\.\d° \(true –\)$"))
         # the recognition's estimate of the last sample stays
         assert await page.inner_text("#object-readout .obj-class") == estimate
+
+
+# The last status the page got with the e-stop latched since `since`, fed, and the real one
+# again, in one turn: the latch's line and the E-STOP's tooltip meanwhile.
+LATCHED_SINCE = """(since) => {
+  const real = window.sdh2debug.status();
+  const st = {...structuredClone(real), estopped: true,
+              estop: {since, reason: 'e-stop requested', hand_reached: true}};
+  window.sdh2debug.onMessage({type: 'status', status: st});
+  const shown = {latch: document.querySelector('#estop-latch').textContent,
+                 title: document.querySelector('#estop').title};
+  window.sdh2debug.onMessage({type: 'status', status: real});
+  return shown;
+}"""
+
+
+async def test_every_wall_clock_time_is_shown_one_way(page: Any) -> None:
+    started, ended = "2026-12-07T10:00:00.000+0000", "2026-12-07T10:02:03+00:00"
+    row = {"id": 7, "started_at": started, "ended_at": ended, "status": "completed",
+           "iterations": 12, "meta": {"object": {"name": "egg"}}, "summary": {}}  # fmt: skip
+    await page.route(RUN_LIST, lambda r: r.fulfill(json=[row], headers={"X-Total-Count": "1"}))
+    await page.click("#runs-refresh")
+    cells = page.locator("#runs tbody tr[data-run-id='7'] td")
+    # the run history's start and end
+    await expect(cells.nth(1)).to_have_text(await local_time(page, started))
+    await expect(cells.nth(2)).to_have_text(await local_time(page, ended))
+    # the e-stop's latch: the line next to the E-STOP and its tooltip
+    at = await local_time(page, started)
+    shown = await page.evaluate(LATCHED_SINCE, started)
+    assert shown["latch"].startswith(f"latched {at} — e-stop requested"), shown
+    assert f"latched since {at} (e-stop requested)" in shown["title"], shown
+    assert re.fullmatch(WALL_TIME, at), at
