@@ -711,7 +711,10 @@ function updateControls() {
   const hint = $("#open-hand-hint");
   hint.textContent = !dead && estopped ? "release the e-stop first to open the hand"
     : !dead && opening ? "opening…" : "";
-  $("#object-select").disabled = dead || active || state.sim === false;
+  // with the hand e-stopped nothing changes its world: the object stays (the API refuses too)
+  setButton("#object-select", dead || active || estopped || state.sim === false,
+    dead ? gone : estopped ? "Release the e-stop first: while it is latched the object stays as it is."
+      : active ? "A run is active: the object cannot change during it." : "");
   $("#params-apply").disabled = dead;
   $("#runs-refresh").disabled = dead;
   if (state.notice) renderNotice();

@@ -613,8 +613,12 @@ class HandService:
         return {"object": bench.obj.model_dump(), "presets": list(PRESETS)}
 
     def set_object(self, obj: Shape) -> dict[str, Any]:
-        """Place another object between the fingertips (simulation only, between runs)."""
+        """Place another object between the fingertips (simulation only, between runs; 409
+        while the e-stop is latched: with the hand e-stopped nothing changes the world)."""
         bench = self._bench()
+        if self.joints is not None and self.joints.estopped:
+            raise ServiceError(409, "the e-stop is latched: release it first "
+                               "(POST /api/estop/release)")  # fmt: skip
         if self.running:
             raise ServiceError(409, "the object cannot change during a run; stop the run first")
         bench.place(obj)

@@ -336,6 +336,33 @@ async def test_estop_mid_run_and_release(svc: LiveService) -> None:
         assert kinds[-3:] == [("phase", "e-stopped"), ("estop", None), ("end", "e-stopped")]
 
 
+async def test_the_object_stays_while_the_estop_is_latched(svc: LiveService) -> None:
+    """With the hand e-stopped nothing changes its world: PUT /api/sim/object is refused (409,
+    as a start or an opening is), the object stays; after the release it changes again."""
+    async with svc.client() as c, httpx.AsyncClient(base_url=svc.url, headers=svc.headers()) as raw:
+        info = await c.sim_object()
+        before = info["object"]
+        other = "cylinder" if before["name"] != "cylinder" else "egg"
+        assert (await c.estop())["estopped"] is True
+        try:
+            r = await raw.put("/api/sim/object", json={"name": other})
+            assert r.status_code == 409, r.text
+            assert r.json() == {"error": "the e-stop is latched: release it first "
+                                "(POST /api/estop/release)", "details": []}  # fmt: skip
+            with pytest.raises(Conflict, match="e-stop is latched"):  # a spec the same
+                await c.set_sim_object(spec={"kind": "circle", "diameter_mm": 40, "depth_mm": 30})
+            assert (await c.sim_object())["object"] == before
+            assert (await c.status())["object"] == before
+        finally:
+            assert (await c.release_estop()) == {"estopped": False}
+        assert (await c.set_sim_object(other))["object"]["name"] == other
+        # as it was, for the module's other tests
+        if before["name"] in info["presets"]:
+            await c.set_sim_object(before["name"])
+        else:
+            await c.set_sim_object(spec=before)
+
+
 async def test_token_required_when_exposed(tmp_path: Path) -> None:
     # exposed without a token: refused at start, with a reason
     s = await asyncio.to_thread(

@@ -1461,3 +1461,28 @@ async def test_every_wall_clock_time_is_shown_one_way(page: Any) -> None:
     assert shown["latch"].startswith(f"latched {at} — e-stop requested"), shown
     assert f"latched since {at} (e-stop requested)" in shown["title"], shown
     assert re.fullmatch(WALL_TIME, at), at
+
+
+async def test_the_object_picker_is_disabled_while_the_estop_is_latched(
+    service: LiveService, page: Any
+) -> None:
+    picker = page.locator("#object-select")
+    await expect(picker).to_be_enabled()
+    await page.click("#estop")
+    try:
+        await page.wait_for_function("window.sdh2debug.status().estopped === true")
+        await expect(picker).to_be_disabled()
+        why = re.compile("^Release the e-stop first: while it is latched the object stays")
+        await expect(picker).to_have_attribute("title", why)  # the tooltip …
+        await expect(picker).to_have_accessible_description(why)  # … and a screen reader's
+        # the API refuses it too (and the picker still shows the object there is)
+        name = httpx.get(service.url + "/api/sim/object").json()["object"]["name"]
+        other = "cylinder" if name != "cylinder" else "egg"
+        r = httpx.put(service.url + "/api/sim/object", json={"name": other},
+                      headers=service.headers())  # fmt: skip
+        assert r.status_code == 409 and "e-stop is latched" in r.json()["error"], r.text
+        await expect(picker).to_have_value(name)
+    finally:
+        await page.click("#estop-release")
+    await expect(picker).to_be_enabled()
+    await expect(picker).to_have_attribute("title", "object between the fingertips (simulation)")
