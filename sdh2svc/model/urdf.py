@@ -29,7 +29,7 @@ import math
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Final, Literal
 
 from sdh2svc.model.geometry import pad_slope, pad_y3, x3_from_L
 from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig
@@ -72,6 +72,13 @@ class Joint:
     lower: float = 0.0
     upper: float = 0.0
     mimic: str | None = None  # moves with this joint (the coupling φ1's second finger)
+
+
+#: The visuals' colours (r, g, b, a): the URDF's materials, and the links drawn in Foxglove.
+MATERIALS: Final[dict[str, tuple[float, float, float, float]]] = {
+    "shell": (0.55, 0.57, 0.6, 1.0),
+    "pad": (0.15, 0.15, 0.15, 1.0),
+}
 
 
 @dataclass(frozen=True, slots=True)

@@ -4,9 +4,10 @@ Foxglove WebSocket protocol by ``foxglove-sdk``, fed from the telemetry hub.
 * ``/samples`` (JSON, the schema from Sample) — every iteration;
 * ``/tf`` — the links at each forwarded sample's φ2…φ5, and between runs at the hand's actual
   angles (the ``pose`` messages);
-* ``/scene`` — the pads, and A, B, AB and the friction cones (α of the run in force) of each
-  forwarded sample; in simulation the object's true outline (the ``sim`` messages); the contacts
-  are deleted when a run ends;
+* ``/scene`` — the links and the pads (with each sample, and between runs with the ``pose``
+  messages), and A, B, AB and the friction cones (α of the run in force) of each forwarded
+  sample; in simulation the object's true outline (the ``sim`` messages); the contacts are
+  deleted when a run ends;
 * ``/tactile/<finger>_<proximal|distal>`` — each forwarded tactile frame's pads as Grids;
 * ``/events`` — every event, as Log lines.
 
@@ -140,9 +141,19 @@ class FoxgloveLive:
             if self._scene.has_sinks():  # at the service's pose_hz: not rate-limited here
                 ns = time.time_ns()
                 self._scene.log(self._hand.scene(None, ns, self._alpha, msg.truth), log_time=ns)
-        elif isinstance(msg, Pose) and self._tf.has_sinks() and self._due_3d():
+        elif isinstance(msg, Pose):
+            self._pose(msg)
+
+    def _pose(self, msg: Pose) -> None:
+        """The hand at its actual angles, between runs too: the links and pads on /scene with
+        them (a real hand has no ``sim`` messages to draw them)."""
+        tf, scene = self._tf.has_sinks(), self._scene.has_sinks()
+        if (tf or scene) and self._due_3d():
             ns = time.time_ns()
-            self._tf.log(self._hand.pose_transforms(msg.angles_deg, ns), log_time=ns)
+            if tf:
+                self._tf.log(self._hand.pose_transforms(msg.angles_deg, ns), log_time=ns)
+            if scene:
+                self._scene.log(self._hand.scene(None, ns, self._alpha), log_time=ns)
 
     def _sample(self, msg: SampleMsg) -> None:
         s = msg.sample

@@ -6,12 +6,14 @@ Channels (log times: the run's start plus each record's own time ``t``):
   :class:`~sdh2svc.control.sample.Sample`'s fields, with units in the descriptions.
 * ``/tf`` — ``foxglove.FrameTransforms`` of the URDF's joints from each sample's φ2…φ5 (φ1 and the
   thumb at the run's pre-shape, where a run holds them).
-* ``/scene`` — ``foxglove.SceneUpdate``: the six pads as boxes in their URDF frames (``pads/<pad>``,
-  following ``/tf``), and in ``frame0`` the contact points A, B, the segment AB and the friction
-  cones of half-angle α about each pad's normal, and the object as the recognition reconstructed
-  it, a closed blue line, once it has a class (``contacts``); in simulation the object's true
-  outline too (``object``: live from the ``sim`` messages, in a file from the truth recorded with
-  each iteration), red once it has dropped.
+* ``/scene`` — ``foxglove.SceneUpdate``: the hand's links as the URDF draws them
+  (``links/<link>``: boxes, and the palm's cylinder, in each link's frame, following ``/tf``: the
+  hand shows without a URDF layer), the six pads as boxes in their URDF frames (``pads/<pad>``),
+  and in ``frame0`` the contact points A, B, the segment AB and the friction cones of half-angle
+  α about each pad's normal, and the object as the recognition reconstructed it, a closed blue
+  line, once it has a class (``contacts``); in simulation the object's true outline too
+  (``object``: live from the ``sim`` messages, in a file from the truth recorded with each
+  iteration), red once it has dropped.
 * ``/tactile/<finger>_<proximal|distal>`` — each pad as ``foxglove.Grid`` (raw counts, uint16) in
   its URDF frame, cells of the texel pitch.
 * ``/events`` — ``foxglove.Log``, one per run event.
@@ -23,6 +25,7 @@ schemas and encoders); the file is written with ``mcap``'s writer (any binary st
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import types
@@ -41,11 +44,14 @@ from sdh2svc.control.sample import Sample
 from sdh2svc.model.geometry import pad_slope
 from sdh2svc.model.urdf import (
     FINGERS,
+    MATERIALS,
     PADS,
     HandDescription,
+    Visual,
     describe,
     joint_transforms,
     pad_matrix,
+    quat_from_rpy,
     to_xml,
 )
 from sdh2svc.service.telemetry import (
@@ -197,12 +203,28 @@ class HandFrames:
         """The pads, and a sample's contacts (``s``), and the simulation's object (``truth``: a
         ``sim`` message's, :meth:`sdh2svc.sim.hand.Truth.scene`); what is not given is left as
         it was drawn."""
-        entities = self.pads(ns)
+        entities = [*self.links(ns), *self.pads(ns)]
         if s is not None:
             entities.append(self.contacts(s, ns, sample_alpha(s, alpha)))
         if truth is not None and (obj := object_entity(truth, ns)) is not None:
             entities.append(obj)
         return fm.SceneUpdate(entities=entities)
+
+    def links(self, ns: int) -> list[fm.SceneEntity]:
+        """The hand's links as the URDF's visuals draw them, each in its link's frame (it follows
+        ``/tf``); the pads are :meth:`pads`, under their grids."""
+        ts = _ts(ns)
+        return [
+            fm.SceneEntity(
+                timestamp=ts,
+                frame_id=link,
+                id=f"links/{link}",
+                frame_locked=True,
+                cubes=list(cubes),
+                cylinders=list(cylinders),
+            )
+            for link, cubes, cylinders in _link_shells(self.desc)
+        ]
 
     def pads(self, ns: int) -> list[fm.SceneEntity]:
         """Each tactile matrix as a box under its Grid, in the pad's frame (it follows ``/tf``)."""
@@ -339,6 +361,39 @@ def _pose(p: np.ndarray, q: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 
     return fm.Pose(
         position=_v3(float(p[0]), float(p[1]), float(p[2])),
         orientation=fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+
+
+@functools.cache
+def _link_shells(
+    desc: HandDescription,
+) -> tuple[tuple[str, tuple[fm.CubePrimitive, ...], tuple[fm.CylinderPrimitive, ...]], ...]:
+    """Each link's shell visuals (not its pad strips) as Foxglove's primitives, made once."""
+    out = []
+    for link in desc.links:
+        shell = [v for v in desc.visuals if v.link == link and v.material == "shell"]
+        if shell:
+            cubes = tuple(_cube(v) for v in shell if v.shape == "box")
+            out.append((link, cubes, tuple(_cylinder(v) for v in shell if v.shape == "cylinder")))
+    return tuple(out)
+
+
+def _visual_pose(v: Visual) -> fm.Pose:
+    return _pose(np.array(v.xyz), quat_from_rpy(v.rpy))
+
+
+def _cube(v: Visual) -> fm.CubePrimitive:
+    """A URDF box (sizes x, y, z) as Foxglove draws it."""
+    return fm.CubePrimitive(
+        pose=_visual_pose(v), size=_v3(*v.size), color=_rgba(*MATERIALS[v.material])
+    )
+
+
+def _cylinder(v: Visual) -> fm.CylinderPrimitive:
+    """A URDF cylinder (radius, length along its z) as Foxglove's (diameters x, y; height z)."""
+    d = 2.0 * v.size[0]
+    return fm.CylinderPrimitive(
+        pose=_visual_pose(v), size=_v3(d, d, v.size[1]), color=_rgba(*MATERIALS[v.material])
     )
 
 

@@ -138,6 +138,24 @@ def test_3d_channels_at_most_max_hz_samples_and_events_all(
     assert ch["_samples"].logged[-1][1] == clock.time_ns()
 
 
+def test_between_runs_the_pose_draws_the_hand_on_tf_and_scene(
+    live: tuple[FoxgloveLive, FakeHand, Clock],
+) -> None:
+    """A real hand sends no ``sim`` messages: between runs its links and pads reach /scene
+    with the pose, at the 3-D channels' rate; each only for a channel someone reads."""
+    fox, hand, clock = live
+    ch = _chans(fox, subscribed=True)
+    for _ in range(3):  # within one period (max_hz = 10): drawn once
+        clock.now += 0.02
+        fox.handle(Pose((0.0,) * 7))
+    assert hand.built == ["pose", "scene"]
+    assert len(ch["_tf"].logged) == len(ch["_scene"].logged) == 1
+    ch["_tf"].subscribed = False
+    clock.now += 0.1
+    fox.handle(Pose((0.0,) * 7))
+    assert hand.built == ["pose", "scene", "scene"]
+
+
 def test_deliveries_at_max_hz_with_jitter_are_all_forwarded(
     live: tuple[FoxgloveLive, FakeHand, Clock],
 ) -> None:

@@ -162,7 +162,8 @@ def test_pads_as_boxes_in_their_frames(
     frames = {t["child_frame_id"] for t in rec.messages["/tf"][0]["transforms"]}
     assert "frame0" in frames  # the contacts' frame
     pitch = cfg.tactile.texel_pitch_mm * 1e-3
-    pads = {e["id"]: e for e in rec.messages["/scene"][3]["entities"] if e["id"] != "contacts"}
+    entities = rec.messages["/scene"][3]["entities"]
+    pads = {e["id"]: e for e in entities if e["id"].startswith("pads/")}
     assert set(pads) == {f"pads/{f}_{p}" for f in FINGERS for p in PADS}
     for f in FINGERS:
         for p in PADS:
@@ -175,6 +176,58 @@ def test_pads_as_boxes_in_their_frames(
             assert (cube["size"]["x"], cube["size"]["y"]) == pytest.approx((w, h))
             c = cube["pose"]["position"]
             assert (c["x"], c["y"]) == pytest.approx((w / 2, h / 2)) and c["z"] < 0  # below
+
+
+def _xyz(v: dict[str, float]) -> dict[str, float]:
+    """A decoded Vector3 (protobuf leaves out its zeros) whole."""
+    return {k: v.get(k, 0.0) for k in "xyz"}
+
+
+def test_the_links_as_the_urdf_draws_them(
+    cfg: Settings, recorded: tuple[list[Sample], Recording]
+) -> None:
+    """Foxglove's 3-D panel reads no attachment: /scene draws each link's shell (the URDF's
+    boxes and cylinder, same sizes and origins) in the link's frame of /tf, so the hand shows
+    without a URDF layer."""
+    import xml.etree.ElementTree as ET
+
+    _, rec = recorded
+    tf = rec.messages["/tf"][0]["transforms"]
+    frames = {t["child_frame_id"] for t in tf} | {t["parent_frame_id"] for t in tf}
+    urdf = ET.fromstring(rec.attachments["sdh2.urdf"][1])
+    shells: dict[str, list[ET.Element]] = {}
+    for link in urdf.iter("link"):
+        for vis in link.iter("visual"):
+            if vis.find("material").get("name") == "shell":  # type: ignore[union-attr]
+                shells.setdefault(link.get("name", ""), []).append(vis)
+    assert {"palm", "finger1_proximal", "finger2_distal", "thumb_knuckle"} <= set(shells)
+    for scene in (rec.messages["/scene"][0], rec.messages["/scene"][-1]):  # with every update
+        links = {e["id"]: e for e in scene["entities"] if e["id"].startswith("links/")}
+        assert set(links) == {f"links/{name}" for name in shells}
+        for name, visuals in shells.items():
+            e = links[f"links/{name}"]
+            assert e["frame_id"] == name and name in frames and e["frame_locked"] is True
+            drawn = [(_xyz(c["size"]), _xyz(c["pose"]["position"])) for c in e.get("cubes", [])]
+            drawn += [
+                ({"r": c["size"]["x"] / 2, "length": c["size"]["z"]}, _xyz(c["pose"]["position"]))
+                for c in e.get("cylinders", [])
+            ]
+            want = []
+            for vis in visuals:
+                geom = vis.find("geometry")[0]  # type: ignore[index]
+                xyz = [float(v) for v in vis.find("origin").get("xyz", "").split()]  # type: ignore[union-attr]
+                if geom.tag == "box":
+                    x, y, z = (float(v) for v in geom.get("size", "").split())
+                    size: dict[str, float] = {"x": x, "y": y, "z": z}
+                else:
+                    size = {
+                        "r": float(geom.get("radius", "")),
+                        "length": float(geom.get("length", "")),
+                    }
+                want.append((size, dict(zip("xyz", xyz, strict=True))))
+            assert len(drawn) == len(want)
+            for (got_size, got_at), (size, at) in zip(drawn, want, strict=True):
+                assert got_size == pytest.approx(size) and got_at == pytest.approx(at)
 
 
 def test_the_objects_true_outline(cfg: Settings) -> None:
