@@ -447,7 +447,14 @@ def _headers(token: str | None) -> dict[str, str]:
 class Client:
     """The service over HTTP, blocking. ``token``: the service's bearer token, if it has one;
     ``timeout``: seconds a request (or the telemetry's keepalive) may go unanswered before
-    :class:`Unreachable`. Closing it (or leaving ``with``) also disconnects its telemetry."""
+    :class:`Unreachable`. Closing it (or leaving ``with``) also disconnects its telemetry.
+
+    Each method is one route of docs/api.md and answers its JSON as dicts and lists (degrees,
+    millimetres, seconds, forces in library units). Besides the errors each names, any call
+    raises :class:`Unreachable` when the service does not answer, and any refusal its
+    :class:`ApiError`: :class:`Unauthorized` for a command without the service's token,
+    :class:`Forbidden` for another origin, :class:`InvalidRequest` for a value out of range,
+    :class:`Unavailable` when a route that reads the run database cannot open it."""
 
     def __init__(self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 30.0):
         self.url, self.token, self.timeout = service_url(url), token, timeout
@@ -463,6 +470,8 @@ class Client:
         self.close()
 
     def close(self) -> None:
+        """Disconnect every telemetry stream of this client (a reader blocked on one ends) and
+        close its HTTP connections; leaving ``with`` does it."""
         with self._sockets_lock:
             sockets, self._sockets = list(self._sockets), set()
         for ws in sockets:  # a generator blocked on it ends
@@ -481,80 +490,128 @@ class Client:
 
     # the hand
     def status(self) -> JSON:
+        """``GET /api/status``: the status object (docs/api.md, *The status object*): ``sim``,
+        ``estopped`` and ``estop`` (the latch, None when released), ``hand`` (``connected``,
+        ``opening``, ``angles_deg``: the seven actual joint angles, degrees, wire axes 0…6),
+        ``links``, ``run`` (None before the first run; ``run["state"]`` ``idle`` … ``e-stopped``),
+        ``last_run``, ``params``, ``object`` (None on a real hand), ``telemetry``."""
         return cast(JSON, self._call(_Call("GET", "/api/status")))
 
     def open_hand(self) -> JSON:
-        """Open the fingers to the pre-shape pose (answers at once; ``status()["hand"]
-        ["opening"]`` is true meanwhile)."""
+        """``POST /api/hand/open``: open the fingers to the pre-shape pose; answers
+        ``{"state": "opening"}`` at once (``status()["hand"]["opening"]`` is true meanwhile).
+        :class:`Conflict` while a run runs, the hand is already opening or the e-stop is latched;
+        :class:`Unavailable` while the joint line is down or the service shuts down."""
         return cast(JSON, self._call(_Call("POST", "/api/hand/open", {})))
 
     def estop(self) -> JSON:
-        """Latch the e-stop; :class:`Unreachable` within :data:`ESTOP_TIMEOUT_S` (or the
-        client's timeout, if shorter) when the service does not answer — stop the hand another
-        way then."""
+        """``POST /api/estop`` (needs no token): latch the e-stop, motors off;
+        answers ``{"estopped": True, "hand_reached": bool, "recorded": bool}``, with a ``detail``
+        when the hand has not confirmed it or the latch is not on disk yet. :class:`Unreachable`
+        within :data:`ESTOP_TIMEOUT_S` (or the client's timeout, if shorter) when the service does
+        not answer — stop the hand another way then."""
         return cast(JSON, self._call(_ESTOP))
 
     def release_estop(self) -> JSON:
+        """``POST /api/estop/release``: the latch cleared on disk, then in the hand; answers
+        ``{"estopped": False}`` (at once when the service is not e-stopped). :class:`Conflict` when
+        an e-stop came during the release, :class:`Unavailable` when the run database or the joint
+        line did not take it: it stays latched either way. With the database locked by another
+        program the answer may take 2 × ``storage.busy_timeout_s`` (20 s by default)."""
         return cast(JSON, self._call(_Call("POST", "/api/estop/release", {})))
 
     # parameters and configuration
     def params(self) -> JSON:
+        """``GET /api/params``: the rolling parameters in force (``mode``, ``route``,
+        ``delta_phi_deg``, ``k``, …, ``cycles``: degrees, millimetres, library force units)."""
         return cast(JSON, self._call(_Call("GET", "/api/params")))
 
     def patch_params(self, changes: Mapping[str, Any]) -> JSON:
-        """Change some rolling parameters; answers the whole new set."""
+        """``PATCH /api/params``: change some rolling parameters (for the running run from
+        its next grasp frame or iteration, and for later runs); answers the whole new set.
+        :class:`InvalidRequest` naming each bad field, or a value the safety limits would void."""
         return cast(JSON, self._call(_Call("PATCH", "/api/params", dict(changes))))
 
     def params_schema(self) -> JSON:
+        """``GET /api/params/schema``: the parameters' JSON schema, each field's range,
+        description and ``default`` (this configuration's value); its ranges are those
+        :meth:`patch_params` takes."""
         return cast(JSON, self._call(_Call("GET", "/api/params/schema")))
 
     def config(self) -> JSON:
+        """``GET /api/config``: the service's effective configuration (``hand``, ``axes``,
+        ``limits``, ``tactile``, ``safety``, …; the token masked; ``rolling`` the parameters in
+        force, ``links`` the lines in use)."""
         return cast(JSON, self._call(_Call("GET", "/api/config")))
 
     def viewer(self) -> JSON:
-        """Where the 3-D view is: ``{"url": …}`` (None when it is off)."""
+        """``GET /api/viewer``: where the 3-D view is, ``{"url": …}`` (None when it is off)."""
         return cast(JSON, self._call(_Call("GET", "/api/viewer")))
 
     # runs
     def start_run(
         self, params: Mapping[str, Any] | None = None, object: str | Mapping[str, Any] | None = None
     ) -> RunRef:
-        """Start a run (``object``, in simulation: a preset name or a spec)."""
+        """``POST /api/runs``: start a run with ``params`` (a subset of the rolling
+        parameters; else those in force) and, in simulation, ``object`` (a preset name or a spec;
+        else the current one); answers ``{"run_id", "state"}`` (follow it in ``status()["run"]``).
+        :class:`Conflict` while a run runs, the hand opens or the e-stop is latched;
+        :class:`Unavailable` while a line is down, the run database is locked or the service
+        shuts down; :class:`InvalidRequest` for a bad parameter or object (or any object on a
+        real hand)."""
         return cast(RunRef, self._call(_start(params, object)))
 
     def stop_run(self) -> RunRef:
+        """``POST /api/runs/stop``: the running run stops, opens the hand to the pre-shape and
+        ends ``stopped``; answers ``{"run_id", "state"}`` (``{"run_id": None, "state":
+        "stopping"}`` when it stops an :meth:`open_hand` instead: the hand holds where it is).
+        :class:`Conflict` when neither is under way."""
         return cast(RunRef, self._call(_Call("POST", "/api/runs/stop", {})))
 
     def runs(self, limit: int | None = None, before: int | None = None) -> list[JSON]:
-        """Recorded runs, newest first: ``limit`` of them (the service's default: 100), of
-        ids below ``before`` (the next page: the last id of this one)."""
+        """``GET /api/runs``: recorded runs, newest first, each ``{"id", "started_at",
+        "ended_at", "status", "iterations", "meta", "summary"}``: ``limit`` of them (the service's
+        default: 100, at most 1000), of ids below ``before`` (the next page: the last id of this
+        one). :class:`InvalidRequest` for a ``limit`` out of range; :class:`Unavailable` when the
+        run database cannot be read."""
         return cast(list[JSON], self._call(_runs(limit, before)))
 
     def delete_run(self, run_id: int) -> JSON:
-        """Delete a recorded run and everything recorded with it (:class:`Conflict` while it
-        is being recorded)."""
+        """``DELETE /api/runs/{id}``: delete a recorded run and everything recorded with it;
+        answers ``{"deleted": run_id}``. :class:`NotFound` for no such run; :class:`Conflict` while
+        it is being recorded; :class:`Unavailable` when the run database did not take it (another
+        program holding it locked)."""
         return cast(JSON, self._call(_Call("DELETE", f"/api/runs/{run_id}", {})))
 
     def run(self, run_id: int) -> JSON:
-        """One run with its ``events``."""
+        """``GET /api/runs/{id}``: one run as :meth:`runs` lists it, with its ``summary`` and
+        ``events``. :class:`NotFound` for no such run."""
         return cast(JSON, self._call(_Call("GET", f"/api/runs/{run_id}")))
 
     def events(self, run_id: int) -> list[JSON]:
+        """A run's events, ``[{"t", "iteration", "kind", "detail"}, …]`` (``t`` in seconds
+        since the run's start), from :meth:`run` (``GET /api/runs/{id}``). :class:`NotFound` for
+        no such run."""
         return cast(list[JSON], self.run(run_id)["events"])
 
     def samples(
         self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False,
         *, first: int = 0, every: int = 1,
     ) -> SamplePage:  # fmt: skip
-        """A page of a run's samples in iteration order from iteration ``first`` on, ``offset``
-        of them skipped, ``limit`` of them (default 1000, or 100 with ``outline``: each with its
-        ``estimate_outline``; ``limit`` then at most 100); ``every``: one iteration in that
-        many. The page's ``next`` is the ``first`` of the next page (None: none)."""
+        """``GET /api/runs/{id}/samples``: a page of a run's samples in iteration order from
+        iteration ``first`` on, ``offset`` of them skipped, ``limit`` of them (default 1000, or 100
+        with ``outline``: each with its ``estimate_outline``; ``limit`` then at most 100);
+        ``every``: one iteration in that many. The page's ``next`` is the ``first`` of the next
+        page (None: none); ``total`` counts all the run's samples; a sample's angles are degrees,
+        its lengths millimetres. :class:`NotFound` for no such run; :class:`InvalidRequest` for a
+        value out of range."""
         call = _samples(run_id, offset, limit, outline, first, every)
         return cast(SamplePage, self._call(call))
 
     def iter_samples(self, run_id: int, page: int = 1000, every: int = 1) -> Iterator[JSON]:
-        """Every sample of a run (``every``: one iteration in that many), a page at a time."""
+        """Every sample of a run (``every``: one iteration in that many), a page of ``page``
+        at a time through :meth:`samples`, following ``next``; raises as it does, when the page
+        that fails is fetched."""
         first: int | None = 0
         while first is not None:
             got = self.samples(run_id, 0, page, first=first, every=every)
@@ -565,21 +622,34 @@ class Client:
         self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None,
         every: int = 1,
     ) -> JSON:  # fmt: skip
-        """A page of a run's tactile frames of iterations ``first`` … ``to`` (docs/api.md;
-        follow ``next``); ``texels`` is base64 of little-endian uint16 counts; ``every``: one
-        iteration in that many, as :meth:`samples`."""
+        """``GET /api/runs/{id}/frames``: a page of a run's tactile frames of iterations
+        ``first`` … ``to`` (follow ``next``); ``texels`` is base64 of little-endian uint16 counts,
+        the matrices of ``shapes`` one after the other; ``every``: one iteration in that many, as
+        :meth:`samples`. :class:`NotFound` for no such run; :class:`Conflict` for a run recorded
+        with a configuration this version cannot read; :class:`InvalidRequest` for ``to`` below
+        ``first`` or a value out of range."""
         return cast(JSON, self._call(_frames(run_id, first, limit, to, every)))
 
     def truth(self, run_id: int, first: int = 0, limit: int = 2000, every: int = 1) -> JSON:
-        """In simulation, the object's truth recorded with each iteration from ``first`` on
-        (its ``outline`` and ``truth`` rows; follow ``next``); ``every`` as :meth:`samples`."""
+        """``GET /api/runs/{id}/truth``: in simulation, the object's truth recorded with each
+        iteration from ``first`` on (its ``outline`` and ``truth`` rows, ``y``/``z`` in mm, ``psi``
+        in rad; follow ``next``); a real hand's run has ``outline`` None and no rows; ``every`` as
+        :meth:`samples`. :class:`NotFound` for no such run."""
         return cast(JSON, self._call(_truth(run_id, first, limit, every)))
 
     def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
+        """``GET /api/runs/{id}/export?format=…``: the whole file in memory (CSV, UTF-8, or
+        MCAP); :meth:`export` streams a long run to a file instead. :class:`NotFound` for no such
+        run; :class:`Conflict` for a run recorded with a configuration this version cannot read;
+        :class:`Unavailable` when the run database cannot be read."""
         return self._send(_export(run_id, format)).content
 
     def export(self, run_id: int, path: str | Path, format: ExportFormat | None = None) -> Path:
-        """Write a run to a file (CSV or MCAP, from ``format`` or the file's suffix)."""
+        """Write a run to a file (CSV or MCAP, from ``format`` or the file's suffix) as
+        :meth:`export_bytes` fetches it, streamed, written whole or not at all (a dropped
+        connection leaves an earlier file as it was); answers the path. ValueError when no
+        ``format`` is given and the suffix is neither ``.csv`` nor ``.mcap``; raises as
+        :meth:`export_bytes`, and OSError when the file cannot be written."""
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
         with (
@@ -595,9 +665,11 @@ class Client:
         return path
 
     def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
-        """Wait until the run has ended (at once if it already has); answers its end (id,
-        status, message), as ``status()["last_run"]`` has it. NotFound for a run the service
-        never had; TimeoutError after ``timeout`` seconds."""
+        """Wait until the run has ended (at once if it already has), polling
+        ``GET /api/status`` every ``poll_s`` s (and the run's row once the status no longer shows
+        it); answers its end ``{"id", "status", "message"}``, as ``status()["last_run"]`` has it.
+        :class:`NotFound` for a run the service never had; TimeoutError after ``timeout``
+        seconds."""
         deadline = time.monotonic() + timeout
         while (end := self._end_of(self.status(), run_id)) is None:
             if time.monotonic() > deadline:
@@ -611,8 +683,9 @@ class Client:
         return _row_ended(self.run(run_id))
 
     def wait_status(self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05) -> JSON:
-        """Poll the status until ``ok(status)`` holds (e.g. :func:`run_state` ``("rolling")``);
-        answers that status. TimeoutError after ``timeout`` seconds."""
+        """Poll ``GET /api/status`` every ``poll_s`` s until ``ok(status)`` holds (e.g.
+        :func:`run_state` ``("rolling")``); answers that status. TimeoutError after ``timeout``
+        seconds."""
         deadline = time.monotonic() + timeout
         while not ok(st := self.status()):
             if time.monotonic() > deadline:
@@ -622,34 +695,56 @@ class Client:
 
     # the simulated object (NotFound on a real hand)
     def sim_object(self) -> JSON:
+        """``GET /api/sim/object``: ``{"object": spec, "presets": [names]}``, the spec with its
+        ``kind``, sizes in mm and ``material``. :class:`NotFound` on a real hand."""
         return cast(JSON, self._call(_Call("GET", "/api/sim/object")))
 
     def set_sim_object(
         self, name: str | None = None, spec: Mapping[str, Any] | None = None
     ) -> JSON:
+        """``PUT /api/sim/object``: place a preset (``name``, e.g. ``"egg"``) or an object
+        ``spec`` (docs/api.md, *Object specs*) between the fingertips; answers as
+        :meth:`sim_object`. ValueError unless exactly one of ``name`` and ``spec`` is given;
+        :class:`NotFound` on a real hand; :class:`Conflict` while a run runs;
+        :class:`InvalidRequest` for an unknown preset or a spec outside the limits."""
         return cast(JSON, self._call(_object(name, spec)))
 
     def press(self, pad: int, x_mm: float, y_mm: float, force_n: float,
               radius_mm: float | None = None, duration_s: float | None = None) -> JSON:  # fmt: skip
-        """Press a simulated pad as a person would (``POST /api/sim/press``)."""
+        """``POST /api/sim/press``: press matrix ``pad`` (0…5) as a person would, centred
+        ``x_mm`` across it (from column 0) and ``y_mm`` along it (from row 0), ``force_n`` (0 < F ≤
+        50) over a disc of ``radius_mm`` (default 3) for ``duration_s`` s (default 1, at most 60);
+        answers the accepted press, defaults filled in. :class:`NotFound` on a real hand;
+        :class:`InvalidRequest` off the pad or out of range."""
         return cast(JSON, self._call(_press(pad, x_mm, y_mm, force_n, radius_mm, duration_s)))
 
     def release_press(self) -> JSON:
-        """Lift every press that is on (``{"released": n}``)."""
+        """``DELETE /api/sim/press``: lift every press that is on; answers
+        ``{"released": n}``. :class:`NotFound` on a real hand."""
         return cast(JSON, self._call(_RELEASE_PRESS))
 
     # the 3-D view
     def show_replay(self, run_id: int, iteration: int) -> JSON:
-        """The 3-D view shows a recorded iteration instead of the live hand (for 60 s)."""
+        """``PUT /api/viewer/replay``: the 3-D view shows a recorded iteration instead of the
+        live hand (until :meth:`end_replay`, or 60 s without a newer one); answers ``{"replay":
+        {"run_id", "iteration", "t"}, "live_again_in_s": 60}``. :class:`NotFound` for no such run
+        or iteration; :class:`Conflict` when the view is off or the run was recorded with a
+        configuration this version cannot read."""
         return cast(JSON, self._call(_replay(run_id, iteration)))
 
     def end_replay(self) -> JSON:
+        """``DELETE /api/viewer/replay``: the 3-D view shows the live hand again; answers
+        ``{"replay": None, "live_again_in_s": None}``. :class:`Conflict` when the view is off."""
         return cast(JSON, self._call(_END_REPLAY))
 
     def telemetry(
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
     ) -> Telemetry:
-        """``with client.telemetry() as live: for msg in live: …`` (see :class:`Telemetry`)."""
+        """``/ws/telemetry``: ``with client.telemetry() as live: for msg in live: …`` (see
+        :class:`Telemetry`); ``decimate``: every N-th sample, ``tactile``: the tactile frames or
+        not, ``max_queue``: the service's queue for this client. On connecting, a refused handshake
+        raises its :class:`ApiError` (:class:`InvalidRequest` for a bad option), no answer
+        :class:`Unreachable`."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
         return Telemetry(url, _headers(self.token), self.timeout, self._opened, self._ended)
 
@@ -820,6 +915,8 @@ class AsyncClient:
         await self.aclose()
 
     async def aclose(self) -> None:
+        """Disconnect every telemetry stream of this client and close its HTTP connections;
+        leaving ``async with`` does it."""
         for tm in list(self._telemetry):
             await tm.aclose()
         await self._http.aclose()
@@ -835,9 +932,11 @@ class AsyncClient:
 
     # the hand
     async def status(self) -> JSON:
+        """As :meth:`Client.status`."""
         return cast(JSON, await self._call(_Call("GET", "/api/status")))
 
     async def open_hand(self) -> JSON:
+        """As :meth:`Client.open_hand`."""
         return cast(JSON, await self._call(_Call("POST", "/api/hand/open", {})))
 
     async def estop(self) -> JSON:
@@ -845,55 +944,69 @@ class AsyncClient:
         return cast(JSON, await self._call(_ESTOP))
 
     async def release_estop(self) -> JSON:
+        """As :meth:`Client.release_estop`."""
         return cast(JSON, await self._call(_Call("POST", "/api/estop/release", {})))
 
     # parameters and configuration
     async def params(self) -> JSON:
+        """As :meth:`Client.params`."""
         return cast(JSON, await self._call(_Call("GET", "/api/params")))
 
     async def patch_params(self, changes: Mapping[str, Any]) -> JSON:
+        """As :meth:`Client.patch_params`."""
         return cast(JSON, await self._call(_Call("PATCH", "/api/params", dict(changes))))
 
     async def params_schema(self) -> JSON:
+        """As :meth:`Client.params_schema`."""
         return cast(JSON, await self._call(_Call("GET", "/api/params/schema")))
 
     async def config(self) -> JSON:
+        """As :meth:`Client.config`."""
         return cast(JSON, await self._call(_Call("GET", "/api/config")))
 
     async def viewer(self) -> JSON:
+        """As :meth:`Client.viewer`."""
         return cast(JSON, await self._call(_Call("GET", "/api/viewer")))
 
     # runs
     async def start_run(
         self, params: Mapping[str, Any] | None = None, object: str | Mapping[str, Any] | None = None
     ) -> RunRef:
+        """As :meth:`Client.start_run`."""
         return cast(RunRef, await self._call(_start(params, object)))
 
     async def stop_run(self) -> RunRef:
+        """As :meth:`Client.stop_run`."""
         return cast(RunRef, await self._call(_Call("POST", "/api/runs/stop", {})))
 
     async def runs(self, limit: int | None = None, before: int | None = None) -> list[JSON]:
+        """As :meth:`Client.runs`."""
         return cast(list[JSON], await self._call(_runs(limit, before)))
 
     async def delete_run(self, run_id: int) -> JSON:
+        """As :meth:`Client.delete_run`."""
         return cast(JSON, await self._call(_Call("DELETE", f"/api/runs/{run_id}", {})))
 
     async def run(self, run_id: int) -> JSON:
+        """As :meth:`Client.run`."""
         return cast(JSON, await self._call(_Call("GET", f"/api/runs/{run_id}")))
 
     async def events(self, run_id: int) -> list[JSON]:
+        """As :meth:`Client.events`."""
         return cast(list[JSON], (await self.run(run_id))["events"])
 
     async def samples(
         self, run_id: int, offset: int = 0, limit: int | None = None, outline: bool = False,
         *, first: int = 0, every: int = 1,
     ) -> SamplePage:  # fmt: skip
+        """As :meth:`Client.samples`."""
         call = _samples(run_id, offset, limit, outline, first, every)
         return cast(SamplePage, await self._call(call))
 
     async def iter_samples(
         self, run_id: int, page: int = 1000, every: int = 1
     ) -> AsyncIterator[JSON]:
+        """As :meth:`Client.iter_samples`, an async iterator."""
         first: int | None = 0
         while first is not None:
             got = await self.samples(run_id, 0, page, first=first, every=every)
@@ -905,17 +1018,21 @@ class AsyncClient:
         self, run_id: int, first: int = 0, limit: int = 500, to: int | None = None,
         every: int = 1,
     ) -> JSON:  # fmt: skip
+        """As :meth:`Client.frames`."""
         return cast(JSON, await self._call(_frames(run_id, first, limit, to, every)))
 
     async def truth(self, run_id: int, first: int = 0, limit: int = 2000, every: int = 1) -> JSON:
+        """As :meth:`Client.truth`."""
         return cast(JSON, await self._call(_truth(run_id, first, limit, every)))
 
     async def export_bytes(self, run_id: int, format: ExportFormat = "csv") -> bytes:
+        """As :meth:`Client.export_bytes`."""
         return (await self._send(_export(run_id, format))).content
 
     async def export(
         self, run_id: int, path: str | Path, format: ExportFormat | None = None
     ) -> Path:
+        """As :meth:`Client.export`."""
         path = Path(path)
         call = _export(run_id, _format_of(path, format))
         with _answered(f"{call.method} {self.url}{call.path}"):
@@ -929,6 +1046,7 @@ class AsyncClient:
         return path
 
     async def wait_run(self, run_id: int, timeout: float = 300.0, poll_s: float = 0.2) -> JSON:
+        """As :meth:`Client.wait_run`."""
         deadline = time.monotonic() + timeout
         while (end := await self._end_of(await self.status(), run_id)) is None:
             if time.monotonic() > deadline:
@@ -944,6 +1062,7 @@ class AsyncClient:
     async def wait_status(
         self, ok: StatusCheck, timeout: float = 60.0, poll_s: float = 0.05
     ) -> JSON:
+        """As :meth:`Client.wait_status`."""
         deadline = time.monotonic() + timeout
         while not ok(st := await self.status()):
             if time.monotonic() > deadline:
@@ -953,33 +1072,40 @@ class AsyncClient:
 
     # the simulated object
     async def sim_object(self) -> JSON:
+        """As :meth:`Client.sim_object`."""
         return cast(JSON, await self._call(_Call("GET", "/api/sim/object")))
 
     async def set_sim_object(
         self, name: str | None = None, spec: Mapping[str, Any] | None = None
     ) -> JSON:
+        """As :meth:`Client.set_sim_object`."""
         return cast(JSON, await self._call(_object(name, spec)))
 
     async def press(
         self, pad: int, x_mm: float, y_mm: float, force_n: float,
         radius_mm: float | None = None, duration_s: float | None = None,
     ) -> JSON:  # fmt: skip
+        """As :meth:`Client.press`."""
         return cast(JSON, await self._call(_press(pad, x_mm, y_mm, force_n, radius_mm, duration_s)))
 
     async def release_press(self) -> JSON:
+        """As :meth:`Client.release_press`."""
         return cast(JSON, await self._call(_RELEASE_PRESS))
 
     # the 3-D view
     async def show_replay(self, run_id: int, iteration: int) -> JSON:
+        """As :meth:`Client.show_replay`."""
         return cast(JSON, await self._call(_replay(run_id, iteration)))
 
     async def end_replay(self) -> JSON:
+        """As :meth:`Client.end_replay`."""
         return cast(JSON, await self._call(_END_REPLAY))
 
     def telemetry(
         self, decimate: int = 1, tactile: bool = True, max_queue: int | None = None
     ) -> AsyncTelemetry:
-        """``async with client.telemetry() as tm: async for msg in tm: …``"""
+        """As :meth:`Client.telemetry`: ``async with client.telemetry() as tm: async for msg in
+        tm: …`` (see :class:`AsyncTelemetry`)."""
         url = _ws_url(self.url, decimate, tactile, max_queue)
         tm = AsyncTelemetry(url, _headers(self.token), self.timeout, self._telemetry.discard)
         self._telemetry.add(tm)

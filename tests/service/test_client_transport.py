@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import inspect
 import json
 import pickle
 import re
@@ -197,6 +198,34 @@ def test_the_exceptions_a_script_catches_are_exported() -> None:
         client_module.__all__
     )
     assert all(hasattr(client_module, name) for name in client_module.__all__)
+
+
+def _undocumented(obj: object) -> bool:
+    return not (getattr(obj, "__doc__", None) or "").strip()  # its own, not inherited
+
+
+def test_every_public_method_and_function_of_the_client_says_what_it_does() -> None:
+    """A lab script's author reads ``help(Client.stop_run)``: each public function, and each
+    public method of each public class (:class:`Client`, :class:`AsyncClient`, the telemetry
+    streams, …), has a docstring."""
+    missing = []
+    for name in client_module.__all__:
+        obj = getattr(client_module, name)
+        if inspect.isfunction(obj) and _undocumented(obj):
+            missing.append(name)
+        if not inspect.isclass(obj) or obj.__module__ != client_module.__name__:
+            continue
+        for attr, value in vars(obj).items():
+            if attr.startswith("_"):
+                continue
+            if isinstance(value, (staticmethod, classmethod)):
+                value = value.__func__
+            if (inspect.isfunction(value) or isinstance(value, property)) and _undocumented(value):
+                missing.append(f"{name}.{attr}")
+    assert not missing, f"no docstring: {', '.join(missing)}"
+    # the classes a script uses are among those checked
+    checked = {"Client", "AsyncClient", "Telemetry", "AsyncTelemetry"}
+    assert checked <= set(client_module.__all__)
 
 
 def test_the_telemetry_url_keeps_the_scheme_whatever_its_case() -> None:
