@@ -92,6 +92,12 @@ class AxisMap(Finite):
 # may narrow it, never widen it (a target beyond it is the firmware's to refuse or to drive to)
 HAND_MIN_DEG = (0.0, -90.0, -90.0, -90.0, -90.0, -90.0, -90.0)
 HAND_MAX_DEG = (90.0, 90.0, 90.0, 90.0, 90.0, 90.0, 90.0)
+# The SDH2's velocity limit per wire axis, deg/s: SDHLibrary-CPP's fixed limits (sdh/sdh.cpp,
+# protocols.md §2.2), which the library takes when the firmware cannot report its own. A live
+# hand reports its own with ``vlim`` (what the joint link checks commands against); SDHLibrary-
+# Python's offline reply (83, 140, 200, …, the simulator's) differs: exact limits are [U]. Here
+# for what no hand answers: the URDF's joint ``velocity`` limits.
+HAND_VELOCITY_LIMIT_DEG_S = (85.7, 200.0, 157.8, 200.0, 157.8, 200.0, 157.8)
 
 
 class JointLimits(Finite):

@@ -4,8 +4,12 @@ Three identical fingers stand on an equilateral triangle whose side is the base 
 the thumb on its own, fingers 1 and 2 turned about their vertical axes by the coupling joint φ1
 (0°: both face the thumb, 90°: they face each other in the plane of work). Each finger has a
 proximal and a distal revolute joint (φ2, φ3 / φ4, φ5 / the thumb's two) whose positive angles
-close the finger, with the configured limits; the pads are visual geometry (the distal one along
-its flat-and-arc profile).
+close the finger, with the configured limits and the SDH2's velocity limits
+(:data:`~sdh2svc.model.hand.HAND_VELOCITY_LIMIT_DEG_S`); the pads are drawn (the distal one
+along its flat-and-arc profile). Every visual is a collision body too, of the same shape and
+place, so that a simulator or a planner sees the hand's volume. The joints' ``effort`` is a
+placeholder (:data:`EFFORT_PLACEHOLDER`), and the links carry no ``<inertial>``: no source gives
+the SDH2's joint torques or its links' masses.
 
 Frames (URDF's units: metres, radians):
 
@@ -32,7 +36,7 @@ from dataclasses import dataclass
 from typing import Final, Literal
 
 from sdh2svc.model.geometry import pad_slope, pad_y3, x3_from_L
-from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig
+from sdh2svc.model.hand import HAND_VELOCITY_LIMIT_DEG_S, AxisMap, JointLimits, TactileConfig
 from sdh2svc.model.kinematics import HandGeometry
 
 Vec3 = tuple[float, float, float]
@@ -45,6 +49,11 @@ _CLOSE = (-1.0, 0.0, 0.0)  # every finger joint's axis: positive angles close to
 _UP, _DOWN = (0.0, 0.0, 1.0), (0.0, 0.0, -1.0)
 _PAD_FRAME_RPY = (-math.pi / 2, 0.0, 0.0)  # link (x, y, z) → pad (x, −z, y)
 _ARC_SEGMENTS = 8  # boxes approximating the distal pad's arc
+# A joint's <limit effort=…> (URDF: N·m), which URDF requires: a placeholder, not the SDH2's
+# torque, which no source the project has gives (SCHUNK's own sdh.urdf.xacro, ipa320/
+# schunk_modular_robotics, says effort 100 with placeholder inertials, mass 0.1 kg, inertia
+# 0.01). No <inertial> is written: nothing gives the links' masses either.
+EFFORT_PLACEHOLDER = 10.0
 # display only: the model has no such dimensions (SCHUNK's URDF's: the palm's base to the
 # knuckles, the knuckle to the proximal joint)
 PALM_HEIGHT_MM = 74.5
@@ -72,6 +81,7 @@ class Joint:
     lower: float = 0.0
     upper: float = 0.0
     mimic: str | None = None  # moves with this joint (the coupling φ1's second finger)
+    velocity: float = 0.0  # rad/s: the axis's velocity limit (a revolute joint's)
 
 
 #: The visuals' colours (r, g, b, a): the URDF's materials, and the links drawn in Foxglove.
@@ -115,10 +125,12 @@ def _revolute(
     axis: Vec3,
     limits: tuple[float, float],
     *,
+    velocity: float,
     yaw: float = 0.0,
     mimic: str | None = None,
 ) -> Joint:
-    return Joint(name, parent, child, xyz, (0.0, 0.0, yaw), "revolute", axis, *limits, mimic)
+    rpy = (0.0, 0.0, yaw)
+    return Joint(name, parent, child, xyz, rpy, "revolute", axis, *limits, mimic, velocity)
 
 
 def joint_names(axes: AxisMap) -> dict[int, str]:
@@ -134,6 +146,9 @@ def joint_names(axes: AxisMap) -> dict[int, str]:
     }
 
 
+# The thumb's joints are named as its links and as AxisMap's fields (thumb_proximal,
+# thumb_distal): service/foxglove_mcap.py's JOINTS names both the AxisMap fields it reads and
+# the URDF joints it poses, so a rename here must change it too (else /tf parks the thumb at 0).
 def _finger_joint_names(finger: str) -> tuple[str, str]:
     return {"finger1": ("phi2", "phi3"), "finger2": ("phi4", "phi5")}.get(
         finger, ("thumb_proximal", "thumb_distal")
@@ -159,12 +174,24 @@ def describe(
         name: (math.radians(limits.min_deg[ax]), math.radians(limits.max_deg[ax]))
         for ax, name in joint_names(axes).items()
     }
+    speed = {  # the hand's own limit of each wire axis, deg/s → rad/s
+        name: math.radians(HAND_VELOCITY_LIMIT_DEG_S[ax]) for ax, name in joint_names(axes).items()
+    }
     o = (base["finger1"][0], base["finger1"][1], h + KNUCKLE_MM * _MM)
     joints = [Joint("frame0", "palm", "frame0", o, (0.0, 0.0, math.pi))]
     # the coupling: Finger 1 turns by +φ1, Finger 2 by −φ1, from facing the thumb (yaw π/2)
     turn = lim["phi1"]
     joints += [
-        _revolute("phi1", "palm", "finger1_knuckle", base["finger1"], _UP, turn, yaw=math.pi / 2),
+        _revolute(
+            "phi1",
+            "palm",
+            "finger1_knuckle",
+            base["finger1"],
+            _UP,
+            turn,
+            velocity=speed["phi1"],
+            yaw=math.pi / 2,
+        ),
         _revolute(
             "phi1_finger2",
             "palm",
@@ -172,6 +199,7 @@ def describe(
             base["finger2"],
             _DOWN,
             turn,
+            velocity=speed["phi1"],
             yaw=math.pi / 2,
             mimic="phi1",
         ),
@@ -181,7 +209,7 @@ def describe(
     links = ["palm", "frame0"]
     visuals = [_palm(r)]
     for finger in FINGERS:
-        f_links, f_joints, f_visuals = _finger(finger, geom, tactile, lim)
+        f_links, f_joints, f_visuals = _finger(finger, geom, tactile, lim, speed)
         links += f_links
         joints += f_joints
         visuals += f_visuals
@@ -198,6 +226,7 @@ def _finger(
     geom: HandGeometry,
     tactile: TactileConfig,
     lim: Mapping[str, tuple[float, float]],
+    speed: Mapping[str, float],
 ) -> tuple[list[str], list[Joint], list[Visual]]:
     """One finger's links, joints and visuals below its knuckle (the frame after the base)."""
     l1, l2 = geom.proximal_length_mm * _MM, geom.distal_length_mm * _MM
@@ -205,9 +234,20 @@ def _finger(
     prox_name, dist_name = _finger_joint_names(finger)
     knuckle, prox, dist = f"{finger}_knuckle", f"{finger}_proximal", f"{finger}_distal"
     frame3, ppad, dpad = f"{finger}_frame3", f"{finger}_proximal_pad", f"{finger}_distal_pad"
+    k = KNUCKLE_MM * _MM
     joints = [
-        _revolute(prox_name, knuckle, prox, (0.0, 0.0, KNUCKLE_MM * _MM), _CLOSE, lim[prox_name]),
-        _revolute(dist_name, prox, dist, (0.0, 0.0, l1), _CLOSE, lim[dist_name]),
+        _revolute(
+            prox_name,
+            knuckle,
+            prox,
+            (0.0, 0.0, k),
+            _CLOSE,
+            lim[prox_name],
+            velocity=speed[prox_name],
+        ),
+        _revolute(
+            dist_name, prox, dist, (0.0, 0.0, l1), _CLOSE, lim[dist_name], velocity=speed[dist_name]
+        ),
         # frame 3: x3 along the link (the link's z), y3 towards the pad (the link's y)
         Joint(f"{finger}_frame3", dist, frame3, (0.0, 0.0, 0.0), (0.0, -math.pi / 2, 0.0)),
     ]
@@ -235,7 +275,7 @@ def _finger(
             f"{finger}_proximal_pad", prox, (y_prox, z_mid), 0.0, p.cols * pitch, p.rows * pitch
         )
     )
-    w, k = _LINK_WIDTH_MM * _MM, KNUCKLE_MM * _MM
+    w = _LINK_WIDTH_MM * _MM
     py0, py1 = (v * _MM for v in _PROXIMAL_BODY_Y_MM)
     dy0, dy1 = (v * _MM for v in _DISTAL_BODY_Y_MM)
     dz0, dz1 = -_DISTAL_BODY_BEHIND_MM * _MM, l2 - _DISTAL_BODY_SHORT_MM * _MM
@@ -310,10 +350,21 @@ def _v(v: Vec3) -> str:
     return " ".join(repr(float(x)) for x in v)
 
 
+def _geometry(parent: ET.Element, vis: Visual) -> None:
+    """A visual's ``<origin>`` and ``<geometry>`` under ``parent`` (its visual or collision)."""
+    ET.SubElement(parent, "origin", xyz=_v(vis.xyz), rpy=_v(vis.rpy))
+    g = ET.SubElement(parent, "geometry")
+    if vis.shape == "box":
+        ET.SubElement(g, "box", size=_v(vis.size))
+    else:
+        ET.SubElement(g, "cylinder", radius=repr(vis.size[0]), length=repr(vis.size[1]))
+
+
 def to_xml(desc: HandDescription, name: str = "sdh2") -> str:
-    """The description as URDF text."""
+    """The description as URDF text: each visual also as a ``<collision>`` of the same shape
+    and place (the pads' strips too); no ``<inertial>`` (no source for the links' masses)."""
     robot = ET.Element("robot", name=name)
-    for mat, rgba in (("shell", "0.55 0.57 0.6 1"), ("pad", "0.15 0.15 0.15 1")):
+    for mat, rgba in ((m, " ".join(f"{c:g}" for c in v)) for m, v in MATERIALS.items()):
         ET.SubElement(ET.SubElement(robot, "material", name=mat), "color", rgba=rgba)
     by_link: dict[str, list[Visual]] = {}
     for vis in desc.visuals:
@@ -322,13 +373,10 @@ def to_xml(desc: HandDescription, name: str = "sdh2") -> str:
         el = ET.SubElement(robot, "link", name=link)
         for vis in by_link.get(link, []):
             v = ET.SubElement(el, "visual")
-            ET.SubElement(v, "origin", xyz=_v(vis.xyz), rpy=_v(vis.rpy))
-            g = ET.SubElement(v, "geometry")
-            if vis.shape == "box":
-                ET.SubElement(g, "box", size=_v(vis.size))
-            else:
-                ET.SubElement(g, "cylinder", radius=repr(vis.size[0]), length=repr(vis.size[1]))
+            _geometry(v, vis)
             ET.SubElement(v, "material", name=vis.material)
+        for vis in by_link.get(link, []):  # (URDF: a link's visuals, then its collisions)
+            _geometry(ET.SubElement(el, "collision"), vis)
     for j in desc.joints:
         el = ET.SubElement(robot, "joint", name=j.name, type=j.kind)
         ET.SubElement(el, "parent", link=j.parent)
@@ -336,9 +384,8 @@ def to_xml(desc: HandDescription, name: str = "sdh2") -> str:
         ET.SubElement(el, "origin", xyz=_v(j.xyz), rpy=_v(j.rpy))
         if j.kind == "revolute":
             ET.SubElement(el, "axis", xyz=_v(j.axis))
-            ET.SubElement(
-                el, "limit", lower=repr(j.lower), upper=repr(j.upper), effort="10.0", velocity="3.0"
-            )
+            ET.SubElement(el, "limit", lower=repr(j.lower), upper=repr(j.upper),
+                          effort=repr(EFFORT_PLACEHOLDER), velocity=repr(j.velocity))  # fmt: skip
         if j.mimic:
             ET.SubElement(el, "mimic", joint=j.mimic, multiplier="1.0", offset="0.0")
     ET.indent(robot)
@@ -406,21 +453,41 @@ def joint_transforms(desc: HandDescription, angles: Mapping[str, float]) -> list
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m sdh2svc.model.urdf [--config FILE] > sdh2.urdf``: the configuration's URDF."""
+    """``python -m sdh2svc.model.urdf [--config FILE] [--set KEY=VALUE …] [-o FILE]``: the
+    configuration's URDF, on stdout or written whole to FILE. The configuration is loaded as
+    sdh2svc's commands load it (defaults ← ``--config`` ← environment ← ``--set``); a bad one
+    or a file that cannot be written is said as they say it, exit 2 or 4, no traceback."""
     import argparse
 
     from sdh2svc.config import ConfigError, load_config  # the entry point composes
+    from sdh2svc.files import whole_file
 
     p = argparse.ArgumentParser(
         prog="python -m sdh2svc.model.urdf",
         description="Print the SDH2's URDF, generated from the configuration's geometry.",
     )
-    p.add_argument("--config", metavar="FILE", help="a TOML file overriding the defaults")
+    p.add_argument("--config", metavar="FILE", help="a TOML file overriding config/default.toml")
+    p.add_argument(
+        "--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
+        help="override one key, e.g. --set limits.max_deg=[90,80,90,90,90,90,90] (repeatable; "
+        "beats file and environment)",
+    )  # fmt: skip
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="write it to FILE (whole, or not at all), not to stdout")  # fmt: skip
+    args = p.parse_args(argv)
     try:
-        cfg = load_config(p.parse_args(argv).config)
+        cfg = load_config(args.config, args.overrides)
     except ConfigError as e:  # as sdh2svc's commands say it: the problems, exit 2
         p.exit(2, f"{p.prog}: {e}\n")
-    print(sdh2_urdf(cfg.hand, cfg.axes, cfg.limits, cfg.tactile), end="")
+    text = sdh2_urdf(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
+    if args.output is None:
+        print(text, end="")
+        return
+    try:
+        with whole_file(args.output, binary=False) as out:
+            out.write(text)
+    except OSError as e:  # as sdh2svc's commands say it: I/O, exit 4
+        p.exit(4, f"{p.prog}: cannot write {args.output}: {e.strerror or e}\n")
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -13,8 +14,10 @@ import yourdfpy
 
 from sdh2svc.config import Settings
 from sdh2svc.model.geometry import pad_point_from_L, pad_y3, virtual_joint
+from sdh2svc.model.hand import HAND_VELOCITY_LIMIT_DEG_S
 from sdh2svc.model.kinematics import Finger, contact_point, distal_joint, pad_point
 from sdh2svc.model.urdf import (
+    EFFORT_PLACEHOLDER,
     FINGERS,
     PADS,
     describe,
@@ -28,6 +31,7 @@ from sdh2svc.model.urdf import (
 
 MM = 1e-3
 TOL_MM = 1e-6
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -222,3 +226,109 @@ def test_the_entry_point_names_a_bad_configuration_in_one_line(
         err = capsys.readouterr().err
         assert err.startswith("python -m sdh2svc.model.urdf: invalid configuration")
         assert "Traceback" not in err and len(err.splitlines()) == 1, err
+
+
+def _shapes(el: ET.Element, tag: str) -> list[tuple[str, ...]]:
+    """Each ``tag`` child's origin and geometry, as text."""
+    out = []
+    for body in el.findall(tag):
+        origin, geometry = body.find("origin"), body.find("geometry")
+        assert origin is not None and geometry is not None and len(geometry) == 1
+        shape = geometry[0]
+        out.append((origin.get("xyz", ""), origin.get("rpy", ""), shape.tag,
+                    *(f"{k}={v}" for k, v in sorted(shape.attrib.items()))))  # fmt: skip
+    return out
+
+
+def test_every_visual_is_a_collision_body_of_the_same_shape_and_place(
+    cfg: Settings, text: str
+) -> None:
+    """Simulators and planners see the hand's volume: each link's visuals, the pads' strips
+    too, are its collisions, and nothing else is."""
+    root = ET.fromstring(text)
+    visuals = 0
+    for link in root.iter("link"):
+        drawn = _shapes(link, "visual")
+        assert _shapes(link, "collision") == drawn, link.get("name")
+        visuals += len(drawn)
+    desc = describe(cfg.hand, cfg.axes, cfg.limits, cfg.tactile)
+    assert visuals == len(desc.visuals)
+    # a URDF reader builds them: every pad strip a collision box on its link
+    robot = yourdfpy.URDF.load(io.StringIO(text), load_meshes=False)
+    for f in FINGERS:
+        for part in ("proximal", "distal"):
+            link = robot.link_map[f"{f}_{part}"]
+            assert len(link.collisions) == len(link.visuals) > 1
+    # no inertial: no source gives the links' masses (README, the URDF paragraph)
+    assert root.find(".//inertial") is None
+
+
+def test_joint_velocity_limits_are_the_sdh2s_own(cfg: Settings, text: str) -> None:
+    """Each joint's velocity limit is its wire axis's (SDHLibrary-CPP's fixed limits, as
+    protocols.md §2.2 quotes them), in rad/s; φ1's mimic moves as fast as φ1; the effort is
+    the placeholder."""
+    quoted = re.search(r"library fallback for very old firmware: ([\d., ]+) deg/s",
+                       (ROOT / "docs" / "protocols.md").read_text())  # fmt: skip
+    assert quoted is not None
+    assert HAND_VELOCITY_LIMIT_DEG_S == tuple(float(v) for v in quoted[1].split(","))
+    joints = {e.get("name"): e for e in ET.fromstring(text).iter("joint")}
+    for axis, name in joint_names(cfg.axes).items():
+        limit = joints[name].find("limit")
+        assert limit is not None
+        velocity = float(limit.get("velocity", ""))
+        assert velocity == pytest.approx(math.radians(HAND_VELOCITY_LIMIT_DEG_S[axis]))
+        assert float(limit.get("effort", "")) == EFFORT_PLACEHOLDER
+    mimic = joints["phi1_finger2"].find("limit")
+    assert mimic is not None
+    assert float(mimic.get("velocity", "")) == pytest.approx(math.radians(85.7))
+    # by wire axis, not by role: a hand wired otherwise keeps each axis's own limit
+    swapped = cfg.axes.model_copy(update={"phi2": cfg.axes.phi3, "phi3": cfg.axes.phi2})
+    desc = describe(cfg.hand, swapped, cfg.limits, cfg.tactile)
+    got = {j.name: j.velocity for j in desc.joints if j.kind == "revolute"}
+    assert got["phi2"] == pytest.approx(math.radians(HAND_VELOCITY_LIMIT_DEG_S[swapped.phi2]))
+
+
+def _limits(urdf: str) -> dict[str, tuple[float, float]]:
+    out = {}
+    for joint in ET.fromstring(urdf).iter("joint"):
+        if (limit := joint.find("limit")) is not None:
+            out[joint.get("name", "")] = (float(limit.get("lower", "")),
+                                          float(limit.get("upper", "")))  # fmt: skip
+    return out
+
+
+def test_the_entry_point_takes_set_as_the_cli_does_and_writes_the_file_whole(
+    cfg: Settings, text: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "sdh2.urdf"
+    main(["-o", str(out)])
+    assert out.read_text() == text and capsys.readouterr().out == ""
+    # --set, repeatable, laid over the file as sdh2svc's commands lay it
+    config = tmp_path / "narrow.toml"
+    config.write_text("[limits]\nmax_deg = [90, 70, 90, 90, 90, 90, 90]\n")
+    main(["--config", str(config),
+          "--set", "limits.max_deg=[90, 80, 90, 90, 90, 90, 90]",
+          "--set", "limits.min_deg=[0, -90, -60, -90, -90, -90, -90]",
+          "--output", str(out)])  # fmt: skip
+    got = _limits(out.read_text())
+    phi2, phi3 = joint_names(cfg.axes)[1], joint_names(cfg.axes)[2]
+    assert got[phi2][1] == pytest.approx(math.radians(80.0))
+    assert got[phi3][0] == pytest.approx(math.radians(-60.0))
+    assert set(tmp_path.iterdir()) == {config, out}  # replaced in place, nothing beside it
+
+
+def test_the_entry_point_says_a_bad_set_or_an_unwritable_file_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for argv, code, said in (
+        (["--set", "limits.max_deg=[90, 80]"], 2, "(--set limits.max_deg=[90, 80])"),
+        (["--set", "limits"], 2, "must look like section.key=value"),
+        (["-o", str(tmp_path / "no-such-dir" / "sdh2.urdf")], 4, "cannot write"),
+    ):
+        with pytest.raises(SystemExit) as ended:
+            main(argv)
+        assert ended.value.code == code
+        err = capsys.readouterr().err
+        assert err.startswith("python -m sdh2svc.model.urdf: ") and said in err, err
+        assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert not any(tmp_path.iterdir())  # nothing half-written
