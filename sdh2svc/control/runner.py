@@ -181,8 +181,10 @@ class Runner:
         """The e-stop's first half, synchronous with the joint link's latch: from here on the run
         ends e-stopped, whatever it meets before its task is cancelled — a command the latch
         refuses, a fault (the service latches the link at once and stops the run a loop
-        iteration later, when the run's next command may already have been refused). False if
-        the run had ended on its own: it keeps that end."""
+        iteration later, when the run's next command may already have been refused). Its phase
+        says so from here on too: on a silent joint line the power-off waits through the
+        attempt in flight, seconds in which the status said ``rolling`` beside the link's latch.
+        False if the run had ended on its own: it keeps that end."""
         if self._returned and not self._estopping:
             return False
         if not self._estopping:
@@ -191,6 +193,7 @@ class Runner:
             self.result.status = "e-stopped"
             self.result.message = f"emergency stop (after {after})" if after else "emergency stop"
             self.result.strokes = self.state.strokes
+            self._set_phase(Phase.ESTOPPED)
         return True
 
     async def emergency_stop(self) -> None:
@@ -202,8 +205,9 @@ class Runner:
         e-stopped. The link stops the hand before the task is cancelled: the command in flight
         finishes, and the power-off follows it at once. Cancelled first, the task abandoned
         that command mid-reply, and the power-off waited for the line to resynchronise (≈ 90
-        instead of ≈ 5 ms). The phase changes once the link has latched the stop, so no
-        observer sees one without the other.
+        instead of ≈ 5 ms). The phase changed as the link latched (:meth:`begin_emergency_stop`),
+        so no observer sees one without the other; the e-stop's events follow once the hand has
+        been told.
         """
         if not self.begin_emergency_stop():  # the run has ended as it ended: the hand alone
             await self.joints.emergency_stop()
@@ -215,7 +219,6 @@ class Runner:
             if not self._returned and task is not None and not task.done():
                 task.cancel()  # (once run() has returned, the task is its recording's: left alone)
             if not self._estopped.is_set():  # said once, however many e-stops came
-                self._set_phase(Phase.ESTOPPED)
                 self._event(EventKind.ESTOP, {})
                 rec = self.result.recognition  # the run ends here: _finish said nothing
                 end = {"status": "e-stopped", "message": self.result.message, "recognition": rec}
@@ -615,6 +618,8 @@ class Runner:
         await self._to_preshape(None)
 
     def _set_phase(self, phase: Phase) -> None:
+        if self._estopping and phase is not Phase.ESTOPPED:  # the e-stop ended the run: what
+            return  # its task meets until it is cancelled (a refused command, a fault) says nothing
         if phase is not self.phase:
             self.phase = phase
             self._event(EventKind.PHASE, {"phase": phase.value})

@@ -421,6 +421,48 @@ def test_an_estop_whose_latch_refuses_the_runs_next_command_ends_the_run_estoppe
     run_fast(main())
 
 
+def test_an_estop_on_a_silent_joint_line_shows_the_run_estopped_at_once(tmp_path: Path) -> None:
+    """The joint line falls silent mid-roll (a hung controller), then the e-stop comes: its
+    power-off waits behind the attempt in flight, but the status says the run is e-stopped in
+    the same instant as the latch (it said `rolling` beside `estopped: true` for seconds)."""
+    cfg = _cfg(tmp_path)
+
+    async def main() -> None:
+        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
+            sim = bench.sim
+            cables = {n: Cable.unix(sim.urls(n)[0], str(tmp_path / f"{n}.sock"))
+                      for n in ("dsa", "sdh")}  # fmt: skip
+            for cable in cables.values():
+                await cable.plug()
+            try:
+                where = Real(cables["dsa"].url, cables["sdh"].url)
+                async with service(cfg, where) as (c, services):
+                    station = services.station
+                    await _start(c, station, "rolling", 0.5)
+                    cables["sdh"].hold()
+                    await asyncio.sleep(0.05)  # the run's next exchange now waits on the line
+                    estop = asyncio.ensure_future(c.post("/api/estop"))
+                    while station.joints is None or not station.joints.estopped:
+                        await asyncio.sleep(0)
+                    polls = 0
+                    while not estop.done():  # the power-off on its way through the silence
+                        st = (await c.get("/api/status")).json()
+                        assert st["estopped"] and st["run"]["state"] == "e-stopped", st["run"]
+                        polls += 1
+                        await asyncio.sleep(0.1)
+                    assert polls >= 3, polls  # it waited (≈ a reply's timeout) meanwhile
+                    assert (await estop).json()["hand_reached"] is False  # owed to the hand
+                    cables["sdh"].resume()
+                    await _until_ended(station)
+                    assert station.last_run is not None
+                    assert station.last_run["status"] == "e-stopped", station.last_run
+            finally:
+                for cable in cables.values():
+                    await cable.close()
+
+    run_fast(main())
+
+
 # --- stop and e-stop from every phase --------------------------------------------------------
 
 
