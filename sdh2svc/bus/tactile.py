@@ -187,6 +187,16 @@ class TactileFrame:
         return t - self.arrival
 
 
+_OPENED = "port open, no answer yet from the DSACON32m (it answers ≈ 8 s after power-on)"
+
+
+def _opened(failure: str) -> str:
+    """Why a line that was down is not up yet once its port opened: the open sequence waits for
+    the controller (through its boot), and the last failure, a refused or missing port, is past."""
+    before = failure.removeprefix(f"{_OPENED}; before: ")
+    return f"{_OPENED}; before: {before}"
+
+
 @dataclass(frozen=True, slots=True)
 class TactileStats:
     mode: Mode
@@ -490,6 +500,8 @@ class TactileBus:
             reader, writer = await open_streams(self.url, baudrate=self.options.baud)
         except (OSError, serial.SerialException, ValueError) as exc:  # no port, no such URL…
             raise TactileConnectionError(f"cannot open: {exc}") from exc
+        if self.failure is not None:  # the port is open now: why it was down is no longer so
+            self.failure = _opened(self.failure)
         self._writer = writer
         self._lost.clear()
         self._opening = True

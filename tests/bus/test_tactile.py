@@ -462,3 +462,29 @@ def test_a_tactile_line_opened_on_the_joint_controller_says_the_lines_may_be_swa
                 await TactileBus.open(ep.url, TactileOptions(reconnect=False))
 
     run_fast(main())
+
+
+def test_a_booting_controller_s_open_port_is_not_called_refused(tmp_path: Path) -> None:
+    """Found by stress-testing: the status kept "cannot open: … Connection refused" through the
+    DSACON32m's 8 s boot, while the port was open and the open sequence waited for its answer."""
+
+    async def main() -> tuple[str | None, str | None, bool]:
+        path = tmp_path / "dsa.sock"
+        bus = await TactileBus.open(f"unix://{path}", TactileOptions(), patient=True)
+        try:
+            await until(lambda: bus.failure is not None and "cannot open" in bus.failure)
+            refused = bus.failure
+            emu = DsaconEmulator(ScriptedWorld(SHAPES), options=DsaconOptions(boot_s=8.0))
+            async with UnixEndpoint(emu, str(path)):
+                await until(lambda: bus.failure is not None and "port open" in bus.failure)
+                booting = bus.failure
+                await until(lambda: bus.connected, timeout=30.0)
+                return refused, booting, bus.failure is None
+        finally:
+            await bus.close()
+
+    refused, booting, cleared = run_fast(main())
+    assert refused is not None and refused.startswith("cannot open")
+    assert booting is not None and booting.startswith("port open, no answer yet")
+    assert booting.endswith(f"before: {refused}")  # said once, not nested attempt after attempt
+    assert cleared
