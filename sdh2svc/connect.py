@@ -212,7 +212,8 @@ async def open_links(
         raise ConfigError(e.problems) from None
     try:
         expect = tuple((pad, lay.rows, lay.cols) for pad, lay in matrix_pads(cfg.axes, cfg.tactile))
-        tactile = await TactileBus.open(dsa_url, TactileOptions(expect=expect), patient=patient)
+        options = TactileOptions(expect=expect, pitch_mm=cfg.tactile.texel_pitch_mm)
+        tactile = await TactileBus.open(dsa_url, options, patient=patient)
     except HandUnlike as e:  # reached, but not the hand the configuration describes
         await joints.close()
         raise ConfigError([str(e)]) from None

@@ -32,7 +32,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Self, TypeVar
+from typing import Final, Self, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -155,6 +155,21 @@ class TactileOptions:
     # the matrices the controller must report, in wire order: (name, rows, cols) each; a
     # controller that reports others is refused at every open (empty: any)
     expect: tuple[tuple[str, int, int], ...] = ()
+    # the texel pitch the configuration computes with (mm): a controller reporting another is
+    # said at open, not refused (what the device reports is unconfirmed, protocols.md §1.4.3)
+    pitch_mm: float | None = None
+
+
+PITCH_TOLERANCE_MM: Final = 0.05  # a reported texel pitch within this of the configured one
+
+
+def _pitch_unlike(mats: Sequence[dsa.MatrixInfo], pitch_mm: float) -> str:
+    """The matrices whose reported texel size is not the configured pitch ("": none)."""
+    odd = [f"matrix {i}: {m.texel_width:g} × {m.texel_height:g} mm"
+           for i, m in enumerate(mats)
+           if max(abs(m.texel_width - pitch_mm), abs(m.texel_height - pitch_mm))
+           > PITCH_TOLERANCE_MM]  # fmt: skip
+    return "; ".join(odd)
 
 
 def _unlike(mats: Sequence[dsa.MatrixInfo], expect: Sequence[tuple[str, int, int]]) -> str:
@@ -550,6 +565,12 @@ class TactileBus:
             raise TactileError("matrix geometry changed across a reconnect")
         if o.expect and (unlike := _unlike(mats, o.expect)):
             raise HandUnlike(unlike)
+        if o.pitch_mm is not None and (odd := _pitch_unlike(mats, o.pitch_mm)):
+            logger.warning("%s: the controller reports texels of another size than the "
+                           "configuration's tactile.texel_pitch_mm = %g mm (%s): S, the contact "
+                           "areas and the forces are computed with %g mm; set it to what the "
+                           "pads are if the report is right", self.url, o.pitch_mm, odd,
+                           o.pitch_mm)  # fmt: skip
         self.controller_info, self.sensor_info, self.matrix_infos = ci, si, mats
 
     async def _flush_input(self) -> None:

@@ -4,7 +4,8 @@ SDHLibrary-CPP ``sdh/dsa.cpp`` (``cDSA::ReadFrame``): "DSACON32m firmware releas
 including 288 except 269 are not able to handle single frame acquisition. Instead they start
 sending as fast as possible right away. So stop acquiring immediately after frame was received"
 — it sends the stop after every pull frame on such firmware. It also refuses the threshold
-commands below R268 (``SetMatrixThreshold``/``GetMatrixThreshold``).
+commands below R268 (``SetMatrixThreshold``/``GetMatrixThreshold``). And a controller whose
+reported texel size is not the configured pitch (SDHLibrary computes areas with the report).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import asyncio
 
 import pytest
 
-from sdh2svc.bus.tactile import Mode, TactileBus, TactileError
+from sdh2svc.bus.tactile import Mode, TactileBus, TactileError, TactileOptions
 from sdh2svc.protocol import dsa
 from sdh2svc.sim.dsacon import DsaconEmulator, DsaconOptions
 from sdh2svc.sim.endpoint import TcpEndpoint
@@ -56,3 +57,21 @@ async def test_pull_mode_stays_one_frame_per_request(sw_version: int) -> None:
                     await bus.get_threshold(0)
         finally:
             await bus.close()
+
+
+@pytest.mark.parametrize(("reported", "said"), [(3.4, False), (3.41, False), (3.8, True)])
+async def test_a_texel_size_other_than_the_configured_pitch_is_said_at_open(
+    reported: float, said: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    """SDHLibrary computes contact areas with the texel size the controller reports; this
+    project with the configured pitch (what the device reports is unconfirmed): a report that
+    differs is said, naming both (the hand is not refused for it)."""
+    emu = DsaconEmulator(ScriptedWorld(SHAPES), options=DsaconOptions(texel_size_mm=reported))
+    async with TcpEndpoint(emu) as ep:
+        with caplog.at_level("WARNING", logger="sdh2svc.bus.tactile"):
+            bus = await TactileBus.open(ep.url, TactileOptions(pitch_mm=3.4))
+        await bus.close()
+    warned = [r.getMessage() for r in caplog.records if "texel" in r.getMessage()]
+    assert bool(warned) is said, warned
+    if said:
+        assert "3.8 × 3.8 mm" in warned[0] and "texel_pitch_mm = 3.4 mm" in warned[0]
