@@ -44,10 +44,6 @@ class Cable:
     def url(self) -> str:
         return f"unix://{self.path}" if self.path else f"socket://{self.host}:{self.port}"
 
-    @property
-    def plugged(self) -> bool:
-        return self._server is not None
-
     async def plug(self) -> None:
         """Listen (again, on the same port once it had one)."""
         if self._server is not None:

@@ -194,17 +194,10 @@ def build_surfaces(geom: HandGeometry, cfg: PhysicsConfig) -> tuple[Surface, ...
     )
 
 
-def link_frames(
-    pose: HandPose, geom: HandGeometry
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """(origin, ex, ey) of each surface's link frame in frame 0, in surface order."""
-    arr = np.array(link_frame_rows(pose, geom))  # one array; the tuples hold views of it
-    return [(f[0], f[1], f[2]) for f in arr]
-
-
 def link_frame_rows(pose: HandPose, geom: HandGeometry) -> list[tuple[tuple[float, float], ...]]:
-    """:func:`link_frames` as plain floats: :func:`distal_joint` and :func:`frame3_axes`
-    written out (this runs at every substep)."""
+    """(origin, ex, ey) of each surface's link frame in frame 0, in surface order, as plain
+    floats: :func:`distal_joint` and :func:`frame3_axes` written out (this runs at every
+    substep)."""
     l1, base = geom.proximal_length_mm, geom.base_offset_mm
     s2, c2 = math.sin(pose.phi2), math.cos(pose.phi2)
     s23, c23 = math.sin(pose.phi2 + pose.phi3), math.cos(pose.phi2 + pose.phi3)
