@@ -66,6 +66,7 @@ from sdh2svc.model.urdf import (
     joint_names,
     sdh2_urdf,
 )
+from sdh2svc.service import guard
 from sdh2svc.service.pacing import paced
 from sdh2svc.service.replay_feed import ReplayFeed
 from sdh2svc.service.telemetry import AnyMessage, SampleMsg, SampleView, as_array, sample_view
@@ -326,7 +327,8 @@ def _num(d: dict[str, Any] | None, key: str) -> float | None:
 
 # --- who may open the view's WebSocket ------------------------------------------------------------
 
-LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+# the guard's loopback names (as a Host header says them), as :func:`_origin_key` spells them
+LOOPBACK_NAMES = tuple(name.strip("[]") for name in guard.LOOPBACK_NAMES)
 
 
 class ViewerSecurityError(RuntimeError):
