@@ -736,7 +736,7 @@ def cmd_health(args: argparse.Namespace) -> int:
     # a service on this machine is asked directly: urllib would send even a loopback request
     # to the proxy of http_proxy (a lab PC's, a container's), which answers for another host
     # or not at all, and the check would fail naming the service
-    from sdh2svc.client import is_loopback
+    from sdh2svc.hosts import is_loopback
 
     direct = is_loopback(urllib.parse.urlsplit(url).hostname)
     opener = urllib.request.build_opener(*([urllib.request.ProxyHandler({})] if direct else []))

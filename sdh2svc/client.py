@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import json
 import logging
 import re
@@ -42,6 +41,7 @@ from websockets.sync.client import ClientConnection as SyncClientConnection
 from websockets.sync.client import connect as ws_connect_sync
 
 from sdh2svc.files import whole_file
+from sdh2svc.hosts import is_loopback
 
 __all__ = [
     "ApiError",
@@ -221,19 +221,6 @@ def _ws_options(timeout: float) -> dict[str, Any]:
     return {"max_size": _WS_MAX_BYTES, "open_timeout": timeout, "logger": _WS_LOG,
             "ping_interval": min(10.0, timeout), "ping_timeout": timeout,
             "close_timeout": min(2.0, timeout)}  # fmt: skip
-
-
-def is_loopback(host: str | None) -> bool:
-    """Whether ``host`` (a URL's host name) is this machine's loopback: ``localhost`` (RFC 6761,
-    with its subdomains) or a loopback address."""
-    if host is None:
-        return False
-    if host.lower() == "localhost" or host.lower().endswith(".localhost"):
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _direct(url: str) -> bool:

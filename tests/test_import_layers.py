@@ -14,7 +14,7 @@ LAYERED = ("model", "protocol", "bus", "sim", "control", "service", "campaign")
 # A part (a package, or a top-level module) → the parts it may import besides itself.
 # "" is the package's own __init__ (its version): any part may import it.
 ABOVE_THE_SEAM = {"model", "protocol", "bus", "sim", "control", "config", "connect", "files",
-                  "workers", "provenance"}  # fmt: skip
+                  "workers", "provenance", "hosts"}  # fmt: skip
 BELOW = {
     "protocol": set(),
     "model": {"protocol"},  # model/hand.py: the wire's axis count, written once (NUM_AXES)
@@ -25,8 +25,9 @@ BELOW = {
     "connect": {"model", "protocol", "bus", "sim", "control", "config"},
     "service": ABOVE_THE_SEAM,
     "campaign": ABOVE_THE_SEAM,  # the service's sibling: not the service
-    "client": {"files"},  # the service from Python: imports nothing of the service
+    "client": {"files", "hosts"},  # the service from Python: imports nothing of the service
     "files": set(),
+    "hosts": set(),
     "workers": set(),
     "provenance": set(),
 }

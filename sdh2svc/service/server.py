@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import errno
-import ipaddress
 import json
 import logging
 import socket
@@ -23,6 +22,7 @@ from sdh2svc.bus.joint import JointLinkError
 from sdh2svc.bus.tactile import TactileError
 from sdh2svc.config import Settings
 from sdh2svc.connect import Where
+from sdh2svc.hosts import is_loopback
 from sdh2svc.service.app import Services, close_services, create_app, open_services, viewer_host
 from sdh2svc.service.foxglove_live import FoxgloveStartError
 from sdh2svc.service.hand_service import STOPPED_BY_SHUTDOWN
@@ -47,15 +47,6 @@ class PortBusy(StartError):
 
 class HandUnreachable(StartError):
     """One of the hand's two lines cannot be opened or does not answer."""
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False  # a host name: assume it is reachable from elsewhere
 
 
 def check_exposure(cfg: Settings) -> None:
