@@ -216,3 +216,8 @@ def load_suite(name_or_path: str | Path) -> Suite:
 def suite_names() -> list[str]:
     """The packaged suites' names."""
     return sorted(p.stem for p in SUITES_DIR.glob("*.json"))
+
+
+def wrap_deg(a: float) -> float:
+    """An angle in degrees as the same angle in [−180, 180) (a placement's, a turn's)."""
+    return (a + 180.0) % 360.0 - 180.0

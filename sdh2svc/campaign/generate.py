@@ -68,6 +68,7 @@ from sdh2svc.campaign.case import (
     contact_width_mm,
     extent_along_y0,
     load_suite,
+    wrap_deg,
 )
 from sdh2svc.config import Settings, default_config
 from sdh2svc.model.kinematics import HandPose
@@ -357,11 +358,6 @@ def _centred_angle(obj: Polygon, start_deg: float) -> float | None:
     return None
 
 
-def _wrap_deg(a: float) -> float:
-    a = (a + 180.0) % 360.0 - 180.0
-    return a
-
-
 def _shape(family: str, width: float, angle_u: float, depth: float, material: Material,
            rng: np.random.Generator, name: str, sides: int = 3, regular: bool = False,
            ) -> tuple[Shape, float] | None:  # fmt: skip
@@ -402,7 +398,7 @@ def _shape(family: str, width: float, angle_u: float, depth: float, material: Ma
         centred = _centred_angle(shape, angle)
         if centred is None:
             return None
-        angle = _r(_wrap_deg(centred))
+        angle = _r(wrap_deg(centred))
         scale = width / contact_width_mm(shape, angle)
         v = np.round(unit_v * 50.0 * scale, DECIMALS)
         if not _polygon_ok(v):

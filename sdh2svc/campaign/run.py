@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sdh2svc.campaign.case import CASE_KEYS, Case, Suite
+from sdh2svc.campaign.case import CASE_KEYS, Case, Suite, wrap_deg
 from sdh2svc.config import ConfigError, Settings, clip, load_config
 from sdh2svc.control.observer import BaseObserver, Event, EventKind
 from sdh2svc.provenance import code_version
@@ -169,7 +169,7 @@ class TruthProbe(BaseObserver):
         peak = 0.0
         for end, counted in self.reversals:
             while k < len(self.psi) and (end is None or self.psi[k][0] <= end):
-                peak = max(peak, abs(_wrap_deg(math.degrees(self.psi[k][1] - start))))
+                peak = max(peak, abs(wrap_deg(math.degrees(self.psi[k][1] - start))))
                 k += 1
             if counted:
                 out.append(peak)
@@ -182,10 +182,6 @@ def _contact_width(contacts: Sequence[Any]) -> float | None:
     pts = {c.surface: c.object_point for c in contacts}
     a, b = pts.get("distal1"), pts.get("distal2")
     return None if a is None or b is None else math.dist(a, b)
-
-
-def _wrap_deg(d: float) -> float:
-    return (d + 180.0) % 360.0 - 180.0
 
 
 def case_columns(case: Case) -> dict[str, Any]:
