@@ -223,7 +223,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated hand's two controllers (DSACON32m tactile, SDH2 joints) on ptys and
     TCP ports, for any driver — ours, SCHUNK's SDHLibrary, the ROS node — until Ctrl-C. A pad is
-    pressed with --press, or by typing `press pad=3 x=10 y=12 force=2 …` (or `release`) on the
+    pressed with --press, or by typing `press pad=1 x=10 y=12 force=2 …` (or `release`) on the
     standard input while it runs."""
     import asyncio
 

@@ -517,7 +517,7 @@ def test_a_long_mcap_export_shows_its_progress_on_a_terminal(tmp_path: Path) -> 
                      "messages", text), text  # fmt: skip
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == Exit.OK and "iterations written" not in r.stderr, r.stderr
-    # what it says at the end is what README says: the iterations it wrote (not only messages)
+    # what it says at the end is what docs/foxglove.md says: the iterations it wrote
     assert re.fullmatch(r"\S+run\.mcap: 2500 iterations in \d+ messages", r.stderr.strip()), r
 
 

@@ -259,7 +259,7 @@ def test_every_visual_is_a_collision_body_of_the_same_shape_and_place(
         for part in ("proximal", "distal"):
             link = robot.link_map[f"{f}_{part}"]
             assert len(link.collisions) == len(link.visuals) > 1
-    # no inertial: no source gives the links' masses (README, the URDF paragraph)
+    # no inertial: no source gives the links' masses (docs/foxglove.md, the URDF paragraph)
     assert root.find(".//inertial") is None
 
 
