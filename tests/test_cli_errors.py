@@ -902,6 +902,19 @@ def test_serve_with_the_viser_port_in_use(tmp_path: Path, taken_port: int) -> No
     assert "cannot open the hand" not in r.stderr
 
 
+def test_serve_with_the_foxglove_port_in_use_fails_before_the_hand(
+    tmp_path: Path, taken_port: int
+) -> None:
+    """Found by a lab user: it was found only after both lines had been opened and closed."""
+    r = run("serve", "--sim", "--port", "0", "--viser-port", "0", "--set",
+            f"service.foxglove_port={taken_port}", *db_set(tmp_path / "r.sqlite"),
+            cwd=tmp_path)  # fmt: skip
+    assert r.returncode == Exit.UNAVAILABLE, r.stderr
+    line = one_line(r.stderr, "serve")
+    assert f"port {taken_port} already in use" in line and "service.foxglove_port" in line
+    assert "hand closed" not in r.stderr and "cannot open the hand" not in r.stderr
+
+
 def test_a_viewer_that_lost_the_race_for_its_port_says_so_too() -> None:
     """The child's late report (the port taken between the check and viser's bind)."""
     from sdh2svc.config import default_config

@@ -107,6 +107,19 @@ def check_viser_port(cfg: Settings) -> None:
     raise StartError(f"cannot serve the 3-D view on {host}:{port}: {e.strerror or e}")
 
 
+def check_foxglove_port(cfg: Settings) -> None:
+    """As :func:`check_viser_port`, for the live Foxglove view's port (0: off): a taken one
+    was found only once the hand's lines had been opened, and closed again."""
+    host, port = viewer_host(cfg), cfg.service.foxglove_port
+    if not port or (e := bind_error(host, port)) is None:
+        return
+    where = f"cannot serve the live Foxglove view on {host}:{port}"
+    if e.errno == errno.EADDRINUSE:
+        raise PortBusy(f"{where}: port {port} already in use; set service.foxglove_port to a "
+                       "free port, or 0 (off)")  # fmt: skip
+    raise StartError(f"{where}: {e.strerror or e}")
+
+
 def _viser_busy(port: int) -> str:
     return (f"viser port {port} is already in use (stop whatever uses it, or set --viser-port / "
             "service.viser_port; 0 = any free port, --no-viewer = none)")  # fmt: skip
@@ -178,6 +191,7 @@ async def serve(cfg: Settings, where: Where, *, announce_json: bool = False) -> 
     sock = listen_socket(cfg)  # before the hand: a taken port fails at once
     try:
         check_viser_port(cfg)
+        check_foxglove_port(cfg)
         RunStore(
             cfg.storage.db_path, busy_timeout_s=cfg.storage.busy_timeout_s
         ).close()  # an unusable database fails before the hand moves
