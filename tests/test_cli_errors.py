@@ -27,6 +27,7 @@ from sdh2svc.config import load_config
 from sdh2svc.connect import Simulated, simulated_hand
 from sdh2svc.service.store import Recorder, RunStore
 from tests.live_service import AT_PRESHAPE, FAST_GRASP
+from tests.service.test_client_transport import status_server
 from tests.service.test_replay_api import sample as replay_sample
 from tests.service.test_retention import another_process_open
 
@@ -1205,33 +1206,13 @@ def test_health_asks_a_loopback_service_directly_whatever_http_proxy_says(
     """A lab PC's (or a container's) http_proxy must not carry the check of a service on this
     machine: urllib sends loopback requests to the proxy too, which answers for another host or
     not at all."""
-    import http.server
-    import threading
-
-    class Status(http.server.BaseHTTPRequestHandler):
-        def do_GET(self) -> None:
-            body = json.dumps({"hand": {"connected": {"joints": True, "tactile": True}}}).encode()
-            self.send_response(200)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args: object) -> None:
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Status)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
+    up = {"hand": {"connected": {"joints": True, "tactile": True}}}
+    for port in status_server(up):
         for name in ("http_proxy", "HTTP_PROXY"):  # a proxy that is not there
             monkeypatch.setenv(name, f"http://127.0.0.1:{closed_port}")
         monkeypatch.delenv("no_proxy", raising=False)
         monkeypatch.delenv("NO_PROXY", raising=False)
-        port = server.server_address[1]
         for host in ("127.0.0.1", "localhost"):
             status, out, err = call(capsys, "health", "--url", f"http://{host}:{port}")
             assert status == Exit.OK, err
             assert out.strip() == f"ok: http://{host}:{port}/api/status"
-    finally:
-        server.shutdown()
-        server.server_close()

@@ -350,7 +350,7 @@ async def test_an_export_cut_off_leaves_an_earlier_file_as_it_was_and_no_partial
     assert [p.name for p in tmp_path.iterdir()] == ["run.mcap"]
 
 
-def _status_server(answer: dict[str, str]) -> Iterator[int]:
+def status_server(answer: dict[str, Any]) -> Iterator[int]:
     """An HTTP server on loopback that answers every GET (a proxied one too) with ``answer``."""
     import http.server
     import threading
@@ -380,7 +380,7 @@ def _status_server(answer: dict[str, str]) -> Iterator[int]:
 def lab_proxy(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     """A lab PC's proxy settings, naming a proxy that answers every request it is given for
     itself (as a proxy answers for another host): {"via": "proxy"}."""
-    for port in _status_server({"via": "proxy"}):
+    for port in status_server({"via": "proxy"}):
         for name in ("http_proxy", "HTTP_PROXY", "all_proxy", "ALL_PROXY"):
             monkeypatch.setenv(name, f"http://127.0.0.1:{port}")
         for name in ("no_proxy", "NO_PROXY"):
@@ -390,7 +390,7 @@ def lab_proxy(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
 @pytest.fixture
 def status_port() -> Iterator[int]:
-    yield from _status_server({"state": "idle"})
+    yield from status_server({"state": "idle"})
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "localhost"])

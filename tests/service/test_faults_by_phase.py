@@ -16,7 +16,8 @@ frames) and no further.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable, Sequence
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ import pytest
 
 from sdh2svc.bus.joint import LinkLost
 from sdh2svc.config import Settings, load_config
-from sdh2svc.connect import Real, Simulated, simulated_hand
+from sdh2svc.connect import Bench, Real, Simulated, simulated_hand
 from sdh2svc.service.hand_service import HandService
 from sdh2svc.sim.cable import Cable
 from sdh2svc.sim.clock import run_fast
@@ -47,6 +48,25 @@ def _cfg(tmp: Path, phase: str = "") -> Settings:
     strokes = ["rolling.cycles=1"] if phase == "releasing" else []
     return load_config(overrides=[f"storage.db_path='{tmp / 'runs.sqlite'}'", *strokes],
                        use_env=False)  # fmt: skip
+
+
+@contextlib.asynccontextmanager
+async def _cabled(
+    cfg: Settings, tmp: Path, *, plugged: bool = True
+) -> AsyncIterator[tuple[Bench, dict[str, Cable], Real]]:
+    """The simulated hand in fast mode behind a cable per line (to cut, hold or plug), and
+    where a service finds it; ``plugged=False``: the hand switched off (or unplugged) yet."""
+    async with simulated_hand(cfg, Simulated(fast=True)) as bench:
+        cables = {n: Cable.unix(bench.sim.urls(n)[0], str(tmp / f"{n}.sock"))
+                  for n in ("dsa", "sdh")}  # fmt: skip
+        try:
+            if plugged:
+                for cable in cables.values():
+                    await cable.plug()
+            yield bench, cables, Real(cables["dsa"].url, cables["sdh"].url, patient=not plugged)
+        finally:
+            for cable in cables.values():
+                await cable.close()
 
 
 def _moved(a: Sequence[float], b: Sequence[float]) -> float:
@@ -234,22 +254,14 @@ def test_a_long_outage_faults_the_run_and_nothing_moves(
     cfg = _cfg(tmp_path, phase)
 
     async def main() -> None:
-        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
-            sim = bench.sim
-            cables = {n: Cable.unix(sim.urls(n)[0], str(tmp_path / f"{n}.sock"))
-                      for n in ("dsa", "sdh")}  # fmt: skip
-            for cable in cables.values():
-                await cable.plug()
-            try:
-                where = Real(cables["dsa"].url, cables["sdh"].url)
-                async with service(cfg, where) as (c, services):
-                    await _outage(c, services.station, sim, cables[line], line, how,
-                                  (phase, after_s), outage_s)  # fmt: skip
-                    bench.place()  # as in a lab: the object back between the fingertips
-                    await _new_run_works(c, services.station)
-            finally:
-                for cable in cables.values():
-                    await cable.close()
+        async with (
+            _cabled(cfg, tmp_path) as (bench, cables, where),
+            service(cfg, where) as (c, services),
+        ):
+            await _outage(c, services.station, bench.sim, cables[line], line, how,
+                          (phase, after_s), outage_s)  # fmt: skip
+            bench.place()  # as in a lab: the object back between the fingertips
+            await _new_run_works(c, services.station)
 
     run_fast(main())
 
@@ -428,37 +440,29 @@ def test_an_estop_on_a_silent_joint_line_shows_the_run_estopped_at_once(tmp_path
     cfg = _cfg(tmp_path)
 
     async def main() -> None:
-        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
-            sim = bench.sim
-            cables = {n: Cable.unix(sim.urls(n)[0], str(tmp_path / f"{n}.sock"))
-                      for n in ("dsa", "sdh")}  # fmt: skip
-            for cable in cables.values():
-                await cable.plug()
-            try:
-                where = Real(cables["dsa"].url, cables["sdh"].url)
-                async with service(cfg, where) as (c, services):
-                    station = services.station
-                    await _start(c, station, "rolling", 0.5)
-                    cables["sdh"].hold()
-                    await asyncio.sleep(0.05)  # the run's next exchange now waits on the line
-                    estop = asyncio.ensure_future(c.post("/api/estop"))
-                    while station.joints is None or not station.joints.estopped:
-                        await asyncio.sleep(0)
-                    polls = 0
-                    while not estop.done():  # the power-off on its way through the silence
-                        st = (await c.get("/api/status")).json()
-                        assert st["estopped"] and st["run"]["state"] == "e-stopped", st["run"]
-                        polls += 1
-                        await asyncio.sleep(0.1)
-                    assert polls >= 3, polls  # it waited (≈ a reply's timeout) meanwhile
-                    assert (await estop).json()["hand_reached"] is False  # owed to the hand
-                    cables["sdh"].resume()
-                    await _until_ended(station)
-                    assert station.last_run is not None
-                    assert station.last_run["status"] == "e-stopped", station.last_run
-            finally:
-                for cable in cables.values():
-                    await cable.close()
+        async with (
+            _cabled(cfg, tmp_path) as (_, cables, where),
+            service(cfg, where) as (c, services),
+        ):
+            station = services.station
+            await _start(c, station, "rolling", 0.5)
+            cables["sdh"].hold()
+            await asyncio.sleep(0.05)  # the run's next exchange now waits on the line
+            estop = asyncio.ensure_future(c.post("/api/estop"))
+            while station.joints is None or not station.joints.estopped:
+                await asyncio.sleep(0)
+            polls = 0
+            while not estop.done():  # the power-off on its way through the silence
+                st = (await c.get("/api/status")).json()
+                assert st["estopped"] and st["run"]["state"] == "e-stopped", st["run"]
+                polls += 1
+                await asyncio.sleep(0.1)
+            assert polls >= 3, polls  # it waited (≈ a reply's timeout) meanwhile
+            assert (await estop).json()["hand_reached"] is False  # owed to the hand
+            cables["sdh"].resume()
+            await _until_ended(station)
+            assert station.last_run is not None
+            assert station.last_run["status"] == "e-stopped", station.last_run
 
     run_fast(main())
 
@@ -536,40 +540,33 @@ def test_a_service_started_before_its_hand_waits_for_it(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path)
 
     async def main() -> None:
-        async with simulated_hand(cfg, Simulated(fast=True)) as bench:
+        async with _cabled(cfg, tmp_path, plugged=False) as (bench, cables, where):
             sim = bench.sim
-            cables = {n: Cable.unix(sim.urls(n)[0], str(tmp_path / f"{n}.sock"))
-                      for n in ("dsa", "sdh")}  # fmt: skip
-            try:
-                where = Real(cables["dsa"].url, cables["sdh"].url, patient=True)
-                async with service(cfg, where) as (c, services):
-                    station = services.station
-                    began = sim.sdh.actual_deg
-                    await asyncio.sleep(3.0)
-                    st = (await c.get("/api/status")).json()
-                    assert st["hand"]["connected"] == {"joints": False, "tactile": False}
-                    for line in ("joints", "tactile"):
-                        assert "cannot open" in st["links"][f"{line}_down"], st["links"]
-                    r = await c.post("/api/runs", json={})
-                    assert r.status_code == 503 and "is down" in r.text, r.text
-                    assert (await c.post("/api/estop")).status_code == 200
-                    st = (await c.get("/api/status")).json()
-                    assert st["estopped"] and st["estop"]["hand_reached"] is False
-                    for cable in cables.values():  # the hand switched on
-                        await cable.plug()
-                    async with asyncio.timeout(30):
-                        while not all((await c.get("/api/status")).json()["hand"]
-                                      ["connected"].values()):  # fmt: skip
-                            await asyncio.sleep(0.1)
-                    st = (await c.get("/api/status")).json()
-                    assert st["links"]["joints_down"] is None is st["links"]["tactile_down"]
-                    assert st["estop"]["hand_reached"] is True  # powered off first
-                    assert _moved(sim.sdh.actual_deg, began) < EPS
-                    assert (await c.post("/api/estop/release", json={})).status_code == 200
-                    await _new_run_works(c, station)
-            finally:
-                for cable in cables.values():
-                    await cable.close()
+            async with service(cfg, where) as (c, services):
+                station = services.station
+                began = sim.sdh.actual_deg
+                await asyncio.sleep(3.0)
+                st = (await c.get("/api/status")).json()
+                assert st["hand"]["connected"] == {"joints": False, "tactile": False}
+                for line in ("joints", "tactile"):
+                    assert "cannot open" in st["links"][f"{line}_down"], st["links"]
+                r = await c.post("/api/runs", json={})
+                assert r.status_code == 503 and "is down" in r.text, r.text
+                assert (await c.post("/api/estop")).status_code == 200
+                st = (await c.get("/api/status")).json()
+                assert st["estopped"] and st["estop"]["hand_reached"] is False
+                for cable in cables.values():  # the hand switched on
+                    await cable.plug()
+                async with asyncio.timeout(30):
+                    while not all((await c.get("/api/status")).json()["hand"]
+                                  ["connected"].values()):  # fmt: skip
+                        await asyncio.sleep(0.1)
+                st = (await c.get("/api/status")).json()
+                assert st["links"]["joints_down"] is None is st["links"]["tactile_down"]
+                assert st["estop"]["hand_reached"] is True  # powered off first
+                assert _moved(sim.sdh.actual_deg, began) < EPS
+                assert (await c.post("/api/estop/release", json={})).status_code == 200
+                await _new_run_works(c, station)
 
     run_fast(main())
 
