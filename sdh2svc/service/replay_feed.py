@@ -21,11 +21,12 @@ import numpy as np
 
 from sdh2svc.config import Settings
 from sdh2svc.control.sample import Sample
-from sdh2svc.model.hand import matrix_shapes
+from sdh2svc.model.hand import AxisMap, matrix_shapes
 from sdh2svc.service.store import RunStore, recorded_settings
 from sdh2svc.service.telemetry import (
     AnyMessage,
     Message,
+    Pose,
     SampleMsg,
     Sim,
     Status,
@@ -54,16 +55,24 @@ class Recorded:
 
 
 def recorded_iteration(store: RunStore, cfg: Settings, run_id: int, it: int) -> Recorded | None:
-    """Iteration ``it`` of run ``run_id`` as a sample (with what the view draws of it), its
-    tactile frame and, when recorded (simulation), the object's truth as a ``sim`` message; a run
-    without it gets an empty ``sim``, which hides the live object's outline. None when the run has
-    no sample of that iteration."""
+    """Iteration ``it`` of run ``run_id`` as its pose, a sample (with what the view draws of it),
+    its tactile frame and, when recorded (simulation), the object's truth as a ``sim`` message; a
+    run without it gets an empty ``sim``, which hides the live object's outline. None when the run
+    has no sample of that iteration.
+
+    The pose: a sample carries φ2…φ5 only; φ1 and the thumb are the run's pre-shape (a run holds
+    them there, as the MCAP export draws them), not the live hand's, which may be anywhere (at
+    rest, φ1 = 0: the fingers would close across the plane the contacts are drawn in)."""
     row = store.sample_at(run_id, it)
     if row is None:
         return None
+    view_axes = cfg.axes  # the view reads a pose's angles in its own wiring's order
     cfg = recorded_settings(store.run(run_id) or {}, cfg)  # its pads' shapes, its hand
     sample = Sample(**row)
-    msgs: list[Message] = [SampleMsg(run_id, sample).with_view(cfg.hand, live=False)]
+    msgs: list[Message] = [
+        Pose(_held_pose(sample, cfg, view_axes)),
+        SampleMsg(run_id, sample).with_view(cfg.hand, live=False),
+    ]
     texels = store.frame_at(run_id, it, sample.t)
     if texels is not None:
         shapes = matrix_shapes(cfg.tactile, cfg.axes)
@@ -72,6 +81,19 @@ def recorded_iteration(store: RunStore, cfg: Settings, run_id: int, it: int) -> 
     truth, outline = store.truth_at(run_id, it), store.outline(run_id)
     msgs.append(Sim(recorded_truth(outline, truth) if truth and outline else {}))
     return Recorded(run_id, it, sample.t, tuple(msgs))
+
+
+def _held_pose(sample: Sample, cfg: Settings, view_axes: AxisMap) -> tuple[float, ...]:
+    """The hand's angles at ``sample`` (one per wire axis of ``view_axes``): φ2…φ5 the sample's,
+    φ1 and the thumb the pre-shape of ``cfg``, the configuration the run was recorded with."""
+    pre, ax = cfg.run.preshape_deg, cfg.axes
+    angles = [0.0] * len(pre)
+    for name in ("phi1", "thumb_proximal", "thumb_distal"):
+        angles[getattr(view_axes, name)] = float(pre[getattr(ax, name)])
+    for name in ("phi2", "phi3", "phi4", "phi5"):
+        v = getattr(sample, name)
+        angles[getattr(view_axes, name)] = float(v if v is not None else pre[getattr(ax, name)])
+    return tuple(angles)
 
 
 class ReplayFeed:

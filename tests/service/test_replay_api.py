@@ -31,6 +31,7 @@ from sdh2svc.service.hub import TelemetryHub
 from sdh2svc.service.replay_feed import Recorded, ReplayFeed
 from sdh2svc.service.store import Recorder, RunStore
 from sdh2svc.service.telemetry import (
+    Pose,
     SampleMsg,
     Sim,
     Status,
@@ -317,8 +318,16 @@ async def test_replay_feed_shows_a_recorded_iteration_then_live(
     assert r.status_code == 200, r.text
     assert r.json()["replay"] == {"run_id": run_id, "iteration": 7, "t": pytest.approx(0.14)}
     kinds = [kind_of(m) for m in view.kept]
-    assert kinds == ["status", "sample", "tactile", "sim", "status"]
-    s, tac, sim, st = view.kept[1:]
+    assert kinds == ["status", "pose", "sample", "tactile", "sim", "status"]
+    pose, s, tac, sim, st = view.kept[1:]
+    # φ2…φ5 the sample's; φ1 and the thumb as the run held them (its pre-shape), not the live
+    # hand's: a sample does not carry them
+    assert isinstance(pose, Pose)
+    ax, pre, rec = cfg.axes, cfg.run.preshape_deg, sample(7)
+    for name in ("phi1", "thumb_proximal", "thumb_distal"):
+        assert pose.angles_deg[getattr(ax, name)] == pre[getattr(ax, name)]
+    for name in ("phi2", "phi3", "phi4", "phi5"):
+        assert pose.angles_deg[getattr(ax, name)] == getattr(rec, name)
     assert isinstance(s, SampleMsg) and s.sample == sample(7) and s.run_id == run_id
     assert s.view is not None and s.view.phi_deg[0] == 17.0 and s.view.A is not None
     shapes = matrix_shapes(cfg.tactile, cfg.axes)

@@ -801,6 +801,42 @@ async def test_a_replayed_iteration_reaches_the_view_then_live_again(
     store.close()
 
 
+async def test_a_replay_poses_phi1_and_the_thumb_as_the_run_held_them(
+    cfg: Settings, viewer: Viewer, tmp_path: Path
+) -> None:
+    """A sample carries φ2…φ5 only. The live hand at rest (a fresh service: φ1 = 0) must not
+    turn the replayed fingers out of the y0z0 plane, where the contacts and cones are drawn:
+    φ1 and the thumb are the recorded pre-shape's."""
+    values: dict[str, Any] = dict.fromkeys(Sample.columns())
+    values.update({**SAMPLE, "t": 0.5, "iteration": 3})
+    store = RunStore(tmp_path / "runs.db")
+    run_id = store.create_run({"configuration": cfg.recorded()})
+    rec = RunRecorder(store.path, run_id)
+    rec.sample(Sample(**values))
+    rec.close()
+    recorded = recorded_iteration(store, cfg, run_id, 3)
+    assert recorded is not None
+
+    n = viewer.frames
+    viewer.handle({"type": "pose", "angles_deg": [0.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
+    viewer.handle({"type": "status", "status": {"run": None, "estopped": False}})
+    await next_frame(viewer, n)
+    n = viewer.frames
+    viewer.replay.show(recorded)
+    await next_frame(viewer, n)
+
+    x3 = cfg.hand.pad.tip_end_x3_mm
+    tip_local = np.array([x3, pad_y3(x3, cfg.hand.pad), 0.0]) * MM
+    expected = finger_frames(POSE, cfg)  # SAMPLE's φ2…φ5 at the pre-shape's φ1 = 90°
+    for f in ("f1", "f2"):
+        tip = world(viewer, f"/{f}/distal", tip_local)
+        want = (expected[f"/{f}/distal"] @ np.append(tip_local / MM, 1.0))[:3] * MM
+        assert abs(tip[0]) < 1e-9  # in the y0z0 plane, with the contacts
+        assert np.allclose(tip, want, atol=1e-9)
+    assert viewer.nodes["/contacts/A"].position[0] == 0.0
+    store.close()
+
+
 async def test_the_view_offers_no_share_button(
     cfg: Settings, commands: Recorder, monkeypatch: pytest.MonkeyPatch
 ) -> None:
