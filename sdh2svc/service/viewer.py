@@ -25,7 +25,8 @@ angles; the thumb's place, the palm, the link bodies and the proximal pads are a
 :data:`THUMB_BASE` and :func:`proximal_cells`).
 
 Authority. The panel cannot authenticate anyone. ``read_only`` (the service has a token): every
-control but E-STOP is disabled, its hint pointing to the dashboard. Open hand is enabled only
+control but E-STOP is disabled, its hint pointing to the dashboard, and the panel says so
+(:data:`READ_ONLY_NOTE`: viser shows no hint on a disabled control). Open hand is enabled only
 while the latest status shows no run, no e-stop latched and no opening under way. viser does not
 enforce ``disabled`` (a client can send a disabled button's click), so every callback checks,
 in our code, the kind's permission now and its control's state before anything reaches
@@ -119,6 +120,10 @@ BUTTONS: dict[str, tuple[str, Any, str | None]] = {  # kind: (label, colour, hin
 KINDS = frozenset({*COMMANDS, "params"})  # what the panel may ask of on_command
 ALWAYS_ALLOWED = frozenset({"estop"})  # stopping is always allowed, token or not
 NEEDS_TOKEN = "needs the API token: use the dashboard"
+# said in the panel itself: a disabled control's hint never shows (no tooltip on a disabled
+# button or slider in viser's client), so a greyed panel would not say why
+READ_ONLY_NOTE = ("*Read-only view* (the service has an API token): only E-STOP acts here; "
+                  "the other controls are on the dashboard, with the token.")  # fmt: skip
 SLIDERS: dict[str, tuple[str, float, float, float]] = {  # field: (label, min, max, step)
     "delta_phi_deg": ("Δφ (°)", -5.0, 5.0, 0.05),
     "k": ("k", 1.05, 10.0, 0.05),
@@ -804,7 +809,10 @@ class Viewer:
             parts.append(f"replay of run {replay.get('run_id')}, it {replay.get('iteration')}")
         if self._note and time.monotonic() - self._note_at > NOTE_S:
             self._note = ""
-        text = " · ".join(parts) + (f"\n\n{self._note}" if self._note else "")
+        text = " · ".join(parts)
+        if self._read_only or st.get("auth_required"):
+            text += f"\n\n{READ_ONLY_NOTE}"
+        text += f"\n\n{self._note}" if self._note else ""
         self._set(self.nodes["gui/state"], "content", text)
         self._sync_sliders(st.get("params") or {})
         self._sync_controls()

@@ -45,6 +45,7 @@ from sdh2svc.service.viewer import (
     GREEN,
     MM,
     NEEDS_TOKEN,
+    READ_ONLY_NOTE,
     RED,
     YELLOW,
     Viewer,
@@ -491,6 +492,8 @@ async def test_read_only_view_only_stops(cfg: Settings) -> None:
             v.handle({"type": "status", "status": IDLE})  # a status cannot enable them
             await next_frame(v, n)
             assert enabled(v) == {"estop"}
+            # said in the panel: viser shows no hint on a disabled control
+            assert READ_ONLY_NOTE in v.nodes["gui/state"].content
             note = lambda: v.nodes["gui/state"].content  # noqa: E731
             for kind in ("start", "stop", "open", "release"):
                 await b.send_gui(v.buttons[kind]._impl.uuid, True)

@@ -183,6 +183,8 @@ async def test_read_only_view_only_stops(cfg: Settings, caplog: pytest.LogCaptur
                  if m["type"] in ("GuiButtonMessage", "GuiSliderMessage")}  # fmt: skip
         assert {label for label, p in shown.items() if not p["disabled"]} == {"E-STOP"}
         assert shown["Open hand"]["hint"] == shown["k"]["hint"] == viewer.NEEDS_TOKEN
+        # and the panel says so (a disabled control's hint never shows in viser's client)
+        await wait_for(lambda: any("Read-only view" in t for t in b.panel()))
 
         await b.send_gui(b.gui_uuid("GuiButtonMessage", "Grasp & roll"), True)
         await wait_for(lambda: any("start: needs the API token" in t for t in b.panel()))
