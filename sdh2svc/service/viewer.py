@@ -139,6 +139,10 @@ _PAYLOAD = {  # message type → the field carrying its payload (docs/api.md)
     "hello": "status",
 }
 EDIT_GRACE_S = 1.5  # a slider the user just moved is not reset by a status still in flight
+# a slider's value is sent once it has rested this long: viser's client reports every step of a
+# drag (one drag of α: 20 changes, each logged, and in a run each applied and recorded); the
+# dashboard applies a parameter once too
+SETTLE_S = 0.3
 NOTE_S = 10.0  # a refusal shown in the panel goes after this (not left for the next visitor)
 FINISHED = {"done", "stopped", "faulted", "e-stopped"}  # a run's ends ("idle": it just began)
 
@@ -519,6 +523,8 @@ class Viewer:
         self.buttons: dict[str, viser.GuiButtonHandle] = {}
         self.sliders: dict[str, Any] = {}
         self._edited: dict[str, float] = {}
+        self._settling: dict[str, tuple[float, asyncio.TimerHandle]] = {}  # field → value, timer
+        self._tasks: set[asyncio.Future[None]] = set()  # commands under way (kept referenced)
         self._applied = {f: float(getattr(settings.rolling, f)) for f in SLIDERS}  # last known
         self._sync_thread: int | None = None
         self._note, self._note_at = "", 0.0
@@ -572,6 +578,9 @@ class Viewer:
 
     async def stop(self) -> None:
         """Stop rendering and the viser server."""
+        for _, timer in self._settling.values():
+            timer.cancel()
+        self._settling.clear()
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -944,9 +953,32 @@ class Viewer:
             if field == "delta_phi_deg" and value == 0.0:
                 return  # Δφ's sign is the direction: 0 is not a value
             self._edited[field] = time.monotonic()
-            self._submit("params", {field: value})
+            loop = self._loop
+            if loop is not None and not loop.is_closed():
+                with contextlib.suppress(RuntimeError):  # closed meanwhile: nobody to apply it
+                    loop.call_soon_threadsafe(self._settle, field, value)
 
         return cb
+
+    def _settle(self, field: str, value: float) -> None:
+        """A slider moved (on the loop): send its value once it has rested :data:`SETTLE_S`
+        (a newer move restarts the wait)."""
+        if (pending := self._settling.get(field)) is not None:
+            pending[1].cancel()
+        assert self._loop is not None
+        self._settling[field] = (value, self._loop.call_later(SETTLE_S, self._settled, field))
+
+    def _settled(self, field: str) -> None:
+        value, _ = self._settling.pop(field)
+        if (why := self._refusal("params")) is not None:  # refused meanwhile (e.g. a token)
+            self._show_note(f"params: {why}")
+            return
+        self._loop_task(self._command("params", {field: value}))
+
+    def _loop_task(self, coro: Awaitable[None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     # -- scene and panel, built once ----------------------------------------------------------
 

@@ -442,6 +442,18 @@ async def test_buttons_and_sliders_reach_on_command(viewer: Viewer, commands: Re
     assert set(commands.loops) == {asyncio.get_running_loop()}  # awaited on the service's loop
 
 
+async def test_a_dragged_slider_sends_its_value_once(viewer: Viewer, commands: Recorder) -> None:
+    """viser's client reports every step of a drag; the view sends the value it rests at, once
+    (each one sent was logged and, in a run, applied and recorded as an event)."""
+    slider = viewer.sliders["alpha_deg"]
+    for value in (22.5, 23.0, 23.5, 24.0, 30.0):  # one drag: the steps, all on this loop's turn
+        slider._impl.value = value
+        for cb in list(slider._impl.update_cb):
+            cb(GuiEvent(client=None, client_id=None, target=slider))
+    await wait_for(lambda: len(commands.calls) == 1 and not viewer._settling)
+    assert commands.calls == [("params", {"alpha_deg": 30.0})]
+
+
 async def test_sliders_follow_status_without_echo(viewer: Viewer, commands: Recorder) -> None:
     assert viewer.sliders["lambda_gain"].value == viewer.settings.rolling.lambda_gain
     n = viewer.frames
