@@ -107,7 +107,8 @@ _CMAP_RGB = np.array(
 FULL_SCALE_COUNTS = 4095.0
 
 DARK = (90, 92, 100)
-COLOR_A, COLOR_B = (255, 120, 30), (160, 60, 230)
+# A blue, B red, as the dashboard's sketch and plots draw them (web/sketch.js), each labelled
+COLOR_A, COLOR_B = (31, 119, 180), (214, 39, 40)
 
 COMMANDS = ("start", "stop", "open", "estop", "release")
 BUTTONS: dict[str, tuple[str, Any, str | None]] = {  # kind: (label, colour, hint when enabled)
@@ -1064,6 +1065,11 @@ class Viewer:
             self.nodes[f"/contacts/{label}"] = sc.add_icosphere(
                 f"/contacts/{label}", radius=CONTACT_RADIUS_MM * MM, color=color, visible=False
             )
+            # a child: it follows the point, and is hidden with it
+            self.nodes[f"/contacts/{label}/label"] = sc.add_label(
+                f"/contacts/{label}/label", label, position=(0.0, 0.0, 2 * CONTACT_RADIUS_MM * MM),
+                anchor="bottom-center",
+            )  # fmt: skip
             self.nodes[f"/contacts/cone_{label}"] = sc.add_mesh_simple(
                 f"/contacts/cone_{label}",
                 cone_v,

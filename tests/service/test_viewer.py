@@ -265,6 +265,11 @@ async def test_cones_sit_at_the_contacts_coloured_by_omega(viewer: Viewer) -> No
     p = [math.radians(v) for v in (-20.0, 30.0)]
     normal = contact_normal(Finger.ONE, p[0], p[1], Point(-8.0, 140.0), viewer.settings.hand)
     assert np.allclose(axis, (0.0, normal.y, normal.z))
+    # A blue and B red, as on the dashboard, each labelled (a child: it moves and hides with it)
+    for name, color in (("A", (31, 119, 180)), ("B", (214, 39, 40))):
+        point = viewer.nodes[f"/contacts/{name}"]
+        assert point.visible and tuple(point.color) == color
+        assert viewer.nodes[f"/contacts/{name}/label"].text == name
 
 
 async def test_cones_open_as_wide_as_the_sample_says_the_run_widened_them(viewer: Viewer) -> None:
