@@ -97,6 +97,8 @@ YELLOW = (230, 190, 40)
 RED = (230, 40, 40)
 OUTLINE_HELD = (255, 150, 40)
 OUTLINE_DROPPED = (230, 40, 40)
+OUTLINE_RELEASED = (150, 150, 150)  # fell as the fingers let go (a run's end, Open hand): no drop
+LETTING_GO = ("releasing", "done", "stopped")  # a run's states whose fingers open on purpose
 ESTIMATE = (40, 190, 235)  # the reconstructed outline (recognition), over the true one
 
 # Raw counts → colour: dark (unloaded) → blue → cyan → yellow → red at full scale.
@@ -526,6 +528,7 @@ class Viewer:
         self._edited: dict[str, float] = {}
         self._settling: dict[str, tuple[float, asyncio.TimerHandle]] = {}  # field → value, timer
         self._tasks: set[asyncio.Future[None]] = set()  # commands under way (kept referenced)
+        self._fell = self._released = False  # the sim's object: fell, and as the fingers opened
         self._applied = {f: float(getattr(settings.rolling, f)) for f in SLIDERS}  # last known
         self._sync_thread: int | None = None
         self._note, self._note_at = "", 0.0
@@ -800,9 +803,23 @@ class Viewer:
             return
         p3 = np.column_stack([np.zeros(len(outline)), outline]) * MM
         self._set(node, "points", np.stack([p3, np.roll(p3, -1, axis=0)], axis=1))
-        color = OUTLINE_DROPPED if truth.get("dropped") else OUTLINE_HELD
-        self._set(node, "colors", np.array(color, dtype=np.uint8))
+        self._set(node, "colors", np.array(self._outline_color(truth), dtype=np.uint8))
         self._set(node, "visible", True)
+
+    def _outline_color(self, truth: dict[str, Any]) -> tuple[int, int, int]:
+        """Held; dropped (red); or released (grey): the sim's object falls when the fingers open
+        on purpose as when it slips out, its truth saying ``dropped`` both times. As on the
+        dashboard (web/app.js, ``withFate``): whether the fingers were letting go when it first
+        fell tells which, until it is held again. A replayed iteration is mid-roll: a drop."""
+        status = self._latest.get("status") or {}
+        dropped = bool(truth.get("dropped"))
+        if dropped and not self._fell:
+            run, hand = status.get("run") or {}, status.get("hand") or {}
+            self._released = run.get("state") in LETTING_GO or bool(hand.get("opening"))
+        self._fell = dropped
+        if not dropped:
+            return OUTLINE_HELD
+        return OUTLINE_RELEASED if self._released and not status.get("replay") else OUTLINE_DROPPED
 
     def _render_status(self) -> None:
         st = self._latest.get("status") or {}

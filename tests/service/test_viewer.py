@@ -373,6 +373,30 @@ async def test_sim_outline(viewer: Viewer) -> None:
     assert node.points.shape == (24, 2, 3)
     assert np.allclose(node.points[:, 0, 1:], np.array(outline) * MM, atol=1e-6)
     assert np.allclose(node.points[:, :, 0], 0.0)
+    assert tuple(np.asarray(node.colors).reshape(-1, 3)[0]) == (255, 150, 40)  # held
+
+
+async def test_a_released_object_is_not_drawn_as_dropped(viewer: Viewer) -> None:
+    """The sim's truth says ``dropped`` when the fingers open at a run's end as when the object
+    slips out: red only for a drop (as the dashboard tells them apart)."""
+    outline = [[20.0 + 15 * math.cos(t), 140.0 + 20 * math.sin(t)] for t in np.linspace(0, 6, 24)]
+    node = viewer.nodes["/object/outline"]
+
+    async def show(run_state: str, dropped: bool, **status: Any) -> tuple[int, ...]:
+        n = viewer.frames
+        viewer.handle({"type": "status", "status": {"run": {"state": run_state}, **status}})
+        viewer.handle({"type": "sim", "truth": {"dropped": dropped, "outline": outline}})
+        await next_frame(viewer, n)
+        return tuple(int(c) for c in np.asarray(node.colors).reshape(-1, 3)[0])
+
+    held, red, grey = (255, 150, 40), (230, 40, 40), (150, 150, 150)
+    assert await show("rolling", False) == held
+    assert await show("releasing", True) == grey  # fell as the fingers let go
+    assert await show("done", True) == grey  # and stays released
+    assert await show("done", True, replay={"run_id": 1, "iteration": 5}) == red  # mid-roll
+    assert await show("idle", False) == held  # placed again for the next run
+    assert await show("rolling", True) == red  # slipped out mid-roll
+    assert await show("done", True) == red  # still the drop it was
 
 
 def _ring(rec: Any, a: tuple[float, float], b: tuple[float, float], n: int = 64) -> np.ndarray:
