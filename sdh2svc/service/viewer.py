@@ -726,11 +726,15 @@ class Viewer:
 
     def _contact_sample(self) -> SampleView | None:
         """The latest sample, unless a newer status says no run is rolling: a finished run's
-        contacts would otherwise linger through the release and the next grasp."""
+        contacts would otherwise linger through the release and the next grasp, and a replay's
+        once it ends on a service that has had no run (``run`` null: no live sample to put
+        back in its place)."""
         status = self._latest.get("status") or {}
         run = status.get("run") or {}
         newer = self._seq.get("status", 0) > self._seq.get("sample", 0)
-        if newer and not status.get("replay") and run.get("state") not in (None, "rolling"):
+        no_run = "run" in status and not status["run"]
+        idle = no_run or run.get("state") not in (None, "rolling")
+        if newer and not status.get("replay") and idle:
             return None
         return self._sample_view()
 

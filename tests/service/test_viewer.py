@@ -883,6 +883,38 @@ async def test_a_replay_poses_phi1_and_the_thumb_as_the_run_held_them(
     store.close()
 
 
+async def test_a_replay_leaves_nothing_behind_on_a_service_without_runs(
+    cfg: Settings, viewer: Viewer, tmp_path: Path
+) -> None:
+    """A fresh service (no run yet, so no live sample to put back): once the replay ends, its
+    contacts, cones, AB and reconstructed outline go."""
+    values: dict[str, Any] = dict.fromkeys(Sample.columns())
+    values.update({**SAMPLE, "t": 0.5, "iteration": 3})
+    store = RunStore(tmp_path / "runs.db")
+    run_id = store.create_run({})
+    rec = RunRecorder(store.path, run_id)
+    rec.sample(Sample(**values))
+    rec.close()
+    recorded = recorded_iteration(store, cfg, run_id, 3)
+    assert recorded is not None
+    store.close()
+    parts = ("/contacts/A", "/contacts/B", "/contacts/cone_A", "/contacts/AB")
+
+    n = viewer.frames
+    viewer.handle({"type": "pose", "angles_deg": [0.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
+    viewer.handle({"type": "status", "status": {"run": None, "estopped": False}})
+    await next_frame(viewer, n)
+    n = viewer.frames
+    viewer.replay.show(recorded)
+    await next_frame(viewer, n)
+    assert all(viewer.nodes[p].visible for p in parts)
+    n = viewer.frames
+    viewer.replay.end()
+    await next_frame(viewer, n)
+    assert not any(viewer.nodes[p].visible for p in parts)
+    assert "replay" not in viewer.nodes["gui/state"].content
+
+
 async def test_the_view_offers_no_share_button(
     cfg: Settings, commands: Recorder, monkeypatch: pytest.MonkeyPatch
 ) -> None:
