@@ -780,6 +780,9 @@ async def test_a_long_run_replays_at_one_iteration_in_every_k(
     page.on("request", lambda r: asked.append(r.url) if f"/api/runs/{run_id}/" in r.url else None)
     await page.locator("#runs-refresh").dispatch_event("click")
     row = page.locator(f"#runs tbody tr[data-run-id='{run_id}']")
+    # the list as it is now: one the page fetched while the run was being written has its row
+    # with the status and iterations of then, and its replay would work out its step from those
+    await expect(row.locator("td").nth(3)).to_have_text("completed")
     await row.locator("button.replay").dispatch_event("click")
     await page.wait_for_function(f"window.sdh2.replaying === {run_id}", timeout=60_000)
     # the legends show the scrubber's iteration from the start (the first: φ2 = 10 + 1)
