@@ -32,7 +32,7 @@ from sdh2svc.service import telemetry, viewer_proc
 from sdh2svc.service import viewer as viewer_module
 from sdh2svc.service.app import _start_viewer
 from sdh2svc.service.pacing import BURST, MIN_GAP
-from sdh2svc.service.replay_feed import recorded_iteration
+from sdh2svc.service.replay_feed import Recorded, recorded_iteration
 from sdh2svc.service.store import Recorder as RunRecorder
 from sdh2svc.service.store import RunStore
 from sdh2svc.service.telemetry import (
@@ -847,22 +847,25 @@ async def test_a_replayed_iteration_reaches_the_view_then_live_again(
     store.close()
 
 
-async def test_a_replay_poses_phi1_and_the_thumb_as_the_run_held_them(
-    cfg: Settings, viewer: Viewer, tmp_path: Path
-) -> None:
-    """A sample carries φ2…φ5 only. The live hand at rest (a fresh service: φ1 = 0) must not
-    turn the replayed fingers out of the y0z0 plane, where the contacts and cones are drawn:
-    φ1 and the thumb are the recorded pre-shape's."""
+def _recorded_sample(cfg: Settings, tmp_path: Path, meta: dict[str, Any]) -> Recorded:
+    """Iteration 3 of a run recorded with ``meta`` (one sample: SAMPLE's), as a replay gets it."""
     values: dict[str, Any] = dict.fromkeys(Sample.columns())
     values.update({**SAMPLE, "t": 0.5, "iteration": 3})
     store = RunStore(tmp_path / "runs.db")
-    run_id = store.create_run({"configuration": cfg.recorded()})
-    rec = RunRecorder(store.path, run_id)
-    rec.sample(Sample(**values))
-    rec.close()
-    recorded = recorded_iteration(store, cfg, run_id, 3)
+    try:
+        run_id = store.create_run(meta)
+        rec = RunRecorder(store.path, run_id)
+        rec.sample(Sample(**values))
+        rec.close()
+        recorded = recorded_iteration(store, cfg, run_id, 3)
+    finally:
+        store.close()
     assert recorded is not None
+    return recorded
 
+
+async def _replay_on_a_hand_at_rest(viewer: Viewer, recorded: Recorded) -> None:
+    """A fresh service's view (the hand at rest, φ1 = 0; no run yet) shows ``recorded``."""
     n = viewer.frames
     viewer.handle({"type": "pose", "angles_deg": [0.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
     viewer.handle({"type": "status", "status": {"run": None, "estopped": False}})
@@ -870,6 +873,16 @@ async def test_a_replay_poses_phi1_and_the_thumb_as_the_run_held_them(
     n = viewer.frames
     viewer.replay.show(recorded)
     await next_frame(viewer, n)
+
+
+async def test_a_replay_poses_phi1_and_the_thumb_as_the_run_held_them(
+    cfg: Settings, viewer: Viewer, tmp_path: Path
+) -> None:
+    """A sample carries φ2…φ5 only. The live hand at rest (a fresh service: φ1 = 0) must not
+    turn the replayed fingers out of the y0z0 plane, where the contacts and cones are drawn:
+    φ1 and the thumb are the recorded pre-shape's."""
+    recorded = _recorded_sample(cfg, tmp_path, {"configuration": cfg.recorded()})
+    await _replay_on_a_hand_at_rest(viewer, recorded)
 
     x3 = cfg.hand.pad.tip_end_x3_mm
     tip_local = np.array([x3, pad_y3(x3, cfg.hand.pad), 0.0]) * MM
@@ -880,7 +893,6 @@ async def test_a_replay_poses_phi1_and_the_thumb_as_the_run_held_them(
         assert abs(tip[0]) < 1e-9  # in the y0z0 plane, with the contacts
         assert np.allclose(tip, want, atol=1e-9)
     assert viewer.nodes["/contacts/A"].position[0] == 0.0
-    store.close()
 
 
 async def test_a_replay_leaves_nothing_behind_on_a_service_without_runs(
@@ -888,25 +900,9 @@ async def test_a_replay_leaves_nothing_behind_on_a_service_without_runs(
 ) -> None:
     """A fresh service (no run yet, so no live sample to put back): once the replay ends, its
     contacts, cones, AB and reconstructed outline go."""
-    values: dict[str, Any] = dict.fromkeys(Sample.columns())
-    values.update({**SAMPLE, "t": 0.5, "iteration": 3})
-    store = RunStore(tmp_path / "runs.db")
-    run_id = store.create_run({})
-    rec = RunRecorder(store.path, run_id)
-    rec.sample(Sample(**values))
-    rec.close()
-    recorded = recorded_iteration(store, cfg, run_id, 3)
-    assert recorded is not None
-    store.close()
+    recorded = _recorded_sample(cfg, tmp_path, {})
     parts = ("/contacts/A", "/contacts/B", "/contacts/cone_A", "/contacts/AB")
-
-    n = viewer.frames
-    viewer.handle({"type": "pose", "angles_deg": [0.0, 0.0, 0.0, -90.0, 0.0, 0.0, 0.0]})
-    viewer.handle({"type": "status", "status": {"run": None, "estopped": False}})
-    await next_frame(viewer, n)
-    n = viewer.frames
-    viewer.replay.show(recorded)
-    await next_frame(viewer, n)
+    await _replay_on_a_hand_at_rest(viewer, recorded)
     assert all(viewer.nodes[p].visible for p in parts)
     n = viewer.frames
     viewer.replay.end()
