@@ -80,10 +80,12 @@ from sdh2svc.bus.reconnect import (
     failure_after,
     reconnect,
 )
+from sdh2svc.model.hand import HAND_VELOCITY_LIMIT_DEG_S
 from sdh2svc.protocol.dsa import PREAMBLE as DSACON_PREAMBLE
 from sdh2svc.protocol.sdh import (
     ASCII_COMMANDS,
     BINARY_COMMANDS,
+    COMMAND_SINCE,
     NUM_AXES,
     RESYNC,
     ArgForm,
@@ -100,6 +102,7 @@ from sdh2svc.protocol.sdh import (
     encode_ascii,
     encode_binary_request,
     encode_blank,
+    firmware_release,
 )
 
 __all__ = [
@@ -146,13 +149,10 @@ HEARD_KEPT: Final = 256  # a connection's first bytes kept, to tell another devi
 _NUM_TEMPS: Final = 9  # 7 motors, FPGA, PCB (§2.2)
 _VERSION: Final = re.compile(r"\d+(\.\d+){1,4}")  # the firmware's, as ver answers it
 BINARY_SINCE: Final = (0, 0, 2, 15)  # the first firmware with the binary frames (protocols §2.6)
-# The firmware releases that brought `vlim`, `con` and `alim`, and what SDHLibrary-CPP takes
-# before them (sdh/sdh.cpp: GetAxisLimitVelocity, SetController/GetController,
-# GetAxisLimitAcceleration; `con` "would yield an error from the firmware (unknown command)")
-VLIM_SINCE: Final = (0, 0, 2, 1)
-CON_SINCE: Final = (0, 0, 2, 6)
-ALIM_SINCE: Final = (0, 0, 2, 7)
-OLD_VELOCITY_LIMITS: Final = (85.7, 200.0, 157.8, 200.0, 157.8, 200.0, 157.8)
+# What SDHLibrary-CPP takes on firmware older than `vlim`, `con` and `alim`
+# (protocol.sdh.COMMAND_SINCE): its fixed limits (the velocities: model.hand's) and the pose
+# controller (sdh/sdh.cpp: GetAxisLimitVelocity, GetAxisLimitAcceleration, GetController)
+OLD_VELOCITY_LIMITS: Final = HAND_VELOCITY_LIMIT_DEG_S
 OLD_ACCELERATION_LIMITS: Final = (5000.0, 400.0, 1500.0, 400.0, 1500.0, 400.0, 1500.0)
 _WARNINGS: Final = frozenset({LinkEventKind.ERROR, LinkEventKind.RECONNECT_FAILED})
 _TARGET_COMMANDS: Final = frozenset({"p", "tpap"})  # set forms are limit-checked
@@ -163,11 +163,6 @@ _SPOILT_ON_THE_LINE: Final = frozenset({
     SdhError.CMD_UNKNOWN, SdhError.CMD_FORMAT_ERROR, SdhError.MAX_COMMANDLINE_EXCEEDED,
     SdhError.CRC_ERROR,
 })  # fmt: skip
-
-
-def _release(version: str) -> tuple[int, ...]:
-    """A ``VER=`` release (checked against :data:`_VERSION`) as a tuple of ints."""
-    return tuple(int(x) for x in version.split("."))
 
 
 # -- errors, events, statistics -----------------------------------------------------------------
@@ -1205,15 +1200,15 @@ class JointLink:
                                      "swapped?)") from exc  # fmt: skip
             raise JointLinkError(f"SDH not connected: {exc}") from exc
         version = self._identified(ver)
-        release = _release(version)
+        release = firmware_release(version)
         # Older firmware lacks these commands; SDHLibrary-CPP (sdh.cpp) sends none of them
         # then and takes fixed limits and the pose controller instead
-        vlim = (await self._agreed(conn, "vlim") if release >= VLIM_SINCE
+        vlim = (await self._agreed(conn, "vlim") if release >= COMMAND_SINCE["vlim"]
                 else OLD_VELOCITY_LIMITS)  # fmt: skip
-        alim = (await self._agreed(conn, "alim") if release >= ALIM_SINCE
+        alim = (await self._agreed(conn, "alim") if release >= COMMAND_SINCE["alim"]
                 else OLD_ACCELERATION_LIMITS)  # fmt: skip
         con = (int((await self._urgent(conn, self._request("con"))).values[0])
-               if release >= CON_SINCE else int(ControllerMode.POSE))  # fmt: skip
+               if release >= COMMAND_SINCE["con"] else int(ControllerMode.POSE))  # fmt: skip
         if self.version and version != self.version:  # another hand behind the same port?
             logger.warning("%s: firmware %s, was %s", self.url, version, self.version)
         self.version = version
@@ -1234,7 +1229,7 @@ class JointLink:
     @property
     def _has_con(self) -> bool:
         """Whether the firmware knows ``con`` (an unknown version: assumed to)."""
-        return not self.version or _release(self.version) >= CON_SINCE
+        return not self.version or firmware_release(self.version) >= COMMAND_SINCE["con"]
 
     def _identified(self, ver: Reply) -> str:
         """The firmware's version from its answer to ``ver``: an SDH2 says ``VER=x.x.x.x``; any
@@ -1246,7 +1241,7 @@ class JointLink:
             raise JointLinkError(f"SDH not connected: {said!r} is no SDH2's answer to ver "
                                  "(VER=x.x.x.x): another device on this port, or one that "
                                  "echoes?")  # fmt: skip
-        if self.binary and _release(text) < BINARY_SINCE:
+        if self.binary and firmware_release(text) < BINARY_SINCE:
             logger.warning("%s firmware %s does not speak the binary frames (from 0.0.2.15 "
                            "on): this line speaks ASCII", self.url, text)  # fmt: skip
             self.binary = False
@@ -1396,7 +1391,7 @@ class JointLink:
 
     async def set_controller(self, mode: ControllerMode | int) -> ControllerMode:
         mode = ControllerMode(mode)
-        if not self._has_con:  # firmware before 0.0.2.6: the pose controller, fixed (CON_SINCE)
+        if not self._has_con:  # firmware before 0.0.2.6: the pose controller, fixed (COMMAND_SINCE)
             if mode is not ControllerMode.POSE:
                 raise JointLinkError(f"firmware {self.version} has only the pose controller")
             self.controller = ControllerMode.POSE

@@ -54,6 +54,7 @@ __all__ = [
     "ASCII_COMMANDS",
     "BINARY_COMMANDS",
     "BLANK",
+    "COMMAND_SINCE",
     "CPP_AXIS_FMT",
     "CPP_VECTOR_FMT",
     "DEFAULT_FMT",
@@ -91,6 +92,7 @@ __all__ = [
     "encode_debug",
     "encode_error",
     "encode_reply",
+    "firmware_release",
     "parse_command_line",
     "parse_reply_line",
 ]
@@ -100,6 +102,25 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 
 NUM_AXES: Final = 7
+
+#: Commands older firmware does not know, and the release that brought each (SDHLibrary-CPP
+#: ``sdh/sdh.cpp``: ``GetAxisLimitVelocity`` uses fixed values before 0.0.2.1,
+#: ``GetAxisLimitAcceleration`` before 0.0.2.7, ``SetController``/``GetController`` send no
+#: ``con`` before 0.0.2.6, where it "would yield an error from the firmware (unknown command)";
+#: ``rvel`` came with the velocity controllers, §2.4). Such a firmware answers E13.
+COMMAND_SINCE: Final[dict[str, tuple[int, ...]]] = {
+    "vlim": (0, 0, 2, 1),
+    "con": (0, 0, 2, 6),
+    "rvel": (0, 0, 2, 6),
+    "alim": (0, 0, 2, 7),
+}
+
+
+def firmware_release(version: str) -> tuple[int, ...]:
+    """A ``VER=`` release, ``0.0.2.5``, as (0, 0, 2, 5), to compare; ValueError if it is none."""
+    return tuple(int(x) for x in version.split("."))
+
+
 """Number of joint axes (§2.2); every vector on the wire has this many elements."""
 
 EOL: Final = b"\r\n"

@@ -124,6 +124,7 @@ from typing import Final, TypeAlias
 
 from sdh2svc.protocol.sdh import (
     BINARY_COMMANDS,
+    COMMAND_SINCE,
     NUM_AXES,
     AsciiCommand,
     AxisState,
@@ -137,6 +138,7 @@ from sdh2svc.protocol.sdh import (
     encode_binary_reply,
     encode_error,
     encode_reply,
+    firmware_release,
 )
 from sdh2svc.sim.world import HandWorld
 
@@ -197,23 +199,10 @@ DEFAULT_GRASPS: Final = (
 )
 
 
-#: Commands older firmware does not know, and the release that brought each (SDHLibrary-CPP
-#: ``sdh/sdh.cpp``: ``GetAxisLimitVelocity`` uses fixed values before 0.0.2.1,
-#: ``GetAxisLimitAcceleration`` before 0.0.2.7, ``SetController``/``GetController`` send no
-#: ``con`` before 0.0.2.6, where it "would yield an error from the firmware (unknown command)";
-#: ``rvel`` came with the velocity controllers, protocols.md §2.4). Such a firmware answers E13.
-_SINCE: Final[dict[str, tuple[int, ...]]] = {
-    "vlim": (0, 0, 2, 1),
-    "con": (0, 0, 2, 6),
-    "rvel": (0, 0, 2, 6),
-    "alim": (0, 0, 2, 7),
-}
-
-
 def _release(version: str) -> tuple[int, ...]:
-    """``0.0.2.5`` as (0, 0, 2, 5); a version string that is no release counts as the newest."""
+    """:func:`firmware_release`; a version string that is no release counts as the newest."""
     try:
-        return tuple(int(x) for x in version.split("."))
+        return firmware_release(version)
     except ValueError:
         return (1 << 30,)
 
@@ -759,8 +748,8 @@ class Sdh2Emulator:
 
     def _ascii(self, cmd: AsciiCommand) -> bytes:
         try:
-            if (since := _SINCE.get(cmd.keyword)) is not None and self._release < since:
-                raise _Reject(SdhError.CMD_UNKNOWN)  # older firmware lacks it (_SINCE)
+            if (since := COMMAND_SINCE.get(cmd.keyword)) is not None and self._release < since:
+                raise _Reject(SdhError.CMD_UNKNOWN)  # older firmware lacks it (COMMAND_SINCE)
             if cmd.keyword in self._vectors:
                 return self._ascii_vector(cmd)
             return self._ascii_other(cmd)
