@@ -99,25 +99,29 @@ def listen_socket(cfg: Settings) -> socket.socket:
 def check_viser_port(cfg: Settings) -> None:
     """Fail at once, before the hand is opened, if the 3-D view's port is taken (in a process of
     its own the view would report it late; in this one, viser would quietly move elsewhere)."""
-    host, port = viewer_host(cfg), cfg.service.viser_port
-    if not cfg.service.viewer or (e := bind_error(host, port)) is None:
-        return
-    if e.errno == errno.EADDRINUSE:
-        raise PortBusy(_viser_busy(port))
-    raise StartError(f"cannot serve the 3-D view on {host}:{port}: {e.strerror or e}")
+    if cfg.service.viewer:
+        port = cfg.service.viser_port
+        _check_port(viewer_host(cfg), port, "the 3-D view", _viser_busy(port))
 
 
 def check_foxglove_port(cfg: Settings) -> None:
     """As :func:`check_viser_port`, for the live Foxglove view's port (0: off): a taken one
     was found only once the hand's lines had been opened, and closed again."""
     host, port = viewer_host(cfg), cfg.service.foxglove_port
-    if not port or (e := bind_error(host, port)) is None:
+    if port:
+        where = f"cannot serve the live Foxglove view on {host}:{port}"
+        busy = f"{where}: port {port} already in use; set service.foxglove_port to a free port, "
+        _check_port(host, port, "the live Foxglove view", busy + "or 0 (off)")
+
+
+def _check_port(host: str, port: int, what: str, busy: str) -> None:
+    """:class:`PortBusy` (``busy``) if ``port`` is taken, a :class:`StartError` if it cannot be
+    had for another reason (``what`` cannot be served there)."""
+    if (e := bind_error(host, port)) is None:
         return
-    where = f"cannot serve the live Foxglove view on {host}:{port}"
     if e.errno == errno.EADDRINUSE:
-        raise PortBusy(f"{where}: port {port} already in use; set service.foxglove_port to a "
-                       "free port, or 0 (off)")  # fmt: skip
-    raise StartError(f"{where}: {e.strerror or e}")
+        raise PortBusy(busy)
+    raise StartError(f"cannot serve {what} on {host}:{port}: {e.strerror or e}")
 
 
 def _viser_busy(port: int) -> str:
