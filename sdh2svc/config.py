@@ -8,7 +8,6 @@ whose message names each offending key, its value and the allowed range.
 
 from __future__ import annotations
 
-import ipaddress
 import itertools
 import json
 import math
@@ -37,6 +36,7 @@ from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDic
 from sdh2svc.control.config import ControlConfig
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.safety import RunConfig, SafetyConfig, params_outside
+from sdh2svc.hosts import is_host, origin_key
 from sdh2svc.model.base import Finite
 from sdh2svc.model.contact import TactileCalibration, saturated_force
 from sdh2svc.model.hand import AxisMap, JointLimits, TactileConfig, matrix_pads
@@ -60,32 +60,6 @@ class StorageConfig(Finite):
     busy_timeout_s: Annotated[float, Field(gt=0.0, le=600.0)] = 10.0
 
 
-def _is_host(text: str) -> bool:
-    """``text`` is what a Host header can say: ``name`` or ``name:port``, an IPv6 address in
-    brackets (with a port or not) or bare; nothing else (a scheme, a path, a user)."""
-    if not text or any(c in text for c in "/?#@ \t"):
-        return False
-    if text.startswith("["):
-        v6, _, rest = text[1:].partition("]")
-        return _is_ipv6(v6) and (not rest or (rest[0] == ":" and _is_port(rest[1:])))
-    if text.count(":") > 1:
-        return _is_ipv6(text)
-    name, sep, port = text.partition(":")
-    return bool(name) and (not sep or _is_port(port))
-
-
-def _is_ipv6(text: str) -> bool:
-    try:
-        ipaddress.IPv6Address(text)
-    except ValueError:
-        return False
-    return True
-
-
-def _is_port(text: str) -> bool:
-    return text.isdigit() and 0 < int(text) <= 65535
-
-
 def _host_part(text: str) -> str:
     """What stands for the host in a URL-like entry: ``http://labpc:8000/x`` → ``labpc:8000``."""
     return text.split("://", 1)[-1].split("/", 1)[0]
@@ -95,10 +69,10 @@ def _host_entry(entry: str) -> str:
     """A ``service.allowed_hosts`` entry that can match a Host header (the guard compares the
     header's name and port, never a scheme or a path: such an entry matched nothing)."""
     text = entry.strip()
-    if _is_host(text):
+    if is_host(text):
         return entry
     bare = _host_part(text)
-    like = repr(bare) if _is_host(bare) else "'labpc' or 'labpc:8000'"
+    like = repr(bare) if is_host(bare) else "'labpc' or 'labpc:8000'"
     raise ValueError(f"a host is name or name:port, without a scheme or a path: write {like}")
 
 
@@ -106,11 +80,11 @@ def _origin_entry(entry: str) -> str:
     """A ``service.allowed_origins`` entry that can match a browser's Origin header,
     ``scheme://host[:port]`` (without its scheme it matched nothing)."""
     text = entry.strip()
-    scheme, sep, rest = text.partition("://")
-    if sep and scheme.isascii() and scheme[:1].isalpha() and _is_host(rest.rstrip("/")):
+    if origin_key(text) is not None:
         return entry
+    scheme, sep, _ = text.partition("://")
     host = _host_part(text)
-    like = f"'{scheme if sep else 'http'}://{host}'" if _is_host(host) else "'http://labpc:8000'"
+    like = f"'{scheme if sep else 'http'}://{host}'" if is_host(host) else "'http://labpc:8000'"
     raise ValueError(f"an origin is scheme://host[:port], without a path: write {like}")
 
 

@@ -21,7 +21,7 @@ BELOW = {
     "bus": {"model", "protocol"},
     "sim": {"model", "protocol"},
     "control": {"model", "protocol", "bus"},
-    "config": {"model", "protocol", "control", "sim"},  # the composition root: the sections
+    "config": {"model", "protocol", "control", "sim", "hosts"},  # the composition root
     "connect": {"model", "protocol", "bus", "sim", "control", "config"},
     "service": ABOVE_THE_SEAM,
     "campaign": ABOVE_THE_SEAM,  # the service's sibling: not the service

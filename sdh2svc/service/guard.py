@@ -29,12 +29,12 @@ token): stopping the hand must always work, from anything. The Host and size rul
 
 from __future__ import annotations
 
-import ipaddress
 import json
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from sdh2svc.config import clip
+from sdh2svc.hosts import LOOPBACK_NAMES, Origin, origin_key, origin_text, split_host
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -47,44 +47,6 @@ MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 # gets the answer; a larger one is answered at once (and the connection closed).
 DRAIN_MAX_BYTES = 16 * 2**20
 ESTOP_PATH = "/api/estop"
-LOOPBACK_NAMES = ("localhost", "127.0.0.1", "[::1]")
-
-
-def split_host(value: str) -> tuple[str, int | None]:
-    """``"Example.org:8000"`` → ``("example.org", 8000)``; IPv6 in brackets: ``"[::1]"``.
-
-    A bare IPv6 address (as in ``service.host = "::1"``) comes back bracketed; a malformed
-    port gives ``("", None)``, which matches nothing.
-    """
-    value = value.strip().lower()
-    if value.startswith("["):
-        name, _, rest = value.partition("]")
-        name += "]"
-        if not rest:
-            return name, None
-        port_text = rest[1:] if rest.startswith(":") else "x"
-    elif value.count(":") > 1:  # a bare IPv6 address
-        try:
-            return f"[{ipaddress.IPv6Address(value).compressed}]", None
-        except ValueError:
-            return "", None
-    else:
-        name, sep, port_text = value.partition(":")
-        if not sep:
-            return name, None
-    if not port_text.isdigit() or len(port_text) > 5:
-        return "", None
-    return name, int(port_text)
-
-
-def _origin_key(origin: str) -> str:
-    """An origin lower-cased, without its scheme's default port: ``http://a:80`` = ``http://a``."""
-    scheme, sep, rest = origin.strip().lower().partition("://")
-    if not sep:
-        return origin.strip().lower()
-    name, port = split_host(rest.rstrip("/"))
-    default = {"http": 80, "https": 443}.get(scheme)
-    return f"{scheme}://{name}" + ("" if port is None or port == default else f":{port}")
 
 
 class Guard:
@@ -116,7 +78,7 @@ class Guard:
                 self.host_names.add(name)
             else:
                 self.host_exact.add((name, port))
-        self.origins = {_origin_key(o) for o in allowed_origins}
+        self.origins: set[Origin] = {k for o in allowed_origins if (k := origin_key(o))}
         self._allowed_text = ", ".join(dict.fromkeys([*LOOPBACK_NAMES, host, *allowed_hosts]))
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -150,14 +112,15 @@ class Guard:
             return None
         origins = headers["origin"]
         scheme = "https" if scope.get("scheme") in ("https", "wss") else "http"
-        own = _origin_key(f"{scheme}://{headers['host'][0]}") if "host" in headers else None
+        own = origin_key(f"{scheme}://{headers['host'][0]}") if "host" in headers else None
         if len(origins) == 1:
-            key = _origin_key(origins[0])
-            if key == own or key in self.origins:
+            key = origin_key(origins[0])
+            if key is not None and (key == own or key in self.origins):
                 return None
+        listed = ", ".join(sorted(map(origin_text, self.origins))) or "none"
         return (403, f"cross-origin request refused: Origin {clip(origins[0])!r} is not this "
-                "service's", [f"allowed: {own} and service.allowed_origins "
-                              f"({', '.join(sorted(self.origins)) or 'none'})"])  # fmt: skip
+                "service's", [f"allowed: {own and origin_text(own)} and service.allowed_origins "
+                              f"({listed})"])  # fmt: skip
 
     def _type_refusal(self, headers: dict[str, list[str]]) -> tuple[int, str, list[str]] | None:
         types = headers.get("content-type", [])

@@ -47,7 +47,6 @@ from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from http import HTTPStatus
 from typing import Any, TypeVar
-from urllib.parse import urlsplit
 
 import numpy as np
 import viser
@@ -58,6 +57,7 @@ from websockets.asyncio.server import ServerConnection
 from websockets.http11 import Request
 
 from sdh2svc.config import Settings
+from sdh2svc.hosts import LOOPBACK_NAMES, origin_key, split_host
 from sdh2svc.model.geometry import pad_point_from_L, pad_slope, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
 from sdh2svc.model.urdf import (
@@ -67,7 +67,6 @@ from sdh2svc.model.urdf import (
     joint_names,
     sdh2_urdf,
 )
-from sdh2svc.service import guard
 from sdh2svc.service.pacing import paced
 from sdh2svc.service.replay_feed import ReplayFeed
 from sdh2svc.service.telemetry import AnyMessage, SampleMsg, SampleView, as_array, sample_view
@@ -339,56 +338,41 @@ def _num(d: dict[str, Any] | None, key: str) -> float | None:
 
 # --- who may open the view's WebSocket ------------------------------------------------------------
 
-# the guard's loopback names (as a Host header says them), as :func:`_origin_key` spells them
-LOOPBACK_NAMES = tuple(name.strip("[]") for name in guard.LOOPBACK_NAMES)
-
 
 class ViewerSecurityError(RuntimeError):
     """The view's WebSocket could not be guarded: the view is not served."""
 
 
-def _origin_key(origin: str) -> tuple[str, str, int] | None:
-    """``scheme://host[:port]`` → (scheme, host, port), lower case, the scheme's default port
-    filled in and IPv6 brackets removed; None for anything else (``null``, paths, userinfo)."""
-    try:
-        u = urlsplit(origin.strip())
-        port = u.port
-    except ValueError:
-        return None
-    if u.scheme not in ("http", "https") or not u.hostname or u.username or u.password:
-        return None
-    if u.path not in ("", "/") or u.query or u.fragment:
-        return None
-    return u.scheme, u.hostname.lower(), port or (443 if u.scheme == "https" else 80)
-
-
-def _host_name(host: str) -> str:
-    """A configured host (``[::1]``, ``::1``, ``Lab-PC``) as :func:`_origin_key` spells it."""
-    return host.strip().strip("[]").lower()
-
-
 def origin_allowed(origin: str, settings: Settings, view_port: int) -> bool:
     """Whether a browser page of ``origin`` may open the view's WebSocket on ``view_port``.
 
-    Allowed: http(s) on a loopback name, ``service.host`` or a ``service.allowed_hosts`` entry,
-    at the view's own port or the dashboard's (``service.port``, unless 0: unknown), and every
-    ``service.allowed_origins`` entry. Everything else is a page of some other site."""
-    key = _origin_key(origin)
-    if key is None:
+    Allowed: http(s) on a loopback name, ``service.host`` or a ``service.allowed_hosts`` name,
+    at the view's own port or the dashboard's (``service.port``, unless 0: unknown); an
+    ``allowed_hosts`` entry with a port, at that port; and every ``service.allowed_origins``
+    entry — the guard's rules, in :mod:`sdh2svc.hosts`'s spelling. Everything else is a page
+    of some other site."""
+    key = origin_key(origin)
+    if key is None or key[0] not in ("http", "https"):
         return False
     svc = settings.service
-    if key in {_origin_key(o) for o in svc.allowed_origins}:
+    if key in {origin_key(o) for o in svc.allowed_origins}:
         return True
-    ports = {view_port, svc.port} - {0}
-    return key[1] in _host_names(settings) and key[2] in ports
+    names, exact = _hosts(settings)
+    return (key[1] in names and key[2] in {view_port, svc.port} - {0}) or key[1:] in exact
 
 
-def _host_names(settings: Settings) -> list[str]:
-    """The names a page of this service may be at: loopback, ``service.host`` and
-    ``service.allowed_hosts`` (as :func:`_origin_key` spells them)."""
+def _hosts(settings: Settings) -> tuple[list[str], list[tuple[str, int]]]:
+    """The names a page of this service may be at with any port (loopback, ``service.host``,
+    ``service.allowed_hosts`` without a port), and the (name, port) entries with one."""
     svc = settings.service
-    names = [*LOOPBACK_NAMES, _host_name(svc.host), *(_host_name(h) for h in svc.allowed_hosts)]
-    return list(dict.fromkeys(names))
+    names, exact = list(LOOPBACK_NAMES), []
+    for entry in (svc.host, *svc.allowed_hosts):
+        name, port = split_host(entry)
+        if name and port is None:
+            names.append(name)
+        elif name and port is not None:
+            exact.append((name, port))
+    return list(dict.fromkeys(names)), list(dict.fromkeys(exact))
 
 
 def frame_ancestors(settings: Settings) -> str:
@@ -397,7 +381,9 @@ def frame_ancestors(settings: Settings) -> str:
     in CSP), and every ``service.allowed_origins`` entry."""
     svc = settings.service
     port = str(svc.port) if svc.port else "*"
-    pages = [f"{scheme}://{name}:{port}" for name in _host_names(settings) if ":" not in name
+    names, exact = _hosts(settings)
+    at = [(name, port) for name in names] + [(name, str(p)) for name, p in exact]
+    pages = [f"{scheme}://{name}:{p}" for name, p in at if not name.startswith("[")
              for scheme in ("http", "https")]  # fmt: skip
     return " ".join(["'self'", *pages, *svc.allowed_origins])
 

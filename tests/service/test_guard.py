@@ -6,9 +6,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-import pytest
-
-from sdh2svc.service.guard import Guard, split_host
+from sdh2svc.service.guard import Guard
 
 
 class Recorder:
@@ -72,16 +70,6 @@ async def call(
 
 
 JSON = {"content-type": "application/json"}
-
-
-@pytest.mark.parametrize(
-    ("value", "expected"),
-    [("LocalHost:8000", ("localhost", 8000)), ("[::1]:80", ("[::1]", 80)),
-     ("[::1]", ("[::1]", None)), ("::1", ("[::1]", None)), ("lab-pc", ("lab-pc", None)),
-     ("a:b", ("", None)), ("a:123456", ("", None))],
-)  # fmt: skip
-def test_split_host(value: str, expected: tuple[str, int | None]) -> None:
-    assert split_host(value) == expected
 
 
 async def test_host_allow_list_without_a_token() -> None:

@@ -661,6 +661,19 @@ def test_origin_policy(cfg: Settings) -> None:
     assert "http://127.0.0.1:*" in viewer_module.frame_ancestors(unknown).split()
 
 
+def test_an_allowed_host_with_a_port_is_a_page_at_that_port(cfg: Settings) -> None:
+    """``allowed_hosts = ["proxy:8443"]`` lets the guard answer the dashboard at proxy:8443;
+    the view refused that page's handshake and framing (it compared "proxy:8443" as a name)."""
+    svc = cfg.service.model_copy(update={"port": 8000, "allowed_hosts": ("Proxy:8443",)})
+    s = cfg.model_copy(update={"service": svc})
+    assert origin_allowed("http://proxy:8443", s, 8080)
+    assert origin_allowed("https://PROXY:8443", s, 8080)
+    for origin in ("http://proxy:8080", "http://proxy:8000", "http://proxy"):
+        assert not origin_allowed(origin, s, 8080), origin
+    pages = viewer_module.frame_ancestors(s).split()
+    assert "http://proxy:8443" in pages and "http://proxy:8000" not in pages, pages
+
+
 async def test_unguarded_viser_is_not_served(monkeypatch: pytest.MonkeyPatch) -> None:
     """Should viser serve its websocket otherwise than 1.1.1 does, the Origin check would not be
     installed: the view refuses to start rather than serve unguarded."""
