@@ -49,6 +49,7 @@ async def open_services(cfg: Settings, where: Where, *, viewer: bool | None = No
         await station.start()
         if cfg.service.viewer if viewer is None else viewer:
             services.viewer = await _start_viewer(cfg, station, hub)
+            station.view_served = lambda: services.viewer_url is not None
         if cfg.service.foxglove_port:
             services.foxglove = _start_foxglove(cfg, hub)
     except BaseException:

@@ -13,7 +13,7 @@ import contextlib
 import logging
 import math
 import sqlite3
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from contextlib import AsyncExitStack
 from dataclasses import asdict
 from typing import Any
@@ -156,6 +156,8 @@ class HandService:
     def __init__(self, cfg: Settings, hub: TelemetryHub, where: Where) -> None:
         self.cfg, self.hub, self.where = cfg, hub, where
         self.params = cfg.rolling
+        # whether the 3-D view is served (its process may die and take it away); None: no view
+        self.view_served: Callable[[], bool] | None = None
         self._hand: Hand | None = None
         self._stack = AsyncExitStack()  # closes the hand (links, then a simulated hand)
         self.joints: JointLink | None = None
@@ -703,6 +705,7 @@ class HandService:
             "params": self.params_in_force.model_dump(),
             "object": self.bench.obj.model_dump() if self.bench else None,
             "telemetry": self.hub.stats(),
+            "viewer": None if self.view_served is None else self.view_served(),
         }
 
     def _estop_status(self, j: JointLink | None) -> dict[str, Any] | None:

@@ -25,8 +25,10 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 from websockets.typing import Origin
 
-from sdh2svc.config import Settings
+from sdh2svc.config import Settings, load_config
+from sdh2svc.connect import Simulated
 from sdh2svc.service import viewer, viewer_proc
+from sdh2svc.service.app import close_services, open_services
 from sdh2svc.service.replay_feed import Recorded
 from sdh2svc.service.viewer_proc import KINDS, ViewerError, ViewerProcess
 
@@ -255,6 +257,27 @@ async def test_survives_the_child_dying(
         await asyncio.sleep(0.1)
     ours = [r for r in caplog.records if r.name == "sdh2svc.service.viewer_proc"]
     assert [(r.levelno, says in r.getMessage()) for r in ours] == [(level, True)]
+
+
+async def test_the_status_says_when_the_view_is_gone(tmp_path: Path) -> None:
+    """A dead view's process left the dashboard's frame saying "Connecting…" for ever: the
+    status now says the view is no longer served (the dashboard then shows its note)."""
+    cfg = load_config(overrides=[f"storage.db_path='{tmp_path}/runs.sqlite'",
+                                 "service.viser_port=0"], use_env=False)  # fmt: skip
+    services = await open_services(cfg, Simulated(), viewer=True)
+    try:
+        st = services.station
+        assert st.status()["viewer"] is True and services.viewer.pid is not None
+        os.kill(services.viewer.pid, signal.SIGKILL)
+        await wait_for(lambda: st.status()["viewer"] is False)
+        assert services.viewer_url is None
+    finally:
+        await close_services(services)
+    without = await open_services(cfg, Simulated(), viewer=False)
+    try:
+        assert without.station.status()["viewer"] is None
+    finally:
+        await close_services(without)
 
 
 def test_child_exits_when_the_parent_is_killed(tmp_path: Path) -> None:
