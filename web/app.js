@@ -594,6 +594,8 @@ function renderStatus(st) {
   state.status = st;
   statusSeq += 1;
   if (wasLatched && !st.estopped) forgetTrueTurn(); // the e-stop is released
+  // the view's process ended: its note instead of a frame saying "Connecting…" for ever
+  if (st.viewer === false && $("#viewer").dataset.url) loadViewer();
   const run = st.run;
   // a run the e-stop ended stays "e-stopped" in the status after the release: from the
   // status that says the e-stop is released, the header says so (not the latched red state)
@@ -1226,6 +1228,7 @@ function onMessage(m) {
         liveTurn.runId = m.run_id;
         liveTurn.psi0 = s.iteration <= 1 ? liveTurn.psi : null;
       }
+      liveTurn.atSample = turnedDeg(liveTurn.psi, liveTurn.psi0);
       if (!replay.active) showObject(readout, s, liveTrueTurn());
       break;
     }
@@ -1416,8 +1419,9 @@ async function deleteRun(r) {
 
 const replayData = { runId: null, frames: new Map(), truth: null, viewer: false, psi0: null };
 
-// In simulation, the object's true angle ψ (rad): the newest, and the live run's at its grasp
-const liveTurn = { runId: null, psi: null, psi0: null };
+// In simulation, the object's true angle ψ (rad): the newest, and the live run's at its grasp;
+// and how far (°) it had turned at the run's newest sample, which the readout shows
+const liveTurn = { runId: null, psi: null, psi0: null, atSample: null };
 
 /** A page that joined mid-run missed ψ at the grasp: it takes the truth recorded with the run's
  * first sample, as a replay does (simulation only: a real hand's run has no truth). */
@@ -1440,13 +1444,16 @@ function turnedDeg(psi, psi0) {
 function forgetTrueTurn() {
   liveTurn.runId = null;
   liveTurn.psi0 = null;
+  liveTurn.atSample = null;
   if (!replay.active) showObject(readout, state.lastSample ?? null, liveTrueTurn());
 }
 
-/** The live run's true turn for the readout: in simulation a number or null (not known now);
- * undefined on a real hand, which has no truth. */
+/** The live run's true turn at the sample the readout shows: in simulation a number or null
+ * (not known); undefined on a real hand, which has no truth. Not the newest ψ's: after the run
+ * the object is let go, put back or swapped for another, and the readout still shows the run's
+ * last sample. */
 function liveTrueTurn() {
-  return state.sim ? turnedDeg(liveTurn.psi, liveTurn.psi0) : undefined;
+  return state.sim ? liveTurn.atSample : undefined;
 }
 
 /** The sim truth recorded with sample `s` of the replayed run, as the live `sim` message's

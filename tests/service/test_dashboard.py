@@ -1434,6 +1434,54 @@ async def test_the_true_turn_is_not_kept_past_an_estop_release(
         assert await page.inner_text("#object-readout .obj-class") == estimate
 
 
+async def test_the_view_s_note_replaces_its_frame_once_the_status_says_it_is_gone(
+    page: Any,
+) -> None:
+    """A 3-D view whose process died left its frame saying "Connecting…" for ever: the page
+    asked where the view is only at start and on reconnecting. The status now says."""
+    await page.route(re.compile(r"/api/viewer$"), lambda r: r.fulfill(json={"url": None}))
+    await page.evaluate("""() => {  // a frame showing a view, as GET /api/viewer had said
+      const f = document.querySelector('#viewer');
+      f.hidden = false;
+      f.dataset.url = 'http://127.0.0.1:9/';
+      const st = {...structuredClone(window.sdh2debug.status()), viewer: false};
+      window.sdh2debug.onMessage({type: 'status', status: st});
+    }""")
+    await expect(page.locator("#viewer-note")).to_contain_text("the view's process ended")
+    await expect(page.locator("#viewer")).to_be_hidden()
+
+
+# A live run's two samples fed with the object's true angle ψ at each, then ψ after the run
+# (the object let go, put back, or swapped for another) and the page back to live from a replay,
+# in one turn: the readout's turn each time.
+TURN_AFTER_THE_RUN = """() => {
+  const d = window.sdh2debug;
+  const rot = () => document.querySelector('#object-readout .obj-rot').textContent;
+  const sim = (psi) => d.onMessage({type: 'sim', truth: {object: 'egg', held: true,
+    dropped: false, in_fixture: false, pose: [20, 120, psi], outline: [], contacts: []}});
+  const sample = (iteration) => d.onMessage({type: 'sample', run_id: 987654,
+    sample: {iteration, t: iteration / 30, rotation_est: 5.0}});
+  sim(0.0); sample(1); sim(0.1); sample(2);
+  const atRun = rot();
+  sim(1.0);
+  document.querySelector('#back-to-live').click();
+  return {atRun, after: rot()};
+}"""
+
+
+async def test_the_true_turn_shown_is_the_runs_last_sample_s(page: Any) -> None:
+    """Back to live from a replay, the readout showed the run's last sample beside ψ now minus
+    ψ at its grasp: after the run that is the object let go, put back or another one."""
+    await page.route(
+        re.compile(r"/api/runs/987654/"),
+        lambda r: r.fulfill(
+            json={"samples": [], "total": 0, "next": None, "truth": [], "outline": None}
+        ),
+    )
+    shown = await page.evaluate(TURN_AFTER_THE_RUN)
+    assert shown == {"atRun": "turned 5.0° (true 5.7°)", "after": "turned 5.0° (true 5.7°)"}
+
+
 # The last status the page got with the e-stop latched since `since`, fed, and the real one
 # again, in one turn: the latch's line and the E-STOP's tooltip meanwhile.
 LATCHED_SINCE = """(since) => {
