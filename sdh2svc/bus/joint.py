@@ -1337,6 +1337,9 @@ class JointLink:
     def take_reading(self) -> JointReading | None:
         """:attr:`reading`, for a control loop whose command follows: no poll goes out first."""
         self.poll_plan.beat(asyncio.get_running_loop().time())
+        # the poller plans again: its timer, set before this beat, may fall before the command
+        # and its move are through (a ``p`` longer than the plan's quarter period of lateness)
+        self._poll_wake.set()
         return self.reading
 
     @property

@@ -7,7 +7,9 @@ A control loop takes the angles in a rhythm (once per tactile frame, :meth:`Poll
 the poll goes as late as it can: it is to be answered a margin before the next beat is due — the
 beats' own jitter (frames grow with contact) a few times over, at least ``guard_s`` — and the
 iteration finds angles about that margin old. After a beat the loop's command follows, so no
-poll starts before it (for at most ``hold_s``). A poll that misses its slot (its timer fired late
+poll starts before it (for at most ``hold_s``), and the caller plans again at every beat: a poll
+timed, before the beat, for a quarter period after it would otherwise go on the line between a
+slow command (a binary ``p`` on the real hand: 8–10 ms) and its move. A poll that misses its slot (its timer fired late
 on a busy machine) waits for the next one, and the iteration takes angles a period older; but a
 rhythm with no slot at all (a slow round trip) and a second beat in a row without a reading get
 their poll at once: fresh angles come before a clean line. Without a rhythm (no loop running, or

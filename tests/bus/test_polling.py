@@ -19,7 +19,7 @@ from sdh2svc.bus.polling import PollPlan
 from sdh2svc.protocol.sdh import NUM_AXES
 from sdh2svc.sim.clock import run_fast
 from sdh2svc.sim.endpoint import UnixEndpoint
-from sdh2svc.sim.sdh2 import Sdh2Emulator
+from sdh2svc.sim.sdh2 import Sdh2Emulator, Sdh2Options
 from sdh2svc.sim.world import ScriptedWorld
 
 T = TypeVar("T")
@@ -110,19 +110,26 @@ def test_a_long_pause_starts_a_new_rhythm() -> None:
 
 
 @asynccontextmanager
-async def _link(tmp_path: Path) -> AsyncIterator[tuple[JointLink, Sdh2Emulator]]:
-    dev = Sdh2Emulator(ScriptedWorld([(14, 6), (13, 6)] * 3))
+async def _link(
+    tmp_path: Path, options: Sdh2Options | None = None
+) -> AsyncIterator[tuple[JointLink, Sdh2Emulator]]:
+    """The link on the emulator; with ``options`` (a timing) in binary, as the service."""
+    dev = Sdh2Emulator(ScriptedWorld([(14, 6), (13, 6)] * 3), options=options)
     async with UnixEndpoint(dev, str(tmp_path / "sdh.sock"), whole_packets=True) as ep:
-        link = await JointLink.open(ep.url)
+        link = await JointLink.open(ep.url, binary=options is not None)
         try:
             yield link, dev
         finally:
             await link.close()
 
 
-def _fast(tmp_path: Path, body: Callable[[JointLink, Sdh2Emulator], Awaitable[T]]) -> T:
+def _fast(
+    tmp_path: Path,
+    body: Callable[[JointLink, Sdh2Emulator], Awaitable[T]],
+    options: Sdh2Options | None = None,
+) -> T:
     async def main() -> T:
-        async with _link(tmp_path) as (link, dev):
+        async with _link(tmp_path, options) as (link, dev):
             return await body(link, dev)
 
     return run_fast(main())
@@ -150,6 +157,40 @@ def test_a_control_loop_commands_at_once_on_fresh_angles(tmp_path: Path) -> None
     ages = [t - at for t, at, _ in beats]
     assert max(ages) <= 0.004  # answered just before the beat (the plan's 2 ms guard)
     assert len({at for _, at, _ in beats}) == len(beats)  # a new reading every beat
+
+
+@pytest.mark.parametrize("firmware_s", [0.00207, 0.003, 0.004])
+def test_no_poll_between_a_command_and_its_move_at_the_real_hand_s_timing(
+    tmp_path: Path, firmware_s: float
+) -> None:
+    """At the real hand's line timing (the firmware's time per binary frame as config/sim.toml
+    says, and a little slower: those figures are approximate) a ``p`` takes 8–10 ms. Once it
+    took longer than a quarter period, the poll planned before the beat for a quarter period
+    after it fired during the ``p`` and went on the line before the loop's ``m``: the ``m``
+    came a whole poll late, the next poll after it late too, at times still on the line when
+    the next beat's command came (bench service: sense→command p99 ×2). A beat now makes the
+    poller plan again."""
+
+    async def loop_30hz(link: JointLink, _: Sdh2Emulator) -> list[tuple[float, float, int]]:
+        loop = asyncio.get_running_loop()
+        await link.set_velocities((40.0,) * NUM_AXES)
+        link.start_polling()
+        beats = []
+        t = loop.time()
+        for _ in range(90):
+            t += PERIOD
+            await asyncio.sleep(t - loop.time())
+            assert link.take_reading() is not None
+            polls = link.stats.commands
+            sent = await link.send_targets(POSE)
+            await link.move()
+            beats.append((t, sent, link.stats.commands - polls))  # p, m and any poll between
+        return beats
+
+    timing = Sdh2Options(ascii_latency_s=0.0049, binary_latency_s=firmware_s)
+    beats = _fast(tmp_path, loop_30hz, timing)[10:]  # once the rhythm is learnt
+    assert [n for _, _, n in beats] == [2] * len(beats)  # p and m only: no poll in between
+    assert all(sent == t for t, sent, _ in beats)  # and none in the way of the command
 
 
 def test_the_poller_keeps_the_newest_angles(tmp_path: Path) -> None:
