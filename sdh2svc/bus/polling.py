@@ -9,12 +9,12 @@ beats' own jitter (frames grow with contact) a few times over, at least ``guard_
 iteration finds angles about that margin old. After a beat the loop's command follows, so no
 poll starts before it (for at most ``hold_s``), and the caller plans again at every beat: a poll
 timed, before the beat, for a quarter period after it would otherwise go on the line between a
-slow command (a binary ``p`` on the real hand: 8–10 ms) and its move. A poll that misses its slot (its timer fired late
-on a busy machine) waits for the next one, and the iteration takes angles a period older; but a
-rhythm with no slot at all (a slow round trip) and a second beat in a row without a reading get
-their poll at once: fresh angles come before a clean line. Without a rhythm (no loop running, or
-a beat overdue beyond ``late``) :meth:`PollPlan.start_at` says None and the caller polls on its
-own terms (after every command, and every so often).
+slow command (a binary ``p`` on the real hand: 8–10 ms) and its move. A poll that misses its
+slot (its timer fired late on a busy machine) waits for the next one, and the iteration takes
+angles a period older; but a rhythm with no slot at all (a slow round trip) and a second beat in
+a row without a reading get their poll at once: fresh angles come before a clean line. Without
+a rhythm (no loop running, or a beat overdue beyond ``late``) :meth:`PollPlan.start_at` says
+None and the caller polls on its own terms (after every command, and every so often).
 """
 
 from __future__ import annotations
