@@ -1,5 +1,6 @@
 """The grasp as a pure step: how far each coupled finger closes on one fresh frame (hand-model §8,
-step 1), from the two distal contacts and the actual joint angles. No I/O, no clock.
+step 1), from the two distal contacts and the actual joint angles; and :class:`GraspWatch`, when
+the grasp holds or has failed. No I/O, no clock.
 
 The thesis (and SCHUNK's demo) close both fingers in a mirror pose at a speed proportional to
 Fd − F. Our additions:
@@ -34,12 +35,18 @@ Fd − F. Our additions:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Final
 
+from sdh2svc.control import safety
 from sdh2svc.control.plan import grip_force
+from sdh2svc.control.safety import RunConfig, Violation
 from sdh2svc.model.contact import ContactEstimate
 from sdh2svc.model.friction import omega, wedge
-from sdh2svc.model.kinematics import Finger, HandPose, Point, contact_point
+from sdh2svc.model.hand import AxisMap
+from sdh2svc.model.kinematics import Finger, HandGeometry, HandPose, Point, contact_point, pad_gap
 from sdh2svc.model.observe import ModelContext
 
 _EPS = math.radians(0.1)  # the finite difference of ω with respect to a distal joint
@@ -188,3 +195,103 @@ def grasp_step(
                 p2 = a2 * _pivot(Finger.TWO, pose, c2, a_point, ctx)
 
     return GraspStep((clip(s1 + p1), clip(-s1 + a1), clip(s2 + p2), clip(-s2 + a2)), wedge_deg)
+
+
+class Held:
+    """:meth:`GraspWatch.observe`'s answer once the grasp holds: the rolling may start."""
+
+
+HELD: Final = Held()
+
+
+@dataclass(slots=True)
+class GraspWatch:
+    """When the grasp holds, and when it has failed, one fresh frame at a time: the grasp's
+    supervision (docs/safety.md), pure — the caller passes the time. The frame's force law is
+    :func:`grasp_step`'s."""
+
+    run: RunConfig
+    axes: AxisMap
+    geom: HandGeometry
+    contact_force_min: float  # a pad's force that counts as a touch
+    alpha_deg: float  # the settling ends early once the wedge is within α/2
+    align: bool  # the pads turn against their wedge (GraspLaw.align_gain > 0)
+    approach_deg_s: float  # what a finger whose pad reads nothing is commanded
+    started: float  # when the grasp began
+    # the timeout counts from the first touch once there is one: a small object is far from
+    # the pre-shape, and the closing takes most of the timeout before it touches
+    touched: float | None = None
+    at_touch: tuple[float, ...] | None = None  # the angles then
+    opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
+    settle_until: float | None = None  # once held: the settling's end
+    read: list[bool] = field(default_factory=lambda: [False, False])  # each pad ever touched
+    progress: deque[tuple[float, float]] = field(default_factory=deque)  # (t, closed °) untouched
+
+    def observe(
+        self, now: float, c1: ContactEstimate, c2: ContactEstimate, fd: float,
+        actual: tuple[float, ...], pose: HandPose, wedge_deg: float | None,
+    ) -> Held | Violation | None:  # fmt: skip
+        """One frame: :data:`HELD`, a violation that ends the run, or None (close on)."""
+        F = grip_force(c1, c2)
+        self.read = [self.read[0] or c1.present, self.read[1] or c2.present]
+        if self.opened is None:
+            self.opened = actual
+        if F >= fd:  # held; the pads may still turn against their wedge for a while
+            self.settle_until = self.settle_until or now + self.run.grasp_settle_s
+        if self.settle_until is not None:
+            # (once held, F may dip below Fd while the pads turn: the settling ends the grasp,
+            # not the timeout; the rolling's force band takes F back to Fd)
+            wedge_ok = wedge_deg is None or abs(wedge_deg) <= self.alpha_deg / 2
+            if (F >= fd and (wedge_ok or not self.align)) or now >= self.settle_until:
+                return safety.grasp_lost(c1.present, c2.present, *self.read) or HELD
+        elif v := self._failed(now, c1, c2, F, fd, actual, pose):
+            return v
+        return safety.closed_empty(actual, self.axes, self.run)
+
+    def _failed(
+        self, now: float, c1: ContactEstimate, c2: ContactEstimate, F: float, fd: float,
+        actual: tuple[float, ...], pose: HandPose,
+    ) -> Violation | None:  # fmt: skip
+        """Before the grip holds: out of time, stalled untouched, or the pads met on nothing."""
+        touching = max(c1.force, c2.force) > self.contact_force_min
+        if self.touched is None and touching:
+            self.touched, self.at_touch = now, actual
+        since = self.started if self.touched is None else self.touched
+        assert self.opened is not None
+        closed = self._closed(self.opened, actual)
+        free = self.approach_deg_s
+        untouched = None if self.touched is not None else (closed, free)
+        waiting = self._waiting(actual)
+        if v := safety.grasp_timeout(F, fd, now, since, self.run, untouched, waiting):
+            return v
+        if touching:
+            self.progress.clear()  # the stall's window counts untouched frames only
+            return None
+        # nothing touched yet, or a touch lost (the object taken away; dead pads)
+        lost = self.touched is not None
+        window_deg, window_s = self._approach(now, closed)
+        return safety.grasp_stalled(
+            window_deg, window_s, closed, now - self.started, free, lost=lost
+        ) or safety.pads_met(pad_gap(pose, self.geom), lost=lost)
+
+    def _approach(self, now: float, closed: float) -> tuple[float, float]:
+        """How far (°) an untouched grasp closed over its last ``safety.STALL_S`` at least, and
+        over how long (s): ``progress`` keeps the frames since, and the one before."""
+        self.progress.append((now, closed))
+        while len(self.progress) > 1 and self.progress[1][0] <= now - safety.STALL_S:
+            self.progress.popleft()
+        t0, closed0 = self.progress[0]
+        return closed - closed0, now - t0
+
+    def _waiting(self, actual: Sequence[float]) -> tuple[int, float, float] | None:
+        """The finger whose pad has read nothing since the other's touched (at ``at_touch``):
+        (1 or 2, how far (°) its proximal joint closed since, the approach speed in °/s)."""
+        if self.at_touch is None or self.read[0] == self.read[1]:
+            return None
+        finger, axis = (2, self.axes.phi4) if self.read[0] else (1, self.axes.phi2)
+        return finger, abs(actual[axis] - self.at_touch[axis]), self.approach_deg_s
+
+    def _closed(self, opened: Sequence[float], actual: Sequence[float]) -> float:
+        """How far (°) the proximal joints closed, on average, from ``opened`` to ``actual``."""
+        i, j = self.axes.phi2, self.axes.phi4
+        return (abs(actual[i] - opened[i]) + abs(actual[j] - opened[j])) / 2

@@ -17,7 +17,7 @@ import logging
 import math
 import statistics
 from array import array
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -27,7 +27,7 @@ from sdh2svc.bus.joint import ControllerMode, JointLink, JointLinkError
 from sdh2svc.bus.tactile import FrameTimeout, Subscription, TactileBus, TactileError, TactileFrame
 from sdh2svc.control import safety
 from sdh2svc.control.config import ControlConfig
-from sdh2svc.control.grasp import GraspLaw, grasp_step
+from sdh2svc.control.grasp import GraspLaw, GraspWatch, Held, grasp_step
 from sdh2svc.control.motion import move_to_preshape
 from sdh2svc.control.observer import Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
@@ -37,7 +37,7 @@ from sdh2svc.control.rolling import RollState, StepResult, step
 from sdh2svc.control.safety import Fault, clamp_targets
 from sdh2svc.control.sample import Sample
 from sdh2svc.model.contact import ContactEstimate
-from sdh2svc.model.kinematics import Finger, HandPose, pad_gap
+from sdh2svc.model.kinematics import Finger, HandPose
 from sdh2svc.model.observe import ModelContext, Observation
 from sdh2svc.protocol.sdh import NUM_AXES
 
@@ -377,61 +377,31 @@ class Runner:
             period_s=period,
             max_step_deg=self.config.safety.max_step_deg,
         )
-        settle_until: float | None = None
-        # the timeout counts from the first touch once there is one: a small object is far
-        # from the pre-shape, and the closing takes most of the timeout before it touches
-        touched: float | None = None
-        at_touch: tuple[float, ...] | None = None  # the angles then
-        opened: tuple[float, ...] | None = None  # the angles at the grasp's first frame
+        watch = GraspWatch(
+            run=run, axes=self._axes, geom=self.ctx.geom,
+            contact_force_min=self.params.contact_force_min, alpha_deg=self.params.alpha_deg,
+            align=law.align_gain != 0, approach_deg_s=law.approach_velocity_deg_s,
+            started=started,
+        )  # fmt: skip
         aim: tuple[float, ...] | None = None  # the targets commanded last
         last: float | None = None  # when the previous frame was taken
-        read = [False, False]  # whether each distal pad has read a contact in the grasp
-        progress: deque[tuple[float, float]] = deque()  # (t, closed °) of the untouched frames
         while not self._stop.is_set():
             if self._adopt_pending():  # a new Fd: the grasp closes towards it from this frame
                 fd = self.params.grasp_force
                 law = replace(law, grasp_force=fd)
             frame = await self._fresh(sub)
             c1, c2 = self._contacts(frame)
-            F = grip_force(c1, c2)
             _raise(safety.force_ceiling(c1.force, c2.force, fd, self.config.safety))
-            read = [read[0] or c1.present, read[1] or c2.present]
             actual, _ = self._newest_angles()
-            if opened is None:
-                opened = actual
             pose = self._axes.pose(actual)
             now = loop.time()
             g = grasp_step(pose, c1, c2, law, self.ctx, None if last is None else now - last)
             last = now
-            if F >= fd:  # held; the pads may still turn against their wedge for a while
-                settle_until = settle_until or now + run.grasp_settle_s
-            if settle_until is not None:
-                # (once held, F may dip below Fd while the pads turn: the settling ends the
-                # grasp, not the timeout; the rolling's force band takes F back to Fd)
-                wedge_ok = g.wedge_deg is None or abs(g.wedge_deg) <= self.params.alpha_deg / 2
-                settled = F >= fd and (wedge_ok or law.align_gain == 0)
-                if settled or now >= settle_until:
-                    _raise(safety.grasp_lost(c1.present, c2.present, *read))
-                    self._event(EventKind.GRASPED, {"F": F, "wedge_deg": g.wedge_deg})
-                    return
-            else:
-                touching = max(c1.force, c2.force) > self.params.contact_force_min
-                if touched is None and touching:
-                    touched, at_touch = now, actual
-                since = started if touched is None else touched
-                closed = self._closed(opened, actual)
-                free = law.approach_velocity_deg_s  # what it commands until its pad touches
-                untouched = None if touched is not None else (closed, free)
-                waiting = self._waiting(read, at_touch, actual, free)
-                _raise(safety.grasp_timeout(F, fd, now, since, run, untouched, waiting))
-                if touching:
-                    progress.clear()  # the stall's window counts untouched frames only
-                else:  # nothing touched yet, or a touch lost (the object taken away; dead pads)
-                    lost = touched is not None
-                    stall = self._approach(progress, now, closed)
-                    _raise(safety.grasp_stalled(*stall, closed, now - started, free, lost=lost))
-                    _raise(safety.pads_met(pad_gap(pose, self.ctx.geom), lost=lost))
-            _raise(safety.closed_empty(actual, self._axes, run))
+            verdict = watch.observe(now, c1, c2, fd, actual, pose, g.wedge_deg)
+            if isinstance(verdict, Held):
+                self._event(EventKind.GRASPED, {"F": grip_force(c1, c2), "wedge_deg": g.wedge_deg})
+                return
+            _raise(verdict)
             base = self._step_base(actual, aim, (c1.present, c2.present))
             aim = self._clamp(self._axes.wire_steps(g.d_phi, base), actual)
             await self.joints.set_targets(aim)
@@ -448,33 +418,6 @@ class Runner:
                     for axis in self._axes.finger_axes(finger):
                         base[axis] = aim[axis]
         return base
-
-    @staticmethod
-    def _approach(progress: deque[tuple[float, float]], now: float,
-                  closed: float) -> tuple[float, float]:  # fmt: skip
-        """How far (°) an untouched grasp closed over its last ``safety.STALL_S`` at least, and
-        over how long (s): ``progress`` keeps the frames since, and the one before."""
-        progress.append((now, closed))
-        while len(progress) > 1 and progress[1][0] <= now - safety.STALL_S:
-            progress.popleft()
-        t0, closed0 = progress[0]
-        return closed - closed0, now - t0
-
-    def _waiting(
-        self, read: Sequence[bool], at_touch: Sequence[float] | None, actual: Sequence[float],
-        commanded: float,
-    ) -> tuple[int, float, float] | None:  # fmt: skip
-        """The finger whose pad has read nothing since the other's touched (at ``at_touch``):
-        (1 or 2, how far (°) its proximal joint closed since, ``commanded`` °/s)."""
-        if at_touch is None or read[0] == read[1]:
-            return None
-        finger, axis = (2, self._axes.phi4) if read[0] else (1, self._axes.phi2)
-        return finger, abs(actual[axis] - at_touch[axis]), commanded
-
-    def _closed(self, opened: Sequence[float], actual: Sequence[float]) -> float:
-        """How far (°) the proximal joints closed, on average, from ``opened`` to ``actual``."""
-        i, j = self._axes.phi2, self._axes.phi4
-        return (abs(actual[i] - opened[i]) + abs(actual[j] - opened[j])) / 2
 
     async def _fresh(self, sub: Subscription) -> TactileFrame:
         """The next frame, newer than any used before; a silent or stale stream is a fault."""

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from sdh2svc.config import Settings
-from sdh2svc.control.grasp import GraspLaw, grasp_step
+from sdh2svc.control.grasp import GraspLaw, GraspWatch, Held, grasp_step
+from sdh2svc.control.safety import Fault, Violation
+from sdh2svc.model.contact import NO_CONTACT, ContactEstimate
 from sdh2svc.model.kinematics import HandPose
 from sdh2svc.model.observe import observe
 from tests.control.test_rolling import frame
@@ -130,3 +133,89 @@ def test_a_squeeze_at_twice_fd_stops_the_turn(cfg: Settings) -> None:
     g = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force / 2.5), ctx)
     plain = grasp_step(WEDGED, c1, c2, law(grasp_force=c1.force / 2.5, align_gain=0.0), ctx)
     assert g.d_phi == plain.d_phi
+
+
+# --- the grasp's supervision (GraspWatch) on hand-built frames ---------------------------------
+
+PRESHAPE = (90.0, -30.0, 30.0, -90.0, 0.0, -30.0, 30.0)  # config/default.toml [run]
+FD = 2.0
+
+
+def touch(force: float) -> ContactEstimate:
+    return replace(NO_CONTACT, present=force > 0, force=force)
+
+
+def watch(cfg: Settings, align: bool = True) -> GraspWatch:
+    return GraspWatch(run=cfg.run, axes=cfg.axes, geom=cfg.hand, contact_force_min=0.1,
+                      alpha_deg=22.0, align=align, approach_deg_s=3.0, started=0.0)  # fmt: skip
+
+
+def closed_by(deg: float) -> tuple[float, ...]:
+    """The pre-shape with both proximal joints (φ2: axis 1, φ4: axis 3) closed by ``deg``."""
+    a = list(PRESHAPE)
+    a[1] += deg
+    a[3] -= deg
+    return tuple(a)
+
+
+def see(w: GraspWatch, cfg: Settings, t: float, f1: float, f2: float, closed: float = 10.0,
+        wedge: float | None = 0.0) -> object:  # fmt: skip
+    actual = closed_by(closed)
+    return w.observe(t, touch(f1), touch(f2), FD, actual, cfg.axes.pose(actual), wedge)
+
+
+def test_the_grasp_holds_once_the_grip_reaches_fd_with_the_pads_aligned(cfg: Settings) -> None:
+    w = watch(cfg)
+    assert see(w, cfg, 0.0, 0.0, 0.0) is None  # closing
+    assert see(w, cfg, 1.0, 1.0, 0.5) is None  # touched, under Fd
+    assert isinstance(see(w, cfg, 2.0, 2.1, 2.0, wedge=5.0), Held)  # within α/2
+
+
+def test_a_wedge_settles_until_its_time_is_up(cfg: Settings) -> None:
+    w = watch(cfg)
+    assert see(w, cfg, 1.0, 2.0, 2.0, wedge=30.0) is None  # held, the pads still turning
+    # F dips below Fd as they turn: neither the timeout nor a held grasp
+    assert see(w, cfg, 1.0 + cfg.run.grasp_settle_s / 2, 1.5, 1.5, wedge=20.0) is None
+    assert isinstance(see(w, cfg, 1.0 + cfg.run.grasp_settle_s, 1.5, 1.5, wedge=20.0), Held)
+    # without the alignment, a held grip is a grasp at once
+    assert isinstance(see(watch(cfg, align=False), cfg, 1.0, 2.0, 2.0, wedge=30.0), Held)
+
+
+def test_a_pad_lost_as_the_grasp_settles_is_no_grasp(cfg: Settings) -> None:
+    w = watch(cfg)
+    assert see(w, cfg, 1.0, 2.0, 2.0, wedge=30.0) is None
+    v = see(w, cfg, 1.0 + cfg.run.grasp_settle_s, 4.0, 0.0)
+    assert isinstance(v, Violation) and v.fault is Fault.NO_CONTACT
+    assert "a contact lost as the grasp settled" in v.message
+
+
+def test_a_pad_that_never_read_is_named(cfg: Settings) -> None:
+    v = see(watch(cfg), cfg, 1.0, 4.5, 0.0)  # Finger 1's pad alone grips: F = 2.25 ≥ Fd
+    assert isinstance(v, Violation) and "Finger 2's distal pad read no contact" in v.message
+
+
+def test_the_timeout_counts_from_the_first_touch(cfg: Settings) -> None:
+    w = watch(cfg)
+    timeout = cfg.run.grasp_timeout_s
+    assert see(w, cfg, 15.0, 0.0, 0.0, closed=15 * 3.0) is None  # closing at the approach speed
+    assert see(w, cfg, 16.0, 0.5, 0.5, closed=48.0) is None  # touched at 16 s
+    assert see(w, cfg, 16.0 + timeout, 1.0, 1.0, closed=48.0) is None
+    v = see(w, cfg, 16.1 + timeout, 1.0, 1.0, closed=48.0)
+    assert isinstance(v, Violation) and v.message.startswith("no grasp (F = 1.00 < Fd = 2.0)")
+
+
+def test_an_untouched_grasp_that_stops_closing_has_stalled(cfg: Settings) -> None:
+    w = watch(cfg)
+    for i in range(10):  # 3°/s for 5 s: as commanded
+        assert see(w, cfg, 0.5 * i, 0.0, 0.0, closed=1.5 * i) is None
+    for i in range(1, 5):  # then it stops short of the object, nothing touched
+        v = see(w, cfg, 4.5 + 0.5 * i, 0.0, 0.0, closed=13.5)
+    assert isinstance(v, Violation) and v.fault is Fault.NO_CONTACT
+    assert v.message.startswith("the fingers stopped closing with nothing touched"), v.message
+
+
+def test_fingers_closed_past_the_limit_found_nothing(cfg: Settings) -> None:
+    w = watch(cfg)
+    beyond = cfg.run.grasp_max_close_deg - PRESHAPE[1] + 1.0  # φ2 past grasp_max_close_deg
+    v = see(w, cfg, 1.0, 0.5, 0.5, closed=beyond)
+    assert isinstance(v, Violation) and "closed without touching anything" in v.message
