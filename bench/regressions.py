@@ -1,5 +1,6 @@
-"""The failure classes pinned in tests/campaign/test_regressions.py, each judged over a family of
-grasp gains around the default (2.40, 2.42, … 2.60 °/s per force unit; 2.5 the default).
+"""The failure classes of tests/campaign/test_regressions.py (those it pins at the default, and
+those near a limit it leaves to this bench), each judged over a family of grasp gains around the
+default (2.40, 2.42, … 2.60 °/s per force unit; 2.5 the default).
 
 A pinned case is one exact run: a controller change anywhere upstream moves its path, and a
 case near a limit flips with it. When one fails, this tells a class that came back (it fails
@@ -15,7 +16,7 @@ from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 from sdh2svc.campaign.run import run_case
-from tests.campaign.test_regressions import CASES, FAILURE_CLASSES, rolls_every_stroke
+from tests.campaign.test_regressions import CASES, FAILURE_CLASSES, NEAR_A_LIMIT, rolls_every_stroke
 
 GAINS = tuple(round(2.40 + 0.02 * k, 2) for k in range(11))
 DEFAULT_GAIN = 2.5
@@ -33,14 +34,15 @@ def _passes(case_id: str, gain: float) -> tuple[str, float, bool, str]:
 
 
 def run() -> dict[str, Any]:
-    jobs = [(case_id, g) for case_id, _ in FAILURE_CLASSES for g in GAINS]
+    classes = FAILURE_CLASSES + NEAR_A_LIMIT
+    jobs = [(case_id, g) for case_id, _ in classes for g in GAINS]
     workers = os.cpu_count() or 1
-    print(f"regressions: {len(FAILURE_CLASSES)} failure classes × {len(GAINS)} grasp gains "
+    print(f"regressions: {len(classes)} failure classes × {len(GAINS)} grasp gains "
           f"({GAINS[0]}…{GAINS[-1]}), {workers} workers")  # fmt: skip
     with ProcessPoolExecutor(workers) as pool:
         results = list(pool.map(_passes, *zip(*jobs, strict=True)))
     out: dict[str, Any] = {}
-    for case_id, baseline in FAILURE_CLASSES:
+    for case_id, baseline in classes:
         mine = [r for r in results if r[0] == case_id]
         passed = sum(r[2] for r in mine)
         default = next(r for r in mine if r[1] == DEFAULT_GAIN)
