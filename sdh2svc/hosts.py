@@ -70,6 +70,22 @@ def is_host(text: str) -> bool:
     return bool(split_host(text)[0])
 
 
+def accepted_hosts(
+    host: str, allowed_hosts: tuple[str, ...]
+) -> tuple[tuple[str, ...], tuple[tuple[str, int], ...]]:
+    """The names this service answers to with any port (loopback, ``host``, the
+    ``allowed_hosts`` entries without a port) and the (name, port) entries with one, in
+    :func:`split_host`'s spelling, in order, each once; entries that can match nothing left out."""
+    names, exact = list(LOOPBACK_NAMES), list[tuple[str, int]]()
+    for entry in (host, *allowed_hosts):
+        name, port = split_host(entry)
+        if name and port is None:
+            names.append(name)
+        elif name and port is not None:
+            exact.append((name, port))
+    return tuple(dict.fromkeys(names)), tuple(dict.fromkeys(exact))
+
+
 def origin_key(origin: str) -> Origin | None:
     """``scheme://host[:port]`` (a browser's Origin header, a configured origin; one ``/`` at
     its end allowed) as compared: lower case, the scheme's default port filled in for http(s)

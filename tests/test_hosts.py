@@ -5,7 +5,14 @@ from __future__ import annotations
 
 import pytest
 
-from sdh2svc.hosts import is_host, is_loopback, origin_key, origin_text, split_host
+from sdh2svc.hosts import (
+    accepted_hosts,
+    is_host,
+    is_loopback,
+    origin_key,
+    origin_text,
+    split_host,
+)
 
 
 @pytest.mark.parametrize(
@@ -66,6 +73,7 @@ def test_the_guard_the_view_and_the_configuration_spell_hosts_and_origins_alike(
     from sdh2svc import config
     from sdh2svc.service import guard, viewer
 
-    assert guard.split_host is viewer.split_host is split_host
+    assert guard.split_host is split_host
+    assert guard.accepted_hosts is viewer.accepted_hosts is accepted_hosts
     assert guard.origin_key is viewer.origin_key is config.origin_key is origin_key
     assert config.is_host is is_host

@@ -102,6 +102,7 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 
 NUM_AXES: Final = 7
+"""Number of joint axes (§2.2); every vector on the wire has this many elements."""
 
 #: Commands older firmware does not know, and the release that brought each (SDHLibrary-CPP
 #: ``sdh/sdh.cpp``: ``GetAxisLimitVelocity`` uses fixed values before 0.0.2.1,
@@ -120,8 +121,6 @@ def firmware_release(version: str) -> tuple[int, ...]:
     """A ``VER=`` release, ``0.0.2.5``, as (0, 0, 2, 5), to compare; ValueError if it is none."""
     return tuple(int(x) for x in version.split("."))
 
-
-"""Number of joint axes (§2.2); every vector on the wire has this many elements."""
 
 EOL: Final = b"\r\n"
 """Line terminator for both directions (§2.1 host side; PART 4 item 3 settles the reply side)."""

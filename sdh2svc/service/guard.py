@@ -34,7 +34,14 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from sdh2svc.config import clip
-from sdh2svc.hosts import LOOPBACK_NAMES, Origin, origin_key, origin_text, split_host
+from sdh2svc.hosts import (
+    LOOPBACK_NAMES,
+    Origin,
+    accepted_hosts,
+    origin_key,
+    origin_text,
+    split_host,
+)
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -68,16 +75,8 @@ class Guard:
         self.max_body = max_body_kb * 1024
         self.max_body_kb = max_body_kb
         # names allowed with any port; "name:port" entries allow that port only
-        self.host_names: set[str] = set(LOOPBACK_NAMES)
-        self.host_exact: set[tuple[str, int]] = set()
-        for entry in (host, *allowed_hosts):
-            name, port = split_host(entry)
-            if not name:
-                continue
-            if port is None:
-                self.host_names.add(name)
-            else:
-                self.host_exact.add((name, port))
+        names, exact = accepted_hosts(host, allowed_hosts)
+        self.host_names, self.host_exact = set(names), set(exact)
         self.origins: set[Origin] = {k for o in allowed_origins if (k := origin_key(o))}
         self._allowed_text = ", ".join(dict.fromkeys([*LOOPBACK_NAMES, host, *allowed_hosts]))
 

@@ -57,7 +57,7 @@ from websockets.asyncio.server import ServerConnection
 from websockets.http11 import Request
 
 from sdh2svc.config import Settings
-from sdh2svc.hosts import LOOPBACK_NAMES, origin_key, split_host
+from sdh2svc.hosts import accepted_hosts, origin_key
 from sdh2svc.model.geometry import pad_point_from_L, pad_slope, pad_y3
 from sdh2svc.model.kinematics import Finger, Point, distal_joint, frame3_axes, pad_point
 from sdh2svc.model.urdf import (
@@ -361,18 +361,10 @@ def origin_allowed(origin: str, settings: Settings, view_port: int) -> bool:
     return (key[1] in names and key[2] in {view_port, svc.port} - {0}) or key[1:] in exact
 
 
-def _hosts(settings: Settings) -> tuple[list[str], list[tuple[str, int]]]:
-    """The names a page of this service may be at with any port (loopback, ``service.host``,
-    ``service.allowed_hosts`` without a port), and the (name, port) entries with one."""
-    svc = settings.service
-    names, exact = list(LOOPBACK_NAMES), []
-    for entry in (svc.host, *svc.allowed_hosts):
-        name, port = split_host(entry)
-        if name and port is None:
-            names.append(name)
-        elif name and port is not None:
-            exact.append((name, port))
-    return list(dict.fromkeys(names)), list(dict.fromkeys(exact))
+def _hosts(settings: Settings) -> tuple[tuple[str, ...], tuple[tuple[str, int], ...]]:
+    """The guard's: the names a page of this service may be at with any port, and the
+    (name, port) entries with one (:func:`~sdh2svc.hosts.accepted_hosts`)."""
+    return accepted_hosts(settings.service.host, settings.service.allowed_hosts)
 
 
 def frame_ancestors(settings: Settings) -> str:
