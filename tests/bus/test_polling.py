@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
@@ -135,24 +136,42 @@ def _fast(
     return run_fast(main())
 
 
-def test_a_control_loop_commands_at_once_on_fresh_angles(tmp_path: Path) -> None:
-    async def loop_30hz(link: JointLink, _: Sdh2Emulator) -> list[tuple[float, float, float]]:
+@dataclass(frozen=True)
+class Beat:
+    """One iteration of a 30 Hz control loop: when it took the angles, when they were read,
+    when its command went on the line, and how many exchanges it took to command and move."""
+
+    t: float
+    read_at: float
+    sent: float
+    exchanges: int
+
+
+def _control_loop(beats: int) -> Callable[[JointLink, Sdh2Emulator], Awaitable[list[Beat]]]:
+    """A control loop at 30 Hz: take the angles, command the targets and move, ``beats`` times."""
+
+    async def loop_30hz(link: JointLink, _: Sdh2Emulator) -> list[Beat]:
         loop = asyncio.get_running_loop()
         await link.set_velocities((40.0,) * NUM_AXES)
         link.start_polling()
-        beats = []
+        out = []
         t = loop.time()
-        for _ in range(60):
+        for _ in range(beats):
             t += PERIOD
             await asyncio.sleep(t - loop.time())
             reading = link.take_reading()
             assert reading is not None
+            before = link.stats.commands
             sent = await link.send_targets(POSE)
             await link.move()
-            beats.append((t, reading.at, sent))
-        return beats
+            out.append(Beat(t, reading.at, sent, link.stats.commands - before))
+        return out
 
-    beats = _fast(tmp_path, loop_30hz)[10:]  # once the rhythm is learnt
+    return loop_30hz
+
+
+def test_a_control_loop_commands_at_once_on_fresh_angles(tmp_path: Path) -> None:
+    beats = [(b.t, b.read_at, b.sent) for b in _fast(tmp_path, _control_loop(60))[10:]]
     assert all(sent == t for t, _, sent in beats)  # no poll in the way: the command left at once
     ages = [t - at for t, at, _ in beats]
     assert max(ages) <= 0.004  # answered just before the beat (the plan's 2 ms guard)
@@ -171,24 +190,9 @@ def test_no_poll_between_a_command_and_its_move_at_the_real_hand_s_timing(
     the next beat's command came (bench service: sense→command p99 ×2). A beat now makes the
     poller plan again."""
 
-    async def loop_30hz(link: JointLink, _: Sdh2Emulator) -> list[tuple[float, float, int]]:
-        loop = asyncio.get_running_loop()
-        await link.set_velocities((40.0,) * NUM_AXES)
-        link.start_polling()
-        beats = []
-        t = loop.time()
-        for _ in range(90):
-            t += PERIOD
-            await asyncio.sleep(t - loop.time())
-            assert link.take_reading() is not None
-            polls = link.stats.commands
-            sent = await link.send_targets(POSE)
-            await link.move()
-            beats.append((t, sent, link.stats.commands - polls))  # p, m and any poll between
-        return beats
-
     timing = Sdh2Options(ascii_latency_s=0.0049, binary_latency_s=firmware_s)
-    beats = _fast(tmp_path, loop_30hz, timing)[10:]  # once the rhythm is learnt
+    run = _fast(tmp_path, _control_loop(90), timing)[10:]  # once the rhythm is learnt
+    beats = [(b.t, b.sent, b.exchanges) for b in run]  # p, m and any poll between
     assert [n for _, _, n in beats] == [2] * len(beats)  # p and m only: no poll in between
     assert all(sent == t for t, sent, _ in beats)  # and none in the way of the command
 
