@@ -275,7 +275,18 @@ async def _send_error(
     await send({"type": "http.response.body", "body": body})
 
 
+MESSAGE_CHARS = 400  # an error's sentence, and each of its detail lines, at most
+DETAIL_LINES = 50
+
+
+def error_content(message: str, details: list[str]) -> dict[str, Any]:
+    """Every error's body, the guard's and the app's (``api.errors``): the last guard against
+    echoing a long value back (what builds the message clips what it quotes)."""
+    lines = [clip(d, MESSAGE_CHARS) for d in details][:DETAIL_LINES]
+    return {"error": clip(message, MESSAGE_CHARS), "details": lines}
+
+
 def _error_body(message: str, details: list[str]) -> bytes:
     """The error body, encoded as the app's own (Starlette's JSONResponse: compact, UTF-8)."""
-    return json.dumps({"error": message, "details": details}, ensure_ascii=False,
+    return json.dumps(error_content(message, details), ensure_ascii=False,
                       separators=(",", ":")).encode()  # fmt: skip

@@ -26,6 +26,7 @@ from sdh2svc.control.observer import BaseObserver, Event, EventKind, RunObserver
 from sdh2svc.control.params import RollingParams
 from sdh2svc.control.runner import Runner, RunResult
 from sdh2svc.control.sample import Sample
+from sdh2svc.heap import settle
 from sdh2svc.provenance import code_version
 from sdh2svc.service.store import Recorder, RunStore, retry_locked
 from sdh2svc.service.telemetry import outline_points
@@ -117,6 +118,7 @@ class RecordedRun:
         program holds locked must not hold the event loop: the service's every answer, its
         links and the e-stop go through it), and both finish even if this task is cancelled
         meanwhile (a run whose end was never written stayed ``running`` for good)."""
+        settle()  # before anything moves: no full collection of the heap mid-run (sdh2svc.heap)
         try:
             try:
                 result = await self.runner.run()  # (an e-stop's cancellation ends it too)

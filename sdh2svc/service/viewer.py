@@ -814,8 +814,10 @@ class Viewer:
             parts.append(f"it {run['iteration']}")
         if st.get("estopped"):
             parts.append("**E-STOP latched**")
-        if isinstance(replay := st.get("replay"), dict):
-            parts.append(f"replay of run {replay.get('run_id')}, it {replay.get('iteration')}")
+        if isinstance(replay := st.get("replay"), dict):  # the scene is the replay's: it leads,
+            # and the state beside it is said to be the hand's now, not the replayed iteration's
+            shown = f"replay of run {replay.get('run_id')}, it {replay.get('iteration')}"
+            parts = [shown, f"live: {parts[0]}", *parts[1:]]
         if self._note and time.monotonic() - self._note_at > NOTE_S:
             self._note = ""
         text = " · ".join(parts)

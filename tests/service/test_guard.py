@@ -88,6 +88,20 @@ async def test_host_allow_list_without_a_token() -> None:
     assert (await call(guard(Recorder(), token="t"), headers={"host": "evil.example"}))[0] == 200
 
 
+async def test_an_error_body_is_limited_as_the_apps() -> None:
+    """However long the configuration's lists, a refusal's lines are as long as the app's
+    errors may be (``error_content``, one rule for both)."""
+    names = tuple(f"lab-pc-{i:03d}.example.org" for i in range(200))
+    g = guard(Recorder(), allowed_hosts=names, allowed_origins=tuple(f"http://{n}" for n in names))
+    status, body, _ = await call(g, headers={"host": "evil.example"})
+    assert status == 400
+    assert body["details"] and all(len(d) <= 401 for d in body["details"])  # type: ignore[index]
+    assert "lab-pc-000.example.org" in body["details"][0]  # type: ignore[index]
+    status, body, _ = await call(g, "POST", "/api/runs", {"origin": "http://evil.example", **JSON})
+    assert status == 403
+    assert all(len(d) <= 401 for d in body["details"])  # type: ignore[index]
+
+
 async def test_origin_checked_on_mutating_requests_without_a_token() -> None:
     app = Recorder()
     g = guard(app, allowed_origins=("http://dash.example:9000",))

@@ -841,7 +841,9 @@ async def test_a_replayed_iteration_reaches_the_view_then_live_again(
     colors = np.asarray(viewer.nodes["/f1/distal/cells"].batched_colors)
     assert tuple(colors[-6]) == tuple(tactile_colors(np.array([4095]))[0])
     assert viewer.nodes["/contacts/A"].visible  # a replay's contacts stay, whatever the run
-    assert f"replay of run {run_id}, it 3" in viewer.nodes["gui/state"].content
+    state = viewer.nodes["gui/state"].content
+    # the replay first; the hand's own state beside it says it is live (not the iteration's)
+    assert state.startswith(f"replay of run {run_id}, it 3 · live: **idle**"), state
 
     # live telemetry meanwhile does not move the replayed hand
     n = viewer.frames

@@ -13,6 +13,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sdh2svc.config import clip, error_key, error_message, model_keys, shown, unknown_key
 from sdh2svc.service.api.body import UNREADABLE, BodyRefused
+from sdh2svc.service.guard import error_content
 from sdh2svc.service.hand_service import ServiceError
 
 
@@ -86,9 +87,7 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 
 def error(status: int, message: str, details: list[str] | None = None) -> JSONResponse:
-    # the last guard against echoing a long value back (the handlers clip what they quote)
-    body = {"error": clip(message, 400), "details": [clip(d, 400) for d in details or []][:50]}
-    return JSONResponse(body, status_code=status)
+    return JSONResponse(error_content(message, details or []), status_code=status)
 
 
 def _body_keys(request: Request) -> list[str] | None:
