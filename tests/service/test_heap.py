@@ -1,6 +1,6 @@
 """A run starts with its process's heap settled (``sdh2svc.heap``): a full collection of the
 cyclic garbage collector in the middle of a run stopped the event loop that drives the hand for
-20–50 ms — a tactile frame missed, its command late."""
+20–70 ms — a tactile frame missed, its command late."""
 
 from __future__ import annotations
 
