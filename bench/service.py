@@ -36,7 +36,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 from websockets.typing import Subprotocol
 
-from bench.common import percentile
+from bench.common import p99_ratio_interval, percentile
 from sdh2svc.client import AsyncClient
 from tests.live_service import LiveService, start_service
 
@@ -246,8 +246,11 @@ def _report(title: str, m: dict[str, Any]) -> dict[str, float]:
     worse = lo["p99"] / b["p99"] - 1
     slower = 1 - lo["loop"] / b["loop"]
     verdict = "met" if worse < TARGET else "NOT met"
+    low, high = p99_ratio_interval([r["latencies"] for r in base],
+                                   [r["latencies"] for r in loaded])  # fmt: skip
     print(f"  target p99 < {TARGET * 100:.0f} % worse: {worse * 100:+.1f} % ({verdict}); "
-          f"loop rate {-slower * 100:+.1f} %")  # fmt: skip
+          f"95 % interval over runs and iterations {(low - 1) * 100:+.0f} … "
+          f"{(high - 1) * 100:+.0f} %; loop rate {-slower * 100:+.1f} %")  # fmt: skip
     return {"loop_ratio": lo["loop"] / b["loop"], "p99_ratio": worse + 1}
 
 
