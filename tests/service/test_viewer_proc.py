@@ -119,6 +119,21 @@ async def test_serves_viser_on_a_free_port_and_stops(cfg: Settings) -> None:
     await v.stop()  # idempotent
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_getscheduler"), reason="Linux's scheduling policies")
+async def test_the_view_never_takes_the_services_core_on_waking(cfg: Settings) -> None:
+    """The child is a batch task (it does not preempt the service when the service's telemetry
+    wakes it) with a normal share of the CPU (its panel's e-stop answers on a busy machine)."""
+    v = ViewerProcess(cfg, port=0)
+    await v.start()
+    try:
+        assert v.pid is not None
+        assert os.sched_getscheduler(v.pid) == os.SCHED_BATCH
+        assert os.getpriority(os.PRIO_PROCESS, v.pid) == os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the service's own is untouched
+    finally:
+        await v.stop()
+
+
 async def test_forwards_latest_only_while_watched(cfg: Settings) -> None:
     async with running(cfg, max_hz=30.0) as v:
         v.handle({"type": "pose", "angles_deg": POSE})
