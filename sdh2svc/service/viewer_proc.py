@@ -405,7 +405,7 @@ def _yield_to_the_service() -> None:
     SCHED_BATCH: a batch task does not preempt on wake-up; it still has its fair share, so
     its panel's e-stop answers on a busy machine). A normal process, woken by the telemetry the
     service sends it, took the core the service was on: the service's 1.4 kB send returned
-    2–6 ms later, about three times a second, the control loop stopped meanwhile."""
+    2–6 ms later, three to nine times a second, the control loop stopped meanwhile."""
     with contextlib.suppress(AttributeError, OSError):  # not Linux: as any process
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
 
