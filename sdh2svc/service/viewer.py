@@ -357,14 +357,8 @@ def origin_allowed(origin: str, settings: Settings, view_port: int) -> bool:
     svc = settings.service
     if key in {origin_key(o) for o in svc.allowed_origins}:
         return True
-    names, exact = _hosts(settings)
+    names, exact = accepted_hosts(svc.host, svc.allowed_hosts)
     return (key[1] in names and key[2] in {view_port, svc.port} - {0}) or key[1:] in exact
-
-
-def _hosts(settings: Settings) -> tuple[tuple[str, ...], tuple[tuple[str, int], ...]]:
-    """The guard's: the names a page of this service may be at with any port, and the
-    (name, port) entries with one (:func:`~sdh2svc.hosts.accepted_hosts`)."""
-    return accepted_hosts(settings.service.host, settings.service.allowed_hosts)
 
 
 def frame_ancestors(settings: Settings) -> str:
@@ -373,7 +367,7 @@ def frame_ancestors(settings: Settings) -> str:
     in CSP), and every ``service.allowed_origins`` entry."""
     svc = settings.service
     port = str(svc.port) if svc.port else "*"
-    names, exact = _hosts(settings)
+    names, exact = accepted_hosts(svc.host, svc.allowed_hosts)
     at = [(name, port) for name in names] + [(name, str(p)) for name, p in exact]
     pages = [f"{scheme}://{name}:{p}" for name, p in at if not name.startswith("[")
              for scheme in ("http", "https")]  # fmt: skip
